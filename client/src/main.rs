@@ -1,0 +1,2 @@
+//! `canopy`: the command-line entry point.
+fn main() {}

@@ -1,0 +1,12 @@
+//! Canopy's wire types and their codec: species graphs (the DCG programs of seed 001), limits, encoding.
+//!
+//! Contract: this crate holds data and the rules for accepting it, nothing else. It depends on no tokio, quinn,
+//! wgpu or filesystem; every decoder bounds sizes, counts and depth before it allocates or recurses, and
+//! [`species::SpeciesGraph::decode`] returns only graphs that pass [`species::SpeciesGraph::validate`].
+
+pub mod expr;
+pub mod limits;
+pub mod species;
+
+pub use expr::{Expr, Func, Op};
+pub use species::{DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, ValidateError};

@@ -1,0 +1,1 @@
+//! Shared helpers for Canopy's integration tests (the tests themselves live in `tests/tests/`).

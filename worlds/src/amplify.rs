@@ -1,0 +1,309 @@
+//! Database amplification (seed 001 §3.3–3.4): traverse a species graph for one instance and emit its primitive
+//! stream. Pure: no clock, no IO, no GPU, no native recursion.
+//!
+//! Traversal is depth first, left to right, driven by an explicit task stack. State — the transform, the material
+//! colour, the parameter values and the RNG context — accumulates along the way; [`Node::Separator`] saves and
+//! restores all of it except the RNG context, [`Node::RecursionSeparator`] saves and restores the
+//! [`ParamScope::Local`] parameters and opens a child RNG context (see [`crate::rng`]). Every instance runs under
+//! a [`Budget`]: a hostile graph ends in an [`AmplifyError`] after bounded work and memory.
+
+use canopy_protocol::{Node, NodeId, ParamScope, SpeciesGraph};
+
+use crate::eval::eval;
+use crate::primitive::{Primitive, PrimitiveStream, Shape};
+use crate::rng::{child_key, Context, InstanceRng, ROOT_KEY};
+use crate::transform::Transform;
+
+/// One instance of a species: the seed, parameter values that override the defaults, and the detail level.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Instance {
+    /// Seeds the instance RNG; same seed, same tree, on every machine.
+    pub seed: u64,
+    /// `(slot, value)` pairs overriding the declared defaults.
+    pub params: Vec<(u16, f32)>,
+    /// 0 is full detail; each step up selects coarser substitutes in LOD nodes and is visible to expressions as
+    /// `detail` (seed 001 §5).
+    pub detail: u8,
+}
+
+impl Instance {
+    /// An instance with this seed, default parameters and full detail.
+    pub fn new(seed: u64) -> Instance {
+        Instance { seed, params: Vec::new(), detail: 0 }
+    }
+
+    /// The same instance at another detail level.
+    pub fn with_detail(mut self, detail: u8) -> Instance {
+        self.detail = detail;
+        self
+    }
+}
+
+/// Work and size limits for one traversal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Budget {
+    /// Most primitives emitted.
+    pub max_primitives: u32,
+    /// Deepest nesting of separators and recursion separators.
+    pub max_depth: u32,
+    /// Most steps: node visits, scheduled children and expression operations together.
+    pub max_steps: u64,
+    /// Most tasks waiting on the traversal stack at once (bounds memory for wide cycles without separators).
+    pub max_pending: u32,
+}
+
+impl Default for Budget {
+    fn default() -> Self {
+        Budget { max_primitives: 1_000_000, max_depth: 1_024, max_steps: 100_000_000, max_pending: 1 << 20 }
+    }
+}
+
+/// Why amplification stopped.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum AmplifyError {
+    /// The graph emits more primitives than the budget allows.
+    #[error("more than {0} primitives")]
+    Primitives(u32),
+    /// Separators nest deeper than the budget allows (runaway recursion).
+    #[error("separators nested deeper than {0}")]
+    Depth(u32),
+    /// Traversal took more steps than the budget allows (infinite or exponential recursion).
+    #[error("more than {0} traversal steps")]
+    Steps(u64),
+    /// Too many tasks are waiting at once (a wide cycle without separators).
+    #[error("more than {0} pending traversal tasks")]
+    Pending(u32),
+    /// An instance parameter names a slot the species does not declare.
+    #[error("instance sets parameter slot {0}, which the species does not declare")]
+    Param(u16),
+}
+
+#[derive(Clone, Copy)]
+enum Task {
+    Visit(NodeId),
+    EndSeparator,
+    EndRecursion,
+}
+
+struct SavedSeparator {
+    transform: Transform,
+    color: [f32; 3],
+    params_at: usize,
+}
+
+struct SavedRecursion {
+    key: u64,
+    counter: u64,
+    params_at: usize,
+}
+
+/// Evaluate the instance's parameters: every default in declaration order in the root RNG context (so drawing
+/// is the same whether or not a value is overridden), then the overrides. Returns the values and the root
+/// context's next counter.
+pub fn instance_params(
+    graph: &SpeciesGraph,
+    instance: &Instance,
+    rng: &mut InstanceRng,
+) -> Result<(Vec<f32>, u64), AmplifyError> {
+    let mut params = vec![0.0f32; graph.params.len()];
+    let detail = f32::from(instance.detail);
+    let mut ctx = Context { rng, key: ROOT_KEY, counter: 0 };
+    for (i, p) in graph.params.iter().enumerate() {
+        params[i] = eval(&p.default, &params, detail, &mut ctx);
+    }
+    for &(slot, v) in &instance.params {
+        *params.get_mut(slot as usize).ok_or(AmplifyError::Param(slot))? = v;
+    }
+    Ok((params, ctx.counter))
+}
+
+/// Traverse `graph` for `instance` within `budget`.
+pub fn amplify(graph: &SpeciesGraph, instance: &Instance, budget: &Budget) -> Result<PrimitiveStream, AmplifyError> {
+    let mut out = PrimitiveStream::default();
+    amplify_into(graph, instance, budget, &mut out)?;
+    Ok(out)
+}
+
+/// Like [`amplify`], but appends to `out` (reuse its allocations across instances).
+pub fn amplify_into(
+    graph: &SpeciesGraph,
+    instance: &Instance,
+    budget: &Budget,
+    out: &mut PrimitiveStream,
+) -> Result<(), AmplifyError> {
+    let mut rng = InstanceRng::new(instance.seed);
+    let (mut params, root_counter) = instance_params(graph, instance, &mut rng)?;
+    let detail = f32::from(instance.detail);
+    let local_slots: Vec<usize> =
+        graph.params.iter().enumerate().filter(|(_, p)| p.scope == ParamScope::Local).map(|(i, _)| i).collect();
+    let all_local = local_slots.len() == params.len();
+    let np = params.len();
+
+    let mut transform = Transform::IDENTITY;
+    let mut color = [0.8f32, 0.8, 0.8];
+    let mut key = ROOT_KEY;
+    let mut counter = root_counter;
+
+    let mut tasks: Vec<Task> = vec![Task::Visit(graph.root)];
+    let mut separators: Vec<SavedSeparator> = Vec::new();
+    let mut recursions: Vec<SavedRecursion> = Vec::new();
+    let mut saved_params: Vec<f32> = Vec::new();
+    let mut scratch: Vec<f32> = Vec::new();
+    let mut steps: u64 = 0;
+    let first_primitive = out.primitives.len();
+
+    // Evaluate one expression in the current state, charging its length to the step budget.
+    macro_rules! ev {
+        ($e:expr) => {{
+            let e = $e;
+            steps += e.ops.len() as u64;
+            let mut ctx = Context { rng: &mut rng, key, counter };
+            let v = eval(e, &params, detail, &mut ctx);
+            counter = ctx.counter;
+            v
+        }};
+    }
+
+    while let Some(task) = tasks.pop() {
+        steps += 1;
+        if steps > budget.max_steps {
+            return Err(AmplifyError::Steps(budget.max_steps));
+        }
+        let id = match task {
+            Task::Visit(id) => id,
+            Task::EndSeparator => {
+                let s = separators.pop().expect("separator end without start");
+                transform = s.transform;
+                color = s.color;
+                params.copy_from_slice(&saved_params[s.params_at..s.params_at + np]);
+                saved_params.truncate(s.params_at);
+                continue;
+            }
+            Task::EndRecursion => {
+                let s = recursions.pop().expect("recursion end without start");
+                key = s.key;
+                counter = s.counter;
+                let saved = &saved_params[s.params_at..s.params_at + np];
+                if all_local {
+                    params.copy_from_slice(saved);
+                } else {
+                    for &i in &local_slots {
+                        params[i] = saved[i];
+                    }
+                }
+                saved_params.truncate(s.params_at);
+                continue;
+            }
+        };
+        match &graph.nodes[id as usize] {
+            Node::Group(children) => {
+                steps += children.len() as u64;
+                tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
+            }
+            Node::Separator(children) => {
+                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
+                    return Err(AmplifyError::Depth(budget.max_depth));
+                }
+                separators.push(SavedSeparator { transform, color, params_at: saved_params.len() });
+                saved_params.extend_from_slice(&params);
+                steps += children.len() as u64;
+                tasks.push(Task::EndSeparator);
+                tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
+            }
+            Node::RecursionSeparator(children) => {
+                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
+                    return Err(AmplifyError::Depth(budget.max_depth));
+                }
+                recursions.push(SavedRecursion { key, counter: counter + 1, params_at: saved_params.len() });
+                saved_params.extend_from_slice(&params);
+                key = child_key(key, counter);
+                counter = 0;
+                steps += children.len() as u64;
+                tasks.push(Task::EndRecursion);
+                tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
+            }
+            Node::Selection { expr, children } => {
+                let v = ev!(expr);
+                let last = children.len() - 1;
+                let i = if v.is_nan() { 0 } else { (v as i64).clamp(0, last as i64) as usize };
+                tasks.push(Task::Visit(children[i]));
+            }
+            Node::Lod(children) => {
+                let i = usize::from(instance.detail).min(children.len() - 1);
+                tasks.push(Task::Visit(children[i]));
+            }
+            Node::Calculation(assignments) => {
+                scratch.clear();
+                for (_, e) in assignments {
+                    let v = ev!(e);
+                    scratch.push(v);
+                }
+                for ((slot, _), &v) in assignments.iter().zip(&scratch) {
+                    params[*slot as usize] = v;
+                }
+            }
+            Node::Translate([x, y, z]) => {
+                let (x, y, z) = (ev!(x), ev!(y), ev!(z));
+                transform = transform.translated(x, y, z);
+            }
+            Node::Rotate { axis: [x, y, z], angle } => {
+                let (x, y, z, a) = (ev!(x), ev!(y), ev!(z), ev!(angle));
+                transform = transform.mul(&Transform::rotation([x, y, z], a));
+            }
+            Node::Scale([x, y, z]) => {
+                let (x, y, z) = (ev!(x), ev!(y), ev!(z));
+                transform = transform.mul(&Transform::scale(x, y, z));
+            }
+            Node::Matrix(m) => {
+                let mut t = [0.0f32; 12];
+                for (dst, e) in t.iter_mut().zip(m.iter()) {
+                    *dst = ev!(e);
+                }
+                transform = transform.mul(&Transform { m: t });
+            }
+            Node::Material([r, g, b]) => {
+                color = [ev!(r), ev!(g), ev!(b)];
+            }
+            node => {
+                if (out.primitives.len() - first_primitive) as u32 >= budget.max_primitives {
+                    return Err(AmplifyError::Primitives(budget.max_primitives));
+                }
+                let shape = match node {
+                    Node::Cone { bottom, top, height } => {
+                        Shape::Cone { bottom: ev!(bottom), top: ev!(top), height: ev!(height) }
+                    }
+                    Node::Cylinder { radius, height } => Shape::Cylinder { radius: ev!(radius), height: ev!(height) },
+                    Node::Sphere { radius } => Shape::Sphere { radius: ev!(radius) },
+                    Node::Box { size: [x, y, z] } => Shape::Box { size: [ev!(x), ev!(y), ev!(z)] },
+                    Node::Leaf { topology, points } => {
+                        let start = out.leaf_points.len() as u32;
+                        for [x, y, z] in points {
+                            let p = [ev!(x), ev!(y), ev!(z)];
+                            out.leaf_points.push(p);
+                        }
+                        Shape::Leaf { topology: *topology, start, end: out.leaf_points.len() as u32 }
+                    }
+                    _ => unreachable!("every non-primitive node is matched above"),
+                };
+                out.primitives.push(Primitive { shape, transform, color });
+            }
+        }
+        if tasks.len() as u32 > budget.max_pending {
+            return Err(AmplifyError::Pending(budget.max_pending));
+        }
+    }
+    Ok(())
+}
+
+/// Resolve `name=value` parameter settings against a species, for command lines and world files.
+pub fn resolve_params(graph: &SpeciesGraph, settings: &[(String, f32)]) -> Result<Vec<(u16, f32)>, String> {
+    settings
+        .iter()
+        .map(|(name, v)| {
+            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| {
+                let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
+                format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
+            })
+        })
+        .collect()
+}

@@ -1,0 +1,14 @@
+//! What Canopy worlds are made of: the text formats, the L-system→DCG compiler and pure, deterministic
+//! amplification of species instances into primitives and meshes.
+//!
+//! Contract: nothing here reads the clock, the network or a GPU; the same species, seed, parameters and detail
+//! level give bit-identical primitive streams and meshes on every platform (see `ARCHITECTURE.md`).
+
+pub mod amplify;
+pub mod diag;
+pub mod eval;
+pub mod expr;
+pub mod primitive;
+pub mod rng;
+pub mod text;
+pub mod transform;

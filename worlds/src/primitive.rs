@@ -1,0 +1,190 @@
+//! The primitive stream: what traversal of a species graph emits, one entry per primitive node visited.
+
+use canopy_protocol::LeafTopology;
+
+use crate::transform::Transform;
+
+/// The shape and size of one primitive, in its local frame (axis +Y, see [`canopy_protocol::Node`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Shape {
+    /// A cone or frustum on the origin along +Y.
+    Cone {
+        /// Radius at y = 0.
+        bottom: f32,
+        /// Radius at the top.
+        top: f32,
+        /// Height.
+        height: f32,
+    },
+    /// A cylinder on the origin along +Y.
+    Cylinder {
+        /// Radius.
+        radius: f32,
+        /// Height.
+        height: f32,
+    },
+    /// A sphere centred on the origin.
+    Sphere {
+        /// Radius.
+        radius: f32,
+    },
+    /// A box centred on the origin.
+    Box {
+        /// Edge lengths.
+        size: [f32; 3],
+    },
+    /// A leaf polygon or strip; its local points are `stream.leaf_points[start..end]`.
+    Leaf {
+        /// Polygon or strip.
+        topology: LeafTopology,
+        /// First point in [`PrimitiveStream::leaf_points`].
+        start: u32,
+        /// One past the last point.
+        end: u32,
+    },
+}
+
+/// The kinds of primitive, for counting.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum PrimitiveKind {
+    /// Cone or frustum.
+    Cone,
+    /// Cylinder.
+    Cylinder,
+    /// Sphere.
+    Sphere,
+    /// Box.
+    Box,
+    /// Leaf polygon or strip.
+    Leaf,
+}
+
+impl PrimitiveKind {
+    /// All kinds, in display order.
+    pub const ALL: [PrimitiveKind; 5] =
+        [PrimitiveKind::Cone, PrimitiveKind::Cylinder, PrimitiveKind::Sphere, PrimitiveKind::Box, PrimitiveKind::Leaf];
+
+    /// Lowercase name.
+    pub fn name(self) -> &'static str {
+        match self {
+            PrimitiveKind::Cone => "cone",
+            PrimitiveKind::Cylinder => "cylinder",
+            PrimitiveKind::Sphere => "sphere",
+            PrimitiveKind::Box => "box",
+            PrimitiveKind::Leaf => "leaf",
+        }
+    }
+}
+
+impl Shape {
+    /// The primitive's kind.
+    pub fn kind(&self) -> PrimitiveKind {
+        match self {
+            Shape::Cone { .. } => PrimitiveKind::Cone,
+            Shape::Cylinder { .. } => PrimitiveKind::Cylinder,
+            Shape::Sphere { .. } => PrimitiveKind::Sphere,
+            Shape::Box { .. } => PrimitiveKind::Box,
+            Shape::Leaf { .. } => PrimitiveKind::Leaf,
+        }
+    }
+}
+
+/// One emitted primitive: shape, world transform (species space) and material colour.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Primitive {
+    /// Shape and local size.
+    pub shape: Shape,
+    /// Accumulated transform at the primitive node.
+    pub transform: Transform,
+    /// Linear RGB colour of the current material.
+    pub color: [f32; 3],
+}
+
+/// Everything one traversal emitted, in traversal order (depth first, left to right).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PrimitiveStream {
+    /// The primitives.
+    pub primitives: Vec<Primitive>,
+    /// Local points of all leaves, referenced by [`Shape::Leaf`].
+    pub leaf_points: Vec<[f32; 3]>,
+}
+
+impl PrimitiveStream {
+    /// Number of primitives of each kind, in [`PrimitiveKind::ALL`] order.
+    pub fn counts(&self) -> [usize; 5] {
+        let mut c = [0usize; 5];
+        for p in &self.primitives {
+            c[p.shape.kind() as usize] += 1;
+        }
+        c
+    }
+
+    /// The local points of a leaf primitive (empty for other shapes).
+    pub fn leaf(&self, p: &Primitive) -> &[[f32; 3]] {
+        match p.shape {
+            Shape::Leaf { start, end, .. } => &self.leaf_points[start as usize..end as usize],
+            _ => &[],
+        }
+    }
+
+    /// A stable 64-bit FNV-1a hash over the bit patterns of everything in the stream, for golden tests.
+    pub fn hash(&self) -> u64 {
+        let mut h = Fnv::new();
+        for p in &self.primitives {
+            h.u32(p.shape.kind() as u32);
+            match &p.shape {
+                Shape::Cone { bottom, top, height } => h.f32s(&[*bottom, *top, *height]),
+                Shape::Cylinder { radius, height } => h.f32s(&[*radius, *height]),
+                Shape::Sphere { radius } => h.f32s(&[*radius]),
+                Shape::Box { size } => h.f32s(size),
+                Shape::Leaf { topology, start, end } => {
+                    h.u32(*topology as u32);
+                    for q in &self.leaf_points[*start as usize..*end as usize] {
+                        h.f32s(q);
+                    }
+                }
+            }
+            h.f32s(&p.transform.m);
+            h.f32s(&p.color);
+        }
+        h.finish()
+    }
+}
+
+/// 64-bit FNV-1a, for golden hashes of bit patterns (stable across platforms and Rust versions).
+#[derive(Clone, Debug)]
+pub struct Fnv(u64);
+
+impl Fnv {
+    /// A fresh hasher.
+    pub fn new() -> Fnv {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    /// Hash bytes.
+    pub fn bytes(&mut self, b: &[u8]) {
+        for &x in b {
+            self.0 ^= u64::from(x);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    /// Hash a u32, little-endian.
+    pub fn u32(&mut self, v: u32) {
+        self.bytes(&v.to_le_bytes());
+    }
+    /// Hash the bit patterns of floats.
+    pub fn f32s(&mut self, v: &[f32]) {
+        for x in v {
+            self.u32(x.to_bits());
+        }
+    }
+    /// The hash.
+    pub fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+impl Default for Fnv {
+    fn default() -> Self {
+        Fnv::new()
+    }
+}
