@@ -278,7 +278,9 @@ impl Parser<'_> {
         // The root: the single top-level node, or a group of them.
         let root = match root_children.as_slice() {
             [] => {
-                self.errors.push(ParseError::new(0..0, "the species has no nodes"));
+                if self.errors.is_empty() {
+                    self.errors.push(ParseError::new(0..0, "the species has no nodes"));
+                }
                 None
             }
             [Child::Node(id)] => Some(*id),

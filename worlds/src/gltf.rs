@@ -1,0 +1,367 @@
+//! glTF 2.0 binary export (`.glb`): one scene, one node per mesh, that the Khronos glTF validator accepts
+//! without errors or warnings.
+//!
+//! Layout: a 12-byte header, a JSON chunk (padded with spaces to 4 bytes) and a BIN chunk (zero-padded; all
+//! data is 4-byte floats and `u32` indices, so no padding is ever needed inside it). Each mesh has four buffer
+//! views, one per accessor, in this order: POSITION (with the `min`/`max` the spec requires), NORMAL, COLOR_0
+//! (all `FLOAT VEC3`, target `ARRAY_BUFFER`) and the indices (`UNSIGNED_INT SCALAR`, target
+//! `ELEMENT_ARRAY_BUFFER`). All meshes share one material: white, metallic 0, roughness 1, double-sided because
+//! leaves are single-sided geometry; the vertex colours carry the primitives' colours.
+//!
+//! The JSON is built with `serde_json` (sorted keys) and the binary data is little-endian, so the same meshes give
+//! the same bytes everywhere.
+
+use serde_json::{json, Map, Value};
+
+use crate::mesh::Mesh;
+
+/// `glTF` in little-endian.
+const MAGIC: u32 = 0x4654_6C67;
+/// The container version.
+const VERSION: u32 = 2;
+/// Chunk type `JSON`.
+const CHUNK_JSON: u32 = 0x4E4F_534A;
+/// Chunk type `BIN\0`.
+const CHUNK_BIN: u32 = 0x004E_4942;
+/// `bufferView.target` for vertex attributes.
+const ARRAY_BUFFER: u32 = 34962;
+/// `bufferView.target` for indices.
+const ELEMENT_ARRAY_BUFFER: u32 = 34963;
+/// `accessor.componentType` FLOAT.
+const FLOAT: u32 = 5126;
+/// `accessor.componentType` UNSIGNED_INT.
+const UNSIGNED_INT: u32 = 5125;
+/// `primitive.mode` TRIANGLES.
+const TRIANGLES: u32 = 4;
+
+/// Why bytes are not a well-formed GLB container (checked by [`parse_glb_header`]).
+#[derive(Debug, thiserror::Error)]
+pub enum GltfError {
+    /// Fewer bytes than a header and a chunk header, or than a chunk claims.
+    #[error("GLB truncated: {0}")]
+    Truncated(&'static str),
+    /// The first four bytes are not `glTF`.
+    #[error("not a GLB file (magic {0:#010x})")]
+    Magic(u32),
+    /// The container version is not 2.
+    #[error("GLB version {0}, expected 2")]
+    Version(u32),
+    /// The header's total length differs from the byte count.
+    #[error("GLB header says {header} bytes, got {actual}")]
+    Length {
+        /// Length in the header.
+        header: u32,
+        /// Actual length.
+        actual: usize,
+    },
+    /// A chunk has the wrong type for its place, or a length not a multiple of 4.
+    #[error("bad GLB chunk {index}: type {kind:#010x}, length {length}")]
+    Chunk {
+        /// Chunk number, 0 for the JSON chunk.
+        index: usize,
+        /// Its type.
+        kind: u32,
+        /// Its length.
+        length: u32,
+    },
+    /// Bytes follow the last chunk.
+    #[error("{0} bytes after the last GLB chunk")]
+    Trailing(usize),
+    /// The JSON chunk does not parse.
+    #[error("GLB JSON chunk: {0}")]
+    Json(#[from] serde_json::Error),
+}
+
+/// Write a `.glb` with one scene holding one node per entry: `(name, mesh, translation)`. Each node has its own
+/// mesh. Entries whose mesh has no triangles are left out; with none left, the file is still valid (a scene
+/// without nodes, no buffer). Non-finite translation components are written as 0. Each mesh must be well formed, as
+/// [`crate::mesh::mesh`] makes them: one normal and colour per position, finite values, colours in `0..=1`,
+/// indices in range.
+pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Vec<u8> {
+    let mut bin: Vec<u8> = Vec::new();
+    let (mut nodes, mut gl_meshes, mut accessors, mut views) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+
+    for (name, mesh, translation) in meshes {
+        if mesh.triangle_count() == 0 {
+            continue;
+        }
+        let vertices = mesh.positions.len();
+        let floats = |data: &[[f32; 3]]| -> Vec<u8> { data.iter().flatten().flat_map(|x| x.to_le_bytes()).collect() };
+        let pos_view = push_view(&mut bin, &mut views, &floats(&mesh.positions), ARRAY_BUFFER);
+        let normal_view =
+            push_view(&mut bin, &mut views, &floats(&mesh.normals[..vertices.min(mesh.normals.len())]), ARRAY_BUFFER);
+        let color_view =
+            push_view(&mut bin, &mut views, &floats(&mesh.colors[..vertices.min(mesh.colors.len())]), ARRAY_BUFFER);
+        let index_bytes: Vec<u8> =
+            mesh.indices[..mesh.triangle_count() * 3].iter().flat_map(|i| i.to_le_bytes()).collect();
+        let index_view = push_view(&mut bin, &mut views, &index_bytes, ELEMENT_ARRAY_BUFFER);
+
+        let (lo, hi) = mesh.bounds();
+        // f32 → f64 is exact, so the JSON numbers are exactly the stored floats.
+        let exact = |v: [f32; 3]| json!([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
+        let first = accessors.len();
+        accessors.push(json!({
+            "bufferView": pos_view, "componentType": FLOAT, "count": vertices, "type": "VEC3",
+            "min": exact(lo), "max": exact(hi),
+        }));
+        accessors.push(json!({ "bufferView": normal_view, "componentType": FLOAT, "count": vertices, "type": "VEC3" }));
+        accessors.push(json!({ "bufferView": color_view, "componentType": FLOAT, "count": vertices, "type": "VEC3" }));
+        accessors.push(json!({
+            "bufferView": index_view, "componentType": UNSIGNED_INT, "count": mesh.triangle_count() * 3,
+            "type": "SCALAR",
+        }));
+
+        let m = gl_meshes.len();
+        gl_meshes.push(json!({
+            "name": name,
+            "primitives": [{
+                "attributes": { "POSITION": first, "NORMAL": first + 1, "COLOR_0": first + 2 },
+                "indices": first + 3,
+                "material": 0,
+                "mode": TRIANGLES,
+            }],
+        }));
+        let t = translation.map(|x| if x.is_finite() { f64::from(x) } else { 0.0 });
+        let mut node = Map::new();
+        node.insert("name".into(), json!(name));
+        node.insert("mesh".into(), json!(m));
+        if t != [0.0; 3] {
+            node.insert("translation".into(), json!(t));
+        }
+        nodes.push(Value::Object(node));
+    }
+
+    let mut scene = Map::new();
+    scene.insert("name".into(), json!("canopy"));
+    if !nodes.is_empty() {
+        scene.insert("nodes".into(), json!((0..nodes.len()).collect::<Vec<_>>()));
+    }
+    let mut root = Map::new();
+    root.insert("asset".into(), json!({ "version": "2.0", "generator": "canopy" }));
+    root.insert("scene".into(), json!(0));
+    root.insert("scenes".into(), json!([Value::Object(scene)]));
+    if !nodes.is_empty() {
+        root.insert("nodes".into(), Value::Array(nodes));
+        root.insert("meshes".into(), Value::Array(gl_meshes));
+        root.insert(
+            "materials".into(),
+            json!([{
+                "name": "canopy",
+                "doubleSided": true,
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 1.0,
+                },
+            }]),
+        );
+        root.insert("accessors".into(), Value::Array(accessors));
+        root.insert("bufferViews".into(), Value::Array(views));
+        root.insert("buffers".into(), json!([{ "byteLength": bin.len() }]));
+    }
+
+    let mut json_bytes = serde_json::to_vec(&Value::Object(root)).unwrap_or_default();
+    while json_bytes.len() % 4 != 0 {
+        json_bytes.push(b' ');
+    }
+    let bin_chunk = if bin.is_empty() { 0 } else { 8 + bin.len() };
+    let total = 12 + 8 + json_bytes.len() + bin_chunk;
+    let mut out = Vec::with_capacity(total);
+    for word in [MAGIC, VERSION, total as u32, json_bytes.len() as u32, CHUNK_JSON] {
+        out.extend_from_slice(&word.to_le_bytes());
+    }
+    out.extend_from_slice(&json_bytes);
+    if !bin.is_empty() {
+        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
+        out.extend_from_slice(&bin);
+    }
+    out
+}
+
+/// Append `data` to the buffer as a new buffer view; returns the view's index.
+fn push_view(bin: &mut Vec<u8>, views: &mut Vec<Value>, data: &[u8], target: u32) -> usize {
+    views.push(json!({ "buffer": 0, "byteOffset": bin.len(), "byteLength": data.len(), "target": target }));
+    bin.extend_from_slice(data);
+    // Everything is 4-byte data, so this never pads; it keeps the alignment invariant explicit.
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
+    views.len() - 1
+}
+
+/// Check a `.glb` container — magic, version, total length, a JSON chunk first and at most one BIN chunk after
+/// it, chunk lengths that are multiples of 4 and fit — and return the parsed JSON and the BIN chunk's bytes
+/// (empty when there is none).
+pub fn parse_glb_header(bytes: &[u8]) -> Result<(Value, Vec<u8>), GltfError> {
+    let word =
+        |at: usize| -> Option<u32> { bytes.get(at..at + 4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]])) };
+    let header = |at: usize| word(at).ok_or(GltfError::Truncated("header"));
+    let magic = header(0)?;
+    if magic != MAGIC {
+        return Err(GltfError::Magic(magic));
+    }
+    let version = header(4)?;
+    if version != VERSION {
+        return Err(GltfError::Version(version));
+    }
+    let length = header(8)?;
+    if length as usize != bytes.len() {
+        return Err(GltfError::Length { header: length, actual: bytes.len() });
+    }
+
+    let mut at = 12;
+    let mut chunks: Vec<&[u8]> = Vec::new();
+    while at < bytes.len() {
+        let index = chunks.len();
+        let (Some(len), Some(kind)) = (word(at), word(at + 4)) else {
+            return Err(GltfError::Truncated("chunk header"));
+        };
+        let expected = if index == 0 { CHUNK_JSON } else { CHUNK_BIN };
+        if index > 1 {
+            return Err(GltfError::Trailing(bytes.len() - at));
+        }
+        if kind != expected || len % 4 != 0 || (index == 0 && len == 0) {
+            return Err(GltfError::Chunk { index, kind, length: len });
+        }
+        let data = bytes.get(at + 8..at + 8 + len as usize).ok_or(GltfError::Truncated("chunk data"))?;
+        chunks.push(data);
+        at += 8 + len as usize;
+    }
+    let Some(json_chunk) = chunks.first() else {
+        return Err(GltfError::Truncated("no JSON chunk"));
+    };
+    let json = serde_json::from_slice(json_chunk)?;
+    Ok((json, chunks.get(1).map(|b| b.to_vec()).unwrap_or_default()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{mesh, MeshOptions};
+    use crate::primitive::{Primitive, PrimitiveStream, Shape};
+    use crate::transform::Transform;
+    use canopy_protocol::LeafTopology;
+
+    fn sample() -> PrimitiveStream {
+        let mut s = PrimitiveStream::default();
+        let p = |shape, transform| Primitive { shape, transform, color: [0.45, 0.3, 0.15] };
+        s.primitives.push(p(Shape::Cylinder { radius: 0.1, height: 1.0 }, Transform::IDENTITY));
+        s.primitives.push(p(Shape::Sphere { radius: 0.3 }, Transform::translation(0.0, 1.2, 0.0)));
+        s.primitives.push(p(Shape::Box { size: [0.2, 0.1, 0.3] }, Transform::translation(0.5, 0.0, 0.0)));
+        s.leaf_points.extend([[0.0, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.3, 0.0], [-0.1, 0.1, 0.0]]);
+        s.primitives.push(p(
+            Shape::Leaf { topology: LeafTopology::Polygon, start: 0, end: 4 },
+            Transform::translation(0.0, 1.0, 0.2),
+        ));
+        s
+    }
+
+    fn u32_at(b: &[u8], at: usize) -> u32 {
+        u32::from_le_bytes([b[at], b[at + 1], b[at + 2], b[at + 3]])
+    }
+
+    #[test]
+    fn header_and_chunk_lengths_are_consistent() {
+        let m = mesh(&sample(), &MeshOptions::default());
+        let bytes = glb(&[("tree".to_string(), &m, [1.0, 0.0, -2.0])]);
+        assert_eq!(&bytes[0..4], b"glTF");
+        assert_eq!(u32_at(&bytes, 4), 2);
+        assert_eq!(u32_at(&bytes, 8) as usize, bytes.len());
+        let json_len = u32_at(&bytes, 12) as usize;
+        assert_eq!(json_len % 4, 0);
+        assert_eq!(&bytes[16..20], b"JSON");
+        let bin_at = 20 + json_len;
+        let bin_len = u32_at(&bytes, bin_at) as usize;
+        assert_eq!(&bytes[bin_at + 4..bin_at + 8], b"BIN\0");
+        assert_eq!(bin_len % 4, 0);
+        assert_eq!(bin_at + 8 + bin_len, bytes.len());
+        // Positions, normals and colours (3 floats each) plus the indices.
+        assert_eq!(bin_len, m.vertex_count() * 36 + m.indices.len() * 4);
+        // JSON padding is spaces.
+        assert!(bytes[20..bin_at].iter().rev().take_while(|&&b| b != b'}').all(|&b| b == b' '));
+    }
+
+    #[test]
+    fn json_round_trips_and_accessors_match_the_mesh() {
+        let a = mesh(&sample(), &MeshOptions::default());
+        let b = mesh(&sample(), &MeshOptions::for_detail(3));
+        let empty = crate::mesh::Mesh::default();
+        let bytes = glb(&[
+            ("a".to_string(), &a, [0.0; 3]),
+            ("empty".to_string(), &empty, [0.0; 3]),
+            ("b".to_string(), &b, [3.0, 0.0, 0.0]),
+        ]);
+        let (json, bin) = parse_glb_header(&bytes).expect("well-formed GLB");
+        assert_eq!(json["asset"]["version"], "2.0");
+        assert_eq!(json["asset"]["generator"], "canopy");
+        assert_eq!(json["materials"][0]["doubleSided"], true);
+        assert_eq!(json["buffers"][0]["byteLength"].as_u64(), Some(bin.len() as u64));
+        let nodes = json["nodes"].as_array().unwrap();
+        assert_eq!(nodes.len(), 2, "the empty mesh is skipped");
+        assert_eq!(nodes[1]["name"], "b");
+        assert_eq!(nodes[1]["translation"], json!([3.0, 0.0, 0.0]));
+        assert_eq!(json["scenes"][0]["nodes"], json!([0, 1]));
+        for (i, m) in [&a, &b].into_iter().enumerate() {
+            let prim = &json["meshes"][i]["primitives"][0];
+            let acc = |key: &str| &json["accessors"][prim["attributes"][key].as_u64().unwrap() as usize];
+            for key in ["POSITION", "NORMAL", "COLOR_0"] {
+                assert_eq!(acc(key)["count"].as_u64(), Some(m.vertex_count() as u64), "{key}");
+                assert_eq!(acc(key)["type"], "VEC3");
+            }
+            let idx = &json["accessors"][prim["indices"].as_u64().unwrap() as usize];
+            assert_eq!(idx["count"].as_u64(), Some(m.indices.len() as u64));
+            assert_eq!(idx["componentType"], UNSIGNED_INT);
+            let (lo, hi) = m.bounds();
+            let pos = acc("POSITION");
+            for k in 0..3 {
+                assert_eq!(pos["min"][k].as_f64().unwrap() as f32, lo[k]);
+                assert_eq!(pos["max"][k].as_f64().unwrap() as f32, hi[k]);
+            }
+            // The position data in BIN is the mesh's, bit for bit.
+            let view = &json["bufferViews"][pos["bufferView"].as_u64().unwrap() as usize];
+            assert_eq!(view["target"], ARRAY_BUFFER);
+            let off = view["byteOffset"].as_u64().unwrap() as usize;
+            assert_eq!(off % 4, 0);
+            let first: Vec<f32> = (0..3).map(|k| f32::from_bits(u32_at(&bin, off + 4 * k))).collect();
+            assert_eq!(first, m.positions[0]);
+            let iview = &json["bufferViews"][idx["bufferView"].as_u64().unwrap() as usize];
+            assert_eq!(iview["target"], ELEMENT_ARRAY_BUFFER);
+        }
+    }
+
+    #[test]
+    fn no_meshes_still_make_a_valid_container() {
+        let empty = crate::mesh::Mesh::default();
+        for bytes in [glb(&[]), glb(&[("e".to_string(), &empty, [0.0; 3])])] {
+            let (json, bin) = parse_glb_header(&bytes).unwrap();
+            assert!(bin.is_empty());
+            assert!(json.get("buffers").is_none() && json.get("nodes").is_none());
+            assert_eq!(json["scenes"].as_array().map(Vec::len), Some(1));
+        }
+    }
+
+    #[test]
+    fn export_is_deterministic() {
+        let m = mesh(&sample(), &MeshOptions::default());
+        let entry = [("tree".to_string(), &m, [0.5, 0.0, 0.5])];
+        assert_eq!(glb(&entry), glb(&entry));
+    }
+
+    #[test]
+    fn parse_rejects_malformed_containers() {
+        let m = mesh(&sample(), &MeshOptions::default());
+        let good = glb(&[("tree".to_string(), &m, [0.0; 3])]);
+        assert!(matches!(parse_glb_header(&good[..8]), Err(GltfError::Truncated(_))));
+        let mut bad = good.clone();
+        bad[0] = b'x';
+        assert!(matches!(parse_glb_header(&bad), Err(GltfError::Magic(_))));
+        let mut bad = good.clone();
+        bad[4] = 1;
+        assert!(matches!(parse_glb_header(&bad), Err(GltfError::Version(1))));
+        assert!(matches!(parse_glb_header(&good[..good.len() - 4]), Err(GltfError::Length { .. })));
+        let mut bad = good.clone();
+        bad[16] = b'j';
+        assert!(matches!(parse_glb_header(&bad), Err(GltfError::Chunk { index: 0, .. })));
+    }
+}
