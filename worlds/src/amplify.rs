@@ -11,7 +11,7 @@ use canopy_protocol::{Node, NodeId, ParamScope, SpeciesGraph};
 
 use crate::eval::eval;
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
-use crate::rng::{child_key, Context, InstanceRng, ROOT_KEY};
+use crate::rng::{child_key, BlockCache, Context, InstanceRng, ROOT_KEY};
 use crate::transform::Transform;
 
 /// One instance of a species: the seed, parameter values that override the defaults, and the detail level.
@@ -95,6 +95,8 @@ struct SavedRecursion {
     key: u64,
     counter: u64,
     params_at: usize,
+    /// The caller's RNG block, so its next draw after the call costs nothing.
+    cache: BlockCache,
 }
 
 /// Evaluate the instance's parameters: every default in declaration order in the root RNG context (so drawing
@@ -144,6 +146,7 @@ pub fn amplify_into(
     let mut key = ROOT_KEY;
     let mut counter = root_counter;
 
+    let fixed: Vec<Option<Transform>> = graph.nodes.iter().map(constant_transform).collect();
     let mut tasks: Vec<Task> = vec![Task::Visit(graph.root)];
     let mut separators: Vec<SavedSeparator> = Vec::new();
     let mut recursions: Vec<SavedRecursion> = Vec::new();
@@ -183,6 +186,7 @@ pub fn amplify_into(
                 let s = recursions.pop().expect("recursion end without start");
                 key = s.key;
                 counter = s.counter;
+                rng.cache = s.cache;
                 let saved = &saved_params[s.params_at..s.params_at + np];
                 if all_local {
                     params.copy_from_slice(saved);
@@ -214,7 +218,12 @@ pub fn amplify_into(
                 if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
                     return Err(AmplifyError::Depth(budget.max_depth));
                 }
-                recursions.push(SavedRecursion { key, counter: counter + 1, params_at: saved_params.len() });
+                recursions.push(SavedRecursion {
+                    key,
+                    counter: counter + 1,
+                    params_at: saved_params.len(),
+                    cache: rng.cache,
+                });
                 saved_params.extend_from_slice(&params);
                 key = child_key(key, counter);
                 counter = 0;
@@ -245,6 +254,12 @@ pub fn amplify_into(
             Node::Translate([x, y, z]) => {
                 let (x, y, z) = (ev!(x), ev!(y), ev!(z));
                 transform = transform.translated(x, y, z);
+            }
+            Node::Rotate { .. } | Node::Scale(_) | Node::Matrix(_)
+                if fixed[id as usize].is_some() =>
+            {
+                // A transformation whose arguments are all constants: computed once per traversal.
+                transform = transform.mul(fixed[id as usize].as_ref().expect("checked by the guard"));
             }
             Node::Rotate { axis: [x, y, z], angle } => {
                 let (x, y, z, a) = (ev!(x), ev!(y), ev!(z), ev!(angle));
@@ -293,6 +308,24 @@ pub fn amplify_into(
         }
     }
     Ok(())
+}
+
+/// The matrix of a rotation, scale or general matrix node whose arguments are all constants (translations are
+/// cheaper applied directly and are left out).
+fn constant_transform(node: &Node) -> Option<Transform> {
+    let c = |e: &canopy_protocol::Expr| e.as_constant();
+    match node {
+        Node::Rotate { axis: [x, y, z], angle } => Some(Transform::rotation([c(x)?, c(y)?, c(z)?], c(angle)?)),
+        Node::Scale([x, y, z]) => Some(Transform::scale(c(x)?, c(y)?, c(z)?)),
+        Node::Matrix(m) => {
+            let mut t = [0.0f32; 12];
+            for (dst, e) in t.iter_mut().zip(m.iter()) {
+                *dst = c(e)?;
+            }
+            Some(Transform { m: t })
+        }
+        _ => None,
+    }
 }
 
 /// Resolve `name=value` parameter settings against a species, for command lines and world files.

@@ -53,10 +53,39 @@ fn b(v: bool) -> f32 {
 /// Evaluate a validated expression. `params` must hold at least as many values as the expression's slots refer
 /// to (guaranteed for expressions of a validated species graph). The work is at most `expr.ops.len()` steps.
 pub fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
-    // Fast paths for the commonest shapes: a constant or a parameter.
+    // Fast paths for the commonest shapes: a constant, a parameter, and one operator on two of them. They
+    // compute exactly what the general loop below computes.
+    #[inline(always)]
+    fn leaf(op: &Op, params: &[f32]) -> Option<f32> {
+        match op {
+            Op::Const(v) => Some(*v),
+            Op::Param(s) => Some(params[*s as usize]),
+            _ => None,
+        }
+    }
     match expr.ops.as_slice() {
-        [Op::Const(v)] => return *v,
-        [Op::Param(s)] => return params[*s as usize],
+        [a] => {
+            if let Some(v) = leaf(a, params) {
+                return v;
+            }
+        }
+        [a, c, op] => {
+            if let (Some(x), Some(y)) = (leaf(a, params), leaf(c, params)) {
+                match op {
+                    Op::Add => return x + y,
+                    Op::Sub => return x - y,
+                    Op::Mul => return x * y,
+                    Op::Div => return x / y,
+                    Op::Lt => return b(x < y),
+                    Op::Le => return b(x <= y),
+                    Op::Gt => return b(x > y),
+                    Op::Ge => return b(x >= y),
+                    Op::Eq => return b(x == y),
+                    Op::Ne => return b(x != y),
+                    _ => {}
+                }
+            }
+        }
         _ => {}
     }
     let mut stack = [0.0f32; limits::MAX_EXPR_STACK];

@@ -287,7 +287,7 @@ fn write_glb(out: &PathBuf, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Resu
 pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
     println!("Canopy species demo: every embedded species, amplified deterministically from its seed.\n");
     println!(
-        "{:<12} {:>6} {:>8} {:>9} {:>11} {:>7} {:>9} {:>9}",
+        "{:<16} {:>6} {:>8} {:>9} {:>11} {:>7} {:>9} {:>9}",
         "species", "nodes", "encoded", "prims", "explicit", "ratio", "ms/tree", "Mprim/s"
     );
     let mut meshes: Vec<(String, Mesh, [f32; 3])> = Vec::new();
@@ -314,7 +314,7 @@ pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
         let n = args.per_species.max(1) as f64;
         let encoded = g.encode().len();
         println!(
-            "{:<12} {:>6} {:>8} {:>9} {:>11} {:>6.0}× {:>9.3} {:>9.2}",
+            "{:<16} {:>6} {:>8} {:>9} {:>11} {:>6.0}× {:>9.3} {:>9.2}",
             entry.name(),
             g.nodes.len(),
             encoded,
