@@ -127,7 +127,9 @@ pub enum Node {
         points: Vec<[Expr; 3]>,
     },
     /// Level of detail (seed 001 §5): child `min(detail, len - 1)` is traversed; child 0 is full detail, later
-    /// children are hand-made substitutes.
+    /// children are hand-made substitutes. The chosen child runs in a call frame like a
+    /// [`Node::RecursionSeparator`] (local parameters restored, a child RNG context), so which substitute is chosen
+    /// changes nothing outside it.
     Lod(Vec<NodeId>),
 }
 

@@ -99,8 +99,9 @@ struct SavedRecursion {
     cache: BlockCache,
 }
 
-/// Evaluate the instance's parameters: every default in declaration order in the root RNG context (so drawing
-/// is the same whether or not a value is overridden), then the overrides. Returns the values and the root
+/// Evaluate the instance's parameters in declaration order in the root RNG context: each default is always
+/// evaluated (so drawing is the same whether or not a value is overridden), then replaced by the instance's value
+/// if it has one, so later defaults see the override (`param s = height / n`). Returns the values and the root
 /// context's next counter.
 pub fn instance_params(
     graph: &SpeciesGraph,
@@ -110,11 +111,12 @@ pub fn instance_params(
     let mut params = vec![0.0f32; graph.params.len()];
     let detail = f32::from(instance.detail);
     let mut ctx = Context { rng, key: ROOT_KEY, counter: 0 };
-    for (i, p) in graph.params.iter().enumerate() {
-        params[i] = eval(&p.default, &params, detail, &mut ctx);
+    if let Some(&(slot, _)) = instance.params.iter().find(|(s, _)| *s as usize >= params.len()) {
+        return Err(AmplifyError::Param(slot));
     }
-    for &(slot, v) in &instance.params {
-        *params.get_mut(slot as usize).ok_or(AmplifyError::Param(slot))? = v;
+    for (i, p) in graph.params.iter().enumerate() {
+        let v = eval(&p.default, &params, detail, &mut ctx);
+        params[i] = instance.params.iter().rev().find(|(s, _)| *s as usize == i).map_or(v, |&(_, o)| o);
     }
     Ok((params, ctx.counter))
 }
@@ -238,7 +240,22 @@ pub fn amplify_into(
                 tasks.push(Task::Visit(children[i]));
             }
             Node::Lod(children) => {
+                // The chosen substitute runs in its own call frame and RNG context, like a recursion separator,
+                // so switching substitutes changes nothing outside them (no popping elsewhere in the tree).
+                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
+                    return Err(AmplifyError::Depth(budget.max_depth));
+                }
+                recursions.push(SavedRecursion {
+                    key,
+                    counter: counter + 1,
+                    params_at: saved_params.len(),
+                    cache: rng.cache,
+                });
+                saved_params.extend_from_slice(&params);
+                key = child_key(key, counter);
+                counter = 0;
                 let i = usize::from(instance.detail).min(children.len() - 1);
+                tasks.push(Task::EndRecursion);
                 tasks.push(Task::Visit(children[i]));
             }
             Node::Calculation(assignments) => {

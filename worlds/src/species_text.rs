@@ -16,7 +16,8 @@
 //!   }
 //! }
 //! ```
-//! Containers: `group`, `separator`, `recurse`, `select(expr)`, `lod` take `{ nodes }`; `calc { a = e, b = e }`
+//! Containers: `group`, `separator`, `recurse`, `select(expr)`, `lod` take `{ nodes }`; `defs { … }` holds
+//! named nodes that are only reached through `use`; `calc { a = e, b = e }`
 //! assigns simultaneously; the transformation, material and primitive calls are those of [`crate::nodes`].
 //! The top-level nodes form the root group. Parameters must be declared before the nodes that use them.
 
@@ -172,6 +173,12 @@ impl Parser<'_> {
             }
             "param" | "state" | "species" => {
                 Err(ParseError::new(span, format!("`{word}` is only allowed at the top level")))
+            }
+            "defs" => {
+                // A block of definitions that is not traversed where it stands: its nodes exist only through `use`.
+                self.cur.expect("{")?;
+                let _ = self.node_list(depth + 1, false);
+                Ok(None)
             }
             "use" => {
                 let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a name after `use`"))?;

@@ -128,3 +128,28 @@ fn hostile_graphs_end_in_typed_errors_within_budget() {
         assert_eq!(amplify(&g, &Instance::new(0), &budget), Err(want), "{text}");
     }
 }
+
+#[test]
+fn parameter_defaults_see_earlier_overrides() {
+    let g = species("param height = 10\nparam s = height / 4\ncylinder(1, s)\n");
+    let slot = g.param_slot("height").unwrap();
+    let s = amplify(&g, &Instance { seed: 0, params: vec![(slot, 20.0)], detail: 0 }, &Budget::default()).unwrap();
+    assert_eq!(s.primitives[0].shape, Shape::Cylinder { radius: 1.0, height: 5.0 });
+}
+
+#[test]
+fn lod_substitutes_do_not_shift_draws_outside_them() {
+    // The full child draws three times, the substitute none; the sphere after the LOD node must not care.
+    let g = species("param r = 1\nlod { group { calc { r = rand() + rand() + rand() } } group {} }\nsphere(rand())\nsphere(r)\n");
+    let at = |detail| amplify(&g, &Instance::new(11).with_detail(detail), &Budget::default()).unwrap();
+    let (full, coarse) = (at(0), at(1));
+    assert_eq!(full.primitives[0].shape, coarse.primitives[0].shape);
+    assert_eq!(full.primitives[1].shape, Shape::Sphere { radius: 1.0 }, "locals set inside a substitute stay inside");
+}
+
+#[test]
+fn defs_blocks_are_not_traversed_in_place() {
+    let s = run("defs { def Twig cylinder(0.1, 1) }\nsphere(1)\nuse Twig\n");
+    let kinds: Vec<&str> = s.primitives.iter().map(|p| p.shape.kind().name()).collect();
+    assert_eq!(kinds, ["sphere", "cylinder"]);
+}
