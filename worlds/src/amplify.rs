@@ -169,6 +169,20 @@ pub fn amplify_into(
         }};
     }
 
+    // Open a call frame: save the local parameters, the caller's RNG context and block, and enter the child
+    // context `(child_key(key, counter), 0)` (see `crate::rng`). `Task::EndRecursion` closes it.
+    macro_rules! enter_frame {
+        () => {{
+            if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
+                return Err(AmplifyError::Depth(budget.max_depth));
+            }
+            recursions.push(SavedRecursion { key, counter: counter + 1, params_at: saved_params.len(), cache: rng.cache });
+            saved_params.extend_from_slice(&params);
+            key = child_key(key, counter);
+            counter = 0;
+        }};
+    }
+
     while let Some(task) = tasks.pop() {
         steps += 1;
         if steps > budget.max_steps {
@@ -217,18 +231,7 @@ pub fn amplify_into(
                 tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
             }
             Node::RecursionSeparator(children) => {
-                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
-                    return Err(AmplifyError::Depth(budget.max_depth));
-                }
-                recursions.push(SavedRecursion {
-                    key,
-                    counter: counter + 1,
-                    params_at: saved_params.len(),
-                    cache: rng.cache,
-                });
-                saved_params.extend_from_slice(&params);
-                key = child_key(key, counter);
-                counter = 0;
+                enter_frame!();
                 steps += children.len() as u64;
                 tasks.push(Task::EndRecursion);
                 tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
@@ -242,18 +245,7 @@ pub fn amplify_into(
             Node::Lod(children) => {
                 // The chosen substitute runs in its own call frame and RNG context, like a recursion separator,
                 // so switching substitutes changes nothing outside them (no popping elsewhere in the tree).
-                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
-                    return Err(AmplifyError::Depth(budget.max_depth));
-                }
-                recursions.push(SavedRecursion {
-                    key,
-                    counter: counter + 1,
-                    params_at: saved_params.len(),
-                    cache: rng.cache,
-                });
-                saved_params.extend_from_slice(&params);
-                key = child_key(key, counter);
-                counter = 0;
+                enter_frame!();
                 let i = usize::from(instance.detail).min(children.len() - 1);
                 tasks.push(Task::EndRecursion);
                 tasks.push(Task::Visit(children[i]));

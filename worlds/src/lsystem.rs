@@ -245,6 +245,23 @@ pub struct Symbol {
     pub terminal: Vec<Successor>,
 }
 
+impl Symbol {
+    /// A symbol with no formals, body, productions or selection node yet.
+    fn blank(name: &str, kind: SymbolKind) -> Symbol {
+        Symbol {
+            name: name.to_string(),
+            kind,
+            formals: Vec::new(),
+            body: None,
+            primitives: 0,
+            selection: None,
+            select: None,
+            productions: Vec::new(),
+            terminal: Vec::new(),
+        }
+    }
+}
+
 /// A parsed and compiled L-system: the DCG and what the reference rewriter needs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LSystem {
@@ -771,17 +788,7 @@ impl Compiler<'_> {
 
         // The alphabet: turtle symbols, then modules, then non-terminals.
         for t in Turtle::ALL {
-            self.symbols.push(Symbol {
-                name: t.text().to_string(),
-                kind: SymbolKind::Turtle(t),
-                formals: Vec::new(),
-                body: None,
-                primitives: 0,
-                selection: None,
-                select: None,
-                productions: Vec::new(),
-                terminal: Vec::new(),
-            });
+            self.symbols.push(Symbol::blank(t.text(), SymbolKind::Turtle(t)));
         }
         // (symbol, formal names, span) of each user symbol, for slot naming and arity checks.
         let mut heads: Vec<(SymbolId, Vec<String>, Range<usize>)> = Vec::new();
@@ -957,17 +964,7 @@ impl Compiler<'_> {
 
     fn new_symbol(&mut self, name: &str, kind: SymbolKind) -> SymbolId {
         let id = self.symbols.len() as SymbolId;
-        self.symbols.push(Symbol {
-            name: name.to_string(),
-            kind,
-            formals: Vec::new(),
-            body: None,
-            primitives: 0,
-            selection: None,
-            select: None,
-            productions: Vec::new(),
-            terminal: Vec::new(),
-        });
+        self.symbols.push(Symbol::blank(name, kind));
         self.by_name.insert(name.to_string(), id);
         id
     }

@@ -31,7 +31,7 @@ impl Transform {
     /// A rotation of `degrees` about `axis` (normalised here; a zero axis gives the identity), right-handed.
     pub fn rotation(axis: [f32; 3], degrees: f32) -> Transform {
         let len = libm::sqrtf(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]);
-        if !(len > 0.0) || !len.is_finite() {
+        if len.is_nan() || len <= 0.0 || !len.is_finite() {
             return Transform::IDENTITY;
         }
         let (x, y, z) = (axis[0] / len, axis[1] / len, axis[2] / len);
