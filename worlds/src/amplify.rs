@@ -9,7 +9,7 @@
 
 use canopy_protocol::{Node, NodeId, ParamScope, SpeciesGraph};
 
-use crate::eval::eval;
+use crate::eval::{eval, eval_simple, eval_stack};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
 use crate::rng::{child_key, BlockCache, Context, InstanceRng, ROOT_KEY};
 use crate::transform::Transform;
@@ -149,6 +149,7 @@ pub fn amplify_into(
     let mut counter = root_counter;
 
     let fixed: Vec<Option<Transform>> = graph.nodes.iter().map(constant_transform).collect();
+    let mut rotations: Vec<(Option<[u32; 4]>, Transform)> = vec![(None, Transform::IDENTITY); graph.nodes.len()];
     let mut tasks: Vec<Task> = vec![Task::Visit(graph.root)];
     let mut separators: Vec<SavedSeparator> = Vec::new();
     let mut recursions: Vec<SavedRecursion> = Vec::new();
@@ -162,10 +163,15 @@ pub fn amplify_into(
         ($e:expr) => {{
             let e = $e;
             steps += e.ops.len() as u64;
-            let mut ctx = Context { rng: &mut rng, key, counter };
-            let v = eval(e, &params, detail, &mut ctx);
-            counter = ctx.counter;
-            v
+            match eval_simple(e, &params) {
+                Some(v) => v,
+                None => {
+                    let mut ctx = Context { rng: &mut rng, key, counter };
+                    let v = eval_stack(e, &params, detail, &mut ctx);
+                    counter = ctx.counter;
+                    v
+                }
+            }
         }};
     }
 
@@ -271,8 +277,15 @@ pub fn amplify_into(
                 transform = transform.mul(fixed[id as usize].as_ref().expect("checked by the guard"));
             }
             Node::Rotate { axis: [x, y, z], angle } => {
-                let (x, y, z, a) = (ev!(x), ev!(y), ev!(z), ev!(angle));
-                transform = transform.mul(&Transform::rotation([x, y, z], a));
+                let args = [ev!(x), ev!(y), ev!(z), ev!(angle)];
+                // Rotations by a parameter (an L-system's `+` turns by `angle`) repeat their arguments: keep the
+                // last matrix per node (compared bit for bit, so the result is the same as recomputing).
+                let memo = &mut rotations[id as usize];
+                let bits = args.map(f32::to_bits);
+                if memo.0 != Some(bits) {
+                    *memo = (Some(bits), Transform::rotation([args[0], args[1], args[2]], args[3]));
+                }
+                transform = transform.mul(&memo.1);
             }
             Node::Scale([x, y, z]) => {
                 let (x, y, z) = (ev!(x), ev!(y), ev!(z));

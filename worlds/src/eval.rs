@@ -52,9 +52,18 @@ fn b(v: bool) -> f32 {
 
 /// Evaluate a validated expression. `params` must hold at least as many values as the expression's slots refer
 /// to (guaranteed for expressions of a validated species graph). The work is at most `expr.ops.len()` steps.
+#[inline(always)]
 pub fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
-    // Fast paths for the commonest shapes: a constant, a parameter, and one operator on two of them. They
-    // compute exactly what the general loop below computes.
+    match eval_simple(expr, params) {
+        Some(v) => v,
+        None => eval_stack(expr, params, detail, draw),
+    }
+}
+
+/// The commonest shapes without the stack machine: a constant, a parameter, and one arithmetic or comparison
+/// operator on two of them. `None` for anything else. Computes exactly what [`eval_stack`] computes.
+#[inline(always)]
+pub fn eval_simple(expr: &Expr, params: &[f32]) -> Option<f32> {
     #[inline(always)]
     fn leaf(op: &Op, params: &[f32]) -> Option<f32> {
         match op {
@@ -64,31 +73,42 @@ pub fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &m
         }
     }
     match expr.ops.as_slice() {
-        [a] => {
-            if let Some(v) = leaf(a, params) {
-                return v;
-            }
-        }
+        [a] => leaf(a, params),
         [a, c, op] => {
-            if let (Some(x), Some(y)) = (leaf(a, params), leaf(c, params)) {
-                match op {
-                    Op::Add => return x + y,
-                    Op::Sub => return x - y,
-                    Op::Mul => return x * y,
-                    Op::Div => return x / y,
-                    Op::Lt => return b(x < y),
-                    Op::Le => return b(x <= y),
-                    Op::Gt => return b(x > y),
-                    Op::Ge => return b(x >= y),
-                    Op::Eq => return b(x == y),
-                    Op::Ne => return b(x != y),
-                    _ => {}
-                }
-            }
+            let (x, y) = (leaf(a, params)?, leaf(c, params)?);
+            Some(match op {
+                Op::Add => x + y,
+                Op::Sub => x - y,
+                Op::Mul => x * y,
+                Op::Div => x / y,
+                Op::Lt => b(x < y),
+                Op::Le => b(x <= y),
+                Op::Gt => b(x > y),
+                Op::Ge => b(x >= y),
+                Op::Eq => b(x == y),
+                Op::Ne => b(x != y),
+                _ => return None,
+            })
         }
-        _ => {}
+        _ => None,
     }
-    let mut stack = [0.0f32; limits::MAX_EXPR_STACK];
+}
+
+/// The general stack machine (see [`eval`]).
+#[inline(never)]
+pub fn eval_stack<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
+    // The stack never holds more values than there are operations: short expressions get a small stack, which
+    // is cheaper to set up.
+    if expr.ops.len() <= 16 {
+        run::<D, 16>(expr, params, detail, draw)
+    } else {
+        run::<D, { limits::MAX_EXPR_STACK }>(expr, params, detail, draw)
+    }
+}
+
+#[inline(always)]
+fn run<D: Draw + ?Sized, const N: usize>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
+    let mut stack = [0.0f32; N];
     let mut sp = 0usize;
     let ops = &expr.ops;
     let mut pc = 0usize;
