@@ -16,17 +16,14 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Species tools: check, stats, amplify, export, list.
+    /// Species tools: check, stats, amplify, export, list, demo.
     #[command(subcommand)]
     Species(species::SpeciesCommand),
-    /// Amplify every species of the embedded library, print its numbers and export a grove (.glb).
-    Demo(species::DemoArgs),
 }
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Species(cmd) => species::run(cmd),
-        Command::Demo(args) => species::demo(args),
     }
 }

@@ -55,6 +55,8 @@ pub enum SpeciesCommand {
     },
     /// List the embedded species library.
     List,
+    /// Amplify every species of the embedded library, print its numbers and export a grove (.glb).
+    Demo(DemoArgs),
 }
 
 /// Which instance to amplify, and under what budget.
@@ -120,6 +122,7 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
         SpeciesCommand::Amplify { instance, out } => amplify_cmd(&instance.config()?, out),
         SpeciesCommand::Export { instance, out, grove, spacing } => export(&instance.config()?, &out, grove, spacing),
+        SpeciesCommand::Demo(args) => demo(args),
         SpeciesCommand::List => {
             for e in library::SPECIES {
                 let g = e.load().map_err(|d| anyhow::anyhow!("{d}"))?;
