@@ -77,6 +77,18 @@ impl PrimitiveKind {
 }
 
 impl Shape {
+    /// The size values of the shape in declaration order (cone: bottom, top, height; cylinder: radius, height;
+    /// sphere: radius; box: x, y, z; leaf: none — its points live in the stream): the first `n` of the array.
+    pub fn sizes(&self) -> ([f32; 3], usize) {
+        match *self {
+            Shape::Cone { bottom, top, height } => ([bottom, top, height], 3),
+            Shape::Cylinder { radius, height } => ([radius, height, 0.0], 2),
+            Shape::Sphere { radius } => ([radius, 0.0, 0.0], 1),
+            Shape::Box { size } => (size, 3),
+            Shape::Leaf { .. } => ([0.0; 3], 0),
+        }
+    }
+
     /// The primitive's kind.
     pub fn kind(&self) -> PrimitiveKind {
         match self {
@@ -132,16 +144,12 @@ impl PrimitiveStream {
         let mut h = Fnv::new();
         for p in &self.primitives {
             h.u32(p.shape.kind() as u32);
-            match &p.shape {
-                Shape::Cone { bottom, top, height } => h.f32s(&[*bottom, *top, *height]),
-                Shape::Cylinder { radius, height } => h.f32s(&[*radius, *height]),
-                Shape::Sphere { radius } => h.f32s(&[*radius]),
-                Shape::Box { size } => h.f32s(size),
-                Shape::Leaf { topology, start, end } => {
-                    h.u32(*topology as u32);
-                    for q in &self.leaf_points[*start as usize..*end as usize] {
-                        h.f32s(q);
-                    }
+            let (sizes, n) = p.shape.sizes();
+            h.f32s(&sizes[..n]);
+            if let Shape::Leaf { topology, .. } = p.shape {
+                h.u32(topology as u32);
+                for q in self.leaf(p) {
+                    h.f32s(q);
                 }
             }
             h.f32s(&p.transform.m);

@@ -12,7 +12,7 @@ use canopy_worlds::gltf::glb;
 use canopy_worlds::library;
 use canopy_worlds::load::{load, load_file};
 use canopy_worlds::mesh::{explicit_bytes, mesh, Mesh, MeshOptions};
-use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream, Shape};
+use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
 use clap::{Args, Subcommand};
 
 #[derive(Subcommand, Debug)]
@@ -242,15 +242,9 @@ fn amplify_cmd(cfg: &InstanceConfig, out: Option<PathBuf>) -> anyhow::Result<Exi
 fn write_stream(w: &mut dyn Write, s: &PrimitiveStream) -> std::io::Result<()> {
     writeln!(w, "# kind sizes... | transform m00..m23 | r g b [| leaf points x y z ...]")?;
     for p in &s.primitives {
-        let sizes: Vec<f32> = match &p.shape {
-            Shape::Cone { bottom, top, height } => vec![*bottom, *top, *height],
-            Shape::Cylinder { radius, height } => vec![*radius, *height],
-            Shape::Sphere { radius } => vec![*radius],
-            Shape::Box { size } => size.to_vec(),
-            Shape::Leaf { .. } => vec![],
-        };
+        let (sizes, n) = p.shape.sizes();
         let f = |v: &[f32]| v.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join(" ");
-        write!(w, "{} {} | {} | {}", p.shape.kind().name(), f(&sizes), f(&p.transform.m), f(&p.color))?;
+        write!(w, "{} {} | {} | {}", p.shape.kind().name(), f(&sizes[..n]), f(&p.transform.m), f(&p.color))?;
         let pts = s.leaf(p);
         if !pts.is_empty() {
             write!(w, " | {}", f(&pts.concat()))?;
