@@ -19,3 +19,4 @@ pub mod rng;
 pub mod species_text;
 pub mod text;
 pub mod transform;
+pub mod world;

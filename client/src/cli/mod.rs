@@ -1,6 +1,7 @@
 //! The `canopy` command line: argument definitions and dispatch.
 
 mod species;
+mod world;
 
 use std::process::ExitCode;
 
@@ -19,11 +20,15 @@ enum Command {
     /// Species tools: check, stats, amplify, export, list, demo.
     #[command(subcommand)]
     Species(species::SpeciesCommand),
+    /// World manifests: stats (the embedded default world, or a manifest file).
+    #[command(subcommand)]
+    World(world::WorldCommand),
 }
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Species(cmd) => species::run(cmd),
+        Command::World(cmd) => world::run(cmd),
     }
 }

@@ -1,0 +1,526 @@
+//! Worlds: a manifest (bounds, cells, seed, fractal terrain, species table, populations) loaded into a [`World`]
+//! whose instances are placed deterministically, sorted by cell and addressed by id (seed 001 §3.4 and §4).
+//!
+//! # The manifest format (`.world`)
+//!
+//! Line oriented; `#` starts a comment; blocks open with `{` at the end of a line and close with `}` on a line of
+//! its own. Statements may come in any order, except that populations are expanded in file order.
+//!
+//! ```text
+//! world forest                          # name (optional; default: the file name without extension)
+//! seed 48879                            # world seed: a u64, decimal or 0x… hexadecimal (required)
+//! bounds -1024 -1024 1024 1024          # min x, min z, max x, max z in metres; +Y is up (required)
+//! cell 64                               # cell size in metres, a power of two from 1 to 4096 (required)
+//!
+//! terrain terrain {                     # the terrain species: a library name, or a "path" relative to the file
+//!   tile 512                            # tile edge in metres (default: one square tile over the bounds)
+//!   depth 7                             # recursion depth of every tile: 2·4^depth triangles per tile
+//!   seed 7                              # the terrain's instance seed (default: derived from the world seed)
+//!   corners 20 40 60 80 90              # heights at the tile corners: one line per row from min z,
+//!   corners 30 50 ...                   #   min x to max x (default: all 0)
+//!   param dimension = 2.2               # any other parameter of the terrain species
+//!   param relief = 80
+//! }
+//!
+//! species conifer "../species/conifer.species"   # table name, then a "path" (relative) or a library name;
+//! species broadleaf monopodial                   # the table order is the species id
+//!
+//! instance broadleaf at 12.5 -40 height=25       # one instance at (x, z), with parameter values
+//!
+//! scatter conifer {                     # a distribution rule, expanded at load
+//!   spacing 5                           # Poisson-disk minimum distance between this rule's instances, metres
+//!   density 0.9                         # fraction of a full Poisson-disk packing kept, 0..1 (default 1)
+//!   altitude 90 140 ..                  # density ramp over terrain height (below)
+//!   slope .. 25 40                      # density ramp over terrain slope in degrees
+//!   region -1024 -1024 0 1024           # restrict to a rectangle (default: the bounds)
+//!   avoid broadleaf 3                   # stay 3 m from instances of `broadleaf` placed before this rule
+//!   param height = 10 .. 24 step 0.5    # per instance: uniform in the range (on multiples of `step` from 10)
+//!   param spread = 0.3                  # or a constant
+//! }
+//! ```
+//!
+//! A ramp `A B .. C D` is 0 below A, rises linearly to 1 at B, stays 1 to C and falls to 0 at D; one number on a
+//! side is a hard edge (`A .. D`), none an open end (`.. 200`).
+//!
+//! Cells are aligned to the origin: cell `(i, j)` covers `[i·s, (i+1)·s) × [j·s, (j+1)·s)`. The bounds must be
+//! multiples of the position step `s / POSITION_STEPS` and lie within `±s · POSITION_STEPS`, where every position
+//! on that grid is exact in f32. Without a `terrain` the ground is flat at height 0. A terrain species must declare
+//! the tile parameters `h00 h10 h01 h11 size depth ox oz` (as `worlds/species/terrain.species` does) and emit a
+//! crack-free grid of triangles; the world sets them for every tile. Species and terrain paths are relative to the
+//! manifest; a manifest parsed without a directory may use library names only.
+//!
+//! # Expansion
+//!
+//! Every `instance` and `scatter` is expanded in file order. A `scatter` rule throws darts on a background grid of
+//! `spacing / √2` cells, up to [`SCATTER_ATTEMPTS`] per cell, accepting a dart that keeps `spacing` from the
+//! rule's other darts and each `avoid` distance from the instances placed before the rule (grid-accelerated dart
+//! throwing: a Poisson-disk set, at most one dart per cell). Every dart is then kept with probability
+//! `density · altitude(height) · slope(slope)` — a thinned-out dart still spaced its neighbours, so the density
+//! is the fraction of a full packing kept. Cells where the terrain's bounds make that 0 throw no darts.
+//!
+//! Randomness is ChaCha8 keyed by the world seed ([`crate::rng::InstanceRng`]), read by address so that no draw
+//! depends on the order work is done in: rule key `R = child_key(fnv1a64(species name), n)` for the `n`-th rule
+//! of that species (editing a rule moves no other rule's instances, except through `avoid`); attempt `a` in
+//! background cell `c` reads word `c · SCATTER_ATTEMPTS + a` of stream `child_key(R, 0)`; the keep draw and the
+//! parameter values of the dart in cell `c` read stream `child_key(R, c + 1)`. Floats come from words by
+//! [`crate::eval::unit_f32`].
+//! Darts are thrown in row-major order of the background cells; thinning and the terrain's tiles run on as many
+//! threads as there are cores, with results that never depend on the thread count (`populate::scatter`).
+//! Positions are drawn directly on the [`POSITION_STEPS`] grid of their cell, so every check holds for the
+//! stored positions. Parameter values equal to a constant species default are not stored.
+//!
+//! Instances are then sorted by cell (z, then x) and, within a cell, by expansion order; an instance's id is its
+//! index, its seed [`World::instance_seed`]. Every count, size and extent read from the file is bounded (the
+//! `MAX_` constants below).
+
+mod manifest;
+mod par;
+mod populate;
+mod source;
+mod terrain;
+
+use std::fmt::Write as _;
+use std::ops::Range;
+use std::path::Path;
+
+use canopy_protocol::SpeciesGraph;
+
+use crate::amplify::Instance;
+use crate::diag::{Diagnostic, Diagnostics, SourceFile};
+
+pub use populate::{ParamValue, Ramp, ScatterRule};
+pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
+
+/// Positions are snapped to `cell_size / POSITION_STEPS` per axis within their cell: a position is its cell and
+/// two integers below `POSITION_STEPS` (12 bits each).
+pub const POSITION_STEPS: u32 = 4096;
+
+/// Dart attempts per background cell of a `scatter` rule.
+pub const SCATTER_ATTEMPTS: u32 = 10;
+
+/// Most bytes in a manifest file.
+pub const MAX_MANIFEST_BYTES: u64 = 1 << 20;
+/// Most cells in a world's bounds.
+pub const MAX_CELLS: u64 = 1 << 20;
+/// Most instances in a world, explicit and expanded together.
+pub const MAX_INSTANCES: usize = 4_000_000;
+/// Most entries in the species table (ids fit a byte).
+pub const MAX_SPECIES: usize = 256;
+/// Most `scatter` rules.
+pub const MAX_RULES: usize = 1024;
+/// Most background cells a `scatter` rule may sample (bounds its time and memory: spacing over region).
+pub const MAX_RULE_CELLS: u64 = 1 << 23;
+/// Most vertices in the terrain's height grid.
+pub const MAX_TERRAIN_VERTICES: u64 = 1 << 22;
+/// Deepest terrain recursion.
+pub const MAX_TERRAIN_DEPTH: u32 = 10;
+/// Smallest and largest cell size, metres.
+pub const CELL_SIZE_RANGE: (f32, f32) = (1.0, 4096.0);
+/// Largest `avoid` distance, metres.
+pub const MAX_AVOID: f32 = 1000.0;
+
+/// The world's extent on the ground plane (x, z), metres: `min` inclusive, `max` exclusive.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bounds {
+    /// Smallest x and z.
+    pub min: [f32; 2],
+    /// Largest x and z (exclusive).
+    pub max: [f32; 2],
+}
+
+impl Bounds {
+    /// Whether (x, z) lies inside.
+    pub fn contains(&self, x: f32, z: f32) -> bool {
+        x >= self.min[0] && x < self.max[0] && z >= self.min[1] && z < self.max[1]
+    }
+
+    /// Width (x) and depth (z), metres.
+    pub fn size(&self) -> [f32; 2] {
+        [self.max[0] - self.min[0], self.max[1] - self.min[1]]
+    }
+
+    /// Area, square metres.
+    pub fn area(&self) -> f64 {
+        let [w, d] = self.size();
+        f64::from(w) * f64::from(d)
+    }
+}
+
+/// One entry of the species table; its index is the species id.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WorldSpecies {
+    /// The table name (`species NAME …`).
+    pub name: String,
+    /// The compiled species.
+    pub graph: SpeciesGraph,
+    /// Where it came from: the file as shown in diagnostics, or `library:NAME`.
+    pub source: String,
+}
+
+/// One instance record: species, position on the ground and the parameter values that differ from the defaults.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Placement {
+    /// Species id (index into [`World::species`]).
+    pub species: u16,
+    /// Position, on the [`POSITION_STEPS`] grid of its cell.
+    pub x: f32,
+    /// Position, on the [`POSITION_STEPS`] grid of its cell.
+    pub z: f32,
+    /// `(slot, value)` sorted by slot: only values that differ from the species defaults.
+    pub params: Vec<(u16, f32)>,
+}
+
+/// A cell of the world's grid: cell `(x, z)` covers `[x·s, (x+1)·s) × [z·s, (z+1)·s)` for cell size `s`.
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Debug)]
+pub struct CellKey {
+    /// Column.
+    pub x: i32,
+    /// Row.
+    pub z: i32,
+}
+
+/// A loaded world: everything the server streams and clients amplify.
+#[derive(Clone, Debug)]
+pub struct World {
+    /// Name (the manifest's `world` statement or its file name).
+    pub name: String,
+    /// World seed.
+    pub seed: u64,
+    /// Extent on the ground plane.
+    pub bounds: Bounds,
+    /// Cell edge, metres; cells are the unit of area of interest.
+    pub cell_size: f32,
+    /// The species table; the index is the species id.
+    pub species: Vec<WorldSpecies>,
+    /// Every instance, sorted by (cell.z, cell.x, then expansion order); the index is the instance id.
+    pub instances: Vec<Placement>,
+    /// The fractal terrain.
+    pub terrain: Terrain,
+    /// The `scatter` rules, in file order.
+    pub rules: Vec<ScatterRule>,
+    /// Number of `instance` statements.
+    pub explicit_instances: u32,
+    /// The first cell in bounds (smallest x and z).
+    cell_min: CellKey,
+    /// Cells in bounds per axis.
+    cell_dims: [u32; 2],
+    /// `cell_starts[i]..cell_starts[i + 1]`: the instances of the `i`-th cell in row-major order.
+    cell_starts: Vec<u32>,
+}
+
+/// The embedded default world's manifest.
+pub const DEFAULT_WORLD: &str = include_str!("../../forest/forest.world");
+
+impl World {
+    /// Load a manifest file; species paths are relative to its directory.
+    pub fn load(path: &Path) -> Result<World, Diagnostics> {
+        let name = path.display().to_string();
+        let fail = |msg: String| Diagnostics(vec![SourceFile::new(name.clone(), "").diag(0..0, msg)]);
+        match std::fs::metadata(path) {
+            Ok(m) if m.len() > MAX_MANIFEST_BYTES => {
+                return Err(fail(format!("file of {} bytes exceeds {MAX_MANIFEST_BYTES}", m.len())));
+            }
+            Ok(_) => {}
+            Err(e) => return Err(fail(format!("cannot read: {e}"))),
+        }
+        let text = std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read: {e}")))?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        World::parse(&SourceFile::new(name, text), Some(base))
+    }
+
+    /// Parse a manifest. Species paths resolve against `base_dir`; without one, only library names are allowed.
+    pub fn parse(src: &SourceFile, base_dir: Option<&Path>) -> Result<World, Diagnostics> {
+        match base_dir {
+            Some(dir) => World::parse_with(src, &source::Files { base: dir }),
+            None => World::parse_with(src, &source::NoFiles),
+        }
+    }
+
+    /// The embedded default world, `worlds/forest/` (compiled in: touches no filesystem).
+    pub fn default_world() -> World {
+        let src = SourceFile::new("worlds/forest/forest.world", DEFAULT_WORLD);
+        World::parse_with(&src, &source::Embedded { dir: "forest" })
+            .unwrap_or_else(|d| panic!("the embedded default world is tested to load:\n{d}"))
+    }
+
+    fn parse_with(src: &SourceFile, files: &dyn source::Resolver) -> Result<World, Diagnostics> {
+        let mut diags = Vec::new();
+        let m = manifest::parse(src, &mut diags);
+        let world = populate::build(src, &m, files, &mut diags);
+        // The manifest's own diagnostics first, in order of position; then each species file's.
+        diags.sort_by(|a, b| {
+            let key = |d: &Diagnostic| (d.file != src.name, d.file.clone(), d.line, d.col);
+            key(a).cmp(&key(b))
+        });
+        match world {
+            Some(w) if diags.is_empty() => Ok(w),
+            _ => {
+                if diags.is_empty() {
+                    diags.push(src.diag(0..0, "the world could not be built"));
+                }
+                Err(Diagnostics(diags))
+            }
+        }
+    }
+
+    /// Assemble a world from its parts: sorts the instances by cell (stably) and builds the cell index.
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        name: String,
+        seed: u64,
+        bounds: Bounds,
+        cell_size: f32,
+        species: Vec<WorldSpecies>,
+        instances: Vec<Placement>,
+        terrain: Terrain,
+        rules: Vec<ScatterRule>,
+        explicit_instances: u32,
+    ) -> World {
+        let cell = |v: f32| (v / cell_size).floor() as i32;
+        let cell_min = CellKey { x: cell(bounds.min[0]), z: cell(bounds.min[1]) };
+        // `max` is exclusive: the last cell holds `max` minus one position step.
+        let step = cell_size / POSITION_STEPS as f32;
+        let cell_max = CellKey { x: cell(bounds.max[0] - step), z: cell(bounds.max[1] - step) };
+        let cell_dims = [(cell_max.x - cell_min.x + 1) as u32, (cell_max.z - cell_min.z + 1) as u32];
+        let mut w = World {
+            name,
+            seed,
+            bounds,
+            cell_size,
+            species,
+            instances: Vec::new(),
+            terrain,
+            rules,
+            explicit_instances,
+            cell_min,
+            cell_dims,
+            cell_starts: Vec::new(),
+        };
+        // A counting sort by cell: stable, so expansion order is kept within a cell.
+        let cells: Vec<u32> = instances
+            .iter()
+            .map(|p| w.cell_index(w.cell_of(p.x, p.z)).expect("placements are in bounds") as u32)
+            .collect();
+        let mut starts = vec![0u32; w.cell_count() + 1];
+        for &c in &cells {
+            starts[c as usize + 1] += 1;
+        }
+        for i in 1..starts.len() {
+            starts[i] += starts[i - 1];
+        }
+        let mut next = starts.clone();
+        let mut order = vec![0u32; instances.len()];
+        for (k, &c) in cells.iter().enumerate() {
+            order[next[c as usize] as usize] = k as u32;
+            next[c as usize] += 1;
+        }
+        let mut slots: Vec<Option<Placement>> = instances.into_iter().map(Some).collect();
+        w.instances = order.iter().map(|&k| slots[k as usize].take().expect("each instance once")).collect();
+        w.cell_starts = starts;
+        w
+    }
+
+    /// Number of cells in bounds.
+    pub fn cell_count(&self) -> usize {
+        self.cell_dims[0] as usize * self.cell_dims[1] as usize
+    }
+
+    /// Cells in bounds per axis (x, z).
+    pub fn cell_dims(&self) -> [u32; 2] {
+        self.cell_dims
+    }
+
+    /// The cell in bounds with the smallest x and z.
+    pub fn first_cell(&self) -> CellKey {
+        self.cell_min
+    }
+
+    /// Row-major index of a cell in bounds.
+    pub fn cell_index(&self, c: CellKey) -> Option<usize> {
+        let dx = i64::from(c.x) - i64::from(self.cell_min.x);
+        let dz = i64::from(c.z) - i64::from(self.cell_min.z);
+        let [w, d] = self.cell_dims.map(i64::from);
+        ((0..w).contains(&dx) && (0..d).contains(&dz)).then(|| (dz * w + dx) as usize)
+    }
+
+    /// Whether a cell lies (at least partly) in bounds.
+    pub fn contains_cell(&self, c: CellKey) -> bool {
+        self.cell_index(c).is_some()
+    }
+
+    /// The cell holding (x, z).
+    pub fn cell_of(&self, x: f32, z: f32) -> CellKey {
+        CellKey { x: (x / self.cell_size).floor() as i32, z: (z / self.cell_size).floor() as i32 }
+    }
+
+    /// The corner of a cell with the smallest x and z.
+    pub fn cell_origin(&self, c: CellKey) -> [f32; 2] {
+        [c.x as f32 * self.cell_size, c.z as f32 * self.cell_size]
+    }
+
+    /// Every cell in bounds, row-major (z, then x): the order of [`World::instances`].
+    pub fn cells(&self) -> impl Iterator<Item = CellKey> + '_ {
+        let (min, [w, d]) = (self.cell_min, self.cell_dims);
+        (0..d as i32).flat_map(move |z| (0..w as i32).map(move |x| CellKey { x: min.x + x, z: min.z + z }))
+    }
+
+    /// The ids of the instances in a cell (contiguous; empty for a cell out of bounds).
+    pub fn cell_instances(&self, c: CellKey) -> Range<u32> {
+        match self.cell_index(c) {
+            Some(i) => self.cell_starts[i]..self.cell_starts[i + 1],
+            None => 0..0,
+        }
+    }
+
+    /// The edge of one position step, `cell_size / POSITION_STEPS` metres.
+    pub fn position_step(&self) -> f32 {
+        self.cell_size / POSITION_STEPS as f32
+    }
+
+    /// An instance's position as its cell and its steps within the cell (each below [`POSITION_STEPS`]):
+    /// `dequantize` gives the position back bit for bit. Like every method taking an id, it panics if `id` is not
+    /// below `instances.len()` (ids come from [`World::cell_instances`]).
+    pub fn quantize(&self, id: u32) -> (CellKey, [u16; 2]) {
+        let p = &self.instances[id as usize];
+        let c = self.cell_of(p.x, p.z);
+        let [ox, oz] = self.cell_origin(c);
+        let step = self.position_step();
+        let q = |v: f32, o: f32| ((v - o) / step) as u16;
+        (c, [q(p.x, ox), q(p.z, oz)])
+    }
+
+    /// The position of steps `q` within cell `c`: `cell_origin + q · cell_size / POSITION_STEPS`, exact in f32.
+    pub fn dequantize(&self, c: CellKey, q: [u16; 2]) -> [f32; 2] {
+        let [ox, oz] = self.cell_origin(c);
+        let step = self.position_step();
+        [ox + f32::from(q[0]) * step, oz + f32::from(q[1]) * step]
+    }
+
+    /// The instance seed of id `id`: `rng::child_key(world seed, id)` =
+    /// `mix64(seed ^ mix64(id + 0x9e37_79b9_7f4a_7c15))` with SplitMix64's finaliser `mix64`
+    /// ([`crate::rng::mix64`]).
+    pub fn instance_seed(&self, id: u32) -> u64 {
+        crate::rng::child_key(self.seed, u64::from(id))
+    }
+
+    /// The instance `id` at a detail level: its seed and stored parameter values.
+    pub fn instance(&self, id: u32, detail: u8) -> Instance {
+        Instance { seed: self.instance_seed(id), params: self.instances[id as usize].params.clone(), detail }
+    }
+
+    /// Terrain height at (x, z): the height of the terrain species' triangle surface (see [`Terrain::height`]).
+    pub fn height(&self, x: f32, z: f32) -> f32 {
+        self.terrain.height(x, z)
+    }
+
+    /// An instance's position: x, the terrain height there, z.
+    pub fn position(&self, id: u32) -> [f32; 3] {
+        let p = &self.instances[id as usize];
+        [p.x, self.height(p.x, p.z), p.z]
+    }
+
+    /// The id of the species with this table name.
+    pub fn species_id(&self, name: &str) -> Option<u16> {
+        self.species.iter().position(|s| s.name == name).map(|i| i as u16)
+    }
+
+    /// Instances per species id.
+    pub fn species_counts(&self) -> Vec<u32> {
+        let mut counts = vec![0u32; self.species.len()];
+        for p in &self.instances {
+            counts[p.species as usize] += 1;
+        }
+        counts
+    }
+
+    /// The distinct stored values of parameter `slot` among the instances of `species`, ascending (a stepped
+    /// `param` range gives a short list: a palette a compact encoding can index).
+    pub fn param_values(&self, species: u16, slot: u16) -> Vec<f32> {
+        let bits: std::collections::BTreeSet<u32> = self
+            .instances
+            .iter()
+            .filter(|p| p.species == species)
+            .flat_map(|p| p.params.iter().filter(|&&(s, _)| s == slot).map(|&(_, v)| v.to_bits()))
+            .collect();
+        let mut values: Vec<f32> = bits.into_iter().map(f32::from_bits).collect();
+        values.sort_by(f32::total_cmp);
+        values
+    }
+
+    /// A human summary: area, cells, terrain, species and instance counts per species.
+    pub fn content_summary(&self) -> String {
+        let mut s = String::new();
+        let [w, d] = self.bounds.size();
+        let area_km2 = self.bounds.area() / 1e6;
+        let n = self.instances.len();
+        let _ = writeln!(s, "world {}: {w} m × {d} m = {area_km2:.2} km², seed {}", self.name, self.seed);
+        let per_cell = (0..self.cell_count()).map(|i| self.cell_starts[i + 1] - self.cell_starts[i]);
+        let max_cell = per_cell.clone().max().unwrap_or(0);
+        let empty = per_cell.filter(|&c| c == 0).count();
+        let _ = writeln!(
+            s,
+            "cells: {} × {} = {} of {} m; instances per cell: mean {:.1}, max {max_cell}, {empty} empty",
+            self.cell_dims[0],
+            self.cell_dims[1],
+            self.cell_count(),
+            self.cell_size,
+            n as f64 / self.cell_count() as f64,
+        );
+        let t = &self.terrain;
+        let (lo, hi) = t.height_range();
+        match &t.species {
+            Some(g) => {
+                let _ = writeln!(
+                    s,
+                    "terrain: {} ({}), {} × {} tiles of {} m at depth {}: {} triangles, {} m grid, heights {lo:.1} to {hi:.1} m",
+                    g.name,
+                    t.source,
+                    t.tiles[0],
+                    t.tiles[1],
+                    t.tile_size,
+                    t.depth,
+                    t.triangle_count(),
+                    t.spacing(),
+                );
+            }
+            None => {
+                let _ = writeln!(s, "terrain: flat at 0 m");
+            }
+        }
+        let counts = self.species_counts();
+        let with_params = self.instances.iter().filter(|p| !p.params.is_empty()).count();
+        let values: usize = self.instances.iter().map(|p| p.params.len()).sum();
+        let _ = writeln!(
+            s,
+            "instances: {n} ({:.0} per km²; {} explicit, {} from {} scatter rules); {with_params} carry {values} parameter values",
+            n as f64 / area_km2.max(f64::MIN_POSITIVE),
+            self.explicit_instances,
+            n - self.explicit_instances as usize,
+            self.rules.len(),
+        );
+        let width = self.species.iter().map(|sp| sp.name.len()).max().unwrap_or(0);
+        let _ = writeln!(s, "species: {}", self.species.len());
+        for (id, (sp, count)) in self.species.iter().zip(&counts).enumerate() {
+            // Which parameters the instances carry, and how many distinct values each takes.
+            let mut slots: Vec<u16> = Vec::new();
+            for p in self.instances.iter().filter(|p| usize::from(p.species) == id) {
+                for &(slot, _) in &p.params {
+                    if !slots.contains(&slot) {
+                        slots.push(slot);
+                    }
+                }
+            }
+            slots.sort_unstable();
+            let params: Vec<String> = slots
+                .iter()
+                .map(|&slot| {
+                    let name = sp.graph.params.get(usize::from(slot)).map_or("?", |p| p.name.as_str());
+                    format!("{name}: {} values", self.param_values(id as u16, slot).len())
+                })
+                .collect();
+            let params = if params.is_empty() { String::new() } else { format!("; {}", params.join(", ")) };
+            let _ = writeln!(s, "  {id:>3} {:width$}  {count:>9} instances  ({}{params})", sp.name, sp.source);
+        }
+        s
+    }
+}

@@ -1,0 +1,100 @@
+//! Where a manifest's species files come from: the filesystem (relative to the manifest), nowhere (a manifest
+//! parsed without a directory may name library species only), or the embedded copy of `worlds/` that the default
+//! world is compiled with.
+
+use std::path::Path;
+
+use crate::load::MAX_SOURCE_BYTES;
+
+/// Reads the files a manifest names by relative path.
+pub(crate) trait Resolver {
+    /// The display name and text of the file at `rel`, relative to the manifest, or why not.
+    fn read(&self, rel: &str) -> Result<(String, String), String>;
+}
+
+/// Files relative to a directory on disk.
+pub(crate) struct Files<'a> {
+    /// The manifest's directory.
+    pub base: &'a Path,
+}
+
+impl Resolver for Files<'_> {
+    fn read(&self, rel: &str) -> Result<(String, String), String> {
+        let path = self.base.join(rel);
+        let name = path.display().to_string();
+        match std::fs::metadata(&path) {
+            Ok(m) if m.len() > MAX_SOURCE_BYTES => {
+                return Err(format!("`{name}` has {} bytes, more than {MAX_SOURCE_BYTES}", m.len()));
+            }
+            Ok(_) => {}
+            Err(e) => return Err(format!("cannot read `{name}`: {e}")),
+        }
+        std::fs::read_to_string(&path)
+            .map(|text| (name.clone(), text))
+            .map_err(|e| format!("cannot read `{name}`: {e}"))
+    }
+}
+
+/// No files at all.
+pub(crate) struct NoFiles;
+
+impl Resolver for NoFiles {
+    fn read(&self, rel: &str) -> Result<(String, String), String> {
+        Err(format!("cannot read `{rel}`: a manifest parsed without a directory may name library species only"))
+    }
+}
+
+/// The embedded copy of `worlds/`: the species library (`species/…`) and the default world's directory.
+pub(crate) struct Embedded {
+    /// The manifest's directory under `worlds/`.
+    pub dir: &'static str,
+}
+
+/// Files of `worlds/` compiled in besides the species library, by path under `worlds/`.
+const EMBEDDED_FILES: &[(&str, &str)] = &[("forest/forest.world", super::DEFAULT_WORLD)];
+
+impl Resolver for Embedded {
+    fn read(&self, rel: &str) -> Result<(String, String), String> {
+        let path =
+            normalize(self.dir, rel).ok_or_else(|| format!("`{rel}` leaves the embedded `worlds/` directory"))?;
+        let text = match path.strip_prefix("species/") {
+            Some(file) => crate::library::SPECIES.iter().find(|e| e.file == file).map(|e| e.text),
+            None => EMBEDDED_FILES.iter().find(|(p, _)| *p == path).map(|(_, t)| *t),
+        };
+        text.map(|t| (format!("worlds/{path}"), t.to_string()))
+            .ok_or_else(|| format!("cannot read `{rel}`: `worlds/{path}` is not embedded"))
+    }
+}
+
+/// `dir/rel` with `.` and `..` resolved, or `None` if it climbs out of the root.
+fn normalize(dir: &str, rel: &str) -> Option<String> {
+    let mut parts: Vec<&str> = Vec::new();
+    for part in dir.split('/').chain(rel.split(['/', '\\'])) {
+        match part {
+            "" | "." => {}
+            ".." => {
+                parts.pop()?;
+            }
+            p => parts.push(p),
+        }
+    }
+    Some(parts.join("/"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_paths_resolve_like_files() {
+        assert_eq!(normalize("forest", "../species/conifer.species").as_deref(), Some("species/conifer.species"));
+        assert_eq!(normalize("forest", "./a/../b.species").as_deref(), Some("forest/b.species"));
+        assert_eq!(normalize("forest", "../../x"), None);
+        let e = Embedded { dir: "forest" };
+        let (name, text) = e.read("../species/conifer.species").unwrap();
+        assert_eq!(name, "worlds/species/conifer.species");
+        assert!(text.contains("species conifer"));
+        assert!(e.read("../species/nothing.species").unwrap_err().contains("not embedded"));
+        assert!(e.read("../../etc/passwd").unwrap_err().contains("leaves"));
+    }
+}
