@@ -4,9 +4,17 @@
 //! wgpu or filesystem; every decoder bounds sizes, counts and depth before it allocates or recurses, and
 //! [`species::SpeciesGraph::decode`] returns only graphs that pass [`species::SpeciesGraph::validate`].
 
+pub mod aoi;
 pub mod expr;
+pub mod frame;
+pub mod hypertree;
 pub mod limits;
+pub mod messages;
+pub mod netlimits;
+pub mod record;
 pub mod species;
 
 pub use expr::{Expr, Func, Op};
 pub use species::{DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, ValidateError};
+pub use messages::{ClientMsg, CloseCode, MessageError, Phase, ServerMsg, SpeciesHash, ALPN, PROTOCOL_VERSION};
+pub use record::{CellBatch, CellCoord, InstanceRecord, POSITION_STEPS};

@@ -131,6 +131,59 @@ pub enum Node {
     /// [`Node::RecursionSeparator`] (local parameters restored, a child RNG context), so which substitute is chosen
     /// changes nothing outside it.
     Lod(Vec<NodeId>),
+    /// A trunk–root junction (seed 002 §3.1, §4): cross-sections from a hypocycloid at the ground to a circle up
+    /// the trunk, built as the envelope of generator ellipses; a primitive standing on the origin along +Y.
+    TrunkBase(Box<TrunkBaseNode>),
+    /// Species-level near-field options (seeds 002 and 004): continuous mesh, contour resolution, junction
+    /// refinement and double bark. Not traversed for geometry; readers find it in the node vector.
+    NearField(Box<NearFieldNode>),
+}
+
+/// The parameters of a [`Node::TrunkBase`], as seed 002 §4 names them; each is an expression of the parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrunkBaseNode {
+    /// Base spread factor: how far the root flares (the cusps) reach, as a multiple of the base radius.
+    pub spread: Expr,
+    /// Height of the trunk base, metres.
+    pub height: Expr,
+    /// Base radius: the trunk's radius at the ground, between the root flares.
+    pub bottom: Expr,
+    /// Top radius: the radius of the circular cross-section at the top.
+    pub top: Expr,
+    /// Tilt spread, degrees: the base leans towards +Z by this angle.
+    pub tilt: Expr,
+    /// Cusps of the hypocycloid at the ground (3 deltoid, 4 astroid, more lobes).
+    pub lobes: Expr,
+    /// Generator ellipse count.
+    pub ellipses: Expr,
+    /// Curve resolution: points on each cross-section contour.
+    pub resolution: Expr,
+    /// Base randomiser factor: the strength of the semi-random perturbation of the roots (0 = none).
+    pub randomiser: Expr,
+    /// Transition: 0 the envelope of generator ellipses, 1 hypocycloid → quadrifolium (rose) → circle.
+    pub transition: Expr,
+    /// A value in [0, 1) that seeds the semi-random perturbation (the text formats default it to `rand()`, so
+    /// every instance gets its own roots).
+    pub seed: Expr,
+}
+
+/// Species-level near-field meshing options (see [`Node::NearField`]); each is an expression of the parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NearFieldNode {
+    /// Non-zero: mesh the branching structure as one continuous surface (seed 004).
+    pub continuous: Expr,
+    /// Contour resolution: vertices on each branch contour.
+    pub contour: Expr,
+    /// Non-zero: refine junctions by intervals (seed 004 §3.3); zero: the direct method.
+    pub refine: Expr,
+    /// Bark depth, metres: the outer bark stands this far off the inner one (0 = single bark).
+    pub bark: Expr,
+    /// Chisel mode: 1 shrink the outer bark's triangles, 2 remove some at random, 3 both.
+    pub chisel: Expr,
+    /// First chisel factor: how much outer bark triangles shrink (0..1).
+    pub shrink: Expr,
+    /// Second chisel factor: the fraction of outer bark triangles removed (0..1).
+    pub removal: Expr,
 }
 
 /// Why a species graph was rejected.
@@ -234,6 +287,20 @@ impl Node {
             Node::Sphere { radius } => vec![radius],
             Node::Box { size } => size.iter().collect(),
             Node::Leaf { points, .. } => points.iter().flatten().collect(),
+            Node::TrunkBase(b) => vec![
+                &b.spread,
+                &b.height,
+                &b.bottom,
+                &b.top,
+                &b.tilt,
+                &b.lobes,
+                &b.ellipses,
+                &b.resolution,
+                &b.randomiser,
+                &b.transition,
+                &b.seed,
+            ],
+            Node::NearField(n) => vec![&n.continuous, &n.contour, &n.refine, &n.bark, &n.chisel, &n.shrink, &n.removal],
         }
     }
 
@@ -241,7 +308,12 @@ impl Node {
     pub fn is_primitive(&self) -> bool {
         matches!(
             self,
-            Node::Cone { .. } | Node::Cylinder { .. } | Node::Sphere { .. } | Node::Box { .. } | Node::Leaf { .. }
+            Node::Cone { .. }
+                | Node::Cylinder { .. }
+                | Node::Sphere { .. }
+                | Node::Box { .. }
+                | Node::Leaf { .. }
+                | Node::TrunkBase(_)
         )
     }
 }

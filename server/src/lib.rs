@@ -1,4 +1,21 @@
-//! The Canopy world server. Today it only re-exports the species library it will serve; the world store, the
-//! sans-IO session core and the QUIC driver arrive with the streaming issue.
+//! The Canopy world server (seed 001 §4): it stores species and instance records spatially and streams to each
+//! client only its area of interest, nearest first, species once per client.
+//!
+//! Contract: [`session`] is sans-IO — a plain struct fed `now` and the client's messages that says what to send
+//! and when; it never touches a socket or the clock, so it is tested on virtual time. [`driver`] is the small
+//! quinn/tokio loop around it. [`store`] holds the world behind the [`store::WorldStore`] trait. Anything a client
+//! sends is untrusted: a message that does not decode, is too large or comes out of order closes that client's
+//! connection with a [`canopy_protocol::CloseCode`] and a reason, and the server carries on.
+
+pub mod driver;
+pub mod metrics;
+pub mod pacing;
+pub mod session;
+pub mod store;
+pub mod terrain;
+pub mod tls;
 
 pub use canopy_worlds as worlds;
+pub use driver::{Server, ServerConfig, StartError};
+pub use session::{Session, SessionConfig, SessionError, Transmit};
+pub use store::{GridStore, WorldStore};

@@ -301,6 +301,8 @@ pub fn amplify_into(
             Node::Material([r, g, b]) => {
                 color = [ev!(r), ev!(g), ev!(b)];
             }
+            // Species-level near-field options: read by `crate::nearfield::options`, no geometry.
+            Node::NearField(_) => {}
             node => {
                 if (out.primitives.len() - first_primitive) as u32 >= budget.max_primitives {
                     return Err(AmplifyError::Primitives(budget.max_primitives));
@@ -320,6 +322,19 @@ pub fn amplify_into(
                         }
                         Shape::Leaf { topology: *topology, start, end: out.leaf_points.len() as u32 }
                     }
+                    Node::TrunkBase(b) => Shape::TrunkBase(crate::nearfield::TrunkBase {
+                        spread: ev!(&b.spread),
+                        height: ev!(&b.height),
+                        bottom: ev!(&b.bottom),
+                        top: ev!(&b.top),
+                        tilt: ev!(&b.tilt),
+                        lobes: ev!(&b.lobes),
+                        ellipses: ev!(&b.ellipses),
+                        resolution: ev!(&b.resolution),
+                        randomiser: ev!(&b.randomiser),
+                        transition: ev!(&b.transition),
+                        seed: ev!(&b.seed),
+                    }),
                     _ => unreachable!("every non-primitive node is matched above"),
                 };
                 out.primitives.push(Primitive { shape, transform, color });

@@ -176,6 +176,7 @@ pub fn mesh_into(stream: &PrimitiveStream, opts: &MeshOptions, out: &mut Mesh) {
 /// - a cone or cylinder: 7 floats (bottom centre, top centre, radius);
 /// - a sphere: 4 floats (centre, radius);
 /// - a box: 12 triangles of 3 vertices of 3 floats (432 bytes);
+/// - a trunk base: the triangles of its surface, 3 vertices of 3 floats each;
 /// - a leaf polygon of `n` points: `n − 2` fan triangles of 3 vertices of 3 floats; a leaf strip of `n` points:
 ///   `n − 2` triangles likewise (nothing for fewer than 3 points).
 ///
@@ -191,6 +192,7 @@ pub fn explicit_bytes(stream: &PrimitiveStream) -> usize {
             Shape::Sphere { .. } => 4 * FLOAT,
             Shape::Box { .. } => 12 * TRIANGLE,
             Shape::Leaf { start, end, .. } => (end.saturating_sub(start) as usize).saturating_sub(2) * TRIANGLE,
+            Shape::TrunkBase(b) => b.triangle_count() * TRIANGLE,
         })
         .sum()
 }
@@ -335,6 +337,7 @@ fn primitive(stream: &PrimitiveStream, p: &Primitive, tables: &Tables, caps: boo
             },
             None => false,
         },
+        Shape::TrunkBase(b) => trunk_base(&mut e, &b),
     };
     ok && e.finite
 }
@@ -477,6 +480,19 @@ fn cuboid(e: &mut Emitter<'_>, size: [f32; 3]) -> bool {
             e.tri(first, first + 1, first + 2);
             e.tri(first, first + 2, first + 3);
         }
+    }
+    true
+}
+
+/// A trunk–root junction: its closed surface from [`crate::nearfield::trunkbase`], false when its sizes are bad.
+fn trunk_base(e: &mut Emitter<'_>, b: &crate::nearfield::TrunkBase) -> bool {
+    let Ok(s) = b.surface() else { return false };
+    let first = e.out.positions.len() as u32;
+    for (&p, &n) in s.positions.iter().zip(&s.normals) {
+        e.vertex(p, n);
+    }
+    for t in s.indices.chunks_exact(3) {
+        e.tri(first + t[0], first + t[1], first + t[2]);
     }
     true
 }

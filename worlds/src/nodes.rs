@@ -14,18 +14,55 @@
 //! | `box(x, y, z)` | [`Node::Box`] |
 //! | `leaf((x, y, z), (x, y, z), …)` | [`Node::Leaf`], polygon |
 //! | `leafstrip((x, y, z), …)` | [`Node::Leaf`], triangle strip |
+//! | `trunkbase(spread = …, height = …, …)` | [`Node::TrunkBase`] (seed 002 §4; see [`TRUNKBASE_ARGS`]) |
+//! | `nearfield(continuous = …, contour = …, …)` | [`Node::NearField`] (see [`NEARFIELD_ARGS`]) |
+//!
+//! `trunkbase` and `nearfield` take named arguments (`name = expr`), optionally after positional ones in the
+//! order of their tables; omitted ones take the table's default.
 
 use std::ops::Range;
 
+use canopy_protocol::species::{NearFieldNode, TrunkBaseNode};
 use canopy_protocol::{limits, Expr, LeafTopology, Node};
 
 use crate::expr::{compile, parse_expr, Ast};
 use crate::text::{Cursor, ParseError};
 
 /// Names of the calls this module parses.
-pub const NODE_CALLS: [&str; 15] = [
+pub const NODE_CALLS: [&str; 17] = [
     "translate", "rotate", "rotx", "roty", "rotz", "scale", "matrix", "material", "cone", "cylinder", "sphere", "box",
-    "leaf", "leafstrip", "leaf_strip",
+    "leaf", "leafstrip", "leaf_strip", "trunkbase", "nearfield",
+];
+
+/// The arguments of `trunkbase(...)` in positional order, with their defaults: seed 002 §4's base spread
+/// factor, trunk height, base and top radii, tilt spread (degrees), cusps of the hypocycloid, generator ellipse
+/// count, curve resolution, base randomiser factor, the transition (0 generator ellipses, 1 quadrifolium) and the
+/// perturbation's seed (drawn per instance).
+pub const TRUNKBASE_ARGS: [(&str, &str); 11] = [
+    ("spread", "2"),
+    ("height", "1.5"),
+    ("bottom", "0.4"),
+    ("top", "0.3"),
+    ("tilt", "0"),
+    ("lobes", "4"),
+    ("ellipses", "32"),
+    ("resolution", "48"),
+    ("randomiser", "0.3"),
+    ("transition", "0"),
+    ("seed", "rand()"),
+];
+
+/// The arguments of `nearfield(...)` in positional order, with their defaults: continuous mesh (non-zero: yes),
+/// contour resolution, junction refinement by intervals (non-zero: yes), bark depth in metres (0: single bark),
+/// chisel mode (1 shrink, 2 remove, 3 both) and the two chisel factors.
+pub const NEARFIELD_ARGS: [(&str, &str); 7] = [
+    ("continuous", "1"),
+    ("contour", "12"),
+    ("refine", "1"),
+    ("bark", "0"),
+    ("chisel", "3"),
+    ("shrink", "0.35"),
+    ("removal", "0.1"),
 ];
 
 /// Parse `(a, b, …)` at the cursor into expression ASTs.
@@ -69,6 +106,9 @@ fn node_call(
     if name == "leaf" || name == "leafstrip" || name == "leaf_strip" {
         return leaf(name, name_span, cur, resolve);
     }
+    if name == "trunkbase" || name == "nearfield" {
+        return named_call(name, name_span, cur, resolve);
+    }
     let (args, span) = parse_args(cur)?;
     let span = name_span.start..span.end;
     let want: &[usize] = match name {
@@ -107,6 +147,103 @@ fn node_call(
         "sphere" => Node::Sphere { radius: take() },
         "box" => Node::Box { size: [take(), take(), take()] },
         _ => unreachable!("checked against NODE_CALLS"),
+    })
+}
+
+/// `trunkbase(...)` or `nearfield(...)`: positional arguments, then `name = expr` ones, defaults for the rest.
+fn named_call(
+    name: &str,
+    name_span: Range<usize>,
+    cur: &mut Cursor<'_>,
+    resolve: &mut dyn FnMut(&str) -> Option<u16>,
+) -> Result<Node, ParseError> {
+    let table: &[(&str, &str)] = if name == "trunkbase" { &TRUNKBASE_ARGS } else { &NEARFIELD_ARGS };
+    cur.expect("(")?;
+    let mut values: Vec<Option<Ast>> = (0..table.len()).map(|_| None).collect();
+    let (mut positional, mut named) = (0usize, false);
+    if !cur.eat(")") {
+        loop {
+            cur.skip_trivia();
+            let save = cur.pos;
+            let mut key = None;
+            if let Some((word, span)) = cur.ident() {
+                let rest = cur.rest().trim_start_matches([' ', '\t']);
+                if rest.starts_with('=') && !rest.starts_with("==") {
+                    key = Some((word.to_string(), span));
+                    cur.expect("=")?;
+                } else {
+                    cur.pos = save;
+                }
+            }
+            let slot = match key {
+                Some((word, span)) => {
+                    let Some(i) = table.iter().position(|(k, _)| *k == word) else {
+                        let known: Vec<&str> = table.iter().map(|(k, _)| *k).collect();
+                        return Err(ParseError::new(
+                            span,
+                            format!("`{name}` has no argument `{word}` (it has: {})", known.join(", ")),
+                        ));
+                    };
+                    if values[i].is_some() {
+                        return Err(ParseError::new(span, format!("argument `{word}` given twice")));
+                    }
+                    named = true;
+                    i
+                }
+                None => {
+                    if named {
+                        return Err(ParseError::new(save..save + 1, "a positional argument after a named one"));
+                    }
+                    if positional == table.len() {
+                        return Err(ParseError::new(
+                            save..save + 1,
+                            format!("`{name}` takes at most {} arguments", table.len()),
+                        ));
+                    }
+                    positional += 1;
+                    positional - 1
+                }
+            };
+            values[slot] = Some(parse_expr(cur)?);
+            if cur.eat(")") {
+                break;
+            }
+            cur.expect(",")?;
+        }
+    }
+    let mut e = Vec::with_capacity(table.len());
+    for (v, (_, default)) in values.into_iter().zip(table) {
+        let ast = match v {
+            Some(a) => a,
+            None => crate::expr::parse_str(default).map_err(|d| ParseError::new(name_span.clone(), d.message))?,
+        };
+        e.push(compile(&ast, resolve)?);
+    }
+    let mut take = || e.remove(0);
+    Ok(if name == "trunkbase" {
+        Node::TrunkBase(Box::new(TrunkBaseNode {
+            spread: take(),
+            height: take(),
+            bottom: take(),
+            top: take(),
+            tilt: take(),
+            lobes: take(),
+            ellipses: take(),
+            resolution: take(),
+            randomiser: take(),
+            transition: take(),
+            seed: take(),
+        }))
+    } else {
+        Node::NearField(Box::new(NearFieldNode {
+            continuous: take(),
+            contour: take(),
+            refine: take(),
+            bark: take(),
+            chisel: take(),
+            shrink: take(),
+            removal: take(),
+        }))
     })
 }
 

@@ -2,6 +2,7 @@
 
 use canopy_protocol::LeafTopology;
 
+use crate::nearfield::TrunkBase;
 use crate::transform::Transform;
 
 /// The shape and size of one primitive, in its local frame (axis +Y, see [`canopy_protocol::Node`]).
@@ -42,6 +43,8 @@ pub enum Shape {
         /// One past the last point.
         end: u32,
     },
+    /// A trunk–root junction on the origin along +Y (seed 002; see [`crate::nearfield::trunkbase`]).
+    TrunkBase(TrunkBase),
 }
 
 /// The kinds of primitive, for counting.
@@ -78,21 +81,43 @@ impl PrimitiveKind {
 
 impl Shape {
     /// The size values of the shape in declaration order (cone: bottom, top, height; cylinder: radius, height;
-    /// sphere: radius; box: x, y, z; leaf: none — its points live in the stream): the first `n` of the array.
-    pub fn sizes(&self) -> ([f32; 3], usize) {
-        match *self {
-            Shape::Cone { bottom, top, height } => ([bottom, top, height], 3),
-            Shape::Cylinder { radius, height } => ([radius, height, 0.0], 2),
-            Shape::Sphere { radius } => ([radius, 0.0, 0.0], 1),
-            Shape::Box { size } => (size, 3),
-            Shape::Leaf { .. } => ([0.0; 3], 0),
-        }
+    /// sphere: radius; box: x, y, z; leaf: none — its points live in the stream; trunk base: its eleven parameters
+    /// in [`TrunkBase`] field order): the first `n` of the array.
+    pub fn sizes(&self) -> ([f32; Shape::MAX_SIZES], usize) {
+        let mut a = [0.0; Shape::MAX_SIZES];
+        let n = match self {
+            Shape::Cone { bottom, top, height } => put(&mut a, &[*bottom, *top, *height]),
+            Shape::Cylinder { radius, height } => put(&mut a, &[*radius, *height]),
+            Shape::Sphere { radius } => put(&mut a, &[*radius]),
+            Shape::Box { size } => put(&mut a, size),
+            Shape::Leaf { .. } => 0,
+            Shape::TrunkBase(b) => put(
+                &mut a,
+                &[
+                    b.spread,
+                    b.height,
+                    b.bottom,
+                    b.top,
+                    b.tilt,
+                    b.lobes,
+                    b.ellipses,
+                    b.resolution,
+                    b.randomiser,
+                    b.transition,
+                    b.seed,
+                ],
+            ),
+        };
+        (a, n)
     }
 
-    /// The primitive's kind.
+    /// Most size values of any shape (the trunk base's parameters).
+    pub const MAX_SIZES: usize = 11;
+
+    /// The primitive's kind. A trunk base counts as a cone: a frustum from its base radius to its top radius.
     pub fn kind(&self) -> PrimitiveKind {
         match self {
-            Shape::Cone { .. } => PrimitiveKind::Cone,
+            Shape::Cone { .. } | Shape::TrunkBase(_) => PrimitiveKind::Cone,
             Shape::Cylinder { .. } => PrimitiveKind::Cylinder,
             Shape::Sphere { .. } => PrimitiveKind::Sphere,
             Shape::Box { .. } => PrimitiveKind::Box,
@@ -195,4 +220,10 @@ impl Default for Fnv {
     fn default() -> Self {
         Fnv::new()
     }
+}
+
+/// Copy `v` to the front of `a`; its length.
+fn put(a: &mut [f32; Shape::MAX_SIZES], v: &[f32]) -> usize {
+    a[..v.len()].copy_from_slice(v);
+    v.len()
 }

@@ -1,6 +1,11 @@
 //! The `canopy` command line: argument definitions and dispatch.
 
+mod bots;
+mod demo;
+mod hypertree;
+mod render;
 mod species;
+mod walk;
 mod world;
 
 use std::process::ExitCode;
@@ -20,15 +25,31 @@ enum Command {
     /// Species tools: check, stats, amplify, export, list, demo.
     #[command(subcommand)]
     Species(species::SpeciesCommand),
+    /// Hypertrees (far-field volumes): check, generate, render, stats, reduce, union, clear, set, voxelise, bench.
+    #[command(subcommand)]
+    Hypertree(hypertree::HypertreeCommand),
     /// World manifests: stats (the embedded default world, or a manifest file).
     #[command(subcommand)]
     World(world::WorldCommand),
+    /// Headless walkthrough bots against a running canopy-server, with progress and a summary.
+    Bots(bots::BotsArgs),
+    /// The streaming demo: canopy-server on the default world in-process, a few bots, a live summary.
+    Demo(demo::DemoArgs),
+    /// Render a world offscreen to a PNG (works without a GPU on Mesa lavapipe), with frame times.
+    Render(render::RenderArgs),
+    /// The walkthrough window: fly or walk through a world streamed from a canopy-server.
+    Walk(walk::WalkArgs),
 }
 
 /// Run a parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Species(cmd) => species::run(cmd),
+        Command::Hypertree(cmd) => hypertree::run(cmd),
         Command::World(cmd) => world::run(cmd),
+        Command::Bots(args) => bots::run(args),
+        Command::Demo(args) => demo::run(args),
+        Command::Render(args) => render::run(args),
+        Command::Walk(args) => walk::run(args),
     }
 }

@@ -15,6 +15,9 @@ use canopy_worlds::mesh::{explicit_bytes, mesh, Mesh, MeshOptions};
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
 use clap::{Args, Subcommand};
 
+#[path = "nearfield.rs"]
+mod nearfield;
+
 #[derive(Subcommand, Debug)]
 pub enum SpeciesCommand {
     /// Validate species files (.species, .lsys); print every diagnostic with file:line:col.
@@ -52,6 +55,48 @@ pub enum SpeciesCommand {
         /// Grid spacing of the grove, metres.
         #[arg(long, default_value_t = 8.0)]
         spacing: f32,
+        #[command(flatten)]
+        near: nearfield::NearFieldArgs,
+    },
+    /// Near-field numbers of one instance: seed 004's Table 1 (continuous mesh triangles at contour resolutions
+    /// 5, 9, 12, 15, direct against refined junctions) and the LOD chain's reduction at an error bound.
+    Nearfield {
+        #[command(flatten)]
+        instance: InstanceArgs,
+        /// LOD levels.
+        #[arg(long, default_value_t = 4)]
+        levels: u32,
+        /// Error bound of the last LOD level, metres.
+        #[arg(long, default_value_t = 0.02)]
+        error: f32,
+    },
+    /// Render one instance to a PNG with the software rasteriser (near-field meshing as for export).
+    Render {
+        #[command(flatten)]
+        instance: InstanceArgs,
+        /// Output file (.png).
+        #[arg(long, short)]
+        out: PathBuf,
+        /// What to frame.
+        #[arg(long, value_enum, default_value_t = nearfield::View::Tree)]
+        view: nearfield::View,
+        /// Image width in pixels.
+        #[arg(long, default_value_t = 960)]
+        width: u32,
+        /// Image height in pixels.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Camera azimuth in degrees about +Y.
+        #[arg(long, default_value_t = 30.0, allow_negative_numbers = true)]
+        azimuth: f64,
+        /// Camera elevation in degrees.
+        #[arg(long, default_value_t = 20.0, allow_negative_numbers = true)]
+        elevation: f64,
+        /// Zoom: 1 frames the view's box, more comes closer.
+        #[arg(long, default_value_t = 1.0)]
+        zoom: f64,
+        #[command(flatten)]
+        near: nearfield::NearFieldArgs,
     },
     /// List the embedded species library.
     List,
@@ -121,7 +166,27 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::Check { files } => Ok(check(&files)),
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
         SpeciesCommand::Amplify { instance, out } => amplify_cmd(&instance.config()?, out),
-        SpeciesCommand::Export { instance, out, grove, spacing } => export(&instance.config()?, &out, grove, spacing),
+        SpeciesCommand::Export { instance, out, grove, spacing, near } => {
+            export(&instance.config()?, &out, grove, spacing, &near)
+        }
+        SpeciesCommand::Nearfield { instance, levels, error } => {
+            let cfg = instance.config()?;
+            nearfield::table(&cfg.graph, &cfg.instance, &cfg.budget, levels, error)
+        }
+        SpeciesCommand::Render { instance, out, view, width, height, azimuth, elevation, zoom, near } => {
+            let cfg = instance.config()?;
+            let plan = near.plan(&cfg.graph, &cfg.instance)?;
+            nearfield::render_png(
+                &cfg.graph,
+                &cfg.instance,
+                &cfg.budget,
+                &plan,
+                view,
+                &out,
+                (width, height),
+                (azimuth, elevation, zoom),
+            )
+        }
         SpeciesCommand::Demo(args) => demo(args),
         SpeciesCommand::List => {
             for e in library::SPECIES {
@@ -254,7 +319,13 @@ fn write_stream(w: &mut dyn Write, s: &PrimitiveStream) -> std::io::Result<()> {
     Ok(())
 }
 
-fn export(cfg: &InstanceConfig, out: &PathBuf, grove: u32, spacing: f32) -> anyhow::Result<ExitCode> {
+fn export(
+    cfg: &InstanceConfig,
+    out: &PathBuf,
+    grove: u32,
+    spacing: f32,
+    near: &nearfield::NearFieldArgs,
+) -> anyhow::Result<ExitCode> {
     if grove == 0 || grove > 10_000 {
         bail!("--grove must be between 1 and 10000, got {grove}");
     }
@@ -265,7 +336,19 @@ fn export(cfg: &InstanceConfig, out: &PathBuf, grove: u32, spacing: f32) -> anyh
         let inst = Instance { seed: cfg.instance.seed.wrapping_add(u64::from(i)), ..cfg.instance.clone() };
         let stream = amplify(&cfg.graph, &inst, &cfg.budget)?;
         let at = [(i % side) as f32 * spacing, 0.0, (i / side) as f32 * spacing];
-        meshes.push((format!("{}-{}", cfg.graph.name, inst.seed), mesh(&stream, &opts), at));
+        let plan = near.plan(&cfg.graph, &inst)?;
+        if matches!(plan.mode, nearfield::Mode::Primitives) && plan.bark.is_none() {
+            meshes.push((format!("{}-{}", cfg.graph.name, inst.seed), mesh(&stream, &opts), at));
+            continue;
+        }
+        // Near-field parts; LOD levels stand beside the tree along +X, coarser further out.
+        let parts = nearfield::instance_meshes(&plan, &stream, inst.detail)?;
+        let width = parts.first().map(|(_, m)| m.bounds()).map_or(1.0, |(lo, hi)| (hi[0] - lo[0]).max(1.0));
+        for (part, m) in parts {
+            let level = part.strip_prefix("lod").and_then(|k| k.parse::<f32>().ok()).unwrap_or(0.0);
+            let offset = [at[0] + level * width * 1.2, at[1], at[2]];
+            meshes.push((format!("{}-{}-{part}", cfg.graph.name, inst.seed), m, offset));
+        }
     }
     write_glb(out, &meshes)?;
     let tris: usize = meshes.iter().map(|m| m.1.triangle_count()).sum();

@@ -1,0 +1,79 @@
+// Shared by every Canopy shader (prepended by the renderer): frame globals, draw segments, fog, sky, dithering.
+
+struct Globals {
+    view_proj: mat4x4<f32>,
+    inv_view_proj: mat4x4<f32>,
+    // xyz: eye position; w: unused.
+    eye: vec4<f32>,
+    // xyz: unit direction toward the sun; w: ambient intensity.
+    sun_dir: vec4<f32>,
+    // rgb: sun colour; w: diffuse coefficient.
+    sun_color: vec4<f32>,
+    // rgb: sky at the zenith; w: fog density per metre.
+    sky_zenith: vec4<f32>,
+    // rgb: sky at the horizon and fog colour; w: unused.
+    sky_horizon: vec4<f32>,
+    // width, height, 1/width, 1/height of the target.
+    viewport: vec4<f32>,
+};
+
+@group(0) @binding(0) var<uniform> g: Globals;
+
+// One instance's run of primitives (or mesh indices) in an arena, placed at `pos`, drawn through `mask`.
+struct Segment {
+    // Index of the segment's first element within its draw (a prefix sum of `count`).
+    first: u32,
+    // First element in the arena (primitives, or mesh indices).
+    base: u32,
+    // First vertex in the vertex arena (meshes only).
+    vbase: u32,
+    count: u32,
+    pos: vec3<f32>,
+    // Dither mask: m >= 0 keeps pixels whose Bayer threshold is below m; m < 0 keeps those at or above -m.
+    mask: f32,
+};
+
+// Which segments a draw covers, and what it draws.
+struct Draw {
+    seg_first: u32,
+    seg_count: u32,
+    kind: u32,
+    pad: u32,
+};
+
+fn bayer4(p: vec2<f32>) -> f32 {
+    let m = array<f32, 16>(0.0, 8.0, 2.0, 10.0, 12.0, 4.0, 14.0, 6.0, 3.0, 11.0, 1.0, 9.0, 15.0, 7.0, 13.0, 5.0);
+    let x = u32(p.x) & 3u;
+    let y = u32(p.y) & 3u;
+    return (m[y * 4u + x] + 0.5) / 16.0;
+}
+
+fn dither_keeps(mask: f32, frag: vec2<f32>) -> bool {
+    let b = bayer4(frag);
+    if mask >= 0.0 {
+        return b < mask;
+    }
+    return b >= -mask;
+}
+
+fn fog_factor(dist: f32) -> f32 {
+    return 1.0 - exp(-g.sky_zenith.w * dist);
+}
+
+fn with_fog(c: vec3<f32>, world: vec3<f32>) -> vec3<f32> {
+    let f = fog_factor(distance(world, g.eye.xyz));
+    return mix(c, g.sky_horizon.rgb, f);
+}
+
+// Lambert with the sun plus ambient light, the same model the far field's baked shading uses.
+fn shade(base: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let lambert = max(dot(n, g.sun_dir.xyz), 0.0);
+    // A little sky light from above so that faces turned from the sun keep their shape.
+    let sky = 0.12 * (0.5 + 0.5 * n.y);
+    return base * (g.sun_dir.w + sky + g.sun_color.w * lambert * g.sun_color.rgb);
+}
+
+fn sky_color(dir: vec3<f32>) -> vec3<f32> {
+    let up = clamp(dir.y, 0.0, 1.0);
+    return mix(g.sky_horizon.rgb, g.sky_zenith.rgb, sqrt(up));
+}

@@ -1,0 +1,79 @@
+// Near and mid geometry by instancing: unit frusta, spheres and boxes, shaped per primitive in the vertex shader.
+// Every instance of a draw finds its segment (one tree at one detail level) by binary search, so one draw call
+// covers every tree of the frame that uses this unit mesh.
+
+struct Prim {
+    r0: vec4<f32>,
+    r1: vec4<f32>,
+    r2: vec4<f32>,
+    // xyz: size (frustum: bottom radius, top radius, height; sphere: radius; box: edges); w: packed colour.
+    shape: vec4<f32>,
+};
+
+@group(1) @binding(0) var<storage, read> prims: array<Prim>;
+@group(1) @binding(1) var<storage, read> segments: array<Segment>;
+@group(2) @binding(0) var<uniform> draw: Draw;
+
+struct PrimOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) color: vec3<f32>,
+    @location(3) @interpolate(flat) mask: f32,
+};
+
+@vertex
+fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(instance_index) ii: u32) -> PrimOut {
+    let s = segments[find_segment(ii, draw.seg_first, draw.seg_count)];
+    let prim = prims[s.base + ii - s.first];
+    var local: vec3<f32>;
+    var n: vec3<f32>;
+    switch draw.kind {
+        case 0u: {
+            // Frustum: p = (cos, 0 bottom / 1 top, sin, 1 on a cap).
+            let r = mix(prim.shape.x, prim.shape.y, p.y);
+            local = vec3<f32>(p.x * r, p.y * prim.shape.z, p.z * r);
+            if p.w > 0.5 {
+                n = vec3<f32>(0.0, select(-1.0, 1.0, p.y > 0.5), 0.0);
+            } else {
+                n = vec3<f32>(p.x * prim.shape.z, prim.shape.x - prim.shape.y, p.z * prim.shape.z);
+            }
+        }
+        case 1u: {
+            local = p.xyz * prim.shape.x;
+            n = p.xyz;
+        }
+        default: {
+            local = p.xyz * prim.shape.xyz;
+            n = un.xyz;
+        }
+    }
+    let species = vec3<f32>(
+        dot(prim.r0.xyz, local) + prim.r0.w,
+        dot(prim.r1.xyz, local) + prim.r1.w,
+        dot(prim.r2.xyz, local) + prim.r2.w,
+    );
+    // Normals by the cofactor matrix (the inverse transpose up to the determinant's sign).
+    let a = vec3<f32>(prim.r0.x, prim.r1.x, prim.r2.x);
+    let b = vec3<f32>(prim.r0.y, prim.r1.y, prim.r2.y);
+    let c = vec3<f32>(prim.r0.z, prim.r1.z, prim.r2.z);
+    let det = dot(a, cross(b, c));
+    let wn = (cross(b, c) * n.x + cross(c, a) * n.y + cross(a, b) * n.z) * sign(det);
+    var out: PrimOut;
+    let world = species + s.pos;
+    out.clip = g.view_proj * vec4<f32>(world, 1.0);
+    out.world = world;
+    out.normal = wn;
+    out.color = unpack4x8unorm(bitcast<u32>(prim.shape.w)).rgb;
+    out.mask = s.mask;
+    return out;
+}
+
+@fragment
+fn fs_prim(in: PrimOut) -> @location(0) vec4<f32> {
+    if !dither_keeps(in.mask, in.clip.xy) {
+        discard;
+    }
+    let n = normalize(in.normal);
+    return vec4<f32>(with_fog(shade(in.color, n), in.world), 1.0);
+}

@@ -1,0 +1,116 @@
+// The far field (seed 000 §8): each far instance is a proxy box around its species' hypertree volume, raymarched
+// front to back through a 3D texture atlas of baked voxels (rgb: lit colour, a: opacity α = 1 − (1 − µ)^k), with
+// the CPU reference renderer's sampling: steps of the smallest voxel side from the entry into the voxels' box,
+// sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit at 99.5 % opacity. Instances arrive sorted back
+// to front and blend premultiplied.
+
+struct VolumeInfo {
+    // xyz: the volume's first texel in the atlas.
+    atlas: vec4<u32>,
+    // xyz: voxels per axis.
+    dims: vec4<u32>,
+    // xyz: voxel edge lengths in box units; w: the step Δs (the smallest edge).
+    voxel: vec4<f32>,
+    // xyz: lower corner of the non-empty voxels' box; w: metres per box unit.
+    lo: vec4<f32>,
+    // xyz: upper corner.
+    hi: vec4<f32>,
+    // xyz: the species origin in box units.
+    origin: vec4<f32>,
+};
+
+@group(1) @binding(0) var atlas: texture_3d<f32>;
+@group(1) @binding(1) var<storage, read> volumes: array<VolumeInfo>;
+
+struct VolumeOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) @interpolate(flat) inst: vec4<f32>,
+    @location(2) @interpolate(flat) volume: u32,
+    @location(3) @interpolate(flat) mask: f32,
+};
+
+@vertex
+fn vs_volume(
+    @builtin(vertex_index) vi: u32,
+    @location(0) pos_scale: vec4<f32>,
+    @location(1) volume: u32,
+    @location(2) mask: f32,
+) -> VolumeOut {
+    // A unit cube's 12 triangles, counter-clockwise seen from outside.
+    let corners = array<vec3<f32>, 36>(
+        vec3(0., 0., 1.), vec3(1., 0., 1.), vec3(1., 1., 1.), vec3(0., 0., 1.), vec3(1., 1., 1.), vec3(0., 1., 1.),
+        vec3(1., 0., 0.), vec3(0., 0., 0.), vec3(0., 1., 0.), vec3(1., 0., 0.), vec3(0., 1., 0.), vec3(1., 1., 0.),
+        vec3(1., 0., 1.), vec3(1., 0., 0.), vec3(1., 1., 0.), vec3(1., 0., 1.), vec3(1., 1., 0.), vec3(1., 1., 1.),
+        vec3(0., 0., 0.), vec3(0., 0., 1.), vec3(0., 1., 1.), vec3(0., 0., 0.), vec3(0., 1., 1.), vec3(0., 1., 0.),
+        vec3(0., 1., 1.), vec3(1., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 0.),
+        vec3(0., 0., 0.), vec3(1., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 1.),
+    );
+    let info = volumes[volume];
+    let b = mix(info.lo.xyz, info.hi.xyz, corners[vi]);
+    let k = pos_scale.w * info.lo.w;
+    let world = pos_scale.xyz + k * (b - info.origin.xyz);
+    var out: VolumeOut;
+    out.clip = g.view_proj * vec4<f32>(world, 1.0);
+    out.world = world;
+    out.inst = pos_scale;
+    out.volume = volume;
+    out.mask = mask;
+    return out;
+}
+
+@fragment
+fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
+    if !dither_keeps(in.mask, in.clip.xy) {
+        discard;
+    }
+    let info = volumes[in.volume];
+    let k = in.inst.w * info.lo.w;
+    // The ray in box units (a uniform scale keeps directions).
+    let o = (g.eye.xyz - in.inst.xyz) / k + info.origin.xyz;
+    let d = normalize(in.world - g.eye.xyz);
+    let inv_d = 1.0 / d;
+    let ta = (info.lo.xyz - o) * inv_d;
+    let tb = (info.hi.xyz - o) * inv_d;
+    let tmin = min(ta, tb);
+    let tmax = max(ta, tb);
+    let t0 = max(max(max(tmin.x, tmin.y), tmin.z), 0.0);
+    let t1 = min(min(tmax.x, tmax.y), tmax.z);
+    if t1 < t0 {
+        discard;
+    }
+    let step = info.voxel.w;
+    let last = i32(floor((t1 - t0) / step - 0.5));
+    let dims = vec3<i32>(info.dims.xyz);
+    let base = vec3<i32>(info.atlas.xyz);
+    var color = vec3<f32>(0.0);
+    var alpha = 0.0;
+    var first_hit = -1.0;
+    for (var n = 0; n <= min(last, 1024); n++) {
+        let t = t0 + (f32(n) + 0.5) * step;
+        let p = o + d * t;
+        let v = vec3<i32>(floor(p / info.voxel.xyz));
+        if any(v < vec3<i32>(0)) || any(v >= dims) {
+            continue;
+        }
+        let s = textureLoad(atlas, base + v, 0);
+        if s.a > 0.0 {
+            if first_hit < 0.0 {
+                first_hit = t;
+            }
+            let w = (1.0 - alpha) * s.a;
+            color += w * s.rgb;
+            alpha += w;
+            if alpha >= 0.995 {
+                break;
+            }
+        }
+    }
+    if alpha < 1.0 / 512.0 {
+        discard;
+    }
+    // Fog at the first voxel hit, premultiplied like the colour.
+    let hit = g.eye.xyz + d * (first_hit * k);
+    let f = fog_factor(distance(hit, g.eye.xyz));
+    return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
+}

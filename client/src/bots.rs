@@ -1,0 +1,696 @@
+//! Headless walkthrough clients: bots that connect, walk scripted paths (line, circle, random walk, teleports) at a
+//! given speed, keep their area of interest streamed, and at the end stop, wait for a complete area of interest and
+//! check what they hold against the world itself.
+//!
+//! Each bot measures its "area of interest change → complete" latencies: from the first viewpoint that left its
+//! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
+
+use std::collections::HashSet;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
+use canopy_protocol::{CellCoord, SpeciesHash};
+use canopy_worlds::world::{CellKey, World};
+use quinn::Endpoint;
+
+use crate::cache::{CacheLimits, SpeciesCache};
+use crate::net::{ClientError, ConnectConfig, Connection};
+use crate::state::ClientState;
+
+/// The scripted path a bot walks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum PathKind {
+    /// Straight lines, turning back at the world's edge.
+    Line,
+    /// A circle of 50–250 m radius.
+    Circle,
+    /// A random walk: a new heading every few seconds.
+    Random,
+    /// Stand still, then jump to a random place, again and again.
+    Teleport,
+}
+
+/// How a group of bots runs.
+#[derive(Clone, Debug)]
+pub struct BotsConfig {
+    /// How many bots.
+    pub count: usize,
+    /// Their path.
+    pub path: PathKind,
+    /// Walking speed, metres per second.
+    pub speed: f32,
+    /// How long they walk.
+    pub duration: Duration,
+    /// The area-of-interest radius they ask for, metres.
+    pub radius: f32,
+    /// Where to connect and how to trust the server.
+    pub connect: ConnectConfig,
+    /// Seeds the paths (bot `i` uses `seed + i`).
+    pub seed: u64,
+    /// New connections per second while ramping up.
+    pub connect_rate: f64,
+    /// A species cache directory shared by the bots (`None`: each bot starts with an empty memory cache, like a
+    /// fresh client).
+    pub cache_dir: Option<PathBuf>,
+    /// How long a bot waits at the end for a complete area of interest.
+    pub settle: Duration,
+    /// Client UDP sockets the bots are spread over.
+    pub endpoints: usize,
+    /// How often a bot moves and, if it moved enough, sends a viewpoint.
+    pub tick: Duration,
+    /// The world to check the bots' final state against (`None`: no check).
+    pub verify: Option<Arc<World>>,
+    /// Set to `true` to stop walking early (the bots then settle and check as at the end of `duration`).
+    pub stop: tokio::sync::watch::Receiver<bool>,
+}
+
+impl BotsConfig {
+    /// A default group of `count` bots walking lines to `server`.
+    pub fn new(count: usize, connect: ConnectConfig) -> BotsConfig {
+        BotsConfig {
+            count,
+            path: PathKind::Line,
+            speed: 5.0,
+            duration: Duration::from_secs(20),
+            radius: 160.0,
+            connect,
+            seed: 1,
+            connect_rate: 200.0,
+            cache_dir: None,
+            settle: Duration::from_secs(60),
+            endpoints: 1,
+            tick: Duration::from_millis(100),
+            verify: None,
+            stop: tokio::sync::watch::channel(false).1,
+        }
+    }
+}
+
+/// Live counters of a bots run (read by progress displays).
+#[derive(Debug, Default)]
+pub struct Progress {
+    /// Bots connected now.
+    pub connected: AtomicU64,
+    /// Bots whose area of interest is complete now.
+    pub complete: AtomicU64,
+    /// Bots that failed.
+    pub failed: AtomicU64,
+    /// Bots finished (checked and closed).
+    pub finished: AtomicU64,
+    /// Instance records received by all bots.
+    pub records: AtomicU64,
+    /// Bytes received by all bots (UDP payloads).
+    pub bytes: AtomicU64,
+    /// Latency samples taken.
+    pub samples: AtomicU64,
+}
+
+/// What one bot did.
+#[derive(Clone, Debug, Default)]
+pub struct BotReport {
+    /// Bot index.
+    pub id: usize,
+    /// Why it failed, if it did.
+    pub error: Option<String>,
+    /// Time from starting to connect to the first complete area of interest.
+    pub first_complete: Option<Duration>,
+    /// Area-of-interest change → complete latencies while walking and at the end.
+    pub latencies: Vec<Duration>,
+    /// Whether it ended with a complete area of interest.
+    pub complete: bool,
+    /// Records received.
+    pub records: u64,
+    /// Records held at the end.
+    pub held: usize,
+    /// Frame bytes of cell batches received.
+    pub batch_bytes: u64,
+    /// All frame bytes received by class (welcome, species, cells, release).
+    pub frame_bytes: [u64; 4],
+    /// UDP payload bytes received.
+    pub udp_bytes: u64,
+    /// Species received over the wire.
+    pub species_received: u32,
+    /// Species received twice.
+    pub species_duplicates: u32,
+    /// Viewpoints sent.
+    pub viewpoints: u32,
+    /// The check against the world (`None`: not checked).
+    pub verify: Option<Result<VerifySummary, String>>,
+}
+
+/// A small deterministic generator for paths (SplitMix64).
+#[derive(Clone, Debug)]
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        canopy_worlds::rng::mix64(self.0)
+    }
+
+    fn unit(&mut self) -> f32 {
+        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.unit()
+    }
+}
+
+/// A bot's walk: position, velocity and heading over time.
+#[derive(Clone, Debug)]
+pub struct Walker {
+    kind: PathKind,
+    speed: f32,
+    lo: [f32; 2],
+    hi: [f32; 2],
+    rng: Rng,
+    pos: [f32; 2],
+    dir: [f32; 2],
+    centre: [f32; 2],
+    ring: f32,
+    angle: f32,
+    timer: f32,
+    teleported: bool,
+}
+
+impl Walker {
+    /// A walker of `kind` at `speed` inside the rectangle `lo..hi`, seeded by `seed`.
+    pub fn new(kind: PathKind, speed: f32, lo: [f32; 2], hi: [f32; 2], seed: u64) -> Walker {
+        let mut rng = Rng(seed);
+        let pos = [rng.range(lo[0], hi[0]), rng.range(lo[1], hi[1])];
+        let a = rng.range(0.0, std::f32::consts::TAU);
+        let ring = rng.range(50.0, 250.0).min((hi[0] - lo[0]).min(hi[1] - lo[1]) * 0.4);
+        let centre = [pos[0].clamp(lo[0] + ring, hi[0] - ring), pos[1].clamp(lo[1] + ring, hi[1] - ring)];
+        let mut w = Walker {
+            kind,
+            speed,
+            lo,
+            hi,
+            rng,
+            pos,
+            dir: [a.sin(), a.cos()],
+            centre,
+            ring,
+            angle: a,
+            timer: 0.0,
+            teleported: false,
+        };
+        if kind == PathKind::Circle {
+            w.pos = [centre[0] + ring * a.cos(), centre[1] + ring * a.sin()];
+        }
+        w
+    }
+
+    /// Where the walker is.
+    pub fn position(&self) -> [f32; 2] {
+        self.pos
+    }
+
+    /// Advance by `dt` seconds; returns whether it teleported.
+    pub fn step(&mut self, dt: f32) -> bool {
+        self.teleported = false;
+        match self.kind {
+            PathKind::Line | PathKind::Random => {
+                if self.kind == PathKind::Random {
+                    self.timer -= dt;
+                    if self.timer <= 0.0 {
+                        self.timer = self.rng.range(3.0, 8.0);
+                        let a = self.rng.range(0.0, std::f32::consts::TAU);
+                        self.dir = [a.sin(), a.cos()];
+                    }
+                }
+                for axis in 0..2 {
+                    let mut p = self.pos[axis] + self.dir[axis] * self.speed * dt;
+                    if p < self.lo[axis] || p > self.hi[axis] {
+                        self.dir[axis] = -self.dir[axis];
+                        p = p.clamp(self.lo[axis], self.hi[axis]);
+                    }
+                    self.pos[axis] = p;
+                }
+            }
+            PathKind::Circle => {
+                self.angle += self.speed / self.ring.max(1.0) * dt;
+                let (s, c) = self.angle.sin_cos();
+                self.pos = [self.centre[0] + self.ring * c, self.centre[1] + self.ring * s];
+                self.dir = [-s, c];
+            }
+            PathKind::Teleport => {
+                self.timer += dt;
+                if self.timer >= 8.0 {
+                    self.timer = 0.0;
+                    self.pos = [self.rng.range(self.lo[0], self.hi[0]), self.rng.range(self.lo[1], self.hi[1])];
+                    self.teleported = true;
+                }
+            }
+        }
+        self.teleported
+    }
+
+    /// The velocity, metres per second (zero for a teleporter).
+    pub fn velocity(&self) -> [f32; 2] {
+        match self.kind {
+            PathKind::Teleport => [0.0, 0.0],
+            _ => [self.dir[0] * self.speed, self.dir[1] * self.speed],
+        }
+    }
+
+    /// The heading (yaw, radians; direction `(sin yaw, cos yaw)`).
+    pub fn yaw(&self) -> f32 {
+        self.dir[0].atan2(self.dir[1])
+    }
+}
+
+/// The rectangle of a grid's cells, inset by `margin` metres.
+pub fn grid_rect(grid: &Grid, margin: f32) -> ([f32; 2], [f32; 2]) {
+    let lo = grid.cell_origin(grid.min);
+    let hi = grid.cell_origin(CellCoord::new(grid.max.x + 1, grid.max.z + 1));
+    let m = margin.min((hi[0] - lo[0]) * 0.25).min((hi[1] - lo[1]) * 0.25);
+    ([lo[0] + m, lo[1] + m], [hi[0] - m, hi[1] - m])
+}
+
+/// What the check against the world found.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct VerifySummary {
+    /// Cells held.
+    pub cells: usize,
+    /// Instances held.
+    pub instances: usize,
+    /// Species held.
+    pub species: usize,
+}
+
+/// Check a client's final state against the world: it holds every cell of its area of interest and nothing
+/// beyond radius + hysteresis, every held cell in full, each instance exactly once and exactly as the world has it
+/// (species, position on the grid and terrain height, seed, parameters), and each species it needs once.
+pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, String> {
+    let w = state.welcome().ok_or("no welcome")?;
+    if w.world.name != world.name || w.world.seed != world.seed || w.world.instances as usize != world.instances.len() {
+        return Err(format!("the server's world `{}` is not the world checked against", w.world.name));
+    }
+    if w.species.len() != world.species.len()
+        || w.species.iter().zip(&world.species).any(|(e, s)| e.hash != SpeciesHash::of(&s.graph.encode()))
+    {
+        return Err("the species table differs from the world's".into());
+    }
+    if !state.is_complete() {
+        return Err(format!("area of interest incomplete: {} cells missing", state.missing()));
+    }
+    let vp = state.viewpoint().ok_or("no viewpoint")?;
+    let grid = &w.world.grid;
+    let aoi = Aoi::new(vp, &w.aoi);
+    let inner = aoi.inner_cells(grid);
+    if let Some(c) = inner.iter().find(|c| !state.cells().contains_key(c)) {
+        return Err(format!("cell {c:?} of the area of interest is not held"));
+    }
+    let mut ids = HashSet::new();
+    for (c, h) in state.cells() {
+        if !aoi.is_kept(grid, *c) {
+            return Err(format!("cell {c:?} is held beyond radius + hysteresis"));
+        }
+        let range = world.cell_instances(CellKey { x: c.x, z: c.z });
+        if !h.is_complete() || h.first_id != range.start || usize::from(h.total) != range.len() {
+            return Err(format!(
+                "cell {c:?}: holds {} of {} from id {}, the world has {:?}",
+                h.records.len(),
+                h.total,
+                h.first_id,
+                range
+            ));
+        }
+        for r in &h.records {
+            if state.species(r.species).is_none() {
+                return Err(format!("cell {c:?} needs species {}, which is not held", r.species));
+            }
+        }
+    }
+    let terrain = &world.terrain;
+    let height = |x: f32, z: f32| terrain.height(x, z);
+    for inst in state.instances(&height) {
+        if !ids.insert(inst.id) {
+            return Err(format!("instance {} held twice", inst.id));
+        }
+        let p = &world.instances[inst.id as usize];
+        let mut want: Vec<(u16, f32)> = p.params.clone();
+        want.sort_by_key(|&(s, _)| s);
+        let pos = world.position(inst.id);
+        let same_pos = pos.iter().zip(&inst.position).all(|(a, b)| a.to_bits() == b.to_bits());
+        if u16::from(inst.species) != p.species
+            || !same_pos
+            || inst.params != want
+            || inst.seed != world.instance_seed(inst.id)
+        {
+            return Err(format!("instance {} differs from the world: {inst:?} vs {p:?} at {pos:?}", inst.id));
+        }
+    }
+    if state.stats().species_duplicates != 0 {
+        return Err(format!("{} species received twice", state.stats().species_duplicates));
+    }
+    if state.stats().duplicate_records != 0 {
+        return Err(format!("{} records received twice", state.stats().duplicate_records));
+    }
+    Ok(VerifySummary { cells: state.cells().len(), instances: ids.len(), species: state.species_held() })
+}
+
+/// Run one bot to the end (see the module docs).
+pub async fn run_bot(
+    id: usize,
+    endpoint: Endpoint,
+    cfg: Arc<BotsConfig>,
+    cache: Option<Arc<SpeciesCache>>,
+    progress: Arc<Progress>,
+) -> BotReport {
+    let mut report = BotReport { id, ..BotReport::default() };
+    let started = Instant::now();
+    match bot_session(&mut report, &endpoint, &cfg, cache, &progress, started).await {
+        Ok(()) => {}
+        Err(e) => {
+            progress.failed.fetch_add(1, Relaxed);
+            report.error = Some(e.to_string());
+        }
+    }
+    progress.finished.fetch_add(1, Relaxed);
+    report
+}
+
+async fn bot_session(
+    report: &mut BotReport,
+    endpoint: &Endpoint,
+    cfg: &BotsConfig,
+    cache: Option<Arc<SpeciesCache>>,
+    progress: &Progress,
+    started: Instant,
+) -> Result<(), ClientError> {
+    let cache = cache.or_else(|| Some(Arc::new(SpeciesCache::in_memory(CacheLimits::default()))));
+    let mut connect = cfg.connect.clone();
+    connect.client_name = format!("bot-{}", report.id);
+    // The walk starts where the welcome's world allows: the path is placed inside the grid.
+    let (radius, path, speed, seed) = (cfg.radius, cfg.path, cfg.speed, cfg.seed.wrapping_add(report.id as u64));
+    let mut walker = None;
+    let place = |w: &canopy_protocol::messages::Welcome| {
+        let (lo, hi) = grid_rect(&w.world.grid, radius * 0.5);
+        let wk = Walker::new(path, speed, lo, hi, seed);
+        let vp = Viewpoint { seq: 0, position: wk.position(), yaw: wk.yaw(), velocity: wk.velocity(), radius };
+        walker = Some(wk);
+        vp
+    };
+    let mut conn = Connection::connect(endpoint, &connect, cache, place).await?;
+    let walker = walker.expect("placed in the handshake");
+    progress.connected.fetch_add(1, Relaxed);
+    let result = walk(report, &mut conn, walker, cfg, progress, started).await;
+    progress.connected.fetch_sub(1, Relaxed);
+    let stats = conn.state().stats().clone();
+    report.records = stats.records;
+    report.species_received = stats.species_received;
+    report.species_duplicates = stats.species_duplicates;
+    report.held = conn.state().record_count();
+    report.frame_bytes = conn.frame_bytes_received();
+    report.batch_bytes = report.frame_bytes[2];
+    report.udp_bytes = conn.bytes_received();
+    progress.bytes.fetch_add(report.udp_bytes, Relaxed);
+    let state = conn.close_into_state();
+    if result.is_ok() {
+        if let Some(world) = &cfg.verify {
+            // Checking thousands of records is CPU work: keep it off the runtime's workers, which carry the other
+            // bots' connections.
+            static CHECKS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
+            let world = Arc::clone(world);
+            let _permit = CHECKS.acquire().await.expect("the semaphore is never closed");
+            let checked = tokio::task::spawn_blocking(move || verify(&state, &world)).await;
+            report.verify = Some(checked.unwrap_or_else(|e| Err(format!("check task: {e}"))));
+        }
+    }
+    result
+}
+
+async fn walk(
+    report: &mut BotReport,
+    conn: &mut Connection,
+    mut walker: Walker,
+    cfg: &BotsConfig,
+    progress: &Progress,
+    started: Instant,
+) -> Result<(), ClientError> {
+    let grid = conn.welcome().world.grid;
+    let min_move = (grid.cell_size / 16.0).max(1.0);
+    let vp = |w: &Walker, radius: f32| Viewpoint {
+        seq: 0,
+        position: w.position(),
+        yaw: w.yaw(),
+        velocity: w.velocity(),
+        radius,
+    };
+    report.viewpoints += 1;
+    let mut sent_at = walker.position();
+    let mut sent_yaw = walker.yaw();
+    let mut pending: Option<Instant> = Some(Instant::now());
+    let mut complete = false;
+    let walk_until = Instant::now() + cfg.duration;
+    let mut tick = tokio::time::interval(cfg.tick);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut last = Instant::now();
+    let note = |conn: &Connection, pending: &mut Option<Instant>, complete: &mut bool, report: &mut BotReport| {
+        let now_complete = conn.state().is_complete();
+        if now_complete && !*complete {
+            progress.complete.fetch_add(1, Relaxed);
+        } else if !now_complete && *complete {
+            progress.complete.fetch_sub(1, Relaxed);
+        }
+        *complete = now_complete;
+        match (now_complete, *pending) {
+            (true, Some(t0)) => {
+                report.latencies.push(t0.elapsed());
+                progress.samples.fetch_add(1, Relaxed);
+                report.first_complete.get_or_insert(started.elapsed());
+                *pending = None;
+            }
+            (false, None) => *pending = Some(Instant::now()),
+            _ => {}
+        }
+    };
+    let mut stop = cfg.stop.clone();
+    // Without a sender (nobody can stop the bots early) `changed` would return at once: listen only while one lives.
+    let mut stoppable = stop.has_changed().is_ok();
+    while Instant::now() < walk_until && !*stop.borrow() {
+        tokio::select! {
+            r = stop.changed(), if stoppable => stoppable = r.is_ok(),
+            ev = conn.next_event() => {
+                if let crate::state::Event::Records { count, .. } = ev? {
+                    progress.records.fetch_add(count as u64, Relaxed);
+                }
+                while let Some(ev) = conn.try_next_event() {
+                    if let crate::state::Event::Records { count, .. } = ev? {
+                        progress.records.fetch_add(count as u64, Relaxed);
+                    }
+                }
+                note(conn, &mut pending, &mut complete, report);
+            }
+            _ = tick.tick() => {
+                let now = Instant::now();
+                let dt = now.duration_since(last).as_secs_f32();
+                last = now;
+                let teleported = walker.step(dt);
+                let p = walker.position();
+                let moved = ((p[0] - sent_at[0]).powi(2) + (p[1] - sent_at[1]).powi(2)).sqrt();
+                let turned = (walker.yaw() - sent_yaw).abs() > 0.25;
+                if teleported || moved >= min_move || turned {
+                    conn.set_viewpoint(vp(&walker, cfg.radius)).await?;
+                    report.viewpoints += 1;
+                    sent_at = p;
+                    sent_yaw = walker.yaw();
+                    note(conn, &mut pending, &mut complete, report);
+                }
+            }
+        }
+    }
+    // Stop: a viewpoint at rest, then wait for the area of interest to fill.
+    let mut rest = vp(&walker, cfg.radius);
+    rest.velocity = [0.0, 0.0];
+    conn.set_viewpoint(rest).await?;
+    report.viewpoints += 1;
+    note(conn, &mut pending, &mut complete, report);
+    let deadline = tokio::time::Instant::now() + cfg.settle;
+    while !conn.state().is_complete() {
+        match tokio::time::timeout_at(deadline, conn.next_event()).await {
+            Ok(ev) => {
+                if let crate::state::Event::Records { count, .. } = ev? {
+                    progress.records.fetch_add(count as u64, Relaxed);
+                }
+            }
+            Err(_) => return Err(ClientError::Timeout("waiting for a complete area of interest at the end")),
+        }
+    }
+    note(conn, &mut pending, &mut complete, report);
+    report.complete = true;
+    Ok(())
+}
+
+/// Everything a bots run measured.
+#[derive(Clone, Debug)]
+pub struct BotsSummary {
+    /// Bots run.
+    pub bots: usize,
+    /// Bots that failed (connection or protocol error, or no complete area of interest at the end).
+    pub failed: usize,
+    /// Bots that ended with a complete area of interest.
+    pub complete: usize,
+    /// Bots whose final state matched the world (of those checked).
+    pub verified: usize,
+    /// Bots checked against the world.
+    pub checked: usize,
+    /// The first failures' messages.
+    pub errors: Vec<String>,
+    /// Latency percentiles (p50, p90, p99, max) of area-of-interest change → complete.
+    pub latency: Option<[Duration; 4]>,
+    /// Latency percentiles of connect → first complete area of interest.
+    pub first_complete: Option<[Duration; 4]>,
+    /// Latency samples.
+    pub samples: usize,
+    /// Records received by all bots.
+    pub records: u64,
+    /// Frame bytes of cell batches per record received.
+    pub batch_bytes_per_record: f64,
+    /// UDP payload bytes per record received (species, releases, QUIC framing and acknowledgements included).
+    pub udp_bytes_per_record: f64,
+    /// Species received over the wire by all bots.
+    pub species_received: u64,
+    /// Species received twice by one bot.
+    pub species_duplicates: u64,
+    /// Wall time of the whole run.
+    pub wall: Duration,
+}
+
+fn percentiles(mut v: Vec<Duration>) -> Option<[Duration; 4]> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_unstable();
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    Some([at(0.5), at(0.9), at(0.99), v[v.len() - 1]])
+}
+
+impl BotsSummary {
+    /// Summarise bot reports.
+    pub fn new(reports: &[BotReport], wall: Duration) -> BotsSummary {
+        let records: u64 = reports.iter().map(|r| r.records).sum();
+        let batch: u64 = reports.iter().map(|r| r.batch_bytes).sum();
+        let udp: u64 = reports.iter().map(|r| r.udp_bytes).sum();
+        let per = |b: u64| if records == 0 { 0.0 } else { b as f64 / records as f64 };
+        let checked: Vec<_> = reports.iter().filter_map(|r| r.verify.as_ref()).collect();
+        let mut errors: Vec<String> = reports
+            .iter()
+            .filter_map(|r| {
+                r.error.as_ref().map(|e| format!("bot {}: {e}", r.id)).or_else(|| match &r.verify {
+                    Some(Err(e)) => Some(format!("bot {} check: {e}", r.id)),
+                    _ => None,
+                })
+            })
+            .collect();
+        errors.truncate(10);
+        BotsSummary {
+            bots: reports.len(),
+            failed: reports.iter().filter(|r| r.error.is_some()).count(),
+            complete: reports.iter().filter(|r| r.complete).count(),
+            verified: checked.iter().filter(|v| v.is_ok()).count(),
+            checked: checked.len(),
+            errors,
+            latency: percentiles(reports.iter().flat_map(|r| r.latencies.iter().copied()).collect()),
+            first_complete: percentiles(reports.iter().filter_map(|r| r.first_complete).collect()),
+            samples: reports.iter().map(|r| r.latencies.len()).sum(),
+            records,
+            batch_bytes_per_record: per(batch),
+            udp_bytes_per_record: per(udp),
+            species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
+            species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
+            wall,
+        }
+    }
+
+    /// Whether every bot ended complete and every checked bot matched the world.
+    pub fn ok(&self) -> bool {
+        self.failed == 0 && self.complete == self.bots && self.verified == self.checked
+    }
+}
+
+impl std::fmt::Display for BotsSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ms = |d: Duration| format!("{:.1} ms", d.as_secs_f64() * 1e3);
+        writeln!(
+            f,
+            "bots: {} run, {} complete at the end, {} failed ({:.1} s)",
+            self.bots,
+            self.complete,
+            self.failed,
+            self.wall.as_secs_f64()
+        )?;
+        if self.checked > 0 {
+            writeln!(f, "checked against the world: {} of {} exact", self.verified, self.checked)?;
+        }
+        if let Some([p50, p90, p99, max]) = self.latency {
+            writeln!(
+                f,
+                "AOI change → complete: p50 {} p90 {} p99 {} max {} ({} samples)",
+                ms(p50),
+                ms(p90),
+                ms(p99),
+                ms(max),
+                self.samples
+            )?;
+        }
+        if let Some([p50, _, p99, max]) = self.first_complete {
+            writeln!(f, "connect → first complete AOI: p50 {} p99 {} max {}", ms(p50), ms(p99), ms(max))?;
+        }
+        writeln!(
+            f,
+            "records: {} received; {:.2} B/record in cell batches, {:.2} B/record on the wire (UDP, all included)",
+            self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
+        )?;
+        writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        for e in &self.errors {
+            writeln!(f, "  {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report.
+pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotReport>, ClientError> {
+    let bind: SocketAddr =
+        if cfg.connect.server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
+    let endpoints: Vec<Endpoint> =
+        (0..cfg.endpoints.max(1)).map(|_| crate::net::endpoint(bind)).collect::<Result<_, _>>()?;
+    let cache = match &cfg.cache_dir {
+        Some(dir) => Some(Arc::new(
+            SpeciesCache::open(dir, CacheLimits::default()).map_err(|e| ClientError::Stream(e.to_string()))?,
+        )),
+        None => None,
+    };
+    let cfg = Arc::new(cfg);
+    let mut tasks = Vec::with_capacity(cfg.count);
+    let start = tokio::time::Instant::now();
+    for id in 0..cfg.count {
+        let at = start + Duration::from_secs_f64(id as f64 / cfg.connect_rate.max(0.001));
+        let (endpoint, cfg, cache, progress) =
+            (endpoints[id % endpoints.len()].clone(), Arc::clone(&cfg), cache.clone(), Arc::clone(&progress));
+        tasks.push(tokio::spawn(async move {
+            tokio::time::sleep_until(at).await;
+            run_bot(id, endpoint, cfg, cache, progress).await
+        }));
+    }
+    let mut reports = Vec::with_capacity(tasks.len());
+    for (id, t) in tasks.into_iter().enumerate() {
+        reports.push(t.await.unwrap_or_else(|e| BotReport {
+            id,
+            error: Some(format!("bot task: {e}")),
+            ..Default::default()
+        }));
+    }
+    for e in &endpoints {
+        e.wait_idle().await;
+    }
+    Ok(reports)
+}

@@ -1,0 +1,163 @@
+//! `canopy bots`: headless walkthrough clients against a running `canopy-server`, with a progress line and a
+//! summary (latencies, bytes per record, the check against the world). The exit status says whether every bot
+//! ended with a complete area of interest that matched the world.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_client::{ConnectConfig, Trust};
+use canopy_worlds::world::World;
+use clap::Args;
+
+/// Options of `canopy bots`.
+#[derive(Args, Debug)]
+pub struct BotsArgs {
+    /// How many bots.
+    #[arg(long, default_value_t = 10)]
+    count: usize,
+    /// Their path.
+    #[arg(long, value_enum, default_value_t = PathKind::Line)]
+    path: PathKind,
+    /// Walking speed, metres per second.
+    #[arg(long, default_value_t = 5.0)]
+    speed: f32,
+    /// How long they walk, seconds.
+    #[arg(long, default_value_t = 20.0)]
+    duration: f64,
+    /// The server's UDP address.
+    #[arg(long, default_value = "127.0.0.1:4433")]
+    server: SocketAddr,
+    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
+    #[arg(long, conflicts_with = "insecure")]
+    cert_fingerprint: Option<String>,
+    /// Accept any server certificate (local use only).
+    #[arg(long)]
+    insecure: bool,
+    /// Area-of-interest radius, metres.
+    #[arg(long, default_value_t = 160.0)]
+    radius: f32,
+    /// New connections per second while ramping up.
+    #[arg(long, default_value_t = 200.0)]
+    connect_rate: f64,
+    /// A species cache directory shared by the bots (default: none; each bot starts empty).
+    #[arg(long)]
+    cache_dir: Option<PathBuf>,
+    /// How long a bot waits at the end for a complete area of interest, seconds.
+    #[arg(long, default_value_t = 120.0)]
+    settle: f64,
+    /// Client UDP sockets the bots are spread over.
+    #[arg(long, default_value_t = 4)]
+    endpoints: usize,
+    /// Seed of the paths.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Check each bot's final state against this world manifest (default: the embedded default world).
+    #[arg(long)]
+    world: Option<PathBuf>,
+    /// Do not check the final state against the world.
+    #[arg(long)]
+    no_verify: bool,
+    /// How often each bot moves and decides whether to send a viewpoint, milliseconds.
+    #[arg(long, default_value_t = 100)]
+    tick_ms: u64,
+    /// No progress bar (for logs).
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn trust(fingerprint: &Option<String>, insecure: bool) -> anyhow::Result<Trust> {
+    match (fingerprint, insecure) {
+        (Some(f), _) => Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)")),
+        (None, true) => Ok(Trust::Insecure),
+        (None, false) => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
+    }
+}
+
+/// Run `canopy bots`.
+pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
+    if args.count == 0
+        || !(args.speed.is_finite() && args.speed >= 0.0)
+        || !(args.duration >= 0.0)
+        || !(args.settle >= 0.0)
+    {
+        bail!("--count must be positive, --speed, --duration and --settle not negative");
+    }
+    let trust = trust(&args.cert_fingerprint, args.insecure)?;
+    let verify = if args.no_verify {
+        None
+    } else {
+        let world = match &args.world {
+            Some(p) => World::load(p).map_err(|d| anyhow::anyhow!("{d}"))?,
+            None => World::default_world(),
+        };
+        Some(Arc::new(world))
+    };
+    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new(args.server, trust));
+    cfg.path = args.path;
+    cfg.speed = args.speed;
+    cfg.duration = Duration::from_secs_f64(args.duration);
+    cfg.radius = args.radius;
+    cfg.connect_rate = args.connect_rate;
+    cfg.cache_dir = args.cache_dir.clone();
+    cfg.settle = Duration::from_secs_f64(args.settle);
+    cfg.endpoints = args.endpoints;
+    cfg.seed = args.seed;
+    cfg.tick = Duration::from_millis(args.tick_ms.max(1));
+    cfg.verify = verify;
+    let (summary, _) = run_bots(cfg, args.quiet)?;
+    print!("{summary}");
+    Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
+
+/// Run bots on a fresh runtime with a progress display; returns the summary and the reports.
+pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(BotsSummary, Vec<bots::BotReport>)> {
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    let progress = Arc::new(Progress::default());
+    let total = cfg.count as u64;
+    let started = Instant::now();
+    let reports = rt.block_on(async {
+        let show = {
+            let progress = Arc::clone(&progress);
+            tokio::spawn(async move {
+                let bar = if quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(total) };
+                bar.set_style(
+                    indicatif::ProgressStyle::with_template("{elapsed:>4} [{bar:30}] {pos}/{len} finished  {msg}")
+                        .expect("a valid template")
+                        .progress_chars("=> "),
+                );
+                let mut last = (Instant::now(), 0u64);
+                loop {
+                    tokio::time::sleep(Duration::from_millis(500)).await;
+                    let records = progress.records.load(Relaxed);
+                    let now = Instant::now();
+                    let rate = (records - last.1) as f64 / now.duration_since(last.0).as_secs_f64();
+                    last = (now, records);
+                    bar.set_position(progress.finished.load(Relaxed));
+                    bar.set_message(format!(
+                        "connected {} · AOI complete {} · failed {} · records {records} ({rate:.0}/s)",
+                        progress.connected.load(Relaxed),
+                        progress.complete.load(Relaxed),
+                        progress.failed.load(Relaxed),
+                    ));
+                    if progress.finished.load(Relaxed) >= total {
+                        bar.finish();
+                        return;
+                    }
+                }
+            })
+        };
+        let reports = bots::run(cfg, Arc::clone(&progress)).await;
+        if reports.is_err() {
+            show.abort();
+        }
+        let _ = show.await;
+        reports
+    })?;
+    Ok((BotsSummary::new(&reports, started.elapsed()), reports))
+}

@@ -1,0 +1,140 @@
+//! `canopy demo`: the streaming demo. Starts `canopy-server` in-process on the embedded default world, runs a few
+//! bots against it over real QUIC on loopback (certificate pinned), and prints a live summary — clients, records
+//! per second, bytes by message class, area-of-interest completeness — until `--duration` passes or Ctrl-C; then
+//! the bots stop, settle, and are checked against the world.
+
+use std::net::SocketAddr;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_client::{ConnectConfig, Trust};
+use canopy_server::metrics::Metrics;
+use canopy_server::session::MsgClass;
+use canopy_server::{GridStore, Server, ServerConfig};
+use canopy_worlds::world::World;
+use clap::Args;
+
+/// Options of `canopy demo`.
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// How many bots.
+    #[arg(long, default_value_t = 8)]
+    bots: usize,
+    /// How long the bots walk, seconds (0: until Ctrl-C).
+    #[arg(long, default_value_t = 30.0)]
+    duration: f64,
+    /// Their path.
+    #[arg(long, value_enum, default_value_t = PathKind::Random)]
+    path: PathKind,
+    /// Walking speed, metres per second.
+    #[arg(long, default_value_t = 8.0)]
+    speed: f32,
+    /// Area-of-interest radius, metres.
+    #[arg(long, default_value_t = 200.0)]
+    radius: f32,
+    /// UDP address of the in-process server.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    listen: SocketAddr,
+    /// TCP address of its metrics endpoint.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    metrics: SocketAddr,
+}
+
+fn kib(b: u64) -> String {
+    format!("{:.1} KiB", b as f64 / 1024.0)
+}
+
+fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (Instant, u64)) -> String {
+    let records = m.records.load(Relaxed);
+    let now = Instant::now();
+    let rate = (records - last.1) as f64 / now.duration_since(last.0).as_secs_f64().max(1e-3);
+    *last = (now, records);
+    let b = |c: MsgClass| m.bytes[c as usize].load(Relaxed);
+    let cells = b(MsgClass::Cells);
+    let per = if records > 0 { cells as f64 / records as f64 } else { 0.0 };
+    format!(
+        "{:>5.1}s  clients {:>3}  AOI complete {}/{}  records {records} ({rate:.0}/s)  sent: cells {} ({per:.2} B/record), species {}, releases {}",
+        t.as_secs_f64(),
+        m.clients.load(Relaxed),
+        p.complete.load(Relaxed),
+        bots,
+        kib(cells),
+        kib(b(MsgClass::Species)),
+        kib(b(MsgClass::Release)),
+    )
+}
+
+/// Run `canopy demo`.
+pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    rt.block_on(async move {
+        let loaded = Instant::now();
+        let world = Arc::new(World::default_world());
+        let store = GridStore::from_world(&world).context("building the world store")?;
+        print!("{}", world.content_summary());
+        println!("world loaded in {:.1} s", loaded.elapsed().as_secs_f64());
+        let cfg = ServerConfig { listen: args.listen, metrics: Some(args.metrics), ..ServerConfig::default() };
+        let server = Server::start(store.shared(), cfg).await?;
+        println!("canopy-server (in-process) on {} — fingerprint {}", server.local_addr(), server.fingerprint());
+        if let Some(m) = server.metrics_addr() {
+            println!("metrics: http://{m}/metrics");
+        }
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let trust = Trust::pinned(server.fingerprint()).context("the server's fingerprint")?;
+        let mut cfg = BotsConfig::new(args.bots, ConnectConfig::new(server.local_addr(), trust));
+        cfg.path = args.path;
+        cfg.speed = args.speed;
+        cfg.radius = args.radius;
+        cfg.duration = if args.duration > 0.0 { Duration::from_secs_f64(args.duration) } else { Duration::from_secs(u64::MAX / 4) };
+        cfg.connect_rate = 50.0;
+        cfg.verify = Some(Arc::clone(&world));
+        cfg.stop = stop_rx;
+        let forever = args.duration <= 0.0;
+        println!(
+            "{} bots walking ({:?}, {} m/s, AOI radius {} m) {}",
+            args.bots,
+            args.path,
+            args.speed,
+            args.radius,
+            if forever { "until Ctrl-C".to_string() } else { format!("for {} s (Ctrl-C stops early)", args.duration) }
+        );
+        let progress = Arc::new(Progress::default());
+        let started = Instant::now();
+        let mut run = tokio::spawn(bots::run(cfg, Arc::clone(&progress)));
+        let mut tick = tokio::time::interval(Duration::from_secs(1));
+        tick.tick().await;
+        let mut last = (Instant::now(), 0u64);
+        let mut ctrl_c = std::pin::pin!(tokio::signal::ctrl_c());
+        let mut stopping = false;
+        let reports = loop {
+            tokio::select! {
+                r = &mut run => break r??,
+                _ = tick.tick() => println!("{}", live_line(started.elapsed(), server.metrics(), &progress, args.bots, &mut last)),
+                _ = &mut ctrl_c, if !stopping => {
+                    println!("stopping: the bots stop walking, settle and are checked");
+                    stopping = true;
+                    let _ = stop_tx.send(true);
+                }
+            }
+        };
+        println!("{}", live_line(started.elapsed(), server.metrics(), &progress, args.bots, &mut last));
+        let summary = BotsSummary::new(&reports, started.elapsed());
+        print!("{summary}");
+        let m = server.metrics();
+        let sent: u64 = MsgClass::ALL.iter().map(|c| m.bytes[*c as usize].load(Relaxed)).sum();
+        println!(
+            "server sent {} in {} messages; {} records; species sent {} times to {} bots",
+            kib(sent),
+            MsgClass::ALL.iter().map(|c| m.messages[*c as usize].load(Relaxed)).sum::<u64>(),
+            m.records.load(Relaxed),
+            m.messages[MsgClass::Species as usize].load(Relaxed),
+            args.bots
+        );
+        server.shutdown(Duration::from_secs(1)).await;
+        anyhow::Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    })
+}

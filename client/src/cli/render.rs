@@ -1,0 +1,208 @@
+//! `canopy render`: one offscreen image of a world from a camera with the walkthrough's renderer — on any wgpu
+//! adapter, Mesa's lavapipe included (no GPU, no display) — and optionally frame times over more frames.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use canopy_client::render::camera::{Camera, CameraSpec};
+use canopy_client::render::offscreen::Offscreen;
+use canopy_client::render::{LodConfig, NearMode, RenderConfig, Scene};
+use canopy_worlds::world::World;
+use clap::{Args, ValueEnum};
+
+/// The default view of the default world: above the southern end of the valley, looking north along it.
+pub const DEFAULT_VIEW: &str = "position 40 ~28 -760; look-at 0 ~30 -300; fov 60";
+
+/// How near geometry is drawn.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum NearArg {
+    /// Unit primitives by GPU instancing.
+    Instanced,
+    /// One merged mesh per tree.
+    Merged,
+}
+
+/// Renderer options shared by `canopy render` and `canopy walk`.
+#[derive(Args, Debug, Clone)]
+pub struct RendererArgs {
+    /// Projected height in pixels at or above which a tree is drawn at full detail.
+    #[arg(long, default_value_t = LodConfig::default().near_px)]
+    near_px: f32,
+    /// Projected height in pixels below which a tree is drawn as a hypertree volume.
+    #[arg(long, default_value_t = LodConfig::default().far_px)]
+    far_px: f32,
+    /// Mid-band detail levels (LOD substitutes 1..=N).
+    #[arg(long, default_value_t = LodConfig::default().mid_levels)]
+    mid_levels: u8,
+    /// Hysteresis of level changes, a fraction of the threshold.
+    #[arg(long, default_value_t = LodConfig::default().hysteresis)]
+    hysteresis: f32,
+    /// Cross-fade duration in seconds (0: switch at once).
+    #[arg(long, default_value_t = LodConfig::default().fade_seconds)]
+    fade: f32,
+    /// Near geometry: instanced unit primitives or merged meshes.
+    #[arg(long, value_enum, default_value_t = NearArg::Instanced)]
+    near_mode: NearArg,
+    /// Worker threads for amplification (default: cores − 1).
+    #[arg(long)]
+    workers: Option<usize>,
+    /// GPU memory for cached geometry, MiB (the cache's bound).
+    #[arg(long, default_value_t = 192)]
+    geometry_mib: u64,
+    /// Voxels along the longest axis of far-field volumes.
+    #[arg(long, default_value_t = RenderConfig::default().volume_resolution)]
+    volume_resolution: u32,
+    /// Fog density per metre (0: none).
+    #[arg(long, default_value_t = RenderConfig::default().lighting.fog_density)]
+    fog: f32,
+}
+
+impl RendererArgs {
+    /// The validated renderer configuration.
+    pub fn config(&self) -> anyhow::Result<RenderConfig> {
+        let mut cfg = RenderConfig::default();
+        cfg.lod = LodConfig {
+            near_px: self.near_px,
+            far_px: self.far_px,
+            mid_levels: self.mid_levels,
+            hysteresis: self.hysteresis,
+            fade_seconds: self.fade,
+            ..LodConfig::default()
+        };
+        cfg.near_mode = match self.near_mode {
+            NearArg::Instanced => NearMode::Instanced,
+            NearArg::Merged => NearMode::Merged,
+        };
+        if let Some(w) = self.workers {
+            cfg.workers = w;
+            cfg.max_jobs = 4 * w + 8;
+        }
+        let bytes = self.geometry_mib.saturating_mul(1 << 20);
+        cfg.prim_memory = bytes / 2;
+        cfg.mesh_memory = bytes / 2;
+        cfg.volume_resolution = self.volume_resolution;
+        cfg.lighting.fog_density = self.fog;
+        cfg.validate().context("renderer options")?;
+        Ok(cfg)
+    }
+}
+
+/// Options of `canopy render`.
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// World manifest (default: the embedded default world).
+    #[arg(long)]
+    world: Option<PathBuf>,
+    /// Camera file, or camera statements inline separated by `;` (default: the default view,
+    /// "position 40 ~28 -760; look-at 0 ~30 -300; fov 60").
+    #[arg(long)]
+    camera: Option<String>,
+    /// Output PNG.
+    #[arg(long, default_value = "shot.png")]
+    out: PathBuf,
+    /// Image width, pixels.
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 720)]
+    height: u32,
+    /// After the still, render this many more frames and report frame times.
+    #[arg(long, default_value_t = 0)]
+    frames: u32,
+    /// Seconds to wait for the view's geometry.
+    #[arg(long, default_value_t = 600.0)]
+    timeout: f64,
+    #[command(flatten)]
+    renderer: RendererArgs,
+}
+
+/// The camera of a `--camera` argument: a file if one exists at that path, else inline statements.
+pub fn camera_spec(arg: Option<&str>) -> anyhow::Result<CameraSpec> {
+    match arg {
+        None => Ok(CameraSpec::parse(DEFAULT_VIEW)?),
+        Some(a) if std::path::Path::new(a).is_file() => Ok(CameraSpec::load(std::path::Path::new(a))?),
+        Some(a) if a.contains(' ') => CameraSpec::parse(a).with_context(|| format!("camera `{a}`")),
+        Some(a) => {
+            anyhow::bail!("camera file {a} does not exist (inline cameras look like \"position 0 ~30 0; yaw 90\")")
+        }
+    }
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Run `canopy render`.
+pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
+    let cfg = args.renderer.config()?;
+    let spec = camera_spec(args.camera.as_deref())?;
+    // The adapter first: without one there is no point in loading the world.
+    let mut off = Offscreen::new(cfg, args.width, args.height)?;
+    println!("adapter: {}", off.gpu.describe());
+    let loaded = Instant::now();
+    let world = match &args.world {
+        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
+        None => World::default_world(),
+    };
+    let scene = Scene::from_world(&world);
+    let camera: Camera = spec.resolve(&|x, z| world.height(x, z));
+    println!(
+        "world {}: {} instances of {} species, loaded in {:.2} s",
+        world.name,
+        world.instances.len(),
+        world.species.len(),
+        loaded.elapsed().as_secs_f64()
+    );
+    let settle = Instant::now();
+    let stats = off.settle(&scene, &camera, Duration::from_secs_f64(args.timeout.max(0.0)))?;
+    println!(
+        "settled in {:.2} s: {} in view — near {}, mid {}, far {}; {} primitives, {} mesh triangles, {} terrain triangles, {} draw calls; cache {} entries, {:.1} of {:.0} MiB",
+        settle.elapsed().as_secs_f64(),
+        stats.in_view,
+        stats.near,
+        stats.mid,
+        stats.far,
+        stats.primitives,
+        stats.mesh_triangles,
+        stats.terrain_triangles,
+        stats.draw_calls,
+        stats.cache_entries,
+        stats.cache_bytes as f64 / 1048576.0,
+        stats.cache_capacity as f64 / 1048576.0,
+    );
+    let image = off.render()?;
+    image.save_png(&args.out)?;
+    println!("wrote {} ({}×{})", args.out.display(), image.width, image.height);
+    if args.frames > 0 {
+        let mut times = Vec::new();
+        let mut update = Vec::new();
+        for _ in 0..args.frames {
+            let t = Instant::now();
+            let s = off.renderer.update(&scene, &camera, 1.0 / 60.0);
+            off.render_and_wait()?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            update.push(s.update_ms);
+        }
+        times.sort_by(f64::total_cmp);
+        update.sort_by(f64::total_cmp);
+        let mean = times.iter().sum::<f64>() / times.len() as f64;
+        println!(
+            "frame time over {} frames at {}×{}: mean {:.1} ms ({:.1} fps), median {:.1} ms, p95 {:.1} ms, min {:.1} ms; CPU update median {:.1} ms",
+            times.len(),
+            args.width,
+            args.height,
+            mean,
+            1e3 / mean,
+            percentile(&times, 0.5),
+            percentile(&times, 0.95),
+            times[0],
+            percentile(&update, 0.5),
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,646 @@
+//! `canopy walk`: the walkthrough window. A winit loop on the main thread drives the renderer (fly or walk camera,
+//! mouse look, WASD); a network thread runs the client library against a `canopy-server`, sends the viewpoint as
+//! it moves and publishes scene snapshots (species, instances, terrain) that the renderer picks up without ever
+//! waiting. The title shows fps, bytes received, instances held, species cached and counts per LOD band.
+//!
+//! Without `--server` it starts canopy-server in this process on the embedded default world (or `--world FILE`)
+//! and connects to it, so `canopy walk` alone opens a walkthrough of the default world.
+//!
+//! Keys: W/A/S/D move, Space/C (or E/Q) up and down in fly mode, Shift ×4, mouse wheel or +/− change speed,
+//! Tab switches fly/walk, a click captures the mouse for looking around (arrow keys look too), Esc releases it
+//! and quits when it is free.
+
+use std::collections::HashSet;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::render::camera::{Camera, CameraSpec};
+use canopy_client::render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
+use canopy_client::{ConnectConfig, Connection, Trust};
+use canopy_protocol::aoi::Viewpoint;
+use canopy_worlds::world::{Terrain, World};
+use clap::Args;
+use glam::Vec3;
+use winit::application::ApplicationHandler;
+use winit::event::{DeviceEvent, DeviceId, ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{CursorGrabMode, Window, WindowId};
+
+use super::render::{RendererArgs, camera_spec};
+
+/// Options of `canopy walk`.
+#[derive(Args, Debug)]
+pub struct WalkArgs {
+    /// The server's UDP address (default: start canopy-server in this process on `--world`, or on the embedded
+    /// default world, and connect to it).
+    #[arg(long)]
+    server: Option<SocketAddr>,
+    /// World manifest for the in-process server (only without `--server`).
+    #[arg(long, conflicts_with = "server")]
+    world: Option<PathBuf>,
+    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
+    #[arg(long, conflicts_with = "insecure")]
+    cert_fingerprint: Option<String>,
+    /// Accept any server certificate (local use only).
+    #[arg(long)]
+    insecure: bool,
+    /// Area-of-interest radius to ask for, metres (the server caps it).
+    #[arg(long, default_value_t = 600.0)]
+    radius: f32,
+    /// Starting camera: a file, or statements inline (default: the default view of `canopy render`).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Window width.
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    /// Window height.
+    #[arg(long, default_value_t = 720)]
+    height: u32,
+    /// Starting speed, metres per second.
+    #[arg(long, default_value_t = 15.0)]
+    speed: f32,
+    /// Start in walk mode (eyes 1.7 m above the ground) instead of flying.
+    #[arg(long)]
+    walk: bool,
+    /// Move forward on its own (demos and tests).
+    #[arg(long)]
+    autopilot: bool,
+    /// Turn at this many degrees per second on autopilot.
+    #[arg(long, default_value_t = 6.0)]
+    autopilot_turn: f32,
+    /// Close after this many seconds (0: when the window is closed).
+    #[arg(long, default_value_t = 0.0)]
+    exit_after: f64,
+    /// Present without waiting for vertical sync (for measuring frame rates).
+    #[arg(long)]
+    no_vsync: bool,
+    /// Species cache directory (default: none).
+    #[arg(long)]
+    cache_dir: Option<PathBuf>,
+    #[command(flatten)]
+    renderer: RendererArgs,
+}
+
+/// Where the camera is, for the network thread's viewpoint updates.
+#[derive(Clone, Copy, Debug, Default)]
+struct Pose {
+    position: [f32; 2],
+    yaw: f32,
+    velocity: [f32; 2],
+}
+
+/// What the network thread reports.
+#[derive(Clone, Debug, Default)]
+struct NetStatus {
+    connected: bool,
+    world: String,
+    bytes_received: u64,
+    records: usize,
+    species_held: usize,
+    species_total: usize,
+    complete: bool,
+    error: Option<String>,
+}
+
+#[derive(Default)]
+struct Shared {
+    pose: Mutex<Pose>,
+    scene: Mutex<Option<Arc<Scene>>>,
+    status: Mutex<NetStatus>,
+    stop: AtomicBool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn snapshot(conn: &Connection, terrain: &Arc<Terrain>, generation: u64) -> Scene {
+    let state = conn.state();
+    let welcome = conn.welcome();
+    let species = (0..welcome.species.len()).map(|id| state.species(id as u8).cloned()).collect::<Vec<_>>();
+    let height = |x: f32, z: f32| terrain.height(x, z);
+    let mut instances: Vec<SceneInstance> = state
+        .instances(&height)
+        .map(|v| SceneInstance {
+            id: v.id,
+            species: u16::from(v.species),
+            position: v.position,
+            seed: v.seed,
+            params: v.params,
+        })
+        .collect();
+    instances.sort_by_key(|i| i.id);
+    Scene { volumes: vec![None; species.len()], species, instances, terrain: Arc::clone(terrain), generation }
+}
+
+async fn net_session(
+    cfg: ConnectConfig,
+    radius: f32,
+    cache: Option<Arc<SpeciesCache>>,
+    shared: Arc<Shared>,
+) -> anyhow::Result<()> {
+    let bind: SocketAddr = if cfg.server.is_ipv6() { "[::]:0".parse()? } else { "0.0.0.0:0".parse()? };
+    let endpoint = canopy_client::net::endpoint(bind)?;
+    let start = *lock(&shared.pose);
+    let mut conn = Connection::connect(&endpoint, &cfg, cache, |_| Viewpoint {
+        seq: 0,
+        position: start.position,
+        yaw: start.yaw,
+        velocity: [0.0, 0.0],
+        radius,
+    })
+    .await
+    .with_context(|| format!("connecting to {}", cfg.server))?;
+    let welcome = Arc::clone(conn.welcome());
+    let terrain = canopy_client::world::terrain(&welcome.world.terrain).context("rebuilding the terrain")?;
+    {
+        let mut s = lock(&shared.status);
+        s.connected = true;
+        s.world = welcome.world.name.clone();
+        s.species_total = welcome.species.len();
+    }
+    let mut generation = 1u64;
+    *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &terrain, generation)));
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    let mut dirty = false;
+    let mut last_publish = Instant::now();
+    let mut last_sent = (start, Instant::now());
+    while !shared.stop.load(Ordering::Relaxed) {
+        tokio::select! {
+            ev = conn.next_event() => {
+                ev?;
+                dirty = true;
+                // Drain what has already arrived before looking at the clock again.
+                for _ in 0..256 {
+                    match conn.try_next_event() {
+                        Some(r) => { r?; }
+                        None => break,
+                    }
+                }
+            }
+            _ = tick.tick() => {
+                let pose = *lock(&shared.pose);
+                let (prev, at) = last_sent;
+                let moved = ((pose.position[0] - prev.position[0]).powi(2) + (pose.position[1] - prev.position[1]).powi(2)).sqrt();
+                let turned = (pose.yaw - prev.yaw).abs();
+                if moved > 4.0 || turned > 0.15 || (at.elapsed() > Duration::from_secs(2) && moved > 0.0) {
+                    conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
+                    last_sent = (pose, Instant::now());
+                }
+            }
+        }
+        if dirty && last_publish.elapsed() > Duration::from_millis(250) {
+            generation += 1;
+            *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &terrain, generation)));
+            dirty = false;
+            last_publish = Instant::now();
+        }
+        let mut s = lock(&shared.status);
+        s.bytes_received = conn.bytes_received();
+        s.records = conn.state().record_count();
+        s.species_held = conn.state().species_held();
+        s.complete = conn.state().is_complete();
+    }
+    conn.close();
+    endpoint.wait_idle().await;
+    Ok(())
+}
+
+fn net_thread(
+    cfg: ConnectConfig,
+    radius: f32,
+    cache: Option<Arc<SpeciesCache>>,
+    shared: Arc<Shared>,
+) -> std::thread::JoinHandle<()> {
+    std::thread::spawn(move || {
+        let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+            Ok(rt) => rt,
+            Err(e) => {
+                lock(&shared.status).error = Some(format!("tokio runtime: {e}"));
+                return;
+            }
+        };
+        if let Err(e) = rt.block_on(net_session(cfg, radius, cache, Arc::clone(&shared))) {
+            lock(&shared.status).error = Some(format!("{e:#}"));
+        }
+    })
+}
+
+struct Graphics {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    gpu: Gpu,
+    renderer: Renderer,
+}
+
+struct App {
+    args: WalkArgs,
+    cfg: RenderConfig,
+    spec: CameraSpec,
+    shared: Arc<Shared>,
+    gfx: Option<Graphics>,
+    error: Option<anyhow::Error>,
+    camera: Camera,
+    camera_placed: bool,
+    scene: Option<Arc<Scene>>,
+    keys: HashSet<KeyCode>,
+    grabbed: bool,
+    walking: bool,
+    speed: f32,
+    started: Instant,
+    last_frame: Instant,
+    frames: u64,
+    window_frames: (Instant, u64),
+    fps: f64,
+    last_title: Instant,
+    last_print: Instant,
+    stats: FrameStats,
+}
+
+impl App {
+    fn init(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        let attrs = Window::default_attributes()
+            .with_title("Canopy")
+            .with_inner_size(winit::dpi::PhysicalSize::new(self.args.width, self.args.height));
+        let window = Arc::new(event_loop.create_window(attrs).context("opening the window")?);
+        let instance = Gpu::instance();
+        let surface = instance.create_surface(Arc::clone(&window)).context("creating the window surface")?;
+        let gpu = Gpu::with_instance(instance, Some(&surface), &self.cfg)?;
+        let caps = surface.get_capabilities(&gpu.adapter);
+        // The offscreen images write colours as computed; a non-sRGB surface shows the same picture.
+        let format = caps
+            .formats
+            .iter()
+            .copied()
+            .find(|f| !f.is_srgb())
+            .or_else(|| caps.formats.first().copied())
+            .context("the surface supports no format")?;
+        let size = window.inner_size();
+        let config = wgpu::SurfaceConfiguration {
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            format,
+            color_space: wgpu::SurfaceColorSpace::Auto,
+            width: size.width.max(1),
+            height: size.height.max(1),
+            desired_maximum_frame_latency: 2,
+            present_mode: if self.args.no_vsync {
+                wgpu::PresentMode::AutoNoVsync
+            } else {
+                wgpu::PresentMode::AutoVsync
+            },
+            alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
+            view_formats: vec![],
+        };
+        surface.configure(&gpu.device, &config);
+        let renderer = Renderer::new(&gpu.device, &gpu.queue, format, (config.width, config.height), self.cfg.clone())?;
+        println!("adapter: {}; surface {:?} {}×{}", gpu.describe(), format, config.width, config.height);
+        self.gfx = Some(Graphics { window, surface, config, gpu, renderer });
+        Ok(())
+    }
+
+    fn move_camera(&mut self, dt: f32) {
+        let key = |k: KeyCode| self.keys.contains(&k);
+        let look = 1.2 * dt;
+        let turn = |a: bool, b: bool| f32::from(u8::from(a)) - f32::from(u8::from(b));
+        self.camera.turn(
+            look * turn(key(KeyCode::ArrowRight), key(KeyCode::ArrowLeft)),
+            look * turn(key(KeyCode::ArrowUp), key(KeyCode::ArrowDown)),
+        );
+        let mut speed = self.speed;
+        if key(KeyCode::ShiftLeft) || key(KeyCode::ShiftRight) {
+            speed *= 4.0;
+        }
+        let mut forward = self.camera.forward();
+        if self.walking {
+            forward.y = 0.0;
+            forward = forward.normalize_or(Vec3::Z);
+        }
+        let right = self.camera.right();
+        let mut v = Vec3::ZERO;
+        v += forward * turn(key(KeyCode::KeyW), key(KeyCode::KeyS));
+        v += right * turn(key(KeyCode::KeyD), key(KeyCode::KeyA));
+        if !self.walking {
+            v += Vec3::Y * turn(key(KeyCode::Space) || key(KeyCode::KeyE), key(KeyCode::KeyC) || key(KeyCode::KeyQ));
+        }
+        if self.args.autopilot {
+            v += forward;
+            self.camera.turn(self.args.autopilot_turn.to_radians() * dt, 0.0);
+        }
+        let v = v.normalize_or_zero() * speed;
+        self.camera.position += v * dt;
+        if let Some(scene) = &self.scene {
+            let ground = scene.terrain.height(self.camera.position.x, self.camera.position.z);
+            if self.walking {
+                self.camera.position.y = ground + 1.7;
+            } else {
+                self.camera.position.y = self.camera.position.y.max(ground + 0.5);
+            }
+        }
+        *lock(&self.shared.pose) = Pose {
+            position: [self.camera.position.x, self.camera.position.z],
+            yaw: self.camera.yaw,
+            velocity: [v.x, v.z],
+        };
+    }
+
+    fn status_line(&self) -> String {
+        let s = lock(&self.shared.status).clone();
+        let st = &self.stats;
+        let net = match (&s.error, s.connected) {
+            (Some(e), _) => format!("network error: {e}"),
+            (None, false) => "connecting…".into(),
+            (None, true) => format!(
+                "{}: {:.2} MB received | {} instances held{} | species {}/{} cached",
+                s.world,
+                s.bytes_received as f64 / 1e6,
+                s.records,
+                if s.complete { "" } else { " (loading)" },
+                s.species_held,
+                s.species_total,
+            ),
+        };
+        format!(
+            "Canopy — {:.0} fps | {net} | near {} mid {} far {} (in view {}) | {:.0} m/s {}",
+            self.fps,
+            st.near,
+            st.mid,
+            st.far,
+            st.in_view,
+            self.speed,
+            if self.walking { "walk" } else { "fly" },
+        )
+    }
+
+    fn frame(&mut self, event_loop: &ActiveEventLoop) {
+        let now = Instant::now();
+        let dt = now.duration_since(self.last_frame).as_secs_f32().min(0.25);
+        self.last_frame = now;
+        if let Ok(mut g) = self.shared.scene.try_lock() {
+            if let Some(s) = g.take() {
+                self.scene = Some(s);
+            }
+        }
+        if let (false, Some(scene)) = (self.camera_placed, &self.scene) {
+            let t = Arc::clone(&scene.terrain);
+            self.camera = self.spec.resolve(&|x, z| t.height(x, z));
+            self.camera_placed = true;
+        }
+        self.move_camera(dt);
+        let Some(gfx) = self.gfx.as_mut() else { return };
+        if let Some(scene) = &self.scene {
+            self.stats = gfx.renderer.update(scene, &self.camera, dt);
+        } else {
+            gfx.renderer.update_view(&self.camera);
+        }
+        match gfx.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(frame) | wgpu::CurrentSurfaceTexture::Suboptimal(frame) => {
+                let view = frame.texture.create_view(&wgpu::TextureViewDescriptor::default());
+                gfx.renderer.render(&view);
+                gfx.window.pre_present_notify();
+                gfx.gpu.queue.present(frame);
+                self.frames += 1;
+            }
+            wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => {}
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+            }
+            wgpu::CurrentSurfaceTexture::Validation => {
+                self.error = Some(anyhow::anyhow!("the surface reported a validation error"));
+                event_loop.exit();
+            }
+        }
+        let (t0, f0) = self.window_frames;
+        if t0.elapsed() >= Duration::from_millis(500) {
+            self.fps = (self.frames - f0) as f64 / t0.elapsed().as_secs_f64();
+            self.window_frames = (Instant::now(), self.frames);
+        }
+        if self.last_title.elapsed() >= Duration::from_millis(500) {
+            let line = self.status_line();
+            if let Some(gfx) = &self.gfx {
+                gfx.window.set_title(&line);
+            }
+            self.last_title = Instant::now();
+            if self.last_print.elapsed() >= Duration::from_secs(2) {
+                println!("{:6.1}s  {line}", self.started.elapsed().as_secs_f64());
+                self.last_print = Instant::now();
+            }
+        }
+        if self.args.exit_after > 0.0 && self.started.elapsed().as_secs_f64() >= self.args.exit_after {
+            event_loop.exit();
+        }
+    }
+
+    fn set_grab(&mut self, grab: bool) {
+        let Some(gfx) = &self.gfx else { return };
+        if grab {
+            let ok = gfx
+                .window
+                .set_cursor_grab(CursorGrabMode::Locked)
+                .or_else(|_| gfx.window.set_cursor_grab(CursorGrabMode::Confined));
+            if ok.is_err() {
+                return;
+            }
+        } else {
+            let _ = gfx.window.set_cursor_grab(CursorGrabMode::None);
+        }
+        gfx.window.set_cursor_visible(!grab);
+        self.grabbed = grab;
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gfx.is_some() {
+            return;
+        }
+        if let Err(e) = self.init(event_loop) {
+            self.error = Some(e);
+            event_loop.exit();
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                if let Some(gfx) = self.gfx.as_mut() {
+                    gfx.config.width = size.width.max(1);
+                    gfx.config.height = size.height.max(1);
+                    gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+                    gfx.renderer.resize(gfx.config.width, gfx.config.height);
+                }
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                let PhysicalKey::Code(code) = event.physical_key else { return };
+                match event.state {
+                    ElementState::Pressed => {
+                        self.keys.insert(code);
+                        match code {
+                            KeyCode::Escape if self.grabbed => self.set_grab(false),
+                            KeyCode::Escape => event_loop.exit(),
+                            KeyCode::Tab if !event.repeat => self.walking = !self.walking,
+                            KeyCode::Equal | KeyCode::NumpadAdd => self.speed = (self.speed * 1.25).min(2000.0),
+                            KeyCode::Minus | KeyCode::NumpadSubtract => self.speed = (self.speed / 1.25).max(0.5),
+                            _ => {}
+                        }
+                    }
+                    ElementState::Released => {
+                        self.keys.remove(&code);
+                    }
+                }
+            }
+            WindowEvent::MouseInput { state: ElementState::Pressed, button: MouseButton::Left, .. } => {
+                self.set_grab(true)
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let steps = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => (p.y / 40.0) as f32,
+                };
+                self.speed = (self.speed * 1.25f32.powf(steps)).clamp(0.5, 2000.0);
+            }
+            WindowEvent::Focused(false) => self.keys.clear(),
+            WindowEvent::RedrawRequested => self.frame(event_loop),
+            _ => {}
+        }
+    }
+
+    fn device_event(&mut self, _event_loop: &ActiveEventLoop, _id: DeviceId, event: DeviceEvent) {
+        if let (true, DeviceEvent::MouseMotion { delta }) = (self.grabbed, event) {
+            self.camera.turn(delta.0 as f32 * 0.0025, -delta.1 as f32 * 0.0025);
+        }
+    }
+
+    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+        if let Some(gfx) = &self.gfx {
+            gfx.window.request_redraw();
+        }
+    }
+}
+
+/// A canopy-server in this process, for `canopy walk` without `--server`.
+struct LocalServer {
+    runtime: tokio::runtime::Runtime,
+    server: canopy_server::Server,
+}
+
+fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    let world = match world {
+        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
+        None => World::default_world(),
+    };
+    let store = canopy_server::GridStore::from_world(&world).context("building the world store")?;
+    let cfg = canopy_server::ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() };
+    let server = runtime.block_on(canopy_server::Server::start(store.shared(), cfg))?;
+    println!(
+        "canopy-server (in-process) on {} serving {}: {} instances",
+        server.local_addr(),
+        world.name,
+        world.instances.len()
+    );
+    Ok(LocalServer { runtime, server })
+}
+
+/// Run `canopy walk`.
+pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
+    let cfg = args.renderer.config()?;
+    let spec = camera_spec(args.camera.as_deref())?;
+    let local = match args.server {
+        Some(_) => None,
+        None => Some(local_server(args.world.as_ref())?),
+    };
+    let (server, trust) = match (&local, args.server, &args.cert_fingerprint, args.insecure) {
+        (Some(l), _, _, _) => (
+            l.server.local_addr(),
+            Trust::pinned(l.server.fingerprint()).context("the in-process server's fingerprint")?,
+        ),
+        (None, Some(addr), Some(f), _) => {
+            (addr, Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))?)
+        }
+        (None, Some(addr), None, true) => (addr, Trust::Insecure),
+        _ => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
+    };
+    if !(args.radius.is_finite() && args.radius > 0.0) || !(args.speed.is_finite() && args.speed > 0.0) {
+        bail!("--radius and --speed must be positive");
+    }
+    if !(0.0..=1e6).contains(&args.exit_after) {
+        bail!("--exit-after must be between 0 and 1e6 seconds");
+    }
+    let cache = match &args.cache_dir {
+        Some(dir) => Some(Arc::new(
+            SpeciesCache::open(dir, CacheLimits::default())
+                .with_context(|| format!("species cache {}", dir.display()))?,
+        )),
+        None => None,
+    };
+    let shared = Arc::new(Shared::default());
+    let camera = spec.resolve(&|_, _| 0.0);
+    *lock(&shared.pose) =
+        Pose { position: [camera.position.x, camera.position.z], yaw: camera.yaw, velocity: [0.0; 2] };
+    let mut connect = ConnectConfig::new(server, trust);
+    connect.client_name = "canopy walk".into();
+    let net = net_thread(connect, args.radius, cache, Arc::clone(&shared));
+    let event_loop = EventLoop::new().context("opening the display (is DISPLAY or WAYLAND_DISPLAY set?)")?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let now = Instant::now();
+    let mut app = App {
+        walking: args.walk,
+        speed: args.speed,
+        args,
+        cfg,
+        spec,
+        shared: Arc::clone(&shared),
+        gfx: None,
+        error: None,
+        camera,
+        camera_placed: false,
+        scene: None,
+        keys: HashSet::new(),
+        grabbed: false,
+        started: now,
+        last_frame: now,
+        frames: 0,
+        window_frames: (now, 0),
+        fps: 0.0,
+        last_title: now,
+        last_print: now,
+        stats: FrameStats::default(),
+    };
+    let ran = event_loop.run_app(&mut app);
+    shared.stop.store(true, Ordering::Relaxed);
+    let elapsed = app.started.elapsed().as_secs_f64();
+    let status = lock(&shared.status).clone();
+    println!("{}", app.status_line());
+    println!(
+        "frames presented: {} in {:.1} s ({:.1} fps); instances held {}, species {}/{}, {} bytes received",
+        app.frames,
+        elapsed,
+        app.frames as f64 / elapsed.max(1e-9),
+        status.records,
+        status.species_held,
+        status.species_total,
+        status.bytes_received
+    );
+    drop(app.gfx.take());
+    let _ = net.join();
+    if let Some(l) = local {
+        l.runtime.block_on(l.server.shutdown(Duration::from_secs(1)));
+    }
+    ran.context("the window's event loop")?;
+    if let Some(e) = app.error {
+        return Err(e);
+    }
+    if let Some(e) = status.error {
+        bail!("network: {e}");
+    }
+    Ok(ExitCode::SUCCESS)
+}

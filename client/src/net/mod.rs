@@ -1,0 +1,439 @@
+//! The network client: connect to a `canopy-server` over QUIC, say hello, answer the welcome with the species the
+//! cache holds, send viewpoints as they move, and feed the server's lanes into the sans-IO [`ClientState`].
+//!
+//! One [`Connection`] is one session. Its lanes are read by small tasks that only split frames and decode; the
+//! state is changed by whoever owns the connection (a bot's task, the app's loop), so there is no lock on it.
+//! Anything wrong from the server closes the connection with a [`CloseCode`] and a reason.
+
+pub mod tls;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
+use canopy_protocol::messages::{MessageError, ServerStreaming, Welcome};
+use canopy_protocol::{CloseCode, ServerMsg, netlimits};
+use quinn::{Endpoint, VarInt};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+
+use crate::cache::SpeciesCache;
+use crate::state::{ClientState, Event, StateError};
+pub use tls::Trust;
+
+/// UDP socket buffer size of a client endpoint (a bots process multiplexes thousands of connections on one).
+pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
+
+/// Where and how to connect.
+#[derive(Clone, Debug)]
+pub struct ConnectConfig {
+    /// The server's UDP address.
+    pub server: SocketAddr,
+    /// The TLS server name (the server's certificate is issued for `localhost` and `canopy`).
+    pub server_name: String,
+    /// How the server's certificate is trusted.
+    pub trust: Trust,
+    /// A label for the server's logs.
+    pub client_name: String,
+    /// How long connecting and the handshake may take.
+    pub timeout: Duration,
+}
+
+impl ConnectConfig {
+    /// Connect to `server`, trusting as `trust` says.
+    pub fn new(server: SocketAddr, trust: Trust) -> ConnectConfig {
+        ConnectConfig {
+            server,
+            server_name: "localhost".into(),
+            trust,
+            client_name: "canopy".into(),
+            timeout: Duration::from_secs(20),
+        }
+    }
+}
+
+/// Why a connection failed or ended.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The TLS or QUIC configuration could not be built.
+    #[error(transparent)]
+    Tls(#[from] tls::TlsError),
+    /// The connection could not be started.
+    #[error("connecting: {0}")]
+    Connect(#[from] quinn::ConnectError),
+    /// The server closed the connection, with its reason.
+    #[error("server closed the connection ({code:?}): {reason}")]
+    Closed {
+        /// The close code, if it is one of ours.
+        code: Option<CloseCode>,
+        /// The server's reason.
+        reason: String,
+    },
+    /// The connection was lost.
+    #[error("connection lost: {0}")]
+    Lost(quinn::ConnectionError),
+    /// A stream failed.
+    #[error("stream: {0}")]
+    Stream(String),
+    /// A frame was too large, empty or truncated.
+    #[error(transparent)]
+    Frame(#[from] FrameError),
+    /// A message did not decode or is not acceptable.
+    #[error(transparent)]
+    Message(#[from] MessageError),
+    /// A message is not acceptable in the session's state.
+    #[error(transparent)]
+    State(#[from] StateError),
+    /// Something took too long.
+    #[error("timed out {0}")]
+    Timeout(&'static str),
+    /// The UDP socket could not be set up.
+    #[error("socket: {0}")]
+    Socket(#[from] std::io::Error),
+}
+
+impl ClientError {
+    fn from_connection(e: quinn::ConnectionError) -> ClientError {
+        match e {
+            quinn::ConnectionError::ApplicationClosed(c) => ClientError::Closed {
+                code: CloseCode::from_code(c.error_code.into_inner()),
+                reason: String::from_utf8_lossy(&c.reason).into_owned(),
+            },
+            e => ClientError::Lost(e),
+        }
+    }
+
+    /// The close code the client sends for this error, if it is the server's fault.
+    fn close_code(&self) -> Option<CloseCode> {
+        match self {
+            ClientError::Frame(FrameError::TooLarge { .. }) => Some(CloseCode::TooLarge),
+            ClientError::Frame(_) => Some(CloseCode::Malformed),
+            ClientError::Message(e) => Some(e.close_code()),
+            ClientError::State(StateError::Phase(_)) => Some(CloseCode::OutOfOrder),
+            ClientError::State(_) => Some(CloseCode::Invalid),
+            ClientError::Timeout(_) => Some(CloseCode::Timeout),
+            _ => None,
+        }
+    }
+}
+
+/// A client endpoint bound to `bind` (e.g. `127.0.0.1:0`) with large socket buffers; many connections share it.
+pub fn endpoint(bind: SocketAddr) -> Result<Endpoint, ClientError> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::for_address(bind), Type::DGRAM, Some(Protocol::UDP))?;
+    // Best effort: the OS may cap the buffers (net.core.rmem_max); the endpoint works either way.
+    let _ = socket.set_recv_buffer_size(SOCKET_BUFFER);
+    let _ = socket.set_send_buffer_size(SOCKET_BUFFER);
+    socket.bind(&bind.into())?;
+    let runtime = Arc::new(quinn::TokioRuntime);
+    Ok(Endpoint::new(quinn::EndpointConfig::default(), None, socket.into(), runtime)?)
+}
+
+enum Inbound {
+    Msg(ServerMsg, usize),
+    Failed(ClientError),
+}
+
+struct AbortOnDrop(Vec<JoinHandle<()>>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        for t in &self.0 {
+            t.abort();
+        }
+    }
+}
+
+/// One session with a server (see the module docs).
+pub struct Connection {
+    conn: quinn::Connection,
+    control: quinn::SendStream,
+    inbox: mpsc::Receiver<Inbound>,
+    state: ClientState,
+    cache: Option<Arc<SpeciesCache>>,
+    seq: u32,
+    bytes_out: u64,
+    frame_bytes: [u64; 4],
+    _tasks: AbortOnDrop,
+}
+
+impl std::fmt::Debug for Connection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Connection").field("remote", &self.conn.remote_address()).finish()
+    }
+}
+
+async fn read_frame(
+    recv: &mut quinn::RecvStream,
+    decoder: &mut FrameDecoder,
+) -> Result<Option<(ServerMsg, usize)>, ClientError> {
+    loop {
+        if let Some(f) = decoder.next_frame()? {
+            let len = f.len() + canopy_protocol::frame::PREFIX;
+            return Ok(Some((ServerMsg::decode(f)?, len)));
+        }
+        match recv.read_chunk(64 * 1024, true).await {
+            Ok(Some(chunk)) => decoder.push(&chunk.bytes),
+            Ok(None) => {
+                decoder.finish()?;
+                return Ok(None);
+            }
+            Err(quinn::ReadError::ConnectionLost(e)) => return Err(ClientError::from_connection(e)),
+            Err(e) => return Err(ClientError::Stream(e.to_string())),
+        }
+    }
+}
+
+impl Connection {
+    /// Connect, say hello, read the welcome, tell the server which species the cache holds and where the
+    /// viewpoint is (`viewpoint` places it, knowing the world from the welcome). Species held by `cache` are
+    /// preloaded into the state.
+    pub async fn connect(
+        endpoint: &Endpoint,
+        cfg: &ConnectConfig,
+        cache: Option<Arc<SpeciesCache>>,
+        viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
+    ) -> Result<Connection, ClientError> {
+        let client_cfg = tls::client_config(cfg.trust.clone())?;
+        let connecting = endpoint.connect_with(client_cfg, cfg.server, &cfg.server_name)?;
+        let deadline = tokio::time::Instant::now() + cfg.timeout;
+        let conn = match tokio::time::timeout_at(deadline, connecting).await {
+            Ok(Ok(c)) => c,
+            Ok(Err(e)) => return Err(ClientError::from_connection(e)),
+            Err(_) => return Err(ClientError::Timeout("connecting")),
+        };
+        match tokio::time::timeout_at(deadline, Connection::handshake(conn.clone(), cfg, cache, viewpoint)).await {
+            Ok(Ok(c)) => Ok(c),
+            Ok(Err(e)) => {
+                if let Some(code) = e.close_code() {
+                    conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
+                }
+                Err(e)
+            }
+            Err(_) => {
+                conn.close(VarInt::from_u32(CloseCode::Timeout as u32), b"handshake timed out");
+                Err(ClientError::Timeout("in the handshake"))
+            }
+        }
+    }
+
+    async fn handshake(
+        conn: quinn::Connection,
+        cfg: &ConnectConfig,
+        cache: Option<Arc<SpeciesCache>>,
+        viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
+    ) -> Result<Connection, ClientError> {
+        let (mut control, mut recv) = conn.open_bi().await.map_err(ClientError::from_connection)?;
+        let mut state = ClientState::new();
+        let hello = frame(&state.hello(&cfg.client_name)?.encode());
+        control.write_all(&hello).await.map_err(|e| ClientError::Stream(e.to_string()))?;
+        let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
+        let (msg, _) = read_frame(&mut recv, &mut decoder).await?.ok_or(ClientError::Stream("no welcome".into()))?;
+        let welcome = state.on_welcome(msg)?;
+        if let Some(cache) = &cache {
+            for (id, entry) in welcome.species.iter().enumerate() {
+                if let Some(g) = cache.get(&entry.hash) {
+                    state.preload_species(id as u8, g);
+                }
+            }
+        }
+        let viewpoint = viewpoint(&welcome);
+        let ready = frame(&state.ready(viewpoint)?.encode());
+        control.write_all(&ready).await.map_err(|e| ClientError::Stream(e.to_string()))?;
+        let (tx, inbox) = mpsc::channel(256);
+        let mut tasks = Vec::new();
+        // The control stream carries nothing after the welcome: anything more is out of order.
+        let ctl_tx = tx.clone();
+        tasks.push(tokio::spawn(async move {
+            let failed = match read_frame(&mut recv, &mut decoder).await {
+                Ok(None) => return,
+                Ok(Some((m, _))) => ClientError::State(StateError::Phase(canopy_protocol::messages::PhaseError {
+                    phase: canopy_protocol::Phase::Streaming,
+                    message: m.name(),
+                })),
+                Err(e) => e,
+            };
+            let _ = ctl_tx.send(Inbound::Failed(failed)).await;
+        }));
+        let lanes_conn = conn.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut lanes = Vec::new();
+            loop {
+                let mut stream = match lanes_conn.accept_uni().await {
+                    Ok(s) => s,
+                    Err(e) => {
+                        let _ = tx.send(Inbound::Failed(ClientError::from_connection(e))).await;
+                        return;
+                    }
+                };
+                let tx = tx.clone();
+                lanes.push(AbortOnDrop(vec![tokio::spawn(async move {
+                    let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
+                    loop {
+                        match read_frame(&mut stream, &mut decoder).await {
+                            Ok(Some((m, len))) => {
+                                if tx.send(Inbound::Msg(m, len)).await.is_err() {
+                                    return;
+                                }
+                            }
+                            Ok(None) => return,
+                            Err(e) => {
+                                let _ = tx.send(Inbound::Failed(e)).await;
+                                return;
+                            }
+                        }
+                    }
+                })]));
+            }
+        }));
+        Ok(Connection {
+            conn,
+            control,
+            inbox,
+            state,
+            cache,
+            seq: viewpoint.seq,
+            bytes_out: (hello.len() + ready.len()) as u64,
+            frame_bytes: [0; 4],
+            _tasks: AbortOnDrop(tasks),
+        })
+    }
+
+    /// The session's state: species, cells, instances, completeness.
+    pub fn state(&self) -> &ClientState {
+        &self.state
+    }
+
+    /// The welcome.
+    pub fn welcome(&self) -> &Arc<Welcome> {
+        self.state.welcome().expect("a connection is welcomed")
+    }
+
+    /// Bytes received on the connection (UDP payloads, QUIC overhead included).
+    pub fn bytes_received(&self) -> u64 {
+        self.conn.stats().udp_rx.bytes
+    }
+
+    /// Bytes sent on the connection (UDP payloads, QUIC overhead included).
+    pub fn bytes_sent(&self) -> u64 {
+        self.conn.stats().udp_tx.bytes
+    }
+
+    /// Frame bytes received on the lanes by message class: welcome (0), species (1), cells (2), release (3).
+    pub fn frame_bytes_received(&self) -> [u64; 4] {
+        self.frame_bytes
+    }
+
+    /// Frame bytes the client wrote on its control stream (hello, ready, viewpoints).
+    pub fn frame_bytes_sent(&self) -> u64 {
+        self.bytes_out
+    }
+
+    /// The next viewpoint's sequence number.
+    pub fn next_seq(&self) -> u32 {
+        self.seq + 1
+    }
+
+    /// Move the viewpoint: evicts what left the area of interest and tells the server. `vp.seq` is set here.
+    pub async fn set_viewpoint(&mut self, mut vp: Viewpoint) -> Result<(), ClientError> {
+        self.seq += 1;
+        vp.seq = self.seq;
+        let msg = self.state.set_viewpoint(vp)?;
+        let bytes = frame(&msg.encode());
+        self.bytes_out += bytes.len() as u64;
+        self.control.write_all(&bytes).await.map_err(|e| match e {
+            quinn::WriteError::ConnectionLost(e) => ClientError::from_connection(e),
+            e => ClientError::Stream(e.to_string()),
+        })
+    }
+
+    fn apply(&mut self, inbound: Inbound) -> Result<Event, ClientError> {
+        let result = match inbound {
+            Inbound::Failed(e) => Err(e),
+            Inbound::Msg(m, len) => {
+                let class = match &m {
+                    ServerMsg::Handshake(_) => 0,
+                    ServerMsg::Streaming(ServerStreaming::Species(_)) => 1,
+                    ServerMsg::Streaming(ServerStreaming::Cells(_)) => 2,
+                    ServerMsg::Streaming(ServerStreaming::Release(_)) => 3,
+                };
+                self.frame_bytes[class] += len as u64;
+                let species = match &m {
+                    ServerMsg::Streaming(ServerStreaming::Species(s)) => Some(s.graph.clone()),
+                    _ => None,
+                };
+                let ev = self.state.handle(m).map_err(ClientError::from);
+                if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache) {
+                    if let Some(g) = self.state.species(*id) {
+                        if let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g)) {
+                            tracing::warn!("species cache: {e}");
+                        }
+                    }
+                }
+                ev
+            }
+        };
+        if let Err(e) = &result {
+            if let Some(code) = e.close_code() {
+                self.conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
+            }
+        }
+        result
+    }
+
+    /// Wait for the next message from the server and apply it.
+    pub async fn next_event(&mut self) -> Result<Event, ClientError> {
+        match self.inbox.recv().await {
+            Some(i) => self.apply(i),
+            None => Err(self.closed_error()),
+        }
+    }
+
+    /// Apply a message that has already arrived, without waiting (`None`: nothing pending).
+    pub fn try_next_event(&mut self) -> Option<Result<Event, ClientError>> {
+        match self.inbox.try_recv() {
+            Ok(i) => Some(self.apply(i)),
+            Err(mpsc::error::TryRecvError::Empty) => None,
+            Err(mpsc::error::TryRecvError::Disconnected) => Some(Err(self.closed_error())),
+        }
+    }
+
+    fn closed_error(&self) -> ClientError {
+        match self.conn.close_reason() {
+            Some(e) => ClientError::from_connection(e),
+            None => ClientError::Stream("lanes ended".into()),
+        }
+    }
+
+    /// Wait until the area of interest is complete (or `timeout` passes).
+    pub async fn wait_complete(&mut self, timeout: Duration) -> Result<(), ClientError> {
+        let deadline = tokio::time::Instant::now() + timeout;
+        while !self.state.is_complete() {
+            match tokio::time::timeout_at(deadline, self.next_event()).await {
+                Ok(r) => {
+                    r?;
+                }
+                Err(_) => return Err(ClientError::Timeout("waiting for a complete area of interest")),
+            }
+        }
+        Ok(())
+    }
+
+    /// The underlying QUIC connection (for tests and statistics).
+    pub fn quic(&self) -> &quinn::Connection {
+        &self.conn
+    }
+
+    /// End the session normally.
+    pub fn close(self) {
+        self.conn.close(VarInt::from_u32(CloseCode::Normal as u32), b"bye");
+    }
+
+    /// End the session normally and keep what it received.
+    pub fn close_into_state(self) -> ClientState {
+        self.conn.close(VarInt::from_u32(CloseCode::Normal as u32), b"bye");
+        self.state
+    }
+}

@@ -1,0 +1,313 @@
+//! CPU side of near and mid geometry: one instance amplified at a detail level and turned into what the GPU draws —
+//! primitive instances of unit shapes (cone/cylinder frusta, spheres, boxes) and a mesh for everything else
+//! (leaves, trunk bases), or one merged mesh ([`NearMode::Merged`]). Pure and deterministic; runs on workers.
+
+use std::ops::Range;
+
+use bytemuck::{Pod, Zeroable};
+use canopy_protocol::SpeciesGraph;
+use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into};
+use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
+
+use super::NearMode;
+
+/// The unit shapes drawn by instancing, in draw order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum UnitShape {
+    /// A frustum on the origin along +Y: cones and cylinders (`shape = [bottom, top, height]`).
+    Frustum = 0,
+    /// A sphere on the origin (`shape = [radius, radius, radius]`).
+    Sphere = 1,
+    /// A box centred on the origin (`shape = edge lengths`).
+    Box = 2,
+}
+
+impl UnitShape {
+    /// All unit shapes.
+    pub const ALL: [UnitShape; 3] = [UnitShape::Frustum, UnitShape::Sphere, UnitShape::Box];
+}
+
+/// One primitive instance as the shaders read it (64 bytes): the species-space transform's three rows, the shape's
+/// size and the linear RGB colour packed as unorm8×4.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct PrimInstance {
+    /// Rows of the 3×4 affine transform.
+    pub rows: [[f32; 4]; 3],
+    /// Size parameters (see [`UnitShape`]).
+    pub shape: [f32; 3],
+    /// Colour, unorm8×4 little-endian (r in the low byte).
+    pub color: u32,
+}
+
+/// One mesh vertex as the shaders read it (20 bytes): position, normal snorm8×4, colour unorm8×4.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct MeshVertex {
+    /// Species-space position.
+    pub position: [f32; 3],
+    /// Unit normal, snorm8×4.
+    pub normal: u32,
+    /// Linear RGB colour, unorm8×4.
+    pub color: u32,
+}
+
+/// The GPU-ready geometry of one (species, seed, detail).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TreeGeometry {
+    /// Primitive instances, grouped by [`UnitShape`] (empty in merged mode).
+    pub prims: Vec<PrimInstance>,
+    /// The range of each [`UnitShape`] in `prims`.
+    pub shape_ranges: [Range<u32>; 3],
+    /// Mesh vertices.
+    pub vertices: Vec<MeshVertex>,
+    /// Mesh triangle indices into `vertices`.
+    pub indices: Vec<u32>,
+    /// Primitives amplified.
+    pub primitives: usize,
+    /// Species-space bounds `(min, max)` of everything; empty geometry has `min > max`.
+    pub bounds: ([f32; 3], [f32; 3]),
+}
+
+impl TreeGeometry {
+    /// Bytes this geometry takes on the GPU.
+    pub fn gpu_bytes(&self) -> u64 {
+        (self.prims.len() * size_of::<PrimInstance>()
+            + self.vertices.len() * size_of::<MeshVertex>()
+            + self.indices.len() * 4) as u64
+    }
+
+    /// Whether there is nothing to draw.
+    pub fn is_empty(&self) -> bool {
+        self.prims.is_empty() && self.indices.is_empty()
+    }
+}
+
+/// Pack a linear colour as unorm8×4.
+pub fn pack_unorm(c: [f32; 3]) -> u32 {
+    let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u32;
+    q(c[0]) | q(c[1]) << 8 | q(c[2]) << 16 | 255 << 24
+}
+
+/// Pack a unit vector as snorm8×4.
+pub fn pack_snorm(n: [f32; 3]) -> u32 {
+    let q = |v: f32| ((v.clamp(-1.0, 1.0) * 127.0).round() as i32 as u32) & 0xff;
+    q(n[0]) | q(n[1]) << 8 | q(n[2]) << 16
+}
+
+/// The local bounds of a primitive (as the voxeliser takes them: a trunk base as the frustum holding its flares).
+pub fn local_bounds(stream: &PrimitiveStream, p: &Primitive) -> Vec<[f32; 3]> {
+    let corners = |lo: [f32; 3], hi: [f32; 3]| -> Vec<[f32; 3]> {
+        (0..8)
+            .map(|c| {
+                [
+                    if c & 1 == 0 { lo[0] } else { hi[0] },
+                    if c & 2 == 0 { lo[1] } else { hi[1] },
+                    if c & 4 == 0 { lo[2] } else { hi[2] },
+                ]
+            })
+            .collect()
+    };
+    match &p.shape {
+        Shape::Cone { bottom, top, height } => {
+            let r = bottom.max(*top);
+            corners([-r, 0.0, -r], [r, *height, r])
+        }
+        Shape::TrunkBase(b) => {
+            let r = (b.bottom * b.spread.max(1.0)).max(b.top);
+            corners([-r, 0.0, -r], [r, b.height, r])
+        }
+        Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [*radius, *height, *radius]),
+        Shape::Sphere { radius } => corners([-radius; 3], [*radius; 3]),
+        Shape::Box { size } => corners(size.map(|s| -0.5 * s), size.map(|s| 0.5 * s)),
+        Shape::Leaf { .. } => stream.leaf(p).to_vec(),
+    }
+}
+
+/// The species-space bounds of a primitive stream (`min > max` when empty).
+pub fn stream_bounds(stream: &PrimitiveStream) -> ([f32; 3], [f32; 3]) {
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in &stream.primitives {
+        for c in local_bounds(stream, p) {
+            let w = p.transform.point(c);
+            for i in 0..3 {
+                lo[i] = lo[i].min(w[i]);
+                hi[i] = hi[i].max(w[i]);
+            }
+        }
+    }
+    (lo, hi)
+}
+
+fn finite_positive(v: &[f32]) -> bool {
+    v.iter().all(|x| x.is_finite() && *x > 0.0)
+}
+
+/// The unit-shape instance of a primitive, or `None` for leaves, trunk bases and degenerate primitives.
+fn unit_instance(p: &Primitive) -> Option<(UnitShape, [f32; 3])> {
+    let (shape, size) = match p.shape {
+        Shape::Cone { bottom, top, height } => {
+            let ok = bottom.is_finite() && top.is_finite() && bottom >= 0.0 && top >= 0.0 && bottom + top > 0.0;
+            if !ok || !finite_positive(&[height]) {
+                return None;
+            }
+            (UnitShape::Frustum, [bottom, top, height])
+        }
+        Shape::Cylinder { radius, height } => {
+            if !finite_positive(&[radius, height]) {
+                return None;
+            }
+            (UnitShape::Frustum, [radius, radius, height])
+        }
+        Shape::Sphere { radius } => {
+            if !finite_positive(&[radius]) {
+                return None;
+            }
+            (UnitShape::Sphere, [radius; 3])
+        }
+        Shape::Box { size } => {
+            if !finite_positive(&size) {
+                return None;
+            }
+            (UnitShape::Box, size)
+        }
+        Shape::Leaf { .. } | Shape::TrunkBase(_) => return None,
+    };
+    if !p.transform.m.iter().all(|v| v.is_finite()) || p.transform.determinant().abs() < 1e-24 {
+        return None;
+    }
+    Some((shape, size))
+}
+
+/// Amplify `instance` of `graph` (its `detail` selects the LOD substitutes) and build its geometry.
+pub fn build_tree(
+    graph: &SpeciesGraph,
+    instance: &Instance,
+    mode: NearMode,
+    budget: &Budget,
+) -> Result<TreeGeometry, AmplifyError> {
+    let stream = amplify(graph, instance, budget)?;
+    Ok(geometry_of(&stream, instance.detail, mode))
+}
+
+/// Build the geometry of an amplified stream (see [`build_tree`]).
+pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
+    let opts = MeshOptions::for_detail(detail);
+    let mut out =
+        TreeGeometry { primitives: stream.primitives.len(), bounds: stream_bounds(stream), ..Default::default() };
+    let mut mesh = Mesh::new();
+    match mode {
+        NearMode::Merged => mesh_into(stream, &opts, &mut mesh),
+        NearMode::Instanced => {
+            let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
+            let mut rest = PrimitiveStream { primitives: Vec::new(), leaf_points: Vec::new() };
+            for p in &stream.primitives {
+                match unit_instance(p) {
+                    Some((shape, size)) => {
+                        let m = &p.transform.m;
+                        by_shape[shape as usize].push(PrimInstance {
+                            rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
+                            shape: size,
+                            color: pack_unorm(p.color),
+                        });
+                    }
+                    None if matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_)) => {
+                        rest.primitives.push(p.clone());
+                    }
+                    None => {}
+                }
+            }
+            if !rest.primitives.is_empty() {
+                rest.leaf_points = stream.leaf_points.clone();
+                mesh_into(&rest, &opts, &mut mesh);
+            }
+            let mut start = 0u32;
+            for (k, v) in by_shape.iter_mut().enumerate() {
+                out.shape_ranges[k] = start..start + v.len() as u32;
+                start += v.len() as u32;
+                out.prims.append(v);
+            }
+        }
+    }
+    out.vertices = mesh
+        .positions
+        .iter()
+        .zip(&mesh.normals)
+        .zip(&mesh.colors)
+        .map(|((p, n), c)| MeshVertex { position: *p, normal: pack_snorm(*n), color: pack_unorm(*c) })
+        .collect();
+    out.indices = mesh.indices;
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use canopy_worlds::library;
+
+    use super::*;
+
+    fn conifer() -> SpeciesGraph {
+        library::find("conifer").unwrap().load().unwrap()
+    }
+
+    #[test]
+    fn instanced_geometry_keeps_every_primitive() {
+        let g = conifer();
+        let inst = Instance::new(7);
+        let stream = amplify(&g, &inst, &Budget::default()).unwrap();
+        let geo = geometry_of(&stream, 0, NearMode::Instanced);
+        let counts = stream.counts();
+        // Cones and cylinders become frusta, spheres spheres, boxes boxes; leaves are meshed.
+        assert_eq!(geo.shape_ranges[0].len(), counts[0] + counts[1]);
+        assert_eq!(geo.shape_ranges[1].len(), counts[2]);
+        assert_eq!(geo.shape_ranges[2].len(), counts[3]);
+        assert_eq!(geo.prims.len(), counts[0] + counts[1] + counts[2] + counts[3]);
+        assert_eq!(geo.primitives, stream.primitives.len());
+        assert_eq!(size_of::<PrimInstance>(), 64);
+        assert_eq!(size_of::<MeshVertex>(), 20);
+        // The first frustum is the first cone or cylinder of the stream, transform and size intact.
+        let first = stream.primitives.iter().find(|p| unit_instance(p).map(|u| u.0) == Some(UnitShape::Frustum));
+        let first = first.unwrap();
+        assert_eq!(geo.prims[0].rows[0][3], first.transform.m[3]);
+        let (lo, hi) = geo.bounds;
+        assert!(hi[1] - lo[1] > 5.0, "a conifer is several metres tall: {lo:?} {hi:?}");
+    }
+
+    #[test]
+    fn merged_geometry_is_the_worlds_mesh() {
+        let g = conifer();
+        let inst = Instance::new(3).with_detail(2);
+        let stream = amplify(&g, &inst, &Budget::default()).unwrap();
+        let geo = geometry_of(&stream, 2, NearMode::Merged);
+        let mesh = canopy_worlds::mesh::mesh(&stream, &MeshOptions::for_detail(2));
+        assert!(geo.prims.is_empty());
+        assert_eq!(geo.vertices.len(), mesh.positions.len());
+        assert_eq!(geo.indices, mesh.indices);
+        assert!(geo.gpu_bytes() > 0);
+    }
+
+    #[test]
+    fn lod_substitutes_shrink_the_geometry() {
+        let g = conifer();
+        let sizes: Vec<usize> = (0..=3u8)
+            .map(|d| build_tree(&g, &Instance::new(11).with_detail(d), NearMode::Instanced, &Budget::default()))
+            .map(|r| r.unwrap().primitives)
+            .collect();
+        assert!(sizes.windows(2).all(|w| w[0] > w[1]), "primitives per detail level: {sizes:?}");
+    }
+
+    #[test]
+    fn a_hostile_budget_ends_in_an_error() {
+        let g = conifer();
+        let tight = Budget { max_primitives: 10, ..Budget::default() };
+        assert!(build_tree(&g, &Instance::new(1), NearMode::Instanced, &tight).is_err());
+    }
+
+    #[test]
+    fn packing() {
+        assert_eq!(pack_unorm([1.0, 0.0, 0.5]), 0xff80_00ff);
+        assert_eq!(pack_unorm([2.0, -1.0, f32::NAN]) & 0xffff, 0x00ff);
+        assert_eq!(pack_snorm([0.0, 1.0, -1.0]), 0x0081_7f00);
+    }
+}

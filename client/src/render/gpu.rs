@@ -1,0 +1,109 @@
+//! Choosing a GPU: the wgpu instance (backends from `WGPU_BACKEND`, e.g. `vulkan` for Mesa lavapipe), an adapter
+//! (`WGPU_ADAPTER_NAME` narrows it) and a device with the limits the renderer needs — or a clear error.
+
+use super::RenderConfig;
+
+/// Why no usable GPU could be set up.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter matched (no driver, no Vulkan ICD such as Mesa's lavapipe, or none for the window).
+    #[error(
+        "no graphics adapter found ({0}); install a Vulkan driver (on Debian without a GPU: `apt-get install mesa-vulkan-drivers`) and set WGPU_BACKEND=vulkan"
+    )]
+    NoAdapter(String),
+    /// The adapter lacks something the renderer needs.
+    #[error("the adapter {adapter} cannot run the renderer: {missing}")]
+    Unsupported {
+        /// Adapter name.
+        adapter: String,
+        /// What is missing.
+        missing: String,
+    },
+    /// The device could not be created.
+    #[error("creating the device: {0}")]
+    Device(String),
+    /// The window surface could not be created or configured.
+    #[error("window surface: {0}")]
+    Surface(String),
+}
+
+/// An adapter, its device and queue.
+#[derive(Debug)]
+pub struct Gpu {
+    /// The wgpu instance.
+    pub instance: wgpu::Instance,
+    /// The adapter.
+    pub adapter: wgpu::Adapter,
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+}
+
+impl Gpu {
+    /// An instance whose backends come from `WGPU_BACKEND` (all native backends by default).
+    pub fn instance() -> wgpu::Instance {
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
+    }
+
+    /// A GPU for offscreen rendering.
+    pub fn headless(cfg: &RenderConfig) -> Result<Gpu, GpuError> {
+        Gpu::with_instance(Gpu::instance(), None, cfg)
+    }
+
+    /// A GPU able to present to `surface` (created from `instance`).
+    pub fn with_instance(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+        cfg: &RenderConfig,
+    ) -> Result<Gpu, GpuError> {
+        let adapter = pollster::block_on(wgpu::util::initialize_adapter_from_env_or_default(&instance, surface))
+            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let down = adapter.get_downlevel_capabilities();
+        if !down.flags.contains(wgpu::DownlevelFlags::VERTEX_STORAGE) {
+            return Err(GpuError::Unsupported {
+                adapter: info.name,
+                missing: "storage buffers in vertex shaders".into(),
+            });
+        }
+        let have = adapter.limits();
+        let need_binding = cfg.prim_memory.max(cfg.mesh_memory * 2 / 3);
+        if have.max_storage_buffer_binding_size < need_binding || have.max_buffer_size < need_binding {
+            return Err(GpuError::Unsupported {
+                adapter: info.name,
+                missing: format!(
+                    "storage buffers of {need_binding} bytes (the adapter allows {}); lower the geometry memory",
+                    have.max_storage_buffer_binding_size.min(have.max_buffer_size)
+                ),
+            });
+        }
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: need_binding.max(wgpu::Limits::default().max_storage_buffer_binding_size),
+            max_buffer_size: need_binding.max(wgpu::Limits::default().max_buffer_size),
+            ..wgpu::Limits::default()
+        }
+        .using_resolution(have.clone());
+        let limits = wgpu::Limits {
+            max_storage_buffer_binding_size: limits
+                .max_storage_buffer_binding_size
+                .min(have.max_storage_buffer_binding_size),
+            max_buffer_size: limits.max_buffer_size.min(have.max_buffer_size),
+            ..limits
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("canopy"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        Ok(Gpu { instance, adapter, device, queue })
+    }
+
+    /// "name (backend, driver)".
+    pub fn describe(&self) -> String {
+        let i = self.adapter.get_info();
+        format!("{} ({:?}, {} {})", i.name, i.backend, i.driver, i.driver_info)
+    }
+}

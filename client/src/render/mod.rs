@@ -1,0 +1,191 @@
+//! The renderer: terrain, trees in three distance bands and the hypertree far field, drawn with wgpu (seed 001 §5,
+//! seed 000 §8). It consumes a [`Scene`] — species graphs, instances, the terrain and optional hypertree volumes —
+//! and knows nothing of the network: `canopy walk` feeds it from the client library, `canopy render` from a world
+//! file.
+//!
+//! Shape (wgpu's examples framework): [`Renderer::new`] (init), [`Renderer::resize`], [`Renderer::update`] (LOD
+//! selection, worker results, uploads) and [`Renderer::render`] into any `TextureView`; the winit loop lives apart,
+//! in `cli/walk.rs`, and [`offscreen`] renders into a texture and reads it back.
+//!
+//! Bands, by the projected height of an instance's bounding sphere in pixels ([`lod`]):
+//! - **near** (≥ [`LodConfig::near_px`]): the full amplified geometry, detail 0;
+//! - **mid**: the species' LOD substitutes, detail 1..=[`LodConfig::mid_levels`], one level per halving of size;
+//! - **far** (< [`LodConfig::far_px`]): the species' hypertree volume, raymarched on an instanced proxy box.
+//!
+//! Level changes use hysteresis and a dithered cross-fade (both drawn with complementary screen-door masks).
+//! Amplification and voxelisation run on worker threads ([`workers`]); results are uploaded under a per-frame byte
+//! budget into fixed-size GPU arenas ([`arena`]), which are the memory bound of the geometry cache (least recently
+//! used entries are evicted). Rendering never waits for a worker: an instance whose geometry is not resident is
+//! drawn at the nearest resident level, or not at all.
+
+pub mod arena;
+pub mod camera;
+pub mod compare;
+pub mod geometry;
+pub mod gpu;
+pub mod lod;
+pub mod offscreen;
+mod pipelines;
+mod renderer;
+pub mod scene;
+mod terrain;
+pub mod volume;
+pub mod workers;
+
+pub use camera::{Camera, CameraError};
+pub use gpu::{Gpu, GpuError};
+pub use lod::{Band, LodConfig};
+pub use offscreen::{OffscreenError, RenderedImage};
+pub use renderer::{FrameStats, Renderer};
+pub use scene::{Scene, SceneInstance};
+
+use canopy_worlds::amplify::Budget;
+
+/// How near geometry is represented on the GPU (the choice the issue asks to make by measurement; see
+/// `docs/renderer.md`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum NearMode {
+    /// Cones, cylinders, spheres and boxes as instances of unit meshes (64 bytes per primitive, shaped in the
+    /// vertex shader); leaves and trunk bases as meshes.
+    Instanced,
+    /// Every primitive meshed on the CPU ([`canopy_worlds::mesh`]) into one merged mesh per tree.
+    Merged,
+}
+
+/// Lighting and atmosphere, shared by every band so that they match (and the far field's baked shading matches
+/// the CPU reference renderer's defaults).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Lighting {
+    /// Direction toward the sun (normalised when used).
+    pub sun_direction: [f32; 3],
+    /// Sun colour and intensity.
+    pub sun_color: [f32; 3],
+    /// Ambient intensity.
+    pub ambient: f32,
+    /// Diffuse coefficient.
+    pub diffuse: f32,
+    /// Exponential falloff of ambient light toward a crown's interior (hypertrees, Reeves; 0 = constant).
+    pub ambient_falloff: f32,
+    /// The opacity coefficient `k` of `α = 1 − (1 − µ)^(k·Δs)` for hypertrees.
+    pub density_scale: f32,
+    /// Cast shadow rays when baking hypertree shading.
+    pub volume_shadows: bool,
+    /// Sky colour at the zenith.
+    pub sky_zenith: [f32; 3],
+    /// Sky colour at the horizon (and the fog colour).
+    pub sky_horizon: [f32; 3],
+    /// Fog density per metre (`1 − exp(−density · distance)`); 0 disables fog.
+    pub fog_density: f32,
+}
+
+impl Default for Lighting {
+    fn default() -> Self {
+        // The CPU reference renderer's defaults (worlds/src/hypertree/render.rs) for sun, ambient and diffuse.
+        Lighting {
+            sun_direction: [-0.55, 0.75, 0.45],
+            sun_color: [1.0, 0.97, 0.9],
+            ambient: 0.45,
+            diffuse: 0.85,
+            ambient_falloff: 1.6,
+            density_scale: 1.0,
+            volume_shadows: true,
+            sky_zenith: [0.42, 0.6, 0.85],
+            sky_horizon: [0.78, 0.85, 0.92],
+            fog_density: 0.0007,
+        }
+    }
+}
+
+/// Everything that configures a renderer. Every threshold is here, none in the shaders.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderConfig {
+    /// Distance bands, thresholds, hysteresis and cross-fade.
+    pub lod: LodConfig,
+    /// Representation of near and mid geometry.
+    pub near_mode: NearMode,
+    /// Lighting and fog.
+    pub lighting: Lighting,
+    /// Worker threads for amplification and voxelisation (at least 1).
+    pub workers: usize,
+    /// Bytes of GPU arena for primitive instances (the near/mid geometry cache's bound, with `mesh_memory`).
+    pub prim_memory: u64,
+    /// Bytes of GPU arena for mesh vertices and indices (leaves, trunk bases, merged meshes).
+    pub mesh_memory: u64,
+    /// Bytes of geometry uploaded per frame at most (the rest waits for later frames).
+    pub upload_budget: u64,
+    /// Amplification jobs queued or running at most.
+    pub max_jobs: usize,
+    /// Work bound of one instance's amplification (hostile species end in an error, drawn far or not at all).
+    pub amplify_budget: Budget,
+    /// Voxels along the longest axis of a species' far-field volume; a second, halved resolution is derived by
+    /// voxel fusion (seed 000 §9) for the farthest instances.
+    pub volume_resolution: u32,
+    /// Vertical field of view is the camera's; this is the near clip plane, metres.
+    pub near_clip: f32,
+    /// Far clip plane, metres.
+    pub far_clip: f32,
+}
+
+impl Default for RenderConfig {
+    fn default() -> Self {
+        let workers = std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1).max(1));
+        RenderConfig {
+            lod: LodConfig::default(),
+            near_mode: NearMode::Instanced,
+            lighting: Lighting::default(),
+            workers,
+            prim_memory: 96 << 20,
+            mesh_memory: 96 << 20,
+            upload_budget: 16 << 20,
+            max_jobs: 4 * workers + 8,
+            amplify_budget: Budget {
+                max_primitives: 400_000,
+                max_depth: 1_024,
+                max_steps: 50_000_000,
+                max_pending: 1 << 18,
+            },
+            volume_resolution: 64,
+            near_clip: 0.25,
+            far_clip: 6_000.0,
+        }
+    }
+}
+
+/// Why a renderer configuration is not usable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ConfigError {
+    /// A number is not finite or out of its range.
+    #[error("{0} is out of range")]
+    Range(&'static str),
+}
+
+impl RenderConfig {
+    /// Check every number (the CLI validates once, the renderer trusts a checked config).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.lod.validate()?;
+        let l = &self.lighting;
+        let fin = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        let checks = [
+            (fin(&l.sun_direction) && l.sun_direction.iter().any(|v| *v != 0.0), "sun direction"),
+            (fin(&l.sun_color) && l.sun_color.iter().all(|v| (0.0..=100.0).contains(v)), "sun colour"),
+            ((0.0..=100.0).contains(&l.ambient), "ambient"),
+            ((0.0..=100.0).contains(&l.diffuse), "diffuse"),
+            ((0.0..=100.0).contains(&l.ambient_falloff), "ambient falloff"),
+            ((0.0..=1000.0).contains(&l.density_scale), "density scale"),
+            (fin(&l.sky_zenith) && fin(&l.sky_horizon), "sky colour"),
+            ((0.0..=1.0).contains(&l.fog_density), "fog density"),
+            ((1..=64).contains(&self.workers), "worker count"),
+            ((1 << 20..=2 << 30).contains(&self.prim_memory), "primitive memory"),
+            ((1 << 20..=2 << 30).contains(&self.mesh_memory), "mesh memory"),
+            (self.upload_budget >= 1 << 16, "upload budget"),
+            ((1..=4096).contains(&self.max_jobs), "job count"),
+            ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
+            (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
+            (self.far_clip > self.near_clip && self.far_clip <= 1e6, "far clip plane"),
+        ];
+        match checks.iter().find(|c| !c.0) {
+            Some((_, what)) => Err(ConfigError::Range(what)),
+            None => Ok(()),
+        }
+    }
+}

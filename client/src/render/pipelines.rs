@@ -1,0 +1,461 @@
+//! Shader modules, bind group layouts, render pipelines and the unit meshes of instanced primitives.
+
+use bytemuck::{Pod, Zeroable};
+use wgpu::util::DeviceExt;
+
+use super::geometry::MeshVertex;
+
+/// Depth buffer format (reversed Z: cleared to 0, `Greater` passes).
+pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+
+/// Format of the far-field atlas texels.
+pub const ATLAS_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+
+/// Radial segments of cones and cylinders, and latitude bands of spheres, by detail level (as
+/// [`canopy_worlds::mesh::MeshOptions::for_detail`]).
+pub const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
+/// Sphere latitude bands by detail level.
+pub const SPHERE_RINGS: [u32; 4] = [6, 4, 2, 2];
+
+const COMMON: &str = include_str!("../../shaders/common.wgsl");
+const SEGMENT: &str = include_str!("../../shaders/segment.wgsl");
+
+/// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+pub struct UnitVertex {
+    p: [f32; 4],
+    n: [f32; 4],
+}
+
+/// One unit mesh on the GPU.
+#[derive(Debug)]
+pub struct UnitMesh {
+    pub vertices: wgpu::Buffer,
+    pub indices: wgpu::Buffer,
+    pub index_count: u32,
+}
+
+fn unit_mesh(device: &wgpu::Device, label: &str, v: &[UnitVertex], i: &[u16]) -> UnitMesh {
+    UnitMesh {
+        vertices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::cast_slice(v),
+            usage: wgpu::BufferUsages::VERTEX,
+        }),
+        indices: device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::cast_slice(i),
+            usage: wgpu::BufferUsages::INDEX,
+        }),
+        index_count: i.len() as u32,
+    }
+}
+
+/// A frustum along +Y with `n` segments and both caps, counter-clockwise from outside.
+pub fn frustum(n: u32) -> (Vec<UnitVertex>, Vec<u16>) {
+    let mut v = Vec::new();
+    let mut idx = Vec::new();
+    let ring = |k: u32| {
+        let t = std::f32::consts::TAU * (k % n) as f32 / n as f32;
+        (t.cos(), t.sin())
+    };
+    let u = |p: [f32; 4]| UnitVertex { p, n: [0.0; 4] };
+    for k in 0..n {
+        let (c, s) = ring(k);
+        v.push(u([c, 0.0, s, 0.0]));
+        v.push(u([c, 1.0, s, 0.0]));
+    }
+    for k in 0..n {
+        let (b0, t0, b1, t1) = (2 * k, 2 * k + 1, 2 * ((k + 1) % n), 2 * ((k + 1) % n) + 1);
+        idx.extend([b0, t0, t1, b0, t1, b1].map(|x| x as u16));
+    }
+    for top in [0.0f32, 1.0] {
+        let center = v.len() as u16;
+        v.push(u([0.0, top, 0.0, 1.0]));
+        for k in 0..n {
+            let (c, s) = ring(k);
+            v.push(u([c, top, s, 1.0]));
+        }
+        for k in 0..n {
+            let (a, b) = (center + 1 + k as u16, center + 1 + ((k + 1) % n) as u16);
+            if top > 0.5 {
+                idx.extend([center, b, a]);
+            } else {
+                idx.extend([center, a, b]);
+            }
+        }
+    }
+    (v, idx)
+}
+
+/// A unit sphere with `rings` latitude bands and `2 · rings` longitude segments.
+pub fn sphere(rings: u32) -> (Vec<UnitVertex>, Vec<u16>) {
+    let segs = 2 * rings;
+    let mut v = Vec::new();
+    for r in 0..=rings {
+        let phi = -std::f32::consts::FRAC_PI_2 + std::f32::consts::PI * r as f32 / rings as f32;
+        for s in 0..=segs {
+            let th = std::f32::consts::TAU * s as f32 / segs as f32;
+            let p = [phi.cos() * th.cos(), phi.sin(), phi.cos() * th.sin()];
+            v.push(UnitVertex { p: [p[0], p[1], p[2], 0.0], n: [p[0], p[1], p[2], 0.0] });
+        }
+    }
+    let at = |r: u32, s: u32| (r * (segs + 1) + s) as u16;
+    let mut idx = Vec::new();
+    for r in 0..rings {
+        for s in 0..segs {
+            idx.extend([at(r, s), at(r + 1, s), at(r + 1, s + 1), at(r, s), at(r + 1, s + 1), at(r, s + 1)]);
+        }
+    }
+    (v, idx)
+}
+
+/// A unit cube centred on the origin, four vertices per face.
+pub fn cube() -> (Vec<UnitVertex>, Vec<u16>) {
+    let faces: [([f32; 3], [f32; 3], [f32; 3]); 6] = [
+        ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]),
+        ([-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]),
+        ([0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]),
+        ([0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
+        ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
+        ([0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]),
+    ];
+    let mut v = Vec::new();
+    let mut idx = Vec::new();
+    for (n, a, b) in faces {
+        let base = v.len() as u16;
+        for (su, sv) in [(-1.0f32, -1.0f32), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+            let p: [f32; 3] = std::array::from_fn(|i| 0.5 * (n[i] + su * a[i] + sv * b[i]));
+            v.push(UnitVertex { p: [p[0], p[1], p[2], 0.0], n: [n[0], n[1], n[2], 0.0] });
+        }
+        idx.extend([base, base + 1, base + 2, base, base + 2, base + 3]);
+    }
+    (v, idx)
+}
+
+/// Everything the renderer draws with.
+#[derive(Debug)]
+pub struct Pipelines {
+    pub globals_layout: wgpu::BindGroupLayout,
+    pub prims_layout: wgpu::BindGroupLayout,
+    pub mesh_layout: wgpu::BindGroupLayout,
+    pub draw_layout: wgpu::BindGroupLayout,
+    pub volume_layout: wgpu::BindGroupLayout,
+    pub sky: wgpu::RenderPipeline,
+    pub terrain: wgpu::RenderPipeline,
+    pub prims: wgpu::RenderPipeline,
+    pub mesh: wgpu::RenderPipeline,
+    pub volume: wgpu::RenderPipeline,
+    /// Frusta by detail level.
+    pub frusta: Vec<UnitMesh>,
+    /// Spheres by detail level.
+    pub spheres: Vec<UnitMesh>,
+    /// The cube.
+    pub cube: UnitMesh,
+}
+
+fn storage(binding: u32, vis: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: vis,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only: true },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn module(device: &wgpu::Device, label: &str, parts: &[&str]) -> wgpu::ShaderModule {
+    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(parts.concat().into()),
+    })
+}
+
+fn depth(write: bool, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStencilState> {
+    Some(wgpu::DepthStencilState {
+        format: DEPTH_FORMAT,
+        depth_write_enabled: Some(write),
+        depth_compare: Some(compare),
+        stencil: wgpu::StencilState::default(),
+        bias: wgpu::DepthBiasState::default(),
+    })
+}
+
+impl Pipelines {
+    /// Build every pipeline for targets of `format`.
+    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat) -> Pipelines {
+        let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
+        let globals_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("globals"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: vs_fs,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let v = wgpu::ShaderStages::VERTEX;
+        let prims_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("prims"),
+            entries: &[storage(0, v), storage(1, v)],
+        });
+        let mesh_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("meshes"),
+            entries: &[storage(0, v), storage(1, v), storage(2, v)],
+        });
+        let draw_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("draw"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: v,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(16),
+                },
+                count: None,
+            }],
+        });
+        let volume_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("volumes"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                        view_dimension: wgpu::TextureViewDimension::D3,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                storage(1, vs_fs),
+            ],
+        });
+        let layout = |label: &str, groups: &[&wgpu::BindGroupLayout]| {
+            let groups: Vec<Option<&wgpu::BindGroupLayout>> = groups.iter().map(|g| Some(*g)).collect();
+            device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: &groups,
+                immediate_size: 0,
+            })
+        };
+        let opaque = [Some(wgpu::ColorTargetState { format, blend: None, write_mask: wgpu::ColorWrites::ALL })];
+        let premultiplied = [Some(wgpu::ColorTargetState {
+            format,
+            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            write_mask: wgpu::ColorWrites::ALL,
+        })];
+        let pipeline = |label: &str,
+                        layout: &wgpu::PipelineLayout,
+                        module: &wgpu::ShaderModule,
+                        entry: (&str, &str),
+                        buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
+                        cull: Option<wgpu::Face>,
+                        depth_stencil: Option<wgpu::DepthStencilState>,
+                        targets: &[Option<wgpu::ColorTargetState>]| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(label),
+                layout: Some(layout),
+                vertex: wgpu::VertexState {
+                    module,
+                    entry_point: Some(entry.0),
+                    compilation_options: Default::default(),
+                    buffers,
+                },
+                primitive: wgpu::PrimitiveState { cull_mode: cull, ..Default::default() },
+                depth_stencil,
+                multisample: wgpu::MultisampleState::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module,
+                    entry_point: Some(entry.1),
+                    compilation_options: Default::default(),
+                    targets,
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let greater = wgpu::CompareFunction::Greater;
+
+        let sky_mod = module(device, "sky", &[COMMON, include_str!("../../shaders/sky.wgsl")]);
+        let sky = pipeline(
+            "sky",
+            &layout("sky", &[&globals_layout]),
+            &sky_mod,
+            ("vs_sky", "fs_sky"),
+            &[],
+            None,
+            depth(false, wgpu::CompareFunction::Always),
+            &opaque,
+        );
+
+        let terrain_mod = module(device, "terrain", &[COMMON, include_str!("../../shaders/terrain.wgsl")]);
+        let terrain_attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Uint32, 2 => Uint32];
+        let terrain = pipeline(
+            "terrain",
+            &layout("terrain", &[&globals_layout]),
+            &terrain_mod,
+            ("vs_terrain", "fs_terrain"),
+            &[Some(wgpu::VertexBufferLayout {
+                array_stride: size_of::<MeshVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &terrain_attrs,
+            })],
+            None,
+            depth(true, greater),
+            &opaque,
+        );
+
+        let prims_mod = module(device, "prims", &[COMMON, include_str!("../../shaders/prims.wgsl"), SEGMENT]);
+        let unit_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4];
+        // No culling: a mirroring transform flips a primitive's winding.
+        let prims = pipeline(
+            "prims",
+            &layout("prims", &[&globals_layout, &prims_layout, &draw_layout]),
+            &prims_mod,
+            ("vs_prim", "fs_prim"),
+            &[Some(wgpu::VertexBufferLayout {
+                array_stride: size_of::<UnitVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &unit_attrs,
+            })],
+            None,
+            depth(true, greater),
+            &opaque,
+        );
+
+        let mesh_mod = module(device, "meshes", &[COMMON, include_str!("../../shaders/mesh.wgsl"), SEGMENT]);
+        let mesh = pipeline(
+            "meshes",
+            &layout("meshes", &[&globals_layout, &mesh_layout, &draw_layout]),
+            &mesh_mod,
+            ("vs_mesh", "fs_mesh"),
+            &[],
+            None,
+            depth(true, greater),
+            &opaque,
+        );
+
+        let volume_mod = module(device, "volumes", &[COMMON, include_str!("../../shaders/volume.wgsl")]);
+        let far_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32, 2 => Float32];
+        let volume = pipeline(
+            "volumes",
+            &layout("volumes", &[&globals_layout, &volume_layout]),
+            &volume_mod,
+            ("vs_volume", "fs_volume"),
+            &[Some(wgpu::VertexBufferLayout {
+                array_stride: 24,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes: &far_attrs,
+            })],
+            Some(wgpu::Face::Back),
+            depth(false, greater),
+            &premultiplied,
+        );
+
+        let frusta = FRUSTUM_SEGMENTS
+            .iter()
+            .map(|&n| {
+                let (v, i) = frustum(n);
+                unit_mesh(device, "unit frustum", &v, &i)
+            })
+            .collect();
+        let spheres = SPHERE_RINGS
+            .iter()
+            .map(|&r| {
+                let (v, i) = sphere(r);
+                unit_mesh(device, "unit sphere", &v, &i)
+            })
+            .collect();
+        let (cv, ci) = cube();
+        let cube = unit_mesh(device, "unit cube", &cv, &ci);
+        Pipelines {
+            globals_layout,
+            prims_layout,
+            mesh_layout,
+            draw_layout,
+            volume_layout,
+            sky,
+            terrain,
+            prims,
+            mesh,
+            volume,
+            frusta,
+            spheres,
+            cube,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn outward(v: &[UnitVertex], idx: &[u16], centre_of: impl Fn([f32; 3]) -> [f32; 3]) {
+        for t in idx.chunks_exact(3) {
+            let p = |k: usize| {
+                let q = v[t[k] as usize].p;
+                [q[0], q[1], q[2]]
+            };
+            let (a, b, c) = (p(0), p(1), p(2));
+            let e1 = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let e2 = [c[0] - a[0], c[1] - a[1], c[2] - a[2]];
+            let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+            let m: [f32; 3] = std::array::from_fn(|i| (a[i] + b[i] + c[i]) / 3.0);
+            let o = centre_of(m);
+            let out = [m[0] - o[0], m[1] - o[1], m[2] - o[2]];
+            let d = n[0] * out[0] + n[1] * out[1] + n[2] * out[2];
+            assert!(d > 0.0, "triangle {t:?} faces inward");
+        }
+    }
+
+    #[test]
+    fn unit_meshes_wind_counter_clockwise_from_outside() {
+        for n in FRUSTUM_SEGMENTS {
+            let (v, i) = frustum(n);
+            assert_eq!(i.len() as u32, 3 * 4 * n);
+            // The axis point at the triangle's height is inside (caps: a point just inside the cap).
+            outward(&v, &i, |m| {
+                [
+                    0.0,
+                    if m[1] == 1.0 {
+                        0.5
+                    } else if m[1] == 0.0 {
+                        0.5
+                    } else {
+                        m[1]
+                    },
+                    0.0,
+                ]
+            });
+        }
+        for r in SPHERE_RINGS {
+            let (v, i) = sphere(r);
+            let (vv, ii): (Vec<UnitVertex>, Vec<u16>) = (v, i);
+            // Degenerate triangles at the poles have no orientation; skip zero-area ones.
+            let good: Vec<u16> = ii
+                .chunks_exact(3)
+                .filter(|t| {
+                    let p = |k: usize| vv[t[k] as usize].p;
+                    let (a, b, c) = (p(0), p(1), p(2));
+                    let d = |x: [f32; 4], y: [f32; 4]| (0..3).map(|i| (x[i] - y[i]).abs()).sum::<f32>() > 1e-6;
+                    d(a, b) && d(b, c) && d(a, c)
+                })
+                .flatten()
+                .copied()
+                .collect();
+            outward(&vv, &good, |_| [0.0; 3]);
+        }
+        let (v, i) = cube();
+        outward(&v, &i, |_| [0.0; 3]);
+    }
+}

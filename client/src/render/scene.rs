@@ -1,0 +1,85 @@
+//! The scene description the renderer consumes: species graphs by id, instances (species, position, seed,
+//! parameters), the terrain, and optionally ready-made hypertree volumes per species. No networking: `canopy walk`
+//! builds one from the client library's state, `canopy render` from a world.
+
+use std::sync::Arc;
+
+use canopy_protocol::SpeciesGraph;
+use canopy_worlds::hypertree::Hypertree;
+use canopy_worlds::world::{Terrain, World};
+
+/// One tree (or bush, or weed) to draw.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneInstance {
+    /// Instance id (stable while the instance is held; the key of its level-of-detail state).
+    pub id: u32,
+    /// Species id: index into [`Scene::species`].
+    pub species: u16,
+    /// World position of the species origin (x, terrain height, z).
+    pub position: [f32; 3],
+    /// Instance seed.
+    pub seed: u64,
+    /// Parameter values that differ from the species defaults, `(slot, value)`.
+    pub params: Vec<(u16, f32)>,
+}
+
+/// A ready-made far-field volume for a species: a hypertree (seed 000) and where it stands.
+#[derive(Clone, Debug)]
+pub struct SceneVolume {
+    /// The hypertree.
+    pub tree: Arc<Hypertree>,
+    /// Where the species origin (an instance's position) lies in the hypervolume, box units.
+    pub origin: [f32; 3],
+    /// Metres per box unit.
+    pub units: f32,
+}
+
+/// Everything drawn (see the module docs).
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// Species graphs by id; `None` for a species not held (its instances are skipped).
+    pub species: Vec<Option<Arc<SpeciesGraph>>>,
+    /// Far-field volumes by species id; `None` lets the renderer voxelise the species itself on a worker thread.
+    pub volumes: Vec<Option<SceneVolume>>,
+    /// The instances.
+    pub instances: Vec<SceneInstance>,
+    /// The terrain.
+    pub terrain: Arc<Terrain>,
+    /// Changes whenever species or instances change (the renderer rebuilds its per-instance state then).
+    pub generation: u64,
+}
+
+impl Scene {
+    /// Every instance of a loaded world.
+    pub fn from_world(world: &World) -> Scene {
+        let instances = (0..world.instances.len() as u32)
+            .map(|id| {
+                let p = &world.instances[id as usize];
+                SceneInstance {
+                    id,
+                    species: p.species,
+                    position: world.position(id),
+                    seed: world.instance_seed(id),
+                    params: p.params.clone(),
+                }
+            })
+            .collect();
+        Scene {
+            species: world.species.iter().map(|s| Some(Arc::new(s.graph.clone()))).collect(),
+            volumes: vec![None; world.species.len()],
+            instances,
+            terrain: Arc::new(world.terrain.clone()),
+            generation: 1,
+        }
+    }
+
+    /// An empty scene on a terrain.
+    pub fn empty(terrain: Arc<Terrain>) -> Scene {
+        Scene { species: Vec::new(), volumes: Vec::new(), instances: Vec::new(), terrain, generation: 0 }
+    }
+
+    /// The graph of a species id, if held.
+    pub fn graph(&self, species: u16) -> Option<&Arc<SpeciesGraph>> {
+        self.species.get(usize::from(species)).and_then(|g| g.as_ref())
+    }
+}

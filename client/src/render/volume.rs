@@ -1,0 +1,531 @@
+//! The far field on the CPU side: a species' hypertree volume (voxelised from a representative instance, or given
+//! by the scene) with its shading baked per voxel, ready to upload as a 3D texture (seed 000 §8).
+//!
+//! The CPU reference renderer (`canopy_worlds::hypertree::render`) shades at voxel centres — a voxel is a
+//! homogeneous region — so its default shading (attenuated ambient toward the crown's interior, diffuse with
+//! procedural normals from the first-level structure flow, shadow rays to the sun, depth colour spans) is
+//! view-independent and is computed here once per voxel with the same formulas. The GPU then only marches: samples
+//! at the same positions (`t0 + (n + ½)·Δs`, `Δs` the smallest voxel side, from the entry into the voxels' box),
+//! nearest-voxel lookups, `α = 1 − (1 − µ)^(k·Δs)` (Δs in the reference's units) and front-to-back accumulation with the same early exit — so a GPU
+//! image of a lone hypertree matches the reference's (tested in `client/tests/render.rs`).
+//!
+//! Texels are RGBA16F: rgb the lit colour, a the voxel's opacity α.
+
+use canopy_protocol::SpeciesGraph;
+use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify, instance_params};
+use canopy_worlds::hypertree::render::REFERENCE_STEP;
+use canopy_worlds::hypertree::voxelise::{VoxeliseError, VoxeliseOptions, voxelise};
+use canopy_worlds::hypertree::{Hypertree, StorageType, ops};
+use canopy_worlds::rng::InstanceRng;
+
+use super::Lighting;
+use super::geometry::stream_bounds;
+
+/// Largest volume edge in voxels (an atlas slot); larger scene volumes are reduced to fit (§9 voxel fusion).
+pub const MAX_SLOT: u32 = 128;
+
+/// The seed of the representative instance a species' far-field volume is voxelised from.
+pub const REPRESENTATIVE_SEED: u64 = 0x5eed_0f_ca40_b1e5;
+
+/// A hypertree volume ready for the GPU.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FarVolume {
+    /// Voxels per axis.
+    pub dims: [u32; 3],
+    /// Voxel edge lengths, box units.
+    pub voxel_size: [f32; 3],
+    /// Lower corner of the non-empty voxels' box, box units.
+    pub aabb_min: [f32; 3],
+    /// Upper corner of the non-empty voxels' box, box units.
+    pub aabb_max: [f32; 3],
+    /// Where the species origin (the instance's position) lies, box units.
+    pub origin: [f32; 3],
+    /// Metres per box unit.
+    pub units: f32,
+    /// RGBA16F texels, x fastest then y then z (4 halves per voxel).
+    pub texels: Vec<u16>,
+    /// Non-empty voxels.
+    pub voxels: usize,
+}
+
+impl FarVolume {
+    /// The bounding sphere of the non-empty voxels in species metres, relative to the species origin.
+    pub fn bounding_sphere(&self) -> ([f32; 3], f32) {
+        let c: [f32; 3] =
+            std::array::from_fn(|i| (0.5 * (self.aabb_min[i] + self.aabb_max[i]) - self.origin[i]) * self.units);
+        let h: [f32; 3] = std::array::from_fn(|i| 0.5 * (self.aabb_max[i] - self.aabb_min[i]) * self.units);
+        (c, (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt())
+    }
+
+    /// Bytes of texels.
+    pub fn bytes(&self) -> u64 {
+        self.texels.len() as u64 * 2
+    }
+}
+
+/// A species' far field: the full and the halved resolution, and how instances scale.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpeciesVolumes {
+    /// Full resolution.
+    pub full: FarVolume,
+    /// Halved resolution (voxel fusion, seed 000 §9), for the farthest instances.
+    pub low: FarVolume,
+    /// The slot of the species' `height` parameter and the representative's value of it: instances scale by their
+    /// own value over this one (species without a `height` parameter draw every instance at the representative's
+    /// size).
+    pub height: Option<(u16, f32)>,
+}
+
+/// Why a species' volume could not be made.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum VolumeError {
+    /// Amplifying the representative failed.
+    #[error("amplifying the representative instance: {0}")]
+    Amplify(#[from] AmplifyError),
+    /// Voxelising it failed.
+    #[error("voxelising the representative instance: {0}")]
+    Voxelise(#[from] VoxeliseError),
+    /// Reducing the resolution failed.
+    #[error("reducing the volume: {0}")]
+    Reduce(String),
+    /// The volume has no voxels.
+    #[error("the volume is empty")]
+    Empty,
+}
+
+/// Voxelise a species' representative instance and bake both resolutions.
+pub fn species_volumes(
+    graph: &SpeciesGraph,
+    resolution: u32,
+    budget: &Budget,
+    lighting: &Lighting,
+) -> Result<SpeciesVolumes, VolumeError> {
+    let (tree, origin) = voxelise_representative(graph, resolution, budget)?;
+    let mut v = volumes_of(&tree, origin, 1.0, resolution, lighting)?;
+    v.height = height_param(graph);
+    Ok(v)
+}
+
+/// The slot of a species' `height` parameter and its value for the representative instance.
+pub fn height_param(graph: &SpeciesGraph) -> Option<(u16, f32)> {
+    let slot = graph.params.iter().position(|p| p.name == "height")? as u16;
+    let mut rng = InstanceRng::new(REPRESENTATIVE_SEED);
+    let (values, _) = instance_params(graph, &Instance::new(REPRESENTATIVE_SEED), &mut rng).ok()?;
+    let v = values[usize::from(slot)];
+    (v.is_finite() && v > 0.0).then_some((slot, v))
+}
+
+/// The scale of an instance relative to the representative: its `height` over the representative's (1 without a
+/// `height` parameter), clamped to `[0.05, 20]`.
+pub fn instance_scale(graph: &SpeciesGraph, height: Option<(u16, f32)>, seed: u64, params: &[(u16, f32)]) -> f32 {
+    let Some((slot, reference)) = height else { return 1.0 };
+    let value = match params.iter().rev().find(|(s, _)| *s == slot) {
+        Some(&(_, v)) => v,
+        None => {
+            let mut rng = InstanceRng::new(seed);
+            let inst = Instance { seed, params: params.to_vec(), detail: 0 };
+            match instance_params(graph, &inst, &mut rng) {
+                Ok((values, _)) => values[usize::from(slot)],
+                Err(_) => reference,
+            }
+        }
+    };
+    let s = value / reference;
+    if s.is_finite() { s.clamp(0.05, 20.0) } else { 1.0 }
+}
+
+/// Amplify the representative instance at full detail and voxelise it; returns the hypertree and the species
+/// origin in box coordinates (the voxeliser pads the primitives' bounds by 2 % of the longest side).
+pub fn voxelise_representative(
+    graph: &SpeciesGraph,
+    resolution: u32,
+    budget: &Budget,
+) -> Result<(Hypertree, [f32; 3]), VolumeError> {
+    let stream = amplify(graph, &Instance::new(REPRESENTATIVE_SEED), budget)?;
+    let opts = VoxeliseOptions { resolution, storage: StorageType::IndexList, ..VoxeliseOptions::default() };
+    let tree = voxelise(&stream, &graph.name, &opts)?;
+    let (lo, hi) = stream_bounds(&stream);
+    let longest = (0..3).map(|i| hi[i] - lo[i]).fold(0.0f32, f32::max).max(1e-6);
+    let pad = 0.02 * longest;
+    Ok((tree, std::array::from_fn(|i| pad - lo[i])))
+}
+
+/// Bake a hypertree at its resolution (reduced so that no axis exceeds `max_edge` voxels, at most [`MAX_SLOT`])
+/// and at half of it.
+pub fn volumes_of(
+    tree: &Hypertree,
+    origin: [f32; 3],
+    units: f32,
+    max_edge: u32,
+    lighting: &Lighting,
+) -> Result<SpeciesVolumes, VolumeError> {
+    let fit = |t: &Hypertree, edge: u32| -> Result<Option<Hypertree>, VolumeError> {
+        let r = t.volume.resolution;
+        let longest = r[0].max(r[1]).max(r[2]);
+        if longest <= edge {
+            return Ok(None);
+        }
+        let target = r.map(|v| ((u64::from(v) * u64::from(edge)).div_ceil(u64::from(longest)) as u32).clamp(1, edge));
+        ops::reduce(t, target).map(Some).map_err(|e| VolumeError::Reduce(e.to_string()))
+    };
+    let full_tree = fit(tree, max_edge.clamp(1, MAX_SLOT))?;
+    let full_tree = full_tree.as_ref().unwrap_or(tree);
+    let r = full_tree.volume.resolution;
+    let half = r.map(|v| v.div_ceil(2).max(1));
+    let low_tree = ops::reduce(full_tree, half).map_err(|e| VolumeError::Reduce(e.to_string()))?;
+    Ok(SpeciesVolumes {
+        full: bake(full_tree, origin, units, lighting)?,
+        low: bake(&low_tree, origin, units, lighting)?,
+        height: None,
+    })
+}
+
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f32; 3]) -> f32 {
+    libm::sqrtf(dot(a, a))
+}
+
+fn normalize(a: [f32; 3]) -> [f32; 3] {
+    let n = norm(a);
+    if n > 0.0 { a.map(|v| v / n) } else { a }
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// `α = 1 − (1 − µ)^e` for every density byte, with `e = k·Δs` (the reference's table).
+pub fn alpha_table(k: f32) -> [f32; 256] {
+    std::array::from_fn(|d| {
+        let mu = d as f32 / 255.0;
+        if d == 0 {
+            0.0
+        } else if d == 255 {
+            1.0
+        } else {
+            1.0 - libm::powf(1.0 - mu, k)
+        }
+    })
+}
+
+/// Bake one hypertree: per-voxel lit colour and opacity (see the module docs).
+pub fn bake(tree: &Hypertree, origin: [f32; 3], units: f32, lighting: &Lighting) -> Result<FarVolume, VolumeError> {
+    let aabb = tree.aabb().ok_or(VolumeError::Empty)?;
+    let vol = tree.volume;
+    let dims = vol.resolution;
+    let n = vol.voxel_count() as usize;
+    let mut density = vec![0u8; n];
+    let mut level = vec![0u8; n];
+    tree.store.for_each(|i, v| {
+        density[i as usize] = v.density;
+        level[i as usize] = v.level;
+    });
+    let vsize = vol.voxel_size();
+    let inv = vsize.map(|s| 1.0 / s);
+    let step = vsize[0].min(vsize[1]).min(vsize[2]);
+    // Δs in units of the reference step of the longest extent, as the reference measures it, so a reduced
+    // volume keeps its look.
+    let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
+    let alpha = alpha_table(lighting.density_scale * step / (longest * REFERENCE_STEP));
+    let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+    let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+    let inv_half = half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 });
+    let light = normalize(lighting.sun_direction);
+    let flows: Vec<([f32; 3], [f32; 3], f32, [f32; 3])> = tree
+        .flows
+        .iter()
+        .map(|f| {
+            let d = sub(f.to, f.from);
+            (f.from, d, dot(d, d), normalize(d))
+        })
+        .collect();
+    let normal = |c: [f32; 3]| -> [f32; 3] {
+        let mut radial = [0.0f32; 3];
+        let mut flow = [0.0f32; 3];
+        for &(a, d, dd, dir) in &flows {
+            let t = if dd > 0.0 { (dot(sub(c, a), d) / dd).clamp(0.0, 1.0) } else { 0.0 };
+            let q = [a[0] + d[0] * t, a[1] + d[1] * t, a[2] + d[2] * t];
+            let r = sub(c, q);
+            let w = 1.0 / (dot(r, r) + 1e-6);
+            let rn = normalize(r);
+            for i in 0..3 {
+                radial[i] += w * rn[i];
+                flow[i] += w * dir[i];
+            }
+        }
+        let t = normalize(flow);
+        let k = dot(radial, t);
+        let nn = [radial[0] - k * t[0], radial[1] - k * t[1], radial[2] - k * t[2]];
+        if norm(nn) > 1e-6 { normalize(nn) } else { normalize(sub(c, center)) }
+    };
+    // Shadow ray from a voxel centre toward the light, as the reference casts it: steps of Δs from the centre to
+    // the exit of the voxels' box.
+    let transmittance = |c: [f32; 3]| -> f32 {
+        let inv_d = light.map(|v| 1.0 / v);
+        let mut t1 = f32::INFINITY;
+        let mut t0 = 0.0f32;
+        for i in 0..3 {
+            let a = (aabb.min[i] - c[i]) * inv_d[i];
+            let b = (aabb.max[i] - c[i]) * inv_d[i];
+            let (lo, hi) = if a <= b { (a, b) } else { (b, a) };
+            if lo > t0 {
+                t0 = lo;
+            }
+            if hi < t1 {
+                t1 = hi;
+            }
+        }
+        if t0 > t1 {
+            return 1.0;
+        }
+        let mut tr = 1.0f32;
+        let end = libm::floorf(t1 / step) as i64;
+        for s in 1..=end {
+            let t = s as f32 * step;
+            let p = [c[0] + light[0] * t, c[1] + light[1] * t, c[2] + light[2] * t];
+            let Some(v) = vol.voxel_at(p, inv) else { break };
+            let d = density[vol.index(v) as usize];
+            if d != 0 {
+                tr *= 1.0 - alpha[usize::from(d)];
+                if tr < 0.01 {
+                    return 0.0;
+                }
+            }
+        }
+        tr
+    };
+    let mut texels = vec![0u16; 4 * n];
+    let mut voxels = 0;
+    for idx in 0..n {
+        let d = density[idx];
+        if d == 0 {
+            continue;
+        }
+        voxels += 1;
+        let v = vol.coords(idx as u32);
+        let c = vol.center(v);
+        let base = tree.level_color(level[idx]);
+        let e: [f32; 3] = std::array::from_fn(|i| (c[i] - center[i]) * inv_half[i]);
+        let depth = (1.0 - norm(e)).max(0.0);
+        let ambient = lighting.ambient * libm::expf(-lighting.ambient_falloff * depth);
+        let lambert = dot(normal(c), light).max(0.0);
+        let s = if lighting.volume_shadows { transmittance(c) } else { 1.0 };
+        for i in 0..3 {
+            let lit = ambient + lighting.diffuse * lambert * s * lighting.sun_color[i];
+            texels[4 * idx + i] = f16_bits(base[i] * lit);
+        }
+        texels[4 * idx + 3] = f16_bits(alpha[usize::from(d)]);
+    }
+    Ok(FarVolume { dims, voxel_size: vsize, aabb_min: aabb.min, aabb_max: aabb.max, origin, units, texels, voxels })
+}
+
+/// One ray through a baked volume exactly as `shaders/volume.wgsl` marches it (origin and unit direction in box
+/// units): premultiplied colour and opacity. The CPU twin of the shader, for tests and tools.
+pub fn march(v: &FarVolume, o: [f32; 3], d: [f32; 3]) -> ([f32; 3], f32) {
+    let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+    for i in 0..3 {
+        let inv = 1.0 / d[i];
+        let (a, b) = ((v.aabb_min[i] - o[i]) * inv, (v.aabb_max[i] - o[i]) * inv);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    if t1 < t0 {
+        return ([0.0; 3], 0.0);
+    }
+    let step = v.voxel_size[0].min(v.voxel_size[1]).min(v.voxel_size[2]);
+    let last = ((t1 - t0) / step - 0.5).floor() as i64;
+    let (mut color, mut alpha) = ([0.0f32; 3], 0.0f32);
+    for n in 0..=last.min(1024) {
+        let t = t0 + (n as f32 + 0.5) * step;
+        let p: [f32; 3] = std::array::from_fn(|i| o[i] + d[i] * t);
+        let c: [i64; 3] = std::array::from_fn(|i| (p[i] / v.voxel_size[i]).floor() as i64);
+        if (0..3).any(|i| c[i] < 0 || c[i] >= i64::from(v.dims[i])) {
+            continue;
+        }
+        let idx = (c[0] + i64::from(v.dims[0]) * (c[1] + i64::from(v.dims[1]) * c[2])) as usize;
+        let a = half_to_f32(v.texels[4 * idx + 3]);
+        if a > 0.0 {
+            let w = (1.0 - alpha) * a;
+            for i in 0..3 {
+                color[i] += w * half_to_f32(v.texels[4 * idx + i]);
+            }
+            alpha += w;
+            if alpha >= 0.995 {
+                break;
+            }
+        }
+    }
+    (color, alpha)
+}
+
+/// The value of IEEE 754 binary16 bits.
+pub fn half_to_f32(h: u16) -> f32 {
+    let e = (h >> 10) & 0x1f;
+    let m = f32::from(h & 0x3ff);
+    let v = match e {
+        0 => m * 2f32.powi(-24),
+        31 if m == 0.0 => f32::INFINITY,
+        31 => f32::NAN,
+        _ => (1.0 + m / 1024.0) * 2f32.powi(i32::from(e) - 15),
+    };
+    if h & 0x8000 != 0 { -v } else { v }
+}
+
+/// IEEE 754 binary16 bits of `v`, rounded to nearest even (overflow to infinity, tiny values to subnormals).
+pub fn f16_bits(v: f32) -> u16 {
+    let b = v.to_bits();
+    let sign = ((b >> 16) & 0x8000) as u16;
+    let exp = ((b >> 23) & 0xff) as i32;
+    let man = b & 0x7f_ffff;
+    if exp == 0xff {
+        return sign | 0x7c00 | if man != 0 { 0x200 } else { 0 };
+    }
+    let e = exp - 127 + 15;
+    if e >= 31 {
+        return sign | 0x7c00;
+    }
+    let round = |m: u32, shift: u32| -> u32 {
+        let h = m >> shift;
+        let rem = m & ((1 << shift) - 1);
+        let halfway = 1 << (shift - 1);
+        if rem > halfway || (rem == halfway && h & 1 == 1) { h + 1 } else { h }
+    };
+    if e <= 0 {
+        if e < -10 {
+            return sign;
+        }
+        return sign | round(man | 0x80_0000, (14 - e) as u32) as u16;
+    }
+    // A carry out of the mantissa correctly bumps the exponent (up to infinity).
+    sign | (((e as u32) << 10) + round(man, 13)) as u16
+}
+
+#[cfg(test)]
+mod tests {
+    use canopy_worlds::library;
+
+    use super::*;
+
+    #[test]
+    fn half_floats() {
+        assert_eq!(f16_bits(0.0), 0);
+        assert_eq!(f16_bits(-0.0), 0x8000);
+        assert_eq!(f16_bits(1.0), 0x3c00);
+        assert_eq!(f16_bits(0.5), 0x3800);
+        assert_eq!(f16_bits(-2.0), 0xc000);
+        assert_eq!(f16_bits(65504.0), 0x7bff);
+        assert_eq!(f16_bits(1e6), 0x7c00);
+        assert_eq!(f16_bits(f32::NAN) & 0x7e00, 0x7e00);
+        assert_eq!(f16_bits(6.103_515_6e-5), 0x0400, "smallest normal");
+        assert_eq!(f16_bits(5.960_464_5e-8), 0x0001, "smallest subnormal");
+        assert_eq!(f16_bits(1e-9), 0);
+        assert_eq!(f16_bits(1.0 + 1.0 / 2048.0), 0x3c00, "ties to even");
+        assert_eq!(f16_bits(1.0 + 3.0 / 2048.0), 0x3c02, "ties to even, upward");
+        assert_eq!(f16_bits(0.1), 0x2e66);
+    }
+
+    #[test]
+    fn the_representative_volume_lines_up_with_the_species() {
+        let g = library::find("conifer").unwrap().load().unwrap();
+        let (tree, origin) = voxelise_representative(&g, 48, &Budget::default()).unwrap();
+        let stream = amplify(&g, &Instance::new(REPRESENTATIVE_SEED), &Budget::default()).unwrap();
+        let (lo, hi) = stream_bounds(&stream);
+        let aabb = tree.aabb().unwrap();
+        let s = tree.volume.voxel_size();
+        for i in 0..3 {
+            // The voxels' box, moved back to species space, matches the primitives' bounds within a voxel or two.
+            assert!((aabb.min[i] - origin[i] - lo[i]).abs() <= 2.0 * s[i], "axis {i}: {aabb:?} {origin:?} {lo:?}");
+            assert!((aabb.max[i] - origin[i] - hi[i]).abs() <= 2.0 * s[i], "axis {i}: {aabb:?} {origin:?} {hi:?}");
+        }
+    }
+
+    #[test]
+    fn baked_volumes_shade_the_sunny_side_brighter_and_fade_to_empty() {
+        let g = library::find("conifer").unwrap().load().unwrap();
+        let v = species_volumes(&g, 40, &Budget::default(), &Lighting::default()).unwrap();
+        assert_eq!(v.full.dims.iter().copied().max(), Some(40));
+        assert_eq!(v.low.dims.iter().copied().max(), Some(20));
+        assert!(v.full.voxels > 100 && v.low.voxels > 10 && v.low.voxels < v.full.voxels);
+        assert_eq!(v.height.map(|h| h.0), Some(0), "conifer declares height first");
+        let (c, r) = v.full.bounding_sphere();
+        assert!(r > 3.0 && c[1] > 0.0, "{c:?} {r}");
+        // Mean brightness of the half of the crown toward the sun (−x, +z) against the other half.
+        let (mut lit, mut shade) = ((0.0f64, 0u32), (0.0f64, 0u32));
+        let [dx, dy, _] = v.full.dims;
+        let mid = 0.5 * (v.full.aabb_min[0] + v.full.aabb_max[0]);
+        for (i, t) in v.full.texels.chunks_exact(4).enumerate() {
+            if t[3] == 0 {
+                continue;
+            }
+            let x = (i as u32 % dx) as f32 + 0.5;
+            let _ = dy;
+            let g = half_to_f32(t[1]) as f64;
+            if x * v.full.voxel_size[0] < mid {
+                lit = (lit.0 + g, lit.1 + 1);
+            } else {
+                shade = (shade.0 + g, shade.1 + 1);
+            }
+        }
+        assert!(lit.0 / lit.1 as f64 > shade.0 / shade.1 as f64, "sunny side {lit:?}, far side {shade:?}");
+        let scale = instance_scale(&g, v.height, 5, &[(0, 2.0 * v.height.unwrap().1)]);
+        assert!((scale - 2.0).abs() < 1e-6);
+        assert_eq!(instance_scale(&g, None, 5, &[]), 1.0);
+    }
+
+    #[test]
+    fn half_round_trip() {
+        for v in [0.0f32, 0.25, 0.3, 0.777, 1.3, 3.5, 100.0] {
+            assert!((half_to_f32(f16_bits(v)) - v).abs() <= v * 1e-3, "{v}");
+        }
+    }
+
+    #[test]
+    fn marching_the_baked_volume_reproduces_the_cpu_reference() {
+        use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
+        use canopy_worlds::hypertree::render::{RenderOptions, render};
+        let def = canopy_worlds::hypertree::library::find("apple").unwrap().load().unwrap();
+        let opts = GenerateOptions { resolution: Some([40, 40, 40]), ..GenerateOptions::default() };
+        let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).unwrap();
+        let (w, h) = (64u32, 64u32);
+        let bg = [0.5f32, 0.6, 0.7];
+        let ro = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
+        let (img, _) = render(&tree, &ro, &mut |_, _| {}).unwrap();
+        let v = volumes_of(&tree, [0.0; 3], 1.0, 64, &Lighting::default()).unwrap().full;
+        // The reference's camera.
+        let aabb = tree.aabb().unwrap();
+        let c: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+        let radius = norm(half);
+        let (fov, el) = (ro.fov.to_radians(), ro.elevation.to_radians());
+        let tan_half = (0.5 * fov).tan();
+        let fit = radius / (0.5 * fov).sin().min(tan_half.atan().sin());
+        let back = [0.0, el.sin(), el.cos()];
+        let eye: [f32; 3] = std::array::from_fn(|i| c[i] + back[i] * fit * ro.zoom_out);
+        let fwd = back.map(|x| -x);
+        let right = normalize([fwd[1] * 0.0 - fwd[2] * 1.0, fwd[2] * 0.0 - fwd[0] * 0.0, fwd[0] * 1.0 - fwd[1] * 0.0]);
+        let up = [
+            right[1] * fwd[2] - right[2] * fwd[1],
+            right[2] * fwd[0] - right[0] * fwd[2],
+            right[0] * fwd[1] - right[1] * fwd[0],
+        ];
+        let mut bad = 0;
+        for py in 0..h {
+            for px in 0..w {
+                let nx = (2.0 * (px as f32 + 0.5) / w as f32 - 1.0) * tan_half;
+                let ny = (1.0 - 2.0 * (py as f32 + 0.5) / h as f32) * tan_half;
+                let d = normalize(std::array::from_fn(|i| fwd[i] + right[i] * nx + up[i] * ny));
+                let (col, a) = march(&v, eye, d);
+                let ours: [u8; 3] =
+                    std::array::from_fn(|i| ((col[i] + (1.0 - a) * bg[i]).clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
+                let theirs = img.pixel(px, py);
+                if (0..3).any(|i| ours[i].abs_diff(theirs[i]) > 3) {
+                    bad += 1;
+                }
+            }
+        }
+        assert!(bad <= (w * h / 100) as usize, "{bad} of {} pixels differ", w * h);
+    }
+}

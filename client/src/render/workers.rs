@@ -1,0 +1,292 @@
+//! Worker threads for the renderer's CPU work — amplifying instances into geometry and voxelising species into
+//! far-field volumes — so the render loop never waits: it submits jobs with a priority and collects whatever has
+//! finished with [`Workers::try_recv`].
+
+use std::collections::BinaryHeap;
+use std::sync::mpsc;
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use canopy_protocol::SpeciesGraph;
+use canopy_worlds::amplify::{Budget, Instance};
+
+use super::geometry::{TreeGeometry, build_tree};
+use super::scene::SceneVolume;
+use super::volume::{SpeciesVolumes, species_volumes, volumes_of};
+use super::{Lighting, NearMode};
+
+/// The geometry cache key: one instance at one detail level (instances are identified by species and seed).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct TreeKey {
+    /// Species id.
+    pub species: u16,
+    /// Instance seed.
+    pub seed: u64,
+    /// Detail level.
+    pub detail: u8,
+}
+
+/// Work for a worker.
+#[derive(Clone, Debug)]
+pub enum Job {
+    /// Amplify one instance at one detail level.
+    Tree {
+        /// Cache key.
+        key: TreeKey,
+        /// The species.
+        graph: Arc<SpeciesGraph>,
+        /// Seed, parameters, detail.
+        instance: Instance,
+        /// Instancing or merged meshes.
+        mode: NearMode,
+        /// Work bound.
+        budget: Budget,
+    },
+    /// Make a species' far-field volumes.
+    Volume {
+        /// Species id.
+        species: u16,
+        /// The species (voxelised when `given` is `None`; its `height` parameter scales instances).
+        graph: Arc<SpeciesGraph>,
+        /// A volume the scene provides.
+        given: Option<SceneVolume>,
+        /// Voxels along the longest axis when voxelising.
+        resolution: u32,
+        /// Amplification bound for the representative instance.
+        budget: Budget,
+        /// Shading to bake.
+        lighting: Lighting,
+    },
+}
+
+/// What a job produced.
+#[derive(Debug)]
+pub enum JobResult {
+    /// A tree's geometry, or why there is none.
+    Tree {
+        /// Cache key.
+        key: TreeKey,
+        /// The geometry.
+        result: Result<TreeGeometry, String>,
+        /// Time the job took.
+        took: Duration,
+    },
+    /// A species' volumes, or why there are none.
+    Volume {
+        /// Species id.
+        species: u16,
+        /// The volumes.
+        result: Result<SpeciesVolumes, String>,
+        /// Time the job took.
+        took: Duration,
+    },
+}
+
+struct Queued {
+    priority: f32,
+    order: u64,
+    job: Job,
+}
+
+impl PartialEq for Queued {
+    fn eq(&self, o: &Self) -> bool {
+        self.cmp(o) == std::cmp::Ordering::Equal
+    }
+}
+impl Eq for Queued {}
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Queued {
+    /// Highest priority first; among equals, first submitted first.
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        self.priority.total_cmp(&o.priority).then(o.order.cmp(&self.order))
+    }
+}
+
+#[derive(Default)]
+struct Shared {
+    heap: BinaryHeap<Queued>,
+    stop: bool,
+    next: u64,
+}
+
+/// A pool of worker threads (see the module docs). Dropping it stops and joins them.
+pub struct Workers {
+    shared: Arc<(Mutex<Shared>, Condvar)>,
+    results: mpsc::Receiver<JobResult>,
+    threads: Vec<JoinHandle<()>>,
+    outstanding: usize,
+}
+
+impl std::fmt::Debug for Workers {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Workers").field("threads", &self.threads.len()).field("outstanding", &self.outstanding).finish()
+    }
+}
+
+fn run(job: Job) -> JobResult {
+    let started = Instant::now();
+    match job {
+        Job::Tree { key, graph, instance, mode, budget } => {
+            let result = std::panic::catch_unwind(|| build_tree(&graph, &instance, mode, &budget))
+                .map_err(|_| "amplification panicked".to_string())
+                .and_then(|r| r.map_err(|e| e.to_string()));
+            JobResult::Tree { key, result, took: started.elapsed() }
+        }
+        Job::Volume { species, graph, given, resolution, budget, lighting } => {
+            let result = std::panic::catch_unwind(|| match &given {
+                Some(v) => volumes_of(&v.tree, v.origin, v.units, resolution, &lighting).map(|mut s| {
+                    s.height = super::volume::height_param(&graph);
+                    s
+                }),
+                None => species_volumes(&graph, resolution, &budget, &lighting),
+            })
+            .map_err(|_| "voxelisation panicked".to_string())
+            .and_then(|r| r.map_err(|e| e.to_string()));
+            JobResult::Volume { species, result, took: started.elapsed() }
+        }
+    }
+}
+
+impl Workers {
+    /// Start `n` workers (at least one).
+    pub fn new(n: usize) -> std::io::Result<Workers> {
+        let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
+        let (tx, results) = mpsc::channel();
+        let mut threads = Vec::new();
+        for i in 0..n.max(1) {
+            let shared = Arc::clone(&shared);
+            let tx = tx.clone();
+            threads.push(std::thread::Builder::new().name(format!("canopy-amplify-{i}")).spawn(move || {
+                loop {
+                    let job = {
+                        let (lock, cv) = &*shared;
+                        let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+                        loop {
+                            if s.stop {
+                                return;
+                            }
+                            if let Some(q) = s.heap.pop() {
+                                break q.job;
+                            }
+                            s = cv.wait(s).unwrap_or_else(|e| e.into_inner());
+                        }
+                    };
+                    if tx.send(run(job)).is_err() {
+                        return;
+                    }
+                }
+            })?);
+        }
+        Ok(Workers { shared, results, threads, outstanding: 0 })
+    }
+
+    /// Queue a job; higher priorities run first.
+    pub fn submit(&mut self, job: Job, priority: f32) {
+        let (lock, cv) = &*self.shared;
+        let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+        let order = s.next;
+        s.next += 1;
+        s.heap.push(Queued { priority, order, job });
+        self.outstanding += 1;
+        cv.notify_one();
+    }
+
+    /// A finished job, if any (never blocks).
+    pub fn try_recv(&mut self) -> Option<JobResult> {
+        let r = self.results.try_recv().ok()?;
+        self.outstanding -= 1;
+        Some(r)
+    }
+
+    /// Wait up to `timeout` for a finished job.
+    pub fn recv_timeout(&mut self, timeout: Duration) -> Option<JobResult> {
+        let r = self.results.recv_timeout(timeout).ok()?;
+        self.outstanding -= 1;
+        Some(r)
+    }
+
+    /// Jobs queued or running.
+    pub fn outstanding(&self) -> usize {
+        self.outstanding
+    }
+
+    /// Worker threads.
+    pub fn threads(&self) -> usize {
+        self.threads.len()
+    }
+}
+
+impl Drop for Workers {
+    fn drop(&mut self) {
+        {
+            let (lock, cv) = &*self.shared;
+            let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+            s.stop = true;
+            s.heap.clear();
+            cv.notify_all();
+        }
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use canopy_worlds::library;
+
+    use super::*;
+
+    #[test]
+    fn workers_amplify_by_priority_and_report_errors() {
+        let g = Arc::new(library::find("conifer").unwrap().load().unwrap());
+        let mut w = Workers::new(2).unwrap();
+        let key = |seed| TreeKey { species: 0, seed, detail: 2 };
+        let job = |seed, budget| Job::Tree {
+            key: key(seed),
+            graph: Arc::clone(&g),
+            instance: Instance::new(seed).with_detail(2),
+            mode: NearMode::Instanced,
+            budget,
+        };
+        w.submit(job(1, Budget::default()), 1.0);
+        w.submit(job(2, Budget { max_primitives: 1, ..Budget::default() }), 2.0);
+        let mut got = Vec::new();
+        while got.len() < 2 {
+            got.push(w.recv_timeout(Duration::from_secs(60)).expect("a result within a minute"));
+        }
+        assert_eq!(w.outstanding(), 0);
+        for r in got {
+            match r {
+                JobResult::Tree { key: k, result, .. } if k == key(1) => assert!(result.unwrap().prims.len() > 10),
+                JobResult::Tree { key: k, result, .. } if k == key(2) => {
+                    assert!(result.unwrap_err().contains("primitives"))
+                }
+                other => panic!("unexpected {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn the_queue_orders_by_priority_then_submission() {
+        let job = Job::Volume {
+            species: 0,
+            graph: Arc::new(library::find("worm").unwrap().load().unwrap()),
+            given: None,
+            resolution: 8,
+            budget: Budget::default(),
+            lighting: Lighting::default(),
+        };
+        let mut heap = BinaryHeap::new();
+        for (i, p) in [1.0f32, 5.0, 5.0, -1.0].iter().enumerate() {
+            heap.push(Queued { priority: *p, order: i as u64, job: job.clone() });
+        }
+        let order: Vec<u64> = std::iter::from_fn(|| heap.pop().map(|q| q.order)).collect();
+        assert_eq!(order, vec![1, 2, 0, 3]);
+    }
+}

@@ -1,0 +1,606 @@
+//! The client's sans-IO core: the session phase, the species it holds, the cells and instance records of its
+//! area of interest, and when that area is complete. It is fed the server's messages and the viewpoint, reads no
+//! clock and touches no socket; [`crate::net`] drives it over QUIC and the renderer reads it.
+//!
+//! Consistency over several ordered lanes: all batches of one grant of a cell, and the grant's release, travel on
+//! one lane, so within a grant the order is exact; across lanes a newer grant of a cell may overtake the release of
+//! an older one, which the grant numbers sort out (a newer grant replaces an older one, an older batch is stale).
+//! The client also evicts by distance itself, with the same hysteresis rule as the server
+//! ([`canopy_protocol::aoi`]): it never keeps a cell beyond radius + hysteresis, even before the server's release
+//! arrives, and drops the rest of such a grant until that release.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+use canopy_protocol::aoi::{Aoi, Viewpoint};
+use canopy_protocol::messages::{PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome};
+use canopy_protocol::record::{ParamOverride, dequantize};
+use canopy_protocol::{CellBatch, CellCoord, ClientMsg, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash};
+use canopy_protocol::{DecodeError, PROTOCOL_VERSION};
+
+/// A cell the client holds: one grant's records, complete when `records.len() == total`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeldCell {
+    /// The grant the records belong to.
+    pub grant: u32,
+    /// Instance id of `records[0]`.
+    pub first_id: u32,
+    /// How many records the cell has.
+    pub total: u16,
+    /// The records received so far, in id order.
+    pub records: Vec<InstanceRecord>,
+    /// Parameter overrides; `record` is the index within the cell.
+    pub overrides: Vec<ParamOverride>,
+}
+
+impl HeldCell {
+    /// Whether every record of the cell has arrived.
+    pub fn is_complete(&self) -> bool {
+        self.records.len() == usize::from(self.total)
+    }
+}
+
+/// One instance as the client exposes it to the application and the renderer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InstanceView {
+    /// The instance id.
+    pub id: u32,
+    /// The species id (index into the welcome's table).
+    pub species: u8,
+    /// World position: x, terrain height (0 without a terrain), z.
+    pub position: [f32; 3],
+    /// The instance seed, derived from the world seed and the id.
+    pub seed: u64,
+    /// Parameters that differ from the species defaults, `(slot, value)`.
+    pub params: Vec<(u16, f32)>,
+}
+
+/// What handling a message changed.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Event {
+    /// The welcome arrived.
+    Welcomed,
+    /// Species `id` arrived (its encoding is in the message, for the cache).
+    Species {
+        /// The species id.
+        id: u8,
+        /// Its content address.
+        hash: SpeciesHash,
+    },
+    /// Records of a cell arrived; `complete` once the cell has all of them.
+    Records {
+        /// The cell.
+        cell: CellCoord,
+        /// How many records arrived.
+        count: usize,
+        /// Whether the cell is now complete.
+        complete: bool,
+    },
+    /// A cell's grant was released.
+    Released(CellCoord),
+    /// The message was stale (an older grant) or for a cell already evicted, and was dropped.
+    Dropped,
+}
+
+/// Why a server message is not acceptable (the client closes the connection).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StateError {
+    /// Not legal in the session's phase.
+    #[error(transparent)]
+    Phase(#[from] PhaseError),
+    /// The server speaks another protocol version.
+    #[error("server speaks protocol version {0}, client speaks {PROTOCOL_VERSION}")]
+    Version(u16),
+    /// A species id is outside the table.
+    #[error("species {0} is not in the table")]
+    UnknownSpecies(u8),
+    /// A species' bytes do not hash to its table entry.
+    #[error("species {0} does not match its content address")]
+    Hash(u8),
+    /// A species' bytes do not decode to a valid graph.
+    #[error("species {0}: {1}")]
+    Graph(u8, DecodeError),
+    /// A batch does not continue its grant where the previous one ended, or its cell is outside the grid.
+    #[error("batch of cell {cell:?} grant {grant} starts at {start}, expected {expected}")]
+    Order {
+        /// The cell.
+        cell: CellCoord,
+        /// The grant.
+        grant: u32,
+        /// Where it starts.
+        start: u16,
+        /// Where it should start.
+        expected: u16,
+    },
+}
+
+/// Counters of what the client received.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ClientStats {
+    /// Species received over the wire.
+    pub species_received: u32,
+    /// Species received that the client already held (the protocol promises none).
+    pub species_duplicates: u32,
+    /// Instance records received.
+    pub records: u64,
+    /// Records received again for an instance already held in the same grant (the protocol promises none).
+    pub duplicate_records: u64,
+    /// Batches received.
+    pub batches: u64,
+    /// Batches dropped as stale or evicted.
+    pub dropped: u64,
+    /// Releases received.
+    pub releases: u64,
+    /// Cells the client evicted by distance before the server's release.
+    pub evicted: u64,
+}
+
+/// The client's view of its session (see the module docs).
+#[derive(Debug)]
+pub struct ClientState {
+    phase: Phase,
+    welcome: Option<Arc<Welcome>>,
+    species: Vec<Option<Arc<SpeciesGraph>>>,
+    cells: HashMap<CellCoord, HeldCell>,
+    tombstones: HashMap<CellCoord, u32>,
+    viewpoint: Option<Viewpoint>,
+    aoi: Option<Aoi>,
+    inner: HashSet<CellCoord>,
+    missing: usize,
+    stats: ClientStats,
+}
+
+impl Default for ClientState {
+    fn default() -> Self {
+        ClientState::new()
+    }
+}
+
+impl ClientState {
+    /// A session that has not said hello yet.
+    pub fn new() -> ClientState {
+        ClientState {
+            phase: Phase::Start,
+            welcome: None,
+            species: Vec::new(),
+            cells: HashMap::new(),
+            tombstones: HashMap::new(),
+            viewpoint: None,
+            aoi: None,
+            inner: HashSet::new(),
+            missing: 0,
+            stats: ClientStats::default(),
+        }
+    }
+
+    /// The session phase.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// The welcome, once it arrived.
+    pub fn welcome(&self) -> Option<&Arc<Welcome>> {
+        self.welcome.as_ref()
+    }
+
+    /// What the client received.
+    pub fn stats(&self) -> &ClientStats {
+        &self.stats
+    }
+
+    /// The latest viewpoint.
+    pub fn viewpoint(&self) -> Option<&Viewpoint> {
+        self.viewpoint.as_ref()
+    }
+
+    /// The species held, by id.
+    pub fn species(&self, id: u8) -> Option<&Arc<SpeciesGraph>> {
+        self.species.get(usize::from(id)).and_then(Option::as_ref)
+    }
+
+    /// How many species of the table the client holds.
+    pub fn species_held(&self) -> usize {
+        self.species.iter().filter(|s| s.is_some()).count()
+    }
+
+    /// The cells held.
+    pub fn cells(&self) -> &HashMap<CellCoord, HeldCell> {
+        &self.cells
+    }
+
+    /// The cells of the current area of interest.
+    pub fn inner_cells(&self) -> &HashSet<CellCoord> {
+        &self.inner
+    }
+
+    /// How many cells are still to come: cells of the area of interest not held in full, and held cells in the
+    /// hysteresis band whose grant is not finished (the server finishes them; the client keeps them).
+    pub fn missing(&self) -> usize {
+        self.missing
+    }
+
+    /// Whether every cell of the area of interest, and every cell held, is held in full.
+    pub fn is_complete(&self) -> bool {
+        self.phase == Phase::Streaming && self.missing == 0
+    }
+
+    /// Instance records held.
+    pub fn record_count(&self) -> usize {
+        self.cells.values().map(|c| c.records.len()).sum()
+    }
+
+    /// The first message: hello.
+    pub fn hello(&mut self, client: &str) -> Result<ClientMsg, StateError> {
+        let name: String = client.chars().take(canopy_protocol::netlimits::MAX_CLIENT_NAME / 4).collect();
+        let msg = ClientMsg::hello(name);
+        self.phase = msg.next_phase(self.phase)?;
+        Ok(msg)
+    }
+
+    /// Handle the server's answer to the hello.
+    pub fn on_welcome(&mut self, msg: ServerMsg) -> Result<Arc<Welcome>, StateError> {
+        self.phase = msg.next_phase(self.phase)?;
+        let ServerMsg::Handshake(ServerHandshake::Welcome(w)) = msg else {
+            unreachable!("next_phase admits only a welcome in phase Hello")
+        };
+        if w.version != PROTOCOL_VERSION {
+            return Err(StateError::Version(w.version));
+        }
+        self.species = vec![None; w.species.len()];
+        let w = Arc::new(w);
+        self.welcome = Some(Arc::clone(&w));
+        Ok(w)
+    }
+
+    /// Species the client already holds (from its cache): `(id, graph)` pairs whose content address matched the
+    /// table. Call between the welcome and [`ClientState::ready`].
+    pub fn preload_species(&mut self, id: u8, graph: Arc<SpeciesGraph>) {
+        if let Some(slot) = self.species.get_mut(usize::from(id)) {
+            *slot = Some(graph);
+        }
+    }
+
+    /// The answer to the welcome: the species held and the first viewpoint.
+    pub fn ready(&mut self, viewpoint: Viewpoint) -> Result<ClientMsg, StateError> {
+        let have: Vec<u8> = (0..self.species.len()).filter(|&i| self.species[i].is_some()).map(|i| i as u8).collect();
+        let msg = ClientMsg::ready(have, viewpoint);
+        self.phase = msg.next_phase(self.phase)?;
+        self.move_to(viewpoint);
+        Ok(msg)
+    }
+
+    /// A new viewpoint (its `seq` must increase): evicts what is beyond radius + hysteresis and returns the
+    /// message to send.
+    pub fn set_viewpoint(&mut self, viewpoint: Viewpoint) -> Result<ClientMsg, StateError> {
+        let msg = ClientMsg::viewpoint(viewpoint);
+        self.phase = msg.next_phase(self.phase)?;
+        self.move_to(viewpoint);
+        Ok(msg)
+    }
+
+    fn move_to(&mut self, vp: Viewpoint) {
+        let Some(w) = self.welcome.clone() else { return };
+        let grid = &w.world.grid;
+        let aoi = Aoi::new(&vp, &w.aoi);
+        let gone: Vec<CellCoord> = self.cells.keys().filter(|c| !aoi.is_kept(grid, **c)).copied().collect();
+        for c in gone {
+            if let Some(h) = self.cells.remove(&c) {
+                self.tombstones.insert(c, h.grant);
+                self.stats.evicted += 1;
+            }
+        }
+        self.inner = aoi.inner_cells(grid).into_iter().collect();
+        let band = self.cells.keys().filter(|c| !self.inner.contains(c));
+        self.missing = self.inner.iter().chain(band).map(|c| self.missing_at(*c)).sum();
+        self.viewpoint = Some(vp);
+        self.aoi = Some(aoi);
+    }
+
+    /// Handle a streaming message from a lane.
+    pub fn handle(&mut self, msg: ServerMsg) -> Result<Event, StateError> {
+        msg.next_phase(self.phase)?;
+        let ServerMsg::Streaming(msg) = msg else { unreachable!("next_phase admits only streaming messages") };
+        match msg {
+            ServerStreaming::Species(s) => self.on_species(s),
+            ServerStreaming::Cells(b) => self.on_batch(b),
+            ServerStreaming::Release(r) => Ok(self.on_release(r)),
+        }
+    }
+
+    fn on_species(&mut self, s: SpeciesData) -> Result<Event, StateError> {
+        let w = self.welcome.as_ref().expect("streaming implies welcomed");
+        let entry = w.species.get(usize::from(s.id)).ok_or(StateError::UnknownSpecies(s.id))?;
+        let hash = SpeciesHash::of(&s.graph);
+        if hash != entry.hash {
+            return Err(StateError::Hash(s.id));
+        }
+        self.stats.species_received += 1;
+        if self.species[usize::from(s.id)].is_some() {
+            self.stats.species_duplicates += 1;
+        } else {
+            let graph = SpeciesGraph::decode(&s.graph).map_err(|e| StateError::Graph(s.id, e))?;
+            self.species[usize::from(s.id)] = Some(Arc::new(graph));
+        }
+        Ok(Event::Species { id: s.id, hash })
+    }
+
+    fn on_batch(&mut self, b: CellBatch) -> Result<Event, StateError> {
+        self.stats.batches += 1;
+        let w = Arc::clone(self.welcome.as_ref().expect("streaming implies welcomed"));
+        let order = |expected: u16| StateError::Order { cell: b.cell, grant: b.grant, start: b.start, expected };
+        if !w.world.grid.contains(b.cell) {
+            return Err(order(0));
+        }
+        if let Some(r) = b.records.iter().find(|r| usize::from(r.species) >= w.species.len()) {
+            return Err(StateError::UnknownSpecies(r.species));
+        }
+        if self.tombstones.get(&b.cell).is_some_and(|&g| g >= b.grant) {
+            self.stats.dropped += 1;
+            return Ok(Event::Dropped);
+        }
+        let before = self.missing_at(b.cell);
+        match self.cells.get(&b.cell) {
+            Some(h) if h.grant > b.grant => {
+                self.stats.dropped += 1;
+                return Ok(Event::Dropped);
+            }
+            Some(h) if h.grant == b.grant => {
+                if b.start != h.records.len() as u16 || b.total != h.total || b.first_id != h.first_id {
+                    if usize::from(b.start) < h.records.len() {
+                        self.stats.duplicate_records += b.records.len() as u64;
+                    }
+                    return Err(order(h.records.len() as u16));
+                }
+            }
+            _ => {
+                // A new grant (replacing an older one, whose release is still on its way on another lane).
+                if b.start != 0 {
+                    return Err(order(0));
+                }
+                let kept = self.aoi.is_some_and(|a| a.is_kept(&w.world.grid, b.cell));
+                if !kept {
+                    // Granted for an older viewpoint and already out of range: the release will follow.
+                    self.cells.remove(&b.cell);
+                    self.missing = self.missing + self.missing_at(b.cell) - before;
+                    self.tombstones.insert(b.cell, b.grant);
+                    self.stats.dropped += 1;
+                    return Ok(Event::Dropped);
+                }
+                let cell = HeldCell {
+                    grant: b.grant,
+                    first_id: b.first_id,
+                    total: b.total,
+                    records: Vec::with_capacity(usize::from(b.total)),
+                    overrides: Vec::new(),
+                };
+                self.cells.insert(b.cell, cell);
+            }
+        }
+        let h = self.cells.get_mut(&b.cell).expect("inserted or present");
+        let base = h.records.len() as u16;
+        h.overrides.extend(b.overrides().into_iter().map(|o| ParamOverride { record: o.record + base, ..o }));
+        h.records.extend_from_slice(&b.records);
+        let complete = h.is_complete();
+        self.stats.records += b.records.len() as u64;
+        self.missing = self.missing + self.missing_at(b.cell) - before;
+        Ok(Event::Records { cell: b.cell, count: b.records.len(), complete })
+    }
+
+    /// Whether cell `c` counts as missing: in the area of interest and not held in full, or held (in the band)
+    /// and not finished.
+    fn missing_at(&self, c: CellCoord) -> usize {
+        let complete = self.cells.get(&c).map(HeldCell::is_complete);
+        usize::from(if self.inner.contains(&c) { complete != Some(true) } else { complete == Some(false) })
+    }
+
+    fn on_release(&mut self, r: Release) -> Event {
+        self.stats.releases += 1;
+        if self.tombstones.get(&r.cell) == Some(&r.grant) {
+            self.tombstones.remove(&r.cell);
+        }
+        match self.cells.get(&r.cell) {
+            Some(h) if h.grant == r.grant => {
+                let before = self.missing_at(r.cell);
+                self.cells.remove(&r.cell);
+                self.missing = self.missing + self.missing_at(r.cell) - before;
+                Event::Released(r.cell)
+            }
+            _ => Event::Dropped,
+        }
+    }
+
+    /// Every instance held, cell by cell in id order. `height` gives the terrain height at (x, z).
+    pub fn instances<'a>(&'a self, height: &'a dyn Fn(f32, f32) -> f32) -> impl Iterator<Item = InstanceView> + 'a {
+        let w = self.welcome.as_ref();
+        self.cells.iter().flat_map(move |(c, h)| {
+            let w = w.expect("cells imply a welcome");
+            let grid = &w.world.grid;
+            let origin = grid.cell_origin(*c);
+            let seed = w.world.seed;
+            h.records.iter().enumerate().map(move |(i, r)| {
+                let x = dequantize(r.qx(), origin[0], grid.cell_size);
+                let z = dequantize(r.qz(), origin[1], grid.cell_size);
+                let id = h.first_id + i as u32;
+                let lo = h.overrides.partition_point(|o| usize::from(o.record) < i);
+                let hi = h.overrides.partition_point(|o| usize::from(o.record) <= i);
+                InstanceView {
+                    id,
+                    species: r.species,
+                    position: [x, height(x, z), z],
+                    seed: instance_seed(seed, id),
+                    params: h.overrides[lo..hi].iter().map(|o| (o.slot, o.value)).collect(),
+                }
+            })
+        })
+    }
+}
+
+/// The seed of instance `id` in a world of seed `world_seed` (the same derivation as the world's).
+pub fn instance_seed(world_seed: u64, id: u32) -> u64 {
+    canopy_worlds::rng::child_key(world_seed, u64::from(id))
+}
+
+#[cfg(test)]
+mod tests {
+    use canopy_protocol::POSITION_STEPS;
+    use canopy_protocol::aoi::{AoiParams, Grid};
+    use canopy_protocol::messages::{SpeciesEntry, TerrainDesc, WorldInfo};
+
+    use super::*;
+
+    fn worm() -> Vec<u8> {
+        canopy_worlds::library::find("worm").unwrap().load().unwrap().encode()
+    }
+
+    fn welcome() -> ServerMsg {
+        let grid =
+            Grid { origin: [0.0, 0.0], cell_size: 10.0, min: CellCoord::new(-50, -50), max: CellCoord::new(49, 49) };
+        let terrain = TerrainDesc {
+            graph: None,
+            seed: 0,
+            origin: [-500.0, -500.0],
+            tile_size: 1000.0,
+            tiles: [1, 1],
+            depth: 0,
+            corners: vec![0.0; 4],
+            params: vec![],
+        };
+        let w = Welcome {
+            version: PROTOCOL_VERSION,
+            world: WorldInfo {
+                name: "t".into(),
+                seed: 1,
+                grid,
+                position_steps: POSITION_STEPS,
+                instances: 100,
+                terrain,
+            },
+            species: vec![SpeciesEntry { hash: SpeciesHash::of(&worm()), size: worm().len() as u32 }],
+            aoi: AoiParams { max_radius: 100.0, hysteresis: 10.0, lookahead_s: 0.0, max_lookahead: 0.0 },
+        };
+        ServerMsg::Handshake(ServerHandshake::Welcome(w))
+    }
+
+    fn streaming() -> ClientState {
+        let mut s = ClientState::new();
+        s.hello("t").unwrap();
+        s.on_welcome(welcome()).unwrap();
+        // Radius 4 at the centre of cell (0, 0): the area of interest is that cell alone.
+        s.ready(Viewpoint::at(0, [5.0, 5.0], 4.0)).unwrap();
+        s
+    }
+
+    fn batch(cell: CellCoord, grant: u32, start: u16, n: u16, total: u16) -> ServerMsg {
+        ServerMsg::Streaming(ServerStreaming::Cells(CellBatch {
+            cell,
+            grant,
+            first_id: 10,
+            total,
+            start,
+            records: (0..n).map(|i| InstanceRecord::new(0, i, i)).collect(),
+            params: vec![],
+        }))
+    }
+
+    fn release(cell: CellCoord, grant: u32) -> ServerMsg {
+        ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant }))
+    }
+
+    #[test]
+    fn species_must_match_their_content_address() {
+        let mut s = streaming();
+        let species = |id, graph| ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
+        assert_eq!(s.handle(species(0, vec![1, 2, 3])), Err(StateError::Hash(0)));
+        assert_eq!(s.handle(species(3, worm())), Err(StateError::UnknownSpecies(3)));
+        assert!(matches!(s.handle(species(0, worm())), Ok(Event::Species { id: 0, .. })));
+        assert!(s.species(0).is_some());
+        s.handle(species(0, worm())).unwrap();
+        assert_eq!(s.stats().species_duplicates, 1);
+    }
+
+    #[test]
+    fn messages_out_of_phase_are_errors() {
+        let mut s = ClientState::new();
+        assert!(matches!(s.handle(batch(CellCoord::new(0, 0), 1, 0, 1, 1)), Err(StateError::Phase(_))));
+        s.hello("t").unwrap();
+        s.on_welcome(welcome()).unwrap();
+        assert!(matches!(s.on_welcome(welcome()), Err(StateError::Phase(_))));
+        assert!(matches!(s.handle(batch(CellCoord::new(0, 0), 1, 0, 1, 1)), Err(StateError::Phase(_))));
+    }
+
+    #[test]
+    fn a_cell_completes_in_order_and_gaps_are_errors() {
+        let mut s = streaming();
+        let c = CellCoord::new(0, 0);
+        assert!(!s.is_complete());
+        assert!(matches!(s.handle(batch(c, 1, 2, 2, 4)), Err(StateError::Order { expected: 0, .. })));
+        s.handle(batch(c, 1, 0, 2, 4)).unwrap();
+        assert!(matches!(s.handle(batch(c, 1, 3, 1, 4)), Err(StateError::Order { expected: 2, .. })));
+        assert!(!s.is_complete());
+        assert_eq!(s.handle(batch(c, 1, 2, 2, 4)), Ok(Event::Records { cell: c, count: 2, complete: true }));
+        assert!(s.is_complete());
+        let ids: Vec<u32> = s.instances(&|_, _| 0.0).map(|i| i.id).collect();
+        assert_eq!(ids, vec![10, 11, 12, 13]);
+        assert_eq!(s.instances(&|_, _| 0.0).next().unwrap().seed, instance_seed(1, 10));
+        assert!(matches!(s.handle(batch(CellCoord::new(0, 99), 2, 0, 1, 1)), Err(StateError::Order { .. })));
+    }
+
+    #[test]
+    fn grants_sort_out_lanes_overtaking_each_other() {
+        let mut s = streaming();
+        let c = CellCoord::new(0, 0);
+        s.handle(batch(c, 1, 0, 2, 2)).unwrap();
+        assert!(s.is_complete());
+        // Grant 3 overtakes grant 1's release: it replaces grant 1.
+        s.handle(batch(c, 3, 0, 1, 2)).unwrap();
+        assert_eq!(s.cells()[&c].grant, 3);
+        assert!(!s.is_complete());
+        // The old release and an old batch change nothing.
+        assert_eq!(s.handle(release(c, 1)), Ok(Event::Dropped));
+        assert_eq!(s.handle(batch(c, 1, 0, 2, 2)), Ok(Event::Dropped));
+        s.handle(batch(c, 3, 1, 1, 2)).unwrap();
+        assert!(s.is_complete());
+        assert_eq!(s.handle(release(c, 3)), Ok(Event::Released(c)));
+        assert!(!s.is_complete() && s.cells().is_empty());
+    }
+
+    #[test]
+    fn a_held_cell_in_the_band_must_finish_before_the_area_of_interest_is_complete() {
+        let mut s = streaming();
+        let c = CellCoord::new(0, 0);
+        s.handle(batch(c, 1, 0, 1, 2)).unwrap();
+        // Move so the half-received cell is in the hysteresis band (12 m away) and the new area of interest is
+        // cells (1, 0) and (2, 0).
+        s.set_viewpoint(Viewpoint::at(1, [22.0, 5.0], 4.0)).unwrap();
+        assert!(s.cells().contains_key(&c));
+        s.handle(batch(CellCoord::new(1, 0), 2, 0, 1, 1)).unwrap();
+        s.handle(batch(CellCoord::new(2, 0), 3, 0, 1, 1)).unwrap();
+        assert_eq!(s.missing(), 1);
+        assert!(!s.is_complete(), "the band cell is still coming");
+        s.handle(batch(c, 1, 1, 1, 2)).unwrap();
+        assert!(s.is_complete());
+    }
+
+    #[test]
+    fn eviction_by_distance_with_hysteresis() {
+        let mut s = streaming();
+        let c = CellCoord::new(0, 0);
+        s.handle(batch(c, 1, 0, 1, 2)).unwrap();
+        // 12 m away: beyond the radius (4) but within radius + hysteresis (14) of the cell: kept.
+        s.set_viewpoint(Viewpoint::at(1, [22.0, 5.0], 4.0)).unwrap();
+        assert!(s.cells().contains_key(&c));
+        // Far away: evicted now, before the server's release; the rest of the grant is dropped until it comes.
+        s.set_viewpoint(Viewpoint::at(2, [300.0, 5.0], 4.0)).unwrap();
+        assert!(s.cells().is_empty());
+        assert_eq!(s.stats().evicted, 1);
+        assert_eq!(s.handle(batch(c, 1, 1, 1, 2)), Ok(Event::Dropped));
+        s.handle(release(c, 1)).unwrap();
+        // Back again: a new grant is accepted.
+        s.set_viewpoint(Viewpoint::at(3, [5.0, 5.0], 4.0)).unwrap();
+        s.handle(batch(c, 2, 0, 2, 2)).unwrap();
+        assert!(s.is_complete());
+        // A new grant for a cell already out of range is dropped (its release follows).
+        assert_eq!(s.handle(batch(CellCoord::new(40, 40), 4, 0, 1, 1)), Ok(Event::Dropped));
+        assert!(!s.cells().contains_key(&CellCoord::new(40, 40)));
+    }
+}

@@ -1,0 +1,193 @@
+//! Image tests of the renderer, offscreen on whatever wgpu adapter is present (CI: Mesa lavapipe, no GPU): fixed
+//! scenes compared with committed reference PNGs in `tests/reference/` within a tolerance (on failure
+//! `NAME-actual.png` and `NAME-difference.png` are written beside them; `CANOPY_BLESS=1` writes missing references),
+//! and the far field compared with the CPU reference raymarcher of `canopy_worlds::hypertree::render`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use canopy_client::render::compare::{Tolerance, check_reference, compare};
+use canopy_client::render::offscreen::{RenderedImage, render_still};
+use canopy_client::render::scene::SceneVolume;
+use canopy_client::render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInstance};
+use canopy_worlds::diag::SourceFile;
+use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
+use canopy_worlds::hypertree::render::{RenderOptions, render as cpu_render};
+use canopy_worlds::world::{Terrain, World};
+use glam::Vec3;
+
+fn reference(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/reference").join(name)
+}
+
+fn small_world() -> World {
+    let text = r#"
+world testgrove
+seed 77
+bounds -256 -256 256 256
+cell 32
+terrain terrain {
+  tile 256
+  depth 5
+  param relief = 6
+  corners 10 14 18
+  corners 8 10 16
+  corners 6 8 12
+}
+species conifer conifer
+species broadleaf monopodial
+species bush bush
+instance broadleaf at 6 30 height=16
+instance conifer at -14 52 height=18
+scatter conifer {
+  spacing 9
+  region -256 60 256 256
+  param height = 10 .. 20 step 0.5
+}
+scatter broadleaf {
+  spacing 12
+  region -256 -256 256 60
+  avoid conifer 8
+  avoid broadleaf 10
+}
+scatter bush {
+  spacing 7
+  density 0.4
+  region -60 -60 60 40
+  avoid broadleaf 5
+  avoid conifer 4
+}
+"#;
+    World::parse(&SourceFile::new("testgrove.world", text), None).unwrap_or_else(|d| panic!("{d}"))
+}
+
+fn grove_camera(world: &World) -> Camera {
+    let eye = Vec3::new(0.0, world.height(0.0, -10.0) + 9.0, -10.0);
+    let target = Vec3::new(0.0, world.height(0.0, 120.0) + 8.0, 120.0);
+    Camera::looking_at(eye, target, 60.0)
+}
+
+fn grove_config(mode: NearMode) -> RenderConfig {
+    let mut cfg = RenderConfig::default();
+    // Thresholds for a small image: the nearest trees near, a few mid, the rest far.
+    cfg.lod = LodConfig { near_px: 150.0, far_px: 30.0, ..LodConfig::default() };
+    cfg.near_mode = mode;
+    cfg.workers = 2;
+    cfg.volume_resolution = 48;
+    cfg
+}
+
+const W: u32 = 320;
+const H: u32 = 200;
+
+fn render_grove(cfg: RenderConfig, camera: fn(&World) -> Camera) -> (RenderedImage, canopy_client::render::FrameStats) {
+    let world = small_world();
+    let scene = Scene::from_world(&world);
+    render_still(cfg, &scene, &camera(&world), W, H, Duration::from_secs(600))
+        .unwrap_or_else(|e| panic!("offscreen render failed: {e}"))
+}
+
+#[test]
+fn grove_with_all_three_bands_matches_its_reference() {
+    let (img, stats) = render_grove(grove_config(NearMode::Instanced), grove_camera);
+    assert!(stats.near >= 1, "a tree at full detail: {stats:?}");
+    assert!(stats.mid >= 3, "trees with LOD substitutes: {stats:?}");
+    assert!(stats.far >= 20, "hypertree volumes in the distance: {stats:?}");
+    assert_eq!(stats.waiting, 0);
+    assert!(stats.primitives > 1000 && stats.terrain_triangles > 100, "{stats:?}");
+    // Sky at the top, ground at the bottom.
+    let top = img.pixel(W / 2, 2);
+    let bottom = img.pixel(W / 2, H - 2);
+    assert!(top[2] > top[1] && top[2] > 150, "sky {top:?}");
+    assert!(bottom[1] >= bottom[2], "ground {bottom:?}");
+    check_reference(&img, &reference("grove.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+}
+
+#[test]
+fn merged_meshes_and_instanced_primitives_draw_the_same_trees() {
+    // Merged meshes take several times the memory of primitive instances (and lavapipe binds at most 128 MiB):
+    // fewer trees at full detail, and room for all of them.
+    let cfg = |mode| RenderConfig {
+        lod: LodConfig { near_px: 250.0, ..grove_config(mode).lod },
+        mesh_memory: 180 << 20,
+        ..grove_config(mode)
+    };
+    // From further back, so that no tree surrounds the camera.
+    let camera = |w: &World| {
+        let eye = Vec3::new(10.0, w.height(10.0, -60.0) + 16.0, -60.0);
+        Camera::looking_at(eye, Vec3::new(0.0, w.height(0.0, 60.0) + 6.0, 60.0), 60.0)
+    };
+    let (instanced, a) = render_grove(cfg(NearMode::Instanced), camera);
+    let (merged, b) = render_grove(cfg(NearMode::Merged), camera);
+    assert!(a.near >= 1 && a.mid >= 10, "{a:?}");
+    eprintln!("instanced: {a:?}\nmerged: {b:?}");
+    assert_eq!((a.near, a.mid, a.far), (b.near, b.mid, b.far));
+    assert!(b.cache_bytes > 3 * a.cache_bytes, "merged meshes take more memory than primitive instances");
+    assert_eq!(b.primitives, 0, "merged mode draws meshes only");
+    assert!(b.mesh_triangles > a.mesh_triangles);
+    // Same tessellation; only normals are quantised differently (computed against snorm8 per vertex).
+    let c = compare(&instanced, &merged, 24).unwrap();
+    assert!(c.fraction < 0.02 && c.mean < 2.0, "{c:?}");
+}
+
+/// A lone hypertree (seed 000's apple, generated at resolution 48) through the far band and through the CPU
+/// reference raymarcher, same camera, same lighting, flat background: the images agree.
+#[test]
+fn far_field_volumes_match_the_cpu_reference_raymarcher() {
+    let def = canopy_worlds::hypertree::library::find("apple").expect("apple.hyp").load().expect("parses");
+    let opts = GenerateOptions { resolution: Some([48, 48, 48]), ..GenerateOptions::default() };
+    let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).expect("generates");
+    let bg = [0.78f32, 0.85, 0.92];
+    let (w, h) = (128u32, 128u32);
+    let cpu_opts = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
+    let (cpu, _) = cpu_render(&tree, &cpu_opts, &mut |_, _| {}).expect("CPU render");
+    let cpu = RenderedImage {
+        width: w,
+        height: h,
+        rgba: cpu.pixels.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect(),
+    };
+    // The reference's camera (worlds/src/hypertree/render.rs): around the voxels' box, azimuth 0, elevation 8°.
+    let aabb = tree.aabb().expect("not empty");
+    let center = Vec3::from(aabb.min).lerp(Vec3::from(aabb.max), 0.5);
+    let radius = ((Vec3::from(aabb.max) - Vec3::from(aabb.min)) * 0.5).length();
+    let (fov, el) = (cpu_opts.fov.to_radians(), cpu_opts.elevation.to_radians());
+    let tan_half = (fov * 0.5).tan();
+    let fit = radius / (fov * 0.5).sin().min((tan_half * (w as f32 / h as f32)).atan().sin());
+    let eye = center + Vec3::new(0.0, el.sin(), el.cos()) * fit * cpu_opts.zoom_out;
+    let camera = Camera::looking_at(eye, center, cpu_opts.fov);
+
+    // One instance whose species origin is the box origin, so world coordinates are box coordinates; every
+    // instance far; no fog; a flat sky of the background colour; the ground far out of view.
+    let graph = canopy_worlds::library::find("worm").unwrap().load().unwrap();
+    let scene = Scene {
+        species: vec![Some(Arc::new(graph))],
+        volumes: vec![Some(SceneVolume { tree: Arc::new(tree), origin: [0.0; 3], units: 1.0 })],
+        instances: vec![SceneInstance { id: 0, species: 0, position: [0.0; 3], seed: 1, params: Vec::new() }],
+        terrain: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)),
+        generation: 1,
+    };
+    let mut cfg = RenderConfig::default();
+    cfg.lod = LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, low_res_px: 0.0, ..LodConfig::default() };
+    cfg.lighting.fog_density = 0.0;
+    cfg.lighting.sky_zenith = bg;
+    cfg.lighting.sky_horizon = bg;
+    cfg.volume_resolution = 64;
+    cfg.workers = 1;
+    cfg.near_clip = 0.01;
+    let (gpu, stats) =
+        render_still(cfg, &scene, &camera, w, h, Duration::from_secs(120)).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(stats.far, 1, "{stats:?}");
+    let c = compare(&gpu, &cpu, 8).unwrap();
+    eprintln!("GPU against the CPU reference: {c:?}");
+    let covered = cpu.rgba.chunks_exact(4).filter(|p| p[..3] != [199, 217, 235]).count();
+    assert!(covered > 2000, "the tree covers the image ({covered} pixels)");
+    if !(c.fraction < 0.01 && c.mean < 0.5) {
+        let dir = std::env::temp_dir();
+        let (g, r) = (dir.join("canopy-far-gpu.png"), dir.join("canopy-far-cpu.png"));
+        gpu.save_png(&g).unwrap();
+        cpu.save_png(&r).unwrap();
+        panic!("GPU raymarch differs from the CPU reference: {c:?}; see {} and {}", g.display(), r.display());
+    }
+    check_reference(&gpu, &reference("hypertree-apple.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+}

@@ -1,0 +1,257 @@
+//! The area of interest (seed 001 §4): which cells of the world a client's viewpoint needs, with look-ahead along
+//! its velocity and hysteresis at the border. Pure geometry shared by the server (what to send, what to release)
+//! and the client (what to keep, when its area of interest is complete), so both sides compute the same sets
+//! bit for bit from the same viewpoint.
+//!
+//! A cell enters the area of interest when its square comes within the radius of the viewpoint or of the
+//! look-ahead point (position + velocity × look-ahead time, capped); it leaves only when it is farther than the
+//! radius plus the hysteresis from both, so walking along the border does not churn.
+
+use serde::{Deserialize, Serialize};
+
+use crate::netlimits;
+use crate::record::CellCoord;
+
+/// The world's cell grid on (x, z): cell `(i, j)` spans `origin + [i, i + 1) × [j, j + 1)` cell sizes; only cells
+/// in `min..=max` exist.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Grid {
+    /// Where cell `(0, 0)` starts, metres.
+    pub origin: [f32; 2],
+    /// Edge length of a cell, metres.
+    pub cell_size: f32,
+    /// The lowest cell on both axes.
+    pub min: CellCoord,
+    /// The highest cell on both axes (inclusive).
+    pub max: CellCoord,
+}
+
+/// Why a grid is not acceptable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GridError {
+    /// The cell size is not a positive finite number, or the origin is not finite.
+    #[error("cell size {0} or origin is not positive and finite")]
+    CellSize(f32),
+    /// The cell range is empty or larger than [`netlimits::MAX_CELLS_PER_AXIS`] on an axis.
+    #[error("cell range {min:?}..={max:?} is empty or too large")]
+    Range {
+        /// Lowest cell.
+        min: CellCoord,
+        /// Highest cell.
+        max: CellCoord,
+    },
+}
+
+impl Grid {
+    /// Check the grid's numbers (decoders call this).
+    pub fn validate(&self) -> Result<(), GridError> {
+        if !(self.cell_size.is_finite() && self.cell_size > 0.0) || !self.origin.iter().all(|v| v.is_finite()) {
+            return Err(GridError::CellSize(self.cell_size));
+        }
+        let span = |a: i32, b: i32| i64::from(b) - i64::from(a);
+        let max = i64::from(netlimits::MAX_CELLS_PER_AXIS);
+        let (sx, sz) = (span(self.min.x, self.max.x), span(self.min.z, self.max.z));
+        if !(0..max).contains(&sx) || !(0..max).contains(&sz) {
+            return Err(GridError::Range { min: self.min, max: self.max });
+        }
+        Ok(())
+    }
+
+    /// Whether the cell exists.
+    pub fn contains(&self, c: CellCoord) -> bool {
+        (self.min.x..=self.max.x).contains(&c.x) && (self.min.z..=self.max.z).contains(&c.z)
+    }
+
+    /// Where the cell starts, metres.
+    pub fn cell_origin(&self, c: CellCoord) -> [f32; 2] {
+        [self.origin[0] + c.x as f32 * self.cell_size, self.origin[1] + c.z as f32 * self.cell_size]
+    }
+
+    /// The cell holding point `(x, z)` (which may lie outside `min..=max`).
+    pub fn cell_of(&self, x: f32, z: f32) -> CellCoord {
+        let f = |v: f32, o: f32| {
+            let i = ((v - o) / self.cell_size).floor();
+            i.clamp(i32::MIN as f32, i32::MAX as f32) as i32
+        };
+        CellCoord { x: f(x, self.origin[0]), z: f(z, self.origin[1]) }
+    }
+
+    /// Squared distance from point `p` to the nearest point of the cell's square (0 inside).
+    pub fn distance2(&self, c: CellCoord, p: [f32; 2]) -> f32 {
+        let o = self.cell_origin(c);
+        let d = |v: f32, lo: f32| (lo - v).max(0.0).max(v - (lo + self.cell_size));
+        let (dx, dz) = (d(p[0], o[0]), d(p[1], o[1]));
+        dx * dx + dz * dz
+    }
+
+    /// Squared distance from point `p` to the cell's centre.
+    pub fn centre_distance2(&self, c: CellCoord, p: [f32; 2]) -> f32 {
+        let o = self.cell_origin(c);
+        let h = self.cell_size * 0.5;
+        let (dx, dz) = (o[0] + h - p[0], o[1] + h - p[1]);
+        dx * dx + dz * dz
+    }
+
+    /// Push every existing cell whose square comes within `radius` of `p` onto `out`, row by row.
+    pub fn cells_within(&self, p: [f32; 2], radius: f32, out: &mut Vec<CellCoord>) {
+        let lo = self.cell_of(p[0] - radius, p[1] - radius);
+        let hi = self.cell_of(p[0] + radius, p[1] + radius);
+        let r2 = radius * radius;
+        for z in lo.z.max(self.min.z)..=hi.z.min(self.max.z) {
+            for x in lo.x.max(self.min.x)..=hi.x.min(self.max.x) {
+                let c = CellCoord { x, z };
+                if self.distance2(c, p) <= r2 {
+                    out.push(c);
+                }
+            }
+        }
+    }
+}
+
+/// The server's area-of-interest rules, announced in the welcome so the client computes the same sets.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AoiParams {
+    /// Largest radius a client may ask for, metres.
+    pub max_radius: f32,
+    /// How much farther than the radius a held cell may be before it is released, metres.
+    pub hysteresis: f32,
+    /// Seconds of velocity the look-ahead point leads the position by.
+    pub lookahead_s: f32,
+    /// Farthest the look-ahead point may lead, metres.
+    pub max_lookahead: f32,
+}
+
+impl Default for AoiParams {
+    fn default() -> Self {
+        AoiParams { max_radius: 512.0, hysteresis: 32.0, lookahead_s: 2.0, max_lookahead: 128.0 }
+    }
+}
+
+/// Why area-of-interest rules are not acceptable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AoiParamsError {
+    /// A number is negative, not finite, or over its limit.
+    #[error("area-of-interest parameters out of range: {0:?}")]
+    Range(AoiParams),
+}
+
+impl AoiParams {
+    /// Check the numbers (decoders call this).
+    pub fn validate(&self) -> Result<(), AoiParamsError> {
+        let ok = |v: f32, max: f32| v.is_finite() && (0.0..=max).contains(&v);
+        if ok(self.max_radius, netlimits::MAX_AOI_RADIUS)
+            && self.max_radius > 0.0
+            && ok(self.hysteresis, netlimits::MAX_AOI_RADIUS)
+            && ok(self.lookahead_s, 60.0)
+            && ok(self.max_lookahead, netlimits::MAX_AOI_RADIUS)
+        {
+            Ok(())
+        } else {
+            Err(AoiParamsError::Range(*self))
+        }
+    }
+}
+
+/// Where a client looks from: sent whenever its viewpoint moves enough to matter.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Viewpoint {
+    /// Increases with every viewpoint a client sends in one session.
+    pub seq: u32,
+    /// Position on (x, z), metres.
+    pub position: [f32; 2],
+    /// Heading on (x, z): direction `(sin yaw, cos yaw)`, radians.
+    pub yaw: f32,
+    /// Velocity on (x, z), metres per second (drives the look-ahead).
+    pub velocity: [f32; 2],
+    /// The radius the client asks for, metres (the server caps it at [`AoiParams::max_radius`]).
+    pub radius: f32,
+}
+
+/// Why a viewpoint is not acceptable.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ViewpointError {
+    /// A coordinate, speed, angle or radius is not finite or over its limit.
+    #[error("viewpoint out of range")]
+    Range,
+}
+
+impl Viewpoint {
+    /// A viewpoint at rest at `position` looking along +z.
+    pub fn at(seq: u32, position: [f32; 2], radius: f32) -> Viewpoint {
+        Viewpoint { seq, position, yaw: 0.0, velocity: [0.0, 0.0], radius }
+    }
+
+    /// Check the numbers (decoders call this).
+    pub fn validate(&self) -> Result<(), ViewpointError> {
+        let within = |v: f32, max: f32| v.is_finite() && v.abs() <= max;
+        let ok = self.position.iter().all(|&v| within(v, netlimits::MAX_COORDINATE))
+            && self.velocity.iter().all(|&v| within(v, netlimits::MAX_SPEED))
+            && within(self.yaw, 1.0e3)
+            && self.radius.is_finite()
+            && self.radius >= 0.0;
+        if ok { Ok(()) } else { Err(ViewpointError::Range) }
+    }
+
+    /// The heading as a unit vector on (x, z).
+    pub fn heading(&self) -> [f32; 2] {
+        [self.yaw.sin(), self.yaw.cos()]
+    }
+}
+
+/// A viewpoint resolved under the server's rules: the radius capped, the look-ahead point placed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aoi {
+    /// The viewpoint's position.
+    pub position: [f32; 2],
+    /// Where the viewpoint will be after the look-ahead time (equal to `position` at rest).
+    pub ahead: [f32; 2],
+    /// The effective radius.
+    pub radius: f32,
+    /// Radius plus hysteresis: held cells farther than this from both points are released.
+    pub outer: f32,
+}
+
+impl Aoi {
+    /// Resolve a (validated) viewpoint under `params`.
+    pub fn new(vp: &Viewpoint, params: &AoiParams) -> Aoi {
+        let radius = vp.radius.min(params.max_radius).max(0.0);
+        let mut lead = [vp.velocity[0] * params.lookahead_s, vp.velocity[1] * params.lookahead_s];
+        let len2 = lead[0] * lead[0] + lead[1] * lead[1];
+        let max2 = params.max_lookahead * params.max_lookahead;
+        if len2 > max2 {
+            let k = params.max_lookahead / len2.sqrt();
+            lead = [lead[0] * k, lead[1] * k];
+        }
+        let ahead = [vp.position[0] + lead[0], vp.position[1] + lead[1]];
+        Aoi { position: vp.position, ahead, radius, outer: radius + params.hysteresis }
+    }
+
+    fn within(&self, grid: &Grid, c: CellCoord, r: f32) -> bool {
+        let r2 = r * r;
+        grid.contains(c) && (grid.distance2(c, self.position) <= r2 || grid.distance2(c, self.ahead) <= r2)
+    }
+
+    /// Whether the cell belongs to the area of interest (it must be sent).
+    pub fn is_inner(&self, grid: &Grid, c: CellCoord) -> bool {
+        self.within(grid, c, self.radius)
+    }
+
+    /// Whether a held cell may be kept (it is not farther than the radius plus the hysteresis).
+    pub fn is_kept(&self, grid: &Grid, c: CellCoord) -> bool {
+        self.within(grid, c, self.outer)
+    }
+
+    /// Every cell of the area of interest, sorted and without repeats.
+    pub fn inner_cells(&self, grid: &Grid) -> Vec<CellCoord> {
+        let mut out = Vec::new();
+        grid.cells_within(self.position, self.radius, &mut out);
+        if self.ahead != self.position {
+            grid.cells_within(self.ahead, self.radius, &mut out);
+            out.sort_unstable();
+            out.dedup();
+        } else {
+            out.sort_unstable();
+        }
+        out
+    }
+}

@@ -1,0 +1,509 @@
+//! The streaming protocol's messages: one enum per direction, grouped by session phase, with a protocol version,
+//! the ALPN token, a check that a message is legal in the current phase, and bounded, validating decoders.
+//!
+//! A session runs `Start → Hello → Welcomed → Streaming`:
+//!
+//! ```text
+//! client                                   server
+//!   Hello { version, client }       ──▶                       (control stream, client-opened, bidirectional)
+//!                                   ◀──  Welcome { version, world, species table, AOI rules }
+//!   Ready { have, viewpoint }       ──▶                       (have: species ids its cache already holds)
+//!   Viewpoint …                     ──▶
+//!                                   ◀──  Species, Cells, Release (server-opened lanes: ordered streams by priority)
+//! ```
+//!
+//! Species are content-addressed: the welcome lists the SHA-256 of every species' encoding, the client answers with
+//! the ids it already holds (from its on-disk cache, across sessions), and the server sends each remaining species
+//! once, just before the first cell batch that needs it (demand-driven transmission, seed 001 §4).
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, ViewpointError};
+use crate::record::{BatchError, CellBatch, CellCoord, POSITION_STEPS};
+use crate::{limits, netlimits};
+
+/// The protocol version; a client and server speak only their own version.
+pub const PROTOCOL_VERSION: u16 = 1;
+
+/// The TLS application protocol (ALPN) token of this protocol version.
+pub const ALPN: &[u8] = b"canopy/1";
+
+/// A species' content address: the SHA-256 of its encoded graph ([`crate::SpeciesGraph::encode`]).
+#[derive(Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+pub struct SpeciesHash(pub [u8; 32]);
+
+impl SpeciesHash {
+    /// The content address of an encoded species graph.
+    pub fn of(encoded: &[u8]) -> SpeciesHash {
+        SpeciesHash(Sha256::digest(encoded).into())
+    }
+
+    /// Lowercase hexadecimal, 64 characters.
+    pub fn hex(&self) -> String {
+        self.0.iter().map(|b| format!("{b:02x}")).collect()
+    }
+
+    /// Parse 64 hexadecimal characters.
+    pub fn from_hex(s: &str) -> Option<SpeciesHash> {
+        if s.len() != 64 || !s.is_ascii() {
+            return None;
+        }
+        let mut out = [0u8; 32];
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = u8::from_str_radix(&s[2 * i..2 * i + 2], 16).ok()?;
+        }
+        Some(SpeciesHash(out))
+    }
+}
+
+impl std::fmt::Debug for SpeciesHash {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "SpeciesHash({})", &self.hex()[..16])
+    }
+}
+
+/// The fingerprint a client pins a server's certificate by: the SHA-256 of its DER encoding, lowercase hex.
+pub fn certificate_fingerprint(der: &[u8]) -> String {
+    SpeciesHash::of(der).hex()
+}
+
+/// A session phase: which messages are legal next.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// Nothing exchanged yet: the client must say hello.
+    Start,
+    /// The client said hello: the server must welcome it.
+    Hello,
+    /// The server welcomed the client: the client must say it is ready.
+    Welcomed,
+    /// Viewpoints flow up, species, cell batches and releases flow down.
+    Streaming,
+}
+
+/// A message that is not legal in the session's phase.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{message} is not legal in phase {phase:?}")]
+pub struct PhaseError {
+    /// The phase the session was in.
+    pub phase: Phase,
+    /// The message's name.
+    pub message: &'static str,
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Client → server
+
+/// Every message a client sends, grouped by phase.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientMsg {
+    /// Before streaming.
+    Handshake(ClientHandshake),
+    /// While streaming.
+    Streaming(ClientStreaming),
+}
+
+/// The client's handshake messages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientHandshake {
+    /// The first message of a session.
+    Hello(Hello),
+    /// The answer to the welcome: what the client holds, where it looks from.
+    Ready(Ready),
+}
+
+/// The client's streaming messages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientStreaming {
+    /// The viewpoint moved: the area of interest follows it.
+    Viewpoint(Viewpoint),
+}
+
+/// The first message of a session. `version` comes first so that any future version still decodes it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Hello {
+    /// The client's [`PROTOCOL_VERSION`].
+    pub version: u16,
+    /// A label for logs (at most [`netlimits::MAX_CLIENT_NAME`] bytes).
+    pub client: String,
+}
+
+/// The client is ready to stream.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Ready {
+    /// Ids (into the welcome's species table) of the species the client already holds, strictly increasing.
+    pub have: Vec<u8>,
+    /// Where the client looks from first.
+    pub viewpoint: Viewpoint,
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Server → client
+
+/// Every message a server sends, grouped by phase.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ServerMsg {
+    /// Before streaming (on the control stream).
+    Handshake(ServerHandshake),
+    /// While streaming (on the lanes).
+    Streaming(ServerStreaming),
+}
+
+/// The server's handshake messages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ServerHandshake {
+    /// The answer to a hello.
+    Welcome(Welcome),
+}
+
+/// The server's streaming messages.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ServerStreaming {
+    /// A species the client needs and does not hold.
+    Species(SpeciesData),
+    /// Instance records of a cell in the area of interest.
+    Cells(CellBatch),
+    /// A cell left the area of interest: forget the grant's records.
+    Release(Release),
+}
+
+/// The server's answer to a hello: the world, its species table and the area-of-interest rules.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Welcome {
+    /// The server's [`PROTOCOL_VERSION`].
+    pub version: u16,
+    /// What the client needs to place instances.
+    pub world: WorldInfo,
+    /// The species table: index = species id in [`crate::record::InstanceRecord::species`].
+    pub species: Vec<SpeciesEntry>,
+    /// The area-of-interest rules the server applies.
+    pub aoi: AoiParams,
+}
+
+/// What a client needs to know about the world to place and amplify instances.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorldInfo {
+    /// The world's name.
+    pub name: String,
+    /// The world seed; instance seeds derive from it and the instance id.
+    pub seed: u64,
+    /// The cell grid.
+    pub grid: Grid,
+    /// Positions are quantised to `cell_size / position_steps` per axis (always [`POSITION_STEPS`] today).
+    pub position_steps: u32,
+    /// How many instances the world holds.
+    pub instances: u32,
+    /// The terrain, from which the client computes heights.
+    pub terrain: TerrainDesc,
+}
+
+/// The world's terrain as the client rebuilds it (seed 001 §5, Figure 7: a fractal terrain species tiled over the
+/// world): the terrain species and its tiling. The client amplifies the tiles itself, bit for bit as the server.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TerrainDesc {
+    /// The terrain species' encoded graph; `None` for flat ground at height 0.
+    pub graph: Option<Vec<u8>>,
+    /// The instance seed of every tile.
+    pub seed: u64,
+    /// World (x, z) of the corner of tile (0, 0).
+    pub origin: [f32; 2],
+    /// Tile edge, metres.
+    pub tile_size: f32,
+    /// Tiles per axis.
+    pub tiles: [u32; 2],
+    /// Recursion depth of every tile.
+    pub depth: u32,
+    /// Heights at the tile corners, `(tiles[0] + 1) × (tiles[1] + 1)`, rows of increasing z.
+    pub corners: Vec<f32>,
+    /// Other parameter values of the terrain species, sorted by slot.
+    pub params: Vec<(u16, f32)>,
+}
+
+impl TerrainDesc {
+    /// Check counts and numbers (decoders call this; the graph itself is checked when decoded).
+    pub fn validate(&self) -> Result<(), MessageError> {
+        let bad = |what| Err(MessageError::World(what));
+        if self.graph.as_ref().is_some_and(|g| g.len() > limits::MAX_SPECIES_BYTES) {
+            return bad("terrain species too large");
+        }
+        if self.tiles.iter().any(|&t| t == 0 || t > netlimits::MAX_TERRAIN_TILES) {
+            return bad("terrain tile count out of range");
+        }
+        if self.depth > netlimits::MAX_TERRAIN_DEPTH {
+            return bad("terrain depth out of range");
+        }
+        let corners = (self.tiles[0] as usize + 1) * (self.tiles[1] as usize + 1);
+        if self.corners.len() != corners || !self.corners.iter().all(|h| h.is_finite()) {
+            return bad("terrain corners do not match the tiles");
+        }
+        if self.params.len() > limits::MAX_PARAMS || !self.params.iter().all(|(_, v)| v.is_finite()) {
+            return bad("terrain parameters out of range");
+        }
+        if !(self.tile_size.is_finite() && self.tile_size > 0.0) || !self.origin.iter().all(|v| v.is_finite()) {
+            return bad("terrain tile size or origin out of range");
+        }
+        Ok(())
+    }
+}
+
+/// One entry of the species table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SpeciesEntry {
+    /// The content address of the species' encoding.
+    pub hash: SpeciesHash,
+    /// Its encoded size in bytes.
+    pub size: u32,
+}
+
+/// A species' encoded graph.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SpeciesData {
+    /// The species id (index into the welcome's table).
+    pub id: u8,
+    /// [`crate::SpeciesGraph::encode`]'s bytes; their SHA-256 is the table entry's hash.
+    pub graph: Vec<u8>,
+}
+
+/// A grant of a cell is over: the client forgets its records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Release {
+    /// The cell.
+    pub cell: CellCoord,
+    /// The grant being released (an older or newer grant of the same cell is unaffected).
+    pub grant: u32,
+}
+
+/// How a server or client closes a connection: the QUIC application error code. The reason text says more.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u32)]
+pub enum CloseCode {
+    /// The session ended normally.
+    Normal = 0,
+    /// The peer speaks another protocol version.
+    Version = 1,
+    /// A message did not decode.
+    Malformed = 2,
+    /// A frame or message was larger than its limit.
+    TooLarge = 3,
+    /// A message was not legal in the session's phase.
+    OutOfOrder = 4,
+    /// A message decoded but its values are not acceptable.
+    Invalid = 5,
+    /// The peer took too long.
+    Timeout = 6,
+    /// The server has no room for another client.
+    Full = 7,
+    /// The server is shutting down.
+    Shutdown = 8,
+    /// Something went wrong on the closing side.
+    Internal = 9,
+}
+
+impl CloseCode {
+    /// The code for a QUIC application error code, if it is one of ours.
+    pub fn from_code(code: u64) -> Option<CloseCode> {
+        use CloseCode::*;
+        [Normal, Version, Malformed, TooLarge, OutOfOrder, Invalid, Timeout, Full, Shutdown, Internal]
+            .into_iter()
+            .find(|c| *c as u64 == code)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Decoding and validation
+
+/// Why bytes did not decode to an acceptable message.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MessageError {
+    /// The encoding is larger than the direction's frame limit.
+    #[error("message of {len} bytes exceeds {max}")]
+    TooLarge {
+        /// Its size.
+        len: usize,
+        /// The limit.
+        max: usize,
+    },
+    /// postcard could not decode the bytes.
+    #[error("malformed message: {0}")]
+    Postcard(#[from] postcard::Error),
+    /// Bytes were left over after the message.
+    #[error("{0} trailing bytes after the message")]
+    Trailing(usize),
+    /// A list or string is longer than its limit, or a list is not in canonical order.
+    #[error("{what} of {len} (allowed {max}) or not in order")]
+    Count {
+        /// What was counted.
+        what: &'static str,
+        /// Its length.
+        len: usize,
+        /// The limit.
+        max: usize,
+    },
+    /// The world's numbers are not acceptable.
+    #[error("world: {0}")]
+    World(&'static str),
+    /// The grid is not acceptable.
+    #[error(transparent)]
+    Grid(#[from] GridError),
+    /// The area-of-interest rules are not acceptable.
+    #[error(transparent)]
+    Aoi(#[from] AoiParamsError),
+    /// A viewpoint is not acceptable.
+    #[error(transparent)]
+    Viewpoint(#[from] ViewpointError),
+    /// A cell batch is not acceptable.
+    #[error(transparent)]
+    Batch(#[from] BatchError),
+}
+
+impl MessageError {
+    /// The close code this error calls for.
+    pub fn close_code(&self) -> CloseCode {
+        match self {
+            MessageError::TooLarge { .. } => CloseCode::TooLarge,
+            MessageError::Postcard(_) | MessageError::Trailing(_) => CloseCode::Malformed,
+            _ => CloseCode::Invalid,
+        }
+    }
+}
+
+fn count(what: &'static str, len: usize, max: usize) -> Result<(), MessageError> {
+    if len > max { Err(MessageError::Count { what, len, max }) } else { Ok(()) }
+}
+
+fn decode_bounded<'a, T: Deserialize<'a>>(bytes: &'a [u8], max: usize) -> Result<T, MessageError> {
+    if bytes.len() > max {
+        return Err(MessageError::TooLarge { len: bytes.len(), max });
+    }
+    let (msg, rest): (T, &[u8]) = postcard::take_from_bytes(bytes)?;
+    if !rest.is_empty() {
+        return Err(MessageError::Trailing(rest.len()));
+    }
+    Ok(msg)
+}
+
+impl ClientMsg {
+    /// Encode with postcard.
+    pub fn encode(&self) -> Vec<u8> {
+        postcard::to_allocvec(self).expect("encoding a message into a Vec cannot fail")
+    }
+
+    /// Decode untrusted bytes: bounded by [`netlimits::MAX_CLIENT_FRAME`], checked to the end, validated.
+    pub fn decode(bytes: &[u8]) -> Result<ClientMsg, MessageError> {
+        let msg: ClientMsg = decode_bounded(bytes, netlimits::MAX_CLIENT_FRAME)?;
+        msg.validate()?;
+        Ok(msg)
+    }
+
+    /// Check every count and value.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        match self {
+            ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
+                count("client name", h.client.len(), netlimits::MAX_CLIENT_NAME)
+            }
+            ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
+                count("have-list", r.have.len(), netlimits::MAX_SPECIES)?;
+                if r.have.windows(2).any(|w| w[0] >= w[1]) {
+                    return Err(MessageError::Count { what: "have-list", len: r.have.len(), max: 0 });
+                }
+                Ok(r.viewpoint.validate()?)
+            }
+            ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => Ok(v.validate()?),
+        }
+    }
+
+    /// The message's name, for logs and errors.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ClientMsg::Handshake(ClientHandshake::Hello(_)) => "hello",
+            ClientMsg::Handshake(ClientHandshake::Ready(_)) => "ready",
+            ClientMsg::Streaming(ClientStreaming::Viewpoint(_)) => "viewpoint",
+        }
+    }
+
+    /// The phase after this message, or an error if it is not legal in `phase`.
+    pub fn next_phase(&self, phase: Phase) -> Result<Phase, PhaseError> {
+        match (self, phase) {
+            (ClientMsg::Handshake(ClientHandshake::Hello(_)), Phase::Start) => Ok(Phase::Hello),
+            (ClientMsg::Handshake(ClientHandshake::Ready(_)), Phase::Welcomed) => Ok(Phase::Streaming),
+            (ClientMsg::Streaming(_), Phase::Streaming) => Ok(Phase::Streaming),
+            _ => Err(PhaseError { phase, message: self.name() }),
+        }
+    }
+}
+
+impl ServerMsg {
+    /// Encode with postcard.
+    pub fn encode(&self) -> Vec<u8> {
+        postcard::to_allocvec(self).expect("encoding a message into a Vec cannot fail")
+    }
+
+    /// Decode untrusted bytes: bounded by [`netlimits::MAX_SERVER_FRAME`], checked to the end, validated.
+    pub fn decode(bytes: &[u8]) -> Result<ServerMsg, MessageError> {
+        let msg: ServerMsg = decode_bounded(bytes, netlimits::MAX_SERVER_FRAME)?;
+        msg.validate()?;
+        Ok(msg)
+    }
+
+    /// Check every count and value. (That a species' bytes hash to its table entry and decode to a valid graph
+    /// is checked by the client, which holds the table.)
+    pub fn validate(&self) -> Result<(), MessageError> {
+        match self {
+            ServerMsg::Handshake(ServerHandshake::Welcome(w)) => {
+                count("species table", w.species.len(), netlimits::MAX_SPECIES)?;
+                count("world name", w.world.name.len(), netlimits::MAX_WORLD_NAME)?;
+                w.world.terrain.validate()?;
+                if w.world.position_steps != POSITION_STEPS {
+                    return Err(MessageError::World("position steps differ from 4096"));
+                }
+                if w.species.iter().any(|s| s.size as usize > limits::MAX_SPECIES_BYTES) {
+                    return Err(MessageError::World("species larger than the species limit"));
+                }
+                w.world.grid.validate()?;
+                Ok(w.aoi.validate()?)
+            }
+            ServerMsg::Streaming(ServerStreaming::Species(s)) => {
+                count("species graph", s.graph.len(), limits::MAX_SPECIES_BYTES)
+            }
+            ServerMsg::Streaming(ServerStreaming::Cells(b)) => Ok(b.validate()?),
+            ServerMsg::Streaming(ServerStreaming::Release(_)) => Ok(()),
+        }
+    }
+
+    /// The message's name, for logs, errors and the metrics' message classes.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ServerMsg::Handshake(ServerHandshake::Welcome(_)) => "welcome",
+            ServerMsg::Streaming(ServerStreaming::Species(_)) => "species",
+            ServerMsg::Streaming(ServerStreaming::Cells(_)) => "cells",
+            ServerMsg::Streaming(ServerStreaming::Release(_)) => "release",
+        }
+    }
+
+    /// The phase after this message, or an error if it is not legal in `phase`.
+    pub fn next_phase(&self, phase: Phase) -> Result<Phase, PhaseError> {
+        match (self, phase) {
+            (ServerMsg::Handshake(ServerHandshake::Welcome(_)), Phase::Hello) => Ok(Phase::Welcomed),
+            (ServerMsg::Streaming(_), Phase::Streaming) => Ok(Phase::Streaming),
+            _ => Err(PhaseError { phase, message: self.name() }),
+        }
+    }
+}
+
+/// Shorthand constructors, so callers need not spell out the phase grouping.
+impl ClientMsg {
+    /// `ClientMsg::Handshake(ClientHandshake::Hello(..))` at this protocol version.
+    pub fn hello(client: impl Into<String>) -> ClientMsg {
+        ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: PROTOCOL_VERSION, client: client.into() }))
+    }
+
+    /// `ClientMsg::Handshake(ClientHandshake::Ready(..))`.
+    pub fn ready(have: Vec<u8>, viewpoint: Viewpoint) -> ClientMsg {
+        ClientMsg::Handshake(ClientHandshake::Ready(Ready { have, viewpoint }))
+    }
+
+    /// `ClientMsg::Streaming(ClientStreaming::Viewpoint(..))`.
+    pub fn viewpoint(viewpoint: Viewpoint) -> ClientMsg {
+        ClientMsg::Streaming(ClientStreaming::Viewpoint(viewpoint))
+    }
+}

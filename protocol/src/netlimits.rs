@@ -1,0 +1,29 @@
+//! Explicit limits on every size and count of the streaming protocol, checked before allocation and on decode.
+//! (The species graph's own limits are in [`crate::limits`].)
+
+/// Largest frame a client may send, in bytes (its messages are small: a hello, a have-list, a viewpoint).
+pub const MAX_CLIENT_FRAME: usize = 1024;
+/// Largest frame a server may send, in bytes: one encoded species plus its envelope.
+pub const MAX_SERVER_FRAME: usize = crate::limits::MAX_SPECIES_BYTES + 1024;
+/// Most records in one cell batch (4 bytes each: a batch fits about one QUIC packet).
+pub const MAX_BATCH_RECORDS: usize = 256;
+/// Most parameter overrides in one cell batch.
+pub const MAX_BATCH_OVERRIDES: usize = 1024;
+/// Most species in one world's table (species ids are a byte).
+pub const MAX_SPECIES: usize = 256;
+/// Longest client label in a hello, in bytes.
+pub const MAX_CLIENT_NAME: usize = 64;
+/// Longest world name, in bytes.
+pub const MAX_WORLD_NAME: usize = 128;
+/// Most terrain tiles per axis (the corner heights are `(tiles + 1)²` floats).
+pub const MAX_TERRAIN_TILES: u32 = 64;
+/// Deepest terrain tile recursion (`2^depth` grid squares per tile edge).
+pub const MAX_TERRAIN_DEPTH: u32 = 10;
+/// Largest area-of-interest radius a server may offer, in metres.
+pub const MAX_AOI_RADIUS: f32 = 4096.0;
+/// Largest coordinate magnitude accepted in a viewpoint, in metres.
+pub const MAX_COORDINATE: f32 = 1.0e7;
+/// Largest speed accepted in a viewpoint, in metres per second.
+pub const MAX_SPEED: f32 = 1.0e4;
+/// Largest grid of cells a world may have per axis (keeps cell coordinates and AOI scans bounded).
+pub const MAX_CELLS_PER_AXIS: i32 = 1 << 16;

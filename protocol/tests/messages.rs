@@ -1,0 +1,393 @@
+//! The streaming protocol's wire: byte snapshots of every message variant, round trips, phase legality, framing,
+//! and rejection of malformed, oversized and hostile bytes (a stable-toolchain stand-in for the fuzz targets).
+
+use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
+use canopy_protocol::messages::{
+    ClientHandshake, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome,
+    WorldInfo,
+};
+use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
+use canopy_protocol::{
+    CellBatch, CellCoord, ClientMsg, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase, ServerMsg,
+    SpeciesHash, netlimits,
+};
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The snapshot check: the encoding is pinned, and it decodes back to the message.
+fn check_client(msg: &ClientMsg, expected: &str) {
+    let bytes = msg.encode();
+    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
+    assert_eq!(ClientMsg::decode(&bytes).as_ref(), Ok(msg));
+}
+
+fn check_server(msg: &ServerMsg, expected: &str) {
+    let bytes = msg.encode();
+    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
+    assert_eq!(ServerMsg::decode(&bytes).as_ref(), Ok(msg));
+}
+
+fn viewpoint() -> Viewpoint {
+    Viewpoint { seq: 7, position: [100.5, -20.25], yaw: 1.5, velocity: [3.0, -4.0], radius: 160.0 }
+}
+
+fn batch() -> CellBatch {
+    CellBatch::new(
+        CellCoord::new(-3, 5),
+        9,
+        1000,
+        130,
+        128,
+        vec![InstanceRecord::new(2, 0x123, 0xabc), InstanceRecord::new(0, 4095, 0)],
+        &[ParamOverride { record: 1, slot: 3, value: 12.5 }],
+    )
+}
+
+fn welcome() -> Welcome {
+    Welcome {
+        version: PROTOCOL_VERSION,
+        world: WorldInfo {
+            name: "forest".into(),
+            seed: 0x5eed_f0e5,
+            grid: Grid {
+                origin: [0.0, 0.0],
+                cell_size: 64.0,
+                min: CellCoord::new(-16, -16),
+                max: CellCoord::new(15, 15),
+            },
+            position_steps: POSITION_STEPS,
+            instances: 111_556,
+            terrain: TerrainDesc {
+                graph: Some(vec![1, 2, 3]),
+                seed: 7,
+                origin: [-1024.0, -1024.0],
+                tile_size: 512.0,
+                tiles: [1, 1],
+                depth: 7,
+                corners: vec![1.0, 2.0, 3.0, 4.0],
+                params: vec![(4, 2.2)],
+            },
+        },
+        species: vec![SpeciesEntry { hash: SpeciesHash([0xab; 32]), size: 1234 }],
+        aoi: AoiParams::default(),
+    }
+}
+
+#[test]
+fn hello_is_pinned() {
+    check_client(&ClientMsg::hello("bot-1"), "00000105626f742d31");
+}
+
+#[test]
+fn ready_is_pinned() {
+    check_client(
+        &ClientMsg::ready(vec![0, 3], viewpoint()),
+        "0001020003070000c9420000a2c10000c03f00004040000080c000002043",
+    );
+}
+
+#[test]
+fn viewpoint_is_pinned() {
+    check_client(&ClientMsg::viewpoint(viewpoint()), "0100070000c9420000a2c10000c03f00004040000080c000002043");
+}
+
+#[test]
+fn welcome_is_pinned() {
+    check_server(
+        &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
+        "00000106666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c4000000440101\
+         07040000803f0000004000004040000080400104cdcc0c4001abababababababababababababababababababababababababababababab\
+         ababd20900000044000000420000004000000043",
+    );
+}
+
+#[test]
+fn species_is_pinned() {
+    check_server(
+        &ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 4, graph: vec![9, 8, 7] })),
+        "010004 03090807".replace(' ', "").as_str(),
+    );
+}
+
+#[test]
+fn cells_is_pinned() {
+    // A 10-byte header, two records of 4 bytes each, one parameter column of 7 bytes: the column count, the slot,
+    // the bitmap with its length, the value count and 12.5 in 2 bytes.
+    check_server(
+        &ServerMsg::Streaming(ServerStreaming::Cells(batch())),
+        "0101050a09e80782018001020223c1ab00ff0f0001030102018225",
+    );
+}
+
+#[test]
+fn release_is_pinned() {
+    check_server(
+        &ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(-3, 5), grant: 9 })),
+        "0102050a09",
+    );
+}
+
+#[test]
+fn parameter_columns_round_trip_and_short_values_are_short() {
+    let overrides = [
+        ParamOverride { record: 0, slot: 1, value: 18.0 },
+        ParamOverride { record: 0, slot: 4, value: 0.1 },
+        ParamOverride { record: 9, slot: 1, value: -2.5 },
+        ParamOverride { record: 12, slot: 1, value: f32::MAX },
+    ];
+    let records = vec![InstanceRecord::new(0, 0, 0); 13];
+    let b = CellBatch::new(CellCoord::new(0, 0), 1, 0, 13, 0, records, &overrides);
+    assert_eq!(b.params.len(), 2);
+    assert_eq!(b.params[0].present, vec![0b0000_0001, 0b0001_0010]);
+    assert_eq!(b.overrides(), overrides);
+    assert_eq!(b.validate(), Ok(()));
+    let size = |v: f32| postcard::to_allocvec(&PackedF32(v)).unwrap().len();
+    assert_eq!((size(12.5), size(18.0), size(0.25), size(1.0)), (2, 2, 2, 2));
+    assert_eq!(size(0.1), 5);
+    for v in [0.0, -0.0, 1.5, f32::MIN_POSITIVE, -7.25e9] {
+        let bytes = postcard::to_allocvec(&PackedF32(v)).unwrap();
+        assert_eq!(postcard::from_bytes::<PackedF32>(&bytes).unwrap().0.to_bits(), v.to_bits());
+    }
+}
+
+#[test]
+fn records_are_four_bytes_and_positions_round_trip() {
+    let r = InstanceRecord::new(200, 4095, 17);
+    assert_eq!((r.qx(), r.qz(), r.species), (4095, 17, 200));
+    assert_eq!(postcard::to_allocvec(&r).unwrap().len(), 4);
+    for cell_size in [1.0f32, 64.0, 4096.0] {
+        for q in [0u16, 1, 2047, 4095] {
+            let origin = -1024.0;
+            let v = dequantize(q, origin, cell_size);
+            assert_eq!(quantize(v, origin, cell_size), q, "cell {cell_size} step {q}");
+        }
+        assert_eq!(quantize(f32::NAN, 0.0, cell_size), 0);
+        assert_eq!(quantize(1e9, 0.0, cell_size), 4095);
+    }
+}
+
+#[test]
+fn frames_are_length_prefixed_and_bounded_before_buffering() {
+    let f = frame(&[1, 2, 3]);
+    assert_eq!(hex(&f), "03000000010203");
+    // Split anywhere: the decoder reassembles.
+    let two: Vec<u8> = [frame(b"hello"), frame(b"world!")].concat();
+    for cut in 0..two.len() {
+        let mut d = FrameDecoder::new(16);
+        let mut got = vec![];
+        for part in [&two[..cut], &two[cut..]] {
+            d.push(part);
+            while let Some(f) = d.next_frame().unwrap() {
+                got.push(f.to_vec());
+            }
+        }
+        assert_eq!(got, vec![b"hello".to_vec(), b"world!".to_vec()]);
+        assert_eq!(d.finish(), Ok(()));
+    }
+    // An oversized length is refused as soon as the prefix arrives.
+    let mut d = FrameDecoder::new(16);
+    d.push(&(1u32 << 31).to_le_bytes());
+    assert_eq!(d.next_frame(), Err(FrameError::TooLarge { len: 1 << 31, max: 16 }));
+    let mut d = FrameDecoder::new(16);
+    d.push(&[0, 0, 0, 0]);
+    assert_eq!(d.next_frame(), Err(FrameError::Empty));
+    let mut d = FrameDecoder::new(16);
+    d.push(&[5, 0, 0, 0, 1]);
+    assert_eq!(d.next_frame(), Ok(None));
+    assert_eq!(d.finish(), Err(FrameError::Truncated(5)));
+}
+
+#[test]
+fn each_message_is_legal_only_in_its_phase() {
+    let hello = ClientMsg::hello("a");
+    let ready = ClientMsg::ready(vec![], viewpoint());
+    let vp = ClientMsg::viewpoint(viewpoint());
+    let welcome = ServerMsg::Handshake(ServerHandshake::Welcome(welcome()));
+    let cells = ServerMsg::Streaming(ServerStreaming::Cells(batch()));
+    assert_eq!(hello.next_phase(Phase::Start), Ok(Phase::Hello));
+    assert_eq!(welcome.next_phase(Phase::Hello), Ok(Phase::Welcomed));
+    assert_eq!(ready.next_phase(Phase::Welcomed), Ok(Phase::Streaming));
+    assert_eq!(vp.next_phase(Phase::Streaming), Ok(Phase::Streaming));
+    assert_eq!(cells.next_phase(Phase::Streaming), Ok(Phase::Streaming));
+    for phase in [Phase::Start, Phase::Hello, Phase::Welcomed, Phase::Streaming] {
+        assert_eq!(hello.next_phase(phase).is_ok(), phase == Phase::Start);
+        assert_eq!(ready.next_phase(phase).is_ok(), phase == Phase::Welcomed);
+        assert_eq!(vp.next_phase(phase).is_ok(), phase == Phase::Streaming);
+        assert_eq!(welcome.next_phase(phase).is_ok(), phase == Phase::Hello);
+        assert_eq!(cells.next_phase(phase).is_ok(), phase == Phase::Streaming);
+    }
+    let e = vp.next_phase(Phase::Welcomed).unwrap_err();
+    assert_eq!(e.to_string(), "viewpoint is not legal in phase Welcomed");
+}
+
+#[test]
+fn invalid_values_are_rejected_after_decoding() {
+    let dec = |m: &ClientMsg| ClientMsg::decode(&m.encode());
+    let mut v = viewpoint();
+    v.position[0] = f32::INFINITY;
+    assert!(matches!(dec(&ClientMsg::viewpoint(v)), Err(MessageError::Viewpoint(_))));
+    v = viewpoint();
+    v.radius = -1.0;
+    assert!(matches!(dec(&ClientMsg::viewpoint(v)), Err(MessageError::Viewpoint(_))));
+    assert!(matches!(dec(&ClientMsg::ready(vec![3, 1], viewpoint())), Err(MessageError::Count { .. })));
+    assert!(matches!(dec(&ClientMsg::ready(vec![1, 1], viewpoint())), Err(MessageError::Count { .. })));
+    let long = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 1, client: "x".repeat(65) }));
+    assert!(matches!(dec(&long), Err(MessageError::Count { what: "client name", .. })));
+
+    let sdec = |m: ServerMsg| ServerMsg::decode(&m.encode());
+    let cells = |b: CellBatch| ServerMsg::Streaming(ServerStreaming::Cells(b));
+    let mut b = batch();
+    b.start = 129;
+    assert_eq!(sdec(cells(b)), Err(MessageError::Batch(BatchError::Range { start: 129, end: 131, total: 130 })));
+    let column = |e| Err(MessageError::Batch(BatchError::Column(e)));
+    let mut b = batch();
+    b.params[0].present = vec![0b100];
+    assert_eq!(sdec(cells(b)), column(0), "a bit past the records");
+    let mut b = batch();
+    b.params[0].present = vec![0b11];
+    assert_eq!(sdec(cells(b)), column(0), "two bits, one value");
+    let mut b = batch();
+    b.params.push(b.params[0].clone());
+    assert_eq!(sdec(cells(b)), column(1), "a slot twice");
+    let mut b = batch();
+    b.params[0].values[0] = PackedF32(f32::NAN);
+    assert_eq!(sdec(cells(b)), column(0));
+    let mut b = batch();
+    b.params[0].present = vec![];
+    b.params[0].values.clear();
+    assert_eq!(sdec(cells(b)), column(0), "a bitmap of the wrong length");
+    let mut b = batch();
+    b.records.clear();
+    b.params.clear();
+    assert_eq!(sdec(cells(b)), Err(MessageError::Batch(BatchError::Empty(130))));
+    let mut b = batch();
+    b.records = vec![InstanceRecord::new(0, 0, 0); netlimits::MAX_BATCH_RECORDS + 1];
+    b.total = u16::MAX;
+    b.start = 0;
+    assert!(matches!(sdec(cells(b)), Err(MessageError::Batch(BatchError::TooManyRecords(_)))));
+    let mut b = batch();
+    b.first_id = u32::MAX - 10;
+    assert!(matches!(sdec(cells(b)), Err(MessageError::Batch(BatchError::Range { .. }))));
+
+    let welcome = |w: Welcome| ServerMsg::Handshake(ServerHandshake::Welcome(w));
+    let mut w = welcome_fixture();
+    w.world.grid.cell_size = 0.0;
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::Grid(_))));
+    let mut w = welcome_fixture();
+    w.world.grid.max = CellCoord::new(i32::MAX, 0);
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::Grid(_))));
+    let mut w = welcome_fixture();
+    w.world.position_steps = 1024;
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::World(_))));
+    let mut w = welcome_fixture();
+    w.world.terrain.corners.pop();
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::World(_))));
+    let mut w = welcome_fixture();
+    w.world.terrain.depth = 40;
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::World(_))));
+    let mut w = welcome_fixture();
+    w.aoi.max_radius = f32::NAN;
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::Aoi(_))));
+    let mut w = welcome_fixture();
+    w.species = vec![w.species[0]; netlimits::MAX_SPECIES + 1];
+    assert!(matches!(sdec(welcome(w)), Err(MessageError::Count { what: "species table", .. })));
+}
+
+fn welcome_fixture() -> Welcome {
+    welcome()
+}
+
+#[test]
+fn oversized_truncated_and_trailing_bytes_are_rejected() {
+    let big = vec![0u8; netlimits::MAX_CLIENT_FRAME + 1];
+    assert!(matches!(ClientMsg::decode(&big), Err(MessageError::TooLarge { .. })));
+    let big = vec![0u8; netlimits::MAX_SERVER_FRAME + 1];
+    assert!(matches!(ServerMsg::decode(&big), Err(MessageError::TooLarge { .. })));
+    for msg in [ClientMsg::hello("bot"), ClientMsg::ready(vec![1, 2], viewpoint()), ClientMsg::viewpoint(viewpoint())] {
+        let bytes = msg.encode();
+        for cut in 0..bytes.len() {
+            assert!(ClientMsg::decode(&bytes[..cut]).is_err(), "{} cut at {cut}", msg.name());
+        }
+        let mut extra = bytes.clone();
+        extra.push(0);
+        assert_eq!(ClientMsg::decode(&extra), Err(MessageError::Trailing(1)));
+    }
+    for msg in server_messages() {
+        let bytes = msg.encode();
+        for cut in 0..bytes.len() {
+            assert!(ServerMsg::decode(&bytes[..cut]).is_err(), "{} cut at {cut}", msg.name());
+        }
+    }
+    // A length prefix claiming 2^32 entries must fail without allocating them.
+    let hostile = [0x01, 0x00, 0xff, 0xff, 0xff, 0xff, 0x0f, 0x01];
+    assert!(ServerMsg::decode(&hostile).is_err());
+}
+
+fn server_messages() -> Vec<ServerMsg> {
+    vec![
+        ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
+        ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 1, graph: vec![1, 2, 3, 4] })),
+        ServerMsg::Streaming(ServerStreaming::Cells(batch())),
+        ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(1, 2), grant: 3 })),
+    ]
+}
+
+fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut x = seed;
+    move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        x
+    }
+}
+
+#[test]
+fn random_bytes_never_panic() {
+    // Deterministic mutations of valid encodings and random junk: decoders return, never panic, and whatever they
+    // accept re-encodes to bytes that decode to the same message.
+    let mut next = xorshift(0x2545_f491_4f6c_dd1d);
+    let client: Vec<Vec<u8>> =
+        [ClientMsg::hello("bot"), ClientMsg::ready(vec![0, 1], viewpoint()), ClientMsg::viewpoint(viewpoint())]
+            .iter()
+            .map(ClientMsg::encode)
+            .collect();
+    let server: Vec<Vec<u8>> = server_messages().iter().map(ServerMsg::encode).collect();
+    for round in 0..20_000 {
+        for (bases, is_client) in [(&client, true), (&server, false)] {
+            let mut b = bases[round % bases.len()].clone();
+            for _ in 0..1 + next() % 4 {
+                let i = (next() as usize) % b.len();
+                b[i] = next() as u8;
+            }
+            if next() % 8 == 0 {
+                b.truncate((next() as usize) % (b.len() + 1));
+            }
+            if is_client {
+                if let Ok(m) = ClientMsg::decode(&b) {
+                    assert_eq!(ClientMsg::decode(&m.encode()), Ok(m));
+                }
+            } else if let Ok(m) = ServerMsg::decode(&b) {
+                assert_eq!(ServerMsg::decode(&m.encode()), Ok(m));
+            }
+        }
+        let len = (next() % 64) as usize;
+        let junk: Vec<u8> = (0..len).map(|_| next() as u8).collect();
+        let _ = ClientMsg::decode(&junk);
+        let _ = ServerMsg::decode(&junk);
+        let mut d = FrameDecoder::new(64);
+        d.push(&junk);
+        while let Ok(Some(_)) = d.next_frame() {}
+    }
+}
+
+#[test]
+fn species_hashes_are_sha256_of_the_encoding() {
+    let h = SpeciesHash::of(b"abc");
+    assert_eq!(h.hex(), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+    assert_eq!(SpeciesHash::from_hex(&h.hex()), Some(h));
+    assert_eq!(SpeciesHash::from_hex("zz"), None);
+}

@@ -1,0 +1,93 @@
+#!/usr/bin/env bash
+# The streaming load run: canopy-server (release) on the embedded default world in one process, N headless bots
+# (`canopy bots`) in another, over QUIC on loopback. Prints the bots' summary (every bot ends with a complete area of
+# interest checked against the world; AOI change → complete latency percentiles; bytes per record) and the server's
+# side: bytes per record by message class from its metrics, and server memory per client (VmRSS with all bots
+# connected minus VmRSS before the first client, divided by the clients).
+#
+#   scripts/load-run.sh                      # 1,000 bots, random walks at 5 m/s for 30 s
+#   COUNT=10000 DURATION=60 scripts/load-run.sh
+#   COUNT=20 DURATION=10 scripts/load-run.sh # the CI-sized version
+#
+# Environment: COUNT, DURATION (s), PATH_KIND (line|circle|random|teleport), SPEED (m/s), RADIUS (m),
+# CONNECT_RATE (bots/s), TICK_MS (how often a bot moves), PORT, METRICS_PORT, CARGO_TARGET_DIR.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+COUNT=${COUNT:-1000}
+DURATION=${DURATION:-30}
+PATH_KIND=${PATH_KIND:-random}
+SPEED=${SPEED:-5}
+RADIUS=${RADIUS:-160}
+CONNECT_RATE=${CONNECT_RATE:-100}
+TICK_MS=${TICK_MS:-100}
+PORT=${PORT:-4433}
+METRICS_PORT=${METRICS_PORT:-9433}
+TARGET=${CARGO_TARGET_DIR:-target}
+
+cargo build --release -q -p canopy-server -p canopy-client
+WORK=$(mktemp -d)
+SERVER_LOG="$WORK/server.log"
+
+"$TARGET/release/canopy-server" --listen "127.0.0.1:$PORT" --metrics "127.0.0.1:$METRICS_PORT" \
+    --data-dir "$WORK/data" --stats-every 5 >"$SERVER_LOG" 2>&1 &
+SERVER=$!
+trap 'kill "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true' EXIT
+
+for _ in $(seq 1 300); do
+    grep -q '^fingerprint ' "$SERVER_LOG" && break
+    kill -0 "$SERVER" 2>/dev/null || { cat "$SERVER_LOG"; echo "load-run: the server died" >&2; exit 1; }
+    sleep 0.2
+done
+FINGERPRINT=$(awk '/^fingerprint /{print $2}' "$SERVER_LOG")
+[ -n "$FINGERPRINT" ] || { cat "$SERVER_LOG"; echo "load-run: no fingerprint" >&2; exit 1; }
+rss_kib() { awk '/^VmRSS:/{print $2}' "/proc/$SERVER/status"; }
+metric() { curl -s "http://127.0.0.1:$METRICS_PORT/metrics" | awk -v m="$1" '$1==m{print $2}'; }
+RSS0=$(rss_kib)
+echo "load-run: server pid $SERVER, world loaded, VmRSS ${RSS0} KiB before any client"
+
+# Sample the server's memory and clients while the bots run; keep the sample with the most clients.
+(
+    best_clients=0
+    while kill -0 "$SERVER" 2>/dev/null; do
+        c=$(metric canopy_clients || echo 0)
+        r=$(rss_kib || echo 0)
+        if [ -n "$c" ] && [ "$c" -ge "$best_clients" ]; then
+            best_clients=$c
+            echo "$c $r" >"$WORK/peak"
+        fi
+        sleep 1
+    done
+) &
+SAMPLER=$!
+
+START=$(date +%s.%N)
+set +e
+"$TARGET/release/canopy" bots --count "$COUNT" --path "$PATH_KIND" --speed "$SPEED" --duration "$DURATION" \
+    --radius "$RADIUS" --connect-rate "$CONNECT_RATE" --tick-ms "$TICK_MS" --server "127.0.0.1:$PORT" \
+    --cert-fingerprint "$FINGERPRINT" --quiet
+BOTS_STATUS=$?
+set -e
+END=$(date +%s.%N)
+sleep 1.5
+kill "$SAMPLER" 2>/dev/null || true
+
+read -r PEAK_CLIENTS PEAK_RSS <"$WORK/peak" || true
+CELLS=$(metric 'canopy_sent_bytes_total{class="cells"}')
+SPECIES=$(metric 'canopy_sent_bytes_total{class="species"}')
+RELEASES=$(metric 'canopy_sent_bytes_total{class="release"}')
+WELCOME=$(metric 'canopy_sent_bytes_total{class="welcome"}')
+RECORDS=$(metric canopy_records_sent_total)
+SPECIES_MSGS=$(metric 'canopy_sent_messages_total{class="species"}')
+SESSIONS=$(metric canopy_sessions_total)
+echo "---- server side"
+awk -v c="$CELLS" -v s="$SPECIES" -v rl="$RELEASES" -v w="$WELCOME" -v r="$RECORDS" -v sm="$SPECIES_MSGS" -v n="$SESSIONS" 'BEGIN {
+    printf "sessions %d; records sent %d; species sent %d times (%.1f per session)\n", n, r, sm, sm / (n > 0 ? n : 1);
+    printf "bytes per record: %.2f in cell batches; %.2f with species, releases and welcomes (frames, before QUIC)\n", c / r, (c + s + rl + w) / r;
+}'
+awk -v r0="$RSS0" -v r1="$PEAK_RSS" -v c="$PEAK_CLIENTS" 'BEGIN {
+    printf "server memory: VmRSS %.1f MiB before clients, %.1f MiB with %d clients: %.1f KiB per client\n", r0 / 1024, r1 / 1024, c, (r1 - r0) / (c > 0 ? c : 1);
+}'
+awk -v a="$START" -v b="$END" 'BEGIN { printf "bots process wall time %.1f s\n", b - a }'
+grep -E "stats" "$SERVER_LOG" | tail -n 3 || true
+exit "$BOTS_STATUS"

@@ -1,0 +1,146 @@
+//! `canopy-server`: serve a world over QUIC. With no arguments it serves the embedded default world
+//! (`worlds/forest`) on 127.0.0.1:4433 with metrics on http://127.0.0.1:9433/metrics, and keeps its certificate in
+//! `./canopy-data/`.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::Ordering::Relaxed;
+use std::time::Duration;
+
+use anyhow::Context;
+use canopy_protocol::aoi::AoiParams;
+use canopy_server::metrics::resident_bytes;
+use canopy_server::worlds::world::World;
+use canopy_server::{GridStore, Server, ServerConfig, SessionConfig};
+use clap::Parser;
+use tracing::info;
+
+/// Serve a Canopy world: species once per client, instance records by area of interest, over QUIC.
+#[derive(Parser, Debug)]
+#[command(name = "canopy-server", version, about)]
+struct Args {
+    /// A world manifest (`.world`); without one, the embedded default world.
+    #[arg(long)]
+    world: Option<PathBuf>,
+    /// UDP address to listen on.
+    #[arg(long, default_value = "127.0.0.1:4433")]
+    listen: SocketAddr,
+    /// TCP address of the Prometheus metrics endpoint (`GET /metrics`).
+    #[arg(long, default_value = "127.0.0.1:9433")]
+    metrics: SocketAddr,
+    /// Run without the metrics endpoint.
+    #[arg(long)]
+    no_metrics: bool,
+    /// Where the certificate is kept (generated at first start).
+    #[arg(long, default_value = "canopy-data")]
+    data_dir: PathBuf,
+    /// Largest area-of-interest radius a client may ask for, metres.
+    #[arg(long, default_value_t = AoiParams::default().max_radius)]
+    max_radius: f32,
+    /// Hysteresis at the area-of-interest border, metres.
+    #[arg(long, default_value_t = AoiParams::default().hysteresis)]
+    hysteresis: f32,
+    /// Look-ahead along the velocity, seconds.
+    #[arg(long, default_value_t = AoiParams::default().lookahead_s)]
+    lookahead: f32,
+    /// Per-client bandwidth cap, bytes per second (default: none).
+    #[arg(long)]
+    bandwidth: Option<u64>,
+    /// Most clients at once.
+    #[arg(long, default_value_t = ServerConfig::default().max_clients)]
+    max_clients: usize,
+    /// Log a line with clients, records per second and memory this often, seconds (0: never).
+    #[arg(long, default_value_t = 10)]
+    stats_every: u64,
+    /// Print the certificate fingerprint and exit.
+    #[arg(long)]
+    print_fingerprint: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let args = Args::parse();
+    if args.print_fingerprint {
+        let id = canopy_server::tls::Identity::load_or_generate(&args.data_dir)?;
+        println!("{}", id.fingerprint());
+        return Ok(());
+    }
+    let world = match &args.world {
+        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
+        None => World::default_world(),
+    };
+    let store = GridStore::from_world(&world).context("building the world store")?;
+    let session = SessionConfig {
+        aoi: AoiParams {
+            max_radius: args.max_radius,
+            hysteresis: args.hysteresis,
+            lookahead_s: args.lookahead,
+            ..AoiParams::default()
+        },
+        bandwidth: args.bandwidth,
+        ..SessionConfig::default()
+    };
+    session.aoi.validate().context("area-of-interest options")?;
+    let cfg = ServerConfig {
+        listen: args.listen,
+        metrics: (!args.no_metrics).then_some(args.metrics),
+        data_dir: Some(args.data_dir.clone()),
+        session,
+        max_clients: args.max_clients,
+        ..ServerConfig::default()
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    rt.block_on(async move {
+        let occupied = store.occupied_cells();
+        let rss_before = resident_bytes();
+        let server = Server::start(store.shared(), cfg).await?;
+        print!("{}", world.content_summary());
+        println!("occupied cells: {occupied}");
+        println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
+        if let Some(m) = server.metrics_addr() {
+            println!("metrics on http://{m}/metrics");
+        }
+        let how = if server.identity_generated() { "generated" } else { "loaded" };
+        println!("certificate {how} in {}", args.data_dir.display());
+        println!("fingerprint {}", server.fingerprint());
+        let (r, s) = server.socket_buffers();
+        println!("socket buffers: receive {r} B, send {s} B");
+        let metrics = std::sync::Arc::clone(server.metrics());
+        let every = Duration::from_secs(args.stats_every.max(1));
+        let stats = tokio::spawn(async move {
+            if args.stats_every == 0 {
+                return;
+            }
+            let mut tick = tokio::time::interval(every);
+            tick.tick().await;
+            loop {
+                tick.tick().await;
+                let clients = metrics.clients.load(Relaxed);
+                let rss = resident_bytes().unwrap_or(0);
+                let per_client = match (rss_before, clients) {
+                    (Some(b), c) if c > 0 => format!("{:.1} KiB", rss.saturating_sub(b) as f64 / 1024.0 / c as f64),
+                    _ => "-".into(),
+                };
+                info!(
+                    clients,
+                    records_per_s = metrics.records_per_second.load(Relaxed),
+                    records = metrics.records.load(Relaxed),
+                    rss_mib = rss / (1 << 20),
+                    per_client = %per_client,
+                    "stats"
+                );
+            }
+        });
+        tokio::signal::ctrl_c().await.context("waiting for Ctrl-C")?;
+        println!("shutting down");
+        stats.abort();
+        server.shutdown(Duration::from_secs(2)).await;
+        anyhow::Ok(())
+    })
+}

@@ -1,0 +1,503 @@
+//! The sans-IO session core: one client's handshake, area of interest, what it holds, what to send next and when.
+//!
+//! Like quinn-proto, it has no sockets and reads no clock: the driver feeds it `now` and the client's messages,
+//! polls it for [`Transmit`]s to write, reports how many bytes the transport took ([`Session::on_flushed`]), and
+//! wakes it at [`Session::poll_timeout`]. Tests drive it on virtual time.
+//!
+//! What it decides (seed 001 §4, demand-driven transmission):
+//! - the area of interest from the viewpoint's position, heading and velocity ([`canopy_protocol::aoi`]): cells
+//!   within the radius of the position or of the look-ahead point are sent, held cells beyond radius + hysteresis
+//!   are released;
+//! - the order: nearest first, cells in view before cells behind (a cell out of view counts
+//!   [`OUT_OF_VIEW_FACTOR`] times its distance), a started cell finished before the next;
+//! - species once: a species goes out just before the first batch that needs it, unless the client said it holds
+//!   it;
+//! - pacing: an optional token bucket (bandwidth cap) and a window of bytes handed to the transport but not yet
+//!   flushed, so a slow link always gets the most important records next rather than a backlog of stale ones.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
+use canopy_protocol::frame::frame;
+use canopy_protocol::messages::{
+    ClientHandshake, ClientStreaming, MessageError, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData,
+    Welcome,
+};
+use canopy_protocol::record::ParamOverride;
+use canopy_protocol::{CellBatch, CellCoord, ClientMsg, CloseCode, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
+
+use crate::pacing::TokenBucket;
+use crate::store::WorldStore;
+
+/// A cell out of view is scheduled as if it were this many times farther away.
+pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
+
+/// How a session behaves.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SessionConfig {
+    /// The area-of-interest rules (announced in the welcome).
+    pub aoi: AoiParams,
+    /// Records per cell batch (at most [`netlimits::MAX_BATCH_RECORDS`]).
+    pub batch_records: usize,
+    /// Bandwidth cap in bytes per second (`None`: as fast as the transport takes it).
+    pub bandwidth: Option<u64>,
+    /// Bytes the bucket holds when full.
+    pub burst: u64,
+    /// Most bytes handed to the transport and not yet flushed.
+    pub window: usize,
+    /// Ordered lanes (streams) by priority; lane 0 is the most important.
+    pub lanes: u8,
+    /// Full angle of the view cone, degrees: cells inside it are in view.
+    pub fov_deg: f32,
+    /// How long a client may take from connecting to being ready.
+    pub handshake_timeout: Duration,
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        SessionConfig {
+            aoi: AoiParams::default(),
+            batch_records: 128,
+            bandwidth: None,
+            burst: 16 * 1024,
+            window: 256 * 1024,
+            lanes: 4,
+            fov_deg: 120.0,
+            handshake_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// Which stream a transmit goes on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum StreamId {
+    /// The client-opened bidirectional control stream.
+    Control,
+    /// A server-opened ordered lane; lower is more important.
+    Lane(u8),
+}
+
+/// A class of server message, for accounting.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MsgClass {
+    /// The welcome.
+    Welcome = 0,
+    /// A species graph.
+    Species = 1,
+    /// A cell batch of instance records.
+    Cells = 2,
+    /// A release.
+    Release = 3,
+}
+
+impl MsgClass {
+    /// Every class, in index order.
+    pub const ALL: [MsgClass; 4] = [MsgClass::Welcome, MsgClass::Species, MsgClass::Cells, MsgClass::Release];
+
+    /// The class's label in metrics.
+    pub fn label(self) -> &'static str {
+        ["welcome", "species", "cells", "release"][self as usize]
+    }
+}
+
+/// One framed message to write.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Transmit {
+    /// Where it goes.
+    pub stream: StreamId,
+    /// The framed bytes.
+    pub bytes: Vec<u8>,
+    /// What it is.
+    pub class: MsgClass,
+    /// Instance records it carries.
+    pub records: u32,
+}
+
+/// Why a session must end. Each maps to a [`CloseCode`] and a reason for the client.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SessionError {
+    /// A message is not legal in the session's phase.
+    #[error(transparent)]
+    Phase(#[from] PhaseError),
+    /// A message did not decode or is not acceptable.
+    #[error(transparent)]
+    Message(#[from] MessageError),
+    /// The client speaks another protocol version.
+    #[error("client speaks protocol version {client}, server speaks {server}")]
+    Version {
+        /// The client's version.
+        client: u16,
+        /// Ours.
+        server: u16,
+    },
+    /// A viewpoint's sequence number did not increase.
+    #[error("viewpoint {seq} does not follow viewpoint {last}")]
+    Stale {
+        /// The new sequence number.
+        seq: u32,
+        /// The last one.
+        last: u32,
+    },
+    /// The have-list names a species id outside the table.
+    #[error("have-list names species {0}, which is not in the table")]
+    UnknownSpecies(u8),
+    /// The client did not finish its handshake in time.
+    #[error("handshake not finished within {0:?}")]
+    HandshakeTimeout(Duration),
+}
+
+impl SessionError {
+    /// The close code for this error.
+    pub fn close_code(&self) -> CloseCode {
+        match self {
+            SessionError::Phase(_) | SessionError::Stale { .. } => CloseCode::OutOfOrder,
+            SessionError::Message(e) => e.close_code(),
+            SessionError::Version { .. } => CloseCode::Version,
+            SessionError::UnknownSpecies(_) => CloseCode::Invalid,
+            SessionError::HandshakeTimeout(_) => CloseCode::Timeout,
+        }
+    }
+}
+
+/// What a session has sent, for tests, logs and metrics.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct SessionStats {
+    /// Bytes by [`MsgClass`] index, framing included.
+    pub bytes: [u64; 4],
+    /// Messages by [`MsgClass`] index.
+    pub messages: [u64; 4],
+    /// Instance records sent.
+    pub records: u64,
+    /// Viewpoints received.
+    pub viewpoints: u64,
+    /// Grants opened.
+    pub grants: u64,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Held {
+    grant: u32,
+    lane: u8,
+    sent: u16,
+    total: u16,
+}
+
+/// One client's session (see the module docs).
+pub struct Session {
+    store: Arc<dyn WorldStore>,
+    cfg: SessionConfig,
+    phase: Phase,
+    deadline: Instant,
+    client: String,
+    has_species: [u64; 4],
+    viewpoint: Option<Viewpoint>,
+    aoi: Option<Aoi>,
+    dirty: bool,
+    held: HashMap<CellCoord, Held>,
+    /// Cells to send (or finish), least important first, so the next is at the end.
+    queue: Vec<(f32, CellCoord)>,
+    urgent: VecDeque<Transmit>,
+    next_grant: u32,
+    bucket: Option<TokenBucket>,
+    unflushed: usize,
+    stats: SessionStats,
+}
+
+impl std::fmt::Debug for Session {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Session")
+            .field("client", &self.client)
+            .field("phase", &self.phase)
+            .field("held", &self.held.len())
+            .field("queue", &self.queue.len())
+            .finish()
+    }
+}
+
+impl Session {
+    /// A new session for a client that just connected at `now`.
+    pub fn new(store: Arc<dyn WorldStore>, mut cfg: SessionConfig, now: Instant) -> Session {
+        cfg.batch_records = cfg.batch_records.clamp(1, netlimits::MAX_BATCH_RECORDS);
+        cfg.lanes = cfg.lanes.clamp(1, 8);
+        let bucket = cfg.bandwidth.map(|rate| TokenBucket::new(rate, cfg.burst, now));
+        Session {
+            store,
+            deadline: now + cfg.handshake_timeout,
+            cfg,
+            phase: Phase::Start,
+            client: String::new(),
+            has_species: [0; 4],
+            viewpoint: None,
+            aoi: None,
+            dirty: false,
+            held: HashMap::new(),
+            queue: Vec::new(),
+            urgent: VecDeque::new(),
+            next_grant: 1,
+            bucket,
+            unflushed: 0,
+            stats: SessionStats::default(),
+        }
+    }
+
+    /// The phase the session is in.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// The client's label from its hello.
+    pub fn client(&self) -> &str {
+        &self.client
+    }
+
+    /// What has been sent so far.
+    pub fn stats(&self) -> &SessionStats {
+        &self.stats
+    }
+
+    /// The latest viewpoint.
+    pub fn viewpoint(&self) -> Option<&Viewpoint> {
+        self.viewpoint.as_ref()
+    }
+
+    /// Cells the client holds or is being sent, with their grant.
+    pub fn held_cells(&self) -> impl Iterator<Item = (CellCoord, u32)> + '_ {
+        self.held.iter().map(|(c, h)| (*c, h.grant))
+    }
+
+    /// Whether every cell of the current area of interest has been sent in full.
+    pub fn is_complete(&self) -> bool {
+        self.phase == Phase::Streaming && !self.dirty && self.queue.is_empty()
+    }
+
+    /// Whether the client holds (or has been sent) species `id`.
+    pub fn has_species(&self, id: u8) -> bool {
+        self.has_species[usize::from(id / 64)] & (1 << (id % 64)) != 0
+    }
+
+    fn set_species(&mut self, id: u8) {
+        self.has_species[usize::from(id / 64)] |= 1 << (id % 64);
+    }
+
+    /// Decode and handle one frame from the control stream.
+    pub fn handle_frame(&mut self, now: Instant, frame: &[u8]) -> Result<(), SessionError> {
+        let msg = ClientMsg::decode(frame)?;
+        self.handle(now, msg)
+    }
+
+    /// Handle one decoded message from the client.
+    pub fn handle(&mut self, _now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
+        msg.validate()?;
+        let next = msg.next_phase(self.phase)?;
+        match msg {
+            ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
+                if h.version != PROTOCOL_VERSION {
+                    return Err(SessionError::Version { client: h.version, server: PROTOCOL_VERSION });
+                }
+                self.client = h.client;
+                self.phase = next;
+                let welcome = ServerMsg::Handshake(ServerHandshake::Welcome(Welcome {
+                    version: PROTOCOL_VERSION,
+                    world: self.store.world().clone(),
+                    species: self.store.species().to_vec(),
+                    aoi: self.cfg.aoi,
+                }));
+                self.phase = welcome.next_phase(self.phase)?;
+                let t = self.transmit(StreamId::Control, &welcome, MsgClass::Welcome, 0);
+                self.urgent.push_back(t);
+            }
+            ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
+                let table = self.store.species().len();
+                if let Some(&bad) = r.have.iter().find(|&&id| usize::from(id) >= table) {
+                    return Err(SessionError::UnknownSpecies(bad));
+                }
+                for id in r.have {
+                    self.set_species(id);
+                }
+                self.phase = next;
+                self.set_viewpoint(r.viewpoint);
+            }
+            ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => {
+                let last = self.viewpoint.map_or(0, |v| v.seq);
+                if v.seq <= last {
+                    return Err(SessionError::Stale { seq: v.seq, last });
+                }
+                self.set_viewpoint(v);
+            }
+        }
+        Ok(())
+    }
+
+    /// Take a new viewpoint. Releases happen now, viewpoint by viewpoint, exactly as the client evicts when it sends
+    /// each one (the same rule on the same inputs), so both sides agree on what is held; the send queue is rebuilt
+    /// lazily, once for however many viewpoints arrived before the next poll.
+    fn set_viewpoint(&mut self, v: Viewpoint) {
+        self.stats.viewpoints += 1;
+        self.viewpoint = Some(v);
+        let aoi = Aoi::new(&v, &self.cfg.aoi);
+        let store = Arc::clone(&self.store);
+        let grid = store.grid();
+        let mut gone: Vec<(CellCoord, Held)> =
+            self.held.iter().filter(|(c, _)| !aoi.is_kept(grid, **c)).map(|(c, h)| (*c, *h)).collect();
+        gone.sort_unstable_by_key(|(c, _)| *c);
+        for (cell, h) in gone {
+            self.held.remove(&cell);
+            let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
+            let t = self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Release, 0);
+            self.urgent.push_back(t);
+        }
+        self.dirty = true;
+    }
+
+    /// Check the handshake deadline.
+    pub fn handle_timeout(&mut self, now: Instant) -> Result<(), SessionError> {
+        if self.phase != Phase::Streaming && now >= self.deadline {
+            return Err(SessionError::HandshakeTimeout(self.cfg.handshake_timeout));
+        }
+        Ok(())
+    }
+
+    /// When to call [`Session::handle_timeout`] and poll again, if nothing else happens first.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if self.phase != Phase::Streaming {
+            return Some(self.deadline);
+        }
+        if self.queue.is_empty() {
+            return None;
+        }
+        self.bucket.as_ref().and_then(TokenBucket::ready_at)
+    }
+
+    /// The transport took `bytes` of what was transmitted (reopens the window).
+    pub fn on_flushed(&mut self, bytes: usize) {
+        self.unflushed = self.unflushed.saturating_sub(bytes);
+    }
+
+    /// Bytes transmitted and not yet flushed.
+    pub fn unflushed(&self) -> usize {
+        self.unflushed
+    }
+
+    /// The next message to write, or `None` until a message arrives, bytes are flushed or the timeout passes.
+    pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
+        if self.dirty {
+            self.update_aoi();
+        }
+        if let Some(t) = self.urgent.pop_front() {
+            return Some(self.account(now, t));
+        }
+        if self.phase != Phase::Streaming || self.queue.is_empty() || self.unflushed >= self.cfg.window {
+            return None;
+        }
+        if let Some(b) = &mut self.bucket {
+            if !b.ready(now) {
+                return None;
+            }
+        }
+        let t = self.next_batch();
+        Some(self.account(now, t))
+    }
+
+    fn account(&mut self, now: Instant, t: Transmit) -> Transmit {
+        let i = t.class as usize;
+        self.stats.bytes[i] += t.bytes.len() as u64;
+        self.stats.messages[i] += 1;
+        self.stats.records += u64::from(t.records);
+        self.unflushed += t.bytes.len();
+        if let Some(b) = &mut self.bucket {
+            b.take(now, t.bytes.len());
+        }
+        t
+    }
+
+    fn transmit(&self, stream: StreamId, msg: &ServerMsg, class: MsgClass, records: u32) -> Transmit {
+        Transmit { stream, bytes: frame(&msg.encode()), class, records }
+    }
+
+    /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
+    fn update_aoi(&mut self) {
+        self.dirty = false;
+        let Some(vp) = self.viewpoint else { return };
+        let store = Arc::clone(&self.store);
+        let grid = store.grid();
+        let aoi = Aoi::new(&vp, &self.cfg.aoi);
+        let heading = vp.heading();
+        let cos_half = (self.cfg.fov_deg.to_radians() * 0.5).cos();
+        let near = grid.cell_size;
+        let key = |c: CellCoord| {
+            let d = grid.distance2(c, aoi.position).sqrt();
+            let o = grid.cell_origin(c);
+            let h = grid.cell_size * 0.5;
+            let (dx, dz) = (o[0] + h - aoi.position[0], o[1] + h - aoi.position[1]);
+            let len = (dx * dx + dz * dz).sqrt();
+            let in_view = d <= near || len == 0.0 || (dx * heading[0] + dz * heading[1]) >= cos_half * len;
+            if in_view { d } else { d * OUT_OF_VIEW_FACTOR }
+        };
+        self.queue.clear();
+        for c in aoi.inner_cells(grid) {
+            match self.held.get(&c) {
+                Some(h) if h.sent >= h.total && h.grant != 0 => {}
+                _ => self.queue.push((key(c), c)),
+            }
+        }
+        // Held cells in the hysteresis band that are not finished yet are finished too: the client keeps them.
+        let mut band: Vec<CellCoord> =
+            self.held.iter().filter(|(c, h)| h.sent < h.total && !aoi.is_inner(grid, **c)).map(|(c, _)| *c).collect();
+        band.sort_unstable();
+        self.queue.extend(band.into_iter().map(|c| (key(c), c)));
+        // Least important first; ties by cell so the order is deterministic.
+        self.queue.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+        self.aoi = Some(aoi);
+    }
+
+    fn lane_for(&self, key: f32) -> u8 {
+        let radius = self.aoi.map_or(1.0, |a| a.radius.max(1.0));
+        let lanes = f32::from(self.cfg.lanes);
+        ((key / radius * lanes).max(0.0) as u32).min(u32::from(self.cfg.lanes) - 1) as u8
+    }
+
+    /// The next species or batch of the most important queued cell. The queue is not empty.
+    fn next_batch(&mut self) -> Transmit {
+        let (key, cell) = *self.queue.last().expect("queue is not empty");
+        let store = Arc::clone(&self.store);
+        let view = store.cell(cell).expect("queued cells are in the grid");
+        let total = view.records.len() as u16;
+        let h = match self.held.get(&cell) {
+            Some(h) => *h,
+            None => {
+                let h = Held { grant: self.next_grant, lane: self.lane_for(key), sent: 0, total };
+                self.next_grant = self.next_grant.wrapping_add(1).max(1);
+                self.stats.grants += 1;
+                self.held.insert(cell, h);
+                h
+            }
+        };
+        let start = usize::from(h.sent);
+        let end = (start + self.cfg.batch_records).min(usize::from(total));
+        let records = &view.records[start..end];
+        // A species goes out just before the first batch that needs it, on the same lane.
+        if let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
+            let id = r.species;
+            self.set_species(id);
+            let graph = store.species_graph(id).map(<[u8]>::to_vec).unwrap_or_default();
+            let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
+            return self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Species, 0);
+        }
+        let lo = view.overrides.partition_point(|o| usize::from(o.record) < start);
+        let hi = view.overrides.partition_point(|o| usize::from(o.record) < end);
+        let overrides: Vec<ParamOverride> =
+            view.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
+        let batch = CellBatch::new(cell, h.grant, view.first_id, total, start as u16, records.to_vec(), &overrides);
+        let n = records.len() as u32;
+        if let Some(held) = self.held.get_mut(&cell) {
+            held.sent = end as u16;
+        }
+        if end >= usize::from(total) {
+            self.queue.pop();
+        }
+        let msg = ServerMsg::Streaming(ServerStreaming::Cells(batch));
+        self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Cells, n)
+    }
+}

@@ -1,0 +1,419 @@
+//! The sans-IO session core on virtual time, without sockets: handshake and phase legality, area of interest with
+//! look-ahead and hysteresis, nearest-first and in-view-first order, species once, pacing and the window.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_protocol::messages::{ClientHandshake, Hello, ServerHandshake, ServerStreaming};
+use canopy_protocol::{CellCoord, ClientMsg, CloseCode, Phase, ServerMsg, SpeciesGraph};
+use canopy_server::session::{MsgClass, Session, SessionConfig, SessionError, StreamId, Transmit};
+use canopy_server::store::{PlacedInstance, StoreBuilder, WorldStore};
+
+const CELL: f32 = 32.0;
+
+/// A 16 × 16 grid of 32 m cells around the origin; cell (x, z) holds `(x + z).rem_euclid(5) + 1` instances of
+/// species `(x * 7 + z).rem_euclid(3)`; every third instance overrides parameter 0.
+fn store() -> Arc<dyn WorldStore> {
+    let species: Vec<SpeciesGraph> =
+        ["worm", "conifer", "bush"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
+    let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-8, -8), max: CellCoord::new(7, 7) };
+    let terrain = canopy_protocol::messages::TerrainDesc {
+        graph: None,
+        seed: 0,
+        origin: [-256.0, -256.0],
+        tile_size: 512.0,
+        tiles: [1, 1],
+        depth: 0,
+        corners: vec![0.0; 4],
+        params: vec![],
+    };
+    let mut b = StoreBuilder::new("test", 7, grid, terrain, &species).unwrap();
+    for z in -8i32..8 {
+        for x in -8i32..8 {
+            let n = (x + z).rem_euclid(5) as usize + 1;
+            let o = grid.cell_origin(CellCoord::new(x, z));
+            let instances: Vec<PlacedInstance> = (0..n)
+                .map(|i| PlacedInstance {
+                    species: (x * 7 + z).rem_euclid(3) as u16,
+                    x: o[0] + 1.0 + i as f32 * 5.0,
+                    z: o[1] + 2.0 + i as f32 * 3.0,
+                    params: if i % 3 == 0 { vec![(0, 3.0 + i as f32)] } else { vec![] },
+                })
+                .collect();
+            b.add_cell(CellCoord::new(x, z), &instances).unwrap();
+        }
+    }
+    b.finish().shared()
+}
+
+fn config() -> SessionConfig {
+    SessionConfig {
+        aoi: AoiParams { max_radius: 200.0, hysteresis: 24.0, lookahead_s: 2.0, max_lookahead: 64.0 },
+        batch_records: 4,
+        ..SessionConfig::default()
+    }
+}
+
+fn decode(t: &Transmit) -> ServerMsg {
+    assert_eq!(u32::from_le_bytes(t.bytes[..4].try_into().unwrap()) as usize, t.bytes.len() - 4);
+    ServerMsg::decode(&t.bytes[4..]).unwrap()
+}
+
+/// A session driven to the streaming phase at `vp`, with its welcome drained.
+fn streaming(store: &Arc<dyn WorldStore>, cfg: SessionConfig, vp: Viewpoint, have: Vec<u8>, t0: Instant) -> Session {
+    let mut s = Session::new(Arc::clone(store), cfg, t0);
+    s.handle(t0, ClientMsg::hello("test")).unwrap();
+    let w = s.poll_transmit(t0).unwrap();
+    assert_eq!(w.stream, StreamId::Control);
+    assert!(matches!(decode(&w), ServerMsg::Handshake(ServerHandshake::Welcome(_))));
+    s.on_flushed(w.bytes.len());
+    assert_eq!(s.phase(), Phase::Welcomed);
+    s.handle(t0, ClientMsg::ready(have, vp)).unwrap();
+    assert_eq!(s.phase(), Phase::Streaming);
+    s
+}
+
+/// Everything the session sends until it is idle (the window reopened as bytes go).
+fn drain(s: &mut Session, now: Instant) -> Vec<(StreamId, ServerMsg)> {
+    let mut out = vec![];
+    while let Some(t) = s.poll_transmit(now) {
+        s.on_flushed(t.bytes.len());
+        out.push((t.stream, decode(&t)));
+    }
+    out
+}
+
+fn cells_of(msgs: &[(StreamId, ServerMsg)]) -> Vec<CellCoord> {
+    let mut cells = vec![];
+    for (_, m) in msgs {
+        if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m {
+            if cells.last() != Some(&b.cell) {
+                cells.push(b.cell);
+            }
+        }
+    }
+    cells
+}
+
+#[test]
+fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
+    let store = store();
+    let t0 = Instant::now();
+    let vp = Viewpoint::at(0, [10.0, 10.0], 100.0);
+    let mut s = streaming(&store, config(), vp, vec![], t0);
+    let msgs = drain(&mut s, t0);
+    assert!(s.is_complete());
+    let grid = *store.grid();
+    let aoi = canopy_protocol::aoi::Aoi::new(&vp, &config().aoi);
+    let inner: HashSet<CellCoord> = aoi.inner_cells(&grid).into_iter().collect();
+    // Every cell of the area of interest, once, in full; nothing else.
+    let cells = cells_of(&msgs);
+    assert_eq!(cells.len(), inner.len());
+    assert_eq!(cells.iter().copied().collect::<HashSet<_>>(), inner);
+    let mut got: HashMap<CellCoord, Vec<u32>> = HashMap::new();
+    let mut species_sent = vec![];
+    for (lane, m) in &msgs {
+        assert!(matches!(lane, StreamId::Lane(_)));
+        match m {
+            ServerMsg::Streaming(ServerStreaming::Cells(b)) => {
+                let view = store.cell(b.cell).unwrap();
+                assert_eq!(b.first_id, view.first_id);
+                assert_eq!(usize::from(b.total), view.records.len());
+                for (i, r) in b.records.iter().enumerate() {
+                    assert!(species_sent.contains(&r.species), "species {} sent after its first instance", r.species);
+                    assert_eq!(*r, view.records[usize::from(b.start) + i]);
+                    got.entry(b.cell).or_default().push(b.id(i));
+                }
+                for o in &b.overrides() {
+                    let cell_index = usize::from(b.start) + usize::from(o.record);
+                    assert!(
+                        view.overrides
+                            .iter()
+                            .any(|v| usize::from(v.record) == cell_index && v.slot == o.slot && v.value == o.value)
+                    );
+                }
+            }
+            ServerMsg::Streaming(ServerStreaming::Species(sp)) => {
+                assert!(!species_sent.contains(&sp.id), "species {} sent twice", sp.id);
+                assert_eq!(sp.graph, store.species_graph(sp.id).unwrap());
+                species_sent.push(sp.id);
+            }
+            m => panic!("unexpected {m:?}"),
+        }
+    }
+    for (c, ids) in &got {
+        let v = store.cell(*c).unwrap();
+        assert_eq!(*ids, (v.first_id..v.first_id + v.records.len() as u32).collect::<Vec<_>>());
+    }
+    // Nearest first: distances from the viewpoint never decrease by more than a cell's diagonal among in-view
+    // cells (a cell out of view counts double).
+    let d: Vec<f32> = cells.iter().map(|c| grid.distance2(*c, vp.position).sqrt()).collect();
+    assert_eq!(d[0], 0.0, "the cell under the viewpoint comes first");
+    let in_view = |c: &CellCoord| {
+        let d = grid.distance2(*c, vp.position).sqrt();
+        let o = grid.cell_origin(*c);
+        let (dx, dz) = (o[0] + CELL * 0.5 - vp.position[0], o[1] + CELL * 0.5 - vp.position[1]);
+        let len = (dx * dx + dz * dz).sqrt();
+        d <= CELL || dz >= (60f32).to_radians().cos() * len
+    };
+    let in_view_first: Vec<f32> =
+        cells.iter().filter(|c| in_view(c)).map(|c| grid.distance2(*c, vp.position).sqrt()).collect();
+    assert!(in_view_first.windows(2).all(|w| w[0] <= w[1]), "{in_view_first:?}");
+    assert_eq!(s.stats().messages[MsgClass::Species as usize], 3);
+}
+
+#[test]
+fn cells_in_view_come_before_cells_behind_at_the_same_distance() {
+    let store = store();
+    let t0 = Instant::now();
+    // Looking along +z (yaw 0) from the middle of cell (0, 0).
+    let vp = Viewpoint { seq: 0, position: [16.0, 16.0], yaw: 0.0, velocity: [0.0, 0.0], radius: 120.0 };
+    let mut s = streaming(&store, config(), vp, vec![0, 1, 2], t0);
+    let cells = cells_of(&drain(&mut s, t0));
+    let pos = |c: CellCoord| cells.iter().position(|&x| x == c).unwrap();
+    // (0, 3) ahead and (0, -3) behind are equally far.
+    assert!(pos(CellCoord::new(0, 3)) < pos(CellCoord::new(0, -3)));
+    assert!(pos(CellCoord::new(1, 2)) < pos(CellCoord::new(1, -2)));
+    // Turned around, the order flips.
+    let vp = Viewpoint { yaw: std::f32::consts::PI, ..vp };
+    let mut s = streaming(&store, config(), vp, vec![0, 1, 2], t0);
+    let cells = cells_of(&drain(&mut s, t0));
+    let pos = |c: CellCoord| cells.iter().position(|&x| x == c).unwrap();
+    assert!(pos(CellCoord::new(0, 3)) > pos(CellCoord::new(0, -3)));
+}
+
+#[test]
+fn species_the_client_holds_are_not_sent() {
+    let store = store();
+    let t0 = Instant::now();
+    let mut s = streaming(&store, config(), Viewpoint::at(0, [0.0, 0.0], 150.0), vec![0, 2], t0);
+    let msgs = drain(&mut s, t0);
+    let sent: Vec<u8> = msgs
+        .iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::Species(sp)) => Some(sp.id),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(sent, vec![1]);
+}
+
+#[test]
+fn look_ahead_requests_cells_along_the_velocity() {
+    let store = store();
+    let t0 = Instant::now();
+    let at_rest = Viewpoint::at(0, [0.0, 0.0], 64.0);
+    let moving = Viewpoint { velocity: [20.0, 0.0], ..at_rest };
+    let mut a = streaming(&store, config(), at_rest, vec![0, 1, 2], t0);
+    let mut b = streaming(&store, config(), moving, vec![0, 1, 2], t0);
+    let rest: HashSet<CellCoord> = cells_of(&drain(&mut a, t0)).into_iter().collect();
+    let ahead: HashSet<CellCoord> = cells_of(&drain(&mut b, t0)).into_iter().collect();
+    assert!(rest.is_subset(&ahead));
+    // 20 m/s × 2 s = 40 m ahead along +x: cells past x = 64 m are needed only when moving.
+    assert!(ahead.contains(&CellCoord::new(3, 0)) && !rest.contains(&CellCoord::new(3, 0)));
+    assert!(!ahead.contains(&CellCoord::new(-4, 0)));
+}
+
+/// Oscillate across the border of the area of interest; count grants and releases.
+fn churn(hysteresis: f32) -> (u64, u64) {
+    let store = store();
+    let t0 = Instant::now();
+    let mut cfg = config();
+    cfg.aoi.hysteresis = hysteresis;
+    let mut s = streaming(&store, cfg, Viewpoint::at(0, [0.0, 0.0], 100.0), vec![0, 1, 2], t0);
+    drain(&mut s, t0);
+    let mut grants = 0;
+    let mut releases = 0;
+    for seq in 1..=40u32 {
+        if seq == 2 {
+            // Count from the second step on: the first step's new cells are a real change.
+            grants = s.stats().grants;
+            releases = 0;
+        }
+        // Walking back and forth by 8 m along x, so cells come and go at the radius on both sides.
+        let x = if seq % 2 == 0 { 0.0 } else { 8.0 };
+        s.handle(t0, ClientMsg::viewpoint(Viewpoint::at(seq, [x, 0.0], 100.0))).unwrap();
+        releases += drain(&mut s, t0)
+            .iter()
+            .filter(|(_, m)| matches!(m, ServerMsg::Streaming(ServerStreaming::Release(_))))
+            .count() as u64;
+    }
+    (s.stats().grants - grants, releases)
+}
+
+#[test]
+fn hysteresis_stops_churn_at_the_border() {
+    assert_eq!(churn(24.0), (0, 0), "with hysteresis nothing is granted or released after the first step");
+    let (grants, releases) = churn(0.0);
+    assert!(
+        grants >= 19 && releases >= 19,
+        "without hysteresis the border churns: {grants} grants, {releases} releases"
+    );
+}
+
+#[test]
+fn cells_left_behind_are_released_and_regranted_with_newer_grants() {
+    let store = store();
+    let t0 = Instant::now();
+    let mut s = streaming(&store, config(), Viewpoint::at(0, [-200.0, -200.0], 40.0), vec![0, 1, 2], t0);
+    let first: HashMap<CellCoord, u32> = drain(&mut s, t0)
+        .iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::Cells(b)) => Some((b.cell, b.grant)),
+            _ => None,
+        })
+        .collect();
+    s.handle(t0, ClientMsg::viewpoint(Viewpoint::at(1, [200.0, 200.0], 40.0))).unwrap();
+    let msgs = drain(&mut s, t0);
+    // Every old cell is released with its grant, on the lane its batches used, before any new batch.
+    let released: HashMap<CellCoord, u32> = msgs
+        .iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::Release(r)) => Some((r.cell, r.grant)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(released, first);
+    assert_eq!(s.held_cells().count(), cells_of(&msgs).len());
+    s.handle(t0, ClientMsg::viewpoint(Viewpoint::at(2, [-200.0, -200.0], 40.0))).unwrap();
+    let back = drain(&mut s, t0);
+    let max_old = first.values().max().unwrap();
+    for (_, m) in &back {
+        if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m {
+            assert!(b.grant > *max_old);
+        }
+    }
+    assert_eq!(cells_of(&back).into_iter().collect::<HashSet<_>>(), first.keys().copied().collect());
+}
+
+#[test]
+fn a_bandwidth_cap_paces_and_keeps_the_nearest_first() {
+    let store = store();
+    let t0 = Instant::now();
+    let mut cfg = config();
+    cfg.bandwidth = Some(1_000);
+    cfg.burst = 500;
+    let vp = Viewpoint::at(0, [0.0, 0.0], 200.0);
+    let mut s = streaming(&store, cfg, vp, vec![0, 1, 2], t0);
+    let mut now = t0;
+    let mut sent_by_second = vec![0usize; 40];
+    let mut order = vec![];
+    while !s.is_complete() && now < t0 + Duration::from_secs(39) {
+        match s.poll_transmit(now) {
+            Some(t) => {
+                s.on_flushed(t.bytes.len());
+                sent_by_second[now.duration_since(t0).as_secs() as usize] += t.bytes.len();
+                let cell = cells_of(&[(t.stream, decode(&t))]);
+                if order.last() != cell.first() {
+                    order.extend(cell);
+                }
+            }
+            None => now = s.poll_timeout().expect("paced, not idle"),
+        }
+    }
+    assert!(s.is_complete(), "all sent within 39 s");
+    let full: Vec<usize> = sent_by_second[1..sent_by_second.iter().rposition(|&b| b > 0).unwrap()].to_vec();
+    assert!(full.len() >= 3);
+    for b in &full {
+        assert!((850..=1_150).contains(b), "bytes per second {full:?}");
+    }
+    // The same order as without the cap: pacing delays, it does not reorder.
+    let mut free = streaming(&store, config(), vp, vec![0, 1, 2], t0);
+    assert_eq!(order, cells_of(&drain(&mut free, t0)));
+}
+
+#[test]
+fn the_window_holds_back_until_bytes_are_flushed() {
+    let store = store();
+    let t0 = Instant::now();
+    let mut cfg = config();
+    cfg.window = 300;
+    let mut s = streaming(&store, cfg, Viewpoint::at(0, [0.0, 0.0], 200.0), vec![0, 1, 2], t0);
+    let mut held = 0;
+    while let Some(t) = s.poll_transmit(t0) {
+        held += t.bytes.len();
+    }
+    assert!(held >= 300 && held < 300 + 200, "{held}");
+    assert!(!s.is_complete());
+    s.on_flushed(held);
+    assert!(s.poll_transmit(t0).is_some());
+}
+
+fn error_of(msgs: Vec<ClientMsg>) -> SessionError {
+    let store = store();
+    let t0 = Instant::now();
+    let mut s = Session::new(store, config(), t0);
+    for m in msgs {
+        if let Err(e) = s.handle(t0, m) {
+            return e;
+        }
+        while s.poll_transmit(t0).is_some() {}
+    }
+    panic!("no error");
+}
+
+#[test]
+fn messages_out_of_order_or_invalid_end_the_session_with_a_code() {
+    let vp = Viewpoint::at(0, [0.0, 0.0], 50.0);
+    let e = error_of(vec![ClientMsg::viewpoint(vp)]);
+    assert_eq!(e.close_code(), CloseCode::OutOfOrder, "{e}");
+    let e = error_of(vec![ClientMsg::ready(vec![], vp)]);
+    assert_eq!(e.close_code(), CloseCode::OutOfOrder, "{e}");
+    let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::hello("b")]);
+    assert_eq!(e.close_code(), CloseCode::OutOfOrder, "{e}");
+    let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::ready(vec![], vp), ClientMsg::viewpoint(vp)]);
+    assert!(matches!(e, SessionError::Stale { seq: 0, last: 0 }), "{e}");
+    let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::ready(vec![9], vp)]);
+    assert_eq!(e, SessionError::UnknownSpecies(9));
+    let old = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 0, client: "old".into() }));
+    let e = error_of(vec![old]);
+    assert_eq!(e.close_code(), CloseCode::Version);
+    assert_eq!(e.to_string(), "client speaks protocol version 0, server speaks 1");
+    let bad = Viewpoint::at(0, [f32::NAN, 0.0], 50.0);
+    let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::ready(vec![], bad)]);
+    assert_eq!(e.close_code(), CloseCode::Invalid, "{e}");
+    // Bytes that do not decode.
+    let mut s = Session::new(store(), config(), Instant::now());
+    let e = s.handle_frame(Instant::now(), &[0xff, 0xff, 0xff]).unwrap_err();
+    assert_eq!(e.close_code(), CloseCode::Malformed);
+    let e = s.handle_frame(Instant::now(), &vec![0u8; 5000]).unwrap_err();
+    assert_eq!(e.close_code(), CloseCode::TooLarge);
+}
+
+#[test]
+fn a_client_that_never_finishes_its_handshake_times_out() {
+    let t0 = Instant::now();
+    let mut s = Session::new(store(), config(), t0);
+    s.handle(t0, ClientMsg::hello("slow")).unwrap();
+    let deadline = s.poll_timeout().unwrap();
+    assert_eq!(deadline, t0 + config().handshake_timeout);
+    assert!(s.handle_timeout(deadline - Duration::from_millis(1)).is_ok());
+    assert_eq!(s.handle_timeout(deadline).unwrap_err().close_code(), CloseCode::Timeout);
+}
+
+#[test]
+fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
+    // Whatever viewpoints a client sends, the session holds at most the cells within radius + hysteresis.
+    let store = store();
+    let t0 = Instant::now();
+    let cfg = config();
+    let mut s = streaming(&store, cfg.clone(), Viewpoint::at(0, [0.0, 0.0], 1e9), vec![0, 1, 2], t0);
+    let grid = *store.grid();
+    let mut x: u64 = 99;
+    for seq in 1..200u32 {
+        x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let p = [((x >> 33) % 600) as f32 - 300.0, ((x >> 13) % 600) as f32 - 300.0];
+        let vp = Viewpoint { seq, position: p, yaw: 0.0, velocity: [(x % 50) as f32, 0.0], radius: 1e9 };
+        s.handle(t0, ClientMsg::viewpoint(vp)).unwrap();
+        // Send a little, not all: partially sent cells must be bounded too.
+        for _ in 0..(x % 20) {
+            if let Some(t) = s.poll_transmit(t0) {
+                s.on_flushed(t.bytes.len());
+            }
+        }
+        let aoi = canopy_protocol::aoi::Aoi::new(&vp, &cfg.aoi);
+        assert!(s.held_cells().all(|(c, _)| aoi.is_kept(&grid, c)));
+    }
+}

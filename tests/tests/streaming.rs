@@ -1,0 +1,235 @@
+//! Streaming over real QUIC on loopback (port 0): `canopy-server` on the default world, several clients and bots.
+//! Every bot ends holding exactly the instances of its area of interest (checked against the world), each species
+//! once; a reconnecting client with its cache receives no species again; malformed, oversized and out-of-order
+//! input closes that one connection with a reason while the others carry on; certificates are pinned.
+
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::net::{endpoint, tls};
+use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::frame::frame;
+use canopy_protocol::messages::{ClientHandshake, Hello};
+use canopy_protocol::{ClientMsg, CloseCode};
+use canopy_server::{GridStore, Server, ServerConfig, SessionConfig, WorldStore};
+use canopy_worlds::world::World;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+fn world() -> Arc<World> {
+    static WORLD: OnceLock<Arc<World>> = OnceLock::new();
+    Arc::clone(WORLD.get_or_init(|| Arc::new(World::default_world())))
+}
+
+fn store() -> Arc<dyn WorldStore> {
+    static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
+    Arc::clone(
+        STORE.get_or_init(|| GridStore::from_world(&world()).expect("the default world builds a store").shared()),
+    )
+}
+
+async fn start_server() -> Server {
+    let cfg = ServerConfig {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        metrics: Some("127.0.0.1:0".parse().unwrap()),
+        session: SessionConfig { handshake_timeout: Duration::from_secs(3), ..SessionConfig::default() },
+        ..ServerConfig::default()
+    };
+    Server::start(store(), cfg).await.expect("server starts")
+}
+
+fn pinned(server: &Server) -> ConnectConfig {
+    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
+}
+
+fn local() -> SocketAddr {
+    "127.0.0.1:0".parse().unwrap()
+}
+
+/// A client at `position` with a small area of interest, complete.
+async fn complete_client(server: &Server, position: [f32; 2], cache: Option<Arc<SpeciesCache>>) -> Connection {
+    let ep = endpoint(local()).unwrap();
+    let mut c = Connection::connect(&ep, &pinned(server), cache, |_| Viewpoint::at(0, position, 100.0)).await.unwrap();
+    c.wait_complete(Duration::from_secs(60)).await.unwrap();
+    c
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
+    let server = start_server().await;
+    let progress = Arc::new(Progress::default());
+    let mut runs = vec![];
+    // 20 bots (the CI-sized load run): five on each kind of path.
+    for (i, path) in [PathKind::Line, PathKind::Circle, PathKind::Random, PathKind::Teleport].into_iter().enumerate() {
+        let mut cfg = BotsConfig::new(5, pinned(&server));
+        cfg.path = path;
+        cfg.speed = 25.0;
+        cfg.duration = Duration::from_secs(if path == PathKind::Teleport { 10 } else { 5 });
+        cfg.radius = 120.0;
+        cfg.seed = 100 * i as u64;
+        cfg.verify = Some(world());
+        runs.push(tokio::spawn(bots::run(cfg, Arc::clone(&progress))));
+    }
+    let mut reports = vec![];
+    for r in runs {
+        reports.extend(r.await.unwrap().unwrap());
+    }
+    let summary = BotsSummary::new(&reports, Duration::ZERO);
+    assert!(summary.ok(), "{summary}");
+    assert_eq!(summary.verified, 20, "{summary}");
+    for r in &reports {
+        assert_eq!(r.species_duplicates, 0);
+        assert!(r.held > 0 && r.latencies.len() >= 1, "bot {} {r:?}", r.id);
+        // Each species at most once per bot, and only species its area of interest needed.
+        assert!(r.species_received as usize <= world().species.len());
+    }
+    assert!(summary.batch_bytes_per_record <= 8.0, "{summary}");
+    let m = server.metrics();
+    assert_eq!(m.sessions.load(Relaxed), 20);
+    assert!(m.records.load(Relaxed) >= summary.records);
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnecting_client_is_sent_no_species_again() {
+    let server = start_server().await;
+    let dir = std::env::temp_dir().join(format!("canopy-reconnect-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let open = || Arc::new(SpeciesCache::open(&dir, CacheLimits::default()).unwrap());
+    let first = complete_client(&server, [0.0, 0.0], Some(open())).await;
+    let received = first.state().stats().species_received;
+    assert!(received >= 2, "the valley floor needs several species, got {received}");
+    assert_eq!(received as usize, first.state().species_held());
+    let held_first: usize = first.state().record_count();
+    first.close();
+    // A new session, a new cache object on the same directory: the species come from disk.
+    let species_before = server.metrics().messages[1].load(Relaxed);
+    let again = complete_client(&server, [0.0, 0.0], Some(open())).await;
+    assert_eq!(again.state().stats().species_received, 0, "species were sent again");
+    assert_eq!(server.metrics().messages[1].load(Relaxed), species_before);
+    assert_eq!(again.state().record_count(), held_first);
+    bots::verify(again.state(), &world()).unwrap();
+    again.close();
+    server.shutdown(Duration::from_secs(1)).await;
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Open a raw connection, write `bytes` on the control stream, and return how the server closed it.
+async fn misbehave(server: &Server, bytes: Vec<u8>) -> (Option<CloseCode>, String) {
+    let ep = endpoint(local()).unwrap();
+    let conn = ep.connect_with(tls::client_config(Trust::Insecure).unwrap(), server.local_addr(), "localhost").unwrap();
+    let conn = conn.await.unwrap();
+    let (mut send, _recv) = conn.open_bi().await.unwrap();
+    if !bytes.is_empty() {
+        let _ = send.write_all(&bytes).await;
+    }
+    match tokio::time::timeout(Duration::from_secs(20), conn.closed()).await.expect("server closes in time") {
+        quinn::ConnectionError::ApplicationClosed(c) => {
+            (CloseCode::from_code(c.error_code.into_inner()), String::from_utf8_lossy(&c.reason).into_owned())
+        }
+        e => panic!("expected an application close, got {e}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_input_closes_that_connection_with_a_reason_and_the_others_carry_on() {
+    let server = start_server().await;
+    let mut good = vec![];
+    for p in [[-300.0, 200.0], [0.0, 0.0], [400.0, -400.0]] {
+        good.push(complete_client(&server, p, None).await);
+    }
+    let hello = frame(&ClientMsg::hello("x").encode());
+    let cases: Vec<(Vec<u8>, CloseCode, &str)> = vec![
+        (frame(&[0xff, 0xff, 0xff, 0xff]), CloseCode::Malformed, "malformed message"),
+        ((1u32 << 20).to_le_bytes().to_vec(), CloseCode::TooLarge, "exceeds the limit"),
+        (frame(&[0; 2000]), CloseCode::TooLarge, "exceeds the limit"),
+        (
+            frame(&ClientMsg::viewpoint(Viewpoint::at(1, [0.0, 0.0], 50.0)).encode()),
+            CloseCode::OutOfOrder,
+            "not legal in phase Start",
+        ),
+        ([hello.clone(), hello.clone()].concat(), CloseCode::OutOfOrder, "hello is not legal in phase Welcomed"),
+        (
+            frame(
+                &ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 99, client: "future".into() })).encode(),
+            ),
+            CloseCode::Version,
+            "client speaks protocol version 99",
+        ),
+        (
+            [hello.clone(), frame(&ClientMsg::ready(vec![200], Viewpoint::at(0, [0.0, 0.0], 50.0)).encode())].concat(),
+            CloseCode::Invalid,
+            "not in the table",
+        ),
+        (vec![], CloseCode::Timeout, "no control stream"),
+    ];
+    let mut tasks = vec![];
+    for (bytes, code, reason) in cases {
+        tasks.push((code, reason, misbehave(&server, bytes)));
+    }
+    for (code, reason, task) in tasks {
+        let (got, why) = task.await;
+        assert_eq!(got, Some(code), "{why}");
+        assert!(why.contains(reason), "expected `{reason}` in `{why}`");
+    }
+    // The well-behaved clients carry on: they move, and their areas of interest fill again.
+    for (i, c) in good.iter_mut().enumerate() {
+        c.set_viewpoint(Viewpoint::at(0, [100.0 * i as f32, 300.0], 100.0)).await.unwrap();
+        c.wait_complete(Duration::from_secs(60)).await.unwrap();
+        bots::verify(c.state(), &world()).unwrap();
+    }
+    let m = server.metrics();
+    assert_eq!(m.closed[CloseCode::Malformed as usize].load(Relaxed), 1);
+    assert_eq!(m.closed[CloseCode::TooLarge as usize].load(Relaxed), 2);
+    assert_eq!(m.closed[CloseCode::OutOfOrder as usize].load(Relaxed), 2);
+    for _ in 0..100 {
+        if m.clients.load(Relaxed) == 3 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(m.clients.load(Relaxed), 3, "the misbehaving connections are gone, the good ones stay");
+    for c in good {
+        c.close();
+    }
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_certificate_is_pinned_by_its_fingerprint() {
+    let server = start_server().await;
+    let ep = endpoint(local()).unwrap();
+    let wrong = Trust::pinned(&"00".repeat(32)).unwrap();
+    let cfg = ConnectConfig::new(server.local_addr(), wrong);
+    let err = Connection::connect(&ep, &cfg, None, |_| Viewpoint::at(0, [0.0, 0.0], 10.0)).await.unwrap_err();
+    assert!(matches!(err, ClientError::Lost(_)), "{err}");
+    let cfg = ConnectConfig::new(server.local_addr(), Trust::Insecure);
+    let c = Connection::connect(&ep, &cfg, None, |_| Viewpoint::at(0, [0.0, 0.0], 10.0)).await.unwrap();
+    c.close();
+    assert!(Trust::pinned("not hex").is_none());
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_metrics_endpoint_serves_prometheus_text() {
+    let server = start_server().await;
+    let c = complete_client(&server, [0.0, 0.0], None).await;
+    server.metrics().tick(std::time::Instant::now());
+    let mut sock = tokio::net::TcpStream::connect(server.metrics_addr().unwrap()).await.unwrap();
+    sock.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    let mut body = String::new();
+    sock.read_to_string(&mut body).await.unwrap();
+    assert!(body.starts_with("HTTP/1.1 200 OK"), "{body}");
+    assert!(body.contains("Content-Type: text/plain; version=0.0.4"));
+    assert!(body.contains("canopy_clients 1"), "{body}");
+    let records = c.state().stats().records;
+    assert!(body.contains(&format!("canopy_records_sent_total {records}")), "{body}");
+    assert!(body.contains("canopy_sent_bytes_total{class=\"cells\"}"));
+    assert!(body.contains("canopy_records_per_second"));
+    c.close();
+    server.shutdown(Duration::from_secs(1)).await;
+}

@@ -1,0 +1,840 @@
+//! Hypertree storage (§5): the dense 3D array, the sorted index list with its density list, and the index list
+//! with a bit array of non-empty voxels; optionally partitioned per first-level subpart. Also hit recording during
+//! generation, the validation that compacts hits (sort, dedupe, count), density classes (§4, Figure 3) and the
+//! occupancy brick map used for empty-space skipping.
+//!
+//! Every structure answers the same query — [`VoxelQuery::voxel`] by index — and the tests hold them equal voxel
+//! for voxel. Memory is reported by [`VoxelStore::memory_bytes`].
+
+use super::{Hypervolume, StorageType, Voxel, VoxelBox};
+
+/// Answers "what is in voxel `index`?".
+pub trait VoxelQuery {
+    /// The voxel at `index` ([`Voxel::EMPTY`] if nothing is there; `index` need not be inside the volume).
+    fn voxel(&self, index: u32) -> Voxel;
+
+    /// The voxel at coordinates `v` (inside the volume) whose index is `index`: the renderer's query, which lets a
+    /// structure use whichever of the two it addresses by.
+    #[inline]
+    fn voxel_at(&self, v: [u32; 3], index: u32) -> Voxel {
+        let _ = v;
+        self.voxel(index)
+    }
+}
+
+/// Non-empty voxels sorted by index, without duplicates: the validated form every structure is built from.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct VoxelList {
+    /// Voxel indices, strictly increasing.
+    pub indices: Vec<u32>,
+    /// Densities (non-zero), parallel to `indices`.
+    pub densities: Vec<u8>,
+    /// Levels, parallel to `indices`.
+    pub levels: Vec<u8>,
+}
+
+impl VoxelList {
+    /// Number of voxels.
+    pub fn len(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Whether the list is empty.
+    pub fn is_empty(&self) -> bool {
+        self.indices.is_empty()
+    }
+
+    /// Append a voxel (its index must exceed every index already present).
+    pub fn push(&mut self, index: u32, v: Voxel) {
+        debug_assert!(self.indices.last().is_none_or(|&l| l < index));
+        self.indices.push(index);
+        self.densities.push(v.density);
+        self.levels.push(v.level);
+    }
+
+    /// Position of `index` by bisection (§5).
+    #[inline]
+    pub fn position(&self, index: u32) -> Option<usize> {
+        let ix = &self.indices;
+        let mut lo = 0usize;
+        let mut len = ix.len();
+        if len == 0 {
+            return None;
+        }
+        // Branch-light bisection: halve the window until one candidate remains.
+        while len > 1 {
+            let half = len / 2;
+            if ix[lo + half] <= index {
+                lo += half;
+            }
+            len -= half;
+        }
+        (ix[lo] == index).then_some(lo)
+    }
+
+    fn bytes(&self) -> usize {
+        self.indices.len() * 4 + self.densities.len() + self.levels.len()
+    }
+}
+
+impl VoxelQuery for VoxelList {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        match self.position(index) {
+            Some(p) => Voxel { density: self.densities[p], level: self.levels[p] },
+            None => Voxel::EMPTY,
+        }
+    }
+}
+
+/// The index list + density list structure (§5), looked up by bisection.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct IndexList {
+    /// The voxels.
+    pub list: VoxelList,
+}
+
+impl VoxelQuery for IndexList {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        self.list.voxel(index)
+    }
+}
+
+/// Words of the bit array per rank-directory entry.
+const RANK_WORDS: usize = 8;
+
+/// The index list plus a bit array of non-empty voxels between the lowest and highest index (§5). An empty voxel is
+/// answered from the bit array alone; a non-empty one by its rank in the bit array (a popcount directory every 512
+/// bits), which gives its position in the lists without bisection.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct IndexBits {
+    /// The voxels.
+    pub list: VoxelList,
+    /// Lowest non-empty index (bit 0).
+    pub lo: u32,
+    /// Bit `i` is set if voxel `lo + i` is not empty.
+    pub bits: Vec<u64>,
+    /// Set bits before each group of [`RANK_WORDS`] words.
+    pub rank: Vec<u32>,
+}
+
+impl IndexBits {
+    /// Build from a validated list.
+    pub fn new(list: VoxelList) -> IndexBits {
+        let (lo, hi) = match (list.indices.first(), list.indices.last()) {
+            (Some(&a), Some(&b)) => (a, b),
+            _ => return IndexBits { list, lo: 0, bits: Vec::new(), rank: Vec::new() },
+        };
+        let span = (hi - lo) as usize + 1;
+        let mut bits = vec![0u64; span.div_ceil(64)];
+        for &i in &list.indices {
+            let o = (i - lo) as usize;
+            bits[o >> 6] |= 1 << (o & 63);
+        }
+        let mut rank = Vec::with_capacity(bits.len().div_ceil(RANK_WORDS));
+        let mut acc = 0u32;
+        for chunk in bits.chunks(RANK_WORDS) {
+            rank.push(acc);
+            acc += chunk.iter().map(|w| w.count_ones()).sum::<u32>();
+        }
+        IndexBits { list, lo, bits, rank }
+    }
+
+    /// Whether voxel `index` is non-empty (the bit array alone).
+    #[inline]
+    pub fn occupied(&self, index: u32) -> bool {
+        let Some(o) = index.checked_sub(self.lo) else { return false };
+        let o = o as usize;
+        self.bits.get(o >> 6).is_some_and(|w| w >> (o & 63) & 1 == 1)
+    }
+}
+
+impl VoxelQuery for IndexBits {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        let Some(o) = index.checked_sub(self.lo) else { return Voxel::EMPTY };
+        let o = o as usize;
+        let w = o >> 6;
+        let Some(&word) = self.bits.get(w) else { return Voxel::EMPTY };
+        let bit = o & 63;
+        if word >> bit & 1 == 0 {
+            return Voxel::EMPTY;
+        }
+        let group = w / RANK_WORDS;
+        let mut pos = self.rank[group] as usize;
+        for &x in &self.bits[group * RANK_WORDS..w] {
+            pos += x.count_ones() as usize;
+        }
+        pos += (word & ((1u64 << bit) - 1)).count_ones() as usize;
+        Voxel { density: self.list.densities[pos], level: self.list.levels[pos] }
+    }
+}
+
+/// The dense 3D array: per voxel one density byte and, beside it, one level byte. Cells are laid out in bricks of
+/// 8³ voxels (x fastest inside a brick, bricks in x, y, z order), so the samples of a ray stay within a few cache
+/// lines and pages instead of striding a whole slice per step along z.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct DenseArray {
+    /// `[density, level]` per voxel, brick-major (density 0 is empty; the level is meaningless there).
+    pub cells: Vec<[u8; 2]>,
+    /// The volume's resolution.
+    pub resolution: [u32; 3],
+    /// Bricks along x and y.
+    pub bricks: [u32; 2],
+    /// Number of non-empty voxels.
+    pub count: usize,
+}
+
+impl DenseArray {
+    /// An empty array for a volume of `resolution`.
+    pub fn new(resolution: [u32; 3]) -> DenseArray {
+        let b = resolution.map(|r| r.div_ceil(8));
+        let n = b.iter().map(|&x| x as usize).product::<usize>() * 512;
+        DenseArray { cells: vec![[0u8; 2]; n], resolution, bricks: [b[0], b[1]], count: 0 }
+    }
+
+    /// The cell offset of voxel `v`.
+    #[inline]
+    pub fn offset(&self, v: [u32; 3]) -> usize {
+        let brick = ((v[2] >> 3) * self.bricks[1] + (v[1] >> 3)) * self.bricks[0] + (v[0] >> 3);
+        ((brick as usize) << 9) | (((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize)
+    }
+
+    /// The coordinates of voxel `index`.
+    #[inline]
+    fn coords(&self, index: u32) -> [u32; 3] {
+        let [rx, ry, _] = self.resolution;
+        [index % rx, (index / rx) % ry, index / (rx * ry)]
+    }
+}
+
+impl VoxelQuery for DenseArray {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        let [rx, ry, rz] = self.resolution;
+        if u64::from(index) >= u64::from(rx) * u64::from(ry) * u64::from(rz) {
+            return Voxel::EMPTY;
+        }
+        self.voxel_at(self.coords(index), index)
+    }
+
+    #[inline]
+    fn voxel_at(&self, v: [u32; 3], _: u32) -> Voxel {
+        match self.cells.get(self.offset(v)) {
+            Some(&[d, l]) if d != 0 => Voxel { density: d, level: l },
+            _ => Voxel::EMPTY,
+        }
+    }
+}
+
+/// The lists of one first-level subpart.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Part {
+    /// Which subpart: 0 is the condensation (stem), `j + 1` the subparts made by transformation `j`.
+    pub subpart: u8,
+    /// Lowest voxel coordinates in the part.
+    pub min: [u32; 3],
+    /// Highest voxel coordinates in the part.
+    pub max: [u32; 3],
+    /// The part's voxels: an index list, or an index list with bit array.
+    pub store: PartStore,
+}
+
+/// The structure of one part.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum PartStore {
+    /// Index list.
+    IndexList(IndexList),
+    /// Index list with bit array.
+    IndexBits(IndexBits),
+}
+
+impl PartStore {
+    fn list(&self) -> &VoxelList {
+        match self {
+            PartStore::IndexList(l) => &l.list,
+            PartStore::IndexBits(b) => &b.list,
+        }
+    }
+}
+
+/// Separate lists per first-level subpart (§5). A voxel hit by several subparts is in each of their lists, with the
+/// same density; a lookup returns that density and the shallowest level among the parts that hold it.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Partitioned {
+    /// The parts, by subpart number.
+    pub parts: Vec<Part>,
+    /// The volume's resolution (to test part bounds).
+    pub resolution: [u32; 3],
+    /// Distinct non-empty voxels.
+    pub count: usize,
+}
+
+impl Partitioned {
+    /// Build from per-subpart lists (each sorted; a voxel in several parts must carry the same density).
+    pub fn from_parts(parts: Vec<(u8, VoxelList)>, ty: StorageType, volume: &Hypervolume) -> Partitioned {
+        let mut all: Vec<u32> = parts.iter().flat_map(|p| p.1.indices.iter().copied()).collect();
+        all.sort_unstable();
+        all.dedup();
+        let parts = parts
+            .into_iter()
+            .map(|(subpart, list)| {
+                let (mut min, mut max) = ([u32::MAX; 3], [0u32; 3]);
+                for &i in &list.indices {
+                    let v = volume.coords(i);
+                    for a in 0..3 {
+                        min[a] = min[a].min(v[a]);
+                        max[a] = max[a].max(v[a]);
+                    }
+                }
+                let store = match ty {
+                    StorageType::IndexBits => PartStore::IndexBits(IndexBits::new(list)),
+                    _ => PartStore::IndexList(IndexList { list }),
+                };
+                Part { subpart, min, max, store }
+            })
+            .collect();
+        Partitioned { parts, resolution: volume.resolution, count: all.len() }
+    }
+}
+
+impl PartStore {
+    /// The part's voxel list.
+    pub fn voxels(&self) -> &VoxelList {
+        self.list()
+    }
+}
+
+impl VoxelQuery for Partitioned {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        let [rx, ry, _] = self.resolution;
+        let v = [index % rx, (index / rx) % ry, index / (rx * ry)];
+        let mut out = Voxel::EMPTY;
+        for p in &self.parts {
+            if (0..3).any(|i| v[i] < p.min[i] || v[i] > p.max[i]) {
+                continue;
+            }
+            let got = match &p.store {
+                PartStore::IndexList(l) => l.voxel(index),
+                PartStore::IndexBits(b) => b.voxel(index),
+            };
+            if got.density != 0 && (out.density == 0 || got.level < out.level) {
+                out = got;
+            }
+        }
+        out
+    }
+}
+
+/// A hypertree's voxels in one of the storage structures.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum VoxelStore {
+    /// Dense 3D array.
+    Dense(DenseArray),
+    /// Index list.
+    IndexList(IndexList),
+    /// Index list and bit array.
+    IndexBits(IndexBits),
+    /// Index lists (with or without bit arrays) per first-level subpart.
+    Partitioned(Partitioned),
+}
+
+impl VoxelQuery for VoxelStore {
+    #[inline]
+    fn voxel_at(&self, v: [u32; 3], index: u32) -> Voxel {
+        match self {
+            VoxelStore::Dense(d) => d.voxel_at(v, index),
+            other => other.voxel(index),
+        }
+    }
+
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        match self {
+            VoxelStore::Dense(d) => d.voxel(index),
+            VoxelStore::IndexList(l) => l.voxel(index),
+            VoxelStore::IndexBits(b) => b.voxel(index),
+            VoxelStore::Partitioned(p) => p.voxel(index),
+        }
+    }
+}
+
+impl VoxelStore {
+    /// Build a store of `ty` from a validated list (`volume` sizes the dense array).
+    pub fn from_list(list: VoxelList, ty: StorageType, volume: &Hypervolume) -> VoxelStore {
+        match ty {
+            StorageType::IndexList => VoxelStore::IndexList(IndexList { list }),
+            StorageType::IndexBits => VoxelStore::IndexBits(IndexBits::new(list)),
+            StorageType::Dense => {
+                let mut d = DenseArray::new(volume.resolution);
+                for (k, &i) in list.indices.iter().enumerate() {
+                    let o = d.offset(d.coords(i));
+                    d.cells[o] = [list.densities[k], list.levels[k]];
+                }
+                d.count = list.len();
+                VoxelStore::Dense(d)
+            }
+        }
+    }
+
+    /// The storage structure (a partitioned store reports its parts' structure).
+    pub fn storage_type(&self) -> StorageType {
+        match self {
+            VoxelStore::Dense(_) => StorageType::Dense,
+            VoxelStore::IndexList(_) => StorageType::IndexList,
+            VoxelStore::IndexBits(_) => StorageType::IndexBits,
+            VoxelStore::Partitioned(p) => match p.parts.first().map(|p| &p.store) {
+                Some(PartStore::IndexBits(_)) => StorageType::IndexBits,
+                _ => StorageType::IndexList,
+            },
+        }
+    }
+
+    /// Whether the store is partitioned per first-level subpart.
+    pub fn is_partitioned(&self) -> bool {
+        matches!(self, VoxelStore::Partitioned(_))
+    }
+
+    /// Number of distinct non-empty voxels.
+    pub fn len(&self) -> usize {
+        match self {
+            VoxelStore::Dense(d) => d.count,
+            VoxelStore::IndexList(l) => l.list.len(),
+            VoxelStore::IndexBits(b) => b.list.len(),
+            VoxelStore::Partitioned(p) => p.count,
+        }
+    }
+
+    /// Whether no voxel is set.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes the structure occupies (the payload: arrays and lists, not the struct headers).
+    pub fn memory_bytes(&self) -> usize {
+        match self {
+            VoxelStore::Dense(d) => d.cells.len() * 2,
+            VoxelStore::IndexList(l) => l.list.bytes(),
+            VoxelStore::IndexBits(b) => b.list.bytes() + b.bits.len() * 8 + b.rank.len() * 4,
+            VoxelStore::Partitioned(p) => p
+                .parts
+                .iter()
+                .map(|part| {
+                    28 + match &part.store {
+                        PartStore::IndexList(l) => l.list.bytes(),
+                        PartStore::IndexBits(b) => b.list.bytes() + b.bits.len() * 8 + b.rank.len() * 4,
+                    }
+                })
+                .sum(),
+        }
+    }
+
+    /// Visit every non-empty voxel in increasing index order.
+    pub fn for_each(&self, mut f: impl FnMut(u32, Voxel)) {
+        match self {
+            VoxelStore::Dense(d) => {
+                let [rx, ry, rz] = d.resolution;
+                let mut i = 0u32;
+                for z in 0..rz {
+                    for y in 0..ry {
+                        for x in 0..rx {
+                            let [density, level] = d.cells[d.offset([x, y, z])];
+                            if density != 0 {
+                                f(i, Voxel { density, level });
+                            }
+                            i += 1;
+                        }
+                    }
+                }
+            }
+            VoxelStore::IndexList(IndexList { list }) | VoxelStore::IndexBits(IndexBits { list, .. }) => {
+                for k in 0..list.len() {
+                    f(list.indices[k], Voxel { density: list.densities[k], level: list.levels[k] });
+                }
+            }
+            VoxelStore::Partitioned(_) => {
+                let l = self.to_list();
+                for k in 0..l.len() {
+                    f(l.indices[k], Voxel { density: l.densities[k], level: l.levels[k] });
+                }
+            }
+        }
+    }
+
+    /// The voxels as one validated list.
+    pub fn to_list(&self) -> VoxelList {
+        match self {
+            VoxelStore::IndexList(l) => l.list.clone(),
+            VoxelStore::IndexBits(b) => b.list.clone(),
+            VoxelStore::Dense(_) => {
+                let mut out = VoxelList::default();
+                self.for_each(|i, v| out.push(i, v));
+                out
+            }
+            VoxelStore::Partitioned(p) => {
+                // Merge the parts: equal indices carry equal densities; keep the shallowest level.
+                let mut all: Vec<(u32, u8, u8)> =
+                    Vec::with_capacity(p.parts.iter().map(|x| x.store.list().len()).sum());
+                for part in &p.parts {
+                    let l = part.store.list();
+                    all.extend((0..l.len()).map(|k| (l.indices[k], l.levels[k], l.densities[k])));
+                }
+                all.sort_unstable();
+                let mut out = VoxelList::default();
+                for (i, level, density) in all {
+                    if out.indices.last() != Some(&i) {
+                        out.push(i, Voxel { density, level });
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
+/// The mapping from hit counts to densities (§4, Figure 3): hit counts are distributed into classes so that each
+/// class holds about the same number of voxels — histogram equalisation: hit count `n` goes to class
+/// `⌈F(n) · (C − 1)⌉`, where `F` is the cumulative share of voxels hit at most `n` times. A hit count shared by more
+/// than a class's share of the voxels (the many voxels hit once) fills its class alone and the classes it spans
+/// stay empty. Class `c` of `C − 1` non-empty classes has density `round(255 · c / (C − 1))`; two classes make a
+/// binary (solid) hypertree.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DensityClasses {
+    /// Density for each hit count 0..=255 (0 hits → 0).
+    pub density: [u8; 256],
+    /// Class index for each hit count.
+    pub class: [u8; 256],
+}
+
+impl DensityClasses {
+    /// Equalise `histogram` (voxels per hit count) into `classes` classes, the empty one included.
+    pub fn equalise(histogram: &[u64; 256], classes: u8) -> DensityClasses {
+        let nonempty = u64::from(classes.max(2) - 1);
+        let total: u64 = histogram[1..].iter().sum::<u64>().max(1);
+        let mut density = [0u8; 256];
+        let mut class = [0u8; 256];
+        let mut cum = 0u64;
+        for n in 1..256 {
+            cum += histogram[n];
+            let c = (cum * nonempty).div_ceil(total).clamp(1, nonempty);
+            class[n] = c as u8;
+            density[n] = ((255 * c + nonempty / 2) / nonempty) as u8;
+        }
+        DensityClasses { density, class }
+    }
+}
+
+/// Bricks of 8³ voxels, one bit each: set if any voxel of the brick is non-empty.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct BrickMap {
+    /// Bricks along x, y, z.
+    pub dims: [u32; 3],
+    /// One bit per brick, brick index `bx + dims_x · (by + dims_y · bz)`.
+    pub bits: Vec<u64>,
+}
+
+/// log2 of the brick side, in voxels.
+pub const BRICK_SHIFT: u32 = 3;
+
+impl BrickMap {
+    /// The brick map and the voxel box of a store.
+    pub fn build(volume: &Hypervolume, store: &VoxelStore) -> (BrickMap, Option<VoxelBox>) {
+        match store {
+            VoxelStore::IndexList(IndexList { list }) | VoxelStore::IndexBits(IndexBits { list, .. }) => {
+                BrickMap::from_indices(volume, list.indices.iter().copied())
+            }
+            _ => {
+                let mut all = Vec::with_capacity(store.len());
+                store.for_each(|i, _| all.push(i));
+                BrickMap::from_indices(volume, all.into_iter())
+            }
+        }
+    }
+
+    /// The brick map and voxel box of the non-empty voxels `indices` (any order).
+    pub fn from_indices(volume: &Hypervolume, indices: impl Iterator<Item = u32>) -> (BrickMap, Option<VoxelBox>) {
+        let dims = volume.resolution.map(|r| r.div_ceil(1 << BRICK_SHIFT));
+        let n = dims.iter().map(|&d| d as usize).product::<usize>();
+        let mut map = BrickMap { dims, bits: vec![0u64; n.div_ceil(64)] };
+        let mut lo = [u32::MAX; 3];
+        let mut hi = [0u32; 3];
+        let mut any = false;
+        for i in indices {
+            let v = volume.coords(i);
+            any = true;
+            for a in 0..3 {
+                lo[a] = lo[a].min(v[a]);
+                hi[a] = hi[a].max(v[a]);
+            }
+            let b = map.brick_index(v);
+            map.bits[b >> 6] |= 1 << (b & 63);
+        }
+        (map, any.then_some((lo, hi)))
+    }
+
+    /// The brick index holding voxel `v`.
+    #[inline]
+    pub fn brick_index(&self, v: [u32; 3]) -> usize {
+        let [bx, by, bz] = v.map(|c| (c >> BRICK_SHIFT) as usize);
+        bx + self.dims[0] as usize * (by + self.dims[1] as usize * bz)
+    }
+
+    /// Whether the brick holding voxel `v` has anything in it.
+    #[inline]
+    pub fn occupied(&self, v: [u32; 3]) -> bool {
+        let b = self.brick_index(v);
+        self.bits[b >> 6] >> (b & 63) & 1 == 1
+    }
+
+    /// Bytes of the bit array.
+    pub fn memory_bytes(&self) -> usize {
+        self.bits.len() * 8
+    }
+}
+
+/// Raw hits flushed to the compact list once this many have accumulated (bounds memory for any iteration count).
+const CHUNK: usize = 1 << 22;
+
+/// One compacted hit record: voxel, subpart, hit count (saturating at 255) and the shallowest level.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Compact {
+    /// `subpart << 32 | index`: records sort by subpart, then voxel.
+    key: u64,
+    hits: u8,
+    level: u8,
+}
+
+/// Where generation records voxel hits (§6 steps c and v): straight into a dense array, or as an index list that
+/// validation compacts (§5: sort, remove duplicates, count).
+pub struct HitRecorder {
+    mode: Mode,
+    /// Hits recorded (including repeats).
+    pub hits: u64,
+}
+
+enum Mode {
+    Dense { array: DenseArray, touched: Vec<u32> },
+    Keys { raw: Vec<u64>, compact: Vec<Compact>, scratch: Vec<u64> },
+}
+
+impl HitRecorder {
+    /// A recorder for a volume of `resolution` that will be stored as `ty`.
+    pub fn new(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
+        let mode = match ty {
+            StorageType::Dense => Mode::Dense { array: DenseArray::new(resolution), touched: Vec::new() },
+            _ => Mode::Keys { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() },
+        };
+        HitRecorder { mode, hits: 0 }
+    }
+
+    /// Record one hit of voxel `index` by a generator at `level` belonging to `subpart`.
+    #[inline]
+    pub fn record(&mut self, index: u32, level: u8, subpart: u8) {
+        self.hits += 1;
+        match &mut self.mode {
+            Mode::Dense { array, touched } => {
+                let o = array.offset(array.coords(index));
+                let c = &mut array.cells[o];
+                if c[0] == 0 {
+                    touched.push(index);
+                    *c = [1, level];
+                } else {
+                    c[0] = c[0].saturating_add(1);
+                    c[1] = c[1].min(level);
+                }
+            }
+            Mode::Keys { raw, compact, scratch } => {
+                // Level in the low byte (the shallowest sorts first), the index above it and the subpart on top,
+                // so an unpartitioned index list needs only the passes its index bits take.
+                raw.push(u64::from(subpart) << 40 | u64::from(index) << 8 | u64::from(level));
+                if raw.len() >= CHUNK {
+                    flush(raw, compact, scratch);
+                }
+            }
+        }
+    }
+
+    /// Validation (§6 steps 5–7): compact the hits, turn hit counts into densities by `classes` density classes
+    /// (branch voxels, level ≤ `branch_depth`, get full density), and build the store, its occupancy brick map and
+    /// voxel box (from the hits, so a dense array is never scanned).
+    pub fn finish(
+        self,
+        ty: StorageType,
+        partitioned: bool,
+        volume: &Hypervolume,
+        classes: u8,
+        branch_depth: u8,
+    ) -> (VoxelStore, BrickMap, Option<VoxelBox>) {
+        match self.mode {
+            Mode::Dense { mut array, touched } => {
+                let mut histogram = [0u64; 256];
+                let offsets: Vec<usize> = touched.iter().map(|&i| array.offset(array.coords(i))).collect();
+                for &o in &offsets {
+                    histogram[array.cells[o][0] as usize] += 1;
+                }
+                let dc = DensityClasses::equalise(&histogram, classes);
+                for &o in &offsets {
+                    let c = &mut array.cells[o];
+                    c[0] = if c[1] <= branch_depth { 255 } else { dc.density[c[0] as usize] };
+                }
+                array.count = touched.len();
+                let (map, vbox) = BrickMap::from_indices(volume, touched.iter().copied());
+                (VoxelStore::Dense(array), map, vbox)
+            }
+            Mode::Keys { mut raw, mut compact, mut scratch } => {
+                flush(&mut raw, &mut compact, &mut scratch);
+                drop(raw);
+                drop(scratch);
+                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+                let (map, vbox) = BrickMap::build(volume, &store);
+                (store, map, vbox)
+            }
+        }
+    }
+}
+
+/// Sort the raw hits, count repeats and merge them into the compact list.
+fn flush(raw: &mut Vec<u64>, compact: &mut Vec<Compact>, scratch: &mut Vec<u64>) {
+    if raw.is_empty() {
+        return;
+    }
+    radix_sort(raw, scratch);
+    let mut runs: Vec<Compact> = Vec::new();
+    let mut k = 0;
+    while k < raw.len() {
+        let key = raw[k] >> 8;
+        let level = (raw[k] & 0xff) as u8;
+        let mut n = 0usize;
+        while k < raw.len() && raw[k] >> 8 == key {
+            n += 1;
+            k += 1;
+        }
+        runs.push(Compact { key, hits: n.min(255) as u8, level });
+    }
+    raw.clear();
+    if compact.is_empty() {
+        *compact = runs;
+        return;
+    }
+    let old = std::mem::take(compact);
+    let mut out = Vec::with_capacity(old.len() + runs.len());
+    let (mut a, mut b) = (0, 0);
+    while a < old.len() || b < runs.len() {
+        let take_a = b == runs.len() || (a < old.len() && old[a].key <= runs[b].key);
+        let take_b = a == old.len() || (b < runs.len() && runs[b].key <= old[a].key);
+        if take_a && take_b {
+            let (x, y) = (old[a], runs[b]);
+            out.push(Compact { key: x.key, hits: x.hits.saturating_add(y.hits), level: x.level.min(y.level) });
+            a += 1;
+            b += 1;
+        } else if take_a {
+            out.push(old[a]);
+            a += 1;
+        } else {
+            out.push(runs[b]);
+            b += 1;
+        }
+    }
+    *compact = out;
+}
+
+/// LSD radix sort of 64-bit keys by 11-bit digits, skipping digits that are equal in every key. The histograms of
+/// all digits are counted in one pass over the keys.
+pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
+    const BITS: u32 = 11;
+    const BUCKETS: usize = 1 << BITS;
+    const DIGITS: usize = 64_usize.div_ceil(BITS as usize);
+    let n = keys.len();
+    if n < 2 {
+        return;
+    }
+    let all_or = keys.iter().fold(0u64, |a, &k| a | k);
+    let all_and = keys.iter().fold(u64::MAX, |a, &k| a & k);
+    let varying = all_or ^ all_and;
+    let digits: Vec<usize> =
+        (0..DIGITS).filter(|&d| varying & (((BUCKETS as u64) - 1) << (d as u32 * BITS)) != 0).collect();
+    let mut counts = vec![[0usize; BUCKETS]; digits.len()];
+    for &k in keys.iter() {
+        for (c, &d) in counts.iter_mut().zip(&digits) {
+            c[((k >> (d as u32 * BITS)) as usize) & (BUCKETS - 1)] += 1;
+        }
+    }
+    scratch.clear();
+    scratch.resize(n, 0);
+    for (count, &d) in counts.iter_mut().zip(&digits) {
+        let shift = d as u32 * BITS;
+        let mut sum = 0;
+        for c in count.iter_mut() {
+            let t = *c;
+            *c = sum;
+            sum += t;
+        }
+        for &k in keys.iter() {
+            let b = ((k >> shift) as usize) & (BUCKETS - 1);
+            scratch[count[b]] = k;
+            count[b] += 1;
+        }
+        std::mem::swap(keys, scratch);
+    }
+}
+
+/// Build index lists (per part if `partitioned`) from compact records sorted by (subpart, index).
+fn build_lists(
+    compact: &[Compact],
+    ty: StorageType,
+    partitioned: bool,
+    volume: &Hypervolume,
+    classes: u8,
+    branch_depth: u8,
+) -> VoxelStore {
+    // Combine subparts per voxel: total hits (saturating) and shallowest level. Unpartitioned records are already
+    // in index order; partitioned ones are re-sorted by index first.
+    let mut merged: Vec<u64>;
+    let records: &mut dyn Iterator<Item = (u32, u8, u8)> = if partitioned {
+        merged =
+            compact.iter().map(|c| (c.key & 0xffff_ffff) << 16 | u64::from(c.level) << 8 | u64::from(c.hits)).collect();
+        let mut scratch = Vec::new();
+        radix_sort(&mut merged, &mut scratch);
+        &mut merged.iter().map(|&k| ((k >> 16) as u32, (k & 0xff) as u8, (k >> 8 & 0xff) as u8))
+    } else {
+        &mut compact.iter().map(|c| (c.key as u32, c.hits, c.level))
+    };
+    let mut combined = VoxelList::default();
+    let mut hits_of: Vec<u8> = Vec::new();
+    let mut histogram = [0u64; 256];
+    for (index, hits, level) in records {
+        if combined.indices.last() == Some(&index) {
+            let h = hits_of.last_mut().expect("parallel to the list");
+            *h = h.saturating_add(hits);
+            let l = combined.levels.last_mut().expect("non-empty");
+            *l = (*l).min(level);
+        } else {
+            hits_of.push(hits);
+            combined.push(index, Voxel { density: 1, level });
+        }
+    }
+    for &h in &hits_of {
+        histogram[h as usize] += 1;
+    }
+    let dc = DensityClasses::equalise(&histogram, classes);
+    for (d, (&h, &l)) in combined.densities.iter_mut().zip(hits_of.iter().zip(&combined.levels)) {
+        *d = if l <= branch_depth { 255 } else { dc.density[h as usize] };
+    }
+    if !partitioned || ty == StorageType::Dense {
+        return VoxelStore::from_list(combined, ty, volume);
+    }
+    // One list per subpart: records of a subpart are contiguous and in index order.
+    let mut parts: Vec<(u8, VoxelList)> = Vec::new();
+    for rec in compact {
+        let sub = (rec.key >> 32) as u8;
+        let index = rec.key as u32;
+        if parts.last().is_none_or(|p| p.0 != sub) {
+            parts.push((sub, VoxelList::default()));
+        }
+        let density = combined.position(index).map_or(1, |p| combined.densities[p]);
+        parts.last_mut().expect("pushed").1.push(index, Voxel { density, level: rec.level });
+    }
+    VoxelStore::Partitioned(Partitioned::from_parts(parts, ty, volume))
+}

@@ -1,0 +1,405 @@
+//! The volumetric interpretation of a species (the future work of §12): an amplified species instance is sampled
+//! into a hypervolume with the same hit counting, density classes and depth colouring as an IFS hypertree, so every
+//! species gets a far-field volume automatically, deterministic from its instance seed.
+//!
+//! Solid primitives are sampled at 2×2×2 points per voxel (thin ones — narrower than a voxel — along their axis);
+//! leaves at points spaced half a voxel apart on their triangles. Levels come from the primitive's thickness: the
+//! thickest wood is level 0 and each halving of thickness one level deeper, up to the branch depth; leaves are the
+//! level after it. Each level's colour is the mean material colour of its primitives.
+
+// Negated comparisons are deliberate: they treat NaN as out of range.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use canopy_protocol::hypertree::{DepthColor, MAX_DENSITY_CLASSES, MAX_RESOLUTION, MAX_TREE_DEPTH};
+use canopy_protocol::{LeafTopology, SpeciesGraph};
+
+use super::generate::MAX_DENSE_VOXELS;
+use super::storage::HitRecorder;
+use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
+use crate::amplify::{AmplifyError, Budget, Instance, amplify};
+use crate::nearfield::TrunkBase;
+use crate::primitive::{Primitive, PrimitiveStream, Shape};
+use crate::transform::Transform;
+
+/// How to voxelise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct VoxeliseOptions {
+    /// Voxels along the longest axis (voxels are cubes).
+    pub resolution: u32,
+    /// Density classes including the empty one.
+    pub density_classes: u8,
+    /// Wood levels 0..=this; leaves are the level after.
+    pub branch_depth: u8,
+    /// The storage structure.
+    pub storage: StorageType,
+    /// Most sample points (bounds the work for any species).
+    pub max_samples: u64,
+}
+
+impl Default for VoxeliseOptions {
+    fn default() -> Self {
+        VoxeliseOptions {
+            resolution: 200,
+            density_classes: 64,
+            branch_depth: 3,
+            storage: StorageType::IndexBits,
+            max_samples: 200_000_000,
+        }
+    }
+}
+
+/// Why voxelisation was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum VoxeliseError {
+    /// Resolution out of range.
+    #[error("resolution {0} (allowed 1..={MAX_RESOLUTION})")]
+    Resolution(u32),
+    /// Density classes or branch depth out of range.
+    #[error("{0} is out of range")]
+    Parameter(&'static str),
+    /// The instance has no primitives, or their bounds are not finite.
+    #[error("the instance has no finite geometry to voxelise")]
+    Empty,
+    /// Too many sample points.
+    #[error("more than {0} sample points")]
+    Samples(u64),
+    /// A dense array would be too large.
+    #[error("a dense array of {0} voxels exceeds {MAX_DENSE_VOXELS}")]
+    DenseTooLarge(u64),
+    /// Amplification failed.
+    #[error("amplification failed: {0}")]
+    Amplify(#[from] AmplifyError),
+}
+
+/// Amplify `instance` of `graph` under `budget` and voxelise it.
+pub fn voxelise_species(
+    graph: &SpeciesGraph,
+    instance: &Instance,
+    budget: &Budget,
+    opts: &VoxeliseOptions,
+) -> Result<Hypertree, VoxeliseError> {
+    let stream = amplify(graph, instance, budget)?;
+    voxelise(&stream, &graph.name, opts)
+}
+
+fn local_bounds(stream: &PrimitiveStream, p: &Primitive) -> Vec<[f32; 3]> {
+    let corners = |lo: [f32; 3], hi: [f32; 3]| -> Vec<[f32; 3]> {
+        (0..8)
+            .map(|c| {
+                [
+                    if c & 1 == 0 { lo[0] } else { hi[0] },
+                    if c & 2 == 0 { lo[1] } else { hi[1] },
+                    if c & 4 == 0 { lo[2] } else { hi[2] },
+                ]
+            })
+            .collect()
+    };
+    match solid_shape(&p.shape) {
+        Shape::Cone { bottom, top, height } | Shape::TrunkBase(TrunkBase { bottom, top, height, .. }) => {
+            let r = bottom.max(top);
+            corners([-r, 0.0, -r], [r, height, r])
+        }
+        Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [radius, height, radius]),
+        Shape::Sphere { radius } => corners([-radius; 3], [radius; 3]),
+        Shape::Box { size } => corners(size.map(|s| -0.5 * s), size.map(|s| 0.5 * s)),
+        Shape::Leaf { .. } => stream.leaf(p).to_vec(),
+    }
+}
+
+fn col_len(t: &Transform, c: usize) -> f32 {
+    let m = &t.m;
+    libm::sqrtf(m[c] * m[c] + m[4 + c] * m[4 + c] + m[8 + c] * m[8 + c])
+}
+
+/// World-space thickness of a wood primitive (radius times lateral scale), or `None` for leaves.
+fn thickness(p: &Primitive) -> Option<f32> {
+    let lateral = 0.5 * (col_len(&p.transform, 0) + col_len(&p.transform, 2));
+    match solid_shape(&p.shape) {
+        Shape::Cone { bottom, top, .. } | Shape::TrunkBase(TrunkBase { bottom, top, .. }) => {
+            Some(bottom.max(top) * lateral)
+        }
+        Shape::Cylinder { radius, .. } => Some(radius * lateral),
+        Shape::Sphere { radius } => Some(radius * p.transform.max_axis_scale()),
+        Shape::Box { size } => Some(0.5 * size[0].min(size[2]) * lateral),
+        Shape::Leaf { .. } => None,
+    }
+}
+
+/// The inverse of an affine transform (None if singular).
+fn inverse(t: &Transform) -> Option<Transform> {
+    let det = t.determinant();
+    if !(det.abs() > 1e-20) || !det.is_finite() {
+        return None;
+    }
+    let c = t.normal_matrix();
+    let mut m = [0.0f32; 12];
+    for r in 0..3 {
+        for k in 0..3 {
+            m[4 * r + k] = c[k][r] / det;
+        }
+    }
+    let tr = [t.m[3], t.m[7], t.m[11]];
+    for r in 0..3 {
+        m[4 * r + 3] = -(m[4 * r] * tr[0] + m[4 * r + 1] * tr[1] + m[4 * r + 2] * tr[2]);
+    }
+    Some(Transform { m })
+}
+
+/// A trunk base (seed 002) is voxelised as the frustum that holds its flares.
+fn solid_shape(shape: &Shape) -> Shape {
+    match shape {
+        Shape::TrunkBase(b) => Shape::Cone { bottom: b.bottom * b.spread.max(1.0), top: b.top, height: b.height },
+        other => other.clone(),
+    }
+}
+
+fn inside(shape: &Shape, q: [f32; 3]) -> bool {
+    match solid_shape(shape) {
+        Shape::Cone { bottom, top, height } | Shape::TrunkBase(TrunkBase { bottom, top, height, .. }) => {
+            if !(q[1] >= 0.0 && q[1] <= height) || height <= 0.0 {
+                return false;
+            }
+            let r = bottom + (top - bottom) * (q[1] / height);
+            q[0] * q[0] + q[2] * q[2] <= r * r
+        }
+        Shape::Cylinder { radius, height } => {
+            q[1] >= 0.0 && q[1] <= height && q[0] * q[0] + q[2] * q[2] <= radius * radius
+        }
+        Shape::Sphere { radius } => q[0] * q[0] + q[1] * q[1] + q[2] * q[2] <= radius * radius,
+        Shape::Box { size } => (0..3).all(|i| q[i].abs() <= 0.5 * size[i]),
+        Shape::Leaf { .. } => false,
+    }
+}
+
+struct Sampler<'a> {
+    volume: Hypervolume,
+    offset: [f32; 3],
+    inv: [f32; 3],
+    side: f32,
+    recorder: &'a mut HitRecorder,
+    samples: u64,
+    max: u64,
+}
+
+impl Sampler<'_> {
+    fn budget(&mut self, n: u64) -> Result<(), VoxeliseError> {
+        self.samples += n;
+        if self.samples > self.max { Err(VoxeliseError::Samples(self.max)) } else { Ok(()) }
+    }
+
+    fn point(&mut self, p: [f32; 3], level: u8) {
+        let q = std::array::from_fn(|i| p[i] + self.offset[i]);
+        if let Some(v) = self.volume.voxel_at(q, self.inv) {
+            self.recorder.record(self.volume.index(v), level, 0);
+        }
+    }
+
+    fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
+        let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
+        let len = libm::sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        let n = (len / (0.5 * self.side)).min(1e7) as u64 + 1;
+        self.budget(n + 1)?;
+        for k in 0..=n {
+            let t = k as f32 / n as f32;
+            self.point(std::array::from_fn(|i| a[i] + d[i] * t), level);
+        }
+        Ok(())
+    }
+
+    fn triangle(&mut self, a: [f32; 3], b: [f32; 3], c: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
+        let e = |p: [f32; 3], q: [f32; 3]| libm::sqrtf((0..3).map(|i| (q[i] - p[i]) * (q[i] - p[i])).sum::<f32>());
+        let longest = e(a, b).max(e(b, c)).max(e(c, a));
+        let n = (longest / (0.5 * self.side)).min(1e4) as u64 + 1;
+        self.budget((n + 1) * (n + 2) / 2)?;
+        for i in 0..=n {
+            for j in 0..=(n - i) {
+                let (u, v) = (i as f32 / n as f32, j as f32 / n as f32);
+                let w = 1.0 - u - v;
+                self.point(std::array::from_fn(|k| a[k] * w + b[k] * u + c[k] * v), level);
+            }
+        }
+        Ok(())
+    }
+
+    fn solid(&mut self, p: &Primitive, corners: &[[f32; 3]], level: u8) -> Result<(), VoxeliseError> {
+        let Some(inv) = inverse(&p.transform) else { return Ok(()) };
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for c in corners {
+            let w = p.transform.point(*c);
+            for i in 0..3 {
+                lo[i] = lo[i].min(w[i] + self.offset[i]);
+                hi[i] = hi[i].max(w[i] + self.offset[i]);
+            }
+        }
+        let range: [(u32, u32); 3] = std::array::from_fn(|i| {
+            let r = self.volume.resolution[i] as f32;
+            let a = (lo[i] * self.inv[i]).clamp(0.0, r - 1.0) as u32;
+            let b = (hi[i] * self.inv[i]).clamp(0.0, r - 1.0) as u32;
+            (a, b)
+        });
+        let count: u64 = range.iter().map(|(a, b)| u64::from(b - a + 1)).product();
+        self.budget(count * 8)?;
+        let vs = self.volume.voxel_size();
+        let mut any = false;
+        for z in range[2].0..=range[2].1 {
+            for y in range[1].0..=range[1].1 {
+                for x in range[0].0..=range[0].1 {
+                    let idx = self.volume.index([x, y, z]);
+                    for s in 0..8 {
+                        let f = [
+                            0.25 + 0.5 * (s & 1) as f32,
+                            0.25 + 0.5 * ((s >> 1) & 1) as f32,
+                            0.25 + 0.5 * (s >> 2) as f32,
+                        ];
+                        let world: [f32; 3] =
+                            std::array::from_fn(|i| ([x, y, z][i] as f32 + f[i]) * vs[i] - self.offset[i]);
+                        if inside(&p.shape, inv.point(world)) {
+                            self.recorder.record(idx, level, 0);
+                            any = true;
+                        }
+                    }
+                }
+            }
+        }
+        if !any {
+            // Smaller than the sampling grid: keep it as one hit at its centre.
+            let mut c = [0.0f32; 3];
+            for k in corners {
+                for i in 0..3 {
+                    c[i] += k[i] / corners.len() as f32;
+                }
+            }
+            self.point(p.transform.point(c), level);
+        }
+        Ok(())
+    }
+}
+
+/// Voxelise a primitive stream (species units, +Y up) into a hypertree.
+pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) -> Result<Hypertree, VoxeliseError> {
+    if opts.resolution == 0 || opts.resolution > MAX_RESOLUTION {
+        return Err(VoxeliseError::Resolution(opts.resolution));
+    }
+    if opts.density_classes < 2 || opts.density_classes > MAX_DENSITY_CLASSES {
+        return Err(VoxeliseError::Parameter("density classes"));
+    }
+    if opts.branch_depth + 2 > MAX_TREE_DEPTH {
+        return Err(VoxeliseError::Parameter("branch depth"));
+    }
+    // The world box of every primitive.
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for p in &stream.primitives {
+        for c in local_bounds(stream, p) {
+            let w = p.transform.point(c);
+            for i in 0..3 {
+                lo[i] = lo[i].min(w[i]);
+                hi[i] = hi[i].max(w[i]);
+            }
+        }
+    }
+    if stream.primitives.is_empty() || !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] <= hi[i]) {
+        return Err(VoxeliseError::Empty);
+    }
+    let ext: [f32; 3] = std::array::from_fn(|i| hi[i] - lo[i]);
+    let longest = ext[0].max(ext[1]).max(ext[2]).max(1e-6);
+    let pad = 0.02 * longest;
+    let side = (longest + 2.0 * pad) / opts.resolution as f32;
+    let resolution: [u32; 3] =
+        std::array::from_fn(|i| (libm::ceilf((ext[i] + 2.0 * pad) / side) as u32).clamp(1, opts.resolution));
+    let volume = Hypervolume { resolution, extent: resolution.map(|r| r as f32 * side) };
+    if opts.storage == StorageType::Dense && volume.voxel_count() > MAX_DENSE_VOXELS {
+        return Err(VoxeliseError::DenseTooLarge(volume.voxel_count()));
+    }
+    let offset: [f32; 3] = std::array::from_fn(|i| pad - lo[i]);
+    // Levels by thickness.
+    let trunk = stream.primitives.iter().filter_map(thickness).fold(0.0f32, f32::max);
+    let leaf_level = opts.branch_depth + 1;
+    let level_of = |p: &Primitive| -> u8 {
+        match thickness(p) {
+            None => leaf_level,
+            Some(t) if t > 0.0 && trunk > 0.0 => {
+                (libm::roundf(libm::log2f(trunk / t)).max(0.0) as u32).min(u32::from(opts.branch_depth)) as u8
+            }
+            Some(_) => opts.branch_depth,
+        }
+    };
+    let mut recorder = HitRecorder::new(opts.storage, volume.resolution);
+    let mut sampler = Sampler {
+        volume,
+        offset,
+        inv: [1.0 / side; 3],
+        side,
+        recorder: &mut recorder,
+        samples: 0,
+        max: opts.max_samples,
+    };
+    let mut color_sum = vec![([0.0f64; 3], 0u64); usize::from(leaf_level) + 1];
+    let mut flows: Vec<(f32, Flow)> = Vec::new();
+    for p in &stream.primitives {
+        let level = level_of(p);
+        let cs = &mut color_sum[usize::from(level)];
+        for i in 0..3 {
+            cs.0[i] += f64::from(p.color[i]);
+        }
+        cs.1 += 1;
+        match &p.shape {
+            Shape::Leaf { topology, .. } => {
+                let pts: Vec<[f32; 3]> = stream.leaf(p).iter().map(|&q| p.transform.point(q)).collect();
+                for k in 1..pts.len().saturating_sub(1) {
+                    let (a, b, c) = match topology {
+                        LeafTopology::Polygon => (pts[0], pts[k], pts[k + 1]),
+                        LeafTopology::Strip => (pts[k - 1], pts[k], pts[k + 1]),
+                    };
+                    sampler.triangle(a, b, c, level)?;
+                }
+            }
+            shape => {
+                let t = thickness(p).unwrap_or(0.0);
+                let axis = match solid_shape(shape) {
+                    Shape::Cone { height, .. } | Shape::Cylinder { height, .. } => Some(height),
+                    _ => None,
+                };
+                let base = p.transform.point([0.0; 3]);
+                if let Some(h) = axis {
+                    let tip = p.transform.point([0.0, h, 0.0]);
+                    if level <= 1 {
+                        flows.push((t, Flow { from: add(base, offset), to: add(tip, offset) }));
+                    }
+                    if t < 0.5 * side {
+                        sampler.line(base, tip, level)?;
+                        continue;
+                    }
+                }
+                sampler.solid(p, &local_bounds(stream, p), level)?;
+            }
+        }
+    }
+    let finished = recorder.finish(opts.storage, false, &volume, opts.density_classes, opts.branch_depth);
+    let depth_colors = color_sum
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.1 > 0)
+        .map(|(l, (sum, n))| {
+            let c: [f32; 3] = std::array::from_fn(|i| ((sum[i] / *n as f64) as f32).clamp(0.0, 1.0));
+            DepthColor { levels: [l as u8, l as u8], from: c, to: c }
+        })
+        .collect();
+    // The thickest axes are the first-level structure flow (at most 64, thickest first, ties in stream order).
+    let mut order: Vec<usize> = (0..flows.len()).collect();
+    order.sort_by(|&a, &b| flows[b].0.total_cmp(&flows[a].0).then(a.cmp(&b)));
+    let flows = order.into_iter().take(64).map(|i| flows[i].1).collect();
+    Ok(Hypertree::with_occupancy(
+        name.to_string(),
+        volume,
+        finished,
+        depth_colors,
+        leaf_level + 1,
+        opts.branch_depth,
+        Bounds::default(),
+        flows,
+    ))
+}
+
+fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    std::array::from_fn(|i| a[i] + b[i])
+}

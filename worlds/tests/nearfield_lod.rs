@@ -1,0 +1,75 @@
+//! The near-field LOD chain (seed 004 §4–5; needs the `meshopt` feature, which `cargo test --workspace` turns
+//! on through the `canopy` client): decimation keeps its error bound, thin branches go first, the trunk last.
+#![cfg(feature = "meshopt")]
+
+use canopy_worlds::amplify::{Budget, Instance, amplify};
+use canopy_worlds::diag::SourceFile;
+use canopy_worlds::load::parse_source;
+use canopy_worlds::nearfield::NearFieldError;
+use canopy_worlds::nearfield::continuous::{ContinuousOptions, continuous_mesh};
+use canopy_worlds::nearfield::lod::{LodOptions, hausdorff, lod_chain, point_triangle};
+
+fn fig_mesh(contour: u32) -> canopy_worlds::nearfield::continuous::ContinuousMesh {
+    let (g, d) = parse_source(&SourceFile::new("fig.species", include_str!("../species/fig.species")));
+    assert!(d.is_empty(), "{d:?}");
+    let s = amplify(&g.unwrap(), &Instance::new(1), &Budget::default()).unwrap();
+    continuous_mesh(&s, &ContinuousOptions { contour, ..ContinuousOptions::default() }).unwrap()
+}
+
+#[test]
+fn decimation_keeps_its_error_bound_thin_branches_first() {
+    let cm = fig_mesh(12);
+    let full = cm.mesh.triangle_count();
+    let chain = lod_chain(&cm, &LodOptions { levels: 4, error: 0.03 }).unwrap();
+    assert_eq!(chain.len(), 4);
+    let originals: Vec<[f64; 3]> = cm.mesh.positions.iter().map(|p| p.map(f64::from)).collect();
+    let mut previous = full;
+    for (k, level) in chain.iter().enumerate() {
+        let t = level.mesh.triangle_count();
+        assert!(t <= previous, "level {k}: {t} triangles after {previous}");
+        previous = t;
+        // The bound holds, measured independently against the full mesh's vertices.
+        assert!(level.error <= level.bound, "level {k}: error {} > bound {}", level.error, level.bound);
+        let measured = hausdorff(&originals, &level.mesh.positions, &level.mesh.indices, f64::from(level.bound));
+        assert!(measured <= f64::from(level.bound), "level {k}: measured {measured}");
+        // Locked (thicker) contours are untouched: every full-mesh vertex thicker than the level's radius is still
+        // a vertex of the level.
+        let kept: std::collections::BTreeSet<[u32; 3]> =
+            level.mesh.positions.iter().map(|p| p.map(f32::to_bits)).collect();
+        for (p, &r) in cm.mesh.positions.iter().zip(&cm.radius) {
+            if r > level.max_radius {
+                assert!(kept.contains(&p.map(f32::to_bits)), "level {k}: a trunk vertex of radius {r} was removed");
+            }
+        }
+    }
+    assert!(chain[0].max_radius < chain[2].max_radius && chain[3].max_radius.is_infinite());
+    assert!(previous * 2 < full, "the last level halves the mesh at least: {previous} of {full}");
+    // Deterministic on one platform.
+    assert_eq!(chain, lod_chain(&cm, &LodOptions { levels: 4, error: 0.03 }).unwrap());
+}
+
+#[test]
+fn tighter_bounds_keep_more_triangles() {
+    let cm = fig_mesh(9);
+    let loose = lod_chain(&cm, &LodOptions { levels: 1, error: 0.05 }).unwrap();
+    let tight = lod_chain(&cm, &LodOptions { levels: 1, error: 0.002 }).unwrap();
+    assert!(tight[0].mesh.triangle_count() > loose[0].mesh.triangle_count());
+    assert!(tight[0].error <= 0.002 && loose[0].error <= 0.05);
+    assert!(matches!(lod_chain(&cm, &LodOptions { levels: 0, error: 0.01 }), Err(NearFieldError::Option { .. })));
+    assert!(matches!(lod_chain(&cm, &LodOptions { levels: 2, error: -1.0 }), Err(NearFieldError::Option { .. })));
+    let mut broken = cm.clone();
+    broken.mesh.indices[4] = u32::MAX;
+    assert_eq!(lod_chain(&broken, &LodOptions::default()), Err(NearFieldError::Malformed("index out of range")));
+    let mut broken = cm.clone();
+    broken.radius.pop();
+    assert!(matches!(lod_chain(&broken, &LodOptions::default()), Err(NearFieldError::Malformed(_))));
+}
+
+#[test]
+fn point_to_triangle_distance() {
+    let t = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    assert!((point_triangle([0.2, 0.2, 0.5], &t) - 0.5).abs() < 1e-12, "above the face");
+    assert!((point_triangle([-1.0, 0.0, 0.0], &t) - 1.0).abs() < 1e-12, "beyond a vertex");
+    assert!((point_triangle([1.0, 1.0, 0.0], &t) - 0.5f64.sqrt()).abs() < 1e-12, "beyond the hypotenuse");
+    assert!((point_triangle([0.5, -2.0, 0.0], &t) - 2.0).abs() < 1e-12, "beyond an edge");
+}
