@@ -2,6 +2,10 @@
 //! bots against it over real QUIC on loopback (certificate pinned), and prints a live summary — clients, records
 //! per second, bytes by message class, area-of-interest completeness — until `--duration` passes or Ctrl-C; then
 //! the bots stop, settle, and are checked against the world.
+//!
+//! Where there is a display (`DISPLAY` or `WAYLAND_DISPLAY` set) it also opens the walkthrough window
+//! (`canopy walk`) on the same in-process server; it closes after `--duration` (0: when you close it), and the bots
+//! walk until it does. `--no-window` keeps the demo headless.
 
 use std::net::SocketAddr;
 use std::process::ExitCode;
@@ -24,7 +28,7 @@ pub struct DemoArgs {
     /// How many bots.
     #[arg(long, default_value_t = 8)]
     bots: usize,
-    /// How long the bots walk, seconds (0: until Ctrl-C).
+    /// How long the bots walk, seconds (0: until Ctrl-C, or until the window is closed).
     #[arg(long, default_value_t = 30.0)]
     duration: f64,
     /// Their path.
@@ -42,6 +46,21 @@ pub struct DemoArgs {
     /// TCP address of its metrics endpoint.
     #[arg(long, default_value = "127.0.0.1:0")]
     metrics: SocketAddr,
+    /// Do not open the walkthrough window even where there is a display.
+    #[arg(long)]
+    no_window: bool,
+}
+
+/// Whether a window can be opened here.
+fn display_present() -> bool {
+    ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()))
+}
+
+/// `canopy walk` against the in-process server, as its own command line would say it.
+#[derive(clap::Parser, Debug)]
+struct WalkCli {
+    #[command(flatten)]
+    walk: super::walk::WalkArgs,
 }
 
 fn kib(b: u64) -> String {
@@ -70,6 +89,38 @@ fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (In
 
 /// Run `canopy demo`.
 pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    if args.no_window || !display_present() {
+        return demo(args, None, stop_rx);
+    }
+    // winit wants the main thread: the server and the bots run on another, the window here.
+    let (addr_tx, addr_rx) = std::sync::mpsc::channel();
+    let exit_after = args.duration.max(0.0).to_string();
+    let headless = std::thread::spawn(move || demo(args, Some(addr_tx), stop_rx));
+    let walked = match addr_rx.recv() {
+        Ok((addr, fingerprint)) => {
+            use clap::Parser;
+            let argv = ["walk", "--server", &addr, "--cert-fingerprint", &fingerprint, "--exit-after", &exit_after];
+            Some(super::walk::run(WalkCli::try_parse_from(argv)?.walk))
+        }
+        // The demo failed before its server was up; its error is the one to report.
+        Err(_) => None,
+    };
+    let _ = stop_tx.send(true);
+    let code = headless.join().map_err(|_| anyhow::anyhow!("the demo thread panicked"))??;
+    match walked {
+        Some(Err(e)) => Err(e.context("the walkthrough window")),
+        _ => Ok(code),
+    }
+}
+
+/// The server and the bots with the live summary; with `window`, the server's address and fingerprint go there
+/// and the bots walk until `stop` (the window closed).
+fn demo(
+    args: DemoArgs,
+    window: Option<std::sync::mpsc::Sender<(String, String)>>,
+    stop_rx: tokio::sync::watch::Receiver<bool>,
+) -> anyhow::Result<ExitCode> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let loaded = Instant::now();
@@ -83,24 +134,31 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         if let Some(m) = server.metrics_addr() {
             println!("metrics: http://{m}/metrics");
         }
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let (stop_tx, bots_stop) = tokio::sync::watch::channel(false);
+        let mut window_closed = stop_rx.clone();
+        let windowed = window.is_some();
+        if let Some(tx) = window {
+            let _ = tx.send((server.local_addr().to_string(), server.fingerprint().to_string()));
+        }
         let trust = Trust::pinned(server.fingerprint()).context("the server's fingerprint")?;
         let mut cfg = BotsConfig::new(args.bots, ConnectConfig::new(server.local_addr(), trust));
         cfg.path = args.path;
         cfg.speed = args.speed;
         cfg.radius = args.radius;
-        cfg.duration = if args.duration > 0.0 { Duration::from_secs_f64(args.duration) } else { Duration::from_secs(u64::MAX / 4) };
+        cfg.duration = if args.duration > 0.0 && !windowed { Duration::from_secs_f64(args.duration) } else { Duration::from_secs(u64::MAX / 4) };
         cfg.connect_rate = 50.0;
         cfg.verify = Some(Arc::clone(&world));
-        cfg.stop = stop_rx;
-        let forever = args.duration <= 0.0;
+        cfg.stop = bots_stop;
+        let forever = args.duration <= 0.0 || windowed;
         println!(
             "{} bots walking ({:?}, {} m/s, AOI radius {} m) {}",
             args.bots,
             args.path,
             args.speed,
             args.radius,
-            if forever { "until Ctrl-C".to_string() } else { format!("for {} s (Ctrl-C stops early)", args.duration) }
+            if windowed {
+                "until the window closes".to_string()
+            } else if forever { "until Ctrl-C".to_string() } else { format!("for {} s (Ctrl-C stops early)", args.duration) }
         );
         let progress = Arc::new(Progress::default());
         let started = Instant::now();
@@ -116,6 +174,11 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
                 _ = tick.tick() => println!("{}", live_line(started.elapsed(), server.metrics(), &progress, args.bots, &mut last)),
                 _ = &mut ctrl_c, if !stopping => {
                     println!("stopping: the bots stop walking, settle and are checked");
+                    stopping = true;
+                    let _ = stop_tx.send(true);
+                }
+                _ = window_closed.wait_for(|closed| *closed), if windowed && !stopping => {
+                    println!("the window closed: the bots stop walking, settle and are checked");
                     stopping = true;
                     let _ = stop_tx.send(true);
                 }
