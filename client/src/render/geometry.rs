@@ -8,6 +8,8 @@ use bytemuck::{Pod, Zeroable};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
 use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into};
+use canopy_worlds::nearfield::options::species_options;
+use canopy_worlds::nearfield::species_near_mesh;
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 
 use super::NearMode;
@@ -188,6 +190,24 @@ pub fn build_tree(
     budget: &Budget,
 ) -> Result<TreeGeometry, AmplifyError> {
     let stream = amplify(graph, instance, budget)?;
+    // Full detail of a species that asks for near-field meshing (`nearfield(continuous = 1, …)`): its continuous
+    // mesh with bark and foliage, as `canopy species export` writes it.
+    if instance.detail == 0 {
+        if let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
+            match species_near_mesh(&stream, &o) {
+                Ok(m) => {
+                    let mut out = TreeGeometry {
+                        primitives: stream.primitives.len(),
+                        bounds: stream_bounds(&stream),
+                        ..Default::default()
+                    };
+                    set_mesh(&mut out, m);
+                    return Ok(out);
+                }
+                Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
+            }
+        }
+    }
     Ok(geometry_of(&stream, instance.detail, mode))
 }
 
@@ -230,6 +250,12 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
             }
         }
     }
+    set_mesh(&mut out, mesh);
+    out
+}
+
+/// Make `mesh` the geometry's mesh part, packed for the GPU.
+fn set_mesh(out: &mut TreeGeometry, mesh: Mesh) {
     out.vertices = mesh
         .positions
         .iter()
@@ -238,7 +264,6 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
         .map(|((p, n), c)| MeshVertex { position: *p, normal: pack_snorm(*n), color: pack_unorm(*c) })
         .collect();
     out.indices = mesh.indices;
-    out
 }
 
 #[cfg(test)]
@@ -249,6 +274,24 @@ mod tests {
 
     fn conifer() -> SpeciesGraph {
         library::find("conifer").unwrap().load().unwrap()
+    }
+
+    #[test]
+    fn full_detail_of_a_near_field_species_is_its_continuous_mesh() {
+        let text = include_str!("../../../worlds/species/fig.species");
+        let (g, d) = canopy_worlds::load::parse_source(&canopy_worlds::diag::SourceFile::new("fig.species", text));
+        let g = g.unwrap_or_else(|| panic!("{d:?}"));
+        let inst = Instance::new(3);
+        let near = build_tree(&g, &inst, NearMode::Instanced, &Budget::default()).unwrap();
+        let stream = amplify(&g, &inst, &Budget::default()).unwrap();
+        let o = species_options(&g, &inst).unwrap().unwrap();
+        let m = species_near_mesh(&stream, &o).unwrap();
+        assert!(near.prims.is_empty(), "the continuous mesh replaces the unit primitives");
+        assert_eq!(near.indices.len(), m.indices.len());
+        assert_eq!(near.vertices.len(), m.positions.len());
+        // Coarser details keep the ordinary path.
+        let mid = build_tree(&g, &Instance { detail: 1, ..inst.clone() }, NearMode::Instanced, &Budget::default()).unwrap();
+        assert!(!mid.prims.is_empty());
     }
 
     #[test]

@@ -149,3 +149,25 @@ pub(crate) fn perpendicular(a: V3) -> V3 {
     let helper = if libm::fabs(a[0]) < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] };
     normalize(cross(helper, a)).unwrap_or([1.0, 0.0, 0.0])
 }
+
+/// An instance meshed as its species asks with `nearfield(continuous = 1, …)`, for close-ups: the continuous mesh
+/// of the branches (with contours along long pieces where a bark is asked for, so the plates are about square),
+/// the outer bark over the trunk, and the foliage, merged into one mesh. The renderer's near band draws this;
+/// `canopy species export` writes the same parts as named meshes.
+pub fn species_near_mesh(
+    stream: &crate::primitive::PrimitiveStream,
+    opts: &NearFieldOptions,
+) -> Result<Mesh, NearFieldError> {
+    let mesh_opts = if opts.bark.is_some() {
+        continuous::ContinuousOptions { subdivide: true, ..opts.mesh }
+    } else {
+        opts.mesh
+    };
+    let cm = continuous::continuous_mesh(stream, &mesh_opts)?;
+    let mut out = cm.mesh.clone();
+    if let Some(b) = &opts.bark {
+        out.append(&bark::outer_bark(&cm.mesh, &bark::trunk_places(&cm.tags), b)?, [0.0; 3]);
+    }
+    out.append(&cm.foliage, [0.0; 3]);
+    Ok(out)
+}
