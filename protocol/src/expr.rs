@@ -268,6 +268,9 @@ pub enum ExprError {
     /// The expression leaves other than one value.
     #[error("expression leaves {0} values instead of 1")]
     Result(usize),
+    /// A constant is NaN or infinite.
+    #[error("constant at operation {0} is not finite")]
+    Constant(usize),
 }
 
 impl Expr {
@@ -332,6 +335,11 @@ impl Expr {
                     (k, 1)
                 }
             };
+            if let Op::Const(v) = *op
+                && !v.is_finite()
+            {
+                return Err(ExprError::Constant(at));
+            }
             if let Op::Param(slot) = *op
                 && slot as usize >= param_count
             {

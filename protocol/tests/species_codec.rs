@@ -83,6 +83,14 @@ fn invalid_graphs_are_rejected() {
     let mut g = worm();
     g.root = 7;
     assert_eq!(g.validate(), Err(ValidateError::Root(7)));
+    // Constants are finite: a NaN would make decode(encode(g)) != g and has no use (found by the fuzzer:
+    // fuzz/artifacts/species, Cylinder { radius: [Const(NaN), Choose(1)] }).
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        let mut g = worm();
+        g.nodes[0] = Node::Selection { expr: Expr { ops: vec![Op::Const(bad), Op::Choose(1)] }, children: vec![1] };
+        assert!(matches!(g.validate(), Err(ValidateError::Expr { node: 0, error: ExprError::Constant(0) })));
+        assert!(SpeciesGraph::decode(&g.encode()).is_err());
+    }
     let deep = Expr { ops: vec![Op::Const(1.0); limits::MAX_EXPR_STACK + 1] };
     assert!(matches!(deep.validate(0), Err(ExprError::TooDeep(_))));
 }

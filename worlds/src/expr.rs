@@ -415,9 +415,13 @@ fn emit(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>, out: &mut Vec<O
             _ => true,
         });
     if foldable {
+        // A non-finite result (`0 / 0`, `1e30 * 1e30`) stays unfolded: constants on the wire are finite, and
+        // evaluating the operations at traversal gives the same value.
         let v = eval(&Expr { ops: code.to_vec() }, &[], 0.0, &mut NoDraw);
-        out.truncate(start);
-        out.push(Op::Const(v));
+        if v.is_finite() {
+            out.truncate(start);
+            out.push(Op::Const(v));
+        }
     }
     Ok(())
 }
@@ -469,6 +473,10 @@ mod tests {
         assert_eq!(value("c > 0 ? c - 1 : 0", &[("c", 4.0)]), 3.0);
         let e = compile(&parse_str("2 * 3 + sin(0)").unwrap(), &mut |_| None).unwrap();
         assert_eq!(e.ops, vec![Op::Const(6.0)]);
+        // Non-finite results are not folded into constants (the wire accepts finite constants only).
+        let nan = compile(&parse_str("0 / 0 + 1").unwrap(), &mut |_| None).unwrap();
+        assert!(nan.ops.iter().all(|op| !matches!(op, Op::Const(v) if !v.is_finite())), "{:?}", nan.ops);
+        nan.validate(0).unwrap();
         let e = compile(&parse_str("x * (2 + 2)").unwrap(), &mut |_| Some(0)).unwrap();
         assert_eq!(e.ops, vec![Op::Param(0), Op::Const(4.0), Op::Mul]);
     }
