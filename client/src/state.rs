@@ -80,6 +80,17 @@ pub enum Event {
     Released(CellCoord),
     /// The message was stale (an older grant) or for a cell already evicted, and was dropped.
     Dropped,
+    /// A chunk of explicit geometry arrived (bandwidth baselines; counted and discarded).
+    Geometry {
+        /// What it is.
+        kind: canopy_protocol::messages::GeometryKind,
+        /// Its instance, species or first instance id.
+        id: u32,
+        /// Payload bytes in the chunk.
+        bytes: usize,
+        /// Whether it was the blob's last chunk.
+        last: bool,
+    },
 }
 
 /// Why a server message is not acceptable (the client closes the connection).
@@ -133,6 +144,10 @@ pub struct ClientStats {
     pub releases: u64,
     /// Cells the client evicted by distance before the server's release.
     pub evicted: u64,
+    /// Explicit-geometry chunks received (bandwidth baselines).
+    pub geometry_chunks: u64,
+    /// Explicit-geometry payload bytes received (bandwidth baselines).
+    pub geometry_bytes: u64,
 }
 
 /// The client's view of its session (see the module docs).
@@ -304,6 +319,13 @@ impl ClientState {
             ServerStreaming::Species(s) => self.on_species(s),
             ServerStreaming::Cells(b) => self.on_batch(b),
             ServerStreaming::Release(r) => Ok(self.on_release(r)),
+            ServerStreaming::Geometry(g) => {
+                // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
+                // the session's bookkeeping tracks.
+                self.stats.geometry_chunks += 1;
+                self.stats.geometry_bytes += g.bytes.len() as u64;
+                Ok(Event::Geometry { kind: g.kind, id: g.id, bytes: g.bytes.len(), last: g.offset as usize + g.bytes.len() == g.total as usize })
+            }
         }
     }
 
