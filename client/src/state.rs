@@ -86,10 +86,12 @@ pub enum Event {
         kind: canopy_protocol::messages::GeometryKind,
         /// Its instance, species or first instance id.
         id: u32,
+        /// Where the chunk starts in its blob.
+        offset: u32,
+        /// The blob's size.
+        total: u32,
         /// Payload bytes in the chunk.
         bytes: usize,
-        /// Whether it was the blob's last chunk.
-        last: bool,
     },
 }
 
@@ -324,7 +326,7 @@ impl ClientState {
                 // the session's bookkeeping tracks.
                 self.stats.geometry_chunks += 1;
                 self.stats.geometry_bytes += g.bytes.len() as u64;
-                Ok(Event::Geometry { kind: g.kind, id: g.id, bytes: g.bytes.len(), last: g.offset as usize + g.bytes.len() == g.total as usize })
+                Ok(Event::Geometry { kind: g.kind, id: g.id, offset: g.offset, total: g.total, bytes: g.bytes.len() })
             }
         }
     }

@@ -184,6 +184,9 @@ pub struct BotResult {
     pub bytes: Bytes,
     /// Explicit-geometry payload bytes received by kind (instance meshes, species meshes, transforms).
     pub geometry: [u64; 3],
+    /// Instance meshes whose first chunk arrived, and the sum of their sizes as the chunks announce them
+    /// (baseline 1: the per-instance cost is known before a whole mesh is through a slow link).
+    pub mesh_headers: (u64, u64),
     /// Instance records received.
     pub records: u64,
     /// Instance records held at the end.
@@ -260,6 +263,15 @@ impl ScenarioResult {
         let b = self.bytes();
         let total = if without_records { b.without_records() } else { b.total() };
         (r > 0).then(|| total.saturating_sub(self.fixed_bytes()) as f64 / r as f64)
+    }
+
+    /// Baseline 1 only: wire bytes per instance estimated from the instance meshes' announced sizes (every mesh
+    /// whose first chunk arrived), scaled by the measured ratio of wire bytes to geometry bytes.
+    pub fn estimated_per_instance(&self) -> Option<f64> {
+        let (n, sum) = self.bots.iter().fold((0u64, 0u64), |a, b| (a.0 + b.mesh_headers.0, a.1 + b.mesh_headers.1));
+        let b = self.bytes();
+        (self.scenario.mode == PayloadMode::UniqueMesh && n > 0 && b.geometry > 0)
+            .then(|| sum as f64 / n as f64 * b.total() as f64 / b.geometry as f64)
     }
 
     /// Bytes to deliver `instances` instances per bot on average, with this scenario's fixed and per-instance
@@ -428,8 +440,13 @@ async fn bot_session(
         }
     };
     let mut geometry = [0u64; 3];
+    let mut headers = (0u64, 0u64);
     let mut count = |ev: &Event| {
-        if let Event::Geometry { kind, bytes, .. } = ev {
+        if let Event::Geometry { kind, bytes, offset, total, .. } = ev {
+            if *kind == GeometryKind::InstanceMesh && *offset == 0 {
+                headers.0 += 1;
+                headers.1 += u64::from(*total);
+            }
             let k = match kind {
                 GeometryKind::InstanceMesh => 0,
                 GeometryKind::SpeciesMesh => 1,
@@ -512,6 +529,7 @@ async fn bot_session(
     r.complete = conn.state().is_complete();
     r.bytes = bytes_of(&conn);
     r.geometry = geometry;
+    r.mesh_headers = headers;
     r.records = conn.state().stats().records;
     r.held = conn.state().record_count();
     conn.close();
@@ -672,7 +690,11 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
             source: source_stats,
             server_bytes,
         };
-        bar.println(report::scenario_line(&result));
+        if cfg.progress {
+            bar.println(report::scenario_line(&result));
+        } else {
+            println!("{}", report::scenario_line(&result));
+        }
         results.push(result);
     }
     bar.finish_and_clear();

@@ -197,9 +197,22 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         let _ = writeln!(s, "| payload | instances received | marginal bytes/instance | projected bytes | ratio to procedural | without records | ratio |");
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
         let base = p.projected(n, false).unwrap_or(0.0);
+        let mut notes = Vec::new();
         for r in [p, u, i] {
-            let all = r.projected(n, false);
-            let bare = if r.scenario.mode == PayloadMode::Procedural { all } else { r.projected(n, true) };
+            let mut all = r.projected(n, false);
+            let mut bare = if r.scenario.mode == PayloadMode::Procedural { all } else { r.projected(n, true) };
+            if let (Some(e), PayloadMode::UniqueMesh) = (r.estimated_per_instance(), r.scenario.mode) {
+                // Few (or no) whole meshes get through a slow link in a short walk: use every announced mesh size.
+                let (k, _) = r.bots.iter().fold((0u64, 0u64), |a, b| (a.0 + b.mesh_headers.0, a.1 + b.mesh_headers.1));
+                all = Some(e * n);
+                bare = all;
+                notes.push(format!(
+                    "unique-mesh: {:.0} wire bytes per instance, estimated from the sizes of the {k} meshes whose first chunk arrived ({} arrived whole), scaled by the measured wire/geometry ratio {:.3}.",
+                    e,
+                    r.records(),
+                    r.bytes().total() as f64 / r.bytes().geometry.max(1) as f64
+                ));
+            }
             let ratio = |v: Option<f64>| v.map_or("-".into(), |v| format!("{:.0}×", v / base.max(1.0)));
             let _ = writeln!(
                 s,
@@ -212,6 +225,9 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
                 bare.map_or("-".into(), human),
                 ratio(bare)
             );
+        }
+        for note in notes {
+            let _ = writeln!(s, "\n{note}");
         }
         let _ = writeln!(s);
     }

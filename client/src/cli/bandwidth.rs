@@ -182,7 +182,13 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     for [p, u, i] in report::comparisons(&outcome) {
         let n = p.records() as f64 / p.bots.len().max(1) as f64;
         let base = p.projected(n, false).unwrap_or(0.0).max(1.0);
-        let ratio = |r: &bandwidth::ScenarioResult| r.projected(n, false).map_or("-".into(), |v| format!("{:.0}×", v / base));
+        let ratio = |r: &bandwidth::ScenarioResult| {
+            let v = match r.estimated_per_instance() {
+                Some(e) => Some(e * n),
+                None => r.projected(n, false),
+            };
+            v.map_or("-".into(), |v| format!("{:.0}×", v / base))
+        };
         println!(
             "{}: unique meshes {} the procedural bytes, instanced {} (for the {n:.0} instances per bot procedural delivered)",
             p.scenario.link.label(),
