@@ -308,7 +308,9 @@ mod tests {
         assert_eq!(t.cell_of(3), CellCoord::new(0, 1));
         assert_eq!(t.cell_of(4), CellCoord::new(0, 1));
         assert_eq!(t.visible([0.0, 0.0], 2.0), vec![1]);
-        assert_eq!(t.visible([0.0, 5.0], 6.0), vec![0, 1, 2, 3]);
+        assert_eq!(t.visible([0.0, 5.0], 6.0), vec![0, 1, 2]);
+        // (1, 11) is √37 > 6 away; from a little higher up it is in.
+        assert_eq!(t.visible([0.0, 6.0], 6.0), vec![0, 1, 2, 3]);
         assert_eq!(t.visible([0.0, 0.0], 100.0), vec![0, 1, 2, 3, 4]);
         assert!(t.visible([500.0, 500.0], 10.0).is_empty());
         // The boundary counts as visible.
@@ -318,8 +320,9 @@ mod tests {
     #[test]
     fn completeness_counts_what_is_held_of_what_is_visible() {
         let t = truth();
-        assert_eq!(completeness(&t, [0.0, 5.0], 6.0, |id| id % 2 == 0), (4, 2));
-        assert_eq!(completeness(&t, [0.0, 5.0], 6.0, |_| true), (4, 4));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |id| id % 2 == 0), (4, 2));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| true), (4, 4));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| false), (4, 0));
         assert_eq!(fraction(4, 2), 0.5);
         assert_eq!(fraction(0, 0), 1.0);
         let s = |t, visible, held| Sample {
@@ -340,9 +343,43 @@ mod tests {
 
     #[test]
     fn holds_reads_the_client_state() {
-        // A fresh client holds nothing.
-        let t = truth();
-        let state = ClientState::new();
-        assert!(!(0..5).any(|id| holds(&state, &t, id)));
+        use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+        use canopy_protocol::messages::{ServerHandshake, ServerStreaming, TerrainDesc, Welcome, WorldInfo};
+        use canopy_protocol::messages::SpeciesEntry;
+        use canopy_protocol::{CellBatch, InstanceRecord, POSITION_STEPS, PROTOCOL_VERSION, ServerMsg, SpeciesHash};
+        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap().encode();
+        // Cell (-1, 0) holds ids 0..10, cell (0, 0) ids 10..14.
+        let cells = vec![vec![[-5.0, 5.0]; 10], vec![[5.0, 5.0]; 4]];
+        let t = GroundTruth::new(10.0, CellKey { x: -1, z: 0 }, [2, 1], &cells);
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 10.0, min: CellCoord::new(-1, 0), max: CellCoord::new(0, 0) };
+        let terrain = TerrainDesc {
+            graph: None,
+            seed: 0,
+            origin: [-10.0, 0.0],
+            tile_size: 20.0,
+            tiles: [1, 1],
+            depth: 0,
+            corners: vec![0.0; 4],
+            params: vec![],
+        };
+        let welcome = Welcome {
+            version: PROTOCOL_VERSION,
+            world: WorldInfo { name: "t".into(), seed: 1, grid, position_steps: POSITION_STEPS, instances: 14, terrain },
+            species: vec![SpeciesEntry { hash: SpeciesHash::of(&worm), size: worm.len() as u32 }],
+            aoi: AoiParams { max_radius: 100.0, hysteresis: 10.0, lookahead_s: 0.0, max_lookahead: 0.0 },
+        };
+        let mut state = ClientState::new();
+        state.hello("t").unwrap();
+        state.on_welcome(ServerMsg::Handshake(ServerHandshake::Welcome(welcome))).unwrap();
+        // Radius 4 at the centre of cell (0, 0): the area of interest is that cell alone.
+        state.ready(Viewpoint::at(0, [5.0, 5.0], 4.0)).unwrap();
+        assert!(!(0..14).any(|id| holds(&state, &t, id)));
+        let records: Vec<InstanceRecord> = (0..2).map(|i| InstanceRecord::new(0, i, i)).collect();
+        let batch = CellBatch::new(CellCoord::new(0, 0), 1, 10, 4, 0, records, &[]);
+        state.handle(ServerMsg::Streaming(ServerStreaming::Cells(batch))).unwrap();
+        let held: Vec<u32> = (0..14).filter(|&id| holds(&state, &t, id)).collect();
+        assert_eq!(held, vec![10, 11]);
+        // Everything visible from the cell's centre within 8 m is in that cell: 2 of 4 held.
+        assert_eq!(completeness(&t, [5.0, 5.0], 8.0, |id| holds(&state, &t, id)), (4, 2));
     }
 }
