@@ -19,6 +19,7 @@ fn short_run_writes_a_consistent_report() {
     cfg.settle = Duration::from_secs(8);
     cfg.sample = Duration::from_millis(200);
     cfg.size_seeds = 0;
+    cfg.mesh_sample = 0;
     cfg.progress = false;
     cfg.out = out.clone();
     cfg.scenarios = vec![

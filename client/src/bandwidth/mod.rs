@@ -101,6 +101,9 @@ pub struct BandwidthConfig {
     pub cache_bytes: usize,
     /// Instances per species for the seed 001 §7 size table (0: no table).
     pub size_seeds: u32,
+    /// Instances of the world whose unique meshes are encoded to estimate baseline 1's cost per instance over the
+    /// whole world (evenly spaced ids; 0: none). A slow link lets only a few whole trees through in a short walk.
+    pub mesh_sample: usize,
     /// Show a progress bar.
     pub progress: bool,
     /// The command line, for the report.
@@ -134,6 +137,7 @@ impl BandwidthConfig {
             pace: 0.9,
             cache_bytes: 512 * 1024 * 1024,
             size_seeds: 3,
+            mesh_sample: 40,
             progress: true,
             command: "canopy bandwidth".into(),
         }
@@ -320,10 +324,52 @@ pub struct Outcome {
     pub scenarios: Vec<ScenarioResult>,
     /// The seed 001 §7 size table.
     pub sizes: Vec<sizes::SizeRow>,
+    /// Baseline 1's unique meshes over an even sample of the world's instances.
+    pub mesh_sample: Option<MeshSample>,
     /// Files written.
     pub files: Vec<PathBuf>,
     /// Wall time of the whole run.
     pub wall: f64,
+}
+
+/// Unique-mesh sizes over an even sample of the world's instances (ids `(2i + 1) · N / 2k`; ids run cell by cell,
+/// so the sample is spread over the world and follows its species mix).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MeshSample {
+    /// Instances encoded.
+    pub count: usize,
+    /// Their compressed mesh bytes in total.
+    pub bytes: u64,
+    /// Per species: name, instances, compressed bytes.
+    pub by_species: Vec<(String, usize, u64)>,
+    /// Seconds it took.
+    pub seconds: f64,
+}
+
+impl MeshSample {
+    /// Take the sample through `source` (meshes encoded by a baseline scenario are reused from its cache).
+    pub fn take(world: &World, source: &MeshSource, k: usize) -> MeshSample {
+        let t = Instant::now();
+        let n = world.instances.len();
+        let k = k.min(n);
+        let mut by: Vec<(String, usize, u64)> = world.species.iter().map(|s| (s.name.clone(), 0, 0)).collect();
+        let mut bytes = 0u64;
+        for i in 0..k {
+            let id = ((2 * i + 1) * n / (2 * k)) as u32;
+            let b = source.instance_mesh(id).len() as u64;
+            let s = &mut by[usize::from(world.instances[id as usize].species)];
+            s.1 += 1;
+            s.2 += b;
+            bytes += b;
+        }
+        by.retain(|s| s.1 > 0);
+        MeshSample { count: k, bytes, by_species: by, seconds: t.elapsed().as_secs_f64() }
+    }
+
+    /// Mean compressed mesh bytes per instance.
+    pub fn mean(&self) -> Option<f64> {
+        (self.count > 0).then(|| self.bytes as f64 / self.count as f64)
+    }
 }
 
 /// Live counters for the progress display.
@@ -699,7 +745,8 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
     }
     bar.finish_and_clear();
     let sizes = if cfg.size_seeds > 0 { sizes::table(&world, cfg.size_seeds) } else { Vec::new() };
-    let mut outcome = Outcome { scenarios: results, sizes, files: Vec::new(), wall: 0.0 };
+    let mesh_sample = (cfg.mesh_sample > 0).then(|| MeshSample::take(&world, &source, cfg.mesh_sample));
+    let mut outcome = Outcome { scenarios: results, sizes, mesh_sample, files: Vec::new(), wall: 0.0 };
     outcome.wall = started.elapsed().as_secs_f64();
     outcome.files = report::write(cfg, &outcome)?;
     Ok(outcome)

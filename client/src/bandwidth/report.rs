@@ -47,12 +47,13 @@ fn pct(v: f64) -> String {
 pub fn scenario_line(r: &ScenarioResult) -> String {
     let b = r.bytes();
     format!(
-        "{:<28} {:>10} on the wire, {:>7} records, {:>10}/instance, walking completeness {}, first complete {}, after teleport {}{}",
+        "{:<22} {:>9} on the wire, {:>6} records, {:>8}/instance, visible completeness walking {} overall {}, first complete {}, after teleport {}{}",
         r.scenario.name,
         human(b.total() as f64),
         r.records(),
         r.bytes_per_instance().map_or("-".into(), human),
-        pct(r.walking().mean()),
+        if r.walking().samples == 0 { "n/a".into() } else { pct(r.walking().mean()) },
+        pct(r.overall().mean()),
         secs(r.first_complete()),
         secs(r.teleport_complete()),
         match r.bots.iter().filter_map(|b| b.error.as_ref()).next() {
@@ -201,13 +202,29 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         for r in [p, u, i] {
             let mut all = r.projected(n, false);
             let mut bare = if r.scenario.mode == PayloadMode::Procedural { all } else { r.projected(n, true) };
+            let sample = o.mesh_sample.as_ref().and_then(|m| m.mean());
+            if let (Some(mean), PayloadMode::UniqueMesh) = (sample, r.scenario.mode) {
+                // The world sample: every species in its share; the scenario's measured wire/geometry ratio on top.
+                let b = r.bytes();
+                let wire = if b.geometry > 0 { b.total() as f64 / b.geometry as f64 } else { 1.0 };
+                all = Some(mean * wire * n);
+                bare = all;
+                notes.push(format!(
+                    "unique-mesh: {:.0} wire bytes per instance = the mean compressed mesh of {} instances evenly spread over the world ({:.0} bytes) × the wire/geometry ratio measured in this scenario ({wire:.3}).",
+                    mean * wire,
+                    o.mesh_sample.as_ref().map_or(0, |m| m.count),
+                    mean
+                ));
+            }
             if let (Some(e), PayloadMode::UniqueMesh) = (r.estimated_per_instance(), r.scenario.mode) {
                 // Few (or no) whole meshes get through a slow link in a short walk: use every announced mesh size.
                 let (k, _) = r.bots.iter().fold((0u64, 0u64), |a, b| (a.0 + b.mesh_headers.0, a.1 + b.mesh_headers.1));
-                all = Some(e * n);
-                bare = all;
+                if sample.is_none() {
+                    all = Some(e * n);
+                    bare = all;
+                }
                 notes.push(format!(
-                    "unique-mesh: {:.0} wire bytes per instance, estimated from the sizes of the {k} meshes whose first chunk arrived ({} arrived whole), scaled by the measured wire/geometry ratio {:.3}.",
+                    "unique-mesh, as sent: {:.0} wire bytes per instance, estimated from the sizes of the {k} meshes whose first chunk arrived ({} arrived whole), scaled by the measured wire/geometry ratio {:.3}.",
                     e,
                     r.records(),
                     r.bytes().total() as f64 / r.bytes().geometry.max(1) as f64
@@ -230,6 +247,15 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             let _ = writeln!(s, "\n{note}");
         }
         let _ = writeln!(s);
+    }
+    if let Some(m) = &o.mesh_sample {
+        let _ = writeln!(s, "Unique meshes of {} instances evenly spread over the world ({:.1} s to encode):\n", m.count, m.seconds);
+        let _ = writeln!(s, "| species | instances | mean compressed mesh |");
+        let _ = writeln!(s, "|---|---:|---:|");
+        for (name, k, b) in &m.by_species {
+            let _ = writeln!(s, "| {name} | {k} | {} |", group(b / (*k).max(1) as u64));
+        }
+        let _ = writeln!(s, "| all | {} | {} |\n", m.count, m.mean().map_or("-".into(), |v| group(v as u64)));
     }
     if !o.sizes.is_empty() {
         let _ = writeln!(s, "## Seed 001 §7: species against explicit geometry\n");

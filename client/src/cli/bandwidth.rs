@@ -89,6 +89,9 @@ pub struct BandwidthArgs {
     /// Instances per species for the seed 001 §7 size table (0: no table).
     #[arg(long, default_value_t = 3)]
     size_seeds: u32,
+    /// Instances of the world whose unique meshes are encoded to estimate baseline 1 per instance (0: none).
+    #[arg(long, default_value_t = 40)]
+    mesh_sample: usize,
     /// Output folder.
     #[arg(long, default_value = "out/bandwidth")]
     out: PathBuf,
@@ -133,6 +136,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     cfg.pace = args.pace.clamp(0.0, 10.0);
     cfg.cache_bytes = args.cache_mib.saturating_mul(1024 * 1024);
     cfg.size_seeds = args.size_seeds;
+    cfg.mesh_sample = args.mesh_sample;
     cfg.out = args.out.clone();
     cfg.progress = !args.quiet;
     cfg.command = std::iter::once("canopy".to_string()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
@@ -182,10 +186,14 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     for [p, u, i] in report::comparisons(&outcome) {
         let n = p.records() as f64 / p.bots.len().max(1) as f64;
         let base = p.projected(n, false).unwrap_or(0.0).max(1.0);
+        let sample = outcome.mesh_sample.as_ref().and_then(|m| m.mean());
         let ratio = |r: &bandwidth::ScenarioResult| {
-            let v = match r.estimated_per_instance() {
-                Some(e) => Some(e * n),
-                None => r.projected(n, false),
+            let b = r.bytes();
+            let wire = if b.geometry > 0 { b.total() as f64 / b.geometry as f64 } else { 1.0 };
+            let v = match (sample, r.estimated_per_instance()) {
+                (Some(m), _) if r.scenario.mode == PayloadMode::UniqueMesh => Some(m * wire * n),
+                (None, Some(e)) => Some(e * n),
+                _ => r.projected(n, false),
             };
             v.map_or("-".into(), |v| format!("{:.0}×", v / base))
         };
