@@ -388,6 +388,10 @@ struct BotParams {
     seed: u64,
     settle: Duration,
     sample: Duration,
+    truth: Arc<GroundTruth>,
+    live: Arc<Live>,
+    /// When the scenario started (sample times count from here).
+    t0: Instant,
 }
 
 async fn run_bot(
@@ -396,12 +400,9 @@ async fn run_bot(
     connect: ConnectConfig,
     relay: Option<Relay>,
     p: Arc<BotParams>,
-    truth: Arc<GroundTruth>,
-    live: Arc<Live>,
-    t0: Instant,
 ) -> BotResult {
     let mut r = BotResult { id, ..BotResult::default() };
-    if let Err(e) = bot_session(&mut r, &endpoint, connect, &p, &truth, &live, t0).await {
+    if let Err(e) = bot_session(&mut r, &endpoint, connect, &p).await {
         r.error = Some(e.to_string());
     }
     if let Some(relay) = relay {
@@ -423,10 +424,8 @@ async fn bot_session(
     endpoint: &Endpoint,
     mut connect: ConnectConfig,
     p: &BotParams,
-    truth: &GroundTruth,
-    live: &Live,
-    t0: Instant,
 ) -> Result<(), ClientError> {
+    let (truth, live, t0) = (&*p.truth, &*p.live, p.t0);
     connect.client_name = format!("bandwidth-{}", r.id);
     let started = Instant::now();
     let seed = p.seed.wrapping_add(r.id as u64);
@@ -603,9 +602,12 @@ async fn run_scenario(
         seed: cfg.seed,
         settle: cfg.settle,
         sample: cfg.sample,
+        truth,
+        live: Arc::new(Live::default()),
+        t0: Instant::now(),
     });
-    let live = Arc::new(Live::default());
-    let t0 = Instant::now();
+    let live = Arc::clone(&params.live);
+    let t0 = params.t0;
     let mut tasks = Vec::new();
     for id in 0..cfg.bots {
         let (relay, addr) = if scenario.link.is_shaped() {
@@ -616,8 +618,7 @@ async fn run_scenario(
             (None, server)
         };
         let connect = ConnectConfig::new(addr, trust.clone());
-        let (endpoint, params, truth, live) = (endpoint.clone(), Arc::clone(&params), Arc::clone(&truth), Arc::clone(&live));
-        tasks.push(tokio::spawn(run_bot(id, endpoint, connect, relay, params, truth, live, t0)));
+        tasks.push(tokio::spawn(run_bot(id, endpoint.clone(), connect, relay, Arc::clone(&params))));
     }
     let total = (cfg.duration + cfg.settle).as_secs_f64();
     let mut ticker = tokio::time::interval(Duration::from_millis(200));
