@@ -440,6 +440,15 @@ async fn bot_session(
     };
     let mut conn = Connection::connect(endpoint, &connect, None, place).await?;
     let mut walker = walker.expect("placed in the handshake");
+    if conn.welcome().world.instances as usize != truth.len() {
+        let msg = format!(
+            "the server's world has {} instances, the ground truth {}: not the same world",
+            conn.welcome().world.instances,
+            truth.len()
+        );
+        conn.close();
+        return Err(ClientError::Stream(msg));
+    }
     let grid = conn.welcome().world.grid;
     let min_move = (grid.cell_size / 16.0).max(1.0);
     let vp = |w: &Walker| Viewpoint { seq: 0, position: w.position(), yaw: w.yaw(), velocity: w.velocity(), radius: p.radius };

@@ -90,7 +90,11 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         cfg.view,
         cfg.sample.as_millis(),
         cfg.settle.as_secs_f64(),
-        if cfg.pace > 0.0 { format!("{:.0} % of the link rate", cfg.pace * 100.0) } else { "off".into() },
+        match (&cfg.external, cfg.pace > 0.0) {
+            (Some(e), _) => format!("the external server's own ({})", e.server),
+            (None, true) => format!("{:.0} % of the link rate", cfg.pace * 100.0),
+            (None, false) => "off".into(),
+        },
         o.wall
     );
     let _ = writeln!(s, "## Scenarios\n");
