@@ -746,7 +746,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
             source: source_stats,
             server_bytes,
         };
-        if cfg.progress {
+        if !bar.is_hidden() {
             bar.println(report::scenario_line(&result));
         } else {
             println!("{}", report::scenario_line(&result));

@@ -100,7 +100,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     let _ = writeln!(s, "## Scenarios\n");
     let _ = writeln!(
         s,
-        "| scenario | payload | link | wire bytes | species | records | geometry | control | transport | instances | bytes/instance | walking completeness (min) | overall | first complete | after teleport | complete at end |"
+        "| scenario | payload | link | wire bytes | species | records | geometry | control | transport | instances | bytes/instance | walking completeness (min; samples) | overall | first complete | after teleport | complete at end |"
     );
     let _ = writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &o.scenarios {
@@ -108,7 +108,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         let w = r.walking();
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} ({}) | {} | {} | {} | {}/{} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} ({}; {}/{}) | {} | {} | {} | {}/{} |",
             r.scenario.name,
             r.scenario.mode.label(),
             r.scenario.link.label(),
@@ -122,6 +122,8 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             r.bytes_per_instance().map_or("-".into(), |v| format!("{v:.1}")),
             if w.samples == 0 { "n/a".into() } else { pct(w.mean()) },
             if w.samples == 0 { "n/a".into() } else { pct(w.min) },
+            w.samples,
+            r.overall().samples,
             pct(r.overall().mean()),
             secs(r.first_complete()),
             secs(r.teleport_complete()),
@@ -169,7 +171,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             let _ = writeln!(s, "{l}");
         }
     }
-    for r in o.scenarios.iter().filter(|r| r.source.is_some()) {
+    for r in o.scenarios.iter().filter(|r| r.source.is_some_and(|s| s.instance_meshes + s.hits > 0)) {
         let st = r.source.expect("filtered");
         let _ = writeln!(
             s,
