@@ -188,6 +188,8 @@ pub struct BotResult {
     pub bytes: Bytes,
     /// Explicit-geometry payload bytes received by kind (instance meshes, species meshes, transforms).
     pub geometry: [u64; 3],
+    /// Species received: programs (procedural) or species meshes started (instanced), in arrival order.
+    pub species_ids: Vec<u8>,
     /// Instance meshes whose first chunk arrived, and the sum of their sizes as the chunks announce them
     /// (baseline 1: the per-instance cost is known before a whole mesh is through a slow link).
     pub mesh_headers: (u64, u64),
@@ -256,33 +258,30 @@ impl ScenarioResult {
         (r > 0).then(|| self.bytes().total() as f64 / r as f64)
     }
 
-    /// Bytes that do not scale with instances: species programs (procedural) or species meshes (instanced).
-    pub fn fixed_bytes(&self) -> u64 {
-        self.bots.iter().map(|b| b.bytes.species + b.geometry[1]).sum()
+    /// Wire bytes per frame byte (transport overhead and the client's own messages on top of what the server
+    /// sent); 1 when nothing arrived.
+    pub fn wire_ratio(&self) -> f64 {
+        let b = self.bytes();
+        let frames = b.species + b.records + b.geometry + b.control;
+        if frames == 0 { 1.0 } else { b.total() as f64 / frames as f64 }
     }
 
-    /// Wire bytes per instance beyond the fixed bytes.
-    pub fn marginal_per_instance(&self, without_records: bool) -> Option<f64> {
+    /// Payload bytes per instance received that scale with instances (`None` if none arrived): the records, plus
+    /// the transforms when instanced (`with_records: false` leaves the records out of the explicit modes, which
+    /// carry them only for the harness's bookkeeping).
+    pub fn per_instance_payload(&self, with_records: bool) -> Option<f64> {
         let r = self.records();
         let b = self.bytes();
-        let total = if without_records { b.without_records() } else { b.total() };
-        (r > 0).then(|| total.saturating_sub(self.fixed_bytes()) as f64 / r as f64)
+        let transforms: u64 = self.bots.iter().map(|x| x.geometry[2]).sum();
+        let records = if with_records || self.scenario.mode == PayloadMode::Procedural { b.records } else { 0 };
+        (r > 0).then(|| (records + transforms) as f64 / r as f64)
     }
 
-    /// Baseline 1 only: wire bytes per instance estimated from the instance meshes' announced sizes (every mesh
-    /// whose first chunk arrived), scaled by the measured ratio of wire bytes to geometry bytes.
-    pub fn estimated_per_instance(&self) -> Option<f64> {
+    /// Baseline 1 only: the mean size of the instance meshes whose first chunk arrived (as the chunks announce
+    /// them), and how many there were.
+    pub fn announced_mesh(&self) -> Option<(f64, u64)> {
         let (n, sum) = self.bots.iter().fold((0u64, 0u64), |a, b| (a.0 + b.mesh_headers.0, a.1 + b.mesh_headers.1));
-        let b = self.bytes();
-        (self.scenario.mode == PayloadMode::UniqueMesh && n > 0 && b.geometry > 0)
-            .then(|| sum as f64 / n as f64 * b.total() as f64 / b.geometry as f64)
-    }
-
-    /// Bytes to deliver `instances` instances per bot on average, with this scenario's fixed and per-instance
-    /// costs (`None` if it delivered none).
-    pub fn projected(&self, instances: f64, without_records: bool) -> Option<f64> {
-        let n = self.bots.len().max(1) as f64;
-        self.marginal_per_instance(without_records).map(|m| self.fixed_bytes() as f64 / n + m * instances)
+        (self.scenario.mode == PayloadMode::UniqueMesh && n > 0).then(|| (sum as f64 / n as f64, n))
     }
 
     /// Walking completeness over all bots.
@@ -326,6 +325,8 @@ pub struct Outcome {
     pub sizes: Vec<sizes::SizeRow>,
     /// Baseline 1's unique meshes over an even sample of the world's instances.
     pub mesh_sample: Option<MeshSample>,
+    /// Baseline 2's species meshes: compressed bytes by species id (in-process runs).
+    pub species_meshes: Vec<u64>,
     /// Files written.
     pub files: Vec<PathBuf>,
     /// Wall time of the whole run.
@@ -495,7 +496,19 @@ async fn bot_session(
     };
     let mut geometry = [0u64; 3];
     let mut headers = (0u64, 0u64);
+    let mut species_ids: Vec<u8> = Vec::new();
     let mut count = |ev: &Event| {
+        if let Event::Species { id, .. } = ev {
+            if !species_ids.contains(id) {
+                species_ids.push(*id);
+            }
+        }
+        if let Event::Geometry { kind: GeometryKind::SpeciesMesh, id, offset: 0, .. } = ev {
+            let id = u8::try_from(*id).unwrap_or(u8::MAX);
+            if !species_ids.contains(&id) {
+                species_ids.push(id);
+            }
+        }
         if let Event::Geometry { kind, bytes, offset, total, .. } = ev {
             if *kind == GeometryKind::InstanceMesh && *offset == 0 {
                 headers.0 += 1;
@@ -584,6 +597,7 @@ async fn bot_session(
     r.bytes = bytes_of(&conn);
     r.geometry = geometry;
     r.mesh_headers = headers;
+    r.species_ids = species_ids;
     r.records = conn.state().stats().records;
     r.held = conn.state().record_count();
     conn.close();
@@ -756,7 +770,11 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
     bar.finish_and_clear();
     let sizes = if cfg.size_seeds > 0 { sizes::table(&world, cfg.size_seeds) } else { Vec::new() };
     let mesh_sample = (cfg.mesh_sample > 0).then(|| MeshSample::take(&world, &source, cfg.mesh_sample));
-    let mut outcome = Outcome { scenarios: results, sizes, mesh_sample, files: Vec::new(), wall: 0.0 };
+    let species_meshes = match cfg.external {
+        Some(_) => Vec::new(),
+        None => (0..world.species.len().min(256)).map(|i| source.species_mesh(i as u8).len() as u64).collect(),
+    };
+    let mut outcome = Outcome { scenarios: results, sizes, mesh_sample, species_meshes, files: Vec::new(), wall: 0.0 };
     outcome.wall = started.elapsed().as_secs_f64();
     outcome.files = report::write(cfg, &outcome)?;
     Ok(outcome)

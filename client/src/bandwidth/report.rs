@@ -75,6 +75,83 @@ pub fn comparisons(o: &Outcome) -> Vec<[&ScenarioResult; 3]> {
     out
 }
 
+/// What a payload costs to deliver instances: a fixed part and a part per instance, wire bytes per client.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Projection {
+    /// Fixed bytes (species programs or species meshes).
+    pub fixed: f64,
+    /// Bytes per instance.
+    pub per_instance: f64,
+    /// Bytes per instance without the harness's records (explicit modes).
+    pub per_instance_bare: f64,
+    /// How it was computed, for the report.
+    pub how: String,
+}
+
+impl Projection {
+    /// Bytes to deliver `n` instances.
+    pub fn bytes(&self, n: f64) -> f64 {
+        self.fixed + self.per_instance * n
+    }
+
+    /// Likewise, without the harness's records.
+    pub fn bytes_bare(&self, n: f64) -> f64 {
+        self.fixed + self.per_instance_bare * n
+    }
+}
+
+/// The projections of a comparison's procedural, unique-mesh and instanced scenarios (see the report's text).
+pub fn projections(o: &Outcome, [p, u, i]: [&ScenarioResult; 3]) -> [Option<Projection>; 3] {
+    let bots = |r: &ScenarioResult| r.bots.len().max(1) as f64;
+    let procedural = p.per_instance_payload(true).map(|m| {
+        let w = p.wire_ratio();
+        Projection {
+            fixed: p.bytes().species as f64 / bots(p) * w,
+            per_instance: m * w,
+            per_instance_bare: m * w,
+            how: format!(
+                "procedural: species programs {:.0} bytes per client and records {m:.2} bytes per instance, × wire/frame {w:.3}.",
+                p.bytes().species as f64 / bots(p)
+            ),
+        }
+    });
+    let unique = o.mesh_sample.as_ref().and_then(|m| m.mean()).map(|mesh| {
+        let w = u.wire_ratio();
+        let records = p.per_instance_payload(true).unwrap_or(0.0);
+        Projection {
+            fixed: 0.0,
+            per_instance: (mesh + records) * w,
+            per_instance_bare: mesh * w,
+            how: format!(
+                "unique-mesh: the mean compressed mesh of {} instances spread evenly over the world, {mesh:.0} bytes, plus the procedural run's records per instance ({records:.2}), × wire/frame {w:.3} measured in its scenario.",
+                o.mesh_sample.as_ref().map_or(0, |m| m.count)
+            ),
+        }
+    });
+    // The species meshes of the species the procedural bots needed, per bot on average.
+    let needed: f64 = p
+        .bots
+        .iter()
+        .map(|b| b.species_ids.iter().map(|&id| o.species_meshes.get(usize::from(id)).copied().unwrap_or(0)).sum::<u64>() as f64)
+        .sum::<f64>()
+        / bots(p);
+    let instanced = (!o.species_meshes.is_empty())
+        .then(|| i.per_instance_payload(true).zip(i.per_instance_payload(false)))
+        .flatten()
+        .map(|(m, bare)| {
+            let w = i.wire_ratio();
+            Projection {
+                fixed: needed * w,
+                per_instance: m * w,
+                per_instance_bare: bare * w,
+                how: format!(
+                    "instanced: the species meshes of the species the procedural bots needed, {needed:.0} bytes per client, and records + transforms {m:.2} bytes per instance (transforms alone {bare:.2}), × wire/frame {w:.3} measured in its scenario."
+                ),
+            }
+        });
+    [procedural, unique, instanced]
+}
+
 fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# Bandwidth: procedural streaming against explicit geometry\n");
@@ -189,68 +266,51 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     if cmp.is_empty() {
         let _ = writeln!(s, "(This run has no link with all three payload modes.)");
     }
-    for [p, u, i] in cmp {
+    for c in cmp {
+        let p = c[0];
         let n = p.records() as f64 / p.bots.len().max(1) as f64;
         let _ = writeln!(
             s,
-            "Link {}: the procedural bots received {:.0} instances each. Bytes to deliver those instances per bot \
-             (fixed cost — species programs, or species meshes — plus the measured marginal wire bytes per instance \
-             times {:.0}); \"without records\" leaves out the instance records the baselines carry only so that the \
-             harness can count what a client holds.\n",
+            "Link {}: the procedural bots received {:.0} instances each. Projected wire bytes for a client to receive \
+             those instances in each payload: the fixed cost (species programs; species meshes of the species those \
+             bots needed) plus the cost per instance (records, transforms, or a unique mesh), each times the wire/frame \
+             ratio measured in its scenario (transport overhead, the client's messages). \"Without records\" leaves out \
+             the instance records the explicit modes carry only so that the harness can count what a client holds.\n",
             p.scenario.link.label(),
-            n,
             n
         );
-        let _ = writeln!(s, "| payload | instances received | marginal bytes/instance | projected bytes | ratio to procedural | without records | ratio |");
-        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
-        let base = p.projected(n, false).unwrap_or(0.0);
-        let mut notes = Vec::new();
-        for r in [p, u, i] {
-            let mut all = r.projected(n, false);
-            let mut bare = if r.scenario.mode == PayloadMode::Procedural { all } else { r.projected(n, true) };
-            let sample = o.mesh_sample.as_ref().and_then(|m| m.mean());
-            if let (Some(mean), PayloadMode::UniqueMesh) = (sample, r.scenario.mode) {
-                // The world sample: every species in its share; the scenario's measured wire/geometry ratio on top.
-                let b = r.bytes();
-                let wire = if b.geometry > 0 { b.total() as f64 / b.geometry as f64 } else { 1.0 };
-                all = Some(mean * wire * n);
-                bare = all;
-                notes.push(format!(
-                    "unique-mesh: {:.0} wire bytes per instance = the mean compressed mesh of {} instances evenly spread over the world ({:.0} bytes) × the wire/geometry ratio measured in this scenario ({wire:.3}).",
-                    mean * wire,
-                    o.mesh_sample.as_ref().map_or(0, |m| m.count),
-                    mean
-                ));
-            }
-            if let (Some(e), PayloadMode::UniqueMesh) = (r.estimated_per_instance(), r.scenario.mode) {
-                // Few (or no) whole meshes get through a slow link in a short walk: use every announced mesh size.
-                let (k, _) = r.bots.iter().fold((0u64, 0u64), |a, b| (a.0 + b.mesh_headers.0, a.1 + b.mesh_headers.1));
-                if sample.is_none() {
-                    all = Some(e * n);
-                    bare = all;
-                }
-                notes.push(format!(
-                    "unique-mesh, as sent: {:.0} wire bytes per instance, estimated from the sizes of the {k} meshes whose first chunk arrived ({} arrived whole), scaled by the measured wire/geometry ratio {:.3}.",
-                    e,
-                    r.records(),
-                    r.bytes().total() as f64 / r.bytes().geometry.max(1) as f64
-                ));
-            }
-            let ratio = |v: Option<f64>| v.map_or("-".into(), |v| format!("{:.0}×", v / base.max(1.0)));
+        let _ = writeln!(s, "| payload | instances received | fixed bytes | bytes/instance | projected | ratio | without records | ratio |");
+        let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
+        let proj = projections(o, c);
+        let base = proj[0].as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
+        for (r, x) in c.iter().zip(&proj) {
+            let Some(x) = x else {
+                let _ = writeln!(s, "| {} | {} | - | - | - | - | - | - |", r.scenario.mode.label(), r.records());
+                continue;
+            };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {:.1} | {} | {:.0}× | {} | {:.0}× |",
                 r.scenario.mode.label(),
                 r.records(),
-                r.marginal_per_instance(false).map_or("-".into(), |v| format!("{v:.1}")),
-                all.map_or("-".into(), human),
-                ratio(all),
-                bare.map_or("-".into(), human),
-                ratio(bare)
+                human(x.fixed),
+                x.per_instance,
+                human(x.bytes(n)),
+                x.bytes(n) / base,
+                human(x.bytes_bare(n)),
+                x.bytes_bare(n) / base
             );
         }
-        for note in notes {
-            let _ = writeln!(s, "\n{note}");
+        for x in proj.iter().flatten() {
+            let _ = writeln!(s, "\n{}", x.how);
+        }
+        if let Some((mean, k)) = c[1].announced_mesh() {
+            let _ = writeln!(
+                s,
+                "\nunique-mesh, as sent: the {k} instance meshes whose first chunk arrived announce {} on average ({} arrived whole).",
+                human(mean),
+                c[1].records()
+            );
         }
         let _ = writeln!(s);
     }
@@ -576,6 +636,60 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn scenario(mode: PayloadMode, bytes: super::super::measure::Bytes, geometry: [u64; 3], records: u64, species: Vec<u8>) -> ScenarioResult {
+        use super::super::{BotResult, Scenario};
+        use super::super::link::LinkSpec;
+        let bot = BotResult { bytes, geometry, records, species_ids: species, ..BotResult::default() };
+        ScenarioResult {
+            scenario: Scenario::new(mode, LinkSpec::new(Some(1_000_000), 20, 0.0)),
+            bots: vec![bot],
+            wall: 1.0,
+            source: None,
+            server_bytes: None,
+        }
+    }
+
+    #[test]
+    fn projections_follow_their_definition() {
+        use super::super::measure::Bytes;
+        use super::super::{MeshSample, Outcome};
+        // Procedural: 1,000 species bytes, 5,000 record bytes for 1,000 instances; 8,000 bytes on the wire in all.
+        let p = Bytes::split([500, 1_000, 5_000, 0, 0], 500, 7_000, 1_000);
+        let u = Bytes::split([500, 0, 0, 0, 1_000_000], 500, 1_049_500, 1_000);
+        // Instanced: two species meshes started, 100 instances with 20 bytes of transforms each.
+        let i = Bytes::split([500, 0, 500, 0, 502_000], 500, 504_000, 1_000);
+        let o = Outcome {
+            scenarios: vec![
+                scenario(PayloadMode::Procedural, p, [0; 3], 1_000, vec![0, 2]),
+                scenario(PayloadMode::UniqueMesh, u, [1_000_000, 0, 0], 0, vec![]),
+                scenario(PayloadMode::Instanced, i, [0, 500_000, 2_000], 100, vec![0, 1]),
+            ],
+            sizes: vec![],
+            mesh_sample: Some(MeshSample { count: 4, bytes: 4_000_000, by_species: vec![], seconds: 0.0 }),
+            species_meshes: vec![300_000, 200_000, 700_000],
+            files: vec![],
+            wall: 1.0,
+        };
+        let c = comparisons(&o);
+        assert_eq!(c.len(), 1);
+        let [pp, up, ip] = projections(&o, c[0]);
+        let (pp, up, ip) = (pp.unwrap(), up.unwrap(), ip.unwrap());
+        let wp = 8_000.0 / 7_000.0;
+        assert!((pp.fixed - 1_000.0 * wp).abs() < 1e-6);
+        assert!((pp.per_instance - 5.0 * wp).abs() < 1e-9);
+        // Unique meshes: the sample's mean mesh (plus the procedural records per instance), × its wire ratio.
+        let wu = 1_050_500.0 / 1_001_000.0;
+        assert!((up.per_instance - (1_000_000.0 + 5.0) * wu).abs() < 1e-6);
+        assert!((up.per_instance_bare - 1_000_000.0 * wu).abs() < 1e-6);
+        assert_eq!(up.fixed, 0.0);
+        // Instanced: the meshes of the species procedural needed (0 and 2), records + transforms per instance.
+        let wi = 505_000.0 / 503_500.0;
+        assert!((ip.fixed - 1_000_000.0 * wi).abs() < 1e-6);
+        assert!((ip.per_instance - (500.0 + 2_000.0) / 100.0 * wi).abs() < 1e-9);
+        assert!((ip.per_instance_bare - 20.0 * wi).abs() < 1e-9);
+        assert!((pp.bytes(1_000.0) - (pp.fixed + pp.per_instance * 1_000.0)).abs() < 1e-9);
+    }
 
     #[test]
     fn numbers_format() {

@@ -183,25 +183,16 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
         cfg.out.display()
     );
     let outcome = bandwidth::run(&cfg, world)?;
-    for [p, u, i] in report::comparisons(&outcome) {
-        let n = p.records() as f64 / p.bots.len().max(1) as f64;
-        let base = p.projected(n, false).unwrap_or(0.0).max(1.0);
-        let sample = outcome.mesh_sample.as_ref().and_then(|m| m.mean());
-        let ratio = |r: &bandwidth::ScenarioResult| {
-            let b = r.bytes();
-            let wire = if b.geometry > 0 { b.total() as f64 / b.geometry as f64 } else { 1.0 };
-            let v = match (sample, r.estimated_per_instance()) {
-                (Some(m), _) if r.scenario.mode == PayloadMode::UniqueMesh => Some(m * wire * n),
-                (None, Some(e)) => Some(e * n),
-                _ => r.projected(n, false),
-            };
-            v.map_or("-".into(), |v| format!("{:.0}×", v / base))
-        };
+    for c in report::comparisons(&outcome) {
+        let n = c[0].records() as f64 / c[0].bots.len().max(1) as f64;
+        let [p, u, i] = report::projections(&outcome, c);
+        let base = p.as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
+        let ratio = |x: &Option<report::Projection>| x.as_ref().map_or("-".into(), |x| format!("{:.0}×", x.bytes(n) / base));
         println!(
-            "{}: unique meshes {} the procedural bytes, instanced {} (for the {n:.0} instances per bot procedural delivered)",
-            p.scenario.link.label(),
-            ratio(u),
-            ratio(i)
+            "{}: unique meshes {} the procedural bytes, instanced {} (to deliver the {n:.0} instances per bot procedural delivered)",
+            c[0].scenario.link.label(),
+            ratio(&u),
+            ratio(&i)
         );
     }
     for f in &outcome.files {
