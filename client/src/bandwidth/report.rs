@@ -290,11 +290,11 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.1} | {} | {:.0}× | {} | {:.0}× |",
+                "| {} | {} | {} | {} | {} | {:.0}× | {} | {:.0}× |",
                 r.scenario.mode.label(),
                 r.records(),
                 human(x.fixed),
-                x.per_instance,
+                if x.per_instance < 1000.0 { format!("{:.1}", x.per_instance) } else { group(x.per_instance as u64) },
                 human(x.bytes(n)),
                 x.bytes(n) / base,
                 human(x.bytes_bare(n)),
