@@ -128,8 +128,8 @@ pub struct BotReport {
     pub held: usize,
     /// Frame bytes of cell batches received.
     pub batch_bytes: u64,
-    /// All frame bytes received by class (welcome, species, cells, release).
-    pub frame_bytes: [u64; 4],
+    /// All frame bytes received by class (welcome, species, cells, release, geometry).
+    pub frame_bytes: [u64; 5],
     /// UDP payload bytes received.
     pub udp_bytes: u64,
     /// Species received over the wire.

@@ -9,6 +9,7 @@
 //! content address in memory and on disk ([`cache::SpeciesCache`]), so a reconnecting client receives none again.
 //! Everything from the network is untrusted: a bad message closes the connection with a reason.
 
+pub mod bandwidth;
 pub mod bots;
 pub mod cache;
 pub mod net;

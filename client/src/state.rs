@@ -80,6 +80,19 @@ pub enum Event {
     Released(CellCoord),
     /// The message was stale (an older grant) or for a cell already evicted, and was dropped.
     Dropped,
+    /// A chunk of explicit geometry arrived (bandwidth baselines; counted and discarded).
+    Geometry {
+        /// What it is.
+        kind: canopy_protocol::messages::GeometryKind,
+        /// Its instance, species or first instance id.
+        id: u32,
+        /// Where the chunk starts in its blob.
+        offset: u32,
+        /// The blob's size.
+        total: u32,
+        /// Payload bytes in the chunk.
+        bytes: usize,
+    },
 }
 
 /// Why a server message is not acceptable (the client closes the connection).
@@ -133,6 +146,10 @@ pub struct ClientStats {
     pub releases: u64,
     /// Cells the client evicted by distance before the server's release.
     pub evicted: u64,
+    /// Explicit-geometry chunks received (bandwidth baselines).
+    pub geometry_chunks: u64,
+    /// Explicit-geometry payload bytes received (bandwidth baselines).
+    pub geometry_bytes: u64,
 }
 
 /// The client's view of its session (see the module docs).
@@ -304,6 +321,13 @@ impl ClientState {
             ServerStreaming::Species(s) => self.on_species(s),
             ServerStreaming::Cells(b) => self.on_batch(b),
             ServerStreaming::Release(r) => Ok(self.on_release(r)),
+            ServerStreaming::Geometry(g) => {
+                // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
+                // the session's bookkeeping tracks.
+                self.stats.geometry_chunks += 1;
+                self.stats.geometry_bytes += g.bytes.len() as u64;
+                Ok(Event::Geometry { kind: g.kind, id: g.id, offset: g.offset, total: g.total, bytes: g.bytes.len() })
+            }
         }
     }
 

@@ -165,6 +165,9 @@ pub enum ServerStreaming {
     Cells(CellBatch),
     /// A cell left the area of interest: forget the grant's records.
     Release(Release),
+    /// Explicit geometry (the bandwidth baselines of `canopy bandwidth`: a server in an explicit payload mode sends
+    /// meshes instead of species programs). One chunk of one encoded blob.
+    Geometry(GeometryChunk),
 }
 
 /// The server's answer to a hello: the world, its species table and the area-of-interest rules.
@@ -262,6 +265,33 @@ pub struct SpeciesData {
     pub id: u8,
     /// [`crate::SpeciesGraph::encode`]'s bytes; their SHA-256 is the table entry's hash.
     pub graph: Vec<u8>,
+}
+
+/// What an explicit-geometry blob is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum GeometryKind {
+    /// One instance's own amplified mesh (`id`: the instance id), quantised and meshopt-compressed.
+    InstanceMesh,
+    /// One mesh per species (`id`: the species id), quantised and meshopt-compressed, for instancing.
+    SpeciesMesh,
+    /// Per-instance transforms of a cell batch (`id`: the first instance id), as glTF `EXT_mesh_gpu_instancing`
+    /// carries them (translation, rotation, scale), meshopt-compressed.
+    Transforms,
+}
+
+/// One chunk of an explicit-geometry blob: `bytes` are `offset..offset + bytes.len()` of a blob of `total` bytes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GeometryChunk {
+    /// What the blob is.
+    pub kind: GeometryKind,
+    /// Which instance, species or batch it belongs to (see [`GeometryKind`]).
+    pub id: u32,
+    /// Where the chunk starts in the blob.
+    pub offset: u32,
+    /// The blob's size (at most [`netlimits::MAX_GEOMETRY_BYTES`]).
+    pub total: u32,
+    /// The chunk (at most [`netlimits::MAX_GEOMETRY_CHUNK`] bytes).
+    pub bytes: Vec<u8>,
 }
 
 /// A grant of a cell is over: the client forgets its records.
@@ -467,6 +497,15 @@ impl ServerMsg {
             }
             ServerMsg::Streaming(ServerStreaming::Cells(b)) => Ok(b.validate()?),
             ServerMsg::Streaming(ServerStreaming::Release(_)) => Ok(()),
+            ServerMsg::Streaming(ServerStreaming::Geometry(g)) => {
+                count("geometry chunk", g.bytes.len(), netlimits::MAX_GEOMETRY_CHUNK)?;
+                count("geometry blob", g.total as usize, netlimits::MAX_GEOMETRY_BYTES)?;
+                let end = u64::from(g.offset) + g.bytes.len() as u64;
+                if end > u64::from(g.total) {
+                    return Err(MessageError::Count { what: "geometry chunk end", len: end as usize, max: g.total as usize });
+                }
+                Ok(())
+            }
         }
     }
 
@@ -477,6 +516,7 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::Species(_)) => "species",
             ServerMsg::Streaming(ServerStreaming::Cells(_)) => "cells",
             ServerMsg::Streaming(ServerStreaming::Release(_)) => "release",
+            ServerMsg::Streaming(ServerStreaming::Geometry(_)) => "geometry",
         }
     }
 

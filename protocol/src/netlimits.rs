@@ -27,3 +27,7 @@ pub const MAX_COORDINATE: f32 = 1.0e7;
 pub const MAX_SPEED: f32 = 1.0e4;
 /// Largest grid of cells a world may have per axis (keeps cell coordinates and AOI scans bounded).
 pub const MAX_CELLS_PER_AXIS: i32 = 1 << 16;
+/// Largest chunk of explicit geometry in one message, bytes (the bandwidth baselines; fits a server frame).
+pub const MAX_GEOMETRY_CHUNK: usize = 64 * 1024;
+/// Largest explicit-geometry blob (one mesh or one batch's transforms), bytes.
+pub const MAX_GEOMETRY_BYTES: usize = 64 * 1024 * 1024;

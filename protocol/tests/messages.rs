@@ -391,3 +391,25 @@ fn species_hashes_are_sha256_of_the_encoding() {
     assert_eq!(SpeciesHash::from_hex(&h.hex()), Some(h));
     assert_eq!(SpeciesHash::from_hex("zz"), None);
 }
+
+#[test]
+fn geometry_is_pinned_and_bounded() {
+    use canopy_protocol::messages::{GeometryChunk, GeometryKind};
+    let chunk = |kind, offset: u32, total: u32, bytes: Vec<u8>| {
+        ServerMsg::Streaming(ServerStreaming::Geometry(GeometryChunk { kind, id: 300, offset, total, bytes }))
+    };
+    // The last variant of the streaming messages: the earlier variants' encodings are unchanged.
+    check_server(&chunk(GeometryKind::Transforms, 0, 3, vec![1, 2, 3]), "010302ac02000303010203");
+    assert_eq!(chunk(GeometryKind::InstanceMesh, 0, 1, vec![9]).name(), "geometry");
+    // A chunk larger than its limit, one that runs past its blob, or a blob larger than its limit are refused.
+    let big = netlimits::MAX_GEOMETRY_CHUNK;
+    for bad in [
+        chunk(GeometryKind::InstanceMesh, 0, big as u32 + 1, vec![0; big + 1]),
+        chunk(GeometryKind::SpeciesMesh, 10, 12, vec![0; 3]),
+        chunk(GeometryKind::InstanceMesh, 0, netlimits::MAX_GEOMETRY_BYTES as u32 + 1, vec![0; 4]),
+        chunk(GeometryKind::InstanceMesh, u32::MAX, 4, vec![0; 4]),
+    ] {
+        assert!(matches!(ServerMsg::decode(&bad.encode()), Err(MessageError::Count { .. })), "{bad:?}");
+    }
+    assert!(ServerMsg::decode(&chunk(GeometryKind::InstanceMesh, 4, 8, vec![0; 4]).encode()).is_ok());
+}

@@ -20,9 +20,9 @@ pub struct Metrics {
     /// Sessions that reached the streaming phase.
     pub sessions: AtomicU64,
     /// Bytes by [`MsgClass`] index.
-    pub bytes: [AtomicU64; 4],
+    pub bytes: [AtomicU64; 5],
     /// Messages by [`MsgClass`] index.
-    pub messages: [AtomicU64; 4],
+    pub messages: [AtomicU64; 5],
     /// Instance records sent.
     pub records: AtomicU64,
     /// Bytes received from clients (frames).
@@ -114,7 +114,7 @@ impl Metrics {
         metric("canopy_clients", "gauge", "Clients connected now.", &one(&self.clients));
         metric("canopy_connections_total", "counter", "Connections accepted.", &one(&self.connections));
         metric("canopy_sessions_total", "counter", "Sessions that reached streaming.", &one(&self.sessions));
-        let by_class = |a: &[AtomicU64; 4]| {
+        let by_class = |a: &[AtomicU64; 5]| {
             MsgClass::ALL
                 .iter()
                 .map(|c| (format!("{{class=\"{}\"}}", c.label()), a[*c as usize].load(Relaxed)))

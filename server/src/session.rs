@@ -14,16 +14,23 @@
 //!   it;
 //! - pacing: an optional token bucket (bandwidth cap) and a window of bytes handed to the transport but not yet
 //!   flushed, so a slow link always gets the most important records next rather than a backlog of stale ones.
+//!
+//! What it sends per instance and species is the [`Payload`]: the species programs and instance records
+//! (procedural, the default), or — for the bandwidth baselines of `canopy bandwidth` — explicit geometry in their
+//! place, decided by the same area of interest, order and pacing: every instance's own mesh ([`PayloadMode::UniqueMesh`])
+//! or one mesh per species plus per-instance transforms ([`PayloadMode::Instanced`]). The records still go out in
+//! the explicit modes (a few bytes each), so the client's bookkeeping of what it holds stays the same.
 
 use std::collections::{HashMap, VecDeque};
+use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
 use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{
-    ClientHandshake, ClientStreaming, MessageError, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData,
-    Welcome,
+    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerHandshake,
+    ServerStreaming, SpeciesData, Welcome,
 };
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellBatch, CellCoord, ClientMsg, CloseCode, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
@@ -33,6 +40,82 @@ use crate::store::WorldStore;
 
 /// A cell out of view is scheduled as if it were this many times farther away.
 pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
+
+/// What a session sends for instances and species.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PayloadMode {
+    /// Species programs once, then instance records (Canopy).
+    #[default]
+    Procedural,
+    /// Baseline 1: every instance's own amplified mesh, before its record; no species programs.
+    UniqueMesh,
+    /// Baseline 2: one mesh per species instead of its program, and per-instance transforms before each batch.
+    Instanced,
+}
+
+impl PayloadMode {
+    /// Every mode.
+    pub const ALL: [PayloadMode; 3] = [PayloadMode::Procedural, PayloadMode::UniqueMesh, PayloadMode::Instanced];
+
+    /// A short label for reports and command lines.
+    pub fn label(self) -> &'static str {
+        match self {
+            PayloadMode::Procedural => "procedural",
+            PayloadMode::UniqueMesh => "unique-mesh",
+            PayloadMode::Instanced => "instanced",
+        }
+    }
+}
+
+/// Where the explicit payloads come from: encoded blobs, each at most [`netlimits::MAX_GEOMETRY_BYTES`] bytes
+/// (a larger blob is not sent and is counted in [`SessionStats::oversize`]). Called from the session's poll, so an
+/// implementation should cache; it must be deterministic.
+pub trait GeometrySource: Send + Sync {
+    /// Instance `id`'s own mesh.
+    fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>>;
+    /// Species `id`'s one shared mesh.
+    fn species_mesh(&self, species: u8) -> Arc<Vec<u8>>;
+    /// The transforms of instances `ids` (one cell batch).
+    fn transforms(&self, ids: Range<u32>) -> Vec<u8>;
+}
+
+/// The payload mode and, for the explicit modes, the geometry it sends. An explicit mode without a source sends
+/// procedurally.
+#[derive(Clone, Default)]
+pub struct Payload {
+    /// The mode.
+    pub mode: PayloadMode,
+    /// The geometry of the explicit modes.
+    pub geometry: Option<Arc<dyn GeometrySource>>,
+}
+
+impl Payload {
+    /// An explicit (or procedural) payload from `geometry`.
+    pub fn new(mode: PayloadMode, geometry: Arc<dyn GeometrySource>) -> Payload {
+        Payload { mode, geometry: Some(geometry) }
+    }
+
+    fn effective(&self) -> PayloadMode {
+        if self.geometry.is_some() { self.mode } else { PayloadMode::Procedural }
+    }
+}
+
+impl std::fmt::Debug for Payload {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Payload").field("mode", &self.mode).field("geometry", &self.geometry.is_some()).finish()
+    }
+}
+
+impl PartialEq for Payload {
+    fn eq(&self, other: &Payload) -> bool {
+        self.mode == other.mode
+            && match (&self.geometry, &other.geometry) {
+                (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+                (None, None) => true,
+                _ => false,
+            }
+    }
+}
 
 /// How a session behaves.
 #[derive(Clone, Debug, PartialEq)]
@@ -53,6 +136,8 @@ pub struct SessionConfig {
     pub fov_deg: f32,
     /// How long a client may take from connecting to being ready.
     pub handshake_timeout: Duration,
+    /// What goes out per instance and species (procedural unless a bandwidth baseline asks otherwise).
+    pub payload: Payload,
 }
 
 impl Default for SessionConfig {
@@ -66,6 +151,7 @@ impl Default for SessionConfig {
             lanes: 4,
             fov_deg: 120.0,
             handshake_timeout: Duration::from_secs(10),
+            payload: Payload::default(),
         }
     }
 }
@@ -90,15 +176,18 @@ pub enum MsgClass {
     Cells = 2,
     /// A release.
     Release = 3,
+    /// Explicit geometry (bandwidth baselines only).
+    Geometry = 4,
 }
 
 impl MsgClass {
     /// Every class, in index order.
-    pub const ALL: [MsgClass; 4] = [MsgClass::Welcome, MsgClass::Species, MsgClass::Cells, MsgClass::Release];
+    pub const ALL: [MsgClass; 5] =
+        [MsgClass::Welcome, MsgClass::Species, MsgClass::Cells, MsgClass::Release, MsgClass::Geometry];
 
     /// The class's label in metrics.
     pub fn label(self) -> &'static str {
-        ["welcome", "species", "cells", "release"][self as usize]
+        ["welcome", "species", "cells", "release", "geometry"][self as usize]
     }
 }
 
@@ -165,9 +254,11 @@ impl SessionError {
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct SessionStats {
     /// Bytes by [`MsgClass`] index, framing included.
-    pub bytes: [u64; 4],
+    pub bytes: [u64; 5],
     /// Messages by [`MsgClass`] index.
-    pub messages: [u64; 4],
+    pub messages: [u64; 5],
+    /// Explicit-geometry blobs not sent because they exceed [`netlimits::MAX_GEOMETRY_BYTES`].
+    pub oversize: u64,
     /// Instance records sent.
     pub records: u64,
     /// Viewpoints received.
@@ -199,6 +290,9 @@ pub struct Session {
     /// Cells to send (or finish), least important first, so the next is at the end.
     queue: Vec<(f32, CellCoord)>,
     urgent: VecDeque<Transmit>,
+    /// Messages of a started unit (a batch and the geometry before it), paced like batches; by cell, so a release
+    /// can take back what has not gone out.
+    staged: VecDeque<(CellCoord, Transmit)>,
     next_grant: u32,
     bucket: Option<TokenBucket>,
     unflushed: usize,
@@ -235,6 +329,7 @@ impl Session {
             held: HashMap::new(),
             queue: Vec::new(),
             urgent: VecDeque::new(),
+            staged: VecDeque::new(),
             next_grant: 1,
             bucket,
             unflushed: 0,
@@ -269,7 +364,7 @@ impl Session {
 
     /// Whether every cell of the current area of interest has been sent in full.
     pub fn is_complete(&self) -> bool {
-        self.phase == Phase::Streaming && !self.dirty && self.queue.is_empty()
+        self.phase == Phase::Streaming && !self.dirty && self.queue.is_empty() && self.staged.is_empty()
     }
 
     /// Whether the client holds (or has been sent) species `id`.
@@ -344,6 +439,7 @@ impl Session {
         gone.sort_unstable_by_key(|(c, _)| *c);
         for (cell, h) in gone {
             self.held.remove(&cell);
+            self.staged.retain(|(c, _)| *c != cell);
             let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
             let t = self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Release, 0);
             self.urgent.push_back(t);
@@ -364,7 +460,7 @@ impl Session {
         if self.phase != Phase::Streaming {
             return Some(self.deadline);
         }
-        if self.queue.is_empty() {
+        if self.queue.is_empty() && self.staged.is_empty() {
             return None;
         }
         self.bucket.as_ref().and_then(TokenBucket::ready_at)
@@ -388,7 +484,8 @@ impl Session {
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
         }
-        if self.phase != Phase::Streaming || self.queue.is_empty() || self.unflushed >= self.cfg.window {
+        let idle = self.queue.is_empty() && self.staged.is_empty();
+        if self.phase != Phase::Streaming || idle || self.unflushed >= self.cfg.window {
             return None;
         }
         if let Some(b) = &mut self.bucket {
@@ -396,7 +493,10 @@ impl Session {
                 return None;
             }
         }
-        let t = self.next_batch();
+        if self.staged.is_empty() {
+            self.stage_next_unit();
+        }
+        let (_, t) = self.staged.pop_front()?;
         Some(self.account(now, t))
     }
 
@@ -458,8 +558,31 @@ impl Session {
         ((key / radius * lanes).max(0.0) as u32).min(u32::from(self.cfg.lanes) - 1) as u8
     }
 
-    /// The next species or batch of the most important queued cell. The queue is not empty.
-    fn next_batch(&mut self) -> Transmit {
+    /// Stage `blob` as geometry chunks for `cell` on `lane` (before whatever is staged after them).
+    fn stage_geometry(&mut self, cell: CellCoord, lane: u8, kind: GeometryKind, id: u32, blob: &[u8]) {
+        if blob.len() > netlimits::MAX_GEOMETRY_BYTES {
+            self.stats.oversize += 1;
+            return;
+        }
+        let total = blob.len() as u32;
+        let mut offset = 0usize;
+        loop {
+            let end = (offset + netlimits::MAX_GEOMETRY_CHUNK).min(blob.len());
+            let chunk =
+                GeometryChunk { kind, id, offset: offset as u32, total, bytes: blob[offset..end].to_vec() };
+            let msg = ServerMsg::Streaming(ServerStreaming::Geometry(chunk));
+            let t = self.transmit(StreamId::Lane(lane), &msg, MsgClass::Geometry, 0);
+            self.staged.push_back((cell, t));
+            offset = end;
+            if offset >= blob.len() {
+                return;
+            }
+        }
+    }
+
+    /// Stage the next unit of the most important queued cell: a species (its program, or its mesh when
+    /// instanced), or a batch with, in the explicit modes, its geometry before it. The queue is not empty.
+    fn stage_next_unit(&mut self) {
         let (key, cell) = *self.queue.last().expect("queue is not empty");
         let store = Arc::clone(&self.store);
         let view = store.cell(cell).expect("queued cells are in the grid");
@@ -474,16 +597,48 @@ impl Session {
                 h
             }
         };
+        let mode = self.cfg.payload.effective();
+        let geometry = self.cfg.payload.geometry.clone();
+        // Baseline 1 sends one instance per unit, so its mesh and record go out together and pacing stays fine.
+        let per_unit = if mode == PayloadMode::UniqueMesh { 1 } else { self.cfg.batch_records };
         let start = usize::from(h.sent);
-        let end = (start + self.cfg.batch_records).min(usize::from(total));
+        let end = (start + per_unit).min(usize::from(total));
         let records = &view.records[start..end];
-        // A species goes out just before the first batch that needs it, on the same lane.
-        if let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
-            let id = r.species;
-            self.set_species(id);
-            let graph = store.species_graph(id).map(<[u8]>::to_vec).unwrap_or_default();
-            let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
-            return self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Species, 0);
+        let lane = StreamId::Lane(h.lane);
+        // A species goes out just before the first batch that needs it, on the same lane: its program, or its mesh
+        // when instanced; unique meshes need none.
+        if mode != PayloadMode::UniqueMesh {
+            if let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
+                let id = r.species;
+                self.set_species(id);
+                match (mode, &geometry) {
+                    (PayloadMode::Instanced, Some(g)) => {
+                        let blob = g.species_mesh(id);
+                        self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
+                    }
+                    _ => {
+                        let graph = store.species_graph(id).map(<[u8]>::to_vec).unwrap_or_default();
+                        let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
+                        let t = self.transmit(lane, &msg, MsgClass::Species, 0);
+                        self.staged.push_back((cell, t));
+                    }
+                }
+                return;
+            }
+        }
+        let ids = view.first_id + start as u32..view.first_id + end as u32;
+        match (mode, &geometry) {
+            (PayloadMode::UniqueMesh, Some(g)) => {
+                for id in ids {
+                    let blob = g.instance_mesh(id);
+                    self.stage_geometry(cell, h.lane, GeometryKind::InstanceMesh, id, &blob);
+                }
+            }
+            (PayloadMode::Instanced, Some(g)) if !records.is_empty() => {
+                let blob = g.transforms(ids.clone());
+                self.stage_geometry(cell, h.lane, GeometryKind::Transforms, ids.start, &blob);
+            }
+            _ => {}
         }
         let lo = view.overrides.partition_point(|o| usize::from(o.record) < start);
         let hi = view.overrides.partition_point(|o| usize::from(o.record) < end);
@@ -498,6 +653,7 @@ impl Session {
             self.queue.pop();
         }
         let msg = ServerMsg::Streaming(ServerStreaming::Cells(batch));
-        self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Cells, n)
+        let t = self.transmit(lane, &msg, MsgClass::Cells, n);
+        self.staged.push_back((cell, t));
     }
 }

@@ -417,3 +417,117 @@ fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
         assert!(s.held_cells().all(|(c, _)| aoi.is_kept(&grid, c)));
     }
 }
+
+/// A geometry source for the payload-mode tests: blobs whose sizes say what they are.
+struct FakeGeometry;
+
+impl canopy_server::session::GeometrySource for FakeGeometry {
+    fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>> {
+        // Large enough to need several chunks for every third instance.
+        let n = if id % 3 == 0 { 2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5 } else { 100 + id as usize };
+        Arc::new(vec![id as u8; n])
+    }
+    fn species_mesh(&self, species: u8) -> Arc<Vec<u8>> {
+        Arc::new(vec![species; 1000])
+    }
+    fn transforms(&self, ids: std::ops::Range<u32>) -> Vec<u8> {
+        vec![7; 32 * ids.len()]
+    }
+}
+
+fn payload_config(mode: canopy_server::session::PayloadMode) -> SessionConfig {
+    SessionConfig { payload: canopy_server::session::Payload::new(mode, Arc::new(FakeGeometry)), ..config() }
+}
+
+#[test]
+fn explicit_payloads_go_through_the_same_area_of_interest() {
+    use canopy_protocol::messages::GeometryKind;
+    use canopy_server::session::PayloadMode;
+    let store = store();
+    let t0 = Instant::now();
+    let vp = Viewpoint::at(0, [10.0, 10.0], 100.0);
+    let mut procedural = streaming(&store, config(), vp, vec![], t0);
+    let reference = drain(&mut procedural, t0);
+    let records = procedural.stats().records;
+    for mode in [PayloadMode::UniqueMesh, PayloadMode::Instanced] {
+        let mut s = streaming(&store, payload_config(mode), vp, vec![], t0);
+        let msgs = drain(&mut s, t0);
+        assert!(s.is_complete());
+        assert_eq!(s.stats().records, records, "{mode:?}: the same instances");
+        assert_eq!(
+            cells_of(&msgs).into_iter().collect::<HashSet<_>>(),
+            cells_of(&reference).into_iter().collect::<HashSet<_>>(),
+            "{mode:?}: the same cells"
+        );
+        // Per blob: the chunks arrive in order and add up to its size, before the batch that needs it.
+        let mut blobs: HashMap<(u8, u32), (u32, u32)> = HashMap::new();
+        let mut species_meshes = HashSet::new();
+        for (_, m) in &msgs {
+            match m {
+                ServerMsg::Streaming(ServerStreaming::Species(_)) => panic!("{mode:?} sends no species programs"),
+                ServerMsg::Streaming(ServerStreaming::Geometry(g)) => {
+                    let e = blobs.entry((g.kind as u8, g.id)).or_insert((0, g.total));
+                    assert_eq!(e.0, g.offset, "chunks in order");
+                    e.0 += g.bytes.len() as u32;
+                    if g.kind == GeometryKind::SpeciesMesh {
+                        assert!(species_meshes.insert(g.id) || g.offset > 0, "each species mesh once");
+                    }
+                }
+                ServerMsg::Streaming(ServerStreaming::Cells(b)) => {
+                    let ids = b.first_id + u32::from(b.start)..b.first_id + u32::from(b.start) + b.records.len() as u32;
+                    match mode {
+                        PayloadMode::UniqueMesh => {
+                            assert_eq!(b.records.len(), 1, "one instance per unit");
+                            let (got, total) = blobs[&(GeometryKind::InstanceMesh as u8, ids.start)];
+                            assert_eq!(got, total, "the mesh is through before its record");
+                        }
+                        _ => {
+                            let (got, total) = blobs[&(GeometryKind::Transforms as u8, ids.start)];
+                            assert_eq!((got, total), (32 * ids.len() as u32, 32 * ids.len() as u32));
+                            for r in &b.records {
+                                assert!(species_meshes.contains(&u32::from(r.species)), "species mesh first");
+                            }
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Accounting: the session's byte counters are the transmitted bytes.
+        let geometry: u64 = msgs
+            .iter()
+            .filter(|(_, m)| matches!(m, ServerMsg::Streaming(ServerStreaming::Geometry(_))))
+            .map(|(_, m)| m.encode().len() as u64 + 4)
+            .sum();
+        assert_eq!(s.stats().bytes[MsgClass::Geometry as usize], geometry);
+        assert_eq!(s.stats().bytes[MsgClass::Species as usize], 0);
+    }
+}
+
+#[test]
+fn a_release_takes_back_staged_geometry() {
+    use canopy_server::session::PayloadMode;
+    let store = store();
+    let t0 = Instant::now();
+    let mut s = streaming(&store, payload_config(PayloadMode::UniqueMesh), Viewpoint::at(0, [10.0, 10.0], 100.0), vec![], t0);
+    // Start one unit, then jump far away before it is through: its cell is released, the rest never goes.
+    let first = s.poll_transmit(t0).unwrap();
+    s.on_flushed(first.bytes.len());
+    let far = Viewpoint::at(1, [-200.0, -200.0], 30.0);
+    s.handle(t0, ClientMsg::viewpoint(far)).unwrap();
+    let msgs = drain(&mut s, t0);
+    let released: HashSet<CellCoord> = msgs
+        .iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::Release(r)) => Some(r.cell),
+            _ => None,
+        })
+        .collect();
+    assert!(!released.is_empty());
+    for (_, m) in &msgs {
+        if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m {
+            assert!(!released.contains(&b.cell), "no batch of a released cell after its release");
+        }
+    }
+    assert!(s.is_complete());
+}

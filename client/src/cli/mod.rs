@@ -1,5 +1,6 @@
 //! The `canopy` command line: argument definitions and dispatch.
 
+mod bandwidth;
 mod bots;
 mod demo;
 mod hypertree;
@@ -31,6 +32,8 @@ enum Command {
     /// World manifests: stats (the embedded default world, or a manifest file).
     #[command(subcommand)]
     World(world::WorldCommand),
+    /// Bandwidth harness: procedural streaming against explicit geometry over emulated links; writes a report.
+    Bandwidth(bandwidth::BandwidthArgs),
     /// Headless walkthrough bots against a running canopy-server, with progress and a summary.
     Bots(bots::BotsArgs),
     /// The streaming demo: canopy-server on the default world in-process, a few bots, a live summary.
@@ -47,6 +50,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Species(cmd) => species::run(cmd),
         Command::Hypertree(cmd) => hypertree::run(cmd),
         Command::World(cmd) => world::run(cmd),
+        Command::Bandwidth(args) => bandwidth::run(args),
         Command::Bots(args) => bots::run(args),
         Command::Demo(args) => demo::run(args),
         Command::Render(args) => render::run(args),

@@ -155,7 +155,7 @@ pub struct Connection {
     cache: Option<Arc<SpeciesCache>>,
     seq: u32,
     bytes_out: u64,
-    frame_bytes: [u64; 4],
+    frame_bytes: [u64; 5],
     _tasks: AbortOnDrop,
 }
 
@@ -230,7 +230,8 @@ impl Connection {
         let hello = frame(&state.hello(&cfg.client_name)?.encode());
         control.write_all(&hello).await.map_err(|e| ClientError::Stream(e.to_string()))?;
         let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
-        let (msg, _) = read_frame(&mut recv, &mut decoder).await?.ok_or(ClientError::Stream("no welcome".into()))?;
+        let (msg, welcome_len) =
+            read_frame(&mut recv, &mut decoder).await?.ok_or(ClientError::Stream("no welcome".into()))?;
         let welcome = state.on_welcome(msg)?;
         if let Some(cache) = &cache {
             for (id, entry) in welcome.species.iter().enumerate() {
@@ -296,7 +297,7 @@ impl Connection {
             cache,
             seq: viewpoint.seq,
             bytes_out: (hello.len() + ready.len()) as u64,
-            frame_bytes: [0; 4],
+            frame_bytes: [welcome_len as u64, 0, 0, 0, 0],
             _tasks: AbortOnDrop(tasks),
         })
     }
@@ -321,8 +322,8 @@ impl Connection {
         self.conn.stats().udp_tx.bytes
     }
 
-    /// Frame bytes received on the lanes by message class: welcome (0), species (1), cells (2), release (3).
-    pub fn frame_bytes_received(&self) -> [u64; 4] {
+    /// Frame bytes received by message class: welcome (0), species (1), cells (2), release (3), geometry (4).
+    pub fn frame_bytes_received(&self) -> [u64; 5] {
         self.frame_bytes
     }
 
@@ -358,6 +359,7 @@ impl Connection {
                     ServerMsg::Streaming(ServerStreaming::Species(_)) => 1,
                     ServerMsg::Streaming(ServerStreaming::Cells(_)) => 2,
                     ServerMsg::Streaming(ServerStreaming::Release(_)) => 3,
+                    ServerMsg::Streaming(ServerStreaming::Geometry(_)) => 4,
                 };
                 self.frame_bytes[class] += len as u64;
                 let species = match &m {

@@ -1,0 +1,203 @@
+//! `canopy bandwidth`: the bandwidth measurement harness — procedural streaming against explicit geometry
+//! (unique meshes, instanced meshes) through the same server, paths and emulated links; writes a markdown report,
+//! CSV files and SVG plots (see `canopy_client::bandwidth` and docs/bandwidth.md).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use canopy_client::Trust;
+use canopy_client::bandwidth::link::{LinkSpec, parse_rate};
+use canopy_client::bandwidth::{self, BandwidthConfig, External, Scenario, report};
+use canopy_server::session::PayloadMode;
+use canopy_worlds::world::World;
+use clap::{Args, ValueEnum};
+
+/// A payload mode on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Mode {
+    /// Species programs once, then instance records (Canopy).
+    Procedural,
+    /// Baseline 1: every instance's own mesh, meshopt-compressed.
+    UniqueMesh,
+    /// Baseline 2: one meshopt-compressed mesh per species plus per-instance transforms.
+    Instanced,
+}
+
+impl From<Mode> for PayloadMode {
+    fn from(m: Mode) -> PayloadMode {
+        match m {
+            Mode::Procedural => PayloadMode::Procedural,
+            Mode::UniqueMesh => PayloadMode::UniqueMesh,
+            Mode::Instanced => PayloadMode::Instanced,
+        }
+    }
+}
+
+/// Options of `canopy bandwidth`. With no options: the default walkthrough (all three payloads over 1 Mbit/s,
+/// procedural over 56 kbit/s and over 10 Mbit/s with 1 % loss; 2 bots, 30 s at 10 m/s with a teleport).
+#[derive(Args, Debug)]
+pub struct BandwidthArgs {
+    /// Payload modes to run (comma-separated); with --rate, every mode over every rate.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    modes: Vec<Mode>,
+    /// Link rates (comma-separated: 56k, 1M, 10M, none).
+    #[arg(long, value_delimiter = ',')]
+    rate: Vec<String>,
+    /// One-way link latency, milliseconds (with --modes/--rate).
+    #[arg(long, default_value_t = 20)]
+    latency_ms: u64,
+    /// Packet loss probability per direction, 0..1 (with --modes/--rate).
+    #[arg(long, default_value_t = 0.0)]
+    loss: f64,
+    /// Bots per scenario.
+    #[arg(long, default_value_t = 2)]
+    bots: usize,
+    /// How long each bot walks, seconds.
+    #[arg(long, default_value_t = 30.0)]
+    duration: f64,
+    /// Walking speed, metres per second.
+    #[arg(long, default_value_t = 10.0)]
+    speed: f32,
+    /// Area-of-interest radius, metres.
+    #[arg(long, default_value_t = 160.0)]
+    radius: f32,
+    /// View distance for visible completeness, metres (default: the AOI radius).
+    #[arg(long)]
+    view: Option<f32>,
+    /// Walk straight on without the teleport half-way.
+    #[arg(long)]
+    no_teleport: bool,
+    /// Path seed.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Longest wait at the end for a complete area of interest, seconds.
+    #[arg(long, default_value_t = 10.0)]
+    settle: f64,
+    /// Sampling interval, milliseconds.
+    #[arg(long, default_value_t = 250)]
+    sample_ms: u64,
+    /// Server pacing (its token bucket) as a fraction of the link rate; 0: off.
+    #[arg(long, default_value_t = 0.9)]
+    pace: f64,
+    /// Memory bound of the server's cache of encoded instance meshes, MiB.
+    #[arg(long, default_value_t = 512)]
+    cache_mib: usize,
+    /// Instances per species for the seed 001 §7 size table (0: no table).
+    #[arg(long, default_value_t = 3)]
+    size_seeds: u32,
+    /// Instances of the world whose unique meshes are encoded to estimate baseline 1 per instance (0: none).
+    #[arg(long, default_value_t = 40)]
+    mesh_sample: usize,
+    /// Output folder.
+    #[arg(long, default_value = "out/bandwidth")]
+    out: PathBuf,
+    /// Measure a running canopy-server (procedural scenarios only) instead of one in process; it must serve the
+    /// embedded default world.
+    #[arg(long)]
+    server: Option<SocketAddr>,
+    /// Pin that server's certificate by its SHA-256 fingerprint.
+    #[arg(long, requires = "server", conflicts_with = "insecure")]
+    cert_fingerprint: Option<String>,
+    /// Accept any certificate from that server (local use only).
+    #[arg(long, requires = "server")]
+    insecure: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
+    let mut cfg = BandwidthConfig::default_run();
+    let secs = |v: f64, what: &str| -> anyhow::Result<Duration> {
+        if !(v.is_finite() && (0.0..=86_400.0).contains(&v)) {
+            bail!("--{what} must be between 0 and 86400 seconds");
+        }
+        Ok(Duration::from_secs_f64(v))
+    };
+    if !(0.0..1.0).contains(&args.loss) {
+        bail!("--loss must be in 0..1");
+    }
+    if !(args.speed.is_finite() && args.speed >= 0.0 && args.radius.is_finite() && args.radius > 0.0) {
+        bail!("--speed and --radius must be positive numbers");
+    }
+    cfg.bots = args.bots;
+    cfg.duration = secs(args.duration, "duration")?;
+    cfg.settle = secs(args.settle, "settle")?;
+    cfg.speed = args.speed;
+    cfg.radius = args.radius;
+    cfg.view = args.view.unwrap_or(args.radius);
+    cfg.teleport = !args.no_teleport;
+    cfg.seed = args.seed;
+    cfg.sample = Duration::from_millis(args.sample_ms.clamp(10, 60_000));
+    cfg.pace = args.pace.clamp(0.0, 10.0);
+    cfg.cache_bytes = args.cache_mib.saturating_mul(1024 * 1024);
+    cfg.size_seeds = args.size_seeds;
+    cfg.mesh_sample = args.mesh_sample;
+    cfg.out = args.out.clone();
+    cfg.progress = !args.quiet;
+    cfg.command = std::iter::once("canopy".to_string()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
+    if !args.modes.is_empty() || !args.rate.is_empty() || args.server.is_some() {
+        let modes: Vec<PayloadMode> = if args.modes.is_empty() {
+            if args.server.is_some() { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
+        } else {
+            args.modes.iter().map(|&m| m.into()).collect()
+        };
+        let rates: Vec<Option<u64>> = if args.rate.is_empty() {
+            vec![Some(1_000_000)]
+        } else {
+            args.rate.iter().map(|r| parse_rate(r).map_err(anyhow::Error::msg)).collect::<anyhow::Result<_>>()?
+        };
+        cfg.scenarios = rates
+            .iter()
+            .flat_map(|&rate| modes.iter().map(move |&m| Scenario::new(m, LinkSpec::new(rate, args.latency_ms, args.loss))))
+            .collect();
+    }
+    if let Some(server) = args.server {
+        let trust = match (&args.cert_fingerprint, args.insecure) {
+            (Some(f), _) => Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))?,
+            (None, true) => Trust::Insecure,
+            (None, false) => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
+        };
+        cfg.external = Some(External { server, trust });
+    }
+    Ok(cfg)
+}
+
+/// Run `canopy bandwidth`.
+pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
+    let cfg = config(&args)?;
+    let loaded = Instant::now();
+    let world = Arc::new(World::default_world());
+    println!(
+        "world `{}`: {} instances, loaded in {:.1} s; {} scenarios × {} bots, {} s walks; report into {}",
+        world.name,
+        world.instances.len(),
+        loaded.elapsed().as_secs_f64(),
+        cfg.scenarios.len(),
+        cfg.bots,
+        cfg.duration.as_secs_f64(),
+        cfg.out.display()
+    );
+    let outcome = bandwidth::run(&cfg, world)?;
+    for c in report::comparisons(&outcome) {
+        let n = c[0].records() as f64 / c[0].bots.len().max(1) as f64;
+        let [p, u, i] = report::projections(&outcome, c);
+        let base = p.as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
+        let ratio = |x: &Option<report::Projection>| x.as_ref().map_or("-".into(), |x| format!("{:.0}×", x.bytes(n) / base));
+        println!(
+            "{}: unique meshes {} the procedural bytes, instanced {} (to deliver the {n:.0} instances per bot procedural delivered)",
+            c[0].scenario.link.label(),
+            ratio(&u),
+            ratio(&i)
+        );
+    }
+    for f in &outcome.files {
+        println!("wrote {}", f.display());
+    }
+    let failed = outcome.scenarios.iter().flat_map(|s| &s.bots).filter(|b| b.error.is_some()).count();
+    Ok(if failed == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
