@@ -164,6 +164,52 @@ impl PrimitiveStream {
         }
     }
 
+    /// The points bounding a primitive in its local frame: the 8 corners of its box (a trunk base as the frustum
+    /// that holds its flares, `bottom · max(spread, 1)` to `top`), or a leaf's own points. The voxeliser and the
+    /// renderer's bounds both take them.
+    pub fn local_bounds(&self, p: &Primitive) -> Vec<[f32; 3]> {
+        let corners = |lo: [f32; 3], hi: [f32; 3]| -> Vec<[f32; 3]> {
+            (0..8)
+                .map(|c| {
+                    [
+                        if c & 1 == 0 { lo[0] } else { hi[0] },
+                        if c & 2 == 0 { lo[1] } else { hi[1] },
+                        if c & 4 == 0 { lo[2] } else { hi[2] },
+                    ]
+                })
+                .collect()
+        };
+        match &p.shape {
+            Shape::Cone { bottom, top, height } => {
+                let r = bottom.max(*top);
+                corners([-r, 0.0, -r], [r, *height, r])
+            }
+            Shape::TrunkBase(b) => {
+                let r = (b.bottom * b.spread.max(1.0)).max(b.top);
+                corners([-r, 0.0, -r], [r, b.height, r])
+            }
+            Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [*radius, *height, *radius]),
+            Shape::Sphere { radius } => corners([-radius; 3], [*radius; 3]),
+            Shape::Box { size } => corners(size.map(|s| -0.5 * s), size.map(|s| 0.5 * s)),
+            Shape::Leaf { .. } => self.leaf(p).to_vec(),
+        }
+    }
+
+    /// The box holding every primitive's [`Self::local_bounds`] in the stream's frame (`min > max` when empty).
+    pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for p in &self.primitives {
+            for c in self.local_bounds(p) {
+                let w = p.transform.point(c);
+                for i in 0..3 {
+                    lo[i] = lo[i].min(w[i]);
+                    hi[i] = hi[i].max(w[i]);
+                }
+            }
+        }
+        (lo, hi)
+    }
+
     /// A stable 64-bit FNV-1a hash over the bit patterns of everything in the stream, for golden tests.
     pub fn hash(&self) -> u64 {
         let mut h = Fnv::new();

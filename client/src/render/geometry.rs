@@ -98,50 +98,6 @@ pub fn pack_snorm(n: [f32; 3]) -> u32 {
     q(n[0]) | q(n[1]) << 8 | q(n[2]) << 16
 }
 
-/// The local bounds of a primitive (as the voxeliser takes them: a trunk base as the frustum holding its flares).
-pub fn local_bounds(stream: &PrimitiveStream, p: &Primitive) -> Vec<[f32; 3]> {
-    let corners = |lo: [f32; 3], hi: [f32; 3]| -> Vec<[f32; 3]> {
-        (0..8)
-            .map(|c| {
-                [
-                    if c & 1 == 0 { lo[0] } else { hi[0] },
-                    if c & 2 == 0 { lo[1] } else { hi[1] },
-                    if c & 4 == 0 { lo[2] } else { hi[2] },
-                ]
-            })
-            .collect()
-    };
-    match &p.shape {
-        Shape::Cone { bottom, top, height } => {
-            let r = bottom.max(*top);
-            corners([-r, 0.0, -r], [r, *height, r])
-        }
-        Shape::TrunkBase(b) => {
-            let r = (b.bottom * b.spread.max(1.0)).max(b.top);
-            corners([-r, 0.0, -r], [r, b.height, r])
-        }
-        Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [*radius, *height, *radius]),
-        Shape::Sphere { radius } => corners([-radius; 3], [*radius; 3]),
-        Shape::Box { size } => corners(size.map(|s| -0.5 * s), size.map(|s| 0.5 * s)),
-        Shape::Leaf { .. } => stream.leaf(p).to_vec(),
-    }
-}
-
-/// The species-space bounds of a primitive stream (`min > max` when empty).
-pub fn stream_bounds(stream: &PrimitiveStream) -> ([f32; 3], [f32; 3]) {
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for p in &stream.primitives {
-        for c in local_bounds(stream, p) {
-            let w = p.transform.point(c);
-            for i in 0..3 {
-                lo[i] = lo[i].min(w[i]);
-                hi[i] = hi[i].max(w[i]);
-            }
-        }
-    }
-    (lo, hi)
-}
-
 fn finite_positive(v: &[f32]) -> bool {
     v.iter().all(|x| x.is_finite() && *x > 0.0)
 }
@@ -198,7 +154,7 @@ pub fn build_tree(
                 Ok(m) => {
                     let mut out = TreeGeometry {
                         primitives: stream.primitives.len(),
-                        bounds: stream_bounds(&stream),
+                        bounds: stream.bounds(),
                         ..Default::default()
                     };
                     set_mesh(&mut out, m);
@@ -215,7 +171,7 @@ pub fn build_tree(
 pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
     let opts = MeshOptions::for_detail(detail);
     let mut out =
-        TreeGeometry { primitives: stream.primitives.len(), bounds: stream_bounds(stream), ..Default::default() };
+        TreeGeometry { primitives: stream.primitives.len(), bounds: stream.bounds(), ..Default::default() };
     let mut mesh = Mesh::new();
     match mode {
         NearMode::Merged => mesh_into(stream, &opts, &mut mesh),

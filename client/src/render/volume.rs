@@ -19,7 +19,6 @@ use canopy_worlds::hypertree::{Hypertree, StorageType, ops};
 use canopy_worlds::rng::InstanceRng;
 
 use super::Lighting;
-use super::geometry::stream_bounds;
 
 /// Largest volume edge in voxels (an atlas slot); larger scene volumes are reduced to fit (§9 voxel fusion).
 pub const MAX_SLOT: u32 = 128;
@@ -144,7 +143,7 @@ pub fn voxelise_representative(
     let stream = amplify(graph, &Instance::new(REPRESENTATIVE_SEED), budget)?;
     let opts = VoxeliseOptions { resolution, storage: StorageType::IndexList, ..VoxeliseOptions::default() };
     let tree = voxelise(&stream, &graph.name, &opts)?;
-    let (lo, hi) = stream_bounds(&stream);
+    let (lo, hi) = stream.bounds();
     let longest = (0..3).map(|i| hi[i] - lo[i]).fold(0.0f32, f32::max).max(1e-6);
     let pad = 0.02 * longest;
     Ok((tree, std::array::from_fn(|i| pad - lo[i])))
@@ -432,7 +431,7 @@ mod tests {
         let g = library::find("conifer").unwrap().load().unwrap();
         let (tree, origin) = voxelise_representative(&g, 48, &Budget::default()).unwrap();
         let stream = amplify(&g, &Instance::new(REPRESENTATIVE_SEED), &Budget::default()).unwrap();
-        let (lo, hi) = stream_bounds(&stream);
+        let (lo, hi) = stream.bounds();
         let aabb = tree.aabb().unwrap();
         let s = tree.volume.voxel_size();
         for i in 0..3 {

@@ -82,30 +82,6 @@ pub fn voxelise_species(
     voxelise(&stream, &graph.name, opts)
 }
 
-fn local_bounds(stream: &PrimitiveStream, p: &Primitive) -> Vec<[f32; 3]> {
-    let corners = |lo: [f32; 3], hi: [f32; 3]| -> Vec<[f32; 3]> {
-        (0..8)
-            .map(|c| {
-                [
-                    if c & 1 == 0 { lo[0] } else { hi[0] },
-                    if c & 2 == 0 { lo[1] } else { hi[1] },
-                    if c & 4 == 0 { lo[2] } else { hi[2] },
-                ]
-            })
-            .collect()
-    };
-    match solid_shape(&p.shape) {
-        Shape::Cone { bottom, top, height } | Shape::TrunkBase(TrunkBase { bottom, top, height, .. }) => {
-            let r = bottom.max(top);
-            corners([-r, 0.0, -r], [r, height, r])
-        }
-        Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [radius, height, radius]),
-        Shape::Sphere { radius } => corners([-radius; 3], [radius; 3]),
-        Shape::Box { size } => corners(size.map(|s| -0.5 * s), size.map(|s| 0.5 * s)),
-        Shape::Leaf { .. } => stream.leaf(p).to_vec(),
-    }
-}
-
 fn col_len(t: &Transform, c: usize) -> f32 {
     let m = &t.m;
     libm::sqrtf(m[c] * m[c] + m[4 + c] * m[4 + c] + m[8 + c] * m[8 + c])
@@ -287,16 +263,7 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         return Err(VoxeliseError::Parameter("branch depth"));
     }
     // The world box of every primitive.
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for p in &stream.primitives {
-        for c in local_bounds(stream, p) {
-            let w = p.transform.point(c);
-            for i in 0..3 {
-                lo[i] = lo[i].min(w[i]);
-                hi[i] = hi[i].max(w[i]);
-            }
-        }
-    }
+    let (lo, hi) = stream.bounds();
     if stream.primitives.is_empty() || !(0..3).all(|i| lo[i].is_finite() && hi[i].is_finite() && lo[i] <= hi[i]) {
         return Err(VoxeliseError::Empty);
     }
@@ -370,7 +337,7 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
                         continue;
                     }
                 }
-                sampler.solid(p, &local_bounds(stream, p), level)?;
+                sampler.solid(p, &stream.local_bounds(p), level)?;
             }
         }
     }
