@@ -75,3 +75,23 @@ fn export_writes_a_grove_glb() {
     let (json, _) = canopy_worlds::gltf::parse_glb_header(&bytes).unwrap();
     assert_eq!(json["nodes"].as_array().unwrap().len(), 4);
 }
+
+/// The README's main command, short: the in-process server on the default world, bots walking, the live summary,
+/// and every bot checked against the world at the end. With `DISPLAY` pointing at no X server the window fails and
+/// the demo goes on headless.
+#[test]
+fn demo_streams_the_default_world_to_bots_and_checks_them() {
+    let o = Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["demo", "--bots", "3", "--duration", "3", "--radius", "120"])
+        .env("DISPLAY", ":987654")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .expect("canopy runs");
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    assert!(out.contains("instances: 213042"), "{out}");
+    assert!(out.contains("the walkthrough window failed"), "{out}");
+    assert!(out.contains("AOI complete 3/3"), "{out}");
+    assert!(out.contains("checked against the world: 3 of 3 exact"), "{out}");
+    assert!(out.contains("species: ") && out.contains(", 0 received twice"), "{out}");
+}

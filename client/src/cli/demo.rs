@@ -95,7 +95,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     }
     // winit wants the main thread: the server and the bots run on another, the window here.
     let (addr_tx, addr_rx) = std::sync::mpsc::channel();
-    let exit_after = args.duration.max(0.0).to_string();
+    let duration = args.duration.max(0.0);
+    let exit_after = duration.to_string();
+    let started = Instant::now();
     let headless = std::thread::spawn(move || demo(args, Some(addr_tx), stop_rx));
     let walked = match addr_rx.recv() {
         Ok((addr, fingerprint)) => {
@@ -106,12 +108,18 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
         // The demo failed before its server was up; its error is the one to report.
         Err(_) => None,
     };
-    let _ = stop_tx.send(true);
-    let code = headless.join().map_err(|_| anyhow::anyhow!("the demo thread panicked"))??;
-    match walked {
-        Some(Err(e)) => Err(e.context("the walkthrough window")),
-        _ => Ok(code),
+    if let Some(Err(e)) = &walked {
+        // No window after all (no Vulkan or GL adapter, an unreachable display): the demo goes on headless, for
+        // its duration or until Ctrl-C.
+        eprintln!("canopy demo: the walkthrough window failed ({e:#}); the bots walk on without it");
+        if duration > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(duration).saturating_sub(started.elapsed()));
+            let _ = stop_tx.send(true);
+        }
+    } else {
+        let _ = stop_tx.send(true);
     }
+    headless.join().map_err(|_| anyhow::anyhow!("the demo thread panicked"))?
 }
 
 /// The server and the bots with the live summary; with `window`, the server's address and fingerprint go there
@@ -178,7 +186,7 @@ fn demo(
                     let _ = stop_tx.send(true);
                 }
                 _ = window_closed.wait_for(|closed| *closed), if windowed && !stopping => {
-                    println!("the window closed: the bots stop walking, settle and are checked");
+                    println!("stopping (the window closed, or the time is up): the bots stop walking, settle and are checked");
                     stopping = true;
                     let _ = stop_tx.send(true);
                 }
