@@ -297,7 +297,7 @@ impl Grid<'_> {
         let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         match self.volume.voxel_at(q, self.inv) {
             Some(v) => {
-                self.recorder.record(self.volume.index(v), level, part);
+                self.recorder.record_at(v, self.volume.index(v), level, part);
                 true
             }
             None => false,
@@ -329,7 +329,7 @@ impl Grid<'_> {
         }
         let p: [f32; 3] = std::array::from_fn(|i| a[i] + d[i] * t0);
         let max = self.volume.resolution.map(|r| r as i64 - 1);
-        let mut v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
+        let v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
         let end: [i64; 3] = std::array::from_fn(|i| ((a[i] + d[i] * t1).max(0.0) as i64).min(max[i]));
         let step: [i64; 3] = std::array::from_fn(|i| {
             if d[i] > 0.0 {
@@ -341,7 +341,7 @@ impl Grid<'_> {
             }
         });
         let delta: [f32; 3] = std::array::from_fn(|i| if d[i] != 0.0 { (1.0 / d[i]).abs() } else { f32::INFINITY });
-        let mut next: [f32; 3] = std::array::from_fn(|i| {
+        let next: [f32; 3] = std::array::from_fn(|i| {
             if d[i] > 0.0 {
                 ((v[i] + 1) as f32 - a[i]) / d[i]
             } else if d[i] < 0.0 {
@@ -356,28 +356,57 @@ impl Grid<'_> {
         let [rx, ry, _] = self.volume.resolution.map(i64::from);
         let stride = [step[0], step[1] * rx, step[2] * rx * ry];
         let mut idx = i64::from(self.volume.index([v[0] as u32, v[1] as u32, v[2] as u32]));
+        // The crossed voxels are handed to the recorder in batches (in order, so the result is the same).
+        const BATCH: usize = 64;
+        let mut buf = [([0u32; 3], 0u32); BATCH];
+        let mut n = 0;
+        // The axis state lives in scalars (not arrays indexed by the axis) so it stays in registers.
+        let [mut v0, mut v1, mut v2] = v;
+        let [mut n0, mut n1, mut n2] = next;
+        let [e0, e1, e2] = end;
         for _ in 0..limit {
-            self.recorder.record(idx as u32, level, part);
-            if v == end {
+            buf[n] = ([v0 as u32, v1 as u32, v2 as u32], idx as u32);
+            n += 1;
+            if n == BATCH {
+                self.recorder.record_many(&buf, level, part);
+                n = 0;
+            }
+            if v0 == e0 && v1 == e1 && v2 == e2 {
                 break;
             }
-            let k = if next[0] <= next[1] && next[0] <= next[2] {
-                0
-            } else if next[1] <= next[2] {
-                1
+            if n0 <= n1 && n0 <= n2 {
+                if n0 > t1 {
+                    break;
+                }
+                v0 += step[0];
+                if v0 < 0 || v0 > max[0] {
+                    break;
+                }
+                idx += stride[0];
+                n0 += delta[0];
+            } else if n1 <= n2 {
+                if n1 > t1 {
+                    break;
+                }
+                v1 += step[1];
+                if v1 < 0 || v1 > max[1] {
+                    break;
+                }
+                idx += stride[1];
+                n1 += delta[1];
             } else {
-                2
-            };
-            if next[k] > t1 {
-                break;
+                if n2 > t1 {
+                    break;
+                }
+                v2 += step[2];
+                if v2 < 0 || v2 > max[2] {
+                    break;
+                }
+                idx += stride[2];
+                n2 += delta[2];
             }
-            v[k] += step[k];
-            if v[k] < 0 || v[k] > max[k] {
-                break;
-            }
-            idx += stride[k];
-            next[k] += delta[k];
         }
+        self.recorder.record_many(&buf[..n], level, part);
         true
     }
 }

@@ -616,14 +616,23 @@ pub struct HitRecorder {
 
 enum Mode {
     Dense { array: DenseArray, touched: Vec<u32> },
+    /// Narrow keys `index << LEVEL_BITS | level` (subpart 0, index below 2²⁷, level below 32): half the memory
+    /// traffic of the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
+    Keys32 { raw: Vec<u32>, compact: Vec<Compact>, scratch: Vec<u32> },
     Keys { raw: Vec<u64>, compact: Vec<Compact>, scratch: Vec<u64> },
 }
+
+/// Level bits of a narrow key.
+const LEVEL_BITS: u32 = 5;
 
 impl HitRecorder {
     /// A recorder for a volume of `resolution` that will be stored as `ty`.
     pub fn new(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
         let mode = match ty {
             StorageType::Dense => Mode::Dense { array: DenseArray::new(resolution), touched: Vec::new() },
+            _ if resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= 1 << (32 - LEVEL_BITS) => {
+                Mode::Keys32 { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() }
+            }
             _ => Mode::Keys { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() },
         };
         HitRecorder { mode, hits: 0 }
@@ -632,10 +641,57 @@ impl HitRecorder {
     /// Record one hit of voxel `index` by a generator at `level` belonging to `subpart`.
     #[inline]
     pub fn record(&mut self, index: u32, level: u8, subpart: u8) {
+        let v = match &self.mode {
+            Mode::Dense { array, .. } => array.coords(index),
+            _ => [0; 3],
+        };
+        self.record_at(v, index, level, subpart);
+    }
+
+    /// Record one hit of each voxel in `hits` (coordinates and index), all by one generator: the same as calling
+    /// [`HitRecorder::record_at`] for each in order, with the structure chosen once.
+    #[inline]
+    pub fn record_many(&mut self, hits: &[([u32; 3], u32)], level: u8, subpart: u8) {
+        match &mut self.mode {
+            Mode::Dense { array, touched } => {
+                self.hits += hits.len() as u64;
+                for &(v, index) in hits {
+                    let o = array.offset(v);
+                    let c = &mut array.cells[o];
+                    if c[0] == 0 {
+                        touched.push(index);
+                        *c = [1, level];
+                    } else {
+                        c[0] = c[0].saturating_add(1);
+                        c[1] = c[1].min(level);
+                    }
+                }
+            }
+            Mode::Keys32 { raw, compact, scratch } if subpart == 0 && u32::from(level) < 1 << LEVEL_BITS => {
+                self.hits += hits.len() as u64;
+                for &(_, index) in hits {
+                    raw.push(index << LEVEL_BITS | u32::from(level));
+                }
+                if raw.len() >= CHUNK {
+                    flush32(raw, compact, scratch);
+                }
+            }
+            _ => {
+                for &(v, index) in hits {
+                    self.record_at(v, index, level, subpart);
+                }
+            }
+        }
+    }
+
+    /// Record one hit of voxel `v` whose index is `index` (the dense array addresses by coordinates, the lists by
+    /// index, so a caller that knows both saves the divisions).
+    #[inline]
+    pub fn record_at(&mut self, v: [u32; 3], index: u32, level: u8, subpart: u8) {
         self.hits += 1;
         match &mut self.mode {
             Mode::Dense { array, touched } => {
-                let o = array.offset(array.coords(index));
+                let o = array.offset(v);
                 let c = &mut array.cells[o];
                 if c[0] == 0 {
                     touched.push(index);
@@ -643,6 +699,17 @@ impl HitRecorder {
                 } else {
                     c[0] = c[0].saturating_add(1);
                     c[1] = c[1].min(level);
+                }
+            }
+            Mode::Keys32 { raw, compact, scratch } => {
+                if subpart != 0 || u32::from(level) >= 1 << LEVEL_BITS {
+                    self.widen();
+                    self.hits -= 1;
+                    return self.record_at(v, index, level, subpart);
+                }
+                raw.push(index << LEVEL_BITS | u32::from(level));
+                if raw.len() >= CHUNK {
+                    flush32(raw, compact, scratch);
                 }
             }
             Mode::Keys { raw, compact, scratch } => {
@@ -683,6 +750,14 @@ impl HitRecorder {
                 let (map, vbox) = BrickMap::from_indices(volume, touched.iter().copied());
                 (VoxelStore::Dense(array), map, vbox)
             }
+            Mode::Keys32 { mut raw, mut compact, mut scratch } => {
+                flush32(&mut raw, &mut compact, &mut scratch);
+                drop(raw);
+                drop(scratch);
+                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+                let (map, vbox) = BrickMap::build(volume, &store);
+                (store, map, vbox)
+            }
             Mode::Keys { mut raw, mut compact, mut scratch } => {
                 flush(&mut raw, &mut compact, &mut scratch);
                 drop(raw);
@@ -692,6 +767,86 @@ impl HitRecorder {
                 (store, map, vbox)
             }
         }
+    }
+}
+
+impl HitRecorder {
+    /// Switch from narrow to wide keys (a hit of a subpart other than 0, or a level of 32 or more).
+    #[cold]
+    fn widen(&mut self) {
+        if let Mode::Keys32 { raw, compact, .. } = &mut self.mode {
+            let raw: Vec<u64> = raw
+                .iter()
+                .map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1)))
+                .collect();
+            self.mode = Mode::Keys { raw, compact: std::mem::take(compact), scratch: Vec::new() };
+        }
+    }
+}
+
+/// [`flush`] for narrow keys: the same compact records.
+fn flush32(raw: &mut Vec<u32>, compact: &mut Vec<Compact>, scratch: &mut Vec<u32>) {
+    if raw.is_empty() {
+        return;
+    }
+    radix_sort32(raw, scratch);
+    let mut runs: Vec<Compact> = Vec::with_capacity(raw.len() / 2);
+    let mut k = 0;
+    while k < raw.len() {
+        let key = raw[k] >> LEVEL_BITS;
+        let level = (raw[k] & ((1 << LEVEL_BITS) - 1)) as u8;
+        let start = k;
+        k += 1;
+        while k < raw.len() && raw[k] >> LEVEL_BITS == key {
+            k += 1;
+        }
+        runs.push(Compact { key: u64::from(key), hits: (k - start).min(255) as u8, level });
+    }
+    raw.clear();
+    merge_runs(compact, runs);
+}
+
+/// LSD radix sort of 32-bit keys over their significant bits, in as few passes of at most 11 bits as they take.
+pub fn radix_sort32(keys: &mut Vec<u32>, scratch: &mut Vec<u32>) {
+    let n = keys.len();
+    if n < 2 {
+        return;
+    }
+    let all_or = keys.iter().fold(0u32, |a, &k| a | k);
+    let bits = 32 - all_or.leading_zeros();
+    if bits == 0 {
+        return;
+    }
+    let passes = bits.div_ceil(11);
+    let width = bits.div_ceil(passes);
+    let buckets = 1usize << width;
+    let mask = (buckets - 1) as u32;
+    let mut counts = vec![0usize; buckets * passes as usize];
+    for &k in keys.iter() {
+        for p in 0..passes {
+            counts[p as usize * buckets + ((k >> (p * width)) & mask) as usize] += 1;
+        }
+    }
+    scratch.clear();
+    scratch.resize(n, 0);
+    for p in 0..passes {
+        let count = &mut counts[p as usize * buckets..(p as usize + 1) * buckets];
+        if count.iter().any(|&c| c == n) {
+            continue; // every key has the same digit here
+        }
+        let shift = p * width;
+        let mut sum = 0;
+        for c in count.iter_mut() {
+            let t = *c;
+            *c = sum;
+            sum += t;
+        }
+        for &k in keys.iter() {
+            let b = ((k >> shift) & mask) as usize;
+            scratch[count[b]] = k;
+            count[b] += 1;
+        }
+        std::mem::swap(keys, scratch);
     }
 }
 
@@ -714,6 +869,11 @@ fn flush(raw: &mut Vec<u64>, compact: &mut Vec<Compact>, scratch: &mut Vec<u64>)
         runs.push(Compact { key, hits: n.min(255) as u8, level });
     }
     raw.clear();
+    merge_runs(compact, runs);
+}
+
+/// Merge freshly counted runs (sorted by key) into the compact list.
+fn merge_runs(compact: &mut Vec<Compact>, runs: Vec<Compact>) {
     if compact.is_empty() {
         *compact = runs;
         return;
