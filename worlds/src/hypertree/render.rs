@@ -289,76 +289,39 @@ fn box_interval(o: [f32; 3], inv_d: [f32; 3], b: &Aabb) -> Option<(f32, f32)> {
     (t0 <= t1).then_some((t0, t1))
 }
 
-/// Per-voxel shading memo: open addressing on voxel index + 1.
-struct ShadeCache {
-    keys: Vec<u32>,
-    values: Vec<[f32; 3]>,
-    len: usize,
-}
-
-impl ShadeCache {
-    fn new() -> ShadeCache {
-        ShadeCache { keys: vec![0; 1 << 14], values: vec![[0.0; 3]; 1 << 14], len: 0 }
-    }
-
-    #[inline]
-    fn slot(&self, key: u32) -> (usize, bool) {
-        let mask = self.keys.len() - 1;
-        let mut s = (key.wrapping_mul(0x9e37_79b1) >> 7) as usize & mask;
-        loop {
-            let k = self.keys[s];
-            if k == key {
-                return (s, true);
-            }
-            if k == 0 {
-                return (s, false);
-            }
-            s = (s + 1) & mask;
-        }
-    }
-
-    fn insert(&mut self, key: u32, value: [f32; 3]) {
-        if 2 * (self.len + 1) > self.keys.len() {
-            let size = self.keys.len() * 2;
-            let old_keys = std::mem::replace(&mut self.keys, vec![0; size]);
-            let old_values = std::mem::replace(&mut self.values, vec![[0.0; 3]; old_keys.len() * 2]);
-            for (k, v) in old_keys.into_iter().zip(old_values) {
-                if k != 0 {
-                    let (s, _) = self.slot(k);
-                    self.keys[s] = k;
-                    self.values[s] = v;
-                }
-            }
-        }
-        let (s, found) = self.slot(key);
-        if !found {
-            self.len += 1;
-        }
-        self.keys[s] = key;
-        self.values[s] = value;
-    }
-}
-
 /// Which voxels of the occupied bricks are non-empty: per brick a slot (or [`VoxelMask::NONE`]) into 512-bit
-/// masks, bit `z << 6 | y << 3 | x` of the brick-local coordinates. Built once per render from the store, so an
-/// empty voxel inside an occupied brick is answered without querying the storage structure (same answer, so the
-/// image is unchanged).
+/// masks, bit `z << 6 | y << 3 | x` of the brick-local coordinates, and the number of non-empty voxels before
+/// each slot, so a non-empty voxel has a rank: the index of its shading memo, which keeps the memo of one brick
+/// together. Built once per render from the store; an empty voxel inside an occupied brick is answered without
+/// querying the storage structure (the same answer, so the image is unchanged).
 struct VoxelMask {
     slots: Vec<u32>,
     masks: Vec<[u64; 8]>,
+    ranks: Vec<u32>,
     dims: [usize; 2],
 }
 
 impl VoxelMask {
     const NONE: u32 = u32::MAX;
 
-    fn build(tree: &Hypertree) -> VoxelMask {
+    /// With `skip`, only the bricks the occupancy map marks are read from a dense array (projection and shadow
+    /// rays never sample the others then).
+    fn build(tree: &Hypertree, skip: bool) -> VoxelMask {
         let dims = tree.volume.resolution.map(|r| r.div_ceil(1 << BRICK_SHIFT) as usize);
-        let mut m = VoxelMask { slots: vec![Self::NONE; dims[0] * dims[1] * dims[2]], masks: Vec::new(), dims: [dims[0], dims[1]] };
+        let mut m = VoxelMask {
+            slots: vec![Self::NONE; dims[0] * dims[1] * dims[2]],
+            masks: Vec::new(),
+            ranks: Vec::new(),
+            dims: [dims[0], dims[1]],
+        };
         match &tree.store {
             VoxelStore::Dense(d) => {
                 // Bricks of the dense array are laid out in the same brick order, 512 cells each.
+                let occ = &tree.occupancy;
                 for (b, cells) in d.cells.chunks_exact(512).enumerate() {
+                    if skip && occ.bits[b >> 6] >> (b & 63) & 1 == 0 {
+                        continue;
+                    }
                     let mut words = [0u64; 8];
                     for (w, word) in words.iter_mut().enumerate() {
                         for (k, c) in cells[w * 64..w * 64 + 64].iter().enumerate() {
@@ -385,6 +348,16 @@ impl VoxelMask {
                 });
             }
         }
+        let mut acc = 0u32;
+        m.ranks = m
+            .masks
+            .iter()
+            .map(|w| {
+                let r = acc;
+                acc += w.iter().map(|x| x.count_ones()).sum::<u32>();
+                r
+            })
+            .collect();
         m
     }
 
@@ -398,6 +371,14 @@ impl VoxelMask {
         self.masks[self.slots[b] as usize][bit >> 6] |= 1 << (bit & 63);
     }
 
+    /// Non-empty voxels.
+    fn count(&self) -> usize {
+        match (self.ranks.last(), self.masks.last()) {
+            (Some(&r), Some(w)) => r as usize + w.iter().map(|x| x.count_ones() as usize).sum::<usize>(),
+            _ => 0,
+        }
+    }
+
     #[inline]
     fn brick(&self, v: [u32; 3]) -> usize {
         let [bx, by, bz] = v.map(|c| (c >> BRICK_SHIFT) as usize);
@@ -407,6 +388,27 @@ impl VoxelMask {
     #[inline]
     fn bit(v: [u32; 3]) -> usize {
         ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize
+    }
+
+    /// The rank of voxel `v` (inside the volume) if it is non-empty.
+    #[inline]
+    fn rank(&self, v: [u32; 3]) -> Option<u32> {
+        let s = self.slots[self.brick(v)];
+        if s == Self::NONE {
+            return None;
+        }
+        let bit = Self::bit(v);
+        let words = &self.masks[s as usize];
+        let w = bit >> 6;
+        let word = words[w];
+        if word >> (bit & 63) & 1 == 0 {
+            return None;
+        }
+        let mut r = self.ranks[s as usize] + (word & ((1u64 << (bit & 63)) - 1)).count_ones();
+        for x in &words[..w] {
+            r += x.count_ones();
+        }
+        Some(r)
     }
 
     /// Whether voxel `v` (inside the volume) is non-empty.
@@ -451,7 +453,8 @@ struct Scene<'a, Q: VoxelQuery> {
     lights: Vec<([f32; 3], [f32; 3])>,
     eye: [f32; 3],
     o: RenderOptions,
-    cache: ShadeCache,
+    /// Shading memo by voxel rank (NaN: not shaded yet).
+    memo: Vec<[f32; 3]>,
     ray_cache: Vec<(u32, Voxel)>,
     stats: RenderStats,
 }
@@ -534,11 +537,11 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                     n = (n + 1).max(floor_i((te - t0) / self.step - 0.5)).max(n + self.clear_run(v));
                     continue;
                 }
-                if !self.mask.occupied(v) {
+                let Some(rank) = self.mask.rank(v) else {
                     // Empty: nothing to accumulate (the storage would answer Voxel::EMPTY).
                     n += 1;
                     continue;
-                }
+                };
                 let idx = self.vol.index(v);
                 let voxel = if cache_valid {
                     let slot = n as usize;
@@ -569,7 +572,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                 };
                 if voxel.density != 0 {
                     let a = self.alpha[voxel.density as usize];
-                    let c = self.shade(idx, voxel, v);
+                    let c = self.shade(rank, voxel, v);
                     let w = (1.0 - alpha) * a;
                     for i in 0..3 {
                         color[i] += w * c[i];
@@ -643,11 +646,10 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
         if norm(n) > 1e-6 { normalize(n) } else { normalize(sub(c, self.crown_center)) }
     }
 
-    fn shade(&mut self, idx: u32, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
-        let key = idx.wrapping_add(1);
-        let (slot, found) = self.cache.slot(key);
-        if found {
-            return self.cache.values[slot];
+    fn shade(&mut self, rank: u32, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
+        let memo = self.memo[rank as usize];
+        if !memo[0].is_nan() {
+            return memo;
         }
         self.stats.shaded += 1;
         let c = self.vol.center(v);
@@ -687,7 +689,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             }
         }
         let out = std::array::from_fn(|i| base[i] * light[i] + spec[i]);
-        self.cache.insert(key, out);
+        self.memo[rank as usize] = out;
         out
     }
 }
@@ -765,7 +767,8 @@ fn render_with<Q: VoxelQuery>(
         o.bounds = BoundingScheme::Aabb;
     }
     let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / step) as usize + 4;
-    let mask = VoxelMask::build(tree);
+    let mask = VoxelMask::build(tree, opts.skip_empty);
+    let voxels = mask.count();
     let mut scene = Scene {
         q,
         vol,
@@ -787,7 +790,7 @@ fn render_with<Q: VoxelQuery>(
         lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
         eye,
         o,
-        cache: ShadeCache::new(),
+        memo: vec![[f32::NAN; 3]; voxels],
         ray_cache: if opts.ray_cache { vec![(u32::MAX, Voxel::EMPTY); diag_steps] } else { Vec::new() },
         stats: RenderStats::default(),
     };
