@@ -107,7 +107,11 @@ pub fn generate(
     let volume = Hypervolume { resolution, extent: def.hypervolume };
     let iterations = opts.iterations.unwrap_or(def.iterations);
     check(opts, &volume, iterations)?;
-    let mut recorder = HitRecorder::new(opts.storage, volume.resolution);
+    // A line generator's hits come in runs of neighbouring voxels: counted in bricks, not sorted.
+    let mut recorder = match def.generator {
+        Generator::Line { .. } => HitRecorder::new_coherent(opts.storage, volume.resolution),
+        Generator::Point(_) => HitRecorder::new(opts.storage, volume.resolution),
+    };
     let mut stats = GenerationStats::default();
     // Unpartitioned, every hit belongs to subpart 0; partitioned, to the first-level subpart that made it.
     let part = if opts.partitioned { None } else { Some(0) };

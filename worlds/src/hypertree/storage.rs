@@ -619,11 +619,18 @@ enum Mode {
     /// Narrow keys `index << LEVEL_BITS | level` (subpart 0, index below 2²⁷, level below 32): half the memory
     /// traffic of the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
     Keys32 { raw: Vec<u32>, compact: Vec<Compact>, scratch: Vec<u32> },
+    /// Hit counts and levels in bricks of 8³ allocated on first touch (subpart 0 only; for coherent hits such as
+    /// line generators', which cross runs of neighbouring voxels): no sort at all. A hit of another subpart turns
+    /// the bricks into compact records and switches to wide keys for good.
+    Bricks(BrickGrid),
     Keys { raw: Vec<u64>, compact: Vec<Compact>, scratch: Vec<u64> },
 }
 
 /// Level bits of a narrow key.
 const LEVEL_BITS: u32 = 5;
+
+/// Most voxels of a volume recorded in bricks (the brick slot table is 4 bytes per 512 voxels).
+const BRICK_GRID_VOXELS: u64 = 1 << 30;
 
 impl HitRecorder {
     /// A recorder for a volume of `resolution` that will be stored as `ty`.
@@ -638,11 +645,27 @@ impl HitRecorder {
         HitRecorder { mode, hits: 0 }
     }
 
+    /// A recorder for hits that come in runs of neighbouring voxels (line generators): index lists of a volume
+    /// of at most 2³⁰ voxels count them in bricks allocated on first touch instead of sorting the raw hits. The
+    /// result is the same as [`HitRecorder::new`]'s.
+    pub fn new_coherent(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
+        if ty != StorageType::Dense
+            && resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= BRICK_GRID_VOXELS
+        {
+            return HitRecorder { mode: Mode::Bricks(BrickGrid::new(resolution)), hits: 0 };
+        }
+        HitRecorder::new(ty, resolution)
+    }
+
     /// Record one hit of voxel `index` by a generator at `level` belonging to `subpart`.
     #[inline]
     pub fn record(&mut self, index: u32, level: u8, subpart: u8) {
         let v = match &self.mode {
             Mode::Dense { array, .. } => array.coords(index),
+            Mode::Bricks(g) => {
+                let [rx, ry, _] = g.resolution;
+                [index % rx, (index / rx) % ry, index / (rx * ry)]
+            }
             _ => [0; 3],
         };
         self.record_at(v, index, level, subpart);
@@ -674,6 +697,12 @@ impl HitRecorder {
                 }
                 if raw.len() >= CHUNK {
                     flush32(raw, compact, scratch);
+                }
+            }
+            Mode::Bricks(grid) if subpart == 0 => {
+                self.hits += hits.len() as u64;
+                for &(v, _) in hits {
+                    grid.hit(v, level);
                 }
             }
             _ => {
@@ -711,6 +740,14 @@ impl HitRecorder {
                 if raw.len() >= CHUNK {
                     flush32(raw, compact, scratch);
                 }
+            }
+            Mode::Bricks(grid) => {
+                if subpart != 0 {
+                    self.widen();
+                    self.hits -= 1;
+                    return self.record_at(v, index, level, subpart);
+                }
+                grid.hit(v, level);
             }
             Mode::Keys { raw, compact, scratch } => {
                 // Level in the low byte (the shallowest sorts first), the index above it and the subpart on top,
@@ -758,6 +795,11 @@ impl HitRecorder {
                 let (map, vbox) = BrickMap::build(volume, &store);
                 (store, map, vbox)
             }
+            Mode::Bricks(grid) => {
+                let (compact, map, vbox) = grid.into_compact();
+                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+                (store, map, vbox)
+            }
             Mode::Keys { mut raw, mut compact, mut scratch } => {
                 flush(&mut raw, &mut compact, &mut scratch);
                 drop(raw);
@@ -771,7 +813,8 @@ impl HitRecorder {
 }
 
 impl HitRecorder {
-    /// Switch from narrow to wide keys (a hit of a subpart other than 0, or a level of 32 or more).
+    /// Switch from narrow keys or bricks to wide keys (a hit of a subpart other than 0, or a narrow key's level
+    /// of 32 or more).
     #[cold]
     fn widen(&mut self) {
         if let Mode::Keys32 { raw, compact, .. } = &mut self.mode {
@@ -780,9 +823,123 @@ impl HitRecorder {
                 .map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1)))
                 .collect();
             self.mode = Mode::Keys { raw, compact: std::mem::take(compact), scratch: Vec::new() };
+        } else if let Mode::Bricks(grid) = &mut self.mode {
+            let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
+            self.mode = Mode::Keys { raw: Vec::with_capacity(1 << 16), compact, scratch: Vec::new() };
         }
     }
 }
+
+/// Hit counts (saturating at 255) and shallowest levels of subpart 0, in bricks of 8³ voxels allocated on first
+/// touch: the same counts as sorting the raw hits, without the sort.
+pub struct BrickGrid {
+    resolution: [u32; 3],
+    dims: [u32; 3],
+    /// Per brick (`bx + dims_x · (by + dims_y · bz)`), its slot or `u32::MAX`.
+    slots: Vec<u32>,
+    /// `[hits, level]`, 512 per slot, `z << 6 | y << 3 | x` inside the brick.
+    cells: Vec<[u8; 2]>,
+    /// The brick of each slot.
+    bricks: Vec<u32>,
+}
+
+impl BrickGrid {
+    fn new(resolution: [u32; 3]) -> BrickGrid {
+        let dims = resolution.map(|r| r.div_ceil(1 << BRICK_SHIFT));
+        let n = dims.iter().map(|&d| d as usize).product::<usize>();
+        BrickGrid { resolution, dims, slots: vec![u32::MAX; n], cells: Vec::new(), bricks: Vec::new() }
+    }
+
+    #[inline]
+    fn hit(&mut self, v: [u32; 3], level: u8) {
+        let b = (v[0] >> 3) + self.dims[0] * ((v[1] >> 3) + self.dims[1] * (v[2] >> 3));
+        let mut s = self.slots[b as usize];
+        if s == u32::MAX {
+            s = self.bricks.len() as u32;
+            self.slots[b as usize] = s;
+            self.bricks.push(b);
+            self.cells.resize(self.cells.len() + 512, [0; 2]);
+        }
+        let c = &mut self.cells[(s as usize) << 9 | ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize];
+        if c[0] == 0 {
+            *c = [1, level];
+        } else {
+            c[0] = c[0].saturating_add(1);
+            c[1] = c[1].min(level);
+        }
+    }
+
+    /// The compact records in index order, the occupancy brick map and the voxel box.
+    fn into_compact(self) -> (Vec<Compact>, BrickMap, Option<VoxelBox>) {
+        let [rx, ry, rz] = self.resolution;
+        let [nx, ny, _] = self.dims;
+        let mut map = BrickMap { dims: self.dims, bits: vec![0u64; (self.slots.len()).div_ceil(64)] };
+        let mut order: Vec<u32> = (0..self.bricks.len() as u32).collect();
+        order.sort_unstable_by_key(|&s| self.bricks[s as usize]);
+        let mut out = Vec::new();
+        let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
+        // Slabs of bricks with equal bz; inside one, rows of bricks with equal by (bricks in x order).
+        let mut k = 0;
+        while k < order.len() {
+            let bz = self.bricks[order[k] as usize] / (nx * ny);
+            let mut end = k;
+            while end < order.len() && self.bricks[order[end] as usize] / (nx * ny) == bz {
+                end += 1;
+            }
+            let slab = &order[k..end];
+            for lz in 0..8 {
+                let z = bz * 8 + lz;
+                if z >= rz {
+                    break;
+                }
+                let mut r = 0;
+                while r < slab.len() {
+                    let by = self.bricks[slab[r] as usize] / nx % ny;
+                    let mut rend = r;
+                    while rend < slab.len() && self.bricks[slab[rend] as usize] / nx % ny == by {
+                        rend += 1;
+                    }
+                    for ly in 0..8 {
+                        let y = by * 8 + ly;
+                        if y >= ry {
+                            break;
+                        }
+                        for &s in &slab[r..rend] {
+                            let bx = self.bricks[s as usize] % nx;
+                            let base = (s as usize) << 9 | (lz << 6 | ly << 3) as usize;
+                            // Most rows of a touched brick are empty: test the row's 8 cells at once.
+                            if self.cells[base..base + 8].iter().fold(0u8, |a, c| a | c[0]) == 0 {
+                                continue;
+                            }
+                            for lx in 0..8 {
+                                let x = bx * 8 + lx;
+                                if x >= rx {
+                                    break;
+                                }
+                                let [hits, level] = self.cells[base | lx as usize];
+                                if hits != 0 {
+                                    out.push(Compact { key: u64::from(x + rx * (y + ry * z)), hits, level });
+                                    for (a, c) in [x, y, z].into_iter().enumerate() {
+                                        lo[a] = lo[a].min(c);
+                                        hi[a] = hi[a].max(c);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    r = rend;
+                }
+            }
+            k = end;
+        }
+        for &b in &self.bricks {
+            map.bits[b as usize >> 6] |= 1 << (b & 63);
+        }
+        let vbox = (!out.is_empty()).then_some((lo, hi));
+        (out, map, vbox)
+    }
+}
+
 
 /// [`flush`] for narrow keys: the same compact records.
 fn flush32(raw: &mut Vec<u32>, compact: &mut Vec<Compact>, scratch: &mut Vec<u32>) {
