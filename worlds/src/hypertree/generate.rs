@@ -293,7 +293,12 @@ struct Grid<'a> {
     offset: [f32; 3],
     inv: [f32; 3],
     recorder: &'a mut HitRecorder,
+    /// Point hits not yet recorded: voxel, index, level, subpart.
+    points: Vec<([u32; 3], u32, u8, u8)>,
 }
+
+/// Point hits recorded at a time.
+const POINT_BATCH: usize = 256;
 
 impl Grid<'_> {
     #[inline]
@@ -301,11 +306,22 @@ impl Grid<'_> {
         let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         match self.volume.voxel_at(q, self.inv) {
             Some(v) => {
-                self.recorder.record_at(v, self.volume.index(v), level, part);
+                // Hits are queued and recorded in batches: their counts do not depend on the order, and a tight
+                // loop of independent writes overlaps the cache misses of a large volume.
+                self.points.push((v, self.volume.index(v), level, part));
+                if self.points.len() == POINT_BATCH {
+                    self.flush_points();
+                }
                 true
             }
             None => false,
         }
+    }
+
+    /// Record the queued point hits.
+    fn flush_points(&mut self) {
+        self.recorder.record_points(&self.points);
+        self.points.clear();
     }
 
     /// Every voxel the segment passes through, by a 3D DDA (Amanatides–Woo) over the part of the segment inside
@@ -481,7 +497,7 @@ fn run_tree(
         frequency: p.frequency,
     };
     let inv = std::array::from_fn(|i| volume.resolution[i] as f32 / volume.extent[i]);
-    let mut grid = Grid { volume: *volume, offset, inv, recorder };
+    let mut grid = Grid { volume: *volume, offset, inv, recorder, points: Vec::with_capacity(POINT_BATCH) };
     let mut run = Run {
         def,
         ifs: &ifs,
@@ -497,6 +513,7 @@ fn run_tree(
     let (len, shape_bound) = match def.generator {
         Generator::Point(p0) => {
             run.iterate(p0, 0.0, &mut grid, &mut ctx, iterations, stats, progress);
+            grid.flush_points();
             (0.0, 0.0)
         }
         Generator::Line { from, to } => {

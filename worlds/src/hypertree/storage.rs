@@ -875,6 +875,32 @@ impl HitRecorder {
         }
     }
 
+    /// Record one hit of each voxel in `hits` (coordinates, index, level, subpart); the order of hits never changes
+    /// the result.
+    pub fn record_points(&mut self, hits: &[([u32; 3], u32, u8, u8)]) {
+        match &mut self.mode {
+            Mode::Dense { array, touched } => {
+                self.hits += hits.len() as u64;
+                for &(v, index, level, _) in hits {
+                    let o = array.offset(v);
+                    let c = &mut array.cells[o];
+                    if c[0] == 0 {
+                        touched.push(index);
+                        *c = [1, level];
+                    } else {
+                        c[0] = c[0].saturating_add(1);
+                        c[1] = c[1].min(level);
+                    }
+                }
+            }
+            _ => {
+                for &(v, index, level, subpart) in hits {
+                    self.record_at(v, index, level, subpart);
+                }
+            }
+        }
+    }
+
     /// Record one hit of voxel `v` whose index is `index` (the dense array addresses by coordinates, the lists by
     /// index, so a caller that knows both saves the divisions).
     #[inline]
