@@ -983,6 +983,11 @@ impl HitRecorder {
                 let (map, vbox) = BrickMap::build(volume, &store);
                 (store, map, vbox)
             }
+            Mode::Bricks(grid) if !partitioned => {
+                let (list, hits_of, map, vbox) = grid.into_list();
+                let list = classify(list, &hits_of, classes, branch_depth);
+                (VoxelStore::from_list(list, ty, volume), map, vbox)
+            }
             Mode::Bricks(grid) => {
                 let (compact, map, vbox) = grid.into_compact();
                 let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
@@ -1059,12 +1064,32 @@ impl BrickGrid {
 
     /// The compact records in index order, the occupancy brick map and the voxel box.
     fn into_compact(self) -> (Vec<Compact>, BrickMap, Option<VoxelBox>) {
+        let mut out = Vec::new();
+        let (map, vbox) = self.visit(|index, hits, level| out.push(Compact { key: u64::from(index), hits, level }));
+        (out, map, vbox)
+    }
+
+    /// The voxels as a list (densities still 1), their hit counts, the occupancy brick map and the voxel box.
+    fn into_list(self) -> (VoxelList, Vec<u8>, BrickMap, Option<VoxelBox>) {
+        let mut list = VoxelList::default();
+        let mut hits_of = Vec::new();
+        let (map, vbox) = self.visit(|index, hits, level| {
+            list.indices.push(index);
+            list.levels.push(level);
+            hits_of.push(hits);
+        });
+        list.densities = vec![1; list.indices.len()];
+        (list, hits_of, map, vbox)
+    }
+
+    /// Visit every hit voxel in index order (index, hits, level); returns the brick map and the voxel box.
+    fn visit(&self, mut emit: impl FnMut(u32, u8, u8)) -> (BrickMap, Option<VoxelBox>) {
+        let mut any = false;
         let [rx, ry, rz] = self.resolution;
         let [nx, ny, _] = self.dims;
         let mut map = BrickMap { dims: self.dims, bits: vec![0u64; (self.slots.len()).div_ceil(64)] };
         let mut order: Vec<u32> = (0..self.bricks.len() as u32).collect();
         order.sort_unstable_by_key(|&s| self.bricks[s as usize]);
-        let mut out = Vec::new();
         let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
         // Slabs of bricks with equal bz; inside one, rows of bricks with equal by (bricks in x order).
         let mut k = 0;
@@ -1106,7 +1131,8 @@ impl BrickGrid {
                                 }
                                 let [hits, level] = self.cells[base | lx as usize];
                                 if hits != 0 {
-                                    out.push(Compact { key: u64::from(x + rx * (y + ry * z)), hits, level });
+                                    emit(x + rx * (y + ry * z), hits, level);
+                                    any = true;
                                     for (a, c) in [x, y, z].into_iter().enumerate() {
                                         lo[a] = lo[a].min(c);
                                         hi[a] = hi[a].max(c);
@@ -1123,8 +1149,7 @@ impl BrickGrid {
         for &b in &self.bricks {
             map.bits[b as usize >> 6] |= 1 << (b & 63);
         }
-        let vbox = (!out.is_empty()).then_some((lo, hi));
-        (out, map, vbox)
+        (map, any.then_some((lo, hi)))
     }
 }
 
@@ -1285,6 +1310,19 @@ pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
     }
 }
 
+/// Densities from hit counts: equalised density classes, full density for branch levels (≤ `branch_depth`).
+fn classify(mut list: VoxelList, hits_of: &[u8], classes: u8, branch_depth: u8) -> VoxelList {
+    let mut histogram = [0u64; 256];
+    for &h in hits_of {
+        histogram[h as usize] += 1;
+    }
+    let dc = DensityClasses::equalise(&histogram, classes);
+    for (d, (&h, &l)) in list.densities.iter_mut().zip(hits_of.iter().zip(&list.levels)) {
+        *d = if l <= branch_depth { 255 } else { dc.density[h as usize] };
+    }
+    list
+}
+
 /// Build index lists (per part if `partitioned`) from compact records sorted by (subpart, index).
 fn build_lists(
     compact: &[Compact],
@@ -1308,7 +1346,6 @@ fn build_lists(
     };
     let mut combined = VoxelList::default();
     let mut hits_of: Vec<u8> = Vec::new();
-    let mut histogram = [0u64; 256];
     for (index, hits, level) in records {
         if combined.indices.last() == Some(&index) {
             let h = hits_of.last_mut().expect("parallel to the list");
@@ -1320,13 +1357,7 @@ fn build_lists(
             combined.push(index, Voxel { density: 1, level });
         }
     }
-    for &h in &hits_of {
-        histogram[h as usize] += 1;
-    }
-    let dc = DensityClasses::equalise(&histogram, classes);
-    for (d, (&h, &l)) in combined.densities.iter_mut().zip(hits_of.iter().zip(&combined.levels)) {
-        *d = if l <= branch_depth { 255 } else { dc.density[h as usize] };
-    }
+    let combined = classify(combined, &hits_of, classes, branch_depth);
     if !partitioned || ty == StorageType::Dense {
         return VoxelStore::from_list(combined, ty, volume);
     }
