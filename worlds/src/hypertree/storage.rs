@@ -863,8 +863,16 @@ impl HitRecorder {
             }
             Mode::Bricks(grid) if subpart == 0 => {
                 self.hits += hits.len() as u64;
+                // Neighbouring voxels of a segment mostly share a brick: look its slot up once per brick.
+                let mut last = u32::MAX;
+                let mut base = 0usize;
                 for &(v, _) in hits {
-                    grid.hit(v, level);
+                    let b = grid.brick(v);
+                    if b != last {
+                        last = b;
+                        base = grid.slot(b) << 9;
+                    }
+                    grid.bump(base | BrickGrid::local(v), level);
                 }
             }
             _ => {
@@ -1044,8 +1052,18 @@ impl BrickGrid {
     }
 
     #[inline]
-    fn hit(&mut self, v: [u32; 3], level: u8) {
-        let b = (v[0] >> 3) + self.dims[0] * ((v[1] >> 3) + self.dims[1] * (v[2] >> 3));
+    fn brick(&self, v: [u32; 3]) -> u32 {
+        (v[0] >> 3) + self.dims[0] * ((v[1] >> 3) + self.dims[1] * (v[2] >> 3))
+    }
+
+    #[inline]
+    fn local(v: [u32; 3]) -> usize {
+        ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize
+    }
+
+    /// The slot of brick `b`, allocated on first touch.
+    #[inline]
+    fn slot(&mut self, b: u32) -> usize {
         let mut s = self.slots[b as usize];
         if s == u32::MAX {
             s = self.bricks.len() as u32;
@@ -1053,7 +1071,19 @@ impl BrickGrid {
             self.bricks.push(b);
             self.cells.resize(self.cells.len() + 512, [0; 2]);
         }
-        let c = &mut self.cells[(s as usize) << 9 | ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize];
+        s as usize
+    }
+
+    #[inline]
+    fn hit(&mut self, v: [u32; 3], level: u8) {
+        let o = self.slot(self.brick(v)) << 9 | Self::local(v);
+        self.bump(o, level);
+    }
+
+    /// One more hit of cell `o` at `level`.
+    #[inline]
+    fn bump(&mut self, o: usize, level: u8) {
+        let c = &mut self.cells[o];
         if c[0] == 0 {
             *c = [1, level];
         } else {
