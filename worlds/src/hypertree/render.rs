@@ -302,7 +302,10 @@ struct VoxelMask {
 }
 
 impl VoxelMask {
+    /// No voxels and not marked in the occupancy map.
     const NONE: u32 = u32::MAX;
+    /// Flag of a slot entry: the occupancy map does not mark the brick (rays skip it when skipping is on).
+    const UNMARKED: u32 = 1 << 31;
 
     /// With `skip`, only the bricks the occupancy map marks are read from a dense array (projection and shadow
     /// rays never sample the others then).
@@ -348,6 +351,18 @@ impl VoxelMask {
                 });
             }
         }
+        // Fold the occupancy map in, so one load per sample answers both "skip this brick?" and "where is its mask?":
+        // a marked brick without voxels gets an empty mask, an unmarked one with voxels the flag.
+        let occ = &tree.occupancy;
+        for b in 0..m.slots.len() {
+            let marked = occ.bits[b >> 6] >> (b & 63) & 1 == 1;
+            if marked && m.slots[b] == Self::NONE {
+                m.slots[b] = m.masks.len() as u32;
+                m.masks.push([0; 8]);
+            } else if !marked && m.slots[b] != Self::NONE {
+                m.slots[b] |= Self::UNMARKED;
+            }
+        }
         let mut acc = 0u32;
         m.ranks = m
             .masks
@@ -390,13 +405,13 @@ impl VoxelMask {
         ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize
     }
 
-    /// The rank of voxel `v` (inside the volume) if it is non-empty.
+    /// The rank of voxel `v` (inside the volume) if it is non-empty, given its brick's slot entry.
     #[inline]
-    fn rank(&self, v: [u32; 3]) -> Option<u32> {
-        let s = self.slots[self.brick(v)];
+    fn rank_in(&self, s: u32, v: [u32; 3]) -> Option<u32> {
         if s == Self::NONE {
             return None;
         }
+        let s = s & !Self::UNMARKED;
         let bit = Self::bit(v);
         let words = &self.masks[s as usize];
         let w = bit >> 6;
@@ -409,17 +424,6 @@ impl VoxelMask {
             r += x.count_ones();
         }
         Some(r)
-    }
-
-    /// Whether voxel `v` (inside the volume) is non-empty.
-    #[inline]
-    fn occupied(&self, v: [u32; 3]) -> bool {
-        let s = self.slots[self.brick(v)];
-        if s == Self::NONE {
-            return false;
-        }
-        let bit = Self::bit(v);
-        self.masks[s as usize][bit >> 6] >> (bit & 63) & 1 == 1
     }
 }
 
@@ -435,7 +439,6 @@ struct Scene<'a, Q: VoxelQuery> {
     vol: Hypervolume,
     inv: [f32; 3],
     vsize: [f32; 3],
-    occupancy: &'a BrickMap,
     mask: VoxelMask,
     /// Chebyshev distance, in bricks, from each brick to the nearest brick that the occupancy map or the voxels
     /// mark occupied (capped at 255).
@@ -481,8 +484,8 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
     /// `8·(K − 1) + 1` along some axis lies in a brick nearer than `K`, the brick's Chebyshev distance to the nearest
     /// occupied brick; one voxel of margin absorbs rounding. Skipping only empty samples leaves the image unchanged.
     #[inline]
-    fn clear_run(&self, v: [u32; 3]) -> i64 {
-        let k = i64::from(self.brick_dist[self.occupancy.brick_index(v)]);
+    fn clear_run(&self, brick: usize) -> i64 {
+        let k = i64::from(self.brick_dist[brick]);
         (8 * (k - 1)).max(1)
     }
 
@@ -532,12 +535,14 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                     n += 1;
                     continue;
                 };
-                if self.skip && !self.occupancy.occupied(v) {
+                let b = self.mask.brick(v);
+                let slot = self.mask.slots[b];
+                if self.skip && slot & VoxelMask::UNMARKED != 0 {
                     let te = self.brick_exit(v, o, inv_d);
-                    n = (n + 1).max(floor_i((te - t0) / self.step - 0.5)).max(n + self.clear_run(v));
+                    n = (n + 1).max(floor_i((te - t0) / self.step - 0.5)).max(n + self.clear_run(b));
                     continue;
                 }
-                let Some(rank) = self.mask.rank(v) else {
+                let Some(rank) = self.mask.rank_in(slot, v) else {
                     // Empty: nothing to accumulate (the storage would answer Voxel::EMPTY).
                     n += 1;
                     continue;
@@ -600,12 +605,14 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             let t = n as f32 * self.step;
             let p = [c[0] + l[0] * t, c[1] + l[1] * t, c[2] + l[2] * t];
             let Some(v) = self.vol.voxel_at(p, self.inv) else { break };
-            if self.skip && !self.occupancy.occupied(v) {
+            let b = self.mask.brick(v);
+            let slot = self.mask.slots[b];
+            if self.skip && slot & VoxelMask::UNMARKED != 0 {
                 let te = self.brick_exit(v, c, inv_d);
-                n = (n + 1).max(floor_i(te / self.step)).max(n + self.clear_run(v));
+                n = (n + 1).max(floor_i(te / self.step)).max(n + self.clear_run(b));
                 continue;
             }
-            if !self.mask.occupied(v) {
+            if self.mask.rank_in(slot, v).is_none() {
                 n += 1;
                 continue;
             }
@@ -774,7 +781,6 @@ fn render_with<Q: VoxelQuery>(
         vol,
         inv: std::array::from_fn(|i| 1.0 / vsize[i]),
         vsize,
-        occupancy: &tree.occupancy,
         brick_dist: brick_distances(&tree.occupancy, &mask),
         mask,
         skip: opts.skip_empty,
