@@ -1038,7 +1038,7 @@ pub struct BrickGrid {
     dims: [u32; 3],
     /// Per brick (`bx + dims_x · (by + dims_y · bz)`), its slot or `u32::MAX`.
     slots: Vec<u32>,
-    /// `[hits, level]`, 512 per slot, `z << 6 | y << 3 | x` inside the brick.
+    /// `[hits, level]`, 512 per slot, `z << 6 | y << 3 | x` inside the brick (level 255 where not hit).
     cells: Vec<[u8; 2]>,
     /// The brick of each slot.
     bricks: Vec<u32>,
@@ -1069,7 +1069,8 @@ impl BrickGrid {
             s = self.bricks.len() as u32;
             self.slots[b as usize] = s;
             self.bricks.push(b);
-            self.cells.resize(self.cells.len() + 512, [0; 2]);
+            // Levels start at 255 so a hit is the same branch-free update whether or not it is the first.
+            self.cells.resize(self.cells.len() + 512, [0, u8::MAX]);
         }
         s as usize
     }
@@ -1084,12 +1085,8 @@ impl BrickGrid {
     #[inline]
     fn bump(&mut self, o: usize, level: u8) {
         let c = &mut self.cells[o];
-        if c[0] == 0 {
-            *c = [1, level];
-        } else {
-            c[0] = c[0].saturating_add(1);
-            c[1] = c[1].min(level);
-        }
+        c[0] = c[0].saturating_add(1);
+        c[1] = c[1].min(level);
     }
 
     /// The compact records in index order, the occupancy brick map and the voxel box.
