@@ -479,10 +479,11 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
         t
     }
 
-    /// How many samples on from a sample in voxel `v` of an empty brick are certainly empty too: a sample moves at
-    /// most one voxel along each axis per step (the step is the smallest voxel side), and every voxel closer than
-    /// `8·(K − 1) + 1` along some axis lies in a brick nearer than `K`, the brick's Chebyshev distance to the nearest
-    /// occupied brick; one voxel of margin absorbs rounding. Skipping only empty samples leaves the image unchanged.
+    /// How many samples on from a sample in empty brick `brick` are certainly empty too: a sample moves at most one
+    /// voxel along each axis per step (the step is the smallest voxel side), and every voxel closer than
+    /// `8·(K − 1) + 1` along some axis lies in a brick nearer than `K`, the brick's Chebyshev distance to the
+    /// nearest occupied brick; one voxel of margin absorbs rounding. Skipping only empty samples leaves the image
+    /// unchanged.
     #[inline]
     fn clear_run(&self, brick: usize) -> i64 {
         let k = i64::from(self.brick_dist[brick]);

@@ -1228,7 +1228,7 @@ pub fn radix_sort32(keys: &mut Vec<u32>, scratch: &mut Vec<u32>) {
     scratch.resize(n, 0);
     for p in 0..passes {
         let count = &mut counts[p as usize * buckets..(p as usize + 1) * buckets];
-        if count.iter().any(|&c| c == n) {
+        if count.contains(&n) {
             continue; // every key has the same digit here
         }
         let shift = p * width;
