@@ -281,10 +281,11 @@ fn storage_structures_agree_voxel_for_voxel() {
                 );
             }
         }
-        // Memory: the index list is far smaller than the dense array; the bit array adds to it.
+        // Memory: the index list is far smaller than the dense array (packed: a low index byte and a palette
+        // code a voxel, plus block tables); the bit array (over the plain list) adds to it.
         let m: Vec<usize> = trees.iter().map(|t| t.store.memory_bytes()).collect();
         assert_eq!(m[0], 2 * 40 * 48 * 40, "two bytes a voxel, bricks of 8³ pad 44 to 48 and 36 to 40");
-        assert!(m[1] < m[2] && m[1] == 6 * reference.len());
+        assert!(m[1] < m[2] && m[1] < 4 * reference.len(), "{name}: {} bytes for {} voxels", m[1], reference.len());
     }
 }
 

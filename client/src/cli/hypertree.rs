@@ -614,12 +614,18 @@ fn stats(tree: &Hypertree) {
     );
 }
 
-/// CPU time of the calling thread in seconds, from `/proc/thread-self/schedstat` (Linux), so the benchmark measures
-/// the work on one core even when other processes share the machine; `None` elsewhere (wall time is used then).
+/// CPU time of the calling thread in seconds, from `CLOCK_THREAD_CPUTIME_ID` (Linux; nanosecond resolution, unlike
+/// `/proc/thread-self/schedstat`, which only advances at scheduler ticks), so the benchmark measures the work on
+/// one core even when other processes share the machine; `None` elsewhere (wall time is used then).
+#[cfg(target_os = "linux")]
 fn thread_cpu_seconds() -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    let ns: u64 = s.split_whitespace().next()?.parse().ok()?;
-    Some(ns as f64 * 1e-9)
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
+    Some(t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9)
+}
+
+#[cfg(not(target_os = "linux"))]
+fn thread_cpu_seconds() -> Option<f64> {
+    None
 }
 
 /// Time `f`: thread CPU time where available, wall time otherwise.

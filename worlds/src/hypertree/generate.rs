@@ -107,7 +107,11 @@ pub fn generate(
     let volume = Hypervolume { resolution, extent: def.hypervolume };
     let iterations = opts.iterations.unwrap_or(def.iterations);
     check(opts, &volume, iterations)?;
-    let mut recorder = HitRecorder::new(opts.storage, volume.resolution);
+    // A line generator's hits come in runs of neighbouring voxels: counted in bricks, not sorted.
+    let mut recorder = match def.generator {
+        Generator::Line { .. } => HitRecorder::new_coherent(opts.storage, volume.resolution),
+        Generator::Point(_) => HitRecorder::new(opts.storage, volume.resolution),
+    };
     let mut stats = GenerationStats::default();
     // Unpartitioned, every hit belongs to subpart 0; partitioned, to the first-level subpart that made it.
     let part = if opts.partitioned { None } else { Some(0) };
@@ -289,7 +293,12 @@ struct Grid<'a> {
     offset: [f32; 3],
     inv: [f32; 3],
     recorder: &'a mut HitRecorder,
+    /// Point hits not yet recorded: voxel, index, level, subpart.
+    points: Vec<([u32; 3], u32, u8, u8)>,
 }
+
+/// Point hits recorded at a time.
+const POINT_BATCH: usize = 256;
 
 impl Grid<'_> {
     #[inline]
@@ -297,11 +306,22 @@ impl Grid<'_> {
         let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         match self.volume.voxel_at(q, self.inv) {
             Some(v) => {
-                self.recorder.record(self.volume.index(v), level, part);
+                // Hits are queued and recorded in batches: their counts do not depend on the order, and a tight
+                // loop of independent writes overlaps the cache misses of a large volume.
+                self.points.push((v, self.volume.index(v), level, part));
+                if self.points.len() == POINT_BATCH {
+                    self.flush_points();
+                }
                 true
             }
             None => false,
         }
+    }
+
+    /// Record the queued point hits.
+    fn flush_points(&mut self) {
+        self.recorder.record_points(&self.points);
+        self.points.clear();
     }
 
     /// Every voxel the segment passes through, by a 3D DDA (Amanatides–Woo) over the part of the segment inside
@@ -329,7 +349,7 @@ impl Grid<'_> {
         }
         let p: [f32; 3] = std::array::from_fn(|i| a[i] + d[i] * t0);
         let max = self.volume.resolution.map(|r| r as i64 - 1);
-        let mut v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
+        let v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
         let end: [i64; 3] = std::array::from_fn(|i| ((a[i] + d[i] * t1).max(0.0) as i64).min(max[i]));
         let step: [i64; 3] = std::array::from_fn(|i| {
             if d[i] > 0.0 {
@@ -341,7 +361,7 @@ impl Grid<'_> {
             }
         });
         let delta: [f32; 3] = std::array::from_fn(|i| if d[i] != 0.0 { (1.0 / d[i]).abs() } else { f32::INFINITY });
-        let mut next: [f32; 3] = std::array::from_fn(|i| {
+        let next: [f32; 3] = std::array::from_fn(|i| {
             if d[i] > 0.0 {
                 ((v[i] + 1) as f32 - a[i]) / d[i]
             } else if d[i] < 0.0 {
@@ -356,28 +376,57 @@ impl Grid<'_> {
         let [rx, ry, _] = self.volume.resolution.map(i64::from);
         let stride = [step[0], step[1] * rx, step[2] * rx * ry];
         let mut idx = i64::from(self.volume.index([v[0] as u32, v[1] as u32, v[2] as u32]));
+        // The crossed voxels are handed to the recorder in batches (in order, so the result is the same).
+        const BATCH: usize = 64;
+        let mut buf = [([0u32; 3], 0u32); BATCH];
+        let mut n = 0;
+        // The axis state lives in scalars (not arrays indexed by the axis) so it stays in registers.
+        let [mut v0, mut v1, mut v2] = v;
+        let [mut n0, mut n1, mut n2] = next;
+        let [e0, e1, e2] = end;
         for _ in 0..limit {
-            self.recorder.record(idx as u32, level, part);
-            if v == end {
+            buf[n] = ([v0 as u32, v1 as u32, v2 as u32], idx as u32);
+            n += 1;
+            if n == BATCH {
+                self.recorder.record_many(&buf, level, part);
+                n = 0;
+            }
+            if v0 == e0 && v1 == e1 && v2 == e2 {
                 break;
             }
-            let k = if next[0] <= next[1] && next[0] <= next[2] {
-                0
-            } else if next[1] <= next[2] {
-                1
+            if n0 <= n1 && n0 <= n2 {
+                if n0 > t1 {
+                    break;
+                }
+                v0 += step[0];
+                if v0 < 0 || v0 > max[0] {
+                    break;
+                }
+                idx += stride[0];
+                n0 += delta[0];
+            } else if n1 <= n2 {
+                if n1 > t1 {
+                    break;
+                }
+                v1 += step[1];
+                if v1 < 0 || v1 > max[1] {
+                    break;
+                }
+                idx += stride[1];
+                n1 += delta[1];
             } else {
-                2
-            };
-            if next[k] > t1 {
-                break;
+                if n2 > t1 {
+                    break;
+                }
+                v2 += step[2];
+                if v2 < 0 || v2 > max[2] {
+                    break;
+                }
+                idx += stride[2];
+                n2 += delta[2];
             }
-            v[k] += step[k];
-            if v[k] < 0 || v[k] > max[k] {
-                break;
-            }
-            idx += stride[k];
-            next[k] += delta[k];
         }
+        self.recorder.record_many(&buf[..n], level, part);
         true
     }
 }
@@ -448,7 +497,7 @@ fn run_tree(
         frequency: p.frequency,
     };
     let inv = std::array::from_fn(|i| volume.resolution[i] as f32 / volume.extent[i]);
-    let mut grid = Grid { volume: *volume, offset, inv, recorder };
+    let mut grid = Grid { volume: *volume, offset, inv, recorder, points: Vec::with_capacity(POINT_BATCH) };
     let mut run = Run {
         def,
         ifs: &ifs,
@@ -464,6 +513,7 @@ fn run_tree(
     let (len, shape_bound) = match def.generator {
         Generator::Point(p0) => {
             run.iterate(p0, 0.0, &mut grid, &mut ctx, iterations, stats, progress);
+            grid.flush_points();
             (0.0, 0.0)
         }
         Generator::Line { from, to } => {

@@ -289,53 +289,141 @@ fn box_interval(o: [f32; 3], inv_d: [f32; 3], b: &Aabb) -> Option<(f32, f32)> {
     (t0 <= t1).then_some((t0, t1))
 }
 
-/// Per-voxel shading memo: open addressing on voxel index + 1.
-struct ShadeCache {
-    keys: Vec<u32>,
-    values: Vec<[f32; 3]>,
-    len: usize,
+/// Which voxels of the occupied bricks are non-empty: per brick a slot (or [`VoxelMask::NONE`]) into 512-bit
+/// masks, bit `z << 6 | y << 3 | x` of the brick-local coordinates, and the number of non-empty voxels before
+/// each slot, so a non-empty voxel has a rank: the index of its shading memo, which keeps the memo of one brick
+/// together. Built once per render from the store; an empty voxel inside an occupied brick is answered without
+/// querying the storage structure (the same answer, so the image is unchanged).
+struct VoxelMask {
+    slots: Vec<u32>,
+    masks: Vec<[u64; 8]>,
+    ranks: Vec<u32>,
+    dims: [usize; 2],
 }
 
-impl ShadeCache {
-    fn new() -> ShadeCache {
-        ShadeCache { keys: vec![0; 1 << 14], values: vec![[0.0; 3]; 1 << 14], len: 0 }
+impl VoxelMask {
+    /// No voxels and not marked in the occupancy map.
+    const NONE: u32 = u32::MAX;
+    /// Flag of a slot entry: the occupancy map does not mark the brick (rays skip it when skipping is on).
+    const UNMARKED: u32 = 1 << 31;
+
+    /// With `skip`, only the bricks the occupancy map marks are read from a dense array (projection and shadow
+    /// rays never sample the others then).
+    fn build(tree: &Hypertree, skip: bool) -> VoxelMask {
+        let dims = tree.volume.resolution.map(|r| r.div_ceil(1 << BRICK_SHIFT) as usize);
+        let mut m = VoxelMask {
+            slots: vec![Self::NONE; dims[0] * dims[1] * dims[2]],
+            masks: Vec::new(),
+            ranks: Vec::new(),
+            dims: [dims[0], dims[1]],
+        };
+        match &tree.store {
+            VoxelStore::Dense(d) => {
+                // Bricks of the dense array are laid out in the same brick order, 512 cells each.
+                let occ = &tree.occupancy;
+                for (b, cells) in d.cells.chunks_exact(512).enumerate() {
+                    if skip && occ.bits[b >> 6] >> (b & 63) & 1 == 0 {
+                        continue;
+                    }
+                    let mut words = [0u64; 8];
+                    for (w, word) in words.iter_mut().enumerate() {
+                        for (k, c) in cells[w * 64..w * 64 + 64].iter().enumerate() {
+                            *word |= u64::from(c[0] != 0) << k;
+                        }
+                    }
+                    if words.iter().any(|&w| w != 0) {
+                        m.slots[b] = m.masks.len() as u32;
+                        m.masks.push(words);
+                    }
+                }
+            }
+            _ => {
+                let [rx, ry, _] = tree.volume.resolution;
+                let (mut row, mut y, mut z) = (u32::MAX, 0u32, 0u32);
+                tree.store.for_each(|i, _| {
+                    let r = i / rx;
+                    if r != row {
+                        row = r;
+                        y = r % ry;
+                        z = r / ry;
+                    }
+                    m.set([i - r * rx, y, z]);
+                });
+            }
+        }
+        // Fold the occupancy map in, so one load per sample answers both "skip this brick?" and "where is its mask?":
+        // a marked brick without voxels gets an empty mask, an unmarked one with voxels the flag.
+        let occ = &tree.occupancy;
+        for b in 0..m.slots.len() {
+            let marked = occ.bits[b >> 6] >> (b & 63) & 1 == 1;
+            if marked && m.slots[b] == Self::NONE {
+                m.slots[b] = m.masks.len() as u32;
+                m.masks.push([0; 8]);
+            } else if !marked && m.slots[b] != Self::NONE {
+                m.slots[b] |= Self::UNMARKED;
+            }
+        }
+        let mut acc = 0u32;
+        m.ranks = m
+            .masks
+            .iter()
+            .map(|w| {
+                let r = acc;
+                acc += w.iter().map(|x| x.count_ones()).sum::<u32>();
+                r
+            })
+            .collect();
+        m
+    }
+
+    fn set(&mut self, v: [u32; 3]) {
+        let b = self.brick(v);
+        if self.slots[b] == Self::NONE {
+            self.slots[b] = self.masks.len() as u32;
+            self.masks.push([0; 8]);
+        }
+        let bit = Self::bit(v);
+        self.masks[self.slots[b] as usize][bit >> 6] |= 1 << (bit & 63);
+    }
+
+    /// Non-empty voxels.
+    fn count(&self) -> usize {
+        match (self.ranks.last(), self.masks.last()) {
+            (Some(&r), Some(w)) => r as usize + w.iter().map(|x| x.count_ones() as usize).sum::<usize>(),
+            _ => 0,
+        }
     }
 
     #[inline]
-    fn slot(&self, key: u32) -> (usize, bool) {
-        let mask = self.keys.len() - 1;
-        let mut s = (key.wrapping_mul(0x9e37_79b1) >> 7) as usize & mask;
-        loop {
-            let k = self.keys[s];
-            if k == key {
-                return (s, true);
-            }
-            if k == 0 {
-                return (s, false);
-            }
-            s = (s + 1) & mask;
-        }
+    fn brick(&self, v: [u32; 3]) -> usize {
+        let [bx, by, bz] = v.map(|c| (c >> BRICK_SHIFT) as usize);
+        bx + self.dims[0] * (by + self.dims[1] * bz)
     }
 
-    fn insert(&mut self, key: u32, value: [f32; 3]) {
-        if 2 * (self.len + 1) > self.keys.len() {
-            let size = self.keys.len() * 2;
-            let old_keys = std::mem::replace(&mut self.keys, vec![0; size]);
-            let old_values = std::mem::replace(&mut self.values, vec![[0.0; 3]; old_keys.len() * 2]);
-            for (k, v) in old_keys.into_iter().zip(old_values) {
-                if k != 0 {
-                    let (s, _) = self.slot(k);
-                    self.keys[s] = k;
-                    self.values[s] = v;
-                }
-            }
+    #[inline]
+    fn bit(v: [u32; 3]) -> usize {
+        ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize
+    }
+
+    /// The rank of voxel `v` (inside the volume) if it is non-empty, given its brick's slot entry.
+    #[inline]
+    fn rank_in(&self, s: u32, v: [u32; 3]) -> Option<u32> {
+        if s == Self::NONE {
+            return None;
         }
-        let (s, found) = self.slot(key);
-        if !found {
-            self.len += 1;
+        let s = s & !Self::UNMARKED;
+        let bit = Self::bit(v);
+        let words = &self.masks[s as usize];
+        let w = bit >> 6;
+        let word = words[w];
+        if word >> (bit & 63) & 1 == 0 {
+            return None;
         }
-        self.keys[s] = key;
-        self.values[s] = value;
+        let mut r = self.ranks[s as usize] + (word & ((1u64 << (bit & 63)) - 1)).count_ones();
+        for x in &words[..w] {
+            r += x.count_ones();
+        }
+        Some(r)
     }
 }
 
@@ -351,7 +439,10 @@ struct Scene<'a, Q: VoxelQuery> {
     vol: Hypervolume,
     inv: [f32; 3],
     vsize: [f32; 3],
-    occupancy: &'a BrickMap,
+    mask: VoxelMask,
+    /// Chebyshev distance, in bricks, from each brick to the nearest brick that the occupancy map or the voxels
+    /// mark occupied (capped at 255).
+    brick_dist: Vec<u8>,
     skip: bool,
     step: f32,
     alpha: [f32; 256],
@@ -365,7 +456,8 @@ struct Scene<'a, Q: VoxelQuery> {
     lights: Vec<([f32; 3], [f32; 3])>,
     eye: [f32; 3],
     o: RenderOptions,
-    cache: ShadeCache,
+    /// Shading memo by voxel rank (NaN: not shaded yet).
+    memo: Vec<[f32; 3]>,
     ray_cache: Vec<(u32, Voxel)>,
     stats: RenderStats,
 }
@@ -385,6 +477,17 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             }
         }
         t
+    }
+
+    /// How many samples on from a sample in empty brick `brick` are certainly empty too: a sample moves at most one
+    /// voxel along each axis per step (the step is the smallest voxel side), and every voxel closer than
+    /// `8·(K − 1) + 1` along some axis lies in a brick nearer than `K`, the brick's Chebyshev distance to the
+    /// nearest occupied brick; one voxel of margin absorbs rounding. Skipping only empty samples leaves the image
+    /// unchanged.
+    #[inline]
+    fn clear_run(&self, brick: usize) -> i64 {
+        let k = i64::from(self.brick_dist[brick]);
+        (8 * (k - 1)).max(1)
     }
 
     /// Front-to-back accumulation along one projection ray: premultiplied colour and opacity.
@@ -433,11 +536,18 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                     n += 1;
                     continue;
                 };
-                if self.skip && !self.occupancy.occupied(v) {
+                let b = self.mask.brick(v);
+                let slot = self.mask.slots[b];
+                if self.skip && slot & VoxelMask::UNMARKED != 0 {
                     let te = self.brick_exit(v, o, inv_d);
-                    n = (n + 1).max(floor_i((te - t0) / self.step - 0.5));
+                    n = (n + 1).max(floor_i((te - t0) / self.step - 0.5)).max(n + self.clear_run(b));
                     continue;
                 }
+                let Some(rank) = self.mask.rank_in(slot, v) else {
+                    // Empty: nothing to accumulate (the storage would answer Voxel::EMPTY).
+                    n += 1;
+                    continue;
+                };
                 let idx = self.vol.index(v);
                 let voxel = if cache_valid {
                     let slot = n as usize;
@@ -468,7 +578,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                 };
                 if voxel.density != 0 {
                     let a = self.alpha[voxel.density as usize];
-                    let c = self.shade(idx, voxel, v);
+                    let c = self.shade(rank, voxel, v);
                     let w = (1.0 - alpha) * a;
                     for i in 0..3 {
                         color[i] += w * c[i];
@@ -496,9 +606,15 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             let t = n as f32 * self.step;
             let p = [c[0] + l[0] * t, c[1] + l[1] * t, c[2] + l[2] * t];
             let Some(v) = self.vol.voxel_at(p, self.inv) else { break };
-            if self.skip && !self.occupancy.occupied(v) {
+            let b = self.mask.brick(v);
+            let slot = self.mask.slots[b];
+            if self.skip && slot & VoxelMask::UNMARKED != 0 {
                 let te = self.brick_exit(v, c, inv_d);
-                n = (n + 1).max(floor_i(te / self.step));
+                n = (n + 1).max(floor_i(te / self.step)).max(n + self.clear_run(b));
+                continue;
+            }
+            if self.mask.rank_in(slot, v).is_none() {
+                n += 1;
                 continue;
             }
             self.stats.shadow_samples += 1;
@@ -538,11 +654,10 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
         if norm(n) > 1e-6 { normalize(n) } else { normalize(sub(c, self.crown_center)) }
     }
 
-    fn shade(&mut self, idx: u32, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
-        let key = idx.wrapping_add(1);
-        let (slot, found) = self.cache.slot(key);
-        if found {
-            return self.cache.values[slot];
+    fn shade(&mut self, rank: u32, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
+        let memo = self.memo[rank as usize];
+        if !memo[0].is_nan() {
+            return memo;
         }
         self.stats.shaded += 1;
         let c = self.vol.center(v);
@@ -582,7 +697,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             }
         }
         let out = std::array::from_fn(|i| base[i] * light[i] + spec[i]);
-        self.cache.insert(key, out);
+        self.memo[rank as usize] = out;
         out
     }
 }
@@ -660,12 +775,15 @@ fn render_with<Q: VoxelQuery>(
         o.bounds = BoundingScheme::Aabb;
     }
     let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / step) as usize + 4;
+    let mask = VoxelMask::build(tree, opts.skip_empty);
+    let voxels = mask.count();
     let mut scene = Scene {
         q,
         vol,
         inv: std::array::from_fn(|i| 1.0 / vsize[i]),
         vsize,
-        occupancy: &tree.occupancy,
+        brick_dist: brick_distances(&tree.occupancy, &mask),
+        mask,
         skip: opts.skip_empty,
         step,
         alpha,
@@ -679,7 +797,7 @@ fn render_with<Q: VoxelQuery>(
         lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
         eye,
         o,
-        cache: ShadeCache::new(),
+        memo: vec![[f32::NAN; 3]; voxels],
         ray_cache: if opts.ray_cache { vec![(u32::MAX, Voxel::EMPTY); diag_steps] } else { Vec::new() },
         stats: RenderStats::default(),
     };
@@ -711,6 +829,39 @@ fn render_with<Q: VoxelQuery>(
         progress(py + 1, h);
     }
     Ok((Image { width: w, height: h, pixels }, scene.stats))
+}
+
+/// Chebyshev distance transform of the occupied bricks (occupancy map or voxel mask), separable for L∞:
+/// `d(b) = min_z max(|Δz|, min_y max(|Δy|, min_x |Δx|))`. Capped at 255; 0 for an occupied brick.
+fn brick_distances(occupancy: &BrickMap, mask: &VoxelMask) -> Vec<u8> {
+    let [nx, ny, nz] = occupancy.dims.map(|d| d as usize);
+    let at = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
+    const FAR: u32 = 255;
+    let mut d = vec![FAR; nx * ny * nz];
+    for (b, v) in d.iter_mut().enumerate() {
+        if occupancy.bits[b >> 6] >> (b & 63) & 1 == 1 || mask.slots[b] != VoxelMask::NONE {
+            *v = 0;
+        }
+    }
+    // One axis at a time: along a line, the new distance is the least of max(|i − j|, old(j)).
+    let mut line = Vec::new();
+    let mut pass = |d: &mut Vec<u32>, len: usize, lines: Vec<Vec<usize>>| {
+        for cells in lines {
+            line.clear();
+            line.extend(cells.iter().map(|&c| d[c]));
+            for i in 0..len {
+                let mut best = FAR;
+                for (j, &old) in line.iter().enumerate() {
+                    best = best.min((i.abs_diff(j) as u32).max(old));
+                }
+                d[cells[i]] = best;
+            }
+        }
+    };
+    pass(&mut d, nx, (0..ny * nz).map(|yz| (0..nx).map(|x| at(x, yz % ny, yz / ny)).collect()).collect());
+    pass(&mut d, ny, (0..nx * nz).map(|xz| (0..ny).map(|y| at(xz % nx, y, xz / nx)).collect()).collect());
+    pass(&mut d, nz, (0..nx * ny).map(|xy| (0..nz).map(|z| at(xy % nx, xy / nx, z)).collect()).collect());
+    d.into_iter().map(|v| v.min(255) as u8).collect()
 }
 
 /// `⌊x⌋` for the sample numbers along a ray (exact; `x` is finite and far below 2⁶³).

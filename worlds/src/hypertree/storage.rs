@@ -101,6 +101,167 @@ impl VoxelQuery for IndexList {
     }
 }
 
+/// Indices per block of a [`PackedList`] (one byte of an index is stored per voxel).
+const PACK_BLOCK: usize = 256;
+/// Blocks per super-block of a [`PackedList`] (block offsets are 16-bit inside a super-block).
+const PACK_SUPER: usize = 256;
+
+/// The index list + density list structure (§5), packed: per voxel the low byte of its index (relative to the
+/// lowest index) and a one-byte code into a palette of the (density, level) pairs that occur (two bytes when more
+/// than 256 occur); the rest of the index comes from its block of 256 indices, whose first entry is a 16-bit
+/// offset from its super-block's (65 536 indices) 32-bit first entry. A lookup reads two table entries and scans
+/// the few entries of one block. About 2–3 bytes a voxel instead of 6; the same voxels as the list it is built from.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PackedList {
+    /// Lowest index.
+    lo: u32,
+    /// First entry of each super-block, and the entry count after the last.
+    supers: Vec<u32>,
+    /// First entry of each block, from its super-block's first entry; one more block than the span needs.
+    blocks: Vec<u16>,
+    /// `(index − lo) mod 256` per voxel.
+    low: Vec<u8>,
+    /// Palette codes per voxel.
+    codes: Codes,
+    /// The distinct (density, level) pairs, sorted.
+    palette: Vec<Voxel>,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+enum Codes {
+    Narrow(Vec<u8>),
+    Wide(Vec<u16>),
+}
+
+impl Default for Codes {
+    fn default() -> Self {
+        Codes::Narrow(Vec::new())
+    }
+}
+
+impl PackedList {
+    /// Pack a validated list.
+    pub fn new(list: &VoxelList) -> PackedList {
+        let (Some(&lo), Some(&hi)) = (list.indices.first(), list.indices.last()) else {
+            return PackedList { supers: vec![0], blocks: vec![0], ..PackedList::default() };
+        };
+        let nblocks = ((hi - lo) as usize + 1).div_ceil(PACK_BLOCK) + 1;
+        let mut supers = vec![0u32; nblocks.div_ceil(PACK_SUPER) + 1];
+        let mut blocks = vec![0u16; nblocks];
+        // Entries per block, then prefix sums (per super-block for the blocks).
+        let mut counts = vec![0u32; nblocks];
+        for &i in &list.indices {
+            counts[(i - lo) as usize / PACK_BLOCK] += 1;
+        }
+        let mut total = 0u32;
+        for (s, chunk) in counts.chunks(PACK_SUPER).enumerate() {
+            supers[s] = total;
+            let mut within = 0u32;
+            for (k, &c) in chunk.iter().enumerate() {
+                blocks[s * PACK_SUPER + k] = within as u16;
+                within += c;
+            }
+            total += within;
+        }
+        for s in supers.iter_mut().skip(nblocks.div_ceil(PACK_SUPER)) {
+            *s = total;
+        }
+        let low = list.indices.iter().map(|&i| (i - lo) as u8).collect();
+        let mut seen = vec![false; 1 << 16];
+        for k in 0..list.len() {
+            seen[usize::from(list.densities[k]) << 8 | usize::from(list.levels[k])] = true;
+        }
+        let palette: Vec<Voxel> = (0..1usize << 16)
+            .filter(|&p| seen[p])
+            .map(|p| Voxel { density: (p >> 8) as u8, level: p as u8 })
+            .collect();
+        let mut code_of = vec![0u16; 1 << 16];
+        for (c, v) in palette.iter().enumerate() {
+            code_of[usize::from(v.density) << 8 | usize::from(v.level)] = c as u16;
+        }
+        let code = |k: usize| code_of[usize::from(list.densities[k]) << 8 | usize::from(list.levels[k])];
+        let codes = if palette.len() <= 256 {
+            Codes::Narrow((0..list.len()).map(|k| code(k) as u8).collect())
+        } else {
+            Codes::Wide((0..list.len()).map(code).collect())
+        };
+        PackedList { lo, supers, blocks, low, codes, palette }
+    }
+
+    /// Number of voxels.
+    pub fn len(&self) -> usize {
+        self.low.len()
+    }
+
+    /// Whether the list is empty.
+    pub fn is_empty(&self) -> bool {
+        self.low.is_empty()
+    }
+
+    /// The first entry of block `b` (`b` up to the block count).
+    #[inline]
+    fn start(&self, b: usize) -> usize {
+        self.supers[b / PACK_SUPER] as usize + usize::from(self.blocks[b])
+    }
+
+    #[inline]
+    fn at(&self, pos: usize) -> Voxel {
+        match &self.codes {
+            Codes::Narrow(c) => self.palette[usize::from(c[pos])],
+            Codes::Wide(c) => self.palette[usize::from(c[pos])],
+        }
+    }
+
+    /// Position of `index` in the list.
+    #[inline]
+    pub fn position(&self, index: u32) -> Option<usize> {
+        let o = index.checked_sub(self.lo)? as usize;
+        let b = o / PACK_BLOCK;
+        if b + 1 >= self.blocks.len() {
+            return None;
+        }
+        let (start, end) = (self.start(b), self.start(b + 1));
+        let want = o as u8;
+        self.low[start..end].iter().position(|&l| l >= want).filter(|&k| self.low[start + k] == want).map(|k| start + k)
+    }
+
+    /// Visit every voxel in increasing index order.
+    pub fn for_each(&self, mut f: impl FnMut(u32, Voxel)) {
+        for b in 0..self.blocks.len() - 1 {
+            let base = self.lo + (b * PACK_BLOCK) as u32;
+            for pos in self.start(b)..self.start(b + 1) {
+                f(base + u32::from(self.low[pos]), self.at(pos));
+            }
+        }
+    }
+
+    /// The voxels as a validated list.
+    pub fn to_list(&self) -> VoxelList {
+        let mut out = VoxelList::default();
+        self.for_each(|i, v| out.push(i, v));
+        out
+    }
+
+    /// Bytes of the payload: low bytes, codes, palette and the two block tables.
+    pub fn bytes(&self) -> usize {
+        let codes = match &self.codes {
+            Codes::Narrow(c) => c.len(),
+            Codes::Wide(c) => c.len() * 2,
+        };
+        self.low.len() + codes + self.palette.len() * 2 + self.supers.len() * 4 + self.blocks.len() * 2
+    }
+}
+
+impl VoxelQuery for PackedList {
+    #[inline]
+    fn voxel(&self, index: u32) -> Voxel {
+        match self.position(index) {
+            Some(p) => self.at(p),
+            None => Voxel::EMPTY,
+        }
+    }
+}
+
 /// Words of the bit array per rank-directory entry.
 const RANK_WORDS: usize = 8;
 
@@ -333,8 +494,8 @@ impl VoxelQuery for Partitioned {
 pub enum VoxelStore {
     /// Dense 3D array.
     Dense(DenseArray),
-    /// Index list.
-    IndexList(IndexList),
+    /// Index list (packed).
+    IndexList(PackedList),
     /// Index list and bit array.
     IndexBits(IndexBits),
     /// Index lists (with or without bit arrays) per first-level subpart.
@@ -365,7 +526,7 @@ impl VoxelStore {
     /// Build a store of `ty` from a validated list (`volume` sizes the dense array).
     pub fn from_list(list: VoxelList, ty: StorageType, volume: &Hypervolume) -> VoxelStore {
         match ty {
-            StorageType::IndexList => VoxelStore::IndexList(IndexList { list }),
+            StorageType::IndexList => VoxelStore::IndexList(PackedList::new(&list)),
             StorageType::IndexBits => VoxelStore::IndexBits(IndexBits::new(list)),
             StorageType::Dense => {
                 let mut d = DenseArray::new(volume.resolution);
@@ -401,7 +562,7 @@ impl VoxelStore {
     pub fn len(&self) -> usize {
         match self {
             VoxelStore::Dense(d) => d.count,
-            VoxelStore::IndexList(l) => l.list.len(),
+            VoxelStore::IndexList(l) => l.len(),
             VoxelStore::IndexBits(b) => b.list.len(),
             VoxelStore::Partitioned(p) => p.count,
         }
@@ -416,7 +577,7 @@ impl VoxelStore {
     pub fn memory_bytes(&self) -> usize {
         match self {
             VoxelStore::Dense(d) => d.cells.len() * 2,
-            VoxelStore::IndexList(l) => l.list.bytes(),
+            VoxelStore::IndexList(l) => l.bytes(),
             VoxelStore::IndexBits(b) => b.list.bytes() + b.bits.len() * 8 + b.rank.len() * 4,
             VoxelStore::Partitioned(p) => p
                 .parts
@@ -449,7 +610,8 @@ impl VoxelStore {
                     }
                 }
             }
-            VoxelStore::IndexList(IndexList { list }) | VoxelStore::IndexBits(IndexBits { list, .. }) => {
+            VoxelStore::IndexList(l) => l.for_each(f),
+            VoxelStore::IndexBits(IndexBits { list, .. }) => {
                 for k in 0..list.len() {
                     f(list.indices[k], Voxel { density: list.densities[k], level: list.levels[k] });
                 }
@@ -466,7 +628,7 @@ impl VoxelStore {
     /// The voxels as one validated list.
     pub fn to_list(&self) -> VoxelList {
         match self {
-            VoxelStore::IndexList(l) => l.list.clone(),
+            VoxelStore::IndexList(l) => l.to_list(),
             VoxelStore::IndexBits(b) => b.list.clone(),
             VoxelStore::Dense(_) => {
                 let mut out = VoxelList::default();
@@ -542,7 +704,7 @@ impl BrickMap {
     /// The brick map and the voxel box of a store.
     pub fn build(volume: &Hypervolume, store: &VoxelStore) -> (BrickMap, Option<VoxelBox>) {
         match store {
-            VoxelStore::IndexList(IndexList { list }) | VoxelStore::IndexBits(IndexBits { list, .. }) => {
+            VoxelStore::IndexBits(IndexBits { list, .. }) => {
                 BrickMap::from_indices(volume, list.indices.iter().copied())
             }
             _ => {
@@ -616,26 +778,145 @@ pub struct HitRecorder {
 
 enum Mode {
     Dense { array: DenseArray, touched: Vec<u32> },
+    /// Narrow keys `index << LEVEL_BITS | level` (subpart 0, index below 2²⁷, level below 32): half the memory
+    /// traffic of the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
+    Keys32 { raw: Vec<u32>, compact: Vec<Compact>, scratch: Vec<u32> },
+    /// Hit counts and levels in bricks of 8³ allocated on first touch (subpart 0 only; for coherent hits such as
+    /// line generators', which cross runs of neighbouring voxels): no sort at all. A hit of another subpart turns
+    /// the bricks into compact records and switches to wide keys for good.
+    Bricks(BrickGrid),
     Keys { raw: Vec<u64>, compact: Vec<Compact>, scratch: Vec<u64> },
 }
+
+/// Level bits of a narrow key.
+const LEVEL_BITS: u32 = 5;
+
+/// Most voxels of a volume recorded in bricks (the brick slot table is 4 bytes per 512 voxels).
+const BRICK_GRID_VOXELS: u64 = 1 << 30;
 
 impl HitRecorder {
     /// A recorder for a volume of `resolution` that will be stored as `ty`.
     pub fn new(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
         let mode = match ty {
             StorageType::Dense => Mode::Dense { array: DenseArray::new(resolution), touched: Vec::new() },
+            _ if resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= 1 << (32 - LEVEL_BITS) => {
+                Mode::Keys32 { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() }
+            }
             _ => Mode::Keys { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() },
         };
         HitRecorder { mode, hits: 0 }
     }
 
+    /// A recorder for hits that come in runs of neighbouring voxels (line generators): index lists of a volume
+    /// of at most 2³⁰ voxels count them in bricks allocated on first touch instead of sorting the raw hits. The
+    /// result is the same as [`HitRecorder::new`]'s.
+    pub fn new_coherent(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
+        if ty != StorageType::Dense
+            && resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= BRICK_GRID_VOXELS
+        {
+            return HitRecorder { mode: Mode::Bricks(BrickGrid::new(resolution)), hits: 0 };
+        }
+        HitRecorder::new(ty, resolution)
+    }
+
     /// Record one hit of voxel `index` by a generator at `level` belonging to `subpart`.
     #[inline]
     pub fn record(&mut self, index: u32, level: u8, subpart: u8) {
+        let v = match &self.mode {
+            Mode::Dense { array, .. } => array.coords(index),
+            Mode::Bricks(g) => {
+                let [rx, ry, _] = g.resolution;
+                [index % rx, (index / rx) % ry, index / (rx * ry)]
+            }
+            _ => [0; 3],
+        };
+        self.record_at(v, index, level, subpart);
+    }
+
+    /// Record one hit of each voxel in `hits` (coordinates and index), all by one generator: the same as calling
+    /// [`HitRecorder::record_at`] for each in order, with the structure chosen once.
+    #[inline]
+    pub fn record_many(&mut self, hits: &[([u32; 3], u32)], level: u8, subpart: u8) {
+        match &mut self.mode {
+            Mode::Dense { array, touched } => {
+                self.hits += hits.len() as u64;
+                for &(v, index) in hits {
+                    let o = array.offset(v);
+                    let c = &mut array.cells[o];
+                    if c[0] == 0 {
+                        touched.push(index);
+                        *c = [1, level];
+                    } else {
+                        c[0] = c[0].saturating_add(1);
+                        c[1] = c[1].min(level);
+                    }
+                }
+            }
+            Mode::Keys32 { raw, compact, scratch } if subpart == 0 && u32::from(level) < 1 << LEVEL_BITS => {
+                self.hits += hits.len() as u64;
+                for &(_, index) in hits {
+                    raw.push(index << LEVEL_BITS | u32::from(level));
+                }
+                if raw.len() >= CHUNK {
+                    flush32(raw, compact, scratch);
+                }
+            }
+            Mode::Bricks(grid) if subpart == 0 => {
+                self.hits += hits.len() as u64;
+                // Neighbouring voxels of a segment mostly share a brick: look its slot up once per brick.
+                let mut last = u32::MAX;
+                let mut base = 0usize;
+                for &(v, _) in hits {
+                    let b = grid.brick(v);
+                    if b != last {
+                        last = b;
+                        base = grid.slot(b) << 9;
+                    }
+                    grid.bump(base | BrickGrid::local(v), level);
+                }
+            }
+            _ => {
+                for &(v, index) in hits {
+                    self.record_at(v, index, level, subpart);
+                }
+            }
+        }
+    }
+
+    /// Record one hit of each voxel in `hits` (coordinates, index, level, subpart); the order of hits never changes
+    /// the result.
+    pub fn record_points(&mut self, hits: &[([u32; 3], u32, u8, u8)]) {
+        match &mut self.mode {
+            Mode::Dense { array, touched } => {
+                self.hits += hits.len() as u64;
+                for &(v, index, level, _) in hits {
+                    let o = array.offset(v);
+                    let c = &mut array.cells[o];
+                    if c[0] == 0 {
+                        touched.push(index);
+                        *c = [1, level];
+                    } else {
+                        c[0] = c[0].saturating_add(1);
+                        c[1] = c[1].min(level);
+                    }
+                }
+            }
+            _ => {
+                for &(v, index, level, subpart) in hits {
+                    self.record_at(v, index, level, subpart);
+                }
+            }
+        }
+    }
+
+    /// Record one hit of voxel `v` whose index is `index` (the dense array addresses by coordinates, the lists by
+    /// index, so a caller that knows both saves the divisions).
+    #[inline]
+    pub fn record_at(&mut self, v: [u32; 3], index: u32, level: u8, subpart: u8) {
         self.hits += 1;
         match &mut self.mode {
             Mode::Dense { array, touched } => {
-                let o = array.offset(array.coords(index));
+                let o = array.offset(v);
                 let c = &mut array.cells[o];
                 if c[0] == 0 {
                     touched.push(index);
@@ -644,6 +925,25 @@ impl HitRecorder {
                     c[0] = c[0].saturating_add(1);
                     c[1] = c[1].min(level);
                 }
+            }
+            Mode::Keys32 { raw, compact, scratch } => {
+                if subpart != 0 || u32::from(level) >= 1 << LEVEL_BITS {
+                    self.widen();
+                    self.hits -= 1;
+                    return self.record_at(v, index, level, subpart);
+                }
+                raw.push(index << LEVEL_BITS | u32::from(level));
+                if raw.len() >= CHUNK {
+                    flush32(raw, compact, scratch);
+                }
+            }
+            Mode::Bricks(grid) => {
+                if subpart != 0 {
+                    self.widen();
+                    self.hits -= 1;
+                    return self.record_at(v, index, level, subpart);
+                }
+                grid.hit(v, level);
             }
             Mode::Keys { raw, compact, scratch } => {
                 // Level in the low byte (the shallowest sorts first), the index above it and the subpart on top,
@@ -683,6 +983,24 @@ impl HitRecorder {
                 let (map, vbox) = BrickMap::from_indices(volume, touched.iter().copied());
                 (VoxelStore::Dense(array), map, vbox)
             }
+            Mode::Keys32 { mut raw, mut compact, mut scratch } => {
+                flush32(&mut raw, &mut compact, &mut scratch);
+                drop(raw);
+                drop(scratch);
+                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+                let (map, vbox) = BrickMap::build(volume, &store);
+                (store, map, vbox)
+            }
+            Mode::Bricks(grid) if !partitioned => {
+                let (list, hits_of, map, vbox) = grid.into_list();
+                let list = classify(list, &hits_of, classes, branch_depth);
+                (VoxelStore::from_list(list, ty, volume), map, vbox)
+            }
+            Mode::Bricks(grid) => {
+                let (compact, map, vbox) = grid.into_compact();
+                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+                (store, map, vbox)
+            }
             Mode::Keys { mut raw, mut compact, mut scratch } => {
                 flush(&mut raw, &mut compact, &mut scratch);
                 drop(raw);
@@ -692,6 +1010,240 @@ impl HitRecorder {
                 (store, map, vbox)
             }
         }
+    }
+}
+
+impl HitRecorder {
+    /// Switch from narrow keys or bricks to wide keys (a hit of a subpart other than 0, or a narrow key's level
+    /// of 32 or more).
+    #[cold]
+    fn widen(&mut self) {
+        if let Mode::Keys32 { raw, compact, .. } = &mut self.mode {
+            let raw: Vec<u64> = raw
+                .iter()
+                .map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1)))
+                .collect();
+            self.mode = Mode::Keys { raw, compact: std::mem::take(compact), scratch: Vec::new() };
+        } else if let Mode::Bricks(grid) = &mut self.mode {
+            let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
+            self.mode = Mode::Keys { raw: Vec::with_capacity(1 << 16), compact, scratch: Vec::new() };
+        }
+    }
+}
+
+/// Hit counts (saturating at 255) and shallowest levels of subpart 0, in bricks of 8³ voxels allocated on first
+/// touch: the same counts as sorting the raw hits, without the sort.
+pub struct BrickGrid {
+    resolution: [u32; 3],
+    dims: [u32; 3],
+    /// Per brick (`bx + dims_x · (by + dims_y · bz)`), its slot or `u32::MAX`.
+    slots: Vec<u32>,
+    /// `[hits, level]`, 512 per slot, `z << 6 | y << 3 | x` inside the brick (level 255 where not hit).
+    cells: Vec<[u8; 2]>,
+    /// The brick of each slot.
+    bricks: Vec<u32>,
+}
+
+impl BrickGrid {
+    fn new(resolution: [u32; 3]) -> BrickGrid {
+        let dims = resolution.map(|r| r.div_ceil(1 << BRICK_SHIFT));
+        let n = dims.iter().map(|&d| d as usize).product::<usize>();
+        BrickGrid { resolution, dims, slots: vec![u32::MAX; n], cells: Vec::new(), bricks: Vec::new() }
+    }
+
+    #[inline]
+    fn brick(&self, v: [u32; 3]) -> u32 {
+        (v[0] >> 3) + self.dims[0] * ((v[1] >> 3) + self.dims[1] * (v[2] >> 3))
+    }
+
+    #[inline]
+    fn local(v: [u32; 3]) -> usize {
+        ((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize
+    }
+
+    /// The slot of brick `b`, allocated on first touch.
+    #[inline]
+    fn slot(&mut self, b: u32) -> usize {
+        let mut s = self.slots[b as usize];
+        if s == u32::MAX {
+            s = self.bricks.len() as u32;
+            self.slots[b as usize] = s;
+            self.bricks.push(b);
+            // Levels start at 255 so a hit is the same branch-free update whether or not it is the first.
+            self.cells.resize(self.cells.len() + 512, [0, u8::MAX]);
+        }
+        s as usize
+    }
+
+    #[inline]
+    fn hit(&mut self, v: [u32; 3], level: u8) {
+        let o = self.slot(self.brick(v)) << 9 | Self::local(v);
+        self.bump(o, level);
+    }
+
+    /// One more hit of cell `o` at `level`.
+    #[inline]
+    fn bump(&mut self, o: usize, level: u8) {
+        let c = &mut self.cells[o];
+        c[0] = c[0].saturating_add(1);
+        c[1] = c[1].min(level);
+    }
+
+    /// The compact records in index order, the occupancy brick map and the voxel box.
+    fn into_compact(self) -> (Vec<Compact>, BrickMap, Option<VoxelBox>) {
+        let mut out = Vec::new();
+        let (map, vbox) = self.visit(|index, hits, level| out.push(Compact { key: u64::from(index), hits, level }));
+        (out, map, vbox)
+    }
+
+    /// The voxels as a list (densities still 1), their hit counts, the occupancy brick map and the voxel box.
+    fn into_list(self) -> (VoxelList, Vec<u8>, BrickMap, Option<VoxelBox>) {
+        let mut list = VoxelList::default();
+        let mut hits_of = Vec::new();
+        let (map, vbox) = self.visit(|index, hits, level| {
+            list.indices.push(index);
+            list.levels.push(level);
+            hits_of.push(hits);
+        });
+        list.densities = vec![1; list.indices.len()];
+        (list, hits_of, map, vbox)
+    }
+
+    /// Visit every hit voxel in index order (index, hits, level); returns the brick map and the voxel box.
+    fn visit(&self, mut emit: impl FnMut(u32, u8, u8)) -> (BrickMap, Option<VoxelBox>) {
+        let mut any = false;
+        let [rx, ry, rz] = self.resolution;
+        let [nx, ny, _] = self.dims;
+        let mut map = BrickMap { dims: self.dims, bits: vec![0u64; (self.slots.len()).div_ceil(64)] };
+        let mut order: Vec<u32> = (0..self.bricks.len() as u32).collect();
+        order.sort_unstable_by_key(|&s| self.bricks[s as usize]);
+        let (mut lo, mut hi) = ([u32::MAX; 3], [0u32; 3]);
+        // Slabs of bricks with equal bz; inside one, rows of bricks with equal by (bricks in x order).
+        let mut k = 0;
+        while k < order.len() {
+            let bz = self.bricks[order[k] as usize] / (nx * ny);
+            let mut end = k;
+            while end < order.len() && self.bricks[order[end] as usize] / (nx * ny) == bz {
+                end += 1;
+            }
+            let slab = &order[k..end];
+            for lz in 0..8 {
+                let z = bz * 8 + lz;
+                if z >= rz {
+                    break;
+                }
+                let mut r = 0;
+                while r < slab.len() {
+                    let by = self.bricks[slab[r] as usize] / nx % ny;
+                    let mut rend = r;
+                    while rend < slab.len() && self.bricks[slab[rend] as usize] / nx % ny == by {
+                        rend += 1;
+                    }
+                    for ly in 0..8 {
+                        let y = by * 8 + ly;
+                        if y >= ry {
+                            break;
+                        }
+                        for &s in &slab[r..rend] {
+                            let bx = self.bricks[s as usize] % nx;
+                            let base = (s as usize) << 9 | (lz << 6 | ly << 3) as usize;
+                            // Most rows of a touched brick are empty: test the row's 8 cells at once.
+                            if self.cells[base..base + 8].iter().fold(0u8, |a, c| a | c[0]) == 0 {
+                                continue;
+                            }
+                            for lx in 0..8 {
+                                let x = bx * 8 + lx;
+                                if x >= rx {
+                                    break;
+                                }
+                                let [hits, level] = self.cells[base | lx as usize];
+                                if hits != 0 {
+                                    emit(x + rx * (y + ry * z), hits, level);
+                                    any = true;
+                                    for (a, c) in [x, y, z].into_iter().enumerate() {
+                                        lo[a] = lo[a].min(c);
+                                        hi[a] = hi[a].max(c);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    r = rend;
+                }
+            }
+            k = end;
+        }
+        for &b in &self.bricks {
+            map.bits[b as usize >> 6] |= 1 << (b & 63);
+        }
+        (map, any.then_some((lo, hi)))
+    }
+}
+
+
+/// [`flush`] for narrow keys: the same compact records.
+fn flush32(raw: &mut Vec<u32>, compact: &mut Vec<Compact>, scratch: &mut Vec<u32>) {
+    if raw.is_empty() {
+        return;
+    }
+    radix_sort32(raw, scratch);
+    let mut runs: Vec<Compact> = Vec::with_capacity(raw.len() / 2);
+    let mut k = 0;
+    while k < raw.len() {
+        let key = raw[k] >> LEVEL_BITS;
+        let level = (raw[k] & ((1 << LEVEL_BITS) - 1)) as u8;
+        let start = k;
+        k += 1;
+        while k < raw.len() && raw[k] >> LEVEL_BITS == key {
+            k += 1;
+        }
+        runs.push(Compact { key: u64::from(key), hits: (k - start).min(255) as u8, level });
+    }
+    raw.clear();
+    merge_runs(compact, runs);
+}
+
+/// LSD radix sort of 32-bit keys over their significant bits, in as few passes of at most 11 bits as they take.
+pub fn radix_sort32(keys: &mut Vec<u32>, scratch: &mut Vec<u32>) {
+    let n = keys.len();
+    if n < 2 {
+        return;
+    }
+    let all_or = keys.iter().fold(0u32, |a, &k| a | k);
+    let bits = 32 - all_or.leading_zeros();
+    if bits == 0 {
+        return;
+    }
+    let passes = bits.div_ceil(11);
+    let width = bits.div_ceil(passes);
+    let buckets = 1usize << width;
+    let mask = (buckets - 1) as u32;
+    let mut counts = vec![0usize; buckets * passes as usize];
+    for &k in keys.iter() {
+        for p in 0..passes {
+            counts[p as usize * buckets + ((k >> (p * width)) & mask) as usize] += 1;
+        }
+    }
+    scratch.clear();
+    scratch.resize(n, 0);
+    for p in 0..passes {
+        let count = &mut counts[p as usize * buckets..(p as usize + 1) * buckets];
+        if count.contains(&n) {
+            continue; // every key has the same digit here
+        }
+        let shift = p * width;
+        let mut sum = 0;
+        for c in count.iter_mut() {
+            let t = *c;
+            *c = sum;
+            sum += t;
+        }
+        for &k in keys.iter() {
+            let b = ((k >> shift) & mask) as usize;
+            scratch[count[b]] = k;
+            count[b] += 1;
+        }
+        std::mem::swap(keys, scratch);
     }
 }
 
@@ -714,6 +1266,11 @@ fn flush(raw: &mut Vec<u64>, compact: &mut Vec<Compact>, scratch: &mut Vec<u64>)
         runs.push(Compact { key, hits: n.min(255) as u8, level });
     }
     raw.clear();
+    merge_runs(compact, runs);
+}
+
+/// Merge freshly counted runs (sorted by key) into the compact list.
+fn merge_runs(compact: &mut Vec<Compact>, runs: Vec<Compact>) {
     if compact.is_empty() {
         *compact = runs;
         return;
@@ -780,6 +1337,19 @@ pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
     }
 }
 
+/// Densities from hit counts: equalised density classes, full density for branch levels (≤ `branch_depth`).
+fn classify(mut list: VoxelList, hits_of: &[u8], classes: u8, branch_depth: u8) -> VoxelList {
+    let mut histogram = [0u64; 256];
+    for &h in hits_of {
+        histogram[h as usize] += 1;
+    }
+    let dc = DensityClasses::equalise(&histogram, classes);
+    for (d, (&h, &l)) in list.densities.iter_mut().zip(hits_of.iter().zip(&list.levels)) {
+        *d = if l <= branch_depth { 255 } else { dc.density[h as usize] };
+    }
+    list
+}
+
 /// Build index lists (per part if `partitioned`) from compact records sorted by (subpart, index).
 fn build_lists(
     compact: &[Compact],
@@ -803,7 +1373,6 @@ fn build_lists(
     };
     let mut combined = VoxelList::default();
     let mut hits_of: Vec<u8> = Vec::new();
-    let mut histogram = [0u64; 256];
     for (index, hits, level) in records {
         if combined.indices.last() == Some(&index) {
             let h = hits_of.last_mut().expect("parallel to the list");
@@ -815,13 +1384,7 @@ fn build_lists(
             combined.push(index, Voxel { density: 1, level });
         }
     }
-    for &h in &hits_of {
-        histogram[h as usize] += 1;
-    }
-    let dc = DensityClasses::equalise(&histogram, classes);
-    for (d, (&h, &l)) in combined.densities.iter_mut().zip(hits_of.iter().zip(&combined.levels)) {
-        *d = if l <= branch_depth { 255 } else { dc.density[h as usize] };
-    }
+    let combined = classify(combined, &hits_of, classes, branch_depth);
     if !partitioned || ty == StorageType::Dense {
         return VoxelStore::from_list(combined, ty, volume);
     }

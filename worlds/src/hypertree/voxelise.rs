@@ -166,7 +166,7 @@ impl Sampler<'_> {
     fn point(&mut self, p: [f32; 3], level: u8) {
         let q = std::array::from_fn(|i| p[i] + self.offset[i]);
         if let Some(v) = self.volume.voxel_at(q, self.inv) {
-            self.recorder.record(self.volume.index(v), level, 0);
+            self.recorder.record_at(v, self.volume.index(v), level, 0);
         }
     }
 
