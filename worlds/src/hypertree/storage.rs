@@ -362,6 +362,21 @@ impl DenseArray {
         ((brick as usize) << 9) | (((v[2] & 7) << 6 | (v[1] & 7) << 3 | (v[0] & 7)) as usize)
     }
 
+    /// Count one hit of voxel `v` (index `index`) at `level`: the shallowest level wins, and a voxel's first hit
+    /// adds its index to `touched`.
+    #[inline]
+    fn hit(&mut self, v: [u32; 3], index: u32, level: u8, touched: &mut Vec<u32>) {
+        let o = self.offset(v);
+        let c = &mut self.cells[o];
+        if c[0] == 0 {
+            touched.push(index);
+            *c = [1, level];
+        } else {
+            c[0] = c[0].saturating_add(1);
+            c[1] = c[1].min(level);
+        }
+    }
+
     /// The coordinates of voxel `index`.
     #[inline]
     fn coords(&self, index: u32) -> [u32; 3] {
@@ -841,15 +856,7 @@ impl HitRecorder {
             Mode::Dense { array, touched } => {
                 self.hits += hits.len() as u64;
                 for &(v, index) in hits {
-                    let o = array.offset(v);
-                    let c = &mut array.cells[o];
-                    if c[0] == 0 {
-                        touched.push(index);
-                        *c = [1, level];
-                    } else {
-                        c[0] = c[0].saturating_add(1);
-                        c[1] = c[1].min(level);
-                    }
+                    array.hit(v, index, level, touched);
                 }
             }
             Mode::Keys32 { raw, compact, scratch } if subpart == 0 && u32::from(level) < 1 << LEVEL_BITS => {
@@ -890,15 +897,7 @@ impl HitRecorder {
             Mode::Dense { array, touched } => {
                 self.hits += hits.len() as u64;
                 for &(v, index, level, _) in hits {
-                    let o = array.offset(v);
-                    let c = &mut array.cells[o];
-                    if c[0] == 0 {
-                        touched.push(index);
-                        *c = [1, level];
-                    } else {
-                        c[0] = c[0].saturating_add(1);
-                        c[1] = c[1].min(level);
-                    }
+                    array.hit(v, index, level, touched);
                 }
             }
             _ => {
@@ -915,17 +914,7 @@ impl HitRecorder {
     pub fn record_at(&mut self, v: [u32; 3], index: u32, level: u8, subpart: u8) {
         self.hits += 1;
         match &mut self.mode {
-            Mode::Dense { array, touched } => {
-                let o = array.offset(v);
-                let c = &mut array.cells[o];
-                if c[0] == 0 {
-                    touched.push(index);
-                    *c = [1, level];
-                } else {
-                    c[0] = c[0].saturating_add(1);
-                    c[1] = c[1].min(level);
-                }
-            }
+            Mode::Dense { array, touched } => array.hit(v, index, level, touched),
             Mode::Keys32 { raw, compact, scratch } => {
                 if subpart != 0 || u32::from(level) >= 1 << LEVEL_BITS {
                     self.widen();
