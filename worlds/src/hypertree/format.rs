@@ -277,37 +277,20 @@ fn end_of_line(cur: &mut Cursor<'_>) -> Result<(), ParseError> {
 
 /// A signed decimal number with its span.
 fn number(cur: &mut Cursor<'_>) -> Result<(f32, Range<usize>), ParseError> {
-    cur.skip_trivia();
-    let start = cur.pos;
-    let neg = cur.eat("-");
-    if !neg {
-        cur.eat("+");
-    }
-    match cur.number() {
-        Some(Ok((v, s))) => Ok((if neg { -v } else { v }, start..s.end)),
-        Some(Err(e)) => Err(e),
-        None => {
-            cur.pos = start;
-            Err(cur.unexpected("a number"))
-        }
-    }
+    cur.signed_number().unwrap_or_else(|| Err(cur.unexpected("a number")))
 }
 
 /// A non-negative integer.
 fn integer(cur: &mut Cursor<'_>) -> Result<(u64, Range<usize>), ParseError> {
-    cur.skip_trivia();
-    let start = cur.pos;
-    let len = cur.rest().find(|c: char| !c.is_ascii_digit()).unwrap_or(cur.rest().len());
-    if len == 0 {
-        return Err(cur.unexpected("a non-negative integer"));
+    let Some((v, span)) = cur.integer() else { return Err(cur.unexpected("a non-negative integer")) };
+    match v {
+        _ if cur.rest().starts_with('.') => Err(ParseError::new(span, "expected an integer")),
+        Some(v) => Ok((v, span)),
+        None if cur.src[span.clone()].bytes().all(|c| c.is_ascii_digit()) => {
+            Err(ParseError::new(span, "integer too large"))
+        }
+        None => Err(ParseError::new(span, "expected an integer")),
     }
-    let text = &cur.src[start..start + len];
-    cur.pos += len;
-    let span = start..cur.pos;
-    if cur.rest().starts_with(['.', 'e', 'E']) {
-        return Err(ParseError::new(span, "expected an integer"));
-    }
-    text.parse::<u64>().map(|v| (v, span.clone())).map_err(|_| ParseError::new(span, "integer too large"))
 }
 
 fn int_in(cur: &mut Cursor<'_>, lo: u64, hi: u64, what: &str) -> Result<(u64, Range<usize>), ParseError> {
