@@ -98,8 +98,6 @@ pub const POSITION_STEPS: u32 = 4096;
 /// Dart attempts per background cell of a `scatter` rule.
 pub const SCATTER_ATTEMPTS: u32 = 10;
 
-/// Most bytes in a manifest file.
-pub const MAX_MANIFEST_BYTES: u64 = 1 << 20;
 /// Most cells in a world's bounds.
 pub const MAX_CELLS: u64 = 1 << 20;
 /// Most instances in a world, explicit and expanded together.
@@ -214,18 +212,9 @@ pub const DEFAULT_WORLD: &str = include_str!("../../forest/forest.world");
 impl World {
     /// Load a manifest file; species paths are relative to its directory.
     pub fn load(path: &Path) -> Result<World, Diagnostics> {
-        let name = path.display().to_string();
-        let fail = |msg: String| Diagnostics(vec![SourceFile::new(name.clone(), "").diag(0..0, msg)]);
-        match std::fs::metadata(path) {
-            Ok(m) if m.len() > MAX_MANIFEST_BYTES => {
-                return Err(fail(format!("file of {} bytes exceeds {MAX_MANIFEST_BYTES}", m.len())));
-            }
-            Ok(_) => {}
-            Err(e) => return Err(fail(format!("cannot read: {e}"))),
-        }
-        let text = std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read: {e}")))?;
+        let src = crate::load::read_source(path).map_err(|e| Diagnostics(vec![crate::load::file_diag(path, e)]))?;
         let base = path.parent().unwrap_or(Path::new("."));
-        World::parse(&SourceFile::new(name, text), Some(base))
+        World::parse(&src, Some(base))
     }
 
     /// Parse a manifest. Species paths resolve against `base_dir`; without one, only library names are allowed.
