@@ -322,19 +322,13 @@ pub fn amplify_into(
                         }
                         Shape::Leaf { topology: *topology, start, end: out.leaf_points.len() as u32 }
                     }
-                    Node::TrunkBase(b) => Shape::TrunkBase(crate::nearfield::TrunkBase {
-                        spread: ev!(&b.spread),
-                        height: ev!(&b.height),
-                        bottom: ev!(&b.bottom),
-                        top: ev!(&b.top),
-                        tilt: ev!(&b.tilt),
-                        lobes: ev!(&b.lobes),
-                        ellipses: ev!(&b.ellipses),
-                        resolution: ev!(&b.resolution),
-                        randomiser: ev!(&b.randomiser),
-                        transition: ev!(&b.transition),
-                        seed: ev!(&b.seed),
-                    }),
+                    Node::TrunkBase(b) => {
+                        let mut v = [0.0; crate::nearfield::TrunkBase::LEN];
+                        for (v, e) in v.iter_mut().zip(b.exprs()) {
+                            *v = ev!(e);
+                        }
+                        Shape::TrunkBase(crate::nearfield::TrunkBase::from_array(v))
+                    }
                     _ => unreachable!("every non-primitive node is matched above"),
                 };
                 out.primitives.push(Primitive { shape, transform, color });

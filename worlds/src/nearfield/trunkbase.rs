@@ -108,6 +108,22 @@ struct Perturbation {
 }
 
 impl TrunkBase {
+    /// How many numbers a trunk base has (those of [`canopy_protocol::species::TrunkBaseNode`]).
+    pub const LEN: usize = canopy_protocol::species::TrunkBaseNode::LEN;
+
+    /// The numbers in field order (the order of the node's expressions, hashed in primitive streams).
+    pub fn to_array(&self) -> [f32; TrunkBase::LEN] {
+        let TrunkBase { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed } =
+            *self;
+        [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed]
+    }
+
+    /// The trunk base from its numbers in field order (the inverse of [`TrunkBase::to_array`]).
+    pub fn from_array(v: [f32; TrunkBase::LEN]) -> TrunkBase {
+        let [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed] = v;
+        TrunkBase { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed }
+    }
+
     /// The number of cusps.
     pub fn cusps(&self) -> u32 {
         clamp_round(self.lobes, 3, MAX_LOBES)
