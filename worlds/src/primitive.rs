@@ -170,8 +170,9 @@ impl PrimitiveStream {
                 corners([-r, 0.0, -r], [r, *height, r])
             }
             Shape::TrunkBase(b) => {
-                let r = (b.bottom * b.spread.max(1.0)).max(b.top);
-                corners([-r, 0.0, -r], [r, b.height, r])
+                let (bottom, top, height) = b.bounding_cone();
+                let r = bottom.max(top);
+                corners([-r, 0.0, -r], [r, height, r])
             }
             Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [*radius, *height, *radius]),
             Shape::Sphere { radius } => corners([-radius; 3], [*radius; 3]),

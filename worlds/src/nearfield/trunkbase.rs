@@ -118,6 +118,12 @@ impl TrunkBase {
         [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed]
     }
 
+    /// The frustum that holds the flares, `(bottom radius, top radius, height)` standing on the origin along +Y:
+    /// what bounds and voxelises a trunk base.
+    pub fn bounding_cone(&self) -> (f32, f32, f32) {
+        (self.bottom * self.spread.max(1.0), self.top, self.height)
+    }
+
     /// The trunk base from its numbers in field order (the inverse of [`TrunkBase::to_array`]).
     pub fn from_array(v: [f32; TrunkBase::LEN]) -> TrunkBase {
         let [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed] = v;
