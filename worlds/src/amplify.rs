@@ -364,10 +364,13 @@ pub fn resolve_params(graph: &SpeciesGraph, settings: &[(String, f32)]) -> Resul
     settings
         .iter()
         .map(|(name, v)| {
-            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| {
-                let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
-                format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
-            })
+            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| unknown_param(graph, name))
         })
         .collect()
+}
+
+/// The message for a parameter `name` that `graph` does not have, listing the ones it has.
+pub fn unknown_param(graph: &SpeciesGraph, name: &str) -> String {
+    let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
+    format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
 }

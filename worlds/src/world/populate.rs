@@ -11,6 +11,7 @@ use super::{
     Bounds, MAX_CELLS, MAX_INSTANCES, MAX_RULE_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
     Placement, SCATTER_ATTEMPTS, World, WorldSpecies,
 };
+use crate::amplify::unknown_param;
 use crate::diag::{Diagnostic, SourceFile};
 use crate::eval::unit_f32;
 use crate::load::parse_source;
@@ -435,11 +436,6 @@ fn resolve_settings(
     out.sort_by_key(|&(s, _)| s);
     out.retain(|&(slot, v)| !is_default(graph, slot, v));
     out
-}
-
-fn unknown_param(graph: &SpeciesGraph, name: &str) -> String {
-    let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
-    format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
 }
 
 /// Whether `v` is bit for bit the species' constant default for `slot`.
