@@ -20,10 +20,10 @@
 
 use core::f64::consts::{PI, TAU};
 
-use crate::eval::unit_f32;
+use crate::eval::{Draw, unit_f32};
 use crate::nearfield::curves::{GeneratorEllipses, hypocycloid_radius};
 use crate::nearfield::{NearFieldError, Surface};
-use crate::rng::InstanceRng;
+use crate::rng::{Context, InstanceRng};
 
 /// Most points on one cross-section.
 pub const MAX_RESOLUTION: u32 = 1024;
@@ -189,11 +189,8 @@ impl TrunkBase {
         let n = self.cusps() as usize;
         let rho = f64::from(self.randomiser.clamp(0.0, 1.0));
         let mut rng = InstanceRng::new(u64::from(self.seed.to_bits()));
-        let mut counter = 0u64;
-        let mut draw = || {
-            counter += 1;
-            f64::from(unit_f32(rng.word(0, counter - 1)))
-        };
+        let mut ctx = Context { rng: &mut rng, key: 0, counter: 0 };
+        let mut draw = || f64::from(unit_f32(ctx.next_u32()));
         let lobe = TAU / n as f64;
         let mut reach = Vec::with_capacity(n);
         let mut phase = Vec::with_capacity(n);
