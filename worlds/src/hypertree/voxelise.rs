@@ -18,6 +18,7 @@ use super::storage::HitRecorder;
 use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
 use crate::amplify::{AmplifyError, Budget, Instance, amplify};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
+use crate::vec3::{add, norm, sub};
 
 /// How to voxelise.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -148,8 +149,8 @@ impl Sampler<'_> {
     }
 
     fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
-        let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
-        let len = libm::sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        let d = sub(b, a);
+        let len = norm(d);
         let n = (len / (0.5 * self.side)).min(1e7) as u64 + 1;
         self.budget(n + 1)?;
         for k in 0..=n {
@@ -160,7 +161,7 @@ impl Sampler<'_> {
     }
 
     fn triangle(&mut self, a: [f32; 3], b: [f32; 3], c: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
-        let e = |p: [f32; 3], q: [f32; 3]| libm::sqrtf((0..3).map(|i| (q[i] - p[i]) * (q[i] - p[i])).sum::<f32>());
+        let e = |p: [f32; 3], q: [f32; 3]| norm(sub(q, p));
         let longest = e(a, b).max(e(b, c)).max(e(c, a));
         let n = (longest / (0.5 * self.side)).min(1e4) as u64 + 1;
         self.budget((n + 1) * (n + 2) / 2)?;
@@ -343,8 +344,4 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         Bounds::default(),
         flows,
     ))
-}
-
-fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] + b[i])
 }
