@@ -139,7 +139,7 @@ impl Transform {
     /// The inverse transform, or `None` if the linear part is singular (|determinant| ≤ 1e-20) or not finite.
     pub fn inverse(&self) -> Option<Transform> {
         let det = self.determinant();
-        if !(det.abs() > 1e-20) || !det.is_finite() {
+        if !det.is_finite() || det.abs() <= 1e-20 {
             return None;
         }
         let c = self.normal_matrix();
