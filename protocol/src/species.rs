@@ -167,6 +167,24 @@ pub struct TrunkBaseNode {
     pub seed: Expr,
 }
 
+impl TrunkBaseNode {
+    /// How many expressions a trunk base has.
+    pub const LEN: usize = 11;
+
+    /// The expressions in field order (the order they are encoded, hashed and evaluated in).
+    pub fn exprs(&self) -> [&Expr; TrunkBaseNode::LEN] {
+        let TrunkBaseNode { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed } =
+            self;
+        [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed]
+    }
+
+    /// The node from its expressions in field order (the inverse of [`TrunkBaseNode::exprs`]).
+    pub fn from_array(e: [Expr; TrunkBaseNode::LEN]) -> TrunkBaseNode {
+        let [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed] = e;
+        TrunkBaseNode { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed }
+    }
+}
+
 /// Species-level near-field meshing options (see [`Node::NearField`]); each is an expression of the parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NearFieldNode {
@@ -184,6 +202,23 @@ pub struct NearFieldNode {
     pub shrink: Expr,
     /// Second chisel factor: the fraction of outer bark triangles removed (0..1).
     pub removal: Expr,
+}
+
+impl NearFieldNode {
+    /// How many expressions the node has.
+    pub const LEN: usize = 7;
+
+    /// The expressions in field order (the order they are encoded, hashed and evaluated in).
+    pub fn exprs(&self) -> [&Expr; NearFieldNode::LEN] {
+        let NearFieldNode { continuous, contour, refine, bark, chisel, shrink, removal } = self;
+        [continuous, contour, refine, bark, chisel, shrink, removal]
+    }
+
+    /// The node from its expressions in field order (the inverse of [`NearFieldNode::exprs`]).
+    pub fn from_array(e: [Expr; NearFieldNode::LEN]) -> NearFieldNode {
+        let [continuous, contour, refine, bark, chisel, shrink, removal] = e;
+        NearFieldNode { continuous, contour, refine, bark, chisel, shrink, removal }
+    }
 }
 
 /// Why a species graph was rejected.
@@ -287,20 +322,8 @@ impl Node {
             Node::Sphere { radius } => vec![radius],
             Node::Box { size } => size.iter().collect(),
             Node::Leaf { points, .. } => points.iter().flatten().collect(),
-            Node::TrunkBase(b) => vec![
-                &b.spread,
-                &b.height,
-                &b.bottom,
-                &b.top,
-                &b.tilt,
-                &b.lobes,
-                &b.ellipses,
-                &b.resolution,
-                &b.randomiser,
-                &b.transition,
-                &b.seed,
-            ],
-            Node::NearField(n) => vec![&n.continuous, &n.contour, &n.refine, &n.bark, &n.chisel, &n.shrink, &n.removal],
+            Node::TrunkBase(b) => b.exprs().to_vec(),
+            Node::NearField(n) => n.exprs().to_vec(),
         }
     }
 

@@ -1,14 +1,23 @@
-//! The `.glb` export checked by the Khronos glTF validator (`tests/gltf/validate.mjs`, npm `gltf-validator`).
+//! The `.glb` export checked by the Khronos glTF validator (`tests/gltf/validate.mjs`, npm `gltf-validator`): the
+//! mesher's primitives, and the near-field meshes (the continuous mesh, direct and refined, the double bark's outer
+//! layer, seed 002's junction meshes, the trunk base through the ordinary mesher and the LOD chain).
 //!
-//! Needs `node` and `npm ci` in `tests/gltf`. Without them the test prints how to install them and passes, except
+//! Needs `node` and `npm ci` in `tests/gltf`. Without them the tests print how to install them and pass, except
 //! under CI (the `CI` environment variable set), where CI installs them and a missing validator is a failure.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use canopy_protocol::LeafTopology;
+use canopy_worlds::amplify::{amplify, Budget, Instance};
+use canopy_worlds::diag::SourceFile;
 use canopy_worlds::gltf::{glb, parse_glb_header};
+use canopy_worlds::load::parse_source;
 use canopy_worlds::mesh::{mesh, Mesh, MeshOptions};
+use canopy_worlds::nearfield::bark::{outer_bark, trunk_places, BarkOptions, ChiselMode};
+use canopy_worlds::nearfield::continuous::{continuous_mesh, ContinuousOptions};
+use canopy_worlds::nearfield::junction::{junction_mesh, JunctionOptions};
+use canopy_worlds::nearfield::lod::{lod_chain, LodOptions};
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 use canopy_worlds::transform::Transform;
 
@@ -50,6 +59,42 @@ fn node_available() -> bool {
     Command::new("node").arg("--version").output().map(|o| o.status.success()).unwrap_or(false)
 }
 
+/// Check every file (tag, `.glb` bytes) is a well-formed GLB, then run the validator on all of them: it must accept
+/// each with 0 errors and 0 warnings. Without the validator, `test` says why and passes (fails under CI).
+fn validate(test: &str, files: &[(&str, Vec<u8>)]) {
+    let mut paths = Vec::new();
+    for (tag, bytes) in files {
+        parse_glb_header(bytes).unwrap_or_else(|e| panic!("{tag}: {e}"));
+        let path = temp_path(tag);
+        std::fs::write(&path, bytes).expect("write temp .glb");
+        paths.push(path);
+    }
+
+    let dir = validator_dir();
+    let installed = dir.join("node_modules").join("gltf-validator").is_dir();
+    if !node_available() || !installed {
+        for p in &paths {
+            let _ = std::fs::remove_file(p);
+        }
+        let why = if installed { "`node` is not on PATH" } else { "tests/gltf/node_modules is missing" };
+        if std::env::var_os("CI").is_some() {
+            panic!("glTF validator unavailable under CI: {why} (run `npm ci` in tests/gltf)");
+        }
+        eprintln!("SKIPPED {test}: {why}; run `npm ci` in tests/gltf to enable it");
+        return;
+    }
+
+    let output = Command::new("node").arg(dir.join("validate.mjs")).args(&paths).output().expect("run node");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    println!("{stdout}{stderr}");
+    for p in &paths {
+        let _ = std::fs::remove_file(p);
+    }
+    assert!(output.status.success(), "glTF validator rejected the export:\n{stdout}{stderr}");
+    assert_eq!(stdout.matches(" 0 errors, 0 warnings").count(), paths.len(), "{stdout}");
+}
+
 #[test]
 fn khronos_validator_accepts_exported_glb() {
     let stream = sample_stream();
@@ -73,35 +118,41 @@ fn khronos_validator_accepts_exported_glb() {
         ("grove", glb(&[("grove".to_string(), &grove, [0.0; 3])])),
         ("empty", glb(&[])),
     ];
-    let mut paths = Vec::new();
-    for (tag, bytes) in &files {
-        parse_glb_header(bytes).unwrap_or_else(|e| panic!("{tag}: {e}"));
-        let path = temp_path(tag);
-        std::fs::write(&path, bytes).expect("write temp .glb");
-        paths.push(path);
-    }
+    validate("khronos_validator_accepts_exported_glb", &files);
+}
 
-    let dir = validator_dir();
-    let installed = dir.join("node_modules").join("gltf-validator").is_dir();
-    if !node_available() || !installed {
-        for p in &paths {
-            let _ = std::fs::remove_file(p);
-        }
-        let why = if installed { "`node` is not on PATH" } else { "tests/gltf/node_modules is missing" };
-        if std::env::var_os("CI").is_some() {
-            panic!("glTF validator unavailable under CI: {why} (run `npm ci` in tests/gltf)");
-        }
-        eprintln!("SKIPPED khronos_validator_accepts_exported_glb: {why}; run `npm ci` in tests/gltf to enable it");
-        return;
+#[test]
+fn khronos_validator_accepts_near_field_exports() {
+    let (g, d) = parse_source(&SourceFile::new("fig.species", include_str!("../../worlds/species/fig.species")));
+    assert!(d.is_empty(), "{d:?}");
+    let s = amplify(&g.unwrap(), &Instance::new(5), &Budget::default()).unwrap();
+    let refined = continuous_mesh(&s, &ContinuousOptions::default()).unwrap();
+    let direct =
+        continuous_mesh(&s, &ContinuousOptions { refine: false, contour: 5, ..ContinuousOptions::default() }).unwrap();
+    let place = trunk_places(&refined.tags);
+    let bark = outer_bark(
+        &refined.mesh,
+        &place,
+        &BarkOptions { depth: 0.02, chisel: ChiselMode::Both, shrink: 0.4, removal: 0.15, seed: 5 },
+    )
+    .unwrap();
+    let junctions = junction_mesh(&s, &JunctionOptions::default());
+    let primitives = mesh(&s, &MeshOptions::default());
+    let mut parts: Vec<(String, Mesh, [f32; 3])> = vec![
+        ("branches".into(), refined.mesh.clone(), [0.0; 3]),
+        ("bark".into(), bark, [0.0; 3]),
+        ("foliage".into(), refined.foliage.clone(), [0.0; 3]),
+        ("direct".into(), direct.mesh, [8.0, 0.0, 0.0]),
+        ("junctions".into(), junctions, [16.0, 0.0, 0.0]),
+        ("primitives".into(), primitives, [24.0, 0.0, 0.0]),
+    ];
+    for (k, l) in lod_chain(&refined, &LodOptions::default()).unwrap().into_iter().enumerate() {
+        parts.push((format!("lod{}", k + 1), l.mesh, [0.0, 0.0, 8.0 * (k + 1) as f32]));
     }
-
-    let output = Command::new("node").arg(dir.join("validate.mjs")).args(&paths).output().expect("run node");
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    println!("{stdout}{stderr}");
-    for p in &paths {
-        let _ = std::fs::remove_file(p);
+    for (name, m, _) in &parts {
+        assert!(m.triangle_count() > 0, "{name} is empty");
+        assert!(m.positions.iter().chain(&m.normals).flatten().all(|x| x.is_finite()), "{name}");
     }
-    assert!(output.status.success(), "glTF validator rejected the export:\n{stdout}{stderr}");
-    assert_eq!(stdout.matches(" 0 errors, 0 warnings").count(), paths.len(), "{stdout}");
+    let refs: Vec<(String, &Mesh, [f32; 3])> = parts.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
+    validate("khronos_validator_accepts_near_field_exports", &[("nearfield", glb(&refs))]);
 }

@@ -322,19 +322,13 @@ pub fn amplify_into(
                         }
                         Shape::Leaf { topology: *topology, start, end: out.leaf_points.len() as u32 }
                     }
-                    Node::TrunkBase(b) => Shape::TrunkBase(crate::nearfield::TrunkBase {
-                        spread: ev!(&b.spread),
-                        height: ev!(&b.height),
-                        bottom: ev!(&b.bottom),
-                        top: ev!(&b.top),
-                        tilt: ev!(&b.tilt),
-                        lobes: ev!(&b.lobes),
-                        ellipses: ev!(&b.ellipses),
-                        resolution: ev!(&b.resolution),
-                        randomiser: ev!(&b.randomiser),
-                        transition: ev!(&b.transition),
-                        seed: ev!(&b.seed),
-                    }),
+                    Node::TrunkBase(b) => {
+                        let mut v = [0.0; crate::nearfield::TrunkBase::LEN];
+                        for (v, e) in v.iter_mut().zip(b.exprs()) {
+                            *v = ev!(e);
+                        }
+                        Shape::TrunkBase(crate::nearfield::TrunkBase::from_array(v))
+                    }
                     _ => unreachable!("every non-primitive node is matched above"),
                 };
                 out.primitives.push(Primitive { shape, transform, color });
@@ -370,10 +364,13 @@ pub fn resolve_params(graph: &SpeciesGraph, settings: &[(String, f32)]) -> Resul
     settings
         .iter()
         .map(|(name, v)| {
-            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| {
-                let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
-                format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
-            })
+            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| unknown_param(graph, name))
         })
         .collect()
+}
+
+/// The message for a parameter `name` that `graph` does not have, listing the ones it has.
+pub fn unknown_param(graph: &SpeciesGraph, name: &str) -> String {
+    let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
+    format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
 }

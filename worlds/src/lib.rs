@@ -21,4 +21,5 @@ pub mod rng;
 pub mod species_text;
 pub mod text;
 pub mod transform;
+pub(crate) mod vec3;
 pub mod world;

@@ -40,21 +40,31 @@ pub fn parse_source(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>)
     }
 }
 
-/// Bytes of source text accepted in one species file.
-pub const MAX_SOURCE_BYTES: u64 = 1 << 20;
+/// Bytes of source text accepted in one file of any text format (species, L-system, world manifest, hypertree,
+/// hyperforest).
+pub const MAX_SOURCE_BYTES: usize = 1 << 20;
+
+/// Read one source file of at most [`MAX_SOURCE_BYTES`], named by its path; the error says why not, without the
+/// name (the caller's diagnostic names the file).
+pub fn read_source(path: &Path) -> Result<SourceFile, String> {
+    let len = std::fs::metadata(path).map_err(|e| format!("cannot read: {e}"))?.len();
+    if len > MAX_SOURCE_BYTES as u64 {
+        return Err(format!("file of {len} bytes exceeds {MAX_SOURCE_BYTES}"));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read: {e}"))?;
+    Ok(SourceFile::new(path.display().to_string(), text))
+}
+
+/// A diagnostic at the start of the file `path` (one that could not be read).
+pub(crate) fn file_diag(path: &Path, message: String) -> Diagnostic {
+    SourceFile::new(path.display().to_string(), "").diag(0..0, message)
+}
 
 /// Read and parse one file; an unreadable or oversized file is a diagnostic too.
 pub fn load_file(path: &Path) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
-    let name = path.display().to_string();
-    let fail = |msg: String| (None, vec![SourceFile::new(name.clone(), "").diag(0..0, msg)]);
-    match std::fs::metadata(path) {
-        Ok(m) if m.len() > MAX_SOURCE_BYTES => return fail(format!("file of {} bytes exceeds {MAX_SOURCE_BYTES}", m.len())),
-        Ok(_) => {}
-        Err(e) => return fail(format!("cannot read: {e}")),
-    }
-    match std::fs::read_to_string(path) {
-        Ok(text) => parse_source(&SourceFile::new(name, text)),
-        Err(e) => fail(format!("cannot read: {e}")),
+    match read_source(path) {
+        Ok(src) => parse_source(&src),
+        Err(e) => (None, vec![file_diag(path, e)]),
     }
 }
 

@@ -38,7 +38,7 @@ pub const NODE_CALLS: [&str; 17] = [
 /// factor, trunk height, base and top radii, tilt spread (degrees), cusps of the hypocycloid, generator ellipse
 /// count, curve resolution, base randomiser factor, the transition (0 generator ellipses, 1 quadrifolium) and the
 /// perturbation's seed (drawn per instance).
-pub const TRUNKBASE_ARGS: [(&str, &str); 11] = [
+pub const TRUNKBASE_ARGS: [(&str, &str); TrunkBaseNode::LEN] = [
     ("spread", "2"),
     ("height", "1.5"),
     ("bottom", "0.4"),
@@ -55,7 +55,7 @@ pub const TRUNKBASE_ARGS: [(&str, &str); 11] = [
 /// The arguments of `nearfield(...)` in positional order, with their defaults: continuous mesh (non-zero: yes),
 /// contour resolution, junction refinement by intervals (non-zero: yes), bark depth in metres (0: single bark),
 /// chisel mode (1 shrink, 2 remove, 3 both) and the two chisel factors.
-pub const NEARFIELD_ARGS: [(&str, &str); 7] = [
+pub const NEARFIELD_ARGS: [(&str, &str); NearFieldNode::LEN] = [
     ("continuous", "1"),
     ("contour", "12"),
     ("refine", "1"),
@@ -127,8 +127,9 @@ fn node_call(
             format!("`{name}` takes {} argument(s), got {}", want.join(" or "), args.len()),
         ));
     }
-    let mut e: Vec<Expr> = args.iter().map(|a| compile(a, resolve)).collect::<Result<_, _>>()?;
-    let mut take = || e.remove(0);
+    let e: Vec<Expr> = args.iter().map(|a| compile(a, resolve)).collect::<Result<_, _>>()?;
+    let mut e = e.into_iter();
+    let mut take = || e.next().expect("the argument count is checked above");
     Ok(match name {
         "translate" => Node::Translate([take(), take(), take()]),
         "rotate" => Node::Rotate { axis: [take(), take(), take()], angle: take() },
@@ -219,31 +220,11 @@ fn named_call(
         };
         e.push(compile(&ast, resolve)?);
     }
-    let mut take = || e.remove(0);
+    // The tables have exactly the nodes' expression counts.
     Ok(if name == "trunkbase" {
-        Node::TrunkBase(Box::new(TrunkBaseNode {
-            spread: take(),
-            height: take(),
-            bottom: take(),
-            top: take(),
-            tilt: take(),
-            lobes: take(),
-            ellipses: take(),
-            resolution: take(),
-            randomiser: take(),
-            transition: take(),
-            seed: take(),
-        }))
+        Node::TrunkBase(Box::new(TrunkBaseNode::from_array(e.try_into().expect("TRUNKBASE_ARGS has 11 entries"))))
     } else {
-        Node::NearField(Box::new(NearFieldNode {
-            continuous: take(),
-            contour: take(),
-            refine: take(),
-            bark: take(),
-            chisel: take(),
-            shrink: take(),
-            removal: take(),
-        }))
+        Node::NearField(Box::new(NearFieldNode::from_array(e.try_into().expect("NEARFIELD_ARGS has 7 entries"))))
     })
 }
 

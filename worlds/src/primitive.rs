@@ -91,28 +91,13 @@ impl Shape {
             Shape::Sphere { radius } => put(&mut a, &[*radius]),
             Shape::Box { size } => put(&mut a, size),
             Shape::Leaf { .. } => 0,
-            Shape::TrunkBase(b) => put(
-                &mut a,
-                &[
-                    b.spread,
-                    b.height,
-                    b.bottom,
-                    b.top,
-                    b.tilt,
-                    b.lobes,
-                    b.ellipses,
-                    b.resolution,
-                    b.randomiser,
-                    b.transition,
-                    b.seed,
-                ],
-            ),
+            Shape::TrunkBase(b) => put(&mut a, &b.to_array()),
         };
         (a, n)
     }
 
     /// Most size values of any shape (the trunk base's parameters).
-    pub const MAX_SIZES: usize = 11;
+    pub const MAX_SIZES: usize = TrunkBase::LEN;
 
     /// The primitive's kind. A trunk base counts as a cone: a frustum from its base radius to its top radius.
     pub fn kind(&self) -> PrimitiveKind {
@@ -185,8 +170,9 @@ impl PrimitiveStream {
                 corners([-r, 0.0, -r], [r, *height, r])
             }
             Shape::TrunkBase(b) => {
-                let r = (b.bottom * b.spread.max(1.0)).max(b.top);
-                corners([-r, 0.0, -r], [r, b.height, r])
+                let (bottom, top, height) = b.bounding_cone();
+                let r = bottom.max(top);
+                corners([-r, 0.0, -r], [r, height, r])
             }
             Shape::Cylinder { radius, height } => corners([-radius, 0.0, -radius], [*radius, *height, *radius]),
             Shape::Sphere { radius } => corners([-radius; 3], [*radius; 3]),

@@ -135,21 +135,33 @@ impl<'a> Cursor<'a> {
         }
     }
 
-    /// An unsigned decimal number (`12`, `1.5`, `.5`, `2e-3`) after trivia, correctly rounded to f32.
+    /// An unsigned decimal number (`12`, `1.5`, `.5`, `2e-3`) after trivia, correctly rounded to f32. A `.` followed
+    /// by another `.` is not part of it: `1..2` reads as `1`, `..`, `2`. `None` (nothing consumed but trivia) if
+    /// no number starts here.
     pub fn number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
+        self.scan_number(false)
+    }
+
+    /// [`Cursor::number`] with an optional `-` or `+` directly in front, part of its span and text.
+    pub fn signed_number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
+        self.scan_number(true)
+    }
+
+    fn scan_number(&mut self, signed: bool) -> Option<Result<(f32, Range<usize>), ParseError>> {
         self.skip_trivia();
         let rest = self.rest().as_bytes();
-        let mut i = 0;
+        let sign = usize::from(signed && matches!(rest.first(), Some(b'-' | b'+')));
+        let mut i = sign;
         while i < rest.len() && rest[i].is_ascii_digit() {
             i += 1;
         }
-        if i < rest.len() && rest[i] == b'.' {
+        if i < rest.len() && rest[i] == b'.' && rest.get(i + 1) != Some(&b'.') {
             i += 1;
             while i < rest.len() && rest[i].is_ascii_digit() {
                 i += 1;
             }
         }
-        if i == 0 || (i == 1 && rest[0] == b'.') {
+        if i == sign || (i == sign + 1 && rest[sign] == b'.') {
             return None;
         }
         if i < rest.len() && (rest[i] == b'e' || rest[i] == b'E') {
@@ -172,6 +184,29 @@ impl<'a> Cursor<'a> {
             Ok(v) if v.is_finite() => Ok((v, start..self.pos)),
             _ => Err(ParseError::new(start..self.pos, format!("number `{text}` is not a finite f32"))),
         })
+    }
+
+    /// A non-negative integer after trivia: decimal, or hexadecimal after `0x`, with `_` grouping digits as in Rust
+    /// (`0x5eed_f0e5`). The token runs to the end of the word, so `12ab` is one token. `None` (nothing consumed but
+    /// trivia) if no digit starts here; otherwise the token is consumed and comes back with its span and its value,
+    /// `None` if it is not a valid u64.
+    pub fn integer(&mut self) -> Option<(Option<u64>, Range<usize>)> {
+        self.skip_trivia();
+        let rest = self.rest();
+        if !rest.starts_with(|c: char| c.is_ascii_digit()) {
+            return None;
+        }
+        let len = rest.find(|c: char| !is_ident_continue(c)).unwrap_or(rest.len());
+        let token = &rest[..len];
+        let (digits, radix) = match token.strip_prefix("0x").or_else(|| token.strip_prefix("0X")) {
+            Some(hex) => (hex, 16),
+            None => (token, 10),
+        };
+        let digits: String = digits.chars().filter(|&c| c != '_').collect();
+        let value = if digits.is_empty() { None } else { u64::from_str_radix(&digits, radix).ok() };
+        let start = self.pos;
+        self.pos += len;
+        Some((value, start..self.pos))
     }
 
     /// Skip to just past the next newline (error recovery in line-oriented formats).

@@ -125,11 +125,35 @@ impl Transform {
             + m[2] * (m[4] * m[9] - m[5] * m[8])
     }
 
+    /// The scale factor along local axis `c` (0, 1 or 2): the length of column `c` of the linear part.
+    pub fn axis_scale(&self, c: usize) -> f32 {
+        let m = &self.m;
+        libm::sqrtf(m[c] * m[c] + m[4 + c] * m[4 + c] + m[8 + c] * m[8 + c])
+    }
+
     /// The largest scale factor along the local axes (length of the longest column), for size estimates.
     pub fn max_axis_scale(&self) -> f32 {
-        let m = &self.m;
-        let col = |c: usize| libm::sqrtf(m[c] * m[c] + m[4 + c] * m[4 + c] + m[8 + c] * m[8 + c]);
-        libm::fmaxf(libm::fmaxf(col(0), col(1)), col(2))
+        libm::fmaxf(libm::fmaxf(self.axis_scale(0), self.axis_scale(1)), self.axis_scale(2))
+    }
+
+    /// The inverse transform, or `None` if the linear part is singular (|determinant| ≤ 1e-20) or not finite.
+    pub fn inverse(&self) -> Option<Transform> {
+        let det = self.determinant();
+        if !det.is_finite() || det.abs() <= 1e-20 {
+            return None;
+        }
+        let c = self.normal_matrix();
+        let mut m = [0.0f32; 12];
+        for r in 0..3 {
+            for k in 0..3 {
+                m[4 * r + k] = c[k][r] / det;
+            }
+        }
+        let tr = [self.m[3], self.m[7], self.m[11]];
+        for r in 0..3 {
+            m[4 * r + 3] = -(m[4 * r] * tr[0] + m[4 * r + 1] * tr[1] + m[4 * r + 2] * tr[2]);
+        }
+        Some(Transform { m })
     }
 }
 

@@ -45,10 +45,9 @@ use canopy_protocol::hypertree::{
 
 use crate::diag::{Diagnostic, SourceFile};
 use crate::hypertree::StorageType;
+use crate::load::{MAX_SOURCE_BYTES, file_diag, read_source};
 use crate::text::{Cursor, ParseError};
 
-/// Largest definition or forest file accepted, in bytes.
-pub const MAX_FILE_BYTES: usize = 1 << 20;
 /// Most trees in one hyperforest.
 pub const MAX_FOREST_TREES: usize = 256;
 
@@ -101,8 +100,8 @@ pub fn parse_forest(src: &SourceFile) -> (Option<ForestDef>, Vec<Diagnostic>) {
     let mut storage = None;
     let mut hypervolume = None;
     let mut trees = Vec::new();
-    if src.text.len() > MAX_FILE_BYTES {
-        return (None, vec![src.diag(0..0, format!("file larger than {MAX_FILE_BYTES} bytes"))]);
+    if src.text.len() > MAX_SOURCE_BYTES {
+        return (None, vec![src.diag(0..0, format!("file larger than {MAX_SOURCE_BYTES} bytes"))]);
     }
     loop {
         cur.skip_trivia();
@@ -202,27 +201,25 @@ pub struct Forest {
 
 /// Read and parse a hyperforest file and every hypertree file it names, collecting all diagnostics.
 pub fn load_forest(path: &Path) -> (Option<Forest>, Vec<Diagnostic>) {
-    let name = path.display().to_string();
-    let text = match read_bounded(path) {
-        Ok(t) => t,
-        Err(e) => return (None, vec![SourceFile::new(name, "").diag(0..0, e)]),
+    let src = match read_source(path) {
+        Ok(src) => src,
+        Err(e) => return (None, vec![file_diag(path, e)]),
     };
-    let src = SourceFile::new(name, text);
     let (def, mut diags) = parse_forest(&src);
     let Some(def) = def else { return (None, diags) };
     let dir = path.parent().unwrap_or(Path::new("."));
     let mut trees = Vec::new();
     for t in &def.trees {
         let tree_path = dir.join(&t.path);
-        match read_bounded(&tree_path) {
-            Ok(text) => {
-                let (d, mut ds) = parse_hypertree(&SourceFile::new(tree_path.display().to_string(), text));
+        match read_source(&tree_path) {
+            Ok(tree_src) => {
+                let (d, mut ds) = parse_hypertree(&tree_src);
                 diags.append(&mut ds);
                 if let Some(d) = d {
                     trees.push(d);
                 }
             }
-            Err(e) => diags.push(src.diag(t.span.clone(), format!("cannot read `{}`: {e}", tree_path.display()))),
+            Err(e) => diags.push(src.diag(t.span.clone(), format!("`{}`: {e}", tree_path.display()))),
         }
     }
     if diags.is_empty() { (Some(Forest { def, trees }), diags) } else { (None, diags) }
@@ -230,19 +227,10 @@ pub fn load_forest(path: &Path) -> (Option<Forest>, Vec<Diagnostic>) {
 
 /// Read and parse one hypertree definition file.
 pub fn load_hypertree(path: &Path) -> (Option<HypertreeDef>, Vec<Diagnostic>) {
-    let name = path.display().to_string();
-    match read_bounded(path) {
-        Ok(text) => parse_hypertree(&SourceFile::new(name, text)),
-        Err(e) => (None, vec![SourceFile::new(name, "").diag(0..0, e)]),
+    match read_source(path) {
+        Ok(src) => parse_hypertree(&src),
+        Err(e) => (None, vec![file_diag(path, e)]),
     }
-}
-
-fn read_bounded(path: &Path) -> Result<String, String> {
-    let meta = std::fs::metadata(path).map_err(|e| e.to_string())?;
-    if meta.len() > MAX_FILE_BYTES as u64 {
-        return Err(format!("file of {} bytes is larger than {MAX_FILE_BYTES}", meta.len()));
-    }
-    std::fs::read_to_string(path).map_err(|e| e.to_string())
 }
 
 /// The storage type a keyword names.
@@ -277,37 +265,20 @@ fn end_of_line(cur: &mut Cursor<'_>) -> Result<(), ParseError> {
 
 /// A signed decimal number with its span.
 fn number(cur: &mut Cursor<'_>) -> Result<(f32, Range<usize>), ParseError> {
-    cur.skip_trivia();
-    let start = cur.pos;
-    let neg = cur.eat("-");
-    if !neg {
-        cur.eat("+");
-    }
-    match cur.number() {
-        Some(Ok((v, s))) => Ok((if neg { -v } else { v }, start..s.end)),
-        Some(Err(e)) => Err(e),
-        None => {
-            cur.pos = start;
-            Err(cur.unexpected("a number"))
-        }
-    }
+    cur.signed_number().unwrap_or_else(|| Err(cur.unexpected("a number")))
 }
 
 /// A non-negative integer.
 fn integer(cur: &mut Cursor<'_>) -> Result<(u64, Range<usize>), ParseError> {
-    cur.skip_trivia();
-    let start = cur.pos;
-    let len = cur.rest().find(|c: char| !c.is_ascii_digit()).unwrap_or(cur.rest().len());
-    if len == 0 {
-        return Err(cur.unexpected("a non-negative integer"));
+    let Some((v, span)) = cur.integer() else { return Err(cur.unexpected("a non-negative integer")) };
+    match v {
+        _ if cur.rest().starts_with('.') => Err(ParseError::new(span, "expected an integer")),
+        Some(v) => Ok((v, span)),
+        None if cur.src[span.clone()].bytes().all(|c| c.is_ascii_digit()) => {
+            Err(ParseError::new(span, "integer too large"))
+        }
+        None => Err(ParseError::new(span, "expected an integer")),
     }
-    let text = &cur.src[start..start + len];
-    cur.pos += len;
-    let span = start..cur.pos;
-    if cur.rest().starts_with(['.', 'e', 'E']) {
-        return Err(ParseError::new(span, "expected an integer"));
-    }
-    text.parse::<u64>().map(|v| (v, span.clone())).map_err(|_| ParseError::new(span, "integer too large"))
 }
 
 fn int_in(cur: &mut Cursor<'_>, lo: u64, hi: u64, what: &str) -> Result<(u64, Range<usize>), ParseError> {
@@ -510,8 +481,8 @@ impl<'a> DefParser<'a> {
     }
 
     fn run(&mut self) {
-        if self.src.text.len() > MAX_FILE_BYTES {
-            self.errors.push(ParseError::new(0..0, format!("file larger than {MAX_FILE_BYTES} bytes")));
+        if self.src.text.len() > MAX_SOURCE_BYTES {
+            self.errors.push(ParseError::new(0..0, format!("file larger than {MAX_SOURCE_BYTES} bytes")));
             return;
         }
         loop {

@@ -24,6 +24,7 @@ use super::storage::HitRecorder;
 use super::{Aabb, BoundingSphere, Bounds, Flow, Hypertree, Hypervolume, StorageType};
 use crate::eval::{Draw, unit_f32};
 use crate::rng::{Context, InstanceRng};
+use crate::vec3::{add, norm, sub};
 
 /// RNG stream fixing the random transformation parameters.
 pub const PARAM_STREAM: u64 = 0x4859_5045_5200_0001;
@@ -242,8 +243,8 @@ impl Shape for Segment {
         let (a, b) = (p.apply(self.0), p.apply(self.1));
         // Rescale the transformed segment to the original length about its midpoint (§4).
         let m: [f32; 3] = std::array::from_fn(|i| 0.5 * (a[i] + b[i]));
-        let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
-        let l = libm::sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        let d = sub(b, a);
+        let l = norm(d);
         if !(l > 0.0) || !l.is_finite() {
             return Segment(m, m);
         }
@@ -519,8 +520,7 @@ fn run_tree(
         Generator::Line { from, to } => {
             let m: [f32; 3] = std::array::from_fn(|i| 0.5 * (from[i] + to[i]));
             let seg = Segment(std::array::from_fn(|i| from[i] - m[i]), std::array::from_fn(|i| to[i] - m[i]));
-            let d: [f32; 3] = std::array::from_fn(|i| to[i] - from[i]);
-            let len = libm::sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+            let len = norm(sub(to, from));
             run.iterate(seg, len, &mut grid, &mut ctx, iterations, stats, progress);
             (len, 0.5 * len)
         }
@@ -529,7 +529,7 @@ fn run_tree(
     // Bounding volumes (§8.2), made conservative: the perturbation's largest offset, half the line length and a
     // voxel diagonal (a sample anywhere in a hit voxel) are added.
     let vs = volume.voxel_size();
-    let diag = libm::sqrtf(vs[0] * vs[0] + vs[1] * vs[1] + vs[2] * vs[2]);
+    let diag = norm(vs);
     let amp = libm::sqrtf(p.amplitude.iter().map(|a| a * a).sum::<f32>());
     let margin = amp + shape_bound + diag;
     let mut bounds = Bounds::default();
@@ -545,7 +545,7 @@ fn run_tree(
     if !run.inner.is_empty() {
         let c: [f32; 3] = std::array::from_fn(|i| 0.5 * (run.inner.min[i] + run.inner.max[i]));
         let h: [f32; 3] = std::array::from_fn(|i| 0.5 * (run.inner.max[i] - run.inner.min[i]));
-        let r = libm::sqrtf(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]);
+        let r = norm(h);
         for (j, t) in def.transformations.iter().enumerate() {
             if t.dummy_from == Some(1) || t.probability <= 0.0 {
                 continue;
@@ -558,10 +558,6 @@ fn run_tree(
         }
     }
     (bounds, flows)
-}
-
-fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] + b[i])
 }
 
 impl Selection {

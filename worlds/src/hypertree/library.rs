@@ -4,43 +4,31 @@
 use canopy_protocol::hypertree::HypertreeDef;
 
 use super::format::parse_hypertree;
-use crate::diag::{Diagnostics, SourceFile};
+use crate::diag::Diagnostics;
+use crate::library::{EmbeddedFile, embedded, find_in};
 
-/// One embedded hypertree definition.
+/// What a [`HypertreeEntry`] holds: a hypertree definition (`.hyp`).
 #[derive(Clone, Copy, Debug)]
-pub struct HypertreeEntry {
-    /// File name under `worlds/hypertrees/`.
-    pub file: &'static str,
-    /// The source text.
-    pub text: &'static str,
-}
+pub enum HypertreeFile {}
+
+/// One embedded hypertree definition, a file under `worlds/hypertrees/`.
+pub type HypertreeEntry = EmbeddedFile<HypertreeFile>;
 
 impl HypertreeEntry {
-    /// The short name: the file name without its extension.
-    pub fn name(&self) -> &'static str {
-        self.file.split('.').next().unwrap_or(self.file)
-    }
-
     /// Parse the entry (library files are tested to parse without diagnostics).
     pub fn load(&self) -> Result<HypertreeDef, Diagnostics> {
-        let (d, diags) = parse_hypertree(&SourceFile::new(self.file, self.text));
+        let (d, diags) = parse_hypertree(&self.source());
         d.ok_or(Diagnostics(diags))
     }
 }
 
-macro_rules! entries {
-    ($($file:literal),* $(,)?) => {
-        &[$(HypertreeEntry { file: $file, text: include_str!(concat!("../../hypertrees/", $file)) }),*]
-    };
-}
-
 /// Every embedded hypertree, in Table 1 order (A, B, C, D) and then the others.
 pub const HYPERTREES: &[HypertreeEntry] =
-    entries!["apple.hyp", "spruce.hyp", "willow.hyp", "fork.hyp", "perturbed.hyp"];
+    embedded!["../../hypertrees/" => "apple.hyp", "spruce.hyp", "willow.hyp", "fork.hyp", "perturbed.hyp"];
 
 /// Find an entry by short name (`apple`) or file name (`apple.hyp`).
 pub fn find(name: &str) -> Option<&'static HypertreeEntry> {
-    HYPERTREES.iter().find(|e| e.file == name || e.name() == name)
+    find_in(HYPERTREES, name)
 }
 
 /// One row of the paper's Table 1 (seconds and bytes, Athlon 1.4 GHz): per storage structure (index list, index

@@ -257,7 +257,16 @@ impl Hypertree {
         flows: Vec<Flow>,
     ) -> Hypertree {
         let (occupancy, voxel_box) = BrickMap::build(&volume, &store);
-        Hypertree { name, volume, store, depth_colors, tree_depth, branch_depth, bounds, flows, occupancy, voxel_box }
+        Hypertree::with_occupancy(
+            name,
+            volume,
+            (store, occupancy, voxel_box),
+            depth_colors,
+            tree_depth,
+            branch_depth,
+            bounds,
+            flows,
+        )
     }
 
     /// Assemble a hypertree whose occupancy map and voxel box are already known (from generation).

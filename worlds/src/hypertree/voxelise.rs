@@ -17,9 +17,8 @@ use super::generate::MAX_DENSE_VOXELS;
 use super::storage::HitRecorder;
 use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
 use crate::amplify::{AmplifyError, Budget, Instance, amplify};
-use crate::nearfield::TrunkBase;
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
-use crate::transform::Transform;
+use crate::vec3::{add, norm, sub};
 
 /// How to voxelise.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -82,56 +81,34 @@ pub fn voxelise_species(
     voxelise(&stream, &graph.name, opts)
 }
 
-fn col_len(t: &Transform, c: usize) -> f32 {
-    let m = &t.m;
-    libm::sqrtf(m[c] * m[c] + m[4 + c] * m[4 + c] + m[8 + c] * m[8 + c])
-}
-
 /// World-space thickness of a wood primitive (radius times lateral scale), or `None` for leaves.
 fn thickness(p: &Primitive) -> Option<f32> {
-    let lateral = 0.5 * (col_len(&p.transform, 0) + col_len(&p.transform, 2));
+    let lateral = 0.5 * (p.transform.axis_scale(0) + p.transform.axis_scale(2));
     match solid_shape(&p.shape) {
-        Shape::Cone { bottom, top, .. } | Shape::TrunkBase(TrunkBase { bottom, top, .. }) => {
-            Some(bottom.max(top) * lateral)
-        }
+        Shape::Cone { bottom, top, .. } => Some(bottom.max(top) * lateral),
         Shape::Cylinder { radius, .. } => Some(radius * lateral),
         Shape::Sphere { radius } => Some(radius * p.transform.max_axis_scale()),
         Shape::Box { size } => Some(0.5 * size[0].min(size[2]) * lateral),
         Shape::Leaf { .. } => None,
+        Shape::TrunkBase(_) => unreachable!("solid_shape turns a trunk base into a cone"),
     }
 }
 
-/// The inverse of an affine transform (None if singular).
-fn inverse(t: &Transform) -> Option<Transform> {
-    let det = t.determinant();
-    if !(det.abs() > 1e-20) || !det.is_finite() {
-        return None;
-    }
-    let c = t.normal_matrix();
-    let mut m = [0.0f32; 12];
-    for r in 0..3 {
-        for k in 0..3 {
-            m[4 * r + k] = c[k][r] / det;
-        }
-    }
-    let tr = [t.m[3], t.m[7], t.m[11]];
-    for r in 0..3 {
-        m[4 * r + 3] = -(m[4 * r] * tr[0] + m[4 * r + 1] * tr[1] + m[4 * r + 2] * tr[2]);
-    }
-    Some(Transform { m })
-}
-
-/// A trunk base (seed 002) is voxelised as the frustum that holds its flares.
+/// A trunk base (seed 002) is voxelised as the frustum that holds its flares; every other shape as itself.
 fn solid_shape(shape: &Shape) -> Shape {
     match shape {
-        Shape::TrunkBase(b) => Shape::Cone { bottom: b.bottom * b.spread.max(1.0), top: b.top, height: b.height },
+        Shape::TrunkBase(b) => {
+            let (bottom, top, height) = b.bounding_cone();
+            Shape::Cone { bottom, top, height }
+        }
         other => other.clone(),
     }
 }
 
+/// Whether the local point `q` is inside `shape`, a [`solid_shape`] (never a trunk base).
 fn inside(shape: &Shape, q: [f32; 3]) -> bool {
-    match solid_shape(shape) {
-        Shape::Cone { bottom, top, height } | Shape::TrunkBase(TrunkBase { bottom, top, height, .. }) => {
+    match *shape {
+        Shape::Cone { bottom, top, height } => {
             if !(q[1] >= 0.0 && q[1] <= height) || height <= 0.0 {
                 return false;
             }
@@ -144,6 +121,7 @@ fn inside(shape: &Shape, q: [f32; 3]) -> bool {
         Shape::Sphere { radius } => q[0] * q[0] + q[1] * q[1] + q[2] * q[2] <= radius * radius,
         Shape::Box { size } => (0..3).all(|i| q[i].abs() <= 0.5 * size[i]),
         Shape::Leaf { .. } => false,
+        Shape::TrunkBase(_) => unreachable!("solid_shape turns a trunk base into a cone"),
     }
 }
 
@@ -171,8 +149,8 @@ impl Sampler<'_> {
     }
 
     fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
-        let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
-        let len = libm::sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        let d = sub(b, a);
+        let len = norm(d);
         let n = (len / (0.5 * self.side)).min(1e7) as u64 + 1;
         self.budget(n + 1)?;
         for k in 0..=n {
@@ -183,7 +161,7 @@ impl Sampler<'_> {
     }
 
     fn triangle(&mut self, a: [f32; 3], b: [f32; 3], c: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
-        let e = |p: [f32; 3], q: [f32; 3]| libm::sqrtf((0..3).map(|i| (q[i] - p[i]) * (q[i] - p[i])).sum::<f32>());
+        let e = |p: [f32; 3], q: [f32; 3]| norm(sub(q, p));
         let longest = e(a, b).max(e(b, c)).max(e(c, a));
         let n = (longest / (0.5 * self.side)).min(1e4) as u64 + 1;
         self.budget((n + 1) * (n + 2) / 2)?;
@@ -198,7 +176,8 @@ impl Sampler<'_> {
     }
 
     fn solid(&mut self, p: &Primitive, corners: &[[f32; 3]], level: u8) -> Result<(), VoxeliseError> {
-        let Some(inv) = inverse(&p.transform) else { return Ok(()) };
+        let Some(inv) = p.transform.inverse() else { return Ok(()) };
+        let shape = solid_shape(&p.shape);
         let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
         for c in corners {
             let w = p.transform.point(*c);
@@ -229,7 +208,7 @@ impl Sampler<'_> {
                         ];
                         let world: [f32; 3] =
                             std::array::from_fn(|i| ([x, y, z][i] as f32 + f[i]) * vs[i] - self.offset[i]);
-                        if inside(&p.shape, inv.point(world)) {
+                        if inside(&shape, inv.point(world)) {
                             self.recorder.record(idx, level, 0);
                             any = true;
                         }
@@ -365,8 +344,4 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         Bounds::default(),
         flows,
     ))
-}
-
-fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] + b[i])
 }

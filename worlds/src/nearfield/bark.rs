@@ -39,16 +39,6 @@ impl ChiselMode {
         }
     }
 
-    /// `shrink`, `remove` or `both`.
-    pub fn from_name(s: &str) -> Option<ChiselMode> {
-        match s {
-            "shrink" => Some(ChiselMode::Shrink),
-            "remove" => Some(ChiselMode::Remove),
-            "both" => Some(ChiselMode::Both),
-            _ => None,
-        }
-    }
-
     fn shrinks(self) -> bool {
         self != ChiselMode::Remove
     }

@@ -69,6 +69,8 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
     let adapter = VertexDataAdapter::new(bytes, 12, 0).map_err(|_| NearFieldError::Empty)?;
     let originals: Vec<V3> = m.positions.iter().map(|p| p.map(f64::from)).collect();
     let mut current = m.indices.clone();
+    // The measured error of `current` (unknown for the full mesh until a first level needs it).
+    let mut current_err: Option<f64> = None;
     let mut out = Vec::new();
     for k in 1..=opts.levels {
         let max_radius = if k == opts.levels {
@@ -97,14 +99,17 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
             }
             target *= 0.5;
         }
+        // Keeping the previous level: its error, measured under a smaller bound, is exact here too (`hausdorff` is
+        // exact up to its bound, and the bounds grow with the level).
         let (indices, err) = match chosen {
             Some(c) => c,
             None => {
-                let err = hausdorff(&originals, &m.positions, &current, f64::from(bound));
+                let err = current_err.unwrap_or_else(|| hausdorff(&originals, &m.positions, &current, f64::from(bound)));
                 (current.clone(), err)
             }
         };
         current = indices;
+        current_err = Some(err).filter(|e| e.is_finite());
         out.push(LodLevel { mesh: compact(m, &current), max_radius, bound, error: err as f32 });
     }
     Ok(out)

@@ -34,11 +34,10 @@ pub fn species_options(graph: &SpeciesGraph, instance: &Instance) -> Result<Opti
     let (params, _) = instance_params(graph, instance, &mut rng)?;
     let mut ctx = Context { rng: &mut rng, key: child_key(ROOT_KEY, u64::MAX), counter: 0 };
     let detail = f32::from(instance.detail);
-    let mut v = |e| eval(e, &params, detail, &mut ctx);
-    let continuous = v(&node.continuous) != 0.0;
-    let contour = v(&node.contour);
-    let refine = v(&node.refine) != 0.0;
-    let (depth, chisel, shrink, removal) = (v(&node.bark), v(&node.chisel), v(&node.shrink), v(&node.removal));
+    // In field order, as before the node had `exprs`: the draws of `rand()` arguments depend on it.
+    let [continuous, contour, refine, depth, chisel, shrink, removal] =
+        node.exprs().map(|e| eval(e, &params, detail, &mut ctx));
+    let (continuous, refine) = (continuous != 0.0, refine != 0.0);
     let contour = if contour.is_finite() { contour.round().clamp(3.0, 256.0) as u32 } else { 12 };
     let bark = (depth > 0.0 && depth.is_finite()).then(|| BarkOptions {
         depth,

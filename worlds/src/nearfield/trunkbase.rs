@@ -20,10 +20,10 @@
 
 use core::f64::consts::{PI, TAU};
 
-use crate::eval::unit_f32;
+use crate::eval::{Draw, unit_f32};
 use crate::nearfield::curves::{GeneratorEllipses, hypocycloid_radius};
 use crate::nearfield::{NearFieldError, Surface};
-use crate::rng::InstanceRng;
+use crate::rng::{Context, InstanceRng};
 
 /// Most points on one cross-section.
 pub const MAX_RESOLUTION: u32 = 1024;
@@ -108,6 +108,28 @@ struct Perturbation {
 }
 
 impl TrunkBase {
+    /// How many numbers a trunk base has (those of [`canopy_protocol::species::TrunkBaseNode`]).
+    pub const LEN: usize = canopy_protocol::species::TrunkBaseNode::LEN;
+
+    /// The numbers in field order (the order of the node's expressions, hashed in primitive streams).
+    pub fn to_array(&self) -> [f32; TrunkBase::LEN] {
+        let TrunkBase { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed } =
+            *self;
+        [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed]
+    }
+
+    /// The frustum that holds the flares, `(bottom radius, top radius, height)` standing on the origin along +Y:
+    /// what bounds and voxelises a trunk base.
+    pub fn bounding_cone(&self) -> (f32, f32, f32) {
+        (self.bottom * self.spread.max(1.0), self.top, self.height)
+    }
+
+    /// The trunk base from its numbers in field order (the inverse of [`TrunkBase::to_array`]).
+    pub fn from_array(v: [f32; TrunkBase::LEN]) -> TrunkBase {
+        let [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed] = v;
+        TrunkBase { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed }
+    }
+
     /// The number of cusps.
     pub fn cusps(&self) -> u32 {
         clamp_round(self.lobes, 3, MAX_LOBES)
@@ -167,11 +189,8 @@ impl TrunkBase {
         let n = self.cusps() as usize;
         let rho = f64::from(self.randomiser.clamp(0.0, 1.0));
         let mut rng = InstanceRng::new(u64::from(self.seed.to_bits()));
-        let mut counter = 0u64;
-        let mut draw = || {
-            counter += 1;
-            f64::from(unit_f32(rng.word(0, counter - 1)))
-        };
+        let mut ctx = Context { rng: &mut rng, key: 0, counter: 0 };
+        let mut draw = || f64::from(unit_f32(ctx.next_u32()));
         let lobe = TAU / n as f64;
         let mut reach = Vec::with_capacity(n);
         let mut phase = Vec::with_capacity(n);

@@ -194,75 +194,26 @@ impl Parser<'_> {
         self.cur.ident().map(|(w, s)| (w.to_string(), s)).ok_or_else(|| self.cur.unexpected(what))
     }
 
-    /// A decimal number with an optional sign; `1..2` reads as `1`, `..`, `2`.
+    /// A decimal number with an optional sign; `1..2` reads as `1`, `..`, `2`. A number run into a word (`2x`,
+    /// `1.5.2`) is not one.
     fn number(&mut self, what: &str) -> Result<(f32, Span), ParseError> {
         self.cur.skip_trivia();
         let start = self.cur.pos;
+        let Some(n) = self.cur.signed_number() else { return Err(self.cur.unexpected(what)) };
         let b = self.cur.rest().as_bytes();
-        let mut i = 0;
-        if i < b.len() && (b[i] == b'-' || b[i] == b'+') {
-            i += 1;
-        }
-        let int_start = i;
-        while i < b.len() && b[i].is_ascii_digit() {
-            i += 1;
-        }
-        let mut digits = i - int_start;
-        if i < b.len() && b[i] == b'.' && b.get(i + 1) != Some(&b'.') {
-            i += 1;
-            let frac = i;
-            while i < b.len() && b[i].is_ascii_digit() {
-                i += 1;
-            }
-            digits += i - frac;
-        }
-        if digits == 0 {
+        if b.first().is_some_and(|&c| is_ident_continue(c as char) || c == b'.' && b.get(1) != Some(&b'.')) {
+            self.cur.pos = start;
             return Err(self.cur.unexpected(what));
         }
-        if i < b.len() && (b[i] == b'e' || b[i] == b'E') {
-            let mut j = i + 1;
-            if j < b.len() && (b[j] == b'+' || b[j] == b'-') {
-                j += 1;
-            }
-            let exp = j;
-            while j < b.len() && b[j].is_ascii_digit() {
-                j += 1;
-            }
-            if j > exp {
-                i = j;
-            }
-        }
-        if i < b.len() && (is_ident_continue(b[i] as char) || b[i] == b'.' && b.get(i + 1) != Some(&b'.')) {
-            return Err(self.cur.unexpected(what));
-        }
-        let span = start..start + i;
-        self.cur.pos = span.end;
-        let text = &self.cur.src[span.clone()];
-        match text.parse::<f32>() {
-            Ok(v) if v.is_finite() => Ok((v, span)),
-            _ => Err(ParseError::new(span, format!("number `{text}` is not a finite f32"))),
-        }
+        n
     }
 
     /// A non-negative integer, decimal or `0x` hexadecimal, at most `max`.
     fn integer(&mut self, what: &str, max: u64) -> Result<(u64, Span), ParseError> {
-        self.cur.skip_trivia();
-        let start = self.cur.pos;
-        let rest = self.cur.rest();
-        let (digits, radix, skip) = match rest.strip_prefix("0x").or_else(|| rest.strip_prefix("0X")) {
-            Some(hex) => (hex, 16, 2),
-            None => (rest, 10, 0),
+        let Some((v, span)) = self.cur.integer() else { return Err(self.cur.unexpected(what)) };
+        let Some(v) = v else {
+            return Err(ParseError::new(span.clone(), format!("expected {what}, found `{}`", &self.cur.src[span])));
         };
-        let len = digits.find(|c: char| !is_ident_continue(c)).unwrap_or(digits.len());
-        if len == 0 || !digits.starts_with(|c: char| c.is_ascii_hexdigit()) {
-            return Err(self.cur.unexpected(what));
-        }
-        let span = start..start + skip + len;
-        // Underscores group digits, as in Rust: `0x5eed_f0e5`.
-        let text: String = digits[..len].chars().filter(|&c| c != '_').collect();
-        let v = u64::from_str_radix(&text, radix)
-            .map_err(|_| ParseError::new(span.clone(), format!("expected {what}, found `{}`", &rest[..skip + len])))?;
-        self.cur.pos = span.end;
         if v > max {
             return Err(ParseError::new(span, format!("{what} {v} is more than {max}")));
         }

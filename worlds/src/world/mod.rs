@@ -92,28 +92,26 @@ pub use populate::{ParamValue, Ramp, ScatterRule};
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
 
 /// Positions are snapped to `cell_size / POSITION_STEPS` per axis within their cell: a position is its cell and
-/// two integers below `POSITION_STEPS` (12 bits each).
-pub const POSITION_STEPS: u32 = 4096;
+/// two integers below `POSITION_STEPS` (12 bits each), as the protocol's instance records carry them.
+pub use canopy_protocol::record::POSITION_STEPS;
+/// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
+pub use canopy_protocol::netlimits::MAX_SPECIES;
+/// Deepest terrain recursion: the protocol's limit for the terrain it describes.
+pub use canopy_protocol::netlimits::MAX_TERRAIN_DEPTH;
 
 /// Dart attempts per background cell of a `scatter` rule.
 pub const SCATTER_ATTEMPTS: u32 = 10;
 
-/// Most bytes in a manifest file.
-pub const MAX_MANIFEST_BYTES: u64 = 1 << 20;
 /// Most cells in a world's bounds.
 pub const MAX_CELLS: u64 = 1 << 20;
 /// Most instances in a world, explicit and expanded together.
 pub const MAX_INSTANCES: usize = 4_000_000;
-/// Most entries in the species table (ids fit a byte).
-pub const MAX_SPECIES: usize = 256;
 /// Most `scatter` rules.
 pub const MAX_RULES: usize = 1024;
 /// Most background cells a `scatter` rule may sample (bounds its time and memory: spacing over region).
 pub const MAX_RULE_CELLS: u64 = 1 << 23;
 /// Most vertices in the terrain's height grid.
 pub const MAX_TERRAIN_VERTICES: u64 = 1 << 22;
-/// Deepest terrain recursion.
-pub const MAX_TERRAIN_DEPTH: u32 = 10;
 /// Smallest and largest cell size, metres.
 pub const CELL_SIZE_RANGE: (f32, f32) = (1.0, 4096.0);
 /// Largest `avoid` distance, metres.
@@ -214,18 +212,9 @@ pub const DEFAULT_WORLD: &str = include_str!("../../forest/forest.world");
 impl World {
     /// Load a manifest file; species paths are relative to its directory.
     pub fn load(path: &Path) -> Result<World, Diagnostics> {
-        let name = path.display().to_string();
-        let fail = |msg: String| Diagnostics(vec![SourceFile::new(name.clone(), "").diag(0..0, msg)]);
-        match std::fs::metadata(path) {
-            Ok(m) if m.len() > MAX_MANIFEST_BYTES => {
-                return Err(fail(format!("file of {} bytes exceeds {MAX_MANIFEST_BYTES}", m.len())));
-            }
-            Ok(_) => {}
-            Err(e) => return Err(fail(format!("cannot read: {e}"))),
-        }
-        let text = std::fs::read_to_string(path).map_err(|e| fail(format!("cannot read: {e}")))?;
+        let src = crate::load::read_source(path).map_err(|e| Diagnostics(vec![crate::load::file_diag(path, e)]))?;
         let base = path.parent().unwrap_or(Path::new("."));
-        World::parse(&SourceFile::new(name, text), Some(base))
+        World::parse(&src, Some(base))
     }
 
     /// Parse a manifest. Species paths resolve against `base_dir`; without one, only library names are allowed.
@@ -374,7 +363,7 @@ impl World {
 
     /// The edge of one position step, `cell_size / POSITION_STEPS` metres.
     pub fn position_step(&self) -> f32 {
-        self.cell_size / POSITION_STEPS as f32
+        canopy_protocol::record::position_step(self.cell_size)
     }
 
     /// An instance's position as its cell and its steps within the cell (each below [`POSITION_STEPS`]):
@@ -384,16 +373,15 @@ impl World {
         let p = &self.instances[id as usize];
         let c = self.cell_of(p.x, p.z);
         let [ox, oz] = self.cell_origin(c);
-        let step = self.position_step();
-        let q = |v: f32, o: f32| ((v - o) / step) as u16;
+        let q = |v: f32, o: f32| canopy_protocol::record::quantize(v, o, self.cell_size);
         (c, [q(p.x, ox), q(p.z, oz)])
     }
 
     /// The position of steps `q` within cell `c`: `cell_origin + q · cell_size / POSITION_STEPS`, exact in f32.
     pub fn dequantize(&self, c: CellKey, q: [u16; 2]) -> [f32; 2] {
         let [ox, oz] = self.cell_origin(c);
-        let step = self.position_step();
-        [ox + f32::from(q[0]) * step, oz + f32::from(q[1]) * step]
+        let d = |q: u16, o: f32| canopy_protocol::record::dequantize(q, o, self.cell_size);
+        [d(q[0], ox), d(q[1], oz)]
     }
 
     /// The instance seed of id `id`: `rng::child_key(world seed, id)` =

@@ -11,6 +11,7 @@ use super::{
     Bounds, MAX_CELLS, MAX_INSTANCES, MAX_RULE_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
     Placement, SCATTER_ATTEMPTS, World, WorldSpecies,
 };
+use crate::amplify::unknown_param;
 use crate::diag::{Diagnostic, SourceFile};
 use crate::eval::unit_f32;
 use crate::load::parse_source;
@@ -407,11 +408,17 @@ fn position_step(cell_size: f32) -> (f64, f64) {
     (step, 1.0 / step)
 }
 
+/// Background cells of a rule's dart grid per axis, in f64: a tiny spacing must not overflow the count before
+/// [`MAX_RULE_CELLS`] refuses it.
+fn rule_grid(rule: &ScatterRule) -> [f64; 2] {
+    let g = f64::from(rule.spacing) / std::f64::consts::SQRT_2;
+    rule.region.size().map(|s| (f64::from(s) / g).ceil().max(1.0))
+}
+
 /// Background cells of a rule's dart grid per axis.
 fn rule_cells(rule: &ScatterRule) -> (usize, usize) {
-    let g = f64::from(rule.spacing) / std::f64::consts::SQRT_2;
-    let [w, d] = rule.region.size().map(f64::from);
-    ((w / g).ceil().max(1.0) as usize, (d / g).ceil().max(1.0) as usize)
+    let [w, d] = rule_grid(rule);
+    (w as usize, d as usize)
 }
 
 /// Resolve `name = value` settings against a species: sorted by slot, values equal to a constant default
@@ -435,11 +442,6 @@ fn resolve_settings(
     out.sort_by_key(|&(s, _)| s);
     out.retain(|&(slot, v)| !is_default(graph, slot, v));
     out
-}
-
-fn unknown_param(graph: &SpeciesGraph, name: &str) -> String {
-    let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
-    format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
 }
 
 /// Whether `v` is bit for bit the species' constant default for `slot`.
@@ -683,10 +685,8 @@ pub(crate) fn build(
                     key: child_key(h.finish(), ordinals[id as usize]),
                 };
                 ordinals[id as usize] += 1;
-                // In f64: a tiny spacing must not overflow the count before it is refused.
-                let g = f64::from(rule.spacing) / std::f64::consts::SQRT_2;
-                let [w, d] = rule.region.size().map(f64::from);
-                let cells = (w / g).ceil().max(1.0) * (d / g).ceil().max(1.0);
+                let [w, d] = rule_grid(&rule);
+                let cells = w * d;
                 if cells > MAX_RULE_CELLS as f64 {
                     let msg = format!(
                         "spacing {spacing} m over this region needs {cells} sampling cells, more than {MAX_RULE_CELLS}"
@@ -706,7 +706,10 @@ pub(crate) fn build(
     }
     let (bounds, cell_size) = geometry?;
     let terrain = terrain?;
-    let graphs: Vec<SpeciesGraph> = table.iter().map(|e| e.graph.clone()).collect::<Option<_>>()?;
+    let species: Vec<WorldSpecies> = table
+        .into_iter()
+        .map(|e| Some(WorldSpecies { name: e.name, graph: e.graph?, source: e.source }))
+        .collect::<Option<_>>()?;
 
     // Expand, in file order.
     let mut placed: Vec<Placement> = Vec::new();
@@ -731,7 +734,7 @@ pub(crate) fn build(
                 if !trivial && summary.is_none() {
                     summary = Some(terrain.summary());
                 }
-                let graph = &graphs[rule.species as usize];
+                let graph = &species[rule.species as usize].graph;
                 let kept = scatter(
                     rule,
                     cell_size,
@@ -751,11 +754,6 @@ pub(crate) fn build(
         }
     }
 
-    let species = table
-        .into_iter()
-        .zip(graphs)
-        .map(|(e, graph)| WorldSpecies { name: e.name, graph, source: e.source })
-        .collect();
     let name = match &m.name {
         Some((n, _)) => n.clone(),
         None => crate::species_text::file_stem(&src.name),

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use crate::load::MAX_SOURCE_BYTES;
+use crate::load::read_source;
 
 /// Reads the files a manifest names by relative path.
 pub(crate) trait Resolver {
@@ -21,17 +21,8 @@ pub(crate) struct Files<'a> {
 impl Resolver for Files<'_> {
     fn read(&self, rel: &str) -> Result<(String, String), String> {
         let path = self.base.join(rel);
-        let name = path.display().to_string();
-        match std::fs::metadata(&path) {
-            Ok(m) if m.len() > MAX_SOURCE_BYTES => {
-                return Err(format!("`{name}` has {} bytes, more than {MAX_SOURCE_BYTES}", m.len()));
-            }
-            Ok(_) => {}
-            Err(e) => return Err(format!("cannot read `{name}`: {e}")),
-        }
-        std::fs::read_to_string(&path)
-            .map(|text| (name.clone(), text))
-            .map_err(|e| format!("cannot read `{name}`: {e}"))
+        let src = read_source(&path).map_err(|e| format!("`{}`: {e}", path.display()))?;
+        Ok((src.name, src.text))
     }
 }
 
