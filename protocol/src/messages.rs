@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, ViewpointError};
+use crate::frame::PREFIX;
 use crate::record::{BatchError, CellBatch, CellCoord, POSITION_STEPS};
 use crate::{limits, netlimits};
 
@@ -468,6 +469,12 @@ impl ServerMsg {
         postcard::to_allocvec(self).expect("encoding a message into a Vec cannot fail")
     }
 
+    /// Encode with postcard as one frame ([`crate::frame`]: the 4-byte length, then the encoding), the same bytes
+    /// as `frame(&self.encode())` without encoding into one buffer and copying into another.
+    pub fn encode_framed(&self) -> Vec<u8> {
+        finish_frame(postcard::to_extend(self, vec![0; PREFIX]).expect("encoding a message into a Vec cannot fail"))
+    }
+
     /// Decode untrusted bytes: bounded by [`netlimits::MAX_SERVER_FRAME`], checked to the end, validated.
     pub fn decode(bytes: &[u8]) -> Result<ServerMsg, MessageError> {
         let msg: ServerMsg = decode_bounded(bytes, netlimits::MAX_SERVER_FRAME)?;
@@ -530,6 +537,39 @@ impl ServerMsg {
     }
 }
 
+/// Write the length of the encoding after the [`PREFIX`] bytes reserved at the start of `out` into them.
+fn finish_frame(mut out: Vec<u8>) -> Vec<u8> {
+    let len = (out.len() - PREFIX) as u32;
+    out[..PREFIX].copy_from_slice(&len.to_le_bytes());
+    out
+}
+
+/// The framed encoding of a welcome up to its area-of-interest rules: the part (world, terrain, species table) that
+/// is the same for every client of a world, encoded once and completed per session by [`WelcomeHead::framed`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WelcomeHead(Vec<u8>);
+
+impl WelcomeHead {
+    /// The head of the welcome to `world` with this species table, at this [`PROTOCOL_VERSION`].
+    pub fn new(world: &WorldInfo, species: &[SpeciesEntry]) -> WelcomeHead {
+        // `aoi` is the welcome's last field and postcard encodes fields one after the other, so the welcome's
+        // encoding is the head followed by the encoding of its rules.
+        let aoi = AoiParams::default();
+        let welcome = Welcome { version: PROTOCOL_VERSION, world: world.clone(), species: species.to_vec(), aoi };
+        let mut bytes = ServerMsg::Handshake(ServerHandshake::Welcome(welcome)).encode_framed();
+        bytes.truncate(bytes.len() - postcard::to_allocvec(&aoi).expect("encoding into a Vec cannot fail").len());
+        WelcomeHead(bytes)
+    }
+
+    /// The framed welcome with the area-of-interest rules `aoi`: the same bytes as the framed encoding of the
+    /// whole [`Welcome`].
+    pub fn framed(&self, aoi: &AoiParams) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.0.len() + 32);
+        out.extend_from_slice(&self.0);
+        finish_frame(postcard::to_extend(aoi, out).expect("encoding into a Vec cannot fail"))
+    }
+}
+
 /// Shorthand constructors, so callers need not spell out the phase grouping.
 impl ClientMsg {
     /// `ClientMsg::Handshake(ClientHandshake::Hello(..))` at this protocol version.
@@ -545,5 +585,51 @@ impl ClientMsg {
     /// `ClientMsg::Streaming(ClientStreaming::Viewpoint(..))`.
     pub fn viewpoint(viewpoint: Viewpoint) -> ClientMsg {
         ClientMsg::Streaming(ClientStreaming::Viewpoint(viewpoint))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::frame;
+
+    fn welcome() -> Welcome {
+        let terrain = TerrainDesc {
+            graph: Some(vec![1, 2, 3]),
+            seed: 9,
+            origin: [-1.0, 2.0],
+            tile_size: 64.0,
+            tiles: [1, 2],
+            depth: 3,
+            corners: vec![0.5; 6],
+            params: vec![(1, 2.5)],
+        };
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-2, -2), max: CellCoord::new(1, 1) };
+        let world =
+            WorldInfo { name: "wörld".into(), seed: 7, grid, position_steps: POSITION_STEPS, instances: 12, terrain };
+        let species = vec![SpeciesEntry { hash: SpeciesHash::of(b"a"), size: 300 }; 3];
+        Welcome { version: PROTOCOL_VERSION, world, species, aoi: AoiParams { max_radius: 123.0, ..AoiParams::default() } }
+    }
+
+    #[test]
+    fn encode_framed_is_frame_of_encode() {
+        let msgs = [
+            ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
+            ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 3, graph: vec![7; 300] })),
+            ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(-1, 4), grant: 77 })),
+        ];
+        for m in msgs {
+            assert_eq!(m.encode_framed(), frame(&m.encode()), "{}", m.name());
+        }
+    }
+
+    #[test]
+    fn welcome_head_completes_to_the_whole_welcome() {
+        let w = welcome();
+        let head = WelcomeHead::new(&w.world, &w.species);
+        for aoi in [w.aoi, AoiParams::default()] {
+            let whole = ServerMsg::Handshake(ServerHandshake::Welcome(Welcome { aoi, ..w.clone() }));
+            assert_eq!(head.framed(&aoi), frame(&whole.encode()));
+        }
     }
 }

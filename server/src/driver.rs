@@ -418,8 +418,9 @@ async fn write_loop(
                 slot.as_mut().expect("opened above")
             }
         };
-        stream.write_all(&t.bytes).await.map_err(write_err)?;
-        let _ = flushed.send(t.bytes.len());
+        let len = t.bytes.len();
+        stream.write_chunk(t.bytes).await.map_err(write_err)?;
+        let _ = flushed.send(len);
     }
     Ok(())
 }

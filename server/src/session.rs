@@ -26,11 +26,10 @@ use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
-use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{
-    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerHandshake,
-    ServerStreaming, SpeciesData, Welcome,
+    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
 };
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellBatch, CellCoord, ClientMsg, CloseCode, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
@@ -196,8 +195,8 @@ impl MsgClass {
 pub struct Transmit {
     /// Where it goes.
     pub stream: StreamId,
-    /// The framed bytes.
-    pub bytes: Vec<u8>,
+    /// The framed bytes (shared, not copied, where every session sends the same: the species).
+    pub bytes: Bytes,
     /// What it is.
     pub class: MsgClass,
     /// Instance records it carries.
@@ -392,15 +391,10 @@ impl Session {
                     return Err(SessionError::Version { client: h.version, server: PROTOCOL_VERSION });
                 }
                 self.client = h.client;
-                self.phase = next;
-                let welcome = ServerMsg::Handshake(ServerHandshake::Welcome(Welcome {
-                    version: PROTOCOL_VERSION,
-                    world: self.store.world().clone(),
-                    species: self.store.species().to_vec(),
-                    aoi: self.cfg.aoi,
-                }));
-                self.phase = welcome.next_phase(self.phase)?;
-                let t = self.transmit(StreamId::Control, &welcome, MsgClass::Welcome, 0);
+                // The hello moves to `next` (Hello), the welcome sent at once on to Welcomed.
+                self.phase = Phase::Welcomed;
+                let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
+                let t = Transmit { stream: StreamId::Control, bytes, class: MsgClass::Welcome, records: 0 };
                 self.urgent.push_back(t);
             }
             ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
@@ -513,7 +507,7 @@ impl Session {
     }
 
     fn transmit(&self, stream: StreamId, msg: &ServerMsg, class: MsgClass, records: u32) -> Transmit {
-        Transmit { stream, bytes: frame(&msg.encode()), class, records }
+        Transmit { stream, bytes: Bytes::from(msg.encode_framed()), class, records }
     }
 
     /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
@@ -617,9 +611,8 @@ impl Session {
                         self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
                     }
                     _ => {
-                        let graph = store.species_graph(id).map(<[u8]>::to_vec).unwrap_or_default();
-                        let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
-                        let t = self.transmit(lane, &msg, MsgClass::Species, 0);
+                        let bytes = store.species_frame(id).expect("records name species of the table");
+                        let t = Transmit { stream: lane, bytes, class: MsgClass::Species, records: 0 };
                         self.staged.push_back((cell, t));
                     }
                 }

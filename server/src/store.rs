@@ -6,9 +6,12 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use canopy_protocol::aoi::Grid;
-use canopy_protocol::messages::{SpeciesEntry, TerrainDesc, WorldInfo};
+use bytes::Bytes;
+use canopy_protocol::messages::{
+    ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
+};
 use canopy_protocol::record::{ParamOverride, quantize};
-use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, SpeciesGraph, SpeciesHash, netlimits};
+use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits};
 use canopy_worlds::world::{CellKey, World};
 
 /// One cell's records as a store holds them: consecutive instance ids from `first_id`.
@@ -30,6 +33,10 @@ pub trait WorldStore: Send + Sync + 'static {
     fn species(&self) -> &[SpeciesEntry];
     /// The encoded graph of species `id`.
     fn species_graph(&self, id: u8) -> Option<&[u8]>;
+    /// The framed species message of species `id` (its graph), encoded once and shared by every session.
+    fn species_frame(&self, id: u8) -> Option<Bytes>;
+    /// The welcome's part that is the same for every client, encoded once.
+    fn welcome_head(&self) -> &WelcomeHead;
     /// A cell's records; `None` for a cell outside the grid. A cell inside the grid without instances is empty.
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>>;
     /// The cell grid.
@@ -81,7 +88,9 @@ struct CellData {
 pub struct GridStore {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
-    graphs: Vec<Vec<u8>>,
+    /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
+    species_frames: Vec<Bytes>,
+    welcome: WelcomeHead,
     cells: HashMap<CellCoord, CellData>,
 }
 
@@ -101,7 +110,10 @@ pub struct PlacedInstance {
 /// Builds a [`GridStore`] cell by cell, in instance id order.
 #[derive(Debug)]
 pub struct StoreBuilder {
-    store: GridStore,
+    world: WorldInfo,
+    species: Vec<SpeciesEntry>,
+    species_frames: Vec<Bytes>,
+    cells: HashMap<CellCoord, CellData>,
     next_id: u32,
 }
 
@@ -119,12 +131,13 @@ impl StoreBuilder {
             return Err(StoreError::Species(species.len()));
         }
         let mut entries = Vec::with_capacity(species.len());
-        let mut graphs = Vec::with_capacity(species.len());
+        let mut species_frames = Vec::with_capacity(species.len());
         for (i, g) in species.iter().enumerate() {
             g.validate().map_err(|e| StoreError::Graph(i, e))?;
-            let bytes = g.encode();
-            entries.push(SpeciesEntry { hash: SpeciesHash::of(&bytes), size: bytes.len() as u32 });
-            graphs.push(bytes);
+            let graph = g.encode();
+            entries.push(SpeciesEntry { hash: SpeciesHash::of(&graph), size: graph.len() as u32 });
+            let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: i as u8, graph }));
+            species_frames.push(Bytes::from(msg.encode_framed()));
         }
         let world = WorldInfo {
             name: name.chars().take(netlimits::MAX_WORLD_NAME).collect(),
@@ -134,13 +147,13 @@ impl StoreBuilder {
             instances: 0,
             terrain,
         };
-        Ok(StoreBuilder { store: GridStore { world, species: entries, graphs, cells: HashMap::new() }, next_id: 0 })
+        Ok(StoreBuilder { world, species: entries, species_frames, cells: HashMap::new(), next_id: 0 })
     }
 
     /// Add one cell's instances; their ids continue from the previous cell's. Positions are quantised to the
     /// cell's [`POSITION_STEPS`] grid.
     pub fn add_cell(&mut self, cell: CellCoord, instances: &[PlacedInstance]) -> Result<(), StoreError> {
-        let grid = self.store.world.grid;
+        let grid = self.world.grid;
         let origin = grid.cell_origin(cell);
         let quantised = instances.iter().map(|p| {
             let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
@@ -155,7 +168,7 @@ impl StoreBuilder {
         cell: CellCoord,
         instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
     ) -> Result<(), StoreError> {
-        if !self.store.world.grid.contains(cell) || self.store.cells.contains_key(&cell) {
+        if !self.world.grid.contains(cell) || self.cells.contains_key(&cell) {
             return Err(StoreError::Cell(cell));
         }
         let n = instances.len();
@@ -165,7 +178,7 @@ impl StoreBuilder {
         let mut data = CellData { first_id: self.next_id, records: Vec::with_capacity(n), overrides: vec![] };
         for (i, (species, q, params)) in instances.enumerate() {
             let id = self.next_id + i as u32;
-            if usize::from(species) >= self.store.species.len() {
+            if usize::from(species) >= self.species.len() {
                 return Err(StoreError::UnknownSpecies { id, species });
             }
             let steps = POSITION_STEPS as u16 - 1;
@@ -182,14 +195,21 @@ impl StoreBuilder {
             }));
         }
         self.next_id = self.next_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
-        self.store.cells.insert(cell, data);
+        self.cells.insert(cell, data);
         Ok(())
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.store.world.instances = self.next_id;
-        self.store
+        self.world.instances = self.next_id;
+        let welcome = WelcomeHead::new(&self.world, &self.species);
+        GridStore {
+            world: self.world,
+            species: self.species,
+            species_frames: self.species_frames,
+            welcome,
+            cells: self.cells,
+        }
     }
 }
 
@@ -244,7 +264,16 @@ impl WorldStore for GridStore {
     }
 
     fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        self.graphs.get(usize::from(id)).map(Vec::as_slice)
+        let frame = self.species_frames.get(usize::from(id))?;
+        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+    }
+
+    fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.species_frames.get(usize::from(id)).cloned()
+    }
+
+    fn welcome_head(&self) -> &WelcomeHead {
+        &self.welcome
     }
 
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>> {
