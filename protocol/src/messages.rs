@@ -171,6 +171,43 @@ pub enum ServerStreaming {
     Geometry(GeometryChunk),
 }
 
+/// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ServerMsgKind {
+    /// The welcome.
+    Welcome = 0,
+    /// A species graph.
+    Species = 1,
+    /// A cell batch of instance records.
+    Cells = 2,
+    /// A release.
+    Release = 3,
+    /// Explicit geometry (bandwidth baselines only).
+    Geometry = 4,
+}
+
+impl ServerMsgKind {
+    /// Every kind, in index order.
+    pub const ALL: [ServerMsgKind; 5] = [
+        ServerMsgKind::Welcome,
+        ServerMsgKind::Species,
+        ServerMsgKind::Cells,
+        ServerMsgKind::Release,
+        ServerMsgKind::Geometry,
+    ];
+
+    /// The kind's name, for logs, errors and metrics.
+    pub fn name(self) -> &'static str {
+        match self {
+            ServerMsgKind::Welcome => "welcome",
+            ServerMsgKind::Species => "species",
+            ServerMsgKind::Cells => "cells",
+            ServerMsgKind::Release => "release",
+            ServerMsgKind::Geometry => "geometry",
+        }
+    }
+}
+
 /// The server's answer to a hello: the world, its species table and the area-of-interest rules.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Welcome {
@@ -331,12 +368,31 @@ pub enum CloseCode {
 }
 
 impl CloseCode {
-    /// The code for a QUIC application error code, if it is one of ours.
-    pub fn from_code(code: u64) -> Option<CloseCode> {
+    /// Every code, in code order (`ALL[i] as usize == i`).
+    pub const ALL: [CloseCode; 10] = {
         use CloseCode::*;
         [Normal, Version, Malformed, TooLarge, OutOfOrder, Invalid, Timeout, Full, Shutdown, Internal]
-            .into_iter()
-            .find(|c| *c as u64 == code)
+    };
+
+    /// The code for a QUIC application error code, if it is one of ours.
+    pub fn from_code(code: u64) -> Option<CloseCode> {
+        usize::try_from(code).ok().and_then(|i| CloseCode::ALL.get(i).copied())
+    }
+
+    /// A short snake_case label, for metrics and logs.
+    pub fn label(self) -> &'static str {
+        match self {
+            CloseCode::Normal => "normal",
+            CloseCode::Version => "version",
+            CloseCode::Malformed => "malformed",
+            CloseCode::TooLarge => "too_large",
+            CloseCode::OutOfOrder => "out_of_order",
+            CloseCode::Invalid => "invalid",
+            CloseCode::Timeout => "timeout",
+            CloseCode::Full => "full",
+            CloseCode::Shutdown => "shutdown",
+            CloseCode::Internal => "internal",
+        }
     }
 }
 
@@ -516,14 +572,27 @@ impl ServerMsg {
         }
     }
 
+    /// The message's kind.
+    pub fn kind(&self) -> ServerMsgKind {
+        match self {
+            ServerMsg::Handshake(ServerHandshake::Welcome(_)) => ServerMsgKind::Welcome,
+            ServerMsg::Streaming(ServerStreaming::Species(_)) => ServerMsgKind::Species,
+            ServerMsg::Streaming(ServerStreaming::Cells(_)) => ServerMsgKind::Cells,
+            ServerMsg::Streaming(ServerStreaming::Release(_)) => ServerMsgKind::Release,
+            ServerMsg::Streaming(ServerStreaming::Geometry(_)) => ServerMsgKind::Geometry,
+        }
+    }
+
     /// The message's name, for logs, errors and the metrics' message classes.
     pub fn name(&self) -> &'static str {
+        self.kind().name()
+    }
+
+    /// Instance records the message carries (those of a cell batch).
+    pub fn records(&self) -> u32 {
         match self {
-            ServerMsg::Handshake(ServerHandshake::Welcome(_)) => "welcome",
-            ServerMsg::Streaming(ServerStreaming::Species(_)) => "species",
-            ServerMsg::Streaming(ServerStreaming::Cells(_)) => "cells",
-            ServerMsg::Streaming(ServerStreaming::Release(_)) => "release",
-            ServerMsg::Streaming(ServerStreaming::Geometry(_)) => "geometry",
+            ServerMsg::Streaming(ServerStreaming::Cells(b)) => b.records.len() as u32,
+            _ => 0,
         }
     }
 
@@ -609,6 +678,23 @@ mod tests {
             WorldInfo { name: "wörld".into(), seed: 7, grid, position_steps: POSITION_STEPS, instances: 12, terrain };
         let species = vec![SpeciesEntry { hash: SpeciesHash::of(b"a"), size: 300 }; 3];
         Welcome { version: PROTOCOL_VERSION, world, species, aoi: AoiParams { max_radius: 123.0, ..AoiParams::default() } }
+    }
+
+    #[test]
+    fn close_codes_are_in_code_order() {
+        for (i, c) in CloseCode::ALL.into_iter().enumerate() {
+            assert_eq!(c as usize, i);
+            assert_eq!(CloseCode::from_code(i as u64), Some(c));
+        }
+        assert_eq!(CloseCode::from_code(CloseCode::ALL.len() as u64), None);
+        assert_eq!(CloseCode::from_code(u64::MAX), None);
+    }
+
+    #[test]
+    fn kinds_are_in_index_order() {
+        for (i, k) in ServerMsgKind::ALL.into_iter().enumerate() {
+            assert_eq!(k as usize, i);
+        }
     }
 
     #[test]

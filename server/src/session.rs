@@ -164,31 +164,8 @@ pub enum StreamId {
     Lane(u8),
 }
 
-/// A class of server message, for accounting.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum MsgClass {
-    /// The welcome.
-    Welcome = 0,
-    /// A species graph.
-    Species = 1,
-    /// A cell batch of instance records.
-    Cells = 2,
-    /// A release.
-    Release = 3,
-    /// Explicit geometry (bandwidth baselines only).
-    Geometry = 4,
-}
-
-impl MsgClass {
-    /// Every class, in index order.
-    pub const ALL: [MsgClass; 5] =
-        [MsgClass::Welcome, MsgClass::Species, MsgClass::Cells, MsgClass::Release, MsgClass::Geometry];
-
-    /// The class's label in metrics.
-    pub fn label(self) -> &'static str {
-        ["welcome", "species", "cells", "release", "geometry"][self as usize]
-    }
-}
+/// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
+pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
 
 /// One framed message to write.
 #[derive(Clone, Debug, PartialEq)]
@@ -435,7 +412,7 @@ impl Session {
             self.held.remove(&cell);
             self.staged.retain(|(c, _)| *c != cell);
             let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
-            let t = self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Release, 0);
+            let t = Self::transmit(StreamId::Lane(h.lane), &msg);
             self.urgent.push_back(t);
         }
         self.dirty = true;
@@ -506,8 +483,8 @@ impl Session {
         t
     }
 
-    fn transmit(&self, stream: StreamId, msg: &ServerMsg, class: MsgClass, records: u32) -> Transmit {
-        Transmit { stream, bytes: Bytes::from(msg.encode_framed()), class, records }
+    fn transmit(stream: StreamId, msg: &ServerMsg) -> Transmit {
+        Transmit { stream, bytes: Bytes::from(msg.encode_framed()), class: msg.kind(), records: msg.records() }
     }
 
     /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
@@ -565,7 +542,7 @@ impl Session {
             let chunk =
                 GeometryChunk { kind, id, offset: offset as u32, total, bytes: blob[offset..end].to_vec() };
             let msg = ServerMsg::Streaming(ServerStreaming::Geometry(chunk));
-            let t = self.transmit(StreamId::Lane(lane), &msg, MsgClass::Geometry, 0);
+            let t = Self::transmit(StreamId::Lane(lane), &msg);
             self.staged.push_back((cell, t));
             offset = end;
             if offset >= blob.len() {
@@ -638,7 +615,6 @@ impl Session {
         let overrides: Vec<ParamOverride> =
             view.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
         let batch = CellBatch::new(cell, h.grant, view.first_id, total, start as u16, records.to_vec(), &overrides);
-        let n = records.len() as u32;
         if let Some(held) = self.held.get_mut(&cell) {
             held.sent = end as u16;
         }
@@ -646,7 +622,7 @@ impl Session {
             self.queue.pop();
         }
         let msg = ServerMsg::Streaming(ServerStreaming::Cells(batch));
-        let t = self.transmit(lane, &msg, MsgClass::Cells, n);
+        let t = Self::transmit(lane, &msg);
         self.staged.push_back((cell, t));
     }
 }
