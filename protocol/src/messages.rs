@@ -238,6 +238,19 @@ pub struct WorldInfo {
     pub terrain: TerrainDesc,
 }
 
+impl WorldInfo {
+    /// Check the name's length, the terrain, the position steps and the grid (the welcome's decoder calls this;
+    /// a server checks its world with it before it welcomes anyone).
+    pub fn validate(&self) -> Result<(), MessageError> {
+        count("world name", self.name.len(), netlimits::MAX_WORLD_NAME)?;
+        self.terrain.validate()?;
+        if self.position_steps != POSITION_STEPS {
+            return Err(MessageError::World("position steps differ from 4096"));
+        }
+        Ok(self.grid.validate()?)
+    }
+}
+
 /// The world's terrain as the client rebuilds it (seed 001 §5, Figure 7: a fractal terrain species tiled over the
 /// world): the terrain species and its tiling. The client amplifies the tiles itself, bit for bit as the server.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -544,15 +557,10 @@ impl ServerMsg {
         match self {
             ServerMsg::Handshake(ServerHandshake::Welcome(w)) => {
                 count("species table", w.species.len(), netlimits::MAX_SPECIES)?;
-                count("world name", w.world.name.len(), netlimits::MAX_WORLD_NAME)?;
-                w.world.terrain.validate()?;
-                if w.world.position_steps != POSITION_STEPS {
-                    return Err(MessageError::World("position steps differ from 4096"));
-                }
+                w.world.validate()?;
                 if w.species.iter().any(|s| s.size as usize > limits::MAX_SPECIES_BYTES) {
                     return Err(MessageError::World("species larger than the species limit"));
                 }
-                w.world.grid.validate()?;
                 Ok(w.aoi.validate()?)
             }
             ServerMsg::Streaming(ServerStreaming::Species(s)) => {

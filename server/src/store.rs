@@ -8,7 +8,7 @@ use std::sync::Arc;
 use canopy_protocol::aoi::Grid;
 use bytes::Bytes;
 use canopy_protocol::messages::{
-    ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
+    MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
 use canopy_protocol::record::{ParamOverride, quantize};
 use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits};
@@ -68,6 +68,9 @@ pub enum StoreError {
     /// The grid's numbers are not acceptable.
     #[error("grid: {0}")]
     Grid(#[from] canopy_protocol::aoi::GridError),
+    /// The world's description (terrain, name) would not pass a client's check of the welcome.
+    #[error("world: {0}")]
+    World(MessageError),
     /// A species graph is invalid.
     #[error("species {0}: {1}")]
     Graph(usize, canopy_protocol::ValidateError),
@@ -118,7 +121,8 @@ pub struct StoreBuilder {
 }
 
 impl StoreBuilder {
-    /// Start a store for a world with this name, seed, grid, terrain description and species.
+    /// Start a store for a world with this name (cut to [`netlimits::MAX_WORLD_NAME`] bytes), seed, grid, terrain
+    /// description and species, checked as a client checks the welcome.
     pub fn new(
         name: &str,
         seed: u64,
@@ -126,7 +130,6 @@ impl StoreBuilder {
         terrain: TerrainDesc,
         species: &[SpeciesGraph],
     ) -> Result<StoreBuilder, StoreError> {
-        grid.validate()?;
         if species.len() > netlimits::MAX_SPECIES {
             return Err(StoreError::Species(species.len()));
         }
@@ -139,14 +142,17 @@ impl StoreBuilder {
             let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: i as u8, graph }));
             species_frames.push(Bytes::from(msg.encode_framed()));
         }
-        let world = WorldInfo {
-            name: name.chars().take(netlimits::MAX_WORLD_NAME).collect(),
-            seed,
-            grid,
-            position_steps: POSITION_STEPS,
-            instances: 0,
-            terrain,
-        };
+        // The name limit counts bytes: cut at the last character boundary within it.
+        let mut end = name.len().min(netlimits::MAX_WORLD_NAME);
+        while !name.is_char_boundary(end) {
+            end -= 1;
+        }
+        let world =
+            WorldInfo { name: name[..end].to_owned(), seed, grid, position_steps: POSITION_STEPS, instances: 0, terrain };
+        world.validate().map_err(|e| match e {
+            MessageError::Grid(e) => StoreError::Grid(e),
+            e => StoreError::World(e),
+        })?;
         Ok(StoreBuilder { world, species: entries, species_frames, cells: HashMap::new(), next_id: 0 })
     }
 
