@@ -353,14 +353,18 @@ impl Session {
     }
 
     /// Decode and handle one frame from the control stream.
-    pub fn handle_frame(&mut self, now: Instant, frame: &[u8]) -> Result<(), SessionError> {
-        let msg = ClientMsg::decode(frame)?;
-        self.handle(now, msg)
+    pub fn handle_frame(&mut self, _now: Instant, frame: &[u8]) -> Result<(), SessionError> {
+        // The decoder validates.
+        self.handle_valid(ClientMsg::decode(frame)?)
     }
 
     /// Handle one decoded message from the client.
     pub fn handle(&mut self, _now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
         msg.validate()?;
+        self.handle_valid(msg)
+    }
+
+    fn handle_valid(&mut self, msg: ClientMsg) -> Result<(), SessionError> {
         let next = msg.next_phase(self.phase)?;
         match msg {
             ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
