@@ -503,10 +503,8 @@ impl Session {
         let near = grid.cell_size;
         let key = |c: CellCoord| {
             let d = grid.distance2(c, aoi.position).sqrt();
-            let o = grid.cell_origin(c);
-            let h = grid.cell_size * 0.5;
-            let (dx, dz) = (o[0] + h - aoi.position[0], o[1] + h - aoi.position[1]);
-            let len = (dx * dx + dz * dz).sqrt();
+            let [dx, dz] = grid.centre_offset(c, aoi.position);
+            let len = grid.centre_distance2(c, aoi.position).sqrt();
             let in_view = d <= near || len == 0.0 || (dx * heading[0] + dz * heading[1]) >= cos_half * len;
             if in_view { d } else { d * OUT_OF_VIEW_FACTOR }
         };
