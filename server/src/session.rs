@@ -260,6 +260,7 @@ pub struct Session {
     client: String,
     has_species: [u64; 4],
     viewpoint: Option<Viewpoint>,
+    /// The area of interest of `viewpoint`.
     aoi: Option<Aoi>,
     dirty: bool,
     held: HashMap<CellCoord, Held>,
@@ -419,6 +420,7 @@ impl Session {
             let t = Self::transmit(StreamId::Lane(h.lane), &msg);
             self.urgent.push_back(t);
         }
+        self.aoi = Some(aoi);
         self.dirty = true;
     }
 
@@ -494,10 +496,9 @@ impl Session {
     /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
     fn update_aoi(&mut self) {
         self.dirty = false;
-        let Some(vp) = self.viewpoint else { return };
+        let (Some(vp), Some(aoi)) = (self.viewpoint, self.aoi) else { return };
         let store = Arc::clone(&self.store);
         let grid = store.grid();
-        let aoi = Aoi::new(&vp, &self.cfg.aoi);
         let heading = vp.heading();
         let cos_half = (self.cfg.fov_deg.to_radians() * 0.5).cos();
         let near = grid.cell_size;
@@ -522,7 +523,6 @@ impl Session {
         self.queue.extend(band.into_iter().map(|c| (key(c), c)));
         // Least important first; ties by cell so the order is deterministic.
         self.queue.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
-        self.aoi = Some(aoi);
     }
 
     fn lane_for(&self, key: f32) -> u8 {
