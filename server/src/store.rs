@@ -2,7 +2,6 @@
 //! a very large virtual environment, composed of objects that are arranged spatially"), behind a trait so a
 //! session does not care where they live. The embedded default is [`GridStore`], an in-memory grid of cells.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use canopy_protocol::aoi::Grid;
@@ -79,14 +78,8 @@ pub enum StoreError {
     Param(u32),
 }
 
-#[derive(Debug, Default)]
-struct CellData {
-    first_id: u32,
-    records: Vec<InstanceRecord>,
-    overrides: Vec<ParamOverride>,
-}
-
-/// The embedded default store: every cell's records in memory, found by cell coordinate.
+/// The embedded default store: every instance's record in id order, cells in row-major order (z, then x) as
+/// ranges of it.
 #[derive(Debug)]
 pub struct GridStore {
     world: WorldInfo,
@@ -94,7 +87,43 @@ pub struct GridStore {
     /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
     species_frames: Vec<Bytes>,
     welcome: WelcomeHead,
-    cells: HashMap<CellCoord, CellData>,
+    cells: Cells,
+}
+
+/// Records and parameter overrides of a grid's cells, row-major: cell `i` holds records
+/// `starts[i][0]..starts[i + 1][0]` (its first instance id is `starts[i][0]`) and overrides
+/// `starts[i][1]..starts[i + 1][1]`.
+#[derive(Debug)]
+struct Cells {
+    records: Vec<InstanceRecord>,
+    /// Overrides, `record` = index within the cell.
+    overrides: Vec<ParamOverride>,
+    starts: Vec<[u32; 2]>,
+}
+
+impl Cells {
+    /// The row-major index of a cell of the grid.
+    fn index(grid: &Grid, c: CellCoord) -> Option<usize> {
+        let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
+        let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
+        grid.contains(c).then(|| (dz * width + dx) as usize)
+    }
+
+    /// How many cells the grid has.
+    fn count(grid: &Grid) -> usize {
+        Cells::index(grid, grid.max).map_or(0, |i| i + 1)
+    }
+
+    /// Cells begun so far (added or skipped).
+    fn len(&self) -> usize {
+        self.starts.len() - 1
+    }
+
+    /// Close every cell before `index` not begun yet: they are empty.
+    fn pad_to(&mut self, index: usize) {
+        let last = *self.starts.last().expect("starts has its first entry");
+        self.starts.resize(self.starts.len().max(index + 1), last);
+    }
 }
 
 /// One instance as a store builder takes it: world position and parameters that differ from the defaults.
@@ -110,14 +139,14 @@ pub struct PlacedInstance {
     pub params: Vec<(u16, f32)>,
 }
 
-/// Builds a [`GridStore`] cell by cell, in instance id order.
+/// Builds a [`GridStore`] cell by cell, in row-major order (z, then x) and instance id order; cells not added are
+/// empty.
 #[derive(Debug)]
 pub struct StoreBuilder {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     species_frames: Vec<Bytes>,
-    cells: HashMap<CellCoord, CellData>,
-    next_id: u32,
+    cells: Cells,
 }
 
 impl StoreBuilder {
@@ -153,7 +182,8 @@ impl StoreBuilder {
             MessageError::Grid(e) => StoreError::Grid(e),
             e => StoreError::World(e),
         })?;
-        Ok(StoreBuilder { world, species: entries, species_frames, cells: HashMap::new(), next_id: 0 })
+        let cells = Cells { records: vec![], overrides: vec![], starts: vec![[0, 0]] };
+        Ok(StoreBuilder { world, species: entries, species_frames, cells })
     }
 
     /// Add one cell's instances; their ids continue from the previous cell's. Positions are quantised to the
@@ -174,40 +204,67 @@ impl StoreBuilder {
         cell: CellCoord,
         instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
     ) -> Result<(), StoreError> {
-        if !self.world.grid.contains(cell) || self.cells.contains_key(&cell) {
-            return Err(StoreError::Cell(cell));
-        }
+        let index = match Cells::index(&self.world.grid, cell) {
+            Some(i) if i >= self.cells.len() => i,
+            _ => return Err(StoreError::Cell(cell)),
+        };
         let n = instances.len();
         if n > usize::from(u16::MAX) {
             return Err(StoreError::CellFull(cell, n));
         }
-        let mut data = CellData { first_id: self.next_id, records: Vec::with_capacity(n), overrides: vec![] };
+        let first_id = self.next_id();
+        first_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
+        self.cells.pad_to(index);
+        let cells = &mut self.cells;
+        let (records, overrides) = (cells.records.len(), cells.overrides.len());
+        let added = Self::push_instances(cells, self.species.len(), first_id, instances);
+        if added.is_err() {
+            // Leave the builder as it was: the cell was not added.
+            cells.records.truncate(records);
+            cells.overrides.truncate(overrides);
+            return added;
+        }
+        cells.starts.push([cells.records.len() as u32, cells.overrides.len() as u32]);
+        Ok(())
+    }
+
+    fn push_instances<'p>(
+        cells: &mut Cells,
+        species_count: usize,
+        first_id: u32,
+        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
+    ) -> Result<(), StoreError> {
+        cells.records.reserve(instances.len());
         for (i, (species, q, params)) in instances.enumerate() {
-            let id = self.next_id + i as u32;
-            if usize::from(species) >= self.species.len() {
+            let id = first_id + i as u32;
+            if usize::from(species) >= species_count {
                 return Err(StoreError::UnknownSpecies { id, species });
             }
             let steps = POSITION_STEPS as u16 - 1;
-            data.records.push(InstanceRecord::new(species as u8, q[0].min(steps), q[1].min(steps)));
+            cells.records.push(InstanceRecord::new(species as u8, q[0].min(steps), q[1].min(steps)));
             let mut params = params.to_vec();
             params.sort_by_key(|&(s, _)| s);
             if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
                 return Err(StoreError::Param(id));
             }
-            data.overrides.extend(params.into_iter().map(|(slot, value)| ParamOverride {
+            cells.overrides.extend(params.into_iter().map(|(slot, value)| ParamOverride {
                 record: i as u16,
                 slot,
                 value,
             }));
         }
-        self.next_id = self.next_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
-        self.cells.insert(cell, data);
         Ok(())
+    }
+
+    /// The id the next instance gets.
+    fn next_id(&self) -> u32 {
+        self.cells.records.len() as u32
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.world.instances = self.next_id;
+        self.world.instances = self.next_id();
+        self.cells.pad_to(Cells::count(&self.world.grid));
         let welcome = WelcomeHead::new(&self.world, &self.species);
         GridStore {
             world: self.world,
@@ -236,7 +293,7 @@ impl GridStore {
         let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, &graphs)?;
         for c in world.cells() {
             let ids = world.cell_instances(c);
-            if ids.start != b.next_id {
+            if ids.start != b.next_id() {
                 return Err(StoreError::Cell(CellCoord::new(c.x, c.z)));
             }
             let instances = ids.map(|id| {
@@ -251,7 +308,7 @@ impl GridStore {
 
     /// How many cells hold at least one instance.
     pub fn occupied_cells(&self) -> usize {
-        self.cells.values().filter(|c| !c.records.is_empty()).count()
+        self.cells.starts.windows(2).filter(|w| w[1][0] > w[0][0]).count()
     }
 
     /// Share it between sessions.
@@ -283,12 +340,12 @@ impl WorldStore for GridStore {
     }
 
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>> {
-        if !self.world.grid.contains(c) {
-            return None;
-        }
-        Some(match self.cells.get(&c) {
-            Some(d) => CellView { first_id: d.first_id, records: &d.records, overrides: &d.overrides },
-            None => CellView { first_id: 0, records: &[], overrides: &[] },
+        let i = Cells::index(&self.world.grid, c)?;
+        let ([r0, o0], [r1, o1]) = (self.cells.starts[i], self.cells.starts[i + 1]);
+        Some(CellView {
+            first_id: r0,
+            records: &self.cells.records[r0 as usize..r1 as usize],
+            overrides: &self.cells.overrides[o0 as usize..o1 as usize],
         })
     }
 }
