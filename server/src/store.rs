@@ -152,19 +152,20 @@ pub struct StoreBuilder {
 impl StoreBuilder {
     /// Start a store for a world with this name (cut to [`netlimits::MAX_WORLD_NAME`] bytes), seed, grid, terrain
     /// description and species, checked as a client checks the welcome.
-    pub fn new(
+    pub fn new<'a>(
         name: &str,
         seed: u64,
         grid: Grid,
         terrain: TerrainDesc,
-        species: &[SpeciesGraph],
+        species: impl IntoIterator<Item = &'a SpeciesGraph, IntoIter: ExactSizeIterator>,
     ) -> Result<StoreBuilder, StoreError> {
+        let species = species.into_iter();
         if species.len() > netlimits::MAX_SPECIES {
             return Err(StoreError::Species(species.len()));
         }
         let mut entries = Vec::with_capacity(species.len());
         let mut species_frames = Vec::with_capacity(species.len());
-        for (i, g) in species.iter().enumerate() {
+        for (i, g) in species.enumerate() {
             g.validate().map_err(|e| StoreError::Graph(i, e))?;
             let graph = g.encode();
             entries.push(SpeciesEntry { hash: SpeciesHash::of(&graph), size: graph.len() as u32 });
@@ -198,8 +199,9 @@ impl StoreBuilder {
         self.add_quantised(cell, quantised)
     }
 
-    /// Add one cell's instances already quantised: `(species, [qx, qz], params)`.
-    pub fn add_quantised<'p>(
+    /// Add one cell's instances already quantised (`(species, [qx, qz], params)`, each step below
+    /// [`POSITION_STEPS`]).
+    fn add_quantised<'p>(
         &mut self,
         cell: CellCoord,
         instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
@@ -240,18 +242,22 @@ impl StoreBuilder {
             if usize::from(species) >= species_count {
                 return Err(StoreError::UnknownSpecies { id, species });
             }
-            let steps = POSITION_STEPS as u16 - 1;
-            cells.records.push(InstanceRecord::new(species as u8, q[0].min(steps), q[1].min(steps)));
-            let mut params = params.to_vec();
-            params.sort_by_key(|&(s, _)| s);
+            cells.records.push(InstanceRecord::new(species as u8, q[0], q[1]));
+            let sorted;
+            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
+                params
+            } else {
+                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
+                let mut copy = params.to_vec();
+                copy.sort_by_key(|&(s, _)| s);
+                sorted = copy;
+                &sorted[..]
+            };
             if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
                 return Err(StoreError::Param(id));
             }
-            cells.overrides.extend(params.into_iter().map(|(slot, value)| ParamOverride {
-                record: i as u16,
-                slot,
-                value,
-            }));
+            let record = i as u16;
+            cells.overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
         }
         Ok(())
     }
@@ -288,20 +294,22 @@ impl GridStore {
             min: CellCoord::new(first.x, first.z),
             max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
         };
-        let graphs: Vec<SpeciesGraph> = world.species.iter().map(|s| s.graph.clone()).collect();
         let terrain = crate::terrain::describe(&world.terrain);
-        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, &graphs)?;
+        let graphs = world.species.iter().map(|s| &s.graph);
+        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?;
         for c in world.cells() {
             let ids = world.cell_instances(c);
+            let cell = CellCoord::new(c.x, c.z);
             if ids.start != b.next_id() {
-                return Err(StoreError::Cell(CellCoord::new(c.x, c.z)));
+                return Err(StoreError::Cell(cell));
             }
-            let instances = ids.map(|id| {
-                let p = &world.instances[id as usize];
-                let (_, q) = world.quantize(id);
+            // The cell is known: quantise within it (what `World::quantize` does after finding the cell).
+            let origin = grid.cell_origin(cell);
+            let instances = world.instances[ids.start as usize..ids.end as usize].iter().map(|p| {
+                let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
                 (p.species, q, p.params.as_slice())
             });
-            b.add_quantised(CellCoord::new(c.x, c.z), instances)?;
+            b.add_quantised(cell, instances)?;
         }
         Ok(b.finish())
     }
