@@ -448,11 +448,6 @@ impl Session {
         self.unflushed = self.unflushed.saturating_sub(bytes);
     }
 
-    /// Bytes transmitted and not yet flushed.
-    pub fn unflushed(&self) -> usize {
-        self.unflushed
-    }
-
     /// The next message to write, or `None` until a message arrives, bytes are flushed or the timeout passes.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
         if self.dirty {
@@ -512,7 +507,7 @@ impl Session {
         self.queue.clear();
         for c in aoi.inner_cells(grid) {
             match self.held.get(&c) {
-                Some(h) if h.sent >= h.total && h.grant != 0 => {}
+                Some(h) if h.sent >= h.total => {}
                 _ => self.queue.push((key(c), c)),
             }
         }
