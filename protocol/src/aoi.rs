@@ -84,11 +84,16 @@ impl Grid {
         dx * dx + dz * dz
     }
 
-    /// Squared distance from point `p` to the cell's centre.
-    pub fn centre_distance2(&self, c: CellCoord, p: [f32; 2]) -> f32 {
+    /// The vector from point `p` to the cell's centre.
+    pub fn centre_offset(&self, c: CellCoord, p: [f32; 2]) -> [f32; 2] {
         let o = self.cell_origin(c);
         let h = self.cell_size * 0.5;
-        let (dx, dz) = (o[0] + h - p[0], o[1] + h - p[1]);
+        [o[0] + h - p[0], o[1] + h - p[1]]
+    }
+
+    /// Squared distance from point `p` to the cell's centre.
+    pub fn centre_distance2(&self, c: CellCoord, p: [f32; 2]) -> f32 {
+        let [dx, dz] = self.centre_offset(c, p);
         dx * dx + dz * dz
     }
 

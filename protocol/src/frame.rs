@@ -25,7 +25,7 @@ pub enum FrameError {
 }
 
 /// Append one frame holding `payload` to `out`.
-pub fn write_frame(out: &mut Vec<u8>, payload: &[u8]) {
+fn write_frame(out: &mut Vec<u8>, payload: &[u8]) {
     out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
     out.extend_from_slice(payload);
 }
@@ -52,7 +52,7 @@ impl FrameDecoder {
     }
 
     /// Bytes received but not yet returned as frames.
-    pub fn buffered(&self) -> usize {
+    fn buffered(&self) -> usize {
         self.buf.len() - self.pos
     }
 

@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, ViewpointError};
+use crate::frame::PREFIX;
 use crate::record::{BatchError, CellBatch, CellCoord, POSITION_STEPS};
 use crate::{limits, netlimits};
 
@@ -170,6 +171,43 @@ pub enum ServerStreaming {
     Geometry(GeometryChunk),
 }
 
+/// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum ServerMsgKind {
+    /// The welcome.
+    Welcome = 0,
+    /// A species graph.
+    Species = 1,
+    /// A cell batch of instance records.
+    Cells = 2,
+    /// A release.
+    Release = 3,
+    /// Explicit geometry (bandwidth baselines only).
+    Geometry = 4,
+}
+
+impl ServerMsgKind {
+    /// Every kind, in index order.
+    pub const ALL: [ServerMsgKind; 5] = [
+        ServerMsgKind::Welcome,
+        ServerMsgKind::Species,
+        ServerMsgKind::Cells,
+        ServerMsgKind::Release,
+        ServerMsgKind::Geometry,
+    ];
+
+    /// The kind's name, for logs, errors and metrics.
+    pub fn name(self) -> &'static str {
+        match self {
+            ServerMsgKind::Welcome => "welcome",
+            ServerMsgKind::Species => "species",
+            ServerMsgKind::Cells => "cells",
+            ServerMsgKind::Release => "release",
+            ServerMsgKind::Geometry => "geometry",
+        }
+    }
+}
+
 /// The server's answer to a hello: the world, its species table and the area-of-interest rules.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Welcome {
@@ -198,6 +236,19 @@ pub struct WorldInfo {
     pub instances: u32,
     /// The terrain, from which the client computes heights.
     pub terrain: TerrainDesc,
+}
+
+impl WorldInfo {
+    /// Check the name's length, the terrain, the position steps and the grid (the welcome's decoder calls this;
+    /// a server checks its world with it before it welcomes anyone).
+    pub fn validate(&self) -> Result<(), MessageError> {
+        count("world name", self.name.len(), netlimits::MAX_WORLD_NAME)?;
+        self.terrain.validate()?;
+        if self.position_steps != POSITION_STEPS {
+            return Err(MessageError::World("position steps differ from 4096"));
+        }
+        Ok(self.grid.validate()?)
+    }
 }
 
 /// The world's terrain as the client rebuilds it (seed 001 §5, Figure 7: a fractal terrain species tiled over the
@@ -330,12 +381,31 @@ pub enum CloseCode {
 }
 
 impl CloseCode {
-    /// The code for a QUIC application error code, if it is one of ours.
-    pub fn from_code(code: u64) -> Option<CloseCode> {
+    /// Every code, in code order (`ALL[i] as usize == i`).
+    pub const ALL: [CloseCode; 10] = {
         use CloseCode::*;
         [Normal, Version, Malformed, TooLarge, OutOfOrder, Invalid, Timeout, Full, Shutdown, Internal]
-            .into_iter()
-            .find(|c| *c as u64 == code)
+    };
+
+    /// The code for a QUIC application error code, if it is one of ours.
+    pub fn from_code(code: u64) -> Option<CloseCode> {
+        usize::try_from(code).ok().and_then(|i| CloseCode::ALL.get(i).copied())
+    }
+
+    /// A short snake_case label, for metrics and logs.
+    pub fn label(self) -> &'static str {
+        match self {
+            CloseCode::Normal => "normal",
+            CloseCode::Version => "version",
+            CloseCode::Malformed => "malformed",
+            CloseCode::TooLarge => "too_large",
+            CloseCode::OutOfOrder => "out_of_order",
+            CloseCode::Invalid => "invalid",
+            CloseCode::Timeout => "timeout",
+            CloseCode::Full => "full",
+            CloseCode::Shutdown => "shutdown",
+            CloseCode::Internal => "internal",
+        }
     }
 }
 
@@ -468,6 +538,12 @@ impl ServerMsg {
         postcard::to_allocvec(self).expect("encoding a message into a Vec cannot fail")
     }
 
+    /// Encode with postcard as one frame ([`crate::frame`]: the 4-byte length, then the encoding), the same bytes
+    /// as `frame(&self.encode())` without encoding into one buffer and copying into another.
+    pub fn encode_framed(&self) -> Vec<u8> {
+        finish_frame(postcard::to_extend(self, vec![0; PREFIX]).expect("encoding a message into a Vec cannot fail"))
+    }
+
     /// Decode untrusted bytes: bounded by [`netlimits::MAX_SERVER_FRAME`], checked to the end, validated.
     pub fn decode(bytes: &[u8]) -> Result<ServerMsg, MessageError> {
         let msg: ServerMsg = decode_bounded(bytes, netlimits::MAX_SERVER_FRAME)?;
@@ -481,15 +557,10 @@ impl ServerMsg {
         match self {
             ServerMsg::Handshake(ServerHandshake::Welcome(w)) => {
                 count("species table", w.species.len(), netlimits::MAX_SPECIES)?;
-                count("world name", w.world.name.len(), netlimits::MAX_WORLD_NAME)?;
-                w.world.terrain.validate()?;
-                if w.world.position_steps != POSITION_STEPS {
-                    return Err(MessageError::World("position steps differ from 4096"));
-                }
+                w.world.validate()?;
                 if w.species.iter().any(|s| s.size as usize > limits::MAX_SPECIES_BYTES) {
                     return Err(MessageError::World("species larger than the species limit"));
                 }
-                w.world.grid.validate()?;
                 Ok(w.aoi.validate()?)
             }
             ServerMsg::Streaming(ServerStreaming::Species(s)) => {
@@ -509,14 +580,27 @@ impl ServerMsg {
         }
     }
 
+    /// The message's kind.
+    pub fn kind(&self) -> ServerMsgKind {
+        match self {
+            ServerMsg::Handshake(ServerHandshake::Welcome(_)) => ServerMsgKind::Welcome,
+            ServerMsg::Streaming(ServerStreaming::Species(_)) => ServerMsgKind::Species,
+            ServerMsg::Streaming(ServerStreaming::Cells(_)) => ServerMsgKind::Cells,
+            ServerMsg::Streaming(ServerStreaming::Release(_)) => ServerMsgKind::Release,
+            ServerMsg::Streaming(ServerStreaming::Geometry(_)) => ServerMsgKind::Geometry,
+        }
+    }
+
     /// The message's name, for logs, errors and the metrics' message classes.
     pub fn name(&self) -> &'static str {
+        self.kind().name()
+    }
+
+    /// Instance records the message carries (those of a cell batch).
+    pub fn records(&self) -> u32 {
         match self {
-            ServerMsg::Handshake(ServerHandshake::Welcome(_)) => "welcome",
-            ServerMsg::Streaming(ServerStreaming::Species(_)) => "species",
-            ServerMsg::Streaming(ServerStreaming::Cells(_)) => "cells",
-            ServerMsg::Streaming(ServerStreaming::Release(_)) => "release",
-            ServerMsg::Streaming(ServerStreaming::Geometry(_)) => "geometry",
+            ServerMsg::Streaming(ServerStreaming::Cells(b)) => b.records.len() as u32,
+            _ => 0,
         }
     }
 
@@ -527,6 +611,39 @@ impl ServerMsg {
             (ServerMsg::Streaming(_), Phase::Streaming) => Ok(Phase::Streaming),
             _ => Err(PhaseError { phase, message: self.name() }),
         }
+    }
+}
+
+/// Write the length of the encoding after the [`PREFIX`] bytes reserved at the start of `out` into them.
+fn finish_frame(mut out: Vec<u8>) -> Vec<u8> {
+    let len = (out.len() - PREFIX) as u32;
+    out[..PREFIX].copy_from_slice(&len.to_le_bytes());
+    out
+}
+
+/// The framed encoding of a welcome up to its area-of-interest rules: the part (world, terrain, species table) that
+/// is the same for every client of a world, encoded once and completed per session by [`WelcomeHead::framed`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WelcomeHead(Vec<u8>);
+
+impl WelcomeHead {
+    /// The head of the welcome to `world` with this species table, at this [`PROTOCOL_VERSION`].
+    pub fn new(world: &WorldInfo, species: &[SpeciesEntry]) -> WelcomeHead {
+        // `aoi` is the welcome's last field and postcard encodes fields one after the other, so the welcome's
+        // encoding is the head followed by the encoding of its rules.
+        let aoi = AoiParams::default();
+        let welcome = Welcome { version: PROTOCOL_VERSION, world: world.clone(), species: species.to_vec(), aoi };
+        let mut bytes = ServerMsg::Handshake(ServerHandshake::Welcome(welcome)).encode_framed();
+        bytes.truncate(bytes.len() - postcard::to_allocvec(&aoi).expect("encoding into a Vec cannot fail").len());
+        WelcomeHead(bytes)
+    }
+
+    /// The framed welcome with the area-of-interest rules `aoi`: the same bytes as the framed encoding of the
+    /// whole [`Welcome`].
+    pub fn framed(&self, aoi: &AoiParams) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.0.len() + 32);
+        out.extend_from_slice(&self.0);
+        finish_frame(postcard::to_extend(aoi, out).expect("encoding into a Vec cannot fail"))
     }
 }
 
@@ -545,5 +662,68 @@ impl ClientMsg {
     /// `ClientMsg::Streaming(ClientStreaming::Viewpoint(..))`.
     pub fn viewpoint(viewpoint: Viewpoint) -> ClientMsg {
         ClientMsg::Streaming(ClientStreaming::Viewpoint(viewpoint))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::frame;
+
+    fn welcome() -> Welcome {
+        let terrain = TerrainDesc {
+            graph: Some(vec![1, 2, 3]),
+            seed: 9,
+            origin: [-1.0, 2.0],
+            tile_size: 64.0,
+            tiles: [1, 2],
+            depth: 3,
+            corners: vec![0.5; 6],
+            params: vec![(1, 2.5)],
+        };
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-2, -2), max: CellCoord::new(1, 1) };
+        let world =
+            WorldInfo { name: "wörld".into(), seed: 7, grid, position_steps: POSITION_STEPS, instances: 12, terrain };
+        let species = vec![SpeciesEntry { hash: SpeciesHash::of(b"a"), size: 300 }; 3];
+        Welcome { version: PROTOCOL_VERSION, world, species, aoi: AoiParams { max_radius: 123.0, ..AoiParams::default() } }
+    }
+
+    #[test]
+    fn close_codes_are_in_code_order() {
+        for (i, c) in CloseCode::ALL.into_iter().enumerate() {
+            assert_eq!(c as usize, i);
+            assert_eq!(CloseCode::from_code(i as u64), Some(c));
+        }
+        assert_eq!(CloseCode::from_code(CloseCode::ALL.len() as u64), None);
+        assert_eq!(CloseCode::from_code(u64::MAX), None);
+    }
+
+    #[test]
+    fn kinds_are_in_index_order() {
+        for (i, k) in ServerMsgKind::ALL.into_iter().enumerate() {
+            assert_eq!(k as usize, i);
+        }
+    }
+
+    #[test]
+    fn encode_framed_is_frame_of_encode() {
+        let msgs = [
+            ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
+            ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 3, graph: vec![7; 300] })),
+            ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(-1, 4), grant: 77 })),
+        ];
+        for m in msgs {
+            assert_eq!(m.encode_framed(), frame(&m.encode()), "{}", m.name());
+        }
+    }
+
+    #[test]
+    fn welcome_head_completes_to_the_whole_welcome() {
+        let w = welcome();
+        let head = WelcomeHead::new(&w.world, &w.species);
+        for aoi in [w.aoi, AoiParams::default()] {
+            let whole = ServerMsg::Handshake(ServerHandshake::Welcome(Welcome { aoi, ..w.clone() }));
+            assert_eq!(head.framed(&aoi), frame(&whole.encode()));
+        }
     }
 }

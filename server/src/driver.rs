@@ -100,7 +100,7 @@ impl std::fmt::Debug for Server {
 }
 
 /// A UDP socket bound to `addr` with send and receive buffers of `size` bytes (as far as the OS allows).
-pub fn udp_socket(addr: SocketAddr, size: usize) -> std::io::Result<(std::net::UdpSocket, (usize, usize))> {
+fn udp_socket(addr: SocketAddr, size: usize) -> std::io::Result<(std::net::UdpSocket, (usize, usize))> {
     use socket2::{Domain, Protocol, Socket, Type};
     let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
     if let Err(e) = socket.set_recv_buffer_size(size) {
@@ -418,8 +418,9 @@ async fn write_loop(
                 slot.as_mut().expect("opened above")
             }
         };
-        stream.write_all(&t.bytes).await.map_err(write_err)?;
-        let _ = flushed.send(t.bytes.len());
+        let len = t.bytes.len();
+        stream.write_chunk(t.bytes).await.map_err(write_err)?;
+        let _ = flushed.send(len);
     }
     Ok(())
 }

@@ -76,6 +76,9 @@ fn main() -> anyhow::Result<()> {
         None => World::default_world(),
     };
     let store = GridStore::from_world(&world).context("building the world store")?;
+    // The store holds what the server needs; keep only the world's summary, not the world.
+    let summary = world.content_summary();
+    drop(world);
     let session = SessionConfig {
         aoi: AoiParams {
             max_radius: args.max_radius,
@@ -100,7 +103,7 @@ fn main() -> anyhow::Result<()> {
         let occupied = store.occupied_cells();
         let rss_before = resident_bytes();
         let server = Server::start(store.shared(), cfg).await?;
-        print!("{}", world.content_summary());
+        print!("{summary}");
         println!("occupied cells: {occupied}");
         println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
         if let Some(m) = server.metrics_addr() {

@@ -29,8 +29,8 @@ pub struct Metrics {
     pub bytes_in: AtomicU64,
     /// Viewpoints received.
     pub viewpoints: AtomicU64,
-    /// Connections closed, by [`CloseCode`] (index = code), plus one slot for transport errors.
-    pub closed: [AtomicU64; 11],
+    /// Connections closed, by [`CloseCode`] (index = code), plus one last slot for transport errors.
+    pub closed: [AtomicU64; TRANSPORT + 1],
     /// Records per second over the last completed second (updated by [`Metrics::tick`]).
     pub records_per_second: AtomicU64,
     last_tick: std::sync::Mutex<(Instant, u64)>,
@@ -42,19 +42,8 @@ impl Default for Metrics {
     }
 }
 
-const CLOSE_LABELS: [&str; 11] = [
-    "normal",
-    "version",
-    "malformed",
-    "too_large",
-    "out_of_order",
-    "invalid",
-    "timeout",
-    "full",
-    "shutdown",
-    "internal",
-    "transport",
-];
+/// The slot of [`Metrics::closed`] that counts transport failures, after every [`CloseCode`].
+const TRANSPORT: usize = CloseCode::ALL.len();
 
 impl Metrics {
     /// All counters at zero.
@@ -85,7 +74,7 @@ impl Metrics {
 
     /// Count one closed connection (`None`: the transport failed or the peer vanished).
     pub fn closed(&self, code: Option<CloseCode>) {
-        let i = code.map_or(10, |c| c as usize);
+        let i = code.map_or(TRANSPORT, |c| c as usize);
         self.closed[i].fetch_add(1, Relaxed);
     }
 
@@ -117,7 +106,7 @@ impl Metrics {
         let by_class = |a: &[AtomicU64; 5]| {
             MsgClass::ALL
                 .iter()
-                .map(|c| (format!("{{class=\"{}\"}}", c.label()), a[*c as usize].load(Relaxed)))
+                .map(|c| (format!("{{class=\"{}\"}}", c.name()), a[*c as usize].load(Relaxed)))
                 .collect::<Vec<_>>()
         };
         metric("canopy_sent_bytes_total", "counter", "Bytes sent by message class.", &by_class(&self.bytes));
@@ -131,10 +120,10 @@ impl Metrics {
         );
         metric("canopy_received_bytes_total", "counter", "Bytes received from clients.", &one(&self.bytes_in));
         metric("canopy_viewpoints_total", "counter", "Viewpoints received.", &one(&self.viewpoints));
-        let closed: Vec<_> = CLOSE_LABELS
-            .iter()
-            .enumerate()
-            .map(|(i, l)| (format!("{{reason=\"{l}\"}}"), self.closed[i].load(Relaxed)))
+        let labels = CloseCode::ALL.iter().map(|c| c.label()).chain(["transport"]);
+        let closed: Vec<_> = labels
+            .zip(&self.closed)
+            .map(|(l, n)| (format!("{{reason=\"{l}\"}}"), n.load(Relaxed)))
             .collect();
         metric("canopy_closed_total", "counter", "Connections closed, by reason.", &closed);
         metric(

@@ -26,11 +26,10 @@ use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
-use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{
-    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerHandshake,
-    ServerStreaming, SpeciesData, Welcome,
+    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
 };
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellBatch, CellCoord, ClientMsg, CloseCode, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
@@ -165,39 +164,16 @@ pub enum StreamId {
     Lane(u8),
 }
 
-/// A class of server message, for accounting.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum MsgClass {
-    /// The welcome.
-    Welcome = 0,
-    /// A species graph.
-    Species = 1,
-    /// A cell batch of instance records.
-    Cells = 2,
-    /// A release.
-    Release = 3,
-    /// Explicit geometry (bandwidth baselines only).
-    Geometry = 4,
-}
-
-impl MsgClass {
-    /// Every class, in index order.
-    pub const ALL: [MsgClass; 5] =
-        [MsgClass::Welcome, MsgClass::Species, MsgClass::Cells, MsgClass::Release, MsgClass::Geometry];
-
-    /// The class's label in metrics.
-    pub fn label(self) -> &'static str {
-        ["welcome", "species", "cells", "release", "geometry"][self as usize]
-    }
-}
+/// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
+pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
 
 /// One framed message to write.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Transmit {
     /// Where it goes.
     pub stream: StreamId,
-    /// The framed bytes.
-    pub bytes: Vec<u8>,
+    /// The framed bytes (shared, not copied, where every session sends the same: the species).
+    pub bytes: Bytes,
     /// What it is.
     pub class: MsgClass,
     /// Instance records it carries.
@@ -284,6 +260,7 @@ pub struct Session {
     client: String,
     has_species: [u64; 4],
     viewpoint: Option<Viewpoint>,
+    /// The area of interest of `viewpoint`.
     aoi: Option<Aoi>,
     dirty: bool,
     held: HashMap<CellCoord, Held>,
@@ -377,14 +354,18 @@ impl Session {
     }
 
     /// Decode and handle one frame from the control stream.
-    pub fn handle_frame(&mut self, now: Instant, frame: &[u8]) -> Result<(), SessionError> {
-        let msg = ClientMsg::decode(frame)?;
-        self.handle(now, msg)
+    pub fn handle_frame(&mut self, _now: Instant, frame: &[u8]) -> Result<(), SessionError> {
+        // The decoder validates.
+        self.handle_valid(ClientMsg::decode(frame)?)
     }
 
     /// Handle one decoded message from the client.
     pub fn handle(&mut self, _now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
         msg.validate()?;
+        self.handle_valid(msg)
+    }
+
+    fn handle_valid(&mut self, msg: ClientMsg) -> Result<(), SessionError> {
         let next = msg.next_phase(self.phase)?;
         match msg {
             ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
@@ -392,15 +373,10 @@ impl Session {
                     return Err(SessionError::Version { client: h.version, server: PROTOCOL_VERSION });
                 }
                 self.client = h.client;
-                self.phase = next;
-                let welcome = ServerMsg::Handshake(ServerHandshake::Welcome(Welcome {
-                    version: PROTOCOL_VERSION,
-                    world: self.store.world().clone(),
-                    species: self.store.species().to_vec(),
-                    aoi: self.cfg.aoi,
-                }));
-                self.phase = welcome.next_phase(self.phase)?;
-                let t = self.transmit(StreamId::Control, &welcome, MsgClass::Welcome, 0);
+                // The hello moves to `next` (Hello), the welcome sent at once on to Welcomed.
+                self.phase = Phase::Welcomed;
+                let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
+                let t = Transmit { stream: StreamId::Control, bytes, class: MsgClass::Welcome, records: 0 };
                 self.urgent.push_back(t);
             }
             ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
@@ -441,9 +417,10 @@ impl Session {
             self.held.remove(&cell);
             self.staged.retain(|(c, _)| *c != cell);
             let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
-            let t = self.transmit(StreamId::Lane(h.lane), &msg, MsgClass::Release, 0);
+            let t = Self::transmit(StreamId::Lane(h.lane), &msg);
             self.urgent.push_back(t);
         }
+        self.aoi = Some(aoi);
         self.dirty = true;
     }
 
@@ -469,11 +446,6 @@ impl Session {
     /// The transport took `bytes` of what was transmitted (reopens the window).
     pub fn on_flushed(&mut self, bytes: usize) {
         self.unflushed = self.unflushed.saturating_sub(bytes);
-    }
-
-    /// Bytes transmitted and not yet flushed.
-    pub fn unflushed(&self) -> usize {
-        self.unflushed
     }
 
     /// The next message to write, or `None` until a message arrives, bytes are flushed or the timeout passes.
@@ -512,33 +484,30 @@ impl Session {
         t
     }
 
-    fn transmit(&self, stream: StreamId, msg: &ServerMsg, class: MsgClass, records: u32) -> Transmit {
-        Transmit { stream, bytes: frame(&msg.encode()), class, records }
+    fn transmit(stream: StreamId, msg: &ServerMsg) -> Transmit {
+        Transmit { stream, bytes: Bytes::from(msg.encode_framed()), class: msg.kind(), records: msg.records() }
     }
 
     /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
     fn update_aoi(&mut self) {
         self.dirty = false;
-        let Some(vp) = self.viewpoint else { return };
+        let (Some(vp), Some(aoi)) = (self.viewpoint, self.aoi) else { return };
         let store = Arc::clone(&self.store);
         let grid = store.grid();
-        let aoi = Aoi::new(&vp, &self.cfg.aoi);
         let heading = vp.heading();
         let cos_half = (self.cfg.fov_deg.to_radians() * 0.5).cos();
         let near = grid.cell_size;
         let key = |c: CellCoord| {
             let d = grid.distance2(c, aoi.position).sqrt();
-            let o = grid.cell_origin(c);
-            let h = grid.cell_size * 0.5;
-            let (dx, dz) = (o[0] + h - aoi.position[0], o[1] + h - aoi.position[1]);
-            let len = (dx * dx + dz * dz).sqrt();
+            let [dx, dz] = grid.centre_offset(c, aoi.position);
+            let len = grid.centre_distance2(c, aoi.position).sqrt();
             let in_view = d <= near || len == 0.0 || (dx * heading[0] + dz * heading[1]) >= cos_half * len;
             if in_view { d } else { d * OUT_OF_VIEW_FACTOR }
         };
         self.queue.clear();
         for c in aoi.inner_cells(grid) {
             match self.held.get(&c) {
-                Some(h) if h.sent >= h.total && h.grant != 0 => {}
+                Some(h) if h.sent >= h.total => {}
                 _ => self.queue.push((key(c), c)),
             }
         }
@@ -549,7 +518,6 @@ impl Session {
         self.queue.extend(band.into_iter().map(|c| (key(c), c)));
         // Least important first; ties by cell so the order is deterministic.
         self.queue.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
-        self.aoi = Some(aoi);
     }
 
     fn lane_for(&self, key: f32) -> u8 {
@@ -571,7 +539,7 @@ impl Session {
             let chunk =
                 GeometryChunk { kind, id, offset: offset as u32, total, bytes: blob[offset..end].to_vec() };
             let msg = ServerMsg::Streaming(ServerStreaming::Geometry(chunk));
-            let t = self.transmit(StreamId::Lane(lane), &msg, MsgClass::Geometry, 0);
+            let t = Self::transmit(StreamId::Lane(lane), &msg);
             self.staged.push_back((cell, t));
             offset = end;
             if offset >= blob.len() {
@@ -617,9 +585,8 @@ impl Session {
                         self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
                     }
                     _ => {
-                        let graph = store.species_graph(id).map(<[u8]>::to_vec).unwrap_or_default();
-                        let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id, graph }));
-                        let t = self.transmit(lane, &msg, MsgClass::Species, 0);
+                        let bytes = store.species_frame(id).expect("records name species of the table");
+                        let t = Transmit { stream: lane, bytes, class: MsgClass::Species, records: 0 };
                         self.staged.push_back((cell, t));
                     }
                 }
@@ -645,7 +612,6 @@ impl Session {
         let overrides: Vec<ParamOverride> =
             view.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
         let batch = CellBatch::new(cell, h.grant, view.first_id, total, start as u16, records.to_vec(), &overrides);
-        let n = records.len() as u32;
         if let Some(held) = self.held.get_mut(&cell) {
             held.sent = end as u16;
         }
@@ -653,7 +619,7 @@ impl Session {
             self.queue.pop();
         }
         let msg = ServerMsg::Streaming(ServerStreaming::Cells(batch));
-        let t = self.transmit(lane, &msg, MsgClass::Cells, n);
+        let t = Self::transmit(lane, &msg);
         self.staged.push_back((cell, t));
     }
 }

@@ -2,13 +2,15 @@
 //! a very large virtual environment, composed of objects that are arranged spatially"), behind a trait so a
 //! session does not care where they live. The embedded default is [`GridStore`], an in-memory grid of cells.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use canopy_protocol::aoi::Grid;
-use canopy_protocol::messages::{SpeciesEntry, TerrainDesc, WorldInfo};
+use bytes::Bytes;
+use canopy_protocol::messages::{
+    MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
+};
 use canopy_protocol::record::{ParamOverride, quantize};
-use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, SpeciesGraph, SpeciesHash, netlimits};
+use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits};
 use canopy_worlds::world::{CellKey, World};
 
 /// One cell's records as a store holds them: consecutive instance ids from `first_id`.
@@ -30,6 +32,10 @@ pub trait WorldStore: Send + Sync + 'static {
     fn species(&self) -> &[SpeciesEntry];
     /// The encoded graph of species `id`.
     fn species_graph(&self, id: u8) -> Option<&[u8]>;
+    /// The framed species message of species `id` (its graph), encoded once and shared by every session.
+    fn species_frame(&self, id: u8) -> Option<Bytes>;
+    /// The welcome's part that is the same for every client, encoded once.
+    fn welcome_head(&self) -> &WelcomeHead;
     /// A cell's records; `None` for a cell outside the grid. A cell inside the grid without instances is empty.
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>>;
     /// The cell grid.
@@ -61,6 +67,9 @@ pub enum StoreError {
     /// The grid's numbers are not acceptable.
     #[error("grid: {0}")]
     Grid(#[from] canopy_protocol::aoi::GridError),
+    /// The world's description (terrain, name) would not pass a client's check of the welcome.
+    #[error("world: {0}")]
+    World(MessageError),
     /// A species graph is invalid.
     #[error("species {0}: {1}")]
     Graph(usize, canopy_protocol::ValidateError),
@@ -69,20 +78,52 @@ pub enum StoreError {
     Param(u32),
 }
 
-#[derive(Debug, Default)]
-struct CellData {
-    first_id: u32,
-    records: Vec<InstanceRecord>,
-    overrides: Vec<ParamOverride>,
-}
-
-/// The embedded default store: every cell's records in memory, found by cell coordinate.
+/// The embedded default store: every instance's record in id order, cells in row-major order (z, then x) as
+/// ranges of it.
 #[derive(Debug)]
 pub struct GridStore {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
-    graphs: Vec<Vec<u8>>,
-    cells: HashMap<CellCoord, CellData>,
+    /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
+    species_frames: Vec<Bytes>,
+    welcome: WelcomeHead,
+    cells: Cells,
+}
+
+/// Records and parameter overrides of a grid's cells, row-major: cell `i` holds records
+/// `starts[i][0]..starts[i + 1][0]` (its first instance id is `starts[i][0]`) and overrides
+/// `starts[i][1]..starts[i + 1][1]`.
+#[derive(Debug)]
+struct Cells {
+    records: Vec<InstanceRecord>,
+    /// Overrides, `record` = index within the cell.
+    overrides: Vec<ParamOverride>,
+    starts: Vec<[u32; 2]>,
+}
+
+impl Cells {
+    /// The row-major index of a cell of the grid.
+    fn index(grid: &Grid, c: CellCoord) -> Option<usize> {
+        let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
+        let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
+        grid.contains(c).then(|| (dz * width + dx) as usize)
+    }
+
+    /// How many cells the grid has.
+    fn count(grid: &Grid) -> usize {
+        Cells::index(grid, grid.max).map_or(0, |i| i + 1)
+    }
+
+    /// Cells begun so far (added or skipped).
+    fn len(&self) -> usize {
+        self.starts.len() - 1
+    }
+
+    /// Close every cell before `index` not begun yet: they are empty.
+    fn pad_to(&mut self, index: usize) {
+        let last = *self.starts.last().expect("starts has its first entry");
+        self.starts.resize(self.starts.len().max(index + 1), last);
+    }
 }
 
 /// One instance as a store builder takes it: world position and parameters that differ from the defaults.
@@ -98,49 +139,58 @@ pub struct PlacedInstance {
     pub params: Vec<(u16, f32)>,
 }
 
-/// Builds a [`GridStore`] cell by cell, in instance id order.
+/// Builds a [`GridStore`] cell by cell, in row-major order (z, then x) and instance id order; cells not added are
+/// empty.
 #[derive(Debug)]
 pub struct StoreBuilder {
-    store: GridStore,
-    next_id: u32,
+    world: WorldInfo,
+    species: Vec<SpeciesEntry>,
+    species_frames: Vec<Bytes>,
+    cells: Cells,
 }
 
 impl StoreBuilder {
-    /// Start a store for a world with this name, seed, grid, terrain description and species.
-    pub fn new(
+    /// Start a store for a world with this name (cut to [`netlimits::MAX_WORLD_NAME`] bytes), seed, grid, terrain
+    /// description and species, checked as a client checks the welcome.
+    pub fn new<'a>(
         name: &str,
         seed: u64,
         grid: Grid,
         terrain: TerrainDesc,
-        species: &[SpeciesGraph],
+        species: impl IntoIterator<Item = &'a SpeciesGraph, IntoIter: ExactSizeIterator>,
     ) -> Result<StoreBuilder, StoreError> {
-        grid.validate()?;
+        let species = species.into_iter();
         if species.len() > netlimits::MAX_SPECIES {
             return Err(StoreError::Species(species.len()));
         }
         let mut entries = Vec::with_capacity(species.len());
-        let mut graphs = Vec::with_capacity(species.len());
-        for (i, g) in species.iter().enumerate() {
+        let mut species_frames = Vec::with_capacity(species.len());
+        for (i, g) in species.enumerate() {
             g.validate().map_err(|e| StoreError::Graph(i, e))?;
-            let bytes = g.encode();
-            entries.push(SpeciesEntry { hash: SpeciesHash::of(&bytes), size: bytes.len() as u32 });
-            graphs.push(bytes);
+            let graph = g.encode();
+            entries.push(SpeciesEntry { hash: SpeciesHash::of(&graph), size: graph.len() as u32 });
+            let msg = ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: i as u8, graph }));
+            species_frames.push(Bytes::from(msg.encode_framed()));
         }
-        let world = WorldInfo {
-            name: name.chars().take(netlimits::MAX_WORLD_NAME).collect(),
-            seed,
-            grid,
-            position_steps: POSITION_STEPS,
-            instances: 0,
-            terrain,
-        };
-        Ok(StoreBuilder { store: GridStore { world, species: entries, graphs, cells: HashMap::new() }, next_id: 0 })
+        // The name limit counts bytes: cut at the last character boundary within it.
+        let mut end = name.len().min(netlimits::MAX_WORLD_NAME);
+        while !name.is_char_boundary(end) {
+            end -= 1;
+        }
+        let world =
+            WorldInfo { name: name[..end].to_owned(), seed, grid, position_steps: POSITION_STEPS, instances: 0, terrain };
+        world.validate().map_err(|e| match e {
+            MessageError::Grid(e) => StoreError::Grid(e),
+            e => StoreError::World(e),
+        })?;
+        let cells = Cells { records: vec![], overrides: vec![], starts: vec![[0, 0]] };
+        Ok(StoreBuilder { world, species: entries, species_frames, cells })
     }
 
     /// Add one cell's instances; their ids continue from the previous cell's. Positions are quantised to the
     /// cell's [`POSITION_STEPS`] grid.
     pub fn add_cell(&mut self, cell: CellCoord, instances: &[PlacedInstance]) -> Result<(), StoreError> {
-        let grid = self.store.world.grid;
+        let grid = self.world.grid;
         let origin = grid.cell_origin(cell);
         let quantised = instances.iter().map(|p| {
             let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
@@ -149,47 +199,86 @@ impl StoreBuilder {
         self.add_quantised(cell, quantised)
     }
 
-    /// Add one cell's instances already quantised: `(species, [qx, qz], params)`.
-    pub fn add_quantised<'p>(
+    /// Add one cell's instances already quantised (`(species, [qx, qz], params)`, each step below
+    /// [`POSITION_STEPS`]).
+    fn add_quantised<'p>(
         &mut self,
         cell: CellCoord,
         instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
     ) -> Result<(), StoreError> {
-        if !self.store.world.grid.contains(cell) || self.store.cells.contains_key(&cell) {
-            return Err(StoreError::Cell(cell));
-        }
+        let index = match Cells::index(&self.world.grid, cell) {
+            Some(i) if i >= self.cells.len() => i,
+            _ => return Err(StoreError::Cell(cell)),
+        };
         let n = instances.len();
         if n > usize::from(u16::MAX) {
             return Err(StoreError::CellFull(cell, n));
         }
-        let mut data = CellData { first_id: self.next_id, records: Vec::with_capacity(n), overrides: vec![] };
+        let first_id = self.next_id();
+        first_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
+        self.cells.pad_to(index);
+        let cells = &mut self.cells;
+        let (records, overrides) = (cells.records.len(), cells.overrides.len());
+        let added = Self::push_instances(cells, self.species.len(), first_id, instances);
+        if added.is_err() {
+            // Leave the builder as it was: the cell was not added.
+            cells.records.truncate(records);
+            cells.overrides.truncate(overrides);
+            return added;
+        }
+        cells.starts.push([cells.records.len() as u32, cells.overrides.len() as u32]);
+        Ok(())
+    }
+
+    fn push_instances<'p>(
+        cells: &mut Cells,
+        species_count: usize,
+        first_id: u32,
+        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
+    ) -> Result<(), StoreError> {
+        cells.records.reserve(instances.len());
         for (i, (species, q, params)) in instances.enumerate() {
-            let id = self.next_id + i as u32;
-            if usize::from(species) >= self.store.species.len() {
+            let id = first_id + i as u32;
+            if usize::from(species) >= species_count {
                 return Err(StoreError::UnknownSpecies { id, species });
             }
-            let steps = POSITION_STEPS as u16 - 1;
-            data.records.push(InstanceRecord::new(species as u8, q[0].min(steps), q[1].min(steps)));
-            let mut params = params.to_vec();
-            params.sort_by_key(|&(s, _)| s);
+            cells.records.push(InstanceRecord::new(species as u8, q[0], q[1]));
+            let sorted;
+            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
+                params
+            } else {
+                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
+                let mut copy = params.to_vec();
+                copy.sort_by_key(|&(s, _)| s);
+                sorted = copy;
+                &sorted[..]
+            };
             if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
                 return Err(StoreError::Param(id));
             }
-            data.overrides.extend(params.into_iter().map(|(slot, value)| ParamOverride {
-                record: i as u16,
-                slot,
-                value,
-            }));
+            let record = i as u16;
+            cells.overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
         }
-        self.next_id = self.next_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
-        self.store.cells.insert(cell, data);
         Ok(())
+    }
+
+    /// The id the next instance gets.
+    fn next_id(&self) -> u32 {
+        self.cells.records.len() as u32
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.store.world.instances = self.next_id;
-        self.store
+        self.world.instances = self.next_id();
+        self.cells.pad_to(Cells::count(&self.world.grid));
+        let welcome = WelcomeHead::new(&self.world, &self.species);
+        GridStore {
+            world: self.world,
+            species: self.species,
+            species_frames: self.species_frames,
+            welcome,
+            cells: self.cells,
+        }
     }
 }
 
@@ -205,27 +294,29 @@ impl GridStore {
             min: CellCoord::new(first.x, first.z),
             max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
         };
-        let graphs: Vec<SpeciesGraph> = world.species.iter().map(|s| s.graph.clone()).collect();
         let terrain = crate::terrain::describe(&world.terrain);
-        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, &graphs)?;
+        let graphs = world.species.iter().map(|s| &s.graph);
+        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?;
         for c in world.cells() {
             let ids = world.cell_instances(c);
-            if ids.start != b.next_id {
-                return Err(StoreError::Cell(CellCoord::new(c.x, c.z)));
+            let cell = CellCoord::new(c.x, c.z);
+            if ids.start != b.next_id() {
+                return Err(StoreError::Cell(cell));
             }
-            let instances = ids.map(|id| {
-                let p = &world.instances[id as usize];
-                let (_, q) = world.quantize(id);
+            // The cell is known: quantise within it (what `World::quantize` does after finding the cell).
+            let origin = grid.cell_origin(cell);
+            let instances = world.instances[ids.start as usize..ids.end as usize].iter().map(|p| {
+                let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
                 (p.species, q, p.params.as_slice())
             });
-            b.add_quantised(CellCoord::new(c.x, c.z), instances)?;
+            b.add_quantised(cell, instances)?;
         }
         Ok(b.finish())
     }
 
     /// How many cells hold at least one instance.
     pub fn occupied_cells(&self) -> usize {
-        self.cells.values().filter(|c| !c.records.is_empty()).count()
+        self.cells.starts.windows(2).filter(|w| w[1][0] > w[0][0]).count()
     }
 
     /// Share it between sessions.
@@ -244,16 +335,25 @@ impl WorldStore for GridStore {
     }
 
     fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        self.graphs.get(usize::from(id)).map(Vec::as_slice)
+        let frame = self.species_frames.get(usize::from(id))?;
+        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+    }
+
+    fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.species_frames.get(usize::from(id)).cloned()
+    }
+
+    fn welcome_head(&self) -> &WelcomeHead {
+        &self.welcome
     }
 
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>> {
-        if !self.world.grid.contains(c) {
-            return None;
-        }
-        Some(match self.cells.get(&c) {
-            Some(d) => CellView { first_id: d.first_id, records: &d.records, overrides: &d.overrides },
-            None => CellView { first_id: 0, records: &[], overrides: &[] },
+        let i = Cells::index(&self.world.grid, c)?;
+        let ([r0, o0], [r1, o1]) = (self.cells.starts[i], self.cells.starts[i + 1]);
+        Some(CellView {
+            first_id: r0,
+            records: &self.cells.records[r0 as usize..r1 as usize],
+            overrides: &self.cells.overrides[o0 as usize..o1 as usize],
         })
     }
 }

@@ -19,17 +19,7 @@ fn store() -> Arc<dyn WorldStore> {
     let species: Vec<SpeciesGraph> =
         ["worm", "conifer", "bush"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
     let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-8, -8), max: CellCoord::new(7, 7) };
-    let terrain = canopy_protocol::messages::TerrainDesc {
-        graph: None,
-        seed: 0,
-        origin: [-256.0, -256.0],
-        tile_size: 512.0,
-        tiles: [1, 1],
-        depth: 0,
-        corners: vec![0.0; 4],
-        params: vec![],
-    };
-    let mut b = StoreBuilder::new("test", 7, grid, terrain, &species).unwrap();
+    let mut b = StoreBuilder::new("test", 7, grid, terrain(), &species).unwrap();
     for z in -8i32..8 {
         for x in -8i32..8 {
             let n = (x + z).rem_euclid(5) as usize + 1;
@@ -46,6 +36,19 @@ fn store() -> Arc<dyn WorldStore> {
         }
     }
     b.finish().shared()
+}
+
+fn terrain() -> canopy_protocol::messages::TerrainDesc {
+    canopy_protocol::messages::TerrainDesc {
+        graph: None,
+        seed: 0,
+        origin: [-256.0, -256.0],
+        tile_size: 512.0,
+        tiles: [1, 1],
+        depth: 0,
+        corners: vec![0.0; 4],
+        params: vec![],
+    }
 }
 
 fn config() -> SessionConfig {
@@ -530,4 +533,32 @@ fn a_release_takes_back_staged_geometry() {
         }
     }
     assert!(s.is_complete());
+}
+
+#[test]
+fn a_long_non_ascii_world_name_is_cut_to_the_byte_limit_and_the_welcome_decodes() {
+    let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(0, 0), max: CellCoord::new(1, 1) };
+    let name = "Wald der großen Föhren ".repeat(10);
+    let store = StoreBuilder::new(&name, 1, grid, terrain(), &[]).unwrap().finish().shared();
+    let cut = &store.world().name;
+    assert!(cut.len() <= canopy_protocol::netlimits::MAX_WORLD_NAME && cut.len() > 120, "{} bytes", cut.len());
+    assert!(name.starts_with(cut.as_str()));
+    let t0 = Instant::now();
+    let mut s = Session::new(Arc::clone(&store), config(), t0);
+    s.handle(t0, ClientMsg::hello("test")).unwrap();
+    match decode(&s.poll_transmit(t0).unwrap()) {
+        ServerMsg::Handshake(ServerHandshake::Welcome(w)) => assert_eq!(&w.world, store.world()),
+        m => panic!("expected the welcome, got {m:?}"),
+    }
+}
+
+#[test]
+fn a_world_a_client_would_refuse_is_refused_by_the_store() {
+    let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(0, 0), max: CellCoord::new(1, 1) };
+    let bad = canopy_protocol::messages::TerrainDesc { corners: vec![0.0; 3], ..terrain() };
+    let e = StoreBuilder::new("test", 1, grid, bad, &[]).unwrap_err();
+    assert!(matches!(e, canopy_server::store::StoreError::World(_)), "{e:?}");
+    let bad_grid = Grid { cell_size: -1.0, ..grid };
+    let e = StoreBuilder::new("test", 1, bad_grid, terrain(), &[]).unwrap_err();
+    assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
 }

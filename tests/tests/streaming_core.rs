@@ -56,7 +56,7 @@ impl Pair {
         for _ in 0..n {
             let Some(t) = self.server.poll_transmit(self.now) else { break };
             self.server.on_flushed(t.bytes.len());
-            self.lanes.entry(t.stream).or_default().push_back(t.bytes);
+            self.lanes.entry(t.stream).or_default().push_back(t.bytes.to_vec());
         }
         for _ in 0..m {
             let busy: Vec<StreamId> = self.lanes.iter().filter(|(_, q)| !q.is_empty()).map(|(k, _)| *k).collect();
