@@ -53,7 +53,7 @@ pub struct BotsConfig {
     pub seed: u64,
     /// New connections per second while ramping up.
     pub connect_rate: f64,
-    /// A species cache directory shared by the bots (`None`: each bot starts with an empty memory cache, like a
+    /// A species cache directory shared by the bots (`None`: no cache; each bot starts with no species, like a
     /// fresh client).
     pub cache_dir: Option<PathBuf>,
     /// How long a bot waits at the end for a complete area of interest.
@@ -385,7 +385,6 @@ async fn bot_session(
     progress: &Progress,
     started: Instant,
 ) -> Result<(), ClientError> {
-    let cache = cache.or_else(|| Some(Arc::new(SpeciesCache::in_memory(CacheLimits::default()))));
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
     // The walk starts where the welcome's world allows: the path is placed inside the grid.

@@ -362,8 +362,9 @@ impl Connection {
                     ServerMsg::Streaming(ServerStreaming::Geometry(_)) => 4,
                 };
                 self.frame_bytes[class] += len as u64;
-                let species = match &m {
-                    ServerMsg::Streaming(ServerStreaming::Species(s)) => Some(s.graph.clone()),
+                // The program's bytes are kept only for a cache to store.
+                let species = match (&m, &self.cache) {
+                    (ServerMsg::Streaming(ServerStreaming::Species(s)), Some(_)) => Some(s.graph.clone()),
                     _ => None,
                 };
                 let ev = self.state.handle(m).map_err(ClientError::from);
