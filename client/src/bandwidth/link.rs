@@ -68,11 +68,6 @@ impl LinkSpec {
         }
         s
     }
-
-    /// Bytes the bottleneck queue holds.
-    pub fn queue_bytes(&self) -> Option<usize> {
-        self.rate.map(|r| ((r as f64 / 8.0 * self.queue.as_secs_f64()) as usize).max(4 * 1500))
-    }
 }
 
 /// Parse a rate: `56k`, `1M`, `10M`, `2.5M`, `800000` (bits per second), or `none`/`0` for unlimited.
@@ -107,8 +102,6 @@ pub struct DirectionStats {
     pub overflow: AtomicU64,
     /// Packets delivered.
     pub delivered: AtomicU64,
-    /// Their bytes (UDP payload).
-    pub delivered_bytes: AtomicU64,
 }
 
 /// Counters of a link: server → client (`down`) and client → server (`up`).
@@ -284,10 +277,8 @@ where
     let dir = if up { &stats.up } else { &stats.down };
     while let Some((at, packet)) = rx.recv().await {
         tokio::time::sleep_until(at).await;
-        let n = packet.len() as u64;
         if send(packet).await {
             dir.delivered.fetch_add(1, Relaxed);
-            dir.delivered_bytes.fetch_add(n, Relaxed);
         }
     }
 }

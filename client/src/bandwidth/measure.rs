@@ -64,12 +64,6 @@ impl Bytes {
         self.udp_rx += o.udp_rx;
         self.udp_tx += o.udp_tx;
     }
-
-    /// The bytes an explicit baseline would not need: the instance records it also sends so that the harness can
-    /// count what the client holds (placement is already in its geometry or transforms).
-    pub fn without_records(&self) -> u64 {
-        self.total() - self.records
-    }
 }
 
 /// Where every instance of the world stands, by cell: the ground truth visible completeness is measured against.
@@ -284,7 +278,6 @@ mod tests {
         sum.add(&odd);
         assert_eq!(sum.class_sum(), sum.total());
         assert_eq!(sum.total(), b.total() + odd.total());
-        assert_eq!(b.without_records(), b.total() - 10_000);
     }
 
     fn truth() -> GroundTruth {

@@ -110,13 +110,13 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.seed = args.seed;
     cfg.tick = Duration::from_millis(args.tick_ms.max(1));
     cfg.verify = verify;
-    let (summary, _) = run_bots(cfg, args.quiet)?;
+    let summary = run_bots(cfg, args.quiet)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
-/// Run bots on a fresh runtime with a progress display; returns the summary and the reports.
-pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(BotsSummary, Vec<bots::BotReport>)> {
+/// Run bots on a fresh runtime with a progress display; returns the summary.
+pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let progress = Arc::new(Progress::default());
     let total = cfg.count as u64;
@@ -159,5 +159,5 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(BotsSummary, Ve
         let _ = show.await;
         reports
     })?;
-    Ok((BotsSummary::new(&reports, started.elapsed()), reports))
+    Ok(BotsSummary::new(&reports, started.elapsed()))
 }

@@ -332,11 +332,6 @@ impl Connection {
         self.bytes_out
     }
 
-    /// The next viewpoint's sequence number.
-    pub fn next_seq(&self) -> u32 {
-        self.seq + 1
-    }
-
     /// Move the viewpoint: evicts what left the area of interest and tells the server. `vp.seq` is set here.
     pub async fn set_viewpoint(&mut self, mut vp: Viewpoint) -> Result<(), ClientError> {
         self.seq += 1;
@@ -422,11 +417,6 @@ impl Connection {
             }
         }
         Ok(())
-    }
-
-    /// The underlying QUIC connection (for tests and statistics).
-    pub fn quic(&self) -> &quinn::Connection {
-        &self.conn
     }
 
     /// End the session normally.
