@@ -198,6 +198,6 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     for f in &outcome.files {
         println!("wrote {}", f.display());
     }
-    let failed = outcome.scenarios.iter().flat_map(|s| &s.bots).filter(|b| b.error.is_some()).count();
+    let failed = outcome.scenarios.iter().flat_map(|s| &s.bots).filter(|b| b.bot.error.is_some()).count();
     Ok(if failed == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
