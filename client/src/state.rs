@@ -144,10 +144,9 @@ pub struct ClientStats {
     pub releases: u64,
     /// Cells the client evicted by distance before the server's release.
     pub evicted: u64,
-    /// Explicit-geometry chunks received (bandwidth baselines).
-    pub geometry_chunks: u64,
-    /// Explicit-geometry payload bytes received (bandwidth baselines).
-    pub geometry_bytes: u64,
+    /// Explicit-geometry payload bytes received (bandwidth baselines), by kind: instance meshes, species meshes,
+    /// transforms (the frames that carried them are the connection's geometry class).
+    pub geometry_bytes: [u64; 3],
 }
 
 /// The client's view of its session (see the module docs).
@@ -322,8 +321,7 @@ impl ClientState {
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
                 // the session's bookkeeping tracks.
-                self.stats.geometry_chunks += 1;
-                self.stats.geometry_bytes += g.bytes.len() as u64;
+                self.stats.geometry_bytes[g.kind as usize] += g.bytes.len() as u64;
                 Ok(Event::Geometry { kind: g.kind, id: g.id, offset: g.offset, total: g.total, bytes: g.bytes.len() })
             }
         }

@@ -423,7 +423,6 @@ struct Measure<'a> {
     phase: SamplePhase,
     teleport_at: Option<Instant>,
     teleported: Option<Instant>,
-    geometry: [u64; 3],
     last_bytes: u64,
     last_records: u64,
 }
@@ -464,17 +463,9 @@ impl DriveHooks for Measure<'_> {
                 species_ids.push(id);
             }
         }
-        if let Event::Geometry { kind, bytes, offset, total, .. } = ev {
-            if *kind == GeometryKind::InstanceMesh && *offset == 0 {
-                self.r.mesh_headers.0 += 1;
-                self.r.mesh_headers.1 += u64::from(*total);
-            }
-            let k = match kind {
-                GeometryKind::InstanceMesh => 0,
-                GeometryKind::SpeciesMesh => 1,
-                GeometryKind::Transforms => 2,
-            };
-            self.geometry[k] += *bytes as u64;
+        if let Event::Geometry { kind: GeometryKind::InstanceMesh, offset: 0, total, .. } = ev {
+            self.r.mesh_headers.0 += 1;
+            self.r.mesh_headers.1 += u64::from(*total);
         }
     }
 
@@ -546,7 +537,6 @@ async fn bot_session(
         phase: SamplePhase::Start,
         teleport_at: p.teleport.then(|| started + p.duration / 2),
         teleported: None,
-        geometry: [0; 3],
         last_bytes: 0,
         last_records: 0,
     };
@@ -555,7 +545,7 @@ async fn bot_session(
         // The last sample, at rest, whether or not the area of interest filled.
         m.take(&conn, SamplePhase::Settling, walker.position());
     }
-    r.geometry = m.geometry;
+    r.geometry = conn.state().stats().geometry_bytes;
     r.bot.read(&conn);
     r.bot.complete = conn.state().is_complete();
     r.bytes = bytes_of(&conn);
