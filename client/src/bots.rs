@@ -136,14 +136,19 @@ pub struct BotReport {
     pub verify: Option<Result<VerifySummary, String>>,
 }
 
-/// A small deterministic generator for paths (SplitMix64).
+/// A small deterministic generator for paths and link losses (SplitMix64).
 #[derive(Clone, Debug)]
-struct Rng(u64);
+pub(crate) struct Rng(pub(crate) u64);
 
 impl Rng {
-    fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         canopy_worlds::rng::mix64(self.0)
+    }
+
+    /// Uniform in `0..1` with 53 bits.
+    pub(crate) fn unit_f64(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
     }
 
     fn unit(&mut self) -> f32 {

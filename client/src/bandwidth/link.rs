@@ -14,6 +14,8 @@ use tokio::sync::{Mutex, mpsc};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
+use crate::bots::Rng;
+
 /// IPv4 + UDP header bytes, counted against the rate like the payload.
 pub const HEADER_BYTES: usize = 28;
 
@@ -118,7 +120,7 @@ pub struct LinkStats {
 pub struct Shaper {
     spec: LinkSpec,
     free_at: Option<Instant>,
-    rng: u64,
+    rng: Rng,
 }
 
 /// What the shaper decided for one packet.
@@ -135,17 +137,12 @@ pub enum Verdict {
 impl Shaper {
     /// A shaper for `spec`, losses drawn from `seed`.
     pub fn new(spec: LinkSpec, seed: u64) -> Shaper {
-        Shaper { spec, free_at: None, rng: seed }
-    }
-
-    fn unit(&mut self) -> f64 {
-        self.rng = self.rng.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        (canopy_worlds::rng::mix64(self.rng) >> 11) as f64 / (1u64 << 53) as f64
+        Shaper { spec, free_at: None, rng: Rng(seed) }
     }
 
     /// Decide the fate of a packet of `len` bytes arriving at `now`.
     pub fn admit(&mut self, now: Instant, len: usize) -> Verdict {
-        if self.spec.loss > 0.0 && self.unit() < self.spec.loss {
+        if self.spec.loss > 0.0 && self.rng.unit_f64() < self.spec.loss {
             return Verdict::Lost;
         }
         let Some(rate) = self.spec.rate else { return Verdict::Deliver(now + self.spec.latency) };

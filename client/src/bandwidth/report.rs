@@ -11,7 +11,8 @@ use canopy_server::session::PayloadMode;
 use super::measure::fraction;
 use super::{BandwidthConfig, Outcome, ScenarioResult};
 
-fn group(v: u64) -> String {
+/// Thousands separators for readability: `1234567` → `1,234,567`.
+pub fn group(v: u64) -> String {
     let s = v.to_string();
     let mut out = String::new();
     for (i, c) in s.chars().enumerate() {
