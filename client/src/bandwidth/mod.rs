@@ -580,6 +580,8 @@ async fn run_scenario(
     });
     let live = Arc::clone(&params.live);
     let t0 = params.t0;
+    // One TLS configuration for all the bots: each one's clone only changes the address (its relay's).
+    let base = ConnectConfig::new(server, trust);
     let mut tasks = Vec::new();
     for id in 0..cfg.bots {
         let (relay, addr) = if scenario.link.is_shaped() {
@@ -589,7 +591,8 @@ async fn run_scenario(
         } else {
             (None, server)
         };
-        let connect = ConnectConfig::new(addr, trust.clone());
+        let mut connect = base.clone();
+        connect.server = addr;
         tasks.push(tokio::spawn(run_bot(id, endpoint.clone(), connect, relay, Arc::clone(&params))));
     }
     let total = (cfg.duration + cfg.settle).as_secs_f64();

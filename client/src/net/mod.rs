@@ -8,7 +8,7 @@
 pub mod tls;
 
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_protocol::aoi::Viewpoint;
@@ -39,6 +39,8 @@ pub struct ConnectConfig {
     pub client_name: String,
     /// How long connecting and the handshake may take.
     pub timeout: Duration,
+    /// The QUIC client configuration built for `trust`, shared by this configuration's clones.
+    quic: Arc<OnceLock<(Trust, quinn::ClientConfig)>>,
 }
 
 impl ConnectConfig {
@@ -50,6 +52,21 @@ impl ConnectConfig {
             trust,
             client_name: "canopy".into(),
             timeout: Duration::from_secs(20),
+            quic: Arc::default(),
+        }
+    }
+
+    /// The QUIC client configuration trusting as `trust` says: built on first use and shared by the clones (many
+    /// connections, one TLS configuration).
+    pub fn client_config(&self) -> Result<quinn::ClientConfig, ClientError> {
+        match self.quic.get() {
+            Some((trust, cfg)) if *trust == self.trust => Ok(cfg.clone()),
+            // `trust` was changed after the first build: build for it, uncached.
+            Some(_) => Ok(tls::client_config(self.trust.clone())?),
+            None => {
+                let cfg = tls::client_config(self.trust.clone())?;
+                Ok(self.quic.get_or_init(|| (self.trust.clone(), cfg)).1.clone())
+            }
         }
     }
 }
@@ -196,7 +213,7 @@ impl Connection {
         cache: Option<Arc<SpeciesCache>>,
         viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
-        let client_cfg = tls::client_config(cfg.trust.clone())?;
+        let client_cfg = cfg.client_config()?;
         let connecting = endpoint.connect_with(client_cfg, cfg.server, &cfg.server_name)?;
         let deadline = tokio::time::Instant::now() + cfg.timeout;
         let conn = match tokio::time::timeout_at(deadline, connecting).await {
