@@ -6,7 +6,6 @@
 //! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
 
 use std::collections::HashSet;
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -761,10 +760,18 @@ impl std::fmt::Display for BotsSummary {
     }
 }
 
+/// Wait for every bot's task, in order; a task that panicked or was cancelled becomes `failed(index, why)`.
+pub async fn join<T>(tasks: Vec<tokio::task::JoinHandle<T>>, failed: impl Fn(usize, String) -> T) -> Vec<T> {
+    let mut out = Vec::with_capacity(tasks.len());
+    for (id, t) in tasks.into_iter().enumerate() {
+        out.push(t.await.unwrap_or_else(|e| failed(id, format!("bot task: {e}"))));
+    }
+    out
+}
+
 /// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report.
 pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotReport>, ClientError> {
-    let bind: SocketAddr =
-        if cfg.connect.server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
+    let bind = crate::net::loopback_for(cfg.connect.server);
     let endpoints: Vec<Endpoint> =
         (0..cfg.endpoints.max(1)).map(|_| crate::net::endpoint(bind)).collect::<Result<_, _>>()?;
     let cache = match &cfg.cache_dir {
@@ -785,14 +792,7 @@ pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotRepo
             run_bot(id, endpoint, cfg, cache, progress).await
         }));
     }
-    let mut reports = Vec::with_capacity(tasks.len());
-    for (id, t) in tasks.into_iter().enumerate() {
-        reports.push(t.await.unwrap_or_else(|e| BotReport {
-            id,
-            error: Some(format!("bot task: {e}")),
-            ..Default::default()
-        }));
-    }
+    let reports = join(tasks, |id, error| BotReport { id, error: Some(error), ..Default::default() }).await;
     for e in &endpoints {
         e.wait_idle().await;
     }

@@ -563,8 +563,7 @@ async fn run_scenario(
     truth: Arc<GroundTruth>,
     bar: &indicatif::ProgressBar,
 ) -> Result<Vec<BotResult>, BandwidthError> {
-    let bind: SocketAddr = if server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
-    let endpoint = crate::net::endpoint(bind)?;
+    let endpoint = crate::net::endpoint(crate::net::loopback_for(server))?;
     let params = Arc::new(BotParams {
         duration: cfg.duration,
         speed: cfg.speed,
@@ -598,7 +597,10 @@ async fn run_scenario(
     let total = (cfg.duration + cfg.settle).as_secs_f64();
     let mut ticker = tokio::time::interval(Duration::from_millis(200));
     let results;
-    let all = futures_join(tasks);
+    let all = bots::join(tasks, |id, error| BotResult {
+        bot: BotReport { id, error: Some(error), ..Default::default() },
+        ..Default::default()
+    });
     tokio::pin!(all);
     loop {
         tokio::select! {
@@ -618,14 +620,6 @@ async fn run_scenario(
     endpoint.close(0u32.into(), b"done");
     let _ = tokio::time::timeout(Duration::from_secs(2), endpoint.wait_idle()).await;
     Ok(results)
-}
-
-async fn futures_join(tasks: Vec<tokio::task::JoinHandle<BotResult>>) -> Vec<BotResult> {
-    let mut out = Vec::with_capacity(tasks.len());
-    for (id, t) in tasks.into_iter().enumerate() {
-        out.push(t.await.unwrap_or_else(|e| BotResult { bot: BotReport { id, error: Some(format!("bot task: {e}")), ..Default::default() }, ..Default::default() }));
-    }
-    out
 }
 
 /// Run every scenario of `cfg` on `world` (the in-process server's world and the ground truth; with an external

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::{ConnectConfig, Trust};
 use canopy_worlds::world::World;
@@ -71,14 +71,6 @@ pub struct BotsArgs {
     quiet: bool,
 }
 
-fn trust(fingerprint: &Option<String>, insecure: bool) -> anyhow::Result<Trust> {
-    match (fingerprint, insecure) {
-        (Some(f), _) => Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)")),
-        (None, true) => Ok(Trust::Insecure),
-        (None, false) => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
-    }
-}
-
 /// Run `canopy bots`.
 pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     if args.count == 0
@@ -88,7 +80,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     {
         bail!("--count must be positive, --speed, --duration and --settle not negative");
     }
-    let trust = trust(&args.cert_fingerprint, args.insecure)?;
+    let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
     let verify = if args.no_verify {
         None
     } else {

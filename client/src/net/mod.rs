@@ -136,6 +136,13 @@ impl ClientError {
     }
 }
 
+/// A loopback address of `server`'s family with any port (`127.0.0.1:0` or `[::1]:0`): where local clients and
+/// relays bind.
+pub fn loopback_for(server: SocketAddr) -> SocketAddr {
+    use std::net::{Ipv4Addr, Ipv6Addr};
+    if server.is_ipv6() { (Ipv6Addr::LOCALHOST, 0).into() } else { (Ipv4Addr::LOCALHOST, 0).into() }
+}
+
 /// A client endpoint bound to `bind` (e.g. `127.0.0.1:0`) with large socket buffers; many connections share it.
 pub fn endpoint(bind: SocketAddr) -> Result<Endpoint, ClientError> {
     use socket2::{Domain, Protocol, Socket, Type};
