@@ -5,12 +5,12 @@
 //! sees a slow, lossy, distant link and its congestion control has to cope.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 use tokio::net::UdpSocket;
-use tokio::sync::{Mutex, mpsc};
+use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
@@ -183,75 +183,33 @@ impl Relay {
         back.connect(server).await?;
         let addr = front.local_addr()?;
         let stats = Arc::new(LinkStats::default());
-        let client: Arc<Mutex<Option<SocketAddr>>> = Arc::new(Mutex::new(None));
-        let mut tasks = Vec::new();
-        // Up: client → front → shaper → back → server.
+        // The client's address, from its first datagram (one client per relay).
+        let client: Arc<OnceLock<SocketAddr>> = Arc::default();
         let (up_tx, up_rx) = mpsc::channel::<(Instant, Vec<u8>)>(MAX_IN_FLIGHT);
-        {
-            let (front, client, stats) = (Arc::clone(&front), Arc::clone(&client), Arc::clone(&stats));
-            let mut shaper = Shaper::new(spec, seed ^ 0x5550);
-            tasks.push(tokio::spawn(async move {
-                let mut buf = vec![0u8; MAX_DATAGRAM];
-                loop {
-                    let Ok((n, from)) = front.recv_from(&mut buf).await else { return };
-                    *client.lock().await = Some(from);
-                    stats.up.packets.fetch_add(1, Relaxed);
-                    stats.up.bytes.fetch_add(n as u64, Relaxed);
-                    match shaper.admit(Instant::now(), n) {
-                        Verdict::Deliver(at) => {
-                            if up_tx.try_send((at, buf[..n].to_vec())).is_err() {
-                                stats.up.overflow.fetch_add(1, Relaxed);
-                            }
-                        }
-                        Verdict::Lost => drop(stats.up.lost.fetch_add(1, Relaxed)),
-                        Verdict::Overflow => drop(stats.up.overflow.fetch_add(1, Relaxed)),
-                    }
-                }
-            }));
-        }
-        {
-            let (back, stats) = (Arc::clone(&back), Arc::clone(&stats));
-            tasks.push(tokio::spawn(deliver(up_rx, stats, true, move |p| {
-                let back = Arc::clone(&back);
-                async move { back.send(&p).await.is_ok() }
-            })));
-        }
-        // Down: server → back → shaper → front → client.
         let (down_tx, down_rx) = mpsc::channel::<(Instant, Vec<u8>)>(MAX_IN_FLIGHT);
-        {
-            let (back, stats) = (Arc::clone(&back), Arc::clone(&stats));
-            let mut shaper = Shaper::new(spec, seed ^ 0x444f);
-            tasks.push(tokio::spawn(async move {
-                let mut buf = vec![0u8; MAX_DATAGRAM];
-                loop {
-                    let Ok(n) = back.recv(&mut buf).await else { return };
-                    stats.down.packets.fetch_add(1, Relaxed);
-                    stats.down.bytes.fetch_add(n as u64, Relaxed);
-                    match shaper.admit(Instant::now(), n) {
-                        Verdict::Deliver(at) => {
-                            if down_tx.try_send((at, buf[..n].to_vec())).is_err() {
-                                stats.down.overflow.fetch_add(1, Relaxed);
-                            }
-                        }
-                        Verdict::Lost => drop(stats.down.lost.fetch_add(1, Relaxed)),
-                        Verdict::Overflow => drop(stats.down.overflow.fetch_add(1, Relaxed)),
-                    }
+        let (up_shaper, down_shaper) = (Shaper::new(spec, seed ^ 0x5550), Shaper::new(spec, seed ^ 0x444f));
+        let tasks = vec![
+            // Up: client → front → shaper → back → server.
+            spawn_ingress(Arc::clone(&front), Some(Arc::clone(&client)), Arc::clone(&stats), up_shaper, up_tx),
+            tokio::spawn(deliver(up_rx, Arc::clone(&stats), true, {
+                let back = Arc::clone(&back);
+                move |p| {
+                    let back = Arc::clone(&back);
+                    async move { back.send(&p).await.is_ok() }
                 }
-            }));
-        }
-        {
-            let (front, stats) = (Arc::clone(&front), Arc::clone(&stats));
-            tasks.push(tokio::spawn(deliver(down_rx, stats, false, move |p| {
-                let (front, client) = (Arc::clone(&front), Arc::clone(&client));
+            })),
+            // Down: server → back → shaper → front → client.
+            spawn_ingress(Arc::clone(&back), None, Arc::clone(&stats), down_shaper, down_tx),
+            tokio::spawn(deliver(down_rx, Arc::clone(&stats), false, move |p| {
+                let (front, to) = (Arc::clone(&front), client.get().copied());
                 async move {
-                    let to = *client.lock().await;
                     match to {
                         Some(to) => front.send_to(&p, to).await.is_ok(),
                         None => false,
                     }
                 }
-            })));
-        }
+            })),
+        ];
         Ok(Relay { addr, stats, tasks })
     }
 
@@ -264,6 +222,45 @@ impl Relay {
     pub fn stats(&self) -> &Arc<LinkStats> {
         &self.stats
     }
+}
+
+/// One direction's way in: read datagrams from `socket` (from the client, whose address is noted in `client`, or
+/// from the server when `client` is `None`), count them, and queue what the shaper admits for delivery.
+fn spawn_ingress(
+    socket: Arc<UdpSocket>,
+    client: Option<Arc<OnceLock<SocketAddr>>>,
+    stats: Arc<LinkStats>,
+    mut shaper: Shaper,
+    tx: mpsc::Sender<(Instant, Vec<u8>)>,
+) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let dir = if client.is_some() { &stats.up } else { &stats.down };
+        let mut buf = vec![0u8; MAX_DATAGRAM];
+        loop {
+            let n = match &client {
+                Some(client) => {
+                    let Ok((n, from)) = socket.recv_from(&mut buf).await else { return };
+                    client.get_or_init(|| from);
+                    n
+                }
+                None => {
+                    let Ok(n) = socket.recv(&mut buf).await else { return };
+                    n
+                }
+            };
+            dir.packets.fetch_add(1, Relaxed);
+            dir.bytes.fetch_add(n as u64, Relaxed);
+            match shaper.admit(Instant::now(), n) {
+                Verdict::Deliver(at) => {
+                    if tx.try_send((at, buf[..n].to_vec())).is_err() {
+                        dir.overflow.fetch_add(1, Relaxed);
+                    }
+                }
+                Verdict::Lost => drop(dir.lost.fetch_add(1, Relaxed)),
+                Verdict::Overflow => drop(dir.overflow.fetch_add(1, Relaxed)),
+            }
+        }
+    })
 }
 
 async fn deliver<F, Fut>(mut rx: mpsc::Receiver<(Instant, Vec<u8>)>, stats: Arc<LinkStats>, up: bool, send: F)
