@@ -430,7 +430,7 @@ struct Measure<'a> {
 impl Measure<'_> {
     fn take(&mut self, conn: &Connection, phase: SamplePhase, pos: [f32; 2]) {
         let truth = &*self.p.truth;
-        let (visible, held) = measure::completeness(truth, pos, self.p.view, |id| measure::holds(conn.state(), truth, id));
+        let (visible, held) = measure::completeness(truth, pos, self.p.view, |c| measure::held_ids(conn.state(), c));
         self.r.samples.push(Sample {
             t: self.p.t0.elapsed().as_secs_f64(),
             phase,
@@ -634,7 +634,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         ));
     }
     let started = Instant::now();
-    let truth = Arc::new(GroundTruth::from_world(&world));
+    let truth = Arc::new(GroundTruth::new(Arc::clone(&world)));
     // The server and the bots run on separate runtimes, so that a server encoding meshes (baseline 1) does not
     // delay the bots' clocks, samples and acknowledgements.
     let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-server").enable_all().build()?;
