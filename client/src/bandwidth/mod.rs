@@ -485,7 +485,8 @@ impl DriveHooks for Measure<'_> {
     }
 
     fn stepped(&mut self, now: Instant, walker: &mut Walker) -> bool {
-        if !self.teleport_at.is_some_and(|t| now >= t) || self.teleported.is_some() {
+        let due = self.teleported.is_none() && self.teleport_at.is_some_and(|t| now >= t);
+        if !due {
             return false;
         }
         // Jump to another walk: a new start and heading, same speed.
