@@ -6,7 +6,6 @@
 //! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
 
 use std::collections::HashSet;
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -19,7 +18,7 @@ use quinn::Endpoint;
 
 use crate::cache::{CacheLimits, SpeciesCache};
 use crate::net::{ClientError, ConnectConfig, Connection};
-use crate::state::ClientState;
+use crate::state::{ClientState, Event};
 
 /// The scripted path a bot walks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -53,7 +52,7 @@ pub struct BotsConfig {
     pub seed: u64,
     /// New connections per second while ramping up.
     pub connect_rate: f64,
-    /// A species cache directory shared by the bots (`None`: each bot starts with an empty memory cache, like a
+    /// A species cache directory shared by the bots (`None`: no cache; each bot starts with no species, like a
     /// fresh client).
     pub cache_dir: Option<PathBuf>,
     /// How long a bot waits at the end for a complete area of interest.
@@ -103,10 +102,6 @@ pub struct Progress {
     pub finished: AtomicU64,
     /// Instance records received by all bots.
     pub records: AtomicU64,
-    /// Bytes received by all bots (UDP payloads).
-    pub bytes: AtomicU64,
-    /// Latency samples taken.
-    pub samples: AtomicU64,
 }
 
 /// What one bot did.
@@ -126,8 +121,6 @@ pub struct BotReport {
     pub records: u64,
     /// Records held at the end.
     pub held: usize,
-    /// Frame bytes of cell batches received.
-    pub batch_bytes: u64,
     /// All frame bytes received by class (welcome, species, cells, release, geometry).
     pub frame_bytes: [u64; 5],
     /// UDP payload bytes received.
@@ -142,14 +135,19 @@ pub struct BotReport {
     pub verify: Option<Result<VerifySummary, String>>,
 }
 
-/// A small deterministic generator for paths (SplitMix64).
+/// A small deterministic generator for paths and link losses (SplitMix64).
 #[derive(Clone, Debug)]
-struct Rng(u64);
+pub(crate) struct Rng(pub(crate) u64);
 
 impl Rng {
-    fn next(&mut self) -> u64 {
+    pub(crate) fn next(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
         canopy_worlds::rng::mix64(self.0)
+    }
+
+    /// Uniform in `0..1` with 53 bits.
+    pub(crate) fn unit_f64(&mut self) -> f64 {
+        (self.next() >> 11) as f64 / (1u64 << 53) as f64
     }
 
     fn unit(&mut self) -> f32 {
@@ -175,7 +173,6 @@ pub struct Walker {
     ring: f32,
     angle: f32,
     timer: f32,
-    teleported: bool,
 }
 
 impl Walker {
@@ -198,7 +195,6 @@ impl Walker {
             ring,
             angle: a,
             timer: 0.0,
-            teleported: false,
         };
         if kind == PathKind::Circle {
             w.pos = [centre[0] + ring * a.cos(), centre[1] + ring * a.sin()];
@@ -211,9 +207,21 @@ impl Walker {
         self.pos
     }
 
+    /// The viewpoint of a client at the walker, asking for `radius` metres (`seq` is set when it is sent).
+    pub fn viewpoint(&self, radius: f32) -> Viewpoint {
+        Viewpoint { seq: 0, position: self.position(), yaw: self.yaw(), velocity: self.velocity(), radius }
+    }
+
+    /// Jump to another walk of the same kind and speed in the same rectangle: a new start and heading, seeded
+    /// from this walk's generator (deterministic for a given seed).
+    pub fn jump(&mut self) {
+        let seed = self.rng.next();
+        *self = Walker::new(self.kind, self.speed, self.lo, self.hi, seed);
+    }
+
     /// Advance by `dt` seconds; returns whether it teleported.
     pub fn step(&mut self, dt: f32) -> bool {
-        self.teleported = false;
+        let mut teleported = false;
         match self.kind {
             PathKind::Line | PathKind::Random => {
                 if self.kind == PathKind::Random {
@@ -244,11 +252,11 @@ impl Walker {
                 if self.timer >= 8.0 {
                     self.timer = 0.0;
                     self.pos = [self.rng.range(self.lo[0], self.hi[0]), self.rng.range(self.lo[1], self.hi[1])];
-                    self.teleported = true;
+                    teleported = true;
                 }
             }
         }
-        self.teleported
+        teleported
     }
 
     /// The velocity, metres per second (zero for a teleporter).
@@ -286,7 +294,8 @@ pub struct VerifySummary {
 
 /// Check a client's final state against the world: it holds every cell of its area of interest and nothing
 /// beyond radius + hysteresis, every held cell in full, each instance exactly once and exactly as the world has it
-/// (species, position on the grid and terrain height, seed, parameters), and each species it needs once.
+/// (species, position on the grid, seed, parameters; the height follows from the position and the terrain, which
+/// client and world share), and each species it needs once.
 pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, String> {
     let w = state.welcome().ok_or("no welcome")?;
     if w.world.name != world.name || w.world.seed != world.seed || w.world.instances as usize != world.instances.len() {
@@ -328,30 +337,25 @@ pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, Strin
             }
         }
     }
-    let terrain = &world.terrain;
-    let height = |x: f32, z: f32| terrain.height(x, z);
-    for inst in state.instances(&height) {
+    let no_height = |_: f32, _: f32| 0.0;
+    for inst in state.instances(&no_height) {
         if !ids.insert(inst.id) {
             return Err(format!("instance {} held twice", inst.id));
         }
         let p = &world.instances[inst.id as usize];
-        let mut want: Vec<(u16, f32)> = p.params.clone();
-        want.sort_by_key(|&(s, _)| s);
-        let pos = world.position(inst.id);
-        let same_pos = pos.iter().zip(&inst.position).all(|(a, b)| a.to_bits() == b.to_bits());
+        let [x, _, z] = inst.position;
+        // `Placement::params` is sorted by slot, as the records' overrides are.
         if u16::from(inst.species) != p.species
-            || !same_pos
-            || inst.params != want
+            || x.to_bits() != p.x.to_bits()
+            || z.to_bits() != p.z.to_bits()
+            || inst.params[..] != p.params[..]
             || inst.seed != world.instance_seed(inst.id)
         {
-            return Err(format!("instance {} differs from the world: {inst:?} vs {p:?} at {pos:?}", inst.id));
+            return Err(format!("instance {} differs from the world: {inst:?} vs {p:?}", inst.id));
         }
     }
     if state.stats().species_duplicates != 0 {
         return Err(format!("{} species received twice", state.stats().species_duplicates));
-    }
-    if state.stats().duplicate_records != 0 {
-        return Err(format!("{} records received twice", state.stats().duplicate_records));
     }
     Ok(VerifySummary { cells: state.cells().len(), instances: ids.len(), species: state.species_held() })
 }
@@ -377,6 +381,209 @@ pub async fn run_bot(
     report
 }
 
+impl BotReport {
+    /// Take a connection's counters: records received and held, bytes, species, viewpoints sent.
+    pub fn read(&mut self, conn: &Connection) {
+        let state = conn.state();
+        let stats = state.stats();
+        self.records = stats.records;
+        self.species_received = stats.species_received;
+        self.species_duplicates = stats.species_duplicates;
+        self.held = state.record_count();
+        self.frame_bytes = conn.frame_bytes_received();
+        self.udp_bytes = conn.bytes_received();
+        // The ready's viewpoint has `seq` 0, and each one sent after it the next number.
+        self.viewpoints = state.viewpoint().map_or(0, |v| v.seq + 1);
+    }
+}
+
+/// Connect as a walker: the walk of `path` at `speed` is placed inside the welcome's grid (inset by half the
+/// `radius`), seeded by `seed`, and its first viewpoint goes with the ready.
+pub async fn connect_walking(
+    endpoint: &Endpoint,
+    connect: &ConnectConfig,
+    cache: Option<Arc<SpeciesCache>>,
+    (path, speed, radius, seed): (PathKind, f32, f32, u64),
+) -> Result<(Connection, Walker), ClientError> {
+    let mut walker = None;
+    let place = |w: &canopy_protocol::messages::Welcome| {
+        let (lo, hi) = grid_rect(&w.world.grid, radius * 0.5);
+        let wk = Walker::new(path, speed, lo, hi, seed);
+        let vp = wk.viewpoint(radius);
+        walker = Some(wk);
+        vp
+    };
+    let conn = Connection::connect(endpoint, connect, cache, place).await?;
+    Ok((conn, walker.expect("placed in the handshake")))
+}
+
+/// Whether a walker has moved far enough from the viewpoint last `sent` (a sixteenth of a cell, at least 1 m) or
+/// turned enough (a quarter radian) to send a new one.
+pub fn viewpoint_due(grid: &Grid, sent: &Viewpoint, walker: &Walker) -> bool {
+    let min_move = (grid.cell_size / 16.0).max(1.0);
+    let p = walker.position();
+    let moved = ((p[0] - sent.position[0]).powi(2) + (p[1] - sent.position[1]).powi(2)).sqrt();
+    moved >= min_move || (walker.yaw() - sent.yaw).abs() > 0.25
+}
+
+/// How [`drive`] walks a connection.
+#[derive(Clone, Debug)]
+pub struct DrivePlan {
+    /// The area-of-interest radius asked for, metres.
+    pub radius: f32,
+    /// How often the walker moves and, if a viewpoint is due, sends one.
+    pub tick: Duration,
+    /// When to stop walking.
+    pub walk_until: Instant,
+    /// How long to wait at rest for a complete area of interest.
+    pub settle: Duration,
+    /// How often to call [`DriveHooks::sample`] (`None`: never).
+    pub sample: Option<Duration>,
+    /// Set to `true` to stop walking early.
+    pub stop: tokio::sync::watch::Receiver<bool>,
+}
+
+/// What a caller of [`drive`] sees along the way (every method does nothing by default).
+pub trait DriveHooks {
+    /// Every event applied, in order.
+    fn event(&mut self, _ev: &Event) {}
+    /// After the state changed: events applied, or a viewpoint sent.
+    fn changed(&mut self, _conn: &Connection) {}
+    /// After the walker stepped at `now`; may move it (a jump). Returns whether to send a viewpoint now.
+    fn stepped(&mut self, _now: Instant, _walker: &mut Walker) -> bool {
+        false
+    }
+    /// At every sampling tick, while walking and while `settling` at rest.
+    fn sample(&mut self, _conn: &Connection, _walker: &Walker, _settling: bool) {}
+}
+
+async fn next_tick(interval: &mut Option<tokio::time::Interval>) {
+    match interval {
+        Some(i) => drop(i.tick().await),
+        None => std::future::pending().await,
+    }
+}
+
+/// Walk a connection: apply what arrives, step the walker every tick and send a viewpoint when one is due (it
+/// teleported or jumped, moved or turned enough: [`viewpoint_due`]), until `walk_until` or a stop. Then stop: a
+/// viewpoint at rest, and wait up to `settle` for the area of interest to fill. Returns whether it did.
+pub async fn drive(
+    conn: &mut Connection,
+    walker: &mut Walker,
+    plan: DrivePlan,
+    hooks: &mut impl DriveHooks,
+) -> Result<bool, ClientError> {
+    let grid = conn.welcome().world.grid;
+    let mut tick = tokio::time::interval(plan.tick);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut sample = plan.sample.map(|d| {
+        let mut i = tokio::time::interval(d);
+        i.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        i
+    });
+    let mut last = Instant::now();
+    let mut stop = plan.stop;
+    // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
+    let mut stoppable = stop.has_changed().is_ok();
+    while Instant::now() < plan.walk_until && !*stop.borrow() {
+        tokio::select! {
+            r = stop.changed(), if stoppable => stoppable = r.is_ok(),
+            ev = conn.next_event() => {
+                hooks.event(&ev?);
+                while let Some(ev) = conn.try_next_event() {
+                    hooks.event(&ev?);
+                }
+                hooks.changed(conn);
+            }
+            _ = tick.tick() => {
+                let now = Instant::now();
+                let dt = now.duration_since(last).as_secs_f32();
+                last = now;
+                let jumped = walker.step(dt) | hooks.stepped(now, walker);
+                let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
+                if jumped || viewpoint_due(&grid, sent, walker) {
+                    conn.set_viewpoint(walker.viewpoint(plan.radius)).await?;
+                    hooks.changed(conn);
+                }
+            }
+            _ = next_tick(&mut sample) => hooks.sample(conn, walker, false),
+        }
+    }
+    // Stop: a viewpoint at rest, then wait for the area of interest to fill.
+    let mut rest = walker.viewpoint(plan.radius);
+    rest.velocity = [0.0, 0.0];
+    conn.set_viewpoint(rest).await?;
+    hooks.changed(conn);
+    let deadline = tokio::time::Instant::now() + plan.settle;
+    while !conn.state().is_complete() {
+        tokio::select! {
+            ev = conn.next_event() => {
+                hooks.event(&ev?);
+                hooks.changed(conn);
+            }
+            _ = next_tick(&mut sample) => hooks.sample(conn, walker, true),
+            _ = tokio::time::sleep_until(deadline) => return Ok(false),
+        }
+    }
+    Ok(true)
+}
+
+/// A bot's "area of interest change → complete" latencies: from the first change that left the area of interest
+/// incomplete to the moment it is complete again (the first from the start of the walk).
+#[derive(Clone, Copy, Debug)]
+pub struct Completion {
+    started: Instant,
+    pending: Option<Instant>,
+    complete: bool,
+}
+
+impl Completion {
+    /// Start measuring now; `started` is when the bot started to connect.
+    pub fn new(started: Instant) -> Completion {
+        Completion { started, pending: Some(Instant::now()), complete: false }
+    }
+
+    /// Note the connection's state into `report` (latencies, first complete). Returns whether the area of
+    /// interest became complete (`Some(true)`) or incomplete (`Some(false)`).
+    pub fn note(&mut self, conn: &Connection, report: &mut BotReport) -> Option<bool> {
+        let now_complete = conn.state().is_complete();
+        let changed = (now_complete != self.complete).then_some(now_complete);
+        self.complete = now_complete;
+        match (now_complete, self.pending) {
+            (true, Some(t0)) => {
+                report.latencies.push(t0.elapsed());
+                report.first_complete.get_or_insert(self.started.elapsed());
+                self.pending = None;
+            }
+            (false, None) => self.pending = Some(Instant::now()),
+            _ => {}
+        }
+        changed
+    }
+}
+
+struct BotHooks<'a> {
+    report: &'a mut BotReport,
+    progress: &'a Progress,
+    completion: Completion,
+}
+
+impl DriveHooks for BotHooks<'_> {
+    fn event(&mut self, ev: &Event) {
+        if let Event::Records { count, .. } = ev {
+            self.progress.records.fetch_add(*count as u64, Relaxed);
+        }
+    }
+
+    fn changed(&mut self, conn: &Connection) {
+        match self.completion.note(conn, self.report) {
+            Some(true) => drop(self.progress.complete.fetch_add(1, Relaxed)),
+            Some(false) => drop(self.progress.complete.fetch_sub(1, Relaxed)),
+            None => {}
+        }
+    }
+}
+
 async fn bot_session(
     report: &mut BotReport,
     endpoint: &Endpoint,
@@ -385,33 +592,31 @@ async fn bot_session(
     progress: &Progress,
     started: Instant,
 ) -> Result<(), ClientError> {
-    let cache = cache.or_else(|| Some(Arc::new(SpeciesCache::in_memory(CacheLimits::default()))));
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
-    // The walk starts where the welcome's world allows: the path is placed inside the grid.
-    let (radius, path, speed, seed) = (cfg.radius, cfg.path, cfg.speed, cfg.seed.wrapping_add(report.id as u64));
-    let mut walker = None;
-    let place = |w: &canopy_protocol::messages::Welcome| {
-        let (lo, hi) = grid_rect(&w.world.grid, radius * 0.5);
-        let wk = Walker::new(path, speed, lo, hi, seed);
-        let vp = Viewpoint { seq: 0, position: wk.position(), yaw: wk.yaw(), velocity: wk.velocity(), radius };
-        walker = Some(wk);
-        vp
-    };
-    let mut conn = Connection::connect(endpoint, &connect, cache, place).await?;
-    let walker = walker.expect("placed in the handshake");
+    let seed = cfg.seed.wrapping_add(report.id as u64);
+    let (mut conn, mut walker) =
+        connect_walking(endpoint, &connect, cache, (cfg.path, cfg.speed, cfg.radius, seed)).await?;
     progress.connected.fetch_add(1, Relaxed);
-    let result = walk(report, &mut conn, walker, cfg, progress, started).await;
+    let plan = DrivePlan {
+        radius: cfg.radius,
+        tick: cfg.tick,
+        walk_until: Instant::now() + cfg.duration,
+        settle: cfg.settle,
+        sample: None,
+        stop: cfg.stop.clone(),
+    };
+    let mut hooks = BotHooks { report: &mut *report, progress, completion: Completion::new(started) };
+    let result = match drive(&mut conn, &mut walker, plan, &mut hooks).await {
+        Ok(true) => {
+            report.complete = true;
+            Ok(())
+        }
+        Ok(false) => Err(ClientError::Timeout("waiting for a complete area of interest at the end")),
+        Err(e) => Err(e),
+    };
     progress.connected.fetch_sub(1, Relaxed);
-    let stats = conn.state().stats().clone();
-    report.records = stats.records;
-    report.species_received = stats.species_received;
-    report.species_duplicates = stats.species_duplicates;
-    report.held = conn.state().record_count();
-    report.frame_bytes = conn.frame_bytes_received();
-    report.batch_bytes = report.frame_bytes[2];
-    report.udp_bytes = conn.bytes_received();
-    progress.bytes.fetch_add(report.udp_bytes, Relaxed);
+    report.read(&conn);
     let state = conn.close_into_state();
     if result.is_ok() {
         if let Some(world) = &cfg.verify {
@@ -425,108 +630,6 @@ async fn bot_session(
         }
     }
     result
-}
-
-async fn walk(
-    report: &mut BotReport,
-    conn: &mut Connection,
-    mut walker: Walker,
-    cfg: &BotsConfig,
-    progress: &Progress,
-    started: Instant,
-) -> Result<(), ClientError> {
-    let grid = conn.welcome().world.grid;
-    let min_move = (grid.cell_size / 16.0).max(1.0);
-    let vp = |w: &Walker, radius: f32| Viewpoint {
-        seq: 0,
-        position: w.position(),
-        yaw: w.yaw(),
-        velocity: w.velocity(),
-        radius,
-    };
-    report.viewpoints += 1;
-    let mut sent_at = walker.position();
-    let mut sent_yaw = walker.yaw();
-    let mut pending: Option<Instant> = Some(Instant::now());
-    let mut complete = false;
-    let walk_until = Instant::now() + cfg.duration;
-    let mut tick = tokio::time::interval(cfg.tick);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut last = Instant::now();
-    let note = |conn: &Connection, pending: &mut Option<Instant>, complete: &mut bool, report: &mut BotReport| {
-        let now_complete = conn.state().is_complete();
-        if now_complete && !*complete {
-            progress.complete.fetch_add(1, Relaxed);
-        } else if !now_complete && *complete {
-            progress.complete.fetch_sub(1, Relaxed);
-        }
-        *complete = now_complete;
-        match (now_complete, *pending) {
-            (true, Some(t0)) => {
-                report.latencies.push(t0.elapsed());
-                progress.samples.fetch_add(1, Relaxed);
-                report.first_complete.get_or_insert(started.elapsed());
-                *pending = None;
-            }
-            (false, None) => *pending = Some(Instant::now()),
-            _ => {}
-        }
-    };
-    let mut stop = cfg.stop.clone();
-    // Without a sender (nobody can stop the bots early) `changed` would return at once: listen only while one lives.
-    let mut stoppable = stop.has_changed().is_ok();
-    while Instant::now() < walk_until && !*stop.borrow() {
-        tokio::select! {
-            r = stop.changed(), if stoppable => stoppable = r.is_ok(),
-            ev = conn.next_event() => {
-                if let crate::state::Event::Records { count, .. } = ev? {
-                    progress.records.fetch_add(count as u64, Relaxed);
-                }
-                while let Some(ev) = conn.try_next_event() {
-                    if let crate::state::Event::Records { count, .. } = ev? {
-                        progress.records.fetch_add(count as u64, Relaxed);
-                    }
-                }
-                note(conn, &mut pending, &mut complete, report);
-            }
-            _ = tick.tick() => {
-                let now = Instant::now();
-                let dt = now.duration_since(last).as_secs_f32();
-                last = now;
-                let teleported = walker.step(dt);
-                let p = walker.position();
-                let moved = ((p[0] - sent_at[0]).powi(2) + (p[1] - sent_at[1]).powi(2)).sqrt();
-                let turned = (walker.yaw() - sent_yaw).abs() > 0.25;
-                if teleported || moved >= min_move || turned {
-                    conn.set_viewpoint(vp(&walker, cfg.radius)).await?;
-                    report.viewpoints += 1;
-                    sent_at = p;
-                    sent_yaw = walker.yaw();
-                    note(conn, &mut pending, &mut complete, report);
-                }
-            }
-        }
-    }
-    // Stop: a viewpoint at rest, then wait for the area of interest to fill.
-    let mut rest = vp(&walker, cfg.radius);
-    rest.velocity = [0.0, 0.0];
-    conn.set_viewpoint(rest).await?;
-    report.viewpoints += 1;
-    note(conn, &mut pending, &mut complete, report);
-    let deadline = tokio::time::Instant::now() + cfg.settle;
-    while !conn.state().is_complete() {
-        match tokio::time::timeout_at(deadline, conn.next_event()).await {
-            Ok(ev) => {
-                if let crate::state::Event::Records { count, .. } = ev? {
-                    progress.records.fetch_add(count as u64, Relaxed);
-                }
-            }
-            Err(_) => return Err(ClientError::Timeout("waiting for a complete area of interest at the end")),
-        }
-    }
-    note(conn, &mut pending, &mut complete, report);
-    report.complete = true;
-    Ok(())
 }
 
 /// Everything a bots run measured.
@@ -577,7 +680,7 @@ impl BotsSummary {
     /// Summarise bot reports.
     pub fn new(reports: &[BotReport], wall: Duration) -> BotsSummary {
         let records: u64 = reports.iter().map(|r| r.records).sum();
-        let batch: u64 = reports.iter().map(|r| r.batch_bytes).sum();
+        let batch: u64 = reports.iter().map(|r| r.frame_bytes[2]).sum();
         let udp: u64 = reports.iter().map(|r| r.udp_bytes).sum();
         let per = |b: u64| if records == 0 { 0.0 } else { b as f64 / records as f64 };
         let checked: Vec<_> = reports.iter().filter_map(|r| r.verify.as_ref()).collect();
@@ -657,10 +760,18 @@ impl std::fmt::Display for BotsSummary {
     }
 }
 
+/// Wait for every bot's task, in order; a task that panicked or was cancelled becomes `failed(index, why)`.
+pub async fn join<T>(tasks: Vec<tokio::task::JoinHandle<T>>, failed: impl Fn(usize, String) -> T) -> Vec<T> {
+    let mut out = Vec::with_capacity(tasks.len());
+    for (id, t) in tasks.into_iter().enumerate() {
+        out.push(t.await.unwrap_or_else(|e| failed(id, format!("bot task: {e}"))));
+    }
+    out
+}
+
 /// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report.
 pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotReport>, ClientError> {
-    let bind: SocketAddr =
-        if cfg.connect.server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
+    let bind = crate::net::loopback_for(cfg.connect.server);
     let endpoints: Vec<Endpoint> =
         (0..cfg.endpoints.max(1)).map(|_| crate::net::endpoint(bind)).collect::<Result<_, _>>()?;
     let cache = match &cfg.cache_dir {
@@ -681,14 +792,7 @@ pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotRepo
             run_bot(id, endpoint, cfg, cache, progress).await
         }));
     }
-    let mut reports = Vec::with_capacity(tasks.len());
-    for (id, t) in tasks.into_iter().enumerate() {
-        reports.push(t.await.unwrap_or_else(|e| BotReport {
-            id,
-            error: Some(format!("bot task: {e}")),
-            ..Default::default()
-        }));
-    }
+    let reports = join(tasks, |id, error| BotReport { id, error: Some(error), ..Default::default() }).await;
     for e in &endpoints {
         e.wait_idle().await;
     }

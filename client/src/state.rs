@@ -136,8 +136,6 @@ pub struct ClientStats {
     pub species_duplicates: u32,
     /// Instance records received.
     pub records: u64,
-    /// Records received again for an instance already held in the same grant (the protocol promises none).
-    pub duplicate_records: u64,
     /// Batches received.
     pub batches: u64,
     /// Batches dropped as stale or evicted.
@@ -146,10 +144,9 @@ pub struct ClientStats {
     pub releases: u64,
     /// Cells the client evicted by distance before the server's release.
     pub evicted: u64,
-    /// Explicit-geometry chunks received (bandwidth baselines).
-    pub geometry_chunks: u64,
-    /// Explicit-geometry payload bytes received (bandwidth baselines).
-    pub geometry_bytes: u64,
+    /// Explicit-geometry payload bytes received (bandwidth baselines), by kind: instance meshes, species meshes,
+    /// transforms (the frames that carried them are the connection's geometry class).
+    pub geometry_bytes: [u64; 3],
 }
 
 /// The client's view of its session (see the module docs).
@@ -324,8 +321,7 @@ impl ClientState {
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
                 // the session's bookkeeping tracks.
-                self.stats.geometry_chunks += 1;
-                self.stats.geometry_bytes += g.bytes.len() as u64;
+                self.stats.geometry_bytes[g.kind as usize] += g.bytes.len() as u64;
                 Ok(Event::Geometry { kind: g.kind, id: g.id, offset: g.offset, total: g.total, bytes: g.bytes.len() })
             }
         }
@@ -369,10 +365,8 @@ impl ClientState {
                 return Ok(Event::Dropped);
             }
             Some(h) if h.grant == b.grant => {
+                // Records received again (the protocol promises none) or a gap: the batch is an error.
                 if b.start != h.records.len() as u16 || b.total != h.total || b.first_id != h.first_id {
-                    if usize::from(b.start) < h.records.len() {
-                        self.stats.duplicate_records += b.records.len() as u64;
-                    }
                     return Err(order(h.records.len() as u16));
                 }
             }
@@ -560,6 +554,9 @@ mod tests {
         assert!(matches!(s.handle(batch(c, 1, 2, 2, 4)), Err(StateError::Order { expected: 0, .. })));
         s.handle(batch(c, 1, 0, 2, 4)).unwrap();
         assert!(matches!(s.handle(batch(c, 1, 3, 1, 4)), Err(StateError::Order { expected: 2, .. })));
+        // Records received twice are rejected too (whole batch again, or overlapping the held ones).
+        assert!(matches!(s.handle(batch(c, 1, 0, 2, 4)), Err(StateError::Order { expected: 2, .. })));
+        assert!(matches!(s.handle(batch(c, 1, 1, 2, 4)), Err(StateError::Order { expected: 2, .. })));
         assert!(!s.is_complete());
         assert_eq!(s.handle(batch(c, 1, 2, 2, 4)), Ok(Event::Records { cell: c, count: 2, complete: true }));
         assert!(s.is_complete());

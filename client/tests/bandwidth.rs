@@ -42,11 +42,11 @@ fn short_run_writes_a_consistent_report() {
         let b = r.bytes();
         assert_eq!(b.class_sum(), b.total(), "{}: classes add up to the wire", r.scenario.name);
         for bot in &r.bots {
-            assert!(bot.error.is_none(), "{}: {:?}", r.scenario.name, bot.error);
+            assert!(bot.bot.error.is_none(), "{}: {:?}", r.scenario.name, bot.bot.error);
             let x = &bot.bytes;
             assert_eq!(x.class_sum(), x.total());
             assert!(x.species + x.records + x.geometry <= x.udp_rx, "frames fit in the datagrams");
-            assert!(bot.records > 0, "{}: records arrived", r.scenario.name);
+            assert!(bot.bot.records > 0, "{}: records arrived", r.scenario.name);
             assert!(!bot.samples.is_empty());
             for w in bot.samples.windows(2) {
                 assert!(w[0].t <= w[1].t && w[0].bytes.total() <= w[1].bytes.total(), "samples grow");
@@ -63,10 +63,10 @@ fn short_run_writes_a_consistent_report() {
     // and the client agree).
     for r in [plain, lossy] {
         let bot = &r.bots[0];
-        assert!(bot.complete, "{}: complete at the end", r.scenario.name);
+        assert!(bot.bot.complete, "{}: complete at the end", r.scenario.name);
         let last = bot.samples.last().unwrap();
         assert!(last.aoi_complete && last.visible > 0 && last.held == last.visible, "{}: {last:?}", r.scenario.name);
-        assert!(bot.first_complete.is_some());
+        assert!(bot.first_complete().is_some());
         assert_eq!(r.bytes().geometry, 0);
         assert!(r.bytes().species > 0);
     }

@@ -5,14 +5,16 @@
 //! sees a slow, lossy, distant link and its congestion control has to cope.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Duration;
 
 use tokio::net::UdpSocket;
-use tokio::sync::{Mutex, mpsc};
+use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
+
+use crate::bots::Rng;
 
 /// IPv4 + UDP header bytes, counted against the rate like the payload.
 pub const HEADER_BYTES: usize = 28;
@@ -68,11 +70,6 @@ impl LinkSpec {
         }
         s
     }
-
-    /// Bytes the bottleneck queue holds.
-    pub fn queue_bytes(&self) -> Option<usize> {
-        self.rate.map(|r| ((r as f64 / 8.0 * self.queue.as_secs_f64()) as usize).max(4 * 1500))
-    }
 }
 
 /// Parse a rate: `56k`, `1M`, `10M`, `2.5M`, `800000` (bits per second), or `none`/`0` for unlimited.
@@ -107,8 +104,6 @@ pub struct DirectionStats {
     pub overflow: AtomicU64,
     /// Packets delivered.
     pub delivered: AtomicU64,
-    /// Their bytes (UDP payload).
-    pub delivered_bytes: AtomicU64,
 }
 
 /// Counters of a link: server → client (`down`) and client → server (`up`).
@@ -125,7 +120,7 @@ pub struct LinkStats {
 pub struct Shaper {
     spec: LinkSpec,
     free_at: Option<Instant>,
-    rng: u64,
+    rng: Rng,
 }
 
 /// What the shaper decided for one packet.
@@ -142,17 +137,12 @@ pub enum Verdict {
 impl Shaper {
     /// A shaper for `spec`, losses drawn from `seed`.
     pub fn new(spec: LinkSpec, seed: u64) -> Shaper {
-        Shaper { spec, free_at: None, rng: seed }
-    }
-
-    fn unit(&mut self) -> f64 {
-        self.rng = self.rng.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        (canopy_worlds::rng::mix64(self.rng) >> 11) as f64 / (1u64 << 53) as f64
+        Shaper { spec, free_at: None, rng: Rng(seed) }
     }
 
     /// Decide the fate of a packet of `len` bytes arriving at `now`.
     pub fn admit(&mut self, now: Instant, len: usize) -> Verdict {
-        if self.spec.loss > 0.0 && self.unit() < self.spec.loss {
+        if self.spec.loss > 0.0 && self.rng.unit_f64() < self.spec.loss {
             return Verdict::Lost;
         }
         let Some(rate) = self.spec.rate else { return Verdict::Deliver(now + self.spec.latency) };
@@ -187,81 +177,39 @@ impl Drop for Relay {
 impl Relay {
     /// Start a relay on loopback towards `server` (one client per relay).
     pub async fn start(server: SocketAddr, spec: LinkSpec, seed: u64) -> std::io::Result<Relay> {
-        let bind: SocketAddr = if server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
+        let bind = crate::net::loopback_for(server);
         let front = Arc::new(UdpSocket::bind(bind).await?);
         let back = Arc::new(UdpSocket::bind(bind).await?);
         back.connect(server).await?;
         let addr = front.local_addr()?;
         let stats = Arc::new(LinkStats::default());
-        let client: Arc<Mutex<Option<SocketAddr>>> = Arc::new(Mutex::new(None));
-        let mut tasks = Vec::new();
-        // Up: client → front → shaper → back → server.
+        // The client's address, from its first datagram (one client per relay).
+        let client: Arc<OnceLock<SocketAddr>> = Arc::default();
         let (up_tx, up_rx) = mpsc::channel::<(Instant, Vec<u8>)>(MAX_IN_FLIGHT);
-        {
-            let (front, client, stats) = (Arc::clone(&front), Arc::clone(&client), Arc::clone(&stats));
-            let mut shaper = Shaper::new(spec, seed ^ 0x5550);
-            tasks.push(tokio::spawn(async move {
-                let mut buf = vec![0u8; MAX_DATAGRAM];
-                loop {
-                    let Ok((n, from)) = front.recv_from(&mut buf).await else { return };
-                    *client.lock().await = Some(from);
-                    stats.up.packets.fetch_add(1, Relaxed);
-                    stats.up.bytes.fetch_add(n as u64, Relaxed);
-                    match shaper.admit(Instant::now(), n) {
-                        Verdict::Deliver(at) => {
-                            if up_tx.try_send((at, buf[..n].to_vec())).is_err() {
-                                stats.up.overflow.fetch_add(1, Relaxed);
-                            }
-                        }
-                        Verdict::Lost => drop(stats.up.lost.fetch_add(1, Relaxed)),
-                        Verdict::Overflow => drop(stats.up.overflow.fetch_add(1, Relaxed)),
-                    }
-                }
-            }));
-        }
-        {
-            let (back, stats) = (Arc::clone(&back), Arc::clone(&stats));
-            tasks.push(tokio::spawn(deliver(up_rx, stats, true, move |p| {
-                let back = Arc::clone(&back);
-                async move { back.send(&p).await.is_ok() }
-            })));
-        }
-        // Down: server → back → shaper → front → client.
         let (down_tx, down_rx) = mpsc::channel::<(Instant, Vec<u8>)>(MAX_IN_FLIGHT);
-        {
-            let (back, stats) = (Arc::clone(&back), Arc::clone(&stats));
-            let mut shaper = Shaper::new(spec, seed ^ 0x444f);
-            tasks.push(tokio::spawn(async move {
-                let mut buf = vec![0u8; MAX_DATAGRAM];
-                loop {
-                    let Ok(n) = back.recv(&mut buf).await else { return };
-                    stats.down.packets.fetch_add(1, Relaxed);
-                    stats.down.bytes.fetch_add(n as u64, Relaxed);
-                    match shaper.admit(Instant::now(), n) {
-                        Verdict::Deliver(at) => {
-                            if down_tx.try_send((at, buf[..n].to_vec())).is_err() {
-                                stats.down.overflow.fetch_add(1, Relaxed);
-                            }
-                        }
-                        Verdict::Lost => drop(stats.down.lost.fetch_add(1, Relaxed)),
-                        Verdict::Overflow => drop(stats.down.overflow.fetch_add(1, Relaxed)),
-                    }
+        let (up_shaper, down_shaper) = (Shaper::new(spec, seed ^ 0x5550), Shaper::new(spec, seed ^ 0x444f));
+        let tasks = vec![
+            // Up: client → front → shaper → back → server.
+            spawn_ingress(Arc::clone(&front), Some(Arc::clone(&client)), Arc::clone(&stats), up_shaper, up_tx),
+            tokio::spawn(deliver(up_rx, Arc::clone(&stats), true, {
+                let back = Arc::clone(&back);
+                move |p| {
+                    let back = Arc::clone(&back);
+                    async move { back.send(&p).await.is_ok() }
                 }
-            }));
-        }
-        {
-            let (front, stats) = (Arc::clone(&front), Arc::clone(&stats));
-            tasks.push(tokio::spawn(deliver(down_rx, stats, false, move |p| {
-                let (front, client) = (Arc::clone(&front), Arc::clone(&client));
+            })),
+            // Down: server → back → shaper → front → client.
+            spawn_ingress(Arc::clone(&back), None, Arc::clone(&stats), down_shaper, down_tx),
+            tokio::spawn(deliver(down_rx, Arc::clone(&stats), false, move |p| {
+                let (front, to) = (Arc::clone(&front), client.get().copied());
                 async move {
-                    let to = *client.lock().await;
                     match to {
                         Some(to) => front.send_to(&p, to).await.is_ok(),
                         None => false,
                     }
                 }
-            })));
-        }
+            })),
+        ];
         Ok(Relay { addr, stats, tasks })
     }
 
@@ -276,6 +224,45 @@ impl Relay {
     }
 }
 
+/// One direction's way in: read datagrams from `socket` (from the client, whose address is noted in `client`, or
+/// from the server when `client` is `None`), count them, and queue what the shaper admits for delivery.
+fn spawn_ingress(
+    socket: Arc<UdpSocket>,
+    client: Option<Arc<OnceLock<SocketAddr>>>,
+    stats: Arc<LinkStats>,
+    mut shaper: Shaper,
+    tx: mpsc::Sender<(Instant, Vec<u8>)>,
+) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let dir = if client.is_some() { &stats.up } else { &stats.down };
+        let mut buf = vec![0u8; MAX_DATAGRAM];
+        loop {
+            let n = match &client {
+                Some(client) => {
+                    let Ok((n, from)) = socket.recv_from(&mut buf).await else { return };
+                    client.get_or_init(|| from);
+                    n
+                }
+                None => {
+                    let Ok(n) = socket.recv(&mut buf).await else { return };
+                    n
+                }
+            };
+            dir.packets.fetch_add(1, Relaxed);
+            dir.bytes.fetch_add(n as u64, Relaxed);
+            match shaper.admit(Instant::now(), n) {
+                Verdict::Deliver(at) => {
+                    if tx.try_send((at, buf[..n].to_vec())).is_err() {
+                        dir.overflow.fetch_add(1, Relaxed);
+                    }
+                }
+                Verdict::Lost => drop(dir.lost.fetch_add(1, Relaxed)),
+                Verdict::Overflow => drop(dir.overflow.fetch_add(1, Relaxed)),
+            }
+        }
+    })
+}
+
 async fn deliver<F, Fut>(mut rx: mpsc::Receiver<(Instant, Vec<u8>)>, stats: Arc<LinkStats>, up: bool, send: F)
 where
     F: Fn(Vec<u8>) -> Fut,
@@ -284,10 +271,8 @@ where
     let dir = if up { &stats.up } else { &stats.down };
     while let Some((at, packet)) = rx.recv().await {
         tokio::time::sleep_until(at).await;
-        let n = packet.len() as u64;
         if send(packet).await {
             dir.delivered.fetch_add(1, Relaxed);
-            dir.delivered_bytes.fetch_add(n, Relaxed);
         }
     }
 }

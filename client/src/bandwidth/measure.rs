@@ -2,7 +2,11 @@
 //! the UDP totals (so the classes add up to the bytes on the wire exactly), visible completeness against the
 //! world's ground truth, and the per-bot time series and summaries.
 
+use std::ops::Range;
+use std::sync::Arc;
+
 use canopy_protocol::CellCoord;
+use canopy_protocol::aoi::Grid;
 use canopy_worlds::world::{CellKey, World};
 
 use crate::state::ClientState;
@@ -64,110 +68,88 @@ impl Bytes {
         self.udp_rx += o.udp_rx;
         self.udp_tx += o.udp_tx;
     }
-
-    /// The bytes an explicit baseline would not need: the instance records it also sends so that the harness can
-    /// count what the client holds (placement is already in its geometry or transforms).
-    pub fn without_records(&self) -> u64 {
-        self.total() - self.records
-    }
 }
 
-/// Where every instance of the world stands, by cell: the ground truth visible completeness is measured against.
+/// The ground truth visible completeness is measured against: the world itself, read cell by cell over the cells
+/// within view distance (the area of interest's [`Grid`]).
 #[derive(Clone, Debug)]
 pub struct GroundTruth {
-    cell_size: f32,
-    min: CellKey,
-    dims: [u32; 2],
-    /// `starts[i]..starts[i + 1]`: the ids of the `i`-th cell in row-major order.
-    starts: Vec<u32>,
-    /// (x, z) by instance id.
-    positions: Vec<[f32; 2]>,
+    world: Arc<World>,
+    grid: Grid,
 }
 
 impl GroundTruth {
     /// The ground truth of a world.
-    pub fn from_world(world: &World) -> GroundTruth {
-        let dims = world.cell_dims();
-        let min = world.first_cell();
-        let mut starts = Vec::with_capacity(dims[0] as usize * dims[1] as usize + 1);
-        for z in 0..dims[1] as i32 {
-            for x in 0..dims[0] as i32 {
-                starts.push(world.cell_instances(CellKey { x: min.x + x, z: min.z + z }).start);
-            }
-        }
-        starts.push(world.instances.len() as u32);
-        let positions = world.instances.iter().map(|p| [p.x, p.z]).collect();
-        GroundTruth { cell_size: world.cell_size, min, dims, starts, positions }
-    }
-
-    /// A ground truth from cells in row-major order (`dims[0]` per row) starting at cell `min`: each cell's
-    /// instance positions, ids consecutive.
-    pub fn new(cell_size: f32, min: CellKey, dims: [u32; 2], cells: &[Vec<[f32; 2]>]) -> GroundTruth {
-        assert_eq!(cells.len(), dims[0] as usize * dims[1] as usize, "one entry per cell");
-        let mut starts = vec![0u32];
-        let mut positions = Vec::new();
-        for c in cells {
-            positions.extend_from_slice(c);
-            starts.push(positions.len() as u32);
-        }
-        GroundTruth { cell_size, min, dims, starts, positions }
+    pub fn new(world: Arc<World>) -> GroundTruth {
+        let (first, dims) = (world.first_cell(), world.cell_dims());
+        let grid = Grid {
+            origin: world.cell_origin(CellKey { x: 0, z: 0 }),
+            cell_size: world.cell_size,
+            min: CellCoord::new(first.x, first.z),
+            max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
+        };
+        GroundTruth { world, grid }
     }
 
     /// Instances in the world.
     pub fn len(&self) -> usize {
-        self.positions.len()
+        self.world.instances.len()
     }
 
     /// Whether the world has no instances.
     pub fn is_empty(&self) -> bool {
-        self.positions.is_empty()
+        self.world.instances.is_empty()
     }
 
-    /// The cell of instance `id`.
-    pub fn cell_of(&self, id: u32) -> CellCoord {
-        let i = self.starts.partition_point(|&s| s <= id) - 1;
-        let w = self.dims[0] as usize;
-        CellCoord::new(self.min.x + (i % w) as i32, self.min.z + (i / w) as i32)
+    /// Call `f` with each cell within `distance` of `p` and the ids of its instances within `distance` of `p` (on
+    /// the ground plane; the boundary counts), cells in row-major order, ids in increasing order.
+    fn each_cell(&self, p: [f32; 2], distance: f32, mut f: impl FnMut(CellCoord, &mut dyn Iterator<Item = u32>)) {
+        let d2 = distance * distance;
+        let mut cells = Vec::new();
+        self.grid.cells_within(p, distance, &mut cells);
+        for c in cells {
+            let ids = self.world.cell_instances(CellKey { x: c.x, z: c.z });
+            let instances = &self.world.instances;
+            let mut near = ids.filter(|&id| {
+                let q = &instances[id as usize];
+                let (dx, dz) = (q.x - p[0], q.z - p[1]);
+                dx * dx + dz * dz <= d2
+            });
+            f(c, &mut near);
+        }
     }
 
     /// Ids of the instances within `distance` of `p` (on the ground plane), in increasing order.
     pub fn visible(&self, p: [f32; 2], distance: f32) -> Vec<u32> {
-        let d2 = distance * distance;
-        let cell = |v: f32, lo: i32, n: u32| ((v / self.cell_size).floor() as i64 - i64::from(lo)).clamp(0, i64::from(n) - 1);
-        if self.dims[0] == 0 || self.dims[1] == 0 {
-            return Vec::new();
-        }
-        let (x0, x1) = (cell(p[0] - distance, self.min.x, self.dims[0]), cell(p[0] + distance, self.min.x, self.dims[0]));
-        let (z0, z1) = (cell(p[1] - distance, self.min.z, self.dims[1]), cell(p[1] + distance, self.min.z, self.dims[1]));
         let mut out = Vec::new();
-        for z in z0..=z1 {
-            for x in x0..=x1 {
-                let i = z as usize * self.dims[0] as usize + x as usize;
-                for id in self.starts[i]..self.starts[i + 1] {
-                    let q = self.positions[id as usize];
-                    let (dx, dz) = (q[0] - p[0], q[1] - p[1]);
-                    if dx * dx + dz * dz <= d2 {
-                        out.push(id);
-                    }
-                }
-            }
-        }
+        self.each_cell(p, distance, |_, ids| out.extend(ids));
         out
     }
 }
 
-/// Whether a client holds instance `id`: its cell is held and the record has arrived.
-pub fn holds(state: &ClientState, truth: &GroundTruth, id: u32) -> bool {
-    let cell = truth.cell_of(id);
-    state.cells().get(&cell).is_some_and(|h| id >= h.first_id && ((id - h.first_id) as usize) < h.records.len())
+/// The ids a client holds in cell `c`: its cell's records that have arrived (empty if the cell is not held).
+pub fn held_ids(state: &ClientState, c: CellCoord) -> Range<u32> {
+    state.cells().get(&c).map_or(0..0, |h| h.first_id..h.first_id + h.records.len() as u32)
 }
 
-/// Visible completeness: of the instances within `distance` of `p`, how many `held` says the client holds.
+/// Visible completeness: of the instances within `distance` of `p`, how many the client holds, where `held(c)`
+/// gives the ids it holds in cell `c` (as [`held_ids`] reads them from a client's state; asked once per cell).
 /// Returns `(visible, held)`.
-pub fn completeness(truth: &GroundTruth, p: [f32; 2], distance: f32, held: impl Fn(u32) -> bool) -> (usize, usize) {
-    let visible = truth.visible(p, distance);
-    let n = visible.iter().filter(|&&id| held(id)).count();
-    (visible.len(), n)
+pub fn completeness(
+    truth: &GroundTruth,
+    p: [f32; 2],
+    distance: f32,
+    held: impl Fn(CellCoord) -> Range<u32>,
+) -> (usize, usize) {
+    let (mut visible, mut n) = (0, 0);
+    truth.each_cell(p, distance, |c, ids| {
+        let have = held(c);
+        for id in ids {
+            visible += 1;
+            n += usize::from(have.contains(&id));
+        }
+    });
+    (visible, n)
 }
 
 /// The fraction `held / visible` (1 when nothing is visible).
@@ -284,29 +266,31 @@ mod tests {
         sum.add(&odd);
         assert_eq!(sum.class_sum(), sum.total());
         assert_eq!(sum.total(), b.total() + odd.total());
-        assert_eq!(b.without_records(), b.total() - 10_000);
+    }
+
+    /// A small world of 8 m cells: a species and one instance per `(x, z)`, in that order.
+    fn world(bounds: &str, at: &[[f32; 2]]) -> Arc<World> {
+        let mut src = format!("seed 1\nbounds {bounds}\ncell 8\nspecies worm worm\n");
+        for [x, z] in at {
+            src += &format!("instance worm at {x} {z}\n");
+        }
+        let file = canopy_worlds::diag::SourceFile::new("test.world", &src);
+        Arc::new(World::parse(&file, None).unwrap_or_else(|d| panic!("{d}")))
     }
 
     fn truth() -> GroundTruth {
-        // 2 × 2 cells of 10 m from (-1, 0): ids 0..2 in the first, 2 in the second, none, 3..5 in the last.
-        let cells = vec![
-            vec![[-5.0, 5.0], [-1.0, 1.0]],
-            vec![[5.0, 5.0]],
-            vec![],
-            vec![[1.0, 11.0], [9.0, 19.0]],
-        ];
-        GroundTruth::new(10.0, CellKey { x: -1, z: 0 }, [2, 2], &cells)
+        // 3 × 3 cells of 8 m from (-1, 0): ids 0..2 in the first, 2 in the next, 3 in (0, 1), 4 in (1, 2).
+        let w = world("-8 0 16 24", &[[-5.0, 5.0], [-1.0, 1.0], [5.0, 5.0], [1.0, 11.0], [9.0, 19.0]]);
+        for (id, cell) in [(0, (-1, 0)), (1, (-1, 0)), (2, (0, 0)), (3, (0, 1)), (4, (1, 2))] {
+            assert!(w.cell_instances(CellKey { x: cell.0, z: cell.1 }).contains(&id), "instance {id} in cell {cell:?}");
+        }
+        GroundTruth::new(w)
     }
 
     #[test]
     fn ground_truth_finds_cells_and_visible_instances() {
         let t = truth();
         assert_eq!(t.len(), 5);
-        assert_eq!(t.cell_of(0), CellCoord::new(-1, 0));
-        assert_eq!(t.cell_of(1), CellCoord::new(-1, 0));
-        assert_eq!(t.cell_of(2), CellCoord::new(0, 0));
-        assert_eq!(t.cell_of(3), CellCoord::new(0, 1));
-        assert_eq!(t.cell_of(4), CellCoord::new(0, 1));
         assert_eq!(t.visible([0.0, 0.0], 2.0), vec![1]);
         assert_eq!(t.visible([0.0, 5.0], 6.0), vec![0, 1, 2]);
         // (1, 11) is √37 > 6 away; from a little higher up it is in.
@@ -320,9 +304,15 @@ mod tests {
     #[test]
     fn completeness_counts_what_is_held_of_what_is_visible() {
         let t = truth();
-        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |id| id % 2 == 0), (4, 2));
-        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| true), (4, 4));
-        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| false), (4, 0));
+        // Of the visible 0..4: the even ids (the first of cell (-1, 0), cell (0, 0)'s only one).
+        let even = |c: CellCoord| match (c.x, c.z) {
+            (-1, 0) => 0..1,
+            (0, 0) => 2..3,
+            _ => 0..0,
+        };
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, even), (4, 2));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| 0..u32::MAX), (4, 4));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| 0..0), (4, 0));
         assert_eq!(fraction(4, 2), 0.5);
         assert_eq!(fraction(0, 0), 1.0);
         let s = |t, visible, held| Sample {
@@ -342,21 +332,22 @@ mod tests {
     }
 
     #[test]
-    fn holds_reads_the_client_state() {
-        use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+    fn held_ids_read_the_client_state() {
+        use canopy_protocol::aoi::{AoiParams, Viewpoint};
         use canopy_protocol::messages::{ServerHandshake, ServerStreaming, TerrainDesc, Welcome, WorldInfo};
         use canopy_protocol::messages::SpeciesEntry;
         use canopy_protocol::{CellBatch, InstanceRecord, POSITION_STEPS, PROTOCOL_VERSION, ServerMsg, SpeciesHash};
         let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap().encode();
         // Cell (-1, 0) holds ids 0..10, cell (0, 0) ids 10..14.
-        let cells = vec![vec![[-5.0, 5.0]; 10], vec![[5.0, 5.0]; 4]];
-        let t = GroundTruth::new(10.0, CellKey { x: -1, z: 0 }, [2, 1], &cells);
-        let grid = Grid { origin: [0.0, 0.0], cell_size: 10.0, min: CellCoord::new(-1, 0), max: CellCoord::new(0, 0) };
+        let at: Vec<[f32; 2]> = [[-5.0, 5.0]; 10].into_iter().chain([[5.0, 5.0]; 4]).collect();
+        let t = GroundTruth::new(world("-8 0 8 8", &at));
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 8.0, min: CellCoord::new(-1, 0), max: CellCoord::new(0, 0) };
+        assert_eq!(grid, t.grid);
         let terrain = TerrainDesc {
             graph: None,
             seed: 0,
-            origin: [-10.0, 0.0],
-            tile_size: 20.0,
+            origin: [-8.0, 0.0],
+            tile_size: 16.0,
             tiles: [1, 1],
             depth: 0,
             corners: vec![0.0; 4],
@@ -371,15 +362,16 @@ mod tests {
         let mut state = ClientState::new();
         state.hello("t").unwrap();
         state.on_welcome(ServerMsg::Handshake(ServerHandshake::Welcome(welcome))).unwrap();
-        // Radius 4 at the centre of cell (0, 0): the area of interest is that cell alone.
-        state.ready(Viewpoint::at(0, [5.0, 5.0], 4.0)).unwrap();
-        assert!(!(0..14).any(|id| holds(&state, &t, id)));
+        // Radius 3 at the centre of cell (0, 0): the area of interest is that cell alone.
+        state.ready(Viewpoint::at(0, [4.0, 4.0], 3.0)).unwrap();
+        let cells = [CellCoord::new(-1, 0), CellCoord::new(0, 0)];
+        assert!(cells.iter().all(|&c| held_ids(&state, c).is_empty()));
         let records: Vec<InstanceRecord> = (0..2).map(|i| InstanceRecord::new(0, i, i)).collect();
         let batch = CellBatch::new(CellCoord::new(0, 0), 1, 10, 4, 0, records, &[]);
         state.handle(ServerMsg::Streaming(ServerStreaming::Cells(batch))).unwrap();
-        let held: Vec<u32> = (0..14).filter(|&id| holds(&state, &t, id)).collect();
+        let held: Vec<u32> = cells.iter().flat_map(|&c| held_ids(&state, c)).collect();
         assert_eq!(held, vec![10, 11]);
         // Everything visible from the cell's centre within 8 m is in that cell: 2 of 4 held.
-        assert_eq!(completeness(&t, [5.0, 5.0], 8.0, |id| holds(&state, &t, id)), (4, 2));
+        assert_eq!(completeness(&t, [4.0, 4.0], 8.0, |c| held_ids(&state, c)), (4, 2));
     }
 }

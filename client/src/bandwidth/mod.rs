@@ -21,14 +21,13 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
-use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::messages::GeometryKind;
 use canopy_server::session::{GeometrySource, Payload, PayloadMode, SessionConfig};
 use canopy_server::{GridStore, Server, ServerConfig, WorldStore};
 use canopy_worlds::world::World;
 use quinn::Endpoint;
 
-use crate::bots::{PathKind, Walker, grid_rect};
+use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, PathKind, Walker};
 use crate::net::{ClientError, ConnectConfig, Connection, Trust};
 use crate::state::Event;
 use geometry::{MeshSource, SourceStats};
@@ -178,10 +177,9 @@ pub struct LinkTotals {
 /// What one bot measured.
 #[derive(Clone, Debug, Default)]
 pub struct BotResult {
-    /// Bot index.
-    pub id: usize,
-    /// Why it stopped early, if it did.
-    pub error: Option<String>,
+    /// What any bot reports: index, why it stopped early (if it did), records received and held, time to its
+    /// first complete area of interest, whether it ended complete.
+    pub bot: BotReport,
     /// Its samples, in time order.
     pub samples: Vec<Sample>,
     /// Its bytes at the end.
@@ -193,23 +191,20 @@ pub struct BotResult {
     /// Instance meshes whose first chunk arrived, and the sum of their sizes as the chunks announce them
     /// (baseline 1: the per-instance cost is known before a whole mesh is through a slow link).
     pub mesh_headers: (u64, u64),
-    /// Instance records received.
-    pub records: u64,
-    /// Instance records held at the end.
-    pub held: usize,
-    /// Seconds from starting to connect to the first complete area of interest.
-    pub first_complete: Option<f64>,
     /// When it teleported (seconds since the scenario started).
     pub teleported_at: Option<f64>,
     /// Seconds from the teleport to the next complete area of interest.
     pub teleport_complete: Option<f64>,
-    /// Whether it ended with a complete area of interest.
-    pub complete: bool,
     /// The link's counters (`None`: not behind an emulated link).
     pub link: Option<LinkTotals>,
 }
 
 impl BotResult {
+    /// Seconds from starting to connect to the first complete area of interest.
+    pub fn first_complete(&self) -> Option<f64> {
+        self.bot.first_complete.map(|d| d.as_secs_f64())
+    }
+
     /// Visible completeness while walking with its area of interest filled once (excluding the initial fill and
     /// the refill after the teleport, which the two times to complete measure).
     pub fn walking(&self) -> CompletenessStats {
@@ -249,7 +244,7 @@ impl ScenarioResult {
 
     /// All bots' records received.
     pub fn records(&self) -> u64 {
-        self.bots.iter().map(|b| b.records).sum()
+        self.bots.iter().map(|b| b.bot.records).sum()
     }
 
     /// Wire bytes per instance record received (all bytes, both directions).
@@ -304,7 +299,7 @@ impl ScenarioResult {
 
     /// The slowest bot's time to its first complete area of interest (`None` if one never got there).
     pub fn first_complete(&self) -> Option<f64> {
-        self.bots.iter().map(|b| b.first_complete).try_fold(0.0f64, |m, t| t.map(|t| m.max(t)))
+        self.bots.iter().map(BotResult::first_complete).try_fold(0.0f64, |m, t| t.map(|t| m.max(t)))
     }
 
     /// The slowest bot's time from teleport to complete (`None` if one never got there or none teleported).
@@ -402,9 +397,9 @@ async fn run_bot(
     relay: Option<Relay>,
     p: Arc<BotParams>,
 ) -> BotResult {
-    let mut r = BotResult { id, ..BotResult::default() };
+    let mut r = BotResult { bot: BotReport { id, ..BotReport::default() }, ..BotResult::default() };
     if let Err(e) = bot_session(&mut r, &endpoint, connect, &p).await {
-        r.error = Some(e.to_string());
+        r.bot.error = Some(e.to_string());
     }
     if let Some(relay) = relay {
         let s = relay.stats();
@@ -420,84 +415,43 @@ fn bytes_of(conn: &Connection) -> Bytes {
     Bytes::split(conn.frame_bytes_received(), conn.frame_bytes_sent(), conn.bytes_received(), conn.bytes_sent())
 }
 
-async fn bot_session(
-    r: &mut BotResult,
-    endpoint: &Endpoint,
-    mut connect: ConnectConfig,
-    p: &BotParams,
-) -> Result<(), ClientError> {
-    let (truth, live, t0) = (&*p.truth, &*p.live, p.t0);
-    connect.client_name = format!("bandwidth-{}", r.id);
-    let started = Instant::now();
-    let seed = p.seed.wrapping_add(r.id as u64);
-    let mut walker = None;
-    let mut rect = ([0.0; 2], [0.0; 2]);
-    let place = |w: &canopy_protocol::messages::Welcome| {
-        rect = grid_rect(&w.world.grid, p.radius * 0.5);
-        let wk = Walker::new(PathKind::Line, p.speed, rect.0, rect.1, seed);
-        let vp = Viewpoint { seq: 0, position: wk.position(), yaw: wk.yaw(), velocity: wk.velocity(), radius: p.radius };
-        walker = Some(wk);
-        vp
-    };
-    let mut conn = Connection::connect(endpoint, &connect, None, place).await?;
-    let mut walker = walker.expect("placed in the handshake");
-    if conn.welcome().world.instances as usize != truth.len() {
-        let msg = format!(
-            "the server's world has {} instances, the ground truth {}: not the same world",
-            conn.welcome().world.instances,
-            truth.len()
-        );
-        conn.close();
-        return Err(ClientError::Stream(msg));
-    }
-    let grid = conn.welcome().world.grid;
-    let min_move = (grid.cell_size / 16.0).max(1.0);
-    let vp = |w: &Walker| Viewpoint { seq: 0, position: w.position(), yaw: w.yaw(), velocity: w.velocity(), radius: p.radius };
-    let mut phase = SamplePhase::Start;
-    let mut sent_at = walker.position();
-    let mut sent_yaw = walker.yaw();
-    let walk_until = started + p.duration;
-    let teleport_at = p.teleport.then(|| started + p.duration / 2);
-    let mut teleported: Option<Instant> = None;
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut sample = tokio::time::interval(p.sample);
-    sample.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut last = Instant::now();
-    let mut last_bytes = 0u64;
-    let mut last_records = 0u64;
-    let note = |conn: &Connection, phase: &mut SamplePhase, r: &mut BotResult, teleported: Option<Instant>| {
-        if !conn.state().is_complete() {
-            return;
-        }
-        match *phase {
-            SamplePhase::Start => {
-                r.first_complete = Some(started.elapsed().as_secs_f64());
-                *phase = SamplePhase::Walking;
-            }
-            SamplePhase::Teleported => {
-                r.teleport_complete = teleported.map(|t| t.elapsed().as_secs_f64());
-                *phase = SamplePhase::Walking;
-            }
-            _ => {}
-        }
-    };
-    let take = |conn: &Connection, phase: SamplePhase, pos: [f32; 2]| {
-        let (visible, held) = measure::completeness(truth, pos, p.view, |id| measure::holds(conn.state(), truth, id));
-        Sample {
-            t: t0.elapsed().as_secs_f64(),
+/// A measuring bot's hooks into the drive loop: what arrived by kind, its phase, the teleport, samples.
+struct Measure<'a> {
+    r: &'a mut BotResult,
+    p: &'a BotParams,
+    completion: Completion,
+    phase: SamplePhase,
+    teleport_at: Option<Instant>,
+    teleported: Option<Instant>,
+    last_bytes: u64,
+    last_records: u64,
+}
+
+impl Measure<'_> {
+    fn take(&mut self, conn: &Connection, phase: SamplePhase, pos: [f32; 2]) {
+        let truth = &*self.p.truth;
+        let (visible, held) = measure::completeness(truth, pos, self.p.view, |c| measure::held_ids(conn.state(), c));
+        self.r.samples.push(Sample {
+            t: self.p.t0.elapsed().as_secs_f64(),
             phase,
             position: pos,
             bytes: bytes_of(conn),
             visible,
             held,
             aoi_complete: conn.state().is_complete(),
-        }
-    };
-    let mut geometry = [0u64; 3];
-    let mut headers = (0u64, 0u64);
-    let mut species_ids: Vec<u8> = Vec::new();
-    let mut count = |ev: &Event| {
+        });
+        let b = conn.bytes_received() + conn.bytes_sent();
+        let rec = conn.state().stats().records;
+        self.p.live.bytes.fetch_add(b.saturating_sub(self.last_bytes), Relaxed);
+        self.p.live.records.fetch_add(rec.saturating_sub(self.last_records), Relaxed);
+        self.last_bytes = b;
+        self.last_records = rec;
+    }
+}
+
+impl DriveHooks for Measure<'_> {
+    fn event(&mut self, ev: &Event) {
+        let species_ids = &mut self.r.species_ids;
         if let Event::Species { id, .. } = ev {
             if !species_ids.contains(id) {
                 species_ids.push(*id);
@@ -509,99 +463,95 @@ async fn bot_session(
                 species_ids.push(id);
             }
         }
-        if let Event::Geometry { kind, bytes, offset, total, .. } = ev {
-            if *kind == GeometryKind::InstanceMesh && *offset == 0 {
-                headers.0 += 1;
-                headers.1 += u64::from(*total);
-            }
-            let k = match kind {
-                GeometryKind::InstanceMesh => 0,
-                GeometryKind::SpeciesMesh => 1,
-                GeometryKind::Transforms => 2,
-            };
-            geometry[k] += *bytes as u64;
+        if let Event::Geometry { kind: GeometryKind::InstanceMesh, offset: 0, total, .. } = ev {
+            self.r.mesh_headers.0 += 1;
+            self.r.mesh_headers.1 += u64::from(*total);
         }
-    };
-    let mut live_update = |conn: &Connection| {
-        let b = conn.bytes_received() + conn.bytes_sent();
-        let rec = conn.state().stats().records;
-        live.bytes.fetch_add(b.saturating_sub(last_bytes), Relaxed);
-        live.records.fetch_add(rec.saturating_sub(last_records), Relaxed);
-        last_bytes = b;
-        last_records = rec;
-    };
-    let result: Result<(), ClientError> = async {
-        while Instant::now() < walk_until {
-            tokio::select! {
-                ev = conn.next_event() => {
-                    count(&ev?);
-                    while let Some(ev) = conn.try_next_event() {
-                        count(&ev?);
-                    }
-                    note(&conn, &mut phase, r, teleported);
-                }
-                _ = tick.tick() => {
-                    let now = Instant::now();
-                    let dt = now.duration_since(last).as_secs_f32();
-                    last = now;
-                    walker.step(dt);
-                    let mut jumped = false;
-                    if teleport_at.is_some_and(|t| now >= t) && teleported.is_none() {
-                        // Jump to another walk: a new start and heading, same speed.
-                        walker = Walker::new(PathKind::Line, p.speed, rect.0, rect.1, seed ^ 0x7e1e_0000);
-                        teleported = Some(now);
-                        r.teleported_at = Some(t0.elapsed().as_secs_f64());
-                        phase = SamplePhase::Teleported;
-                        jumped = true;
-                    }
-                    let pos = walker.position();
-                    let moved = ((pos[0] - sent_at[0]).powi(2) + (pos[1] - sent_at[1]).powi(2)).sqrt();
-                    if jumped || moved >= min_move || (walker.yaw() - sent_yaw).abs() > 0.25 {
-                        conn.set_viewpoint(vp(&walker)).await?;
-                        sent_at = pos;
-                        sent_yaw = walker.yaw();
-                        note(&conn, &mut phase, r, teleported);
-                    }
-                }
-                _ = sample.tick() => {
-                    r.samples.push(take(&conn, phase, walker.position()));
-                    live_update(&conn);
-                }
-            }
-        }
-        // Stop: a viewpoint at rest, then wait (sampling) for the area of interest to fill.
-        let mut rest = vp(&walker);
-        rest.velocity = [0.0, 0.0];
-        conn.set_viewpoint(rest).await?;
-        note(&conn, &mut phase, r, teleported);
-        let deadline = tokio::time::Instant::now() + p.settle;
-        while !conn.state().is_complete() {
-            tokio::select! {
-                ev = conn.next_event() => {
-                    count(&ev?);
-                    note(&conn, &mut phase, r, teleported);
-                }
-                _ = sample.tick() => {
-                    r.samples.push(take(&conn, SamplePhase::Settling, walker.position()));
-                    live_update(&conn);
-                }
-                _ = tokio::time::sleep_until(deadline) => break,
-            }
-        }
-        r.samples.push(take(&conn, SamplePhase::Settling, walker.position()));
-        live_update(&conn);
-        Ok(())
     }
-    .await;
-    r.complete = conn.state().is_complete();
+
+    fn changed(&mut self, conn: &Connection) {
+        self.completion.note(conn, &mut self.r.bot);
+        if !conn.state().is_complete() {
+            return;
+        }
+        match self.phase {
+            SamplePhase::Start => self.phase = SamplePhase::Walking,
+            SamplePhase::Teleported => {
+                self.r.teleport_complete = self.teleported.map(|t| t.elapsed().as_secs_f64());
+                self.phase = SamplePhase::Walking;
+            }
+            _ => {}
+        }
+    }
+
+    fn stepped(&mut self, now: Instant, walker: &mut Walker) -> bool {
+        let due = self.teleported.is_none() && self.teleport_at.is_some_and(|t| now >= t);
+        if !due {
+            return false;
+        }
+        // Jump to another walk: a new start and heading, same speed.
+        walker.jump();
+        self.teleported = Some(now);
+        self.r.teleported_at = Some(self.p.t0.elapsed().as_secs_f64());
+        self.phase = SamplePhase::Teleported;
+        true
+    }
+
+    fn sample(&mut self, conn: &Connection, walker: &Walker, settling: bool) {
+        let phase = if settling { SamplePhase::Settling } else { self.phase };
+        self.take(conn, phase, walker.position());
+    }
+}
+
+async fn bot_session(
+    r: &mut BotResult,
+    endpoint: &Endpoint,
+    mut connect: ConnectConfig,
+    p: &BotParams,
+) -> Result<(), ClientError> {
+    connect.client_name = format!("bandwidth-{}", r.bot.id);
+    let started = Instant::now();
+    let seed = p.seed.wrapping_add(r.bot.id as u64);
+    let (mut conn, mut walker) =
+        bots::connect_walking(endpoint, &connect, None, (PathKind::Line, p.speed, p.radius, seed)).await?;
+    if conn.welcome().world.instances as usize != p.truth.len() {
+        let msg = format!(
+            "the server's world has {} instances, the ground truth {}: not the same world",
+            conn.welcome().world.instances,
+            p.truth.len()
+        );
+        conn.close();
+        return Err(ClientError::Stream(msg));
+    }
+    let plan = DrivePlan {
+        radius: p.radius,
+        tick: Duration::from_millis(100),
+        walk_until: started + p.duration,
+        settle: p.settle,
+        sample: Some(p.sample),
+        stop: tokio::sync::watch::channel(false).1,
+    };
+    let mut m = Measure {
+        r: &mut *r,
+        p,
+        completion: Completion::new(started),
+        phase: SamplePhase::Start,
+        teleport_at: p.teleport.then(|| started + p.duration / 2),
+        teleported: None,
+        last_bytes: 0,
+        last_records: 0,
+    };
+    let result = bots::drive(&mut conn, &mut walker, plan, &mut m).await;
+    if result.is_ok() {
+        // The last sample, at rest, whether or not the area of interest filled.
+        m.take(&conn, SamplePhase::Settling, walker.position());
+    }
+    r.geometry = conn.state().stats().geometry_bytes;
+    r.bot.read(&conn);
+    r.bot.complete = conn.state().is_complete();
     r.bytes = bytes_of(&conn);
-    r.geometry = geometry;
-    r.mesh_headers = headers;
-    r.species_ids = species_ids;
-    r.records = conn.state().stats().records;
-    r.held = conn.state().record_count();
     conn.close();
-    result
+    result.map(|_| ())
 }
 
 /// Run one scenario against a server at `server`: a relay per bot when the link is shaped, the bots, their
@@ -614,8 +564,7 @@ async fn run_scenario(
     truth: Arc<GroundTruth>,
     bar: &indicatif::ProgressBar,
 ) -> Result<Vec<BotResult>, BandwidthError> {
-    let bind: SocketAddr = if server.is_ipv6() { "[::1]:0" } else { "127.0.0.1:0" }.parse().expect("literal");
-    let endpoint = crate::net::endpoint(bind)?;
+    let endpoint = crate::net::endpoint(crate::net::loopback_for(server))?;
     let params = Arc::new(BotParams {
         duration: cfg.duration,
         speed: cfg.speed,
@@ -631,6 +580,8 @@ async fn run_scenario(
     });
     let live = Arc::clone(&params.live);
     let t0 = params.t0;
+    // One TLS configuration for all the bots: each one's clone only changes the address (its relay's).
+    let base = ConnectConfig::new(server, trust);
     let mut tasks = Vec::new();
     for id in 0..cfg.bots {
         let (relay, addr) = if scenario.link.is_shaped() {
@@ -640,13 +591,17 @@ async fn run_scenario(
         } else {
             (None, server)
         };
-        let connect = ConnectConfig::new(addr, trust.clone());
+        let mut connect = base.clone();
+        connect.server = addr;
         tasks.push(tokio::spawn(run_bot(id, endpoint.clone(), connect, relay, Arc::clone(&params))));
     }
     let total = (cfg.duration + cfg.settle).as_secs_f64();
     let mut ticker = tokio::time::interval(Duration::from_millis(200));
     let results;
-    let all = futures_join(tasks);
+    let all = bots::join(tasks, |id, error| BotResult {
+        bot: BotReport { id, error: Some(error), ..Default::default() },
+        ..Default::default()
+    });
     tokio::pin!(all);
     loop {
         tokio::select! {
@@ -668,14 +623,6 @@ async fn run_scenario(
     Ok(results)
 }
 
-async fn futures_join(tasks: Vec<tokio::task::JoinHandle<BotResult>>) -> Vec<BotResult> {
-    let mut out = Vec::with_capacity(tasks.len());
-    for (id, t) in tasks.into_iter().enumerate() {
-        out.push(t.await.unwrap_or_else(|e| BotResult { id, error: Some(format!("bot task: {e}")), ..Default::default() }));
-    }
-    out
-}
-
 /// Run every scenario of `cfg` on `world` (the in-process server's world and the ground truth; with an external
 /// server it must be the world that server serves), write the report, and return what was measured.
 pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, BandwidthError> {
@@ -688,7 +635,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         ));
     }
     let started = Instant::now();
-    let truth = Arc::new(GroundTruth::from_world(&world));
+    let truth = Arc::new(GroundTruth::new(Arc::clone(&world)));
     // The server and the bots run on separate runtimes, so that a server encoding meshes (baseline 1) does not
     // delay the bots' clocks, samples and acknowledgements.
     let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-server").enable_all().build()?;

@@ -11,7 +11,8 @@ use canopy_server::session::PayloadMode;
 use super::measure::fraction;
 use super::{BandwidthConfig, Outcome, ScenarioResult};
 
-fn group(v: u64) -> String {
+/// Thousands separators for readability: `1234567` → `1,234,567`.
+pub fn group(v: u64) -> String {
     let s = v.to_string();
     let mut out = String::new();
     for (i, c) in s.chars().enumerate() {
@@ -56,7 +57,7 @@ pub fn scenario_line(r: &ScenarioResult) -> String {
         pct(r.overall().mean()),
         secs(r.first_complete()),
         secs(r.teleport_complete()),
-        match r.bots.iter().filter_map(|b| b.error.as_ref()).next() {
+        match r.bots.iter().filter_map(|b| b.bot.error.as_ref()).next() {
             Some(e) => format!(" (error: {e})"),
             None => String::new(),
         }
@@ -204,14 +205,14 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             pct(r.overall().mean()),
             secs(r.first_complete()),
             secs(r.teleport_complete()),
-            r.bots.iter().filter(|b| b.complete).count(),
+            r.bots.iter().filter(|b| b.bot.complete).count(),
             r.bots.len()
         );
     }
     let errors: Vec<String> = o
         .scenarios
         .iter()
-        .flat_map(|r| r.bots.iter().filter_map(move |b| b.error.as_ref().map(|e| format!("{} bot {}: {e}", r.scenario.name, b.id))))
+        .flat_map(|r| r.bots.iter().filter_map(move |b| b.bot.error.as_ref().map(|e| format!("{} bot {}: {e}", r.scenario.name, b.bot.id))))
         .collect();
     if !errors.is_empty() {
         let _ = writeln!(s, "\nErrors:\n");
@@ -397,7 +398,7 @@ fn csv_scenarios(o: &Outcome) -> String {
             let _ = writeln!(
                 s,
                 "{head},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},{}",
-                b.id,
+                b.bot.id,
                 x.total(),
                 x.udp_rx,
                 x.udp_tx,
@@ -409,16 +410,16 @@ fn csv_scenarios(o: &Outcome) -> String {
                 b.geometry[0],
                 b.geometry[1],
                 b.geometry[2],
-                b.records,
-                b.held,
-                if b.records > 0 { format!("{:.3}", x.total() as f64 / b.records as f64) } else { String::new() },
+                b.bot.records,
+                b.bot.held,
+                if b.bot.records > 0 { format!("{:.3}", x.total() as f64 / b.bot.records as f64) } else { String::new() },
                 b.walking().mean(),
                 b.walking().min,
                 b.overall().mean(),
-                opt(b.first_complete),
+                opt(b.first_complete()),
                 opt(b.teleport_complete),
-                b.complete,
-                b.error.as_deref().unwrap_or("").replace([',', '\n'], ";")
+                b.bot.complete,
+                b.bot.error.as_deref().unwrap_or("").replace([',', '\n'], ";")
             );
         }
         let x = r.bytes();
@@ -438,14 +439,14 @@ fn csv_scenarios(o: &Outcome) -> String {
             g(1),
             g(2),
             r.records(),
-            r.bots.iter().map(|b| b.held).sum::<usize>(),
+            r.bots.iter().map(|b| b.bot.held).sum::<usize>(),
             r.bytes_per_instance().map_or(String::new(), |v| format!("{v:.3}")),
             r.walking().mean(),
             r.walking().min,
             r.overall().mean(),
             opt(r.first_complete()),
             opt(r.teleport_complete()),
-            r.bots.iter().all(|b| b.complete)
+            r.bots.iter().all(|b| b.bot.complete)
         );
     }
     s
@@ -462,7 +463,7 @@ fn csv_samples(o: &Outcome) -> String {
                     s,
                     "{},{},{:.3},{},{:.1},{:.1},{},{},{},{},{},{},{},{},{:.6},{}",
                     r.scenario.name,
-                    b.id,
+                    b.bot.id,
                     x.t,
                     x.phase.label(),
                     x.position[0],
@@ -614,14 +615,14 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
         let bytes: Vec<Series> = r
             .bots
             .iter()
-            .map(|b| Series { name: format!("bot {}", b.id), points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect() })
+            .map(|b| Series { name: format!("bot {}", b.bot.id), points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect() })
             .collect();
         let title = format!("{} — {}: bytes on the wire", r.scenario.name, r.scenario.link.label());
         put(&format!("bytes-{}.svg", r.scenario.name), line_chart(&title, "time (s)", "bytes (UDP, both ways)", &bytes, false))?;
         let comp: Vec<Series> = r
             .bots
             .iter()
-            .map(|b| Series { name: format!("bot {}", b.id), points: b.samples.iter().map(|x| (x.t, 100.0 * x.completeness())).collect() })
+            .map(|b| Series { name: format!("bot {}", b.bot.id), points: b.samples.iter().map(|x| (x.t, 100.0 * x.completeness())).collect() })
             .collect();
         let title = format!("{} — {}: visible completeness", r.scenario.name, r.scenario.link.label());
         put(&format!("completeness-{}.svg", r.scenario.name), line_chart(&title, "time (s)", "instances within view held (%)", &comp, false))?;
@@ -640,7 +641,8 @@ mod tests {
     fn scenario(mode: PayloadMode, bytes: super::super::measure::Bytes, geometry: [u64; 3], records: u64, species: Vec<u8>) -> ScenarioResult {
         use super::super::{BotResult, Scenario};
         use super::super::link::LinkSpec;
-        let bot = BotResult { bytes, geometry, records, species_ids: species, ..BotResult::default() };
+        let report = crate::bots::BotReport { records, ..Default::default() };
+        let bot = BotResult { bot: report, bytes, geometry, species_ids: species, ..BotResult::default() };
         ScenarioResult {
             scenario: Scenario::new(mode, LinkSpec::new(Some(1_000_000), 20, 0.0)),
             bots: vec![bot],

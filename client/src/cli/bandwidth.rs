@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use canopy_client::Trust;
 use canopy_client::bandwidth::link::{LinkSpec, parse_rate};
 use canopy_client::bandwidth::{self, BandwidthConfig, External, Scenario, report};
@@ -157,11 +157,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
             .collect();
     }
     if let Some(server) = args.server {
-        let trust = match (&args.cert_fingerprint, args.insecure) {
-            (Some(f), _) => Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))?,
-            (None, true) => Trust::Insecure,
-            (None, false) => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
-        };
+        let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
         cfg.external = Some(External { server, trust });
     }
     Ok(cfg)
@@ -198,6 +194,6 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     for f in &outcome.files {
         println!("wrote {}", f.display());
     }
-    let failed = outcome.scenarios.iter().flat_map(|s| &s.bots).filter(|b| b.error.is_some()).count();
+    let failed = outcome.scenarios.iter().flat_map(|s| &s.bots).filter(|b| b.bot.error.is_some()).count();
     Ok(if failed == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::{ConnectConfig, Trust};
 use canopy_worlds::world::World;
@@ -71,14 +71,6 @@ pub struct BotsArgs {
     quiet: bool,
 }
 
-fn trust(fingerprint: &Option<String>, insecure: bool) -> anyhow::Result<Trust> {
-    match (fingerprint, insecure) {
-        (Some(f), _) => Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)")),
-        (None, true) => Ok(Trust::Insecure),
-        (None, false) => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
-    }
-}
-
 /// Run `canopy bots`.
 pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     if args.count == 0
@@ -88,7 +80,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     {
         bail!("--count must be positive, --speed, --duration and --settle not negative");
     }
-    let trust = trust(&args.cert_fingerprint, args.insecure)?;
+    let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
     let verify = if args.no_verify {
         None
     } else {
@@ -110,13 +102,13 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.seed = args.seed;
     cfg.tick = Duration::from_millis(args.tick_ms.max(1));
     cfg.verify = verify;
-    let (summary, _) = run_bots(cfg, args.quiet)?;
+    let summary = run_bots(cfg, args.quiet)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
-/// Run bots on a fresh runtime with a progress display; returns the summary and the reports.
-pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(BotsSummary, Vec<bots::BotReport>)> {
+/// Run bots on a fresh runtime with a progress display; returns the summary.
+pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let progress = Arc::new(Progress::default());
     let total = cfg.count as u64;
@@ -159,5 +151,5 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(BotsSummary, Ve
         let _ = show.await;
         reports
     })?;
-    Ok((BotsSummary::new(&reports, started.elapsed()), reports))
+    Ok(BotsSummary::new(&reports, started.elapsed()))
 }

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
+use canopy_client::bandwidth::report::group;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{amplify, resolve_params, Budget, Instance};
 use canopy_worlds::gltf::glb;
@@ -227,19 +228,6 @@ fn check(files: &[PathBuf]) -> ExitCode {
 fn counts_line(s: &PrimitiveStream) -> String {
     let c = s.counts();
     PrimitiveKind::ALL.iter().map(|k| format!("{} {}", k.name(), group(c[*k as usize] as u64))).collect::<Vec<_>>().join("  ")
-}
-
-/// Thousands separators for readability.
-fn group(n: u64) -> String {
-    let s = n.to_string();
-    let mut out = String::new();
-    for (i, ch) in s.chars().enumerate() {
-        if i > 0 && (s.len() - i) % 3 == 0 {
-            out.push(',');
-        }
-        out.push(ch);
-    }
-    out
 }
 
 fn median_ms(mut v: Vec<f64>) -> f64 {

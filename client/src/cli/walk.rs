@@ -563,11 +563,8 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
             l.server.local_addr(),
             Trust::pinned(l.server.fingerprint()).context("the in-process server's fingerprint")?,
         ),
-        (None, Some(addr), Some(f), _) => {
-            (addr, Trust::pinned(f).with_context(|| format!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))?)
-        }
-        (None, Some(addr), None, true) => (addr, Trust::Insecure),
-        _ => bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use"),
+        (None, Some(addr), f, insecure) => (addr, Trust::from_flags(f.as_deref(), insecure)?),
+        (None, None, _, _) => unreachable!("without --server an in-process server runs"),
     };
     if !(args.radius.is_finite() && args.radius > 0.0) || !(args.speed.is_finite() && args.speed > 0.0) {
         bail!("--radius and --speed must be positive");

@@ -8,7 +8,7 @@
 pub mod tls;
 
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_protocol::aoi::Viewpoint;
@@ -39,6 +39,8 @@ pub struct ConnectConfig {
     pub client_name: String,
     /// How long connecting and the handshake may take.
     pub timeout: Duration,
+    /// The QUIC client configuration built for `trust`, shared by this configuration's clones.
+    quic: Arc<OnceLock<(Trust, quinn::ClientConfig)>>,
 }
 
 impl ConnectConfig {
@@ -50,6 +52,21 @@ impl ConnectConfig {
             trust,
             client_name: "canopy".into(),
             timeout: Duration::from_secs(20),
+            quic: Arc::default(),
+        }
+    }
+
+    /// The QUIC client configuration trusting as `trust` says: built on first use and shared by the clones (many
+    /// connections, one TLS configuration).
+    pub fn client_config(&self) -> Result<quinn::ClientConfig, ClientError> {
+        match self.quic.get() {
+            Some((trust, cfg)) if *trust == self.trust => Ok(cfg.clone()),
+            // `trust` was changed after the first build: build for it, uncached.
+            Some(_) => Ok(tls::client_config(self.trust.clone())?),
+            None => {
+                let cfg = tls::client_config(self.trust.clone())?;
+                Ok(self.quic.get_or_init(|| (self.trust.clone(), cfg)).1.clone())
+            }
         }
     }
 }
@@ -117,6 +134,13 @@ impl ClientError {
             _ => None,
         }
     }
+}
+
+/// A loopback address of `server`'s family with any port (`127.0.0.1:0` or `[::1]:0`): where local clients and
+/// relays bind.
+pub fn loopback_for(server: SocketAddr) -> SocketAddr {
+    use std::net::{Ipv4Addr, Ipv6Addr};
+    if server.is_ipv6() { (Ipv6Addr::LOCALHOST, 0).into() } else { (Ipv4Addr::LOCALHOST, 0).into() }
 }
 
 /// A client endpoint bound to `bind` (e.g. `127.0.0.1:0`) with large socket buffers; many connections share it.
@@ -196,7 +220,7 @@ impl Connection {
         cache: Option<Arc<SpeciesCache>>,
         viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
-        let client_cfg = tls::client_config(cfg.trust.clone())?;
+        let client_cfg = cfg.client_config()?;
         let connecting = endpoint.connect_with(client_cfg, cfg.server, &cfg.server_name)?;
         let deadline = tokio::time::Instant::now() + cfg.timeout;
         let conn = match tokio::time::timeout_at(deadline, connecting).await {
@@ -332,11 +356,6 @@ impl Connection {
         self.bytes_out
     }
 
-    /// The next viewpoint's sequence number.
-    pub fn next_seq(&self) -> u32 {
-        self.seq + 1
-    }
-
     /// Move the viewpoint: evicts what left the area of interest and tells the server. `vp.seq` is set here.
     pub async fn set_viewpoint(&mut self, mut vp: Viewpoint) -> Result<(), ClientError> {
         self.seq += 1;
@@ -362,8 +381,9 @@ impl Connection {
                     ServerMsg::Streaming(ServerStreaming::Geometry(_)) => 4,
                 };
                 self.frame_bytes[class] += len as u64;
-                let species = match &m {
-                    ServerMsg::Streaming(ServerStreaming::Species(s)) => Some(s.graph.clone()),
+                // The program's bytes are kept only for a cache to store.
+                let species = match (&m, &self.cache) {
+                    (ServerMsg::Streaming(ServerStreaming::Species(s)), Some(_)) => Some(s.graph.clone()),
                     _ => None,
                 };
                 let ev = self.state.handle(m).map_err(ClientError::from);
@@ -421,11 +441,6 @@ impl Connection {
             }
         }
         Ok(())
-    }
-
-    /// The underlying QUIC connection (for tests and statistics).
-    pub fn quic(&self) -> &quinn::Connection {
-        &self.conn
     }
 
     /// End the session normally.

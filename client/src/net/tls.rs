@@ -26,6 +26,18 @@ impl Trust {
         let hex: String = fingerprint.chars().filter(|c| *c != ':').collect::<String>().to_ascii_lowercase();
         (hex.len() == 64 && hex.chars().all(|c| c.is_ascii_hexdigit())).then_some(Trust::Pinned(hex))
     }
+
+    /// The trust the command-line flags ask for: `--cert-fingerprint` (pinned) or `--insecure`; one is required.
+    pub fn from_flags(fingerprint: Option<&str>, insecure: bool) -> anyhow::Result<Trust> {
+        match (fingerprint, insecure) {
+            (Some(f), _) => Trust::pinned(f)
+                .ok_or_else(|| anyhow::anyhow!("`{f}` is not a SHA-256 fingerprint (64 hex digits)")),
+            (None, true) => Ok(Trust::Insecure),
+            (None, false) => {
+                anyhow::bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use")
+            }
+        }
+    }
 }
 
 #[derive(Debug)]
