@@ -40,6 +40,7 @@ pub use renderer::{FrameStats, Renderer};
 pub use scene::{Scene, SceneInstance};
 
 use canopy_worlds::amplify::Budget;
+use canopy_worlds::hypertree::render::{Light, RenderOptions, Shading};
 
 /// How near geometry is represented on the GPU (the choice the issue asks to make by measurement; see
 /// `docs/renderer.md`).
@@ -80,18 +81,37 @@ pub struct Lighting {
 
 impl Default for Lighting {
     fn default() -> Self {
-        // The CPU reference renderer's defaults (worlds/src/hypertree/render.rs) for sun, ambient and diffuse.
+        // Sun, ambient, diffuse and opacity are the CPU reference renderer's defaults.
+        let r = RenderOptions::default();
+        let sun = r.lights[0];
         Lighting {
-            sun_direction: [-0.55, 0.75, 0.45],
-            sun_color: [1.0, 0.97, 0.9],
-            ambient: 0.45,
-            diffuse: 0.85,
-            ambient_falloff: 1.6,
-            density_scale: 1.0,
-            volume_shadows: true,
+            sun_direction: sun.direction,
+            sun_color: sun.color,
+            ambient: r.ambient,
+            diffuse: r.diffuse,
+            ambient_falloff: r.ambient_falloff,
+            density_scale: r.density_scale,
+            volume_shadows: r.shadows,
             sky_zenith: [0.42, 0.6, 0.85],
             sky_horizon: [0.78, 0.85, 0.92],
             fog_density: 0.0007,
+        }
+    }
+}
+
+impl Lighting {
+    /// The CPU reference renderer's options that shade a hypertree as this lighting does (its default diffuse model,
+    /// one light: the sun); what the far field bakes per voxel.
+    pub fn reference_options(&self) -> RenderOptions {
+        RenderOptions {
+            lights: vec![Light { direction: self.sun_direction, color: self.sun_color }],
+            ambient: self.ambient,
+            ambient_falloff: self.ambient_falloff,
+            diffuse: self.diffuse,
+            density_scale: self.density_scale,
+            shadows: self.volume_shadows,
+            shading: Shading::Diffuse,
+            ..RenderOptions::default()
         }
     }
 }

@@ -245,6 +245,51 @@ pub fn render(
     }
 }
 
+/// One non-empty voxel's shading as [`render`] computes it: lit colour (not premultiplied) and the opacity of one
+/// step through it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ShadedVoxel {
+    /// The voxel's index in the hypervolume.
+    pub index: u32,
+    /// Base colour times the light it receives.
+    pub color: [f32; 3],
+    /// `α = 1 − (1 − µ)^(k·Δs)` for a step of the smallest voxel side.
+    pub alpha: f32,
+}
+
+/// The view-independent shading of every non-empty voxel, in index order, exactly as [`render`] shades them at
+/// voxel centres with `opts` (attenuated ambient, diffuse with procedural normals, shadow rays to the lights);
+/// the specular term depends on the eye and is left out (`Shading::Specular` shades like `Shading::Diffuse`).
+/// The image size and camera of `opts` are not used, but are checked like every other number. For baking the
+/// shading into a volume that a GPU only marches.
+pub fn shade_voxels(tree: &Hypertree, opts: &RenderOptions) -> Result<Vec<ShadedVoxel>, RenderError> {
+    check(opts)?;
+    Ok(match &tree.store {
+        VoxelStore::Dense(s) => shade_with(tree, s, opts),
+        VoxelStore::IndexList(s) => shade_with(tree, s, opts),
+        VoxelStore::IndexBits(s) => shade_with(tree, s, opts),
+        VoxelStore::Partitioned(s) => shade_with(tree, s, opts),
+    })
+}
+
+fn shade_with<Q: VoxelQuery>(tree: &Hypertree, q: &Q, opts: &RenderOptions) -> Vec<ShadedVoxel> {
+    let Some(aabb) = tree.aabb() else { return Vec::new() };
+    let mut o = opts.clone();
+    if o.shading == Shading::Specular {
+        o.shading = Shading::Diffuse;
+    }
+    let mut scene = Scene::new(tree, q, aabb, &o, [0.0; 3]);
+    let mut out = Vec::new();
+    let vol = tree.volume;
+    tree.store.for_each(|i, voxel| {
+        if voxel.density != 0 {
+            let color = scene.lit(voxel, vol.coords(i));
+            out.push(ShadedVoxel { index: i, color, alpha: scene.alpha[usize::from(voxel.density)] });
+        }
+    });
+    out
+}
+
 #[inline]
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -462,6 +507,74 @@ struct Scene<'a, Q: VoxelQuery> {
     stats: RenderStats,
 }
 
+impl<'a, Q: VoxelQuery> Scene<'a, Q> {
+    /// Everything but the shading memo and the ray cache (empty), for a tree whose non-empty voxels span `aabb`,
+    /// seen from `eye`.
+    fn new(tree: &Hypertree, q: &'a Q, aabb: Aabb, opts: &RenderOptions, eye: [f32; 3]) -> Self {
+        let vol = tree.volume;
+        let vsize = vol.voxel_size();
+        let step = vsize[0].min(vsize[1]).min(vsize[2]);
+        // α = 1 − (1 − µ)^(k·Δs), Δs measured in units of REFERENCE_STEP of the longest extent, so a voxel of a
+        // given density is as opaque per unit length at every resolution (a reduced hypertree keeps its look).
+        let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
+        let ds = step / (longest * REFERENCE_STEP);
+        let alpha = std::array::from_fn(|d| {
+            let mu = d as f32 / 255.0;
+            if d == 0 {
+                0.0
+            } else if d == 255 {
+                1.0
+            } else {
+                1.0 - libm::powf(1.0 - mu, opts.density_scale * ds)
+            }
+        });
+        let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+        let flows = tree
+            .flows
+            .iter()
+            .map(|f| {
+                let d = sub(f.to, f.from);
+                FlowSeg { a: f.from, d, dd: dot(d, d), dir: normalize(d) }
+            })
+            .collect();
+        let mut colors = [[0.0f32; 3]; 256];
+        for (l, c) in colors.iter_mut().enumerate() {
+            *c = tree.level_color(l as u8);
+        }
+        let use_spheres = opts.bounds == BoundingScheme::Spheres && !tree.bounds.is_empty();
+        let mut o = opts.clone();
+        if !use_spheres {
+            o.bounds = BoundingScheme::Aabb;
+        }
+        let mask = VoxelMask::build(tree, opts.skip_empty);
+        Scene {
+            q,
+            vol,
+            inv: std::array::from_fn(|i| 1.0 / vsize[i]),
+            vsize,
+            brick_dist: brick_distances(&tree.occupancy, &mask),
+            mask,
+            skip: opts.skip_empty,
+            step,
+            alpha,
+            aabb,
+            spheres: tree.bounds.spheres.iter().map(|s| (s.center, s.radius)).collect(),
+            boxes: tree.bounds.boxes.clone(),
+            colors,
+            flows,
+            crown_center: center,
+            crown_inv_half: half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 }),
+            lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
+            eye,
+            o,
+            memo: Vec::new(),
+            ray_cache: Vec::new(),
+            stats: RenderStats::default(),
+        }
+    }
+}
+
 impl<Q: VoxelQuery> Scene<'_, Q> {
     #[inline]
     fn brick_exit(&self, v: [u32; 3], o: [f32; 3], inv_d: [f32; 3]) -> f32 {
@@ -659,6 +772,13 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
         if !memo[0].is_nan() {
             return memo;
         }
+        let out = self.lit(voxel, v);
+        self.memo[rank as usize] = out;
+        out
+    }
+
+    /// The shading of non-empty voxel `v` (not memoised).
+    fn lit(&mut self, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
         self.stats.shaded += 1;
         let c = self.vol.center(v);
         let base = self.colors[voxel.level as usize];
@@ -696,9 +816,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                 }
             }
         }
-        let out = std::array::from_fn(|i| base[i] * light[i] + spec[i]);
-        self.memo[rank as usize] = out;
-        out
+        std::array::from_fn(|i| base[i] * light[i] + spec[i])
     }
 }
 
@@ -726,23 +844,6 @@ fn render_with<Q: VoxelQuery>(
         }
         return Ok((Image { width: w, height: h, pixels }, RenderStats::default()));
     };
-    let vol = tree.volume;
-    let vsize = vol.voxel_size();
-    let step = vsize[0].min(vsize[1]).min(vsize[2]);
-    // α = 1 − (1 − µ)^(k·Δs), Δs measured in units of REFERENCE_STEP of the longest extent, so a voxel of a given
-    // density is as opaque per unit length at every resolution (a reduced hypertree keeps its look).
-    let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
-    let ds = step / (longest * REFERENCE_STEP);
-    let alpha = std::array::from_fn(|d| {
-        let mu = d as f32 / 255.0;
-        if d == 0 {
-            0.0
-        } else if d == 255 {
-            1.0
-        } else {
-            1.0 - libm::powf(1.0 - mu, opts.density_scale * ds)
-        }
-    });
     let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
     let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
     let radius = norm(half);
@@ -757,50 +858,12 @@ fn render_with<Q: VoxelQuery>(
     let fwd = back.map(|v| -v);
     let right = normalize(cross(fwd, [0.0, 1.0, 0.0]));
     let up = cross(right, fwd);
-    let flows = tree
-        .flows
-        .iter()
-        .map(|f| {
-            let d = sub(f.to, f.from);
-            FlowSeg { a: f.from, d, dd: dot(d, d), dir: normalize(d) }
-        })
-        .collect();
-    let mut colors = [[0.0f32; 3]; 256];
-    for (l, c) in colors.iter_mut().enumerate() {
-        *c = tree.level_color(l as u8);
+    let mut scene = Scene::new(tree, q, aabb, opts, eye);
+    let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / scene.step) as usize + 4;
+    scene.memo = vec![[f32::NAN; 3]; scene.mask.count()];
+    if opts.ray_cache {
+        scene.ray_cache = vec![(u32::MAX, Voxel::EMPTY); diag_steps];
     }
-    let use_spheres = opts.bounds == BoundingScheme::Spheres && !tree.bounds.is_empty();
-    let mut o = opts.clone();
-    if !use_spheres {
-        o.bounds = BoundingScheme::Aabb;
-    }
-    let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / step) as usize + 4;
-    let mask = VoxelMask::build(tree, opts.skip_empty);
-    let voxels = mask.count();
-    let mut scene = Scene {
-        q,
-        vol,
-        inv: std::array::from_fn(|i| 1.0 / vsize[i]),
-        vsize,
-        brick_dist: brick_distances(&tree.occupancy, &mask),
-        mask,
-        skip: opts.skip_empty,
-        step,
-        alpha,
-        aabb,
-        spheres: tree.bounds.spheres.iter().map(|s| (s.center, s.radius)).collect(),
-        boxes: tree.bounds.boxes.clone(),
-        colors,
-        flows,
-        crown_center: center,
-        crown_inv_half: half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 }),
-        lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
-        eye,
-        o,
-        memo: vec![[f32::NAN; 3]; voxels],
-        ray_cache: if opts.ray_cache { vec![(u32::MAX, Voxel::EMPTY); diag_steps] } else { Vec::new() },
-        stats: RenderStats::default(),
-    };
     let mut intervals = Vec::new();
     let inv_s = 1.0 / s as f32;
     let weight = 1.0 / (s * s) as f32;
