@@ -106,7 +106,7 @@ pub enum SpeciesCommand {
 
 /// Which instance to amplify, and under what budget.
 #[derive(Args, Debug, Clone)]
-pub struct InstanceArgs {
+pub(super) struct InstanceArgs {
     /// A species file (.species or .lsys) or the name of an embedded library species (`canopy species list`).
     species: String,
     /// Instance seed.
@@ -136,14 +136,14 @@ fn parse_setting(s: &str) -> Result<(String, f32), String> {
 }
 
 /// An instance request validated against its species: the config the library calls take.
-struct InstanceConfig {
-    graph: SpeciesGraph,
-    instance: Instance,
-    budget: Budget,
+pub(super) struct InstanceConfig {
+    pub(super) graph: SpeciesGraph,
+    pub(super) instance: Instance,
+    pub(super) budget: Budget,
 }
 
 impl InstanceArgs {
-    fn config(&self) -> anyhow::Result<InstanceConfig> {
+    pub(super) fn config(&self) -> anyhow::Result<InstanceConfig> {
         let graph = load(&self.species).map_err(|d| anyhow::anyhow!("{d}"))?;
         let params = resolve_params(&graph, &self.params).map_err(anyhow::Error::msg)?;
         let budget = Budget { max_primitives: self.max_primitives, max_steps: self.max_steps, ..Budget::default() };
