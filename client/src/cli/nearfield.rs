@@ -16,6 +16,7 @@ use canopy_worlds::nearfield::lod::{LodOptions, lod_chain};
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::raster::{Camera, render};
 use canopy_worlds::nearfield::skeleton::Skeleton;
+use canopy_worlds::nearfield::{NearFieldOptions, NearParts, species_near_parts};
 use canopy_worlds::primitive::{PrimitiveStream, Shape};
 use clap::{Args, ValueEnum};
 
@@ -165,17 +166,18 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
         Ok(outer_bark(&cm.mesh, &place, b)?)
     };
     match plan.mode {
-        Mode::Continuous(opts) => {
-            let cm = continuous_mesh(stream, &opts)?;
-            if let Some(b) = &plan.bark {
-                out.push(("bark".to_string(), bark_of(&cm, b)?));
+        Mode::Continuous(mesh) => {
+            let opts = NearFieldOptions { continuous: true, mesh, bark: plan.bark };
+            let NearParts { continuous: cm, bark } = species_near_parts(stream, &opts)?;
+            let lods = match &plan.lod {
+                Some(l) => lod_chain(&cm, l)?,
+                None => Vec::new(),
+            };
+            out.push(("branches".to_string(), cm.mesh));
+            out.extend(bark.map(|b| ("bark".to_string(), b)));
+            for (k, level) in lods.into_iter().enumerate() {
+                out.push((format!("lod{}", k + 1), level.mesh));
             }
-            if let Some(l) = &plan.lod {
-                for (k, level) in lod_chain(&cm, l)?.into_iter().enumerate() {
-                    out.push((format!("lod{}", k + 1), level.mesh));
-                }
-            }
-            out.insert(0, ("branches".to_string(), cm.mesh));
             out.push(("foliage".to_string(), cm.foliage));
         }
         Mode::Junctions | Mode::Primitives => {
