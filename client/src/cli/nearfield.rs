@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh, mesh_into_where};
 use canopy_worlds::nearfield::bark::{BarkOptions, ChiselMode, outer_bark, trunk_places};
 use canopy_worlds::nearfield::continuous::{ContinuousMesh, ContinuousOptions, continuous_mesh};
 use canopy_worlds::nearfield::junction::{JunctionOptions, junction_mesh};
@@ -17,7 +17,7 @@ use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::raster::{Camera, render};
 use canopy_worlds::nearfield::skeleton::Skeleton;
 use canopy_worlds::nearfield::{NearFieldOptions, NearParts, species_near_parts};
-use canopy_worlds::primitive::{PrimitiveStream, Shape};
+use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 use clap::{Args, ValueEnum};
 
 /// Near-field flags of `canopy species export` and `canopy species render`; they override what the species'
@@ -184,17 +184,11 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
             let junctions = matches!(plan.mode, Mode::Junctions);
             let branches = if junctions { junction_mesh(stream, &JunctionOptions::default()) } else { Mesh::default() };
             // Everything the junction mesher leaves (trunk bases, foliage) or everything, through the ordinary mesher.
-            let rest = PrimitiveStream {
-                primitives: stream
-                    .primitives
-                    .iter()
-                    .filter(|p| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. }))
-                    .cloned()
-                    .collect(),
-                leaf_points: stream.leaf_points.clone(),
-            };
+            let rest = |p: &Primitive| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. });
+            let mut meshed = Mesh::default();
+            mesh_into_where(stream, &MeshOptions::for_detail(detail), rest, &mut meshed);
             let mut all = branches;
-            all.append(&mesh(&rest, &MeshOptions::for_detail(detail)), [0.0; 3]);
+            all.append(&meshed, [0.0; 3]);
             out.push(("branches".to_string(), all));
             if let Some(b) = &plan.bark {
                 // The trunk bases' outer bark: their sections as a continuous mesh of their own.

@@ -7,7 +7,7 @@ use std::ops::Range;
 use bytemuck::{Pod, Zeroable};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into, mesh_into_where};
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::species_near_mesh;
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
@@ -177,26 +177,20 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
         NearMode::Merged => mesh_into(stream, &opts, &mut mesh),
         NearMode::Instanced => {
             let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
-            let mut rest = PrimitiveStream { primitives: Vec::new(), leaf_points: Vec::new() };
+            // Leaves and trunk bases (never unit shapes) are meshed.
+            let meshed = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_));
             for p in &stream.primitives {
-                match unit_instance(p) {
-                    Some((shape, size)) => {
-                        let m = &p.transform.m;
-                        by_shape[shape as usize].push(PrimInstance {
-                            rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
-                            shape: size,
-                            color: pack_unorm(p.color),
-                        });
-                    }
-                    None if matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_)) => {
-                        rest.primitives.push(p.clone());
-                    }
-                    None => {}
+                if let Some((shape, size)) = unit_instance(p) {
+                    let m = &p.transform.m;
+                    by_shape[shape as usize].push(PrimInstance {
+                        rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
+                        shape: size,
+                        color: pack_unorm(p.color),
+                    });
                 }
             }
-            if !rest.primitives.is_empty() {
-                rest.leaf_points = stream.leaf_points.clone();
-                mesh_into(&rest, &opts, &mut mesh);
+            if stream.primitives.iter().any(meshed) {
+                mesh_into_where(stream, &opts, meshed, &mut mesh);
             }
             let mut start = 0u32;
             for (k, v) in by_shape.iter_mut().enumerate() {
