@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use anyhow::{Context, bail};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh, mesh_into_where};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into_where};
 use canopy_worlds::nearfield::bark::{BarkOptions, ChiselMode, outer_bark, trunk_places};
 use canopy_worlds::nearfield::continuous::{ContinuousMesh, ContinuousOptions, continuous_mesh};
 use canopy_worlds::nearfield::junction::{JunctionOptions, junction_mesh};
@@ -223,7 +223,7 @@ pub fn table(
 ) -> anyhow::Result<ExitCode> {
     let stream = amplify(graph, instance, budget)?;
     let sk = Skeleton::from_stream(&stream);
-    let (lo, hi) = mesh(&stream, &MeshOptions::default()).bounds();
+    let (lo, hi) = stream.bounds();
     println!(
         "species {} seed {}: {} primitives, {} branch segments, {} junction pieces, height {:.2} m",
         graph.name,

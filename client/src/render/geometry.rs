@@ -68,8 +68,6 @@ pub struct TreeGeometry {
     pub indices: Vec<u32>,
     /// Primitives amplified.
     pub primitives: usize,
-    /// Species-space bounds `(min, max)` of everything; empty geometry has `min > max`.
-    pub bounds: ([f32; 3], [f32; 3]),
 }
 
 impl TreeGeometry {
@@ -152,11 +150,7 @@ pub fn build_tree(
         if let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
             match species_near_mesh(&stream, &o) {
                 Ok(m) => {
-                    let mut out = TreeGeometry {
-                        primitives: stream.primitives.len(),
-                        bounds: stream.bounds(),
-                        ..Default::default()
-                    };
+                    let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
                     set_mesh(&mut out, m);
                     return Ok(out);
                 }
@@ -170,8 +164,7 @@ pub fn build_tree(
 /// Build the geometry of an amplified stream (see [`build_tree`]).
 pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
     let opts = MeshOptions::for_detail(detail);
-    let mut out =
-        TreeGeometry { primitives: stream.primitives.len(), bounds: stream.bounds(), ..Default::default() };
+    let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
     let mut mesh = Mesh::new();
     match mode {
         NearMode::Merged => mesh_into(stream, &opts, &mut mesh),
@@ -263,7 +256,7 @@ mod tests {
         let first = stream.primitives.iter().find(|p| unit_instance(p).map(|u| u.0) == Some(UnitShape::Frustum));
         let first = first.unwrap();
         assert_eq!(geo.prims[0].rows[0][3], first.transform.m[3]);
-        let (lo, hi) = geo.bounds;
+        let (lo, hi) = stream.bounds();
         assert!(hi[1] - lo[1] > 5.0, "a conifer is several metres tall: {lo:?} {hi:?}");
     }
 
