@@ -1013,17 +1013,17 @@ impl Renderer {
                 label: Some("prims"),
                 layout: &self.p.prims_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.prim_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: self.prim_buf.as_entire_binding() },
                 ],
             }));
             self.mesh_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("meshes"),
                 layout: &self.p.mesh_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.vert_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.index_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 2, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: self.vert_buf.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 2, resource: self.index_buf.as_entire_binding() },
                 ],
             }));
         }
