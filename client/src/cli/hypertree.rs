@@ -19,7 +19,7 @@ use canopy_worlds::hypertree::{Hypertree, StorageType, Voxel};
 use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::species;
+use super::{species, write_file};
 
 #[derive(Subcommand, Debug)]
 pub enum HypertreeCommand {
@@ -371,13 +371,6 @@ fn load_input(
     Ok((result.0, Some((result.1, ms))))
 }
 
-fn write(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
-}
-
 fn render_to(tree: &Hypertree, opts: &RenderOptions, out: &Path) -> anyhow::Result<(RenderStats, f64)> {
     let pb = bar(u64::from(opts.height), "render");
     let start = Instant::now();
@@ -387,7 +380,7 @@ fn render_to(tree: &Hypertree, opts: &RenderOptions, out: &Path) -> anyhow::Resu
     })?;
     let ms = start.elapsed().as_secs_f64() * 1e3;
     pb.finish_and_clear();
-    write(out, &img.encode_png()?)?;
+    write_file(out, &img.encode_png()?)?;
     println!(
         "rendered {} in {ms:.1} ms ({}×{}, s = {}) → {}",
         tree.name,
@@ -452,7 +445,7 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let (tree, generation) = input.tree()?;
             describe(&tree, generation.as_ref());
             if let Some(out) = out {
-                write(&out, &save_volume(&tree))?;
+                write_file(&out, &save_volume(&tree))?;
                 println!("saved {}", out.display());
             }
             if let Some(png) = png {
@@ -482,7 +475,7 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let r = reduce(&tree, to)?;
             println!("reduced in {:.1} ms", start.elapsed().as_secs_f64() * 1e3);
             describe(&r, None);
-            write(&out, &save_volume(&r))?;
+            write_file(&out, &save_volume(&r))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Union { a, b, add, seed, out } => {
@@ -492,21 +485,21 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let how = if add { Unification::Add } else { Unification::Max };
             let u = combine(&ta, &tb, how)?;
             describe(&u, None);
-            write(&out, &save_volume(&u))?;
+            write_file(&out, &save_volume(&u))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Clear { input, region, out } => {
             let (tree, _) = input.tree()?;
             let t = clear_region(&tree, region.min, region.max)?;
             describe(&t, None);
-            write(&out, &save_volume(&t))?;
+            write_file(&out, &save_volume(&t))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Set { input, region, density, level, out } => {
             let (tree, _) = input.tree()?;
             let t = set_region(&tree, region.min, region.max, Voxel { density, level })?;
             describe(&t, None);
-            write(&out, &save_volume(&t))?;
+            write_file(&out, &save_volume(&t))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Voxelise { instance, resolution, storage, out, png } => {
@@ -517,7 +510,7 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             println!("voxelised in {:.1} ms", start.elapsed().as_secs_f64() * 1e3);
             describe(&tree, None);
             if let Some(out) = out {
-                write(&out, &save_volume(&tree))?;
+                write_file(&out, &save_volume(&tree))?;
             }
             if let Some(png) = png {
                 render_to(&tree, &RenderOptions::default(), &png)?;

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into_where};
@@ -336,10 +336,7 @@ pub fn render_png(
         meshes.push(g);
     }
     let image = render(&meshes, &camera, size.0, size.1);
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    std::fs::write(out, image.png()?).with_context(|| format!("cannot write {}", out.display()))?;
+    crate::cli::write_file(out, &image.png()?)?;
     let tris: usize = meshes.iter().map(|m| m.triangle_count()).sum();
     println!("wrote {} ({}×{}, {} triangles)", out.display(), image.width, image.height, tris);
     Ok(ExitCode::SUCCESS)

@@ -9,7 +9,6 @@ use anyhow::Context;
 use canopy_client::render::camera::{Camera, CameraSpec};
 use canopy_client::render::offscreen::Offscreen;
 use canopy_client::render::{LodConfig, NearMode, RenderConfig, Scene};
-use canopy_worlds::world::World;
 use clap::{Args, ValueEnum};
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -145,10 +144,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let mut off = Offscreen::new(cfg, args.width, args.height)?;
     println!("adapter: {}", off.gpu.describe());
     let loaded = Instant::now();
-    let world = match &args.world {
-        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
-        None => World::default_world(),
-    };
+    let world = super::load_world(args.world.as_deref()).map_err(|d| anyhow::anyhow!("{d}"))?;
     let scene = Scene::from_world(&world);
     let camera: Camera = spec.resolve(&|x, z| world.height(x, z));
     println!(

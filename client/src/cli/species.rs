@@ -358,10 +358,7 @@ fn export(
 
 fn write_glb(out: &PathBuf, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
     let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    std::fs::write(out, glb(&refs)).with_context(|| format!("cannot write {}", out.display()))
+    super::write_file(out, &glb(&refs))
 }
 
 pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
