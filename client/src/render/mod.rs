@@ -43,8 +43,8 @@ use canopy_worlds::amplify::Budget;
 use canopy_worlds::hypertree::render::{Light, RenderOptions, Shading};
 
 /// How near geometry is represented on the GPU (the choice the issue asks to make by measurement; see
-/// `docs/renderer.md`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+/// `docs/renderer.md`). Also the values of `--near-mode`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum NearMode {
     /// Cones, cylinders, spheres and boxes as instances of unit meshes (64 bytes per primitive, shaped in the
     /// vertex shader); leaves and trunk bases as meshes.
@@ -157,7 +157,7 @@ impl Default for RenderConfig {
             prim_memory: 96 << 20,
             mesh_memory: 96 << 20,
             upload_budget: 16 << 20,
-            max_jobs: 4 * workers + 8,
+            max_jobs: Self::jobs_for(workers),
             amplify_budget: Budget {
                 max_primitives: 400_000,
                 max_depth: 1_024,
@@ -180,6 +180,21 @@ pub enum ConfigError {
 }
 
 impl RenderConfig {
+    /// The job bound for `workers` worker threads: four jobs each, plus a few (the default `max_jobs`).
+    pub fn jobs_for(workers: usize) -> usize {
+        4 * workers + 8
+    }
+
+    /// Bytes of the mesh arena for vertices: two thirds of `mesh_memory`.
+    pub fn vertex_memory(&self) -> u64 {
+        self.mesh_memory * 2 / 3
+    }
+
+    /// Bytes of the mesh arena for indices: a third of `mesh_memory`.
+    pub fn index_memory(&self) -> u64 {
+        self.mesh_memory / 3
+    }
+
     /// Check every number (the CLI validates once, the renderer trusts a checked config).
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.lod.validate()?;

@@ -364,8 +364,8 @@ impl Renderer {
         });
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let prim_units = cfg.prim_memory / size_of::<PrimInstance>() as u64;
-        let vert_units = (cfg.mesh_memory * 2 / 3) / size_of::<MeshVertex>() as u64;
-        let index_units = (cfg.mesh_memory / 3) / 4;
+        let vert_units = cfg.vertex_memory() / size_of::<MeshVertex>() as u64;
+        let index_units = cfg.index_memory() / 4;
         let buf = |label: &str, bytes: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
