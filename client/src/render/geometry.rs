@@ -25,11 +25,6 @@ pub enum UnitShape {
     Box = 2,
 }
 
-impl UnitShape {
-    /// All unit shapes.
-    pub const ALL: [UnitShape; 3] = [UnitShape::Frustum, UnitShape::Sphere, UnitShape::Box];
-}
-
 /// One primitive instance as the shaders read it (64 bytes): the species-space transform's three rows, the shape's
 /// size and the linear RGB colour packed as unorm8×4.
 #[repr(C)]

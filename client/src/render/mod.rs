@@ -140,10 +140,9 @@ pub struct RenderConfig {
     /// Voxels along the longest axis of a species' far-field volume; a second, halved resolution is derived by
     /// voxel fusion (seed 000 §9) for the farthest instances.
     pub volume_resolution: u32,
-    /// Vertical field of view is the camera's; this is the near clip plane, metres.
+    /// Vertical field of view is the camera's; this is the near clip plane, metres (there is no far plane: the
+    /// projection is reversed-Z to infinity).
     pub near_clip: f32,
-    /// Far clip plane, metres.
-    pub far_clip: f32,
 }
 
 impl Default for RenderConfig {
@@ -166,7 +165,6 @@ impl Default for RenderConfig {
             },
             volume_resolution: 64,
             near_clip: 0.25,
-            far_clip: 6_000.0,
         }
     }
 }
@@ -216,7 +214,6 @@ impl RenderConfig {
             ((1..=4096).contains(&self.max_jobs), "job count"),
             ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
             (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
-            (self.far_clip > self.near_clip && self.far_clip <= 1e6, "far clip plane"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

@@ -446,11 +446,6 @@ impl Renderer {
         })
     }
 
-    /// The configuration.
-    pub fn config(&self) -> &RenderConfig {
-        &self.cfg
-    }
-
     /// Switch levels at once instead of cross-fading (offscreen stills).
     pub fn set_instant_transitions(&mut self, instant: bool) {
         self.instant = instant;

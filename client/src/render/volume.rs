@@ -56,11 +56,6 @@ impl FarVolume {
         let h: [f32; 3] = std::array::from_fn(|i| 0.5 * (self.aabb_max[i] - self.aabb_min[i]) * self.units);
         (c, (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt())
     }
-
-    /// Bytes of texels.
-    pub fn bytes(&self) -> u64 {
-        self.texels.len() as u64 * 2
-    }
 }
 
 /// A species' far field: the full and the halved resolution, and how instances scale.
