@@ -287,15 +287,6 @@ mod tests {
 
     use super::*;
 
-    fn norm(a: [f32; 3]) -> f32 {
-        (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
-    }
-
-    fn normalize(a: [f32; 3]) -> [f32; 3] {
-        let n = norm(a);
-        if n > 0.0 { a.map(|v| v / n) } else { a }
-    }
-
     #[test]
     fn half_floats() {
         assert_eq!(f16_bits(0.0), 0);
@@ -372,7 +363,7 @@ mod tests {
     #[test]
     fn marching_the_baked_volume_reproduces_the_cpu_reference() {
         use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
-        use canopy_worlds::hypertree::render::{RenderOptions, render};
+        use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render};
         let def = canopy_worlds::hypertree::library::find("apple").unwrap().load().unwrap();
         let opts = GenerateOptions { resolution: Some([40, 40, 40]), ..GenerateOptions::default() };
         let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).unwrap();
@@ -381,30 +372,12 @@ mod tests {
         let ro = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
         let (img, _) = render(&tree, &ro, &mut |_, _| {}).unwrap();
         let v = volumes_of(&tree, [0.0; 3], 1.0, 64, &Lighting::default()).unwrap().full;
-        // The reference's camera.
-        let aabb = tree.aabb().unwrap();
-        let c: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
-        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
-        let radius = norm(half);
-        let (fov, el) = (ro.fov.to_radians(), ro.elevation.to_radians());
-        let tan_half = (0.5 * fov).tan();
-        let fit = radius / (0.5 * fov).sin().min(tan_half.atan().sin());
-        let back = [0.0, el.sin(), el.cos()];
-        let eye: [f32; 3] = std::array::from_fn(|i| c[i] + back[i] * fit * ro.zoom_out);
-        let fwd = back.map(|x| -x);
-        let right = normalize([fwd[1] * 0.0 - fwd[2] * 1.0, fwd[2] * 0.0 - fwd[0] * 0.0, fwd[0] * 1.0 - fwd[1] * 0.0]);
-        let up = [
-            right[1] * fwd[2] - right[2] * fwd[1],
-            right[2] * fwd[0] - right[0] * fwd[2],
-            right[0] * fwd[1] - right[1] * fwd[0],
-        ];
+        let cam = ReferenceCamera::new(&tree.aabb().unwrap(), &ro);
         let mut bad = 0;
         for py in 0..h {
             for px in 0..w {
-                let nx = (2.0 * (px as f32 + 0.5) / w as f32 - 1.0) * tan_half;
-                let ny = (1.0 - 2.0 * (py as f32 + 0.5) / h as f32) * tan_half;
-                let d = normalize(std::array::from_fn(|i| fwd[i] + right[i] * nx + up[i] * ny));
-                let (col, a) = march(&v, eye, d);
+                let d = cam.ray((px as f32 + 0.5) / w as f32, (py as f32 + 0.5) / h as f32);
+                let (col, a) = march(&v, cam.eye, d);
                 let ours: [u8; 3] =
                     std::array::from_fn(|i| ((col[i] + (1.0 - a) * bg[i]).clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
                 let theirs = img.pixel(px, py);

@@ -245,6 +245,55 @@ pub fn render(
     }
 }
 
+/// The camera of [`render`]: around the box of the non-empty voxels at `opts.azimuth` and `opts.elevation`, at
+/// `opts.zoom_out` times the distance at which the box's bounding sphere just fits the field of view (vertical and
+/// horizontal), looking at the box's centre with +y up.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReferenceCamera {
+    /// The eye, box units.
+    pub eye: [f32; 3],
+    /// Where it looks: the box's centre.
+    pub center: [f32; 3],
+    /// Unit view direction.
+    pub forward: [f32; 3],
+    /// Unit right vector of the image plane.
+    pub right: [f32; 3],
+    /// Unit up vector of the image plane.
+    pub up: [f32; 3],
+    /// `tan(fov / 2)`, the vertical half extent of the image plane at unit distance.
+    pub tan_half: f32,
+    /// Width over height.
+    pub aspect: f32,
+}
+
+impl ReferenceCamera {
+    /// The camera for a tree whose non-empty voxels span `aabb`, with the view and image size of `opts`.
+    pub fn new(aabb: &Aabb, opts: &RenderOptions) -> ReferenceCamera {
+        let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+        let radius = norm(half);
+        let rad = |deg: f32| deg * (std::f32::consts::PI / 180.0);
+        let (az, el) = (rad(opts.azimuth), rad(opts.elevation));
+        let back = [libm::cosf(el) * libm::sinf(az), libm::sinf(el), libm::cosf(el) * libm::cosf(az)];
+        let tan_half = libm::tanf(rad(opts.fov) * 0.5);
+        let aspect = opts.width as f32 / opts.height as f32;
+        let fit = radius / libm::sinf(rad(opts.fov) * 0.5).min(libm::sinf(libm::atanf(tan_half * aspect)));
+        let dist = fit * opts.zoom_out;
+        let eye: [f32; 3] = std::array::from_fn(|i| center[i] + back[i] * dist);
+        let forward = back.map(|v| -v);
+        let right = normalize(cross(forward, [0.0, 1.0, 0.0]));
+        let up = cross(right, forward);
+        ReferenceCamera { eye, center, forward, right, up, tan_half, aspect }
+    }
+
+    /// The unit direction of the ray through image point `(fx, fy)`, both in `[0, 1]` from the top left corner.
+    pub fn ray(&self, fx: f32, fy: f32) -> [f32; 3] {
+        let nx = (2.0 * fx - 1.0) * self.tan_half * self.aspect;
+        let ny = (1.0 - 2.0 * fy) * self.tan_half;
+        normalize(std::array::from_fn(|i| self.forward[i] + self.right[i] * nx + self.up[i] * ny))
+    }
+}
+
 /// One non-empty voxel's shading as [`render`] computes it: lit colour (not premultiplied) and the opacity of one
 /// step through it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -844,20 +893,8 @@ fn render_with<Q: VoxelQuery>(
         }
         return Ok((Image { width: w, height: h, pixels }, RenderStats::default()));
     };
-    let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
-    let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
-    let radius = norm(half);
-    let rad = |deg: f32| deg * (std::f32::consts::PI / 180.0);
-    let (az, el) = (rad(opts.azimuth), rad(opts.elevation));
-    let back = [libm::cosf(el) * libm::sinf(az), libm::sinf(el), libm::cosf(el) * libm::cosf(az)];
-    let tan_half = libm::tanf(rad(opts.fov) * 0.5);
-    let aspect = w as f32 / h as f32;
-    let fit = radius / libm::sinf(rad(opts.fov) * 0.5).min(libm::sinf(libm::atanf(tan_half * aspect)));
-    let dist = fit * opts.zoom_out;
-    let eye: [f32; 3] = std::array::from_fn(|i| center[i] + back[i] * dist);
-    let fwd = back.map(|v| -v);
-    let right = normalize(cross(fwd, [0.0, 1.0, 0.0]));
-    let up = cross(right, fwd);
+    let cam = ReferenceCamera::new(&aabb, opts);
+    let eye = cam.eye;
     let mut scene = Scene::new(tree, q, aabb, opts, eye);
     let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / scene.step) as usize + 4;
     scene.memo = vec![[f32::NAN; 3]; scene.mask.count()];
@@ -874,9 +911,7 @@ fn render_with<Q: VoxelQuery>(
                 for sx in 0..s {
                     let fx = (px as f32 + (sx as f32 + 0.5) * inv_s) / w as f32;
                     let fy = (py as f32 + (sy as f32 + 0.5) * inv_s) / h as f32;
-                    let nx = (2.0 * fx - 1.0) * tan_half * aspect;
-                    let ny = (1.0 - 2.0 * fy) * tan_half;
-                    let d = normalize(std::array::from_fn(|i| fwd[i] + right[i] * nx + up[i] * ny));
+                    let d = cam.ray(fx, fy);
                     let (c, a) = scene.march(eye, d, &mut intervals);
                     let b = bg(fy);
                     for i in 0..3 {
