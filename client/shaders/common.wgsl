@@ -1,4 +1,4 @@
-// Shared by every Canopy shader (prepended by the renderer): frame globals, draw segments, fog, sky, dithering.
+// Shared by every Canopy shader (prepended by the renderer): frame globals, fog, sky, dithering.
 
 struct Globals {
     view_proj: mat4x4<f32>,
@@ -18,28 +18,6 @@ struct Globals {
 };
 
 @group(0) @binding(0) var<uniform> g: Globals;
-
-// One instance's run of primitives (or mesh indices) in an arena, placed at `pos`, drawn through `mask`.
-struct Segment {
-    // Index of the segment's first element within its draw (a prefix sum of `count`).
-    first: u32,
-    // First element in the arena (primitives, or mesh indices).
-    base: u32,
-    // First vertex in the vertex arena (meshes only).
-    vbase: u32,
-    count: u32,
-    pos: vec3<f32>,
-    // Dither mask: m >= 0 keeps pixels whose Bayer threshold is below m; m < 0 keeps those at or above -m.
-    mask: f32,
-};
-
-// Which segments a draw covers, and what it draws.
-struct Draw {
-    seg_first: u32,
-    seg_count: u32,
-    kind: u32,
-    pad: u32,
-};
 
 fn bayer4(p: vec2<f32>) -> f32 {
     let m = array<f32, 16>(0.0, 8.0, 2.0, 10.0, 12.0, 4.0, 14.0, 6.0, 3.0, 11.0, 1.0, 9.0, 15.0, 7.0, 13.0, 5.0);

@@ -1,26 +1,17 @@
 // Meshes by vertex pulling: leaves, trunk bases and (in merged mode) whole trees. Vertex `i` of a draw finds its
 // segment by binary search, reads its index from the index arena and its vertex from the vertex arena.
 
-@group(1) @binding(0) var<storage, read> verts: array<u32>;
-@group(1) @binding(1) var<storage, read> indices: array<u32>;
-@group(1) @binding(2) var<storage, read> segments: array<Segment>;
-@group(2) @binding(0) var<uniform> draw: Draw;
-
-struct MeshOut {
-    @builtin(position) clip: vec4<f32>,
-    @location(0) world: vec3<f32>,
-    @location(1) normal: vec3<f32>,
-    @location(2) color: vec3<f32>,
-    @location(3) @interpolate(flat) mask: f32,
-};
+// `segments` is binding 0 of group 1 and `draw` binding 0 of group 2 (segment.wgsl).
+@group(1) @binding(1) var<storage, read> verts: array<u32>;
+@group(1) @binding(2) var<storage, read> indices: array<u32>;
 
 @vertex
-fn vs_mesh(@builtin(vertex_index) vi: u32) -> MeshOut {
+fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     let s = segments[find_segment(vi, draw.seg_first, draw.seg_count)];
     let idx = indices[s.base + vi - s.first];
     let w = (s.vbase + idx) * 5u;
     let p = vec3<f32>(bitcast<f32>(verts[w]), bitcast<f32>(verts[w + 1u]), bitcast<f32>(verts[w + 2u]));
-    var out: MeshOut;
+    var out: GeoOut;
     let world = p + s.pos;
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
@@ -31,7 +22,7 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> MeshOut {
 }
 
 @fragment
-fn fs_mesh(in: MeshOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
     if !dither_keeps(in.mask, in.clip.xy) {
         discard;
     }

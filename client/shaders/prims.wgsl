@@ -10,20 +10,11 @@ struct Prim {
     shape: vec4<f32>,
 };
 
-@group(1) @binding(0) var<storage, read> prims: array<Prim>;
-@group(1) @binding(1) var<storage, read> segments: array<Segment>;
-@group(2) @binding(0) var<uniform> draw: Draw;
-
-struct PrimOut {
-    @builtin(position) clip: vec4<f32>,
-    @location(0) world: vec3<f32>,
-    @location(1) normal: vec3<f32>,
-    @location(2) color: vec3<f32>,
-    @location(3) @interpolate(flat) mask: f32,
-};
+// `segments` is binding 0 of group 1 and `draw` binding 0 of group 2 (segment.wgsl).
+@group(1) @binding(1) var<storage, read> prims: array<Prim>;
 
 @vertex
-fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(instance_index) ii: u32) -> PrimOut {
+fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(instance_index) ii: u32) -> GeoOut {
     let s = segments[find_segment(ii, draw.seg_first, draw.seg_count)];
     let prim = prims[s.base + ii - s.first];
     var local: vec3<f32>;
@@ -59,7 +50,7 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     let c = vec3<f32>(prim.r0.z, prim.r1.z, prim.r2.z);
     let det = dot(a, cross(b, c));
     let wn = (cross(b, c) * n.x + cross(c, a) * n.y + cross(a, b) * n.z) * sign(det);
-    var out: PrimOut;
+    var out: GeoOut;
     let world = species + s.pos;
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
@@ -70,7 +61,7 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
 }
 
 @fragment
-fn fs_prim(in: PrimOut) -> @location(0) vec4<f32> {
+fn fs_prim(in: GeoOut) -> @location(0) vec4<f32> {
     if !dither_keeps(in.mask, in.clip.xy) {
         discard;
     }

@@ -13,7 +13,7 @@ use canopy_client::render::scene::SceneVolume;
 use canopy_client::render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInstance};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
-use canopy_worlds::hypertree::render::{RenderOptions, render as cpu_render};
+use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
 use canopy_worlds::world::{Terrain, World};
 use glam::Vec3;
 
@@ -147,15 +147,9 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
         height: h,
         rgba: cpu.pixels.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect(),
     };
-    // The reference's camera (worlds/src/hypertree/render.rs): around the voxels' box, azimuth 0, elevation 8°.
-    let aabb = tree.aabb().expect("not empty");
-    let center = Vec3::from(aabb.min).lerp(Vec3::from(aabb.max), 0.5);
-    let radius = ((Vec3::from(aabb.max) - Vec3::from(aabb.min)) * 0.5).length();
-    let (fov, el) = (cpu_opts.fov.to_radians(), cpu_opts.elevation.to_radians());
-    let tan_half = (fov * 0.5).tan();
-    let fit = radius / (fov * 0.5).sin().min((tan_half * (w as f32 / h as f32)).atan().sin());
-    let eye = center + Vec3::new(0.0, el.sin(), el.cos()) * fit * cpu_opts.zoom_out;
-    let camera = Camera::looking_at(eye, center, cpu_opts.fov);
+    // The reference's camera: around the voxels' box, azimuth 0, elevation 8°.
+    let rc = ReferenceCamera::new(&tree.aabb().expect("not empty"), &cpu_opts);
+    let camera = Camera::looking_at(Vec3::from(rc.eye), Vec3::from(rc.center), cpu_opts.fov);
 
     // One instance whose species origin is the box origin, so world coordinates are box coordinates; every
     // instance far; no fog; a flat sky of the background colour; the ground far out of view.

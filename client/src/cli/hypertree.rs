@@ -6,7 +6,6 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use canopy_worlds::amplify::{Budget, Instance, resolve_params};
 use canopy_worlds::diag::Diagnostics;
 use canopy_worlds::hypertree::file::{load as load_volume, save as save_volume};
 use canopy_worlds::hypertree::format::{load_forest, load_hypertree};
@@ -17,9 +16,10 @@ use canopy_worlds::hypertree::render::{BoundingScheme, RenderOptions, RenderStat
 use canopy_worlds::hypertree::storage::VoxelStore;
 use canopy_worlds::hypertree::voxelise::{VoxeliseOptions, voxelise_species};
 use canopy_worlds::hypertree::{Hypertree, StorageType, Voxel};
-use canopy_worlds::load::load;
 use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
+
+use super::{species, write_file};
 
 #[derive(Subcommand, Debug)]
 pub enum HypertreeCommand {
@@ -110,14 +110,8 @@ pub enum HypertreeCommand {
     },
     /// Voxelise an amplified species into a hypertree (the volumetric interpretation of §12).
     Voxelise {
-        /// A species file (.species, .lsys) or library name.
-        species: String,
-        /// Instance seed.
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// Override a parameter: `--param height=12` (repeatable).
-        #[arg(long = "param")]
-        params: Vec<String>,
+        #[command(flatten)]
+        instance: species::InstanceArgs,
         /// Voxels along the longest axis.
         #[arg(long, default_value_t = 200)]
         resolution: u32,
@@ -377,13 +371,6 @@ fn load_input(
     Ok((result.0, Some((result.1, ms))))
 }
 
-fn write(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
-}
-
 fn render_to(tree: &Hypertree, opts: &RenderOptions, out: &Path) -> anyhow::Result<(RenderStats, f64)> {
     let pb = bar(u64::from(opts.height), "render");
     let start = Instant::now();
@@ -393,7 +380,7 @@ fn render_to(tree: &Hypertree, opts: &RenderOptions, out: &Path) -> anyhow::Resu
     })?;
     let ms = start.elapsed().as_secs_f64() * 1e3;
     pb.finish_and_clear();
-    write(out, &img.encode_png()?)?;
+    write_file(out, &img.encode_png()?)?;
     println!(
         "rendered {} in {ms:.1} ms ({}×{}, s = {}) → {}",
         tree.name,
@@ -458,7 +445,7 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let (tree, generation) = input.tree()?;
             describe(&tree, generation.as_ref());
             if let Some(out) = out {
-                write(&out, &save_volume(&tree))?;
+                write_file(&out, &save_volume(&tree))?;
                 println!("saved {}", out.display());
             }
             if let Some(png) = png {
@@ -488,7 +475,7 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let r = reduce(&tree, to)?;
             println!("reduced in {:.1} ms", start.elapsed().as_secs_f64() * 1e3);
             describe(&r, None);
-            write(&out, &save_volume(&r))?;
+            write_file(&out, &save_volume(&r))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Union { a, b, add, seed, out } => {
@@ -498,42 +485,32 @@ pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
             let how = if add { Unification::Add } else { Unification::Max };
             let u = combine(&ta, &tb, how)?;
             describe(&u, None);
-            write(&out, &save_volume(&u))?;
+            write_file(&out, &save_volume(&u))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Clear { input, region, out } => {
             let (tree, _) = input.tree()?;
             let t = clear_region(&tree, region.min, region.max)?;
             describe(&t, None);
-            write(&out, &save_volume(&t))?;
+            write_file(&out, &save_volume(&t))?;
             Ok(ExitCode::SUCCESS)
         }
         HypertreeCommand::Set { input, region, density, level, out } => {
             let (tree, _) = input.tree()?;
             let t = set_region(&tree, region.min, region.max, Voxel { density, level })?;
             describe(&t, None);
-            write(&out, &save_volume(&t))?;
+            write_file(&out, &save_volume(&t))?;
             Ok(ExitCode::SUCCESS)
         }
-        HypertreeCommand::Voxelise { species, seed, params, resolution, storage, out, png } => {
-            let graph = load(&species).map_err(|d| anyhow::anyhow!("{d}"))?;
-            let settings: Vec<(String, f32)> = params
-                .iter()
-                .map(|s| {
-                    let (k, v) = s.split_once('=').ok_or_else(|| anyhow::anyhow!("expected NAME=VALUE, got `{s}`"))?;
-                    let v: f32 = v.trim().parse().map_err(|_| anyhow::anyhow!("`{v}` is not a number"))?;
-                    Ok((k.trim().to_string(), v))
-                })
-                .collect::<anyhow::Result<_>>()?;
-            let params = resolve_params(&graph, &settings).map_err(anyhow::Error::msg)?;
-            let instance = Instance { seed, params, detail: 0 };
+        HypertreeCommand::Voxelise { instance, resolution, storage, out, png } => {
+            let cfg = instance.config()?;
             let opts = VoxeliseOptions { resolution, storage: storage.into(), ..VoxeliseOptions::default() };
             let start = Instant::now();
-            let tree = voxelise_species(&graph, &instance, &Budget::default(), &opts)?;
+            let tree = voxelise_species(&cfg.graph, &cfg.instance, &cfg.budget, &opts)?;
             println!("voxelised in {:.1} ms", start.elapsed().as_secs_f64() * 1e3);
             describe(&tree, None);
             if let Some(out) = out {
-                write(&out, &save_volume(&tree))?;
+                write_file(&out, &save_volume(&tree))?;
             }
             if let Some(png) = png {
                 render_to(&tree, &RenderOptions::default(), &png)?;

@@ -9,8 +9,12 @@ mod species;
 mod walk;
 mod world;
 
+use std::path::Path;
 use std::process::ExitCode;
 
+use anyhow::Context;
+use canopy_worlds::diag::Diagnostics;
+use canopy_worlds::world::World;
 use clap::{Parser, Subcommand};
 
 /// Canopy: procedural outdoor worlds — species are programs, trees are a few bytes.
@@ -56,4 +60,20 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Render(args) => render::run(args),
         Command::Walk(args) => walk::run(args),
     }
+}
+
+/// A world manifest, or the embedded default world without one.
+fn load_world(manifest: Option<&Path>) -> Result<World, Diagnostics> {
+    match manifest {
+        Some(path) => World::load(path),
+        None => Ok(World::default_world()),
+    }
+}
+
+/// Write a file, creating its parent directory first.
+fn write_file(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    std::fs::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
 }

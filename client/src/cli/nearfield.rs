@@ -5,10 +5,10 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into_where};
 use canopy_worlds::nearfield::bark::{BarkOptions, ChiselMode, outer_bark, trunk_places};
 use canopy_worlds::nearfield::continuous::{ContinuousMesh, ContinuousOptions, continuous_mesh};
 use canopy_worlds::nearfield::junction::{JunctionOptions, junction_mesh};
@@ -16,7 +16,8 @@ use canopy_worlds::nearfield::lod::{LodOptions, lod_chain};
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::raster::{Camera, render};
 use canopy_worlds::nearfield::skeleton::Skeleton;
-use canopy_worlds::primitive::{PrimitiveStream, Shape};
+use canopy_worlds::nearfield::{NearFieldOptions, NearParts, species_near_parts};
+use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 use clap::{Args, ValueEnum};
 
 /// Near-field flags of `canopy species export` and `canopy species render`; they override what the species'
@@ -165,34 +166,29 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
         Ok(outer_bark(&cm.mesh, &place, b)?)
     };
     match plan.mode {
-        Mode::Continuous(opts) => {
-            let cm = continuous_mesh(stream, &opts)?;
-            if let Some(b) = &plan.bark {
-                out.push(("bark".to_string(), bark_of(&cm, b)?));
+        Mode::Continuous(mesh) => {
+            let opts = NearFieldOptions { continuous: true, mesh, bark: plan.bark };
+            let NearParts { continuous: cm, bark } = species_near_parts(stream, &opts)?;
+            let lods = match &plan.lod {
+                Some(l) => lod_chain(&cm, l)?,
+                None => Vec::new(),
+            };
+            out.push(("branches".to_string(), cm.mesh));
+            out.extend(bark.map(|b| ("bark".to_string(), b)));
+            for (k, level) in lods.into_iter().enumerate() {
+                out.push((format!("lod{}", k + 1), level.mesh));
             }
-            if let Some(l) = &plan.lod {
-                for (k, level) in lod_chain(&cm, l)?.into_iter().enumerate() {
-                    out.push((format!("lod{}", k + 1), level.mesh));
-                }
-            }
-            out.insert(0, ("branches".to_string(), cm.mesh));
             out.push(("foliage".to_string(), cm.foliage));
         }
         Mode::Junctions | Mode::Primitives => {
             let junctions = matches!(plan.mode, Mode::Junctions);
             let branches = if junctions { junction_mesh(stream, &JunctionOptions::default()) } else { Mesh::default() };
             // Everything the junction mesher leaves (trunk bases, foliage) or everything, through the ordinary mesher.
-            let rest = PrimitiveStream {
-                primitives: stream
-                    .primitives
-                    .iter()
-                    .filter(|p| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. }))
-                    .cloned()
-                    .collect(),
-                leaf_points: stream.leaf_points.clone(),
-            };
+            let rest = |p: &Primitive| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. });
+            let mut meshed = Mesh::default();
+            mesh_into_where(stream, &MeshOptions::for_detail(detail), rest, &mut meshed);
             let mut all = branches;
-            all.append(&mesh(&rest, &MeshOptions::for_detail(detail)), [0.0; 3]);
+            all.append(&meshed, [0.0; 3]);
             out.push(("branches".to_string(), all));
             if let Some(b) = &plan.bark {
                 // The trunk bases' outer bark: their sections as a continuous mesh of their own.
@@ -227,7 +223,7 @@ pub fn table(
 ) -> anyhow::Result<ExitCode> {
     let stream = amplify(graph, instance, budget)?;
     let sk = Skeleton::from_stream(&stream);
-    let (lo, hi) = mesh(&stream, &MeshOptions::default()).bounds();
+    let (lo, hi) = stream.bounds();
     println!(
         "species {} seed {}: {} primitives, {} branch segments, {} junction pieces, height {:.2} m",
         graph.name,
@@ -340,10 +336,7 @@ pub fn render_png(
         meshes.push(g);
     }
     let image = render(&meshes, &camera, size.0, size.1);
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    std::fs::write(out, image.png()?).with_context(|| format!("cannot write {}", out.display()))?;
+    crate::cli::write_file(out, &image.png()?)?;
     let tris: usize = meshes.iter().map(|m| m.triangle_count()).sum();
     println!("wrote {} ({}×{}, {} triangles)", out.display(), image.width, image.height, tris);
     Ok(ExitCode::SUCCESS)

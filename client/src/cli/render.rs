@@ -9,20 +9,10 @@ use anyhow::Context;
 use canopy_client::render::camera::{Camera, CameraSpec};
 use canopy_client::render::offscreen::Offscreen;
 use canopy_client::render::{LodConfig, NearMode, RenderConfig, Scene};
-use canopy_worlds::world::World;
-use clap::{Args, ValueEnum};
+use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
 pub const DEFAULT_VIEW: &str = "position 40 ~28 -760; look-at 0 ~30 -300; fov 60";
-
-/// How near geometry is drawn.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum NearArg {
-    /// Unit primitives by GPU instancing.
-    Instanced,
-    /// One merged mesh per tree.
-    Merged,
-}
 
 /// Renderer options shared by `canopy render` and `canopy walk`.
 #[derive(Args, Debug, Clone)]
@@ -43,8 +33,8 @@ pub struct RendererArgs {
     #[arg(long, default_value_t = LodConfig::default().fade_seconds)]
     fade: f32,
     /// Near geometry: instanced unit primitives or merged meshes.
-    #[arg(long, value_enum, default_value_t = NearArg::Instanced)]
-    near_mode: NearArg,
+    #[arg(long, value_enum, default_value_t = NearMode::Instanced)]
+    near_mode: NearMode,
     /// Worker threads for amplification (default: cores − 1).
     #[arg(long)]
     workers: Option<usize>,
@@ -71,13 +61,10 @@ impl RendererArgs {
             fade_seconds: self.fade,
             ..LodConfig::default()
         };
-        cfg.near_mode = match self.near_mode {
-            NearArg::Instanced => NearMode::Instanced,
-            NearArg::Merged => NearMode::Merged,
-        };
+        cfg.near_mode = self.near_mode;
         if let Some(w) = self.workers {
             cfg.workers = w;
-            cfg.max_jobs = 4 * w + 8;
+            cfg.max_jobs = RenderConfig::jobs_for(w);
         }
         let bytes = self.geometry_mib.saturating_mul(1 << 20);
         cfg.prim_memory = bytes / 2;
@@ -145,10 +132,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let mut off = Offscreen::new(cfg, args.width, args.height)?;
     println!("adapter: {}", off.gpu.describe());
     let loaded = Instant::now();
-    let world = match &args.world {
-        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
-        None => World::default_world(),
-    };
+    let world = super::load_world(args.world.as_deref()).map_err(|d| anyhow::anyhow!("{d}"))?;
     let scene = Scene::from_world(&world);
     let camera: Camera = spec.resolve(&|x, z| world.height(x, z));
     println!(

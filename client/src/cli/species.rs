@@ -107,7 +107,7 @@ pub enum SpeciesCommand {
 
 /// Which instance to amplify, and under what budget.
 #[derive(Args, Debug, Clone)]
-pub struct InstanceArgs {
+pub(super) struct InstanceArgs {
     /// A species file (.species or .lsys) or the name of an embedded library species (`canopy species list`).
     species: String,
     /// Instance seed.
@@ -137,14 +137,14 @@ fn parse_setting(s: &str) -> Result<(String, f32), String> {
 }
 
 /// An instance request validated against its species: the config the library calls take.
-struct InstanceConfig {
-    graph: SpeciesGraph,
-    instance: Instance,
-    budget: Budget,
+pub(super) struct InstanceConfig {
+    pub(super) graph: SpeciesGraph,
+    pub(super) instance: Instance,
+    pub(super) budget: Budget,
 }
 
 impl InstanceArgs {
-    fn config(&self) -> anyhow::Result<InstanceConfig> {
+    pub(super) fn config(&self) -> anyhow::Result<InstanceConfig> {
         let graph = load(&self.species).map_err(|d| anyhow::anyhow!("{d}"))?;
         let params = resolve_params(&graph, &self.params).map_err(anyhow::Error::msg)?;
         let budget = Budget { max_primitives: self.max_primitives, max_steps: self.max_steps, ..Budget::default() };
@@ -346,10 +346,7 @@ fn export(
 
 fn write_glb(out: &PathBuf, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
     let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    std::fs::write(out, glb(&refs)).with_context(|| format!("cannot write {}", out.display()))
+    super::write_file(out, &glb(&refs))
 }
 
 pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {

@@ -24,7 +24,7 @@ use canopy_client::render::camera::{Camera, CameraSpec};
 use canopy_client::render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
 use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
-use canopy_worlds::world::{Terrain, World};
+use canopy_worlds::world::Terrain;
 use clap::Args;
 use glam::Vec3;
 use winit::application::ApplicationHandler;
@@ -534,10 +534,7 @@ struct LocalServer {
 
 fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
-    let world = match world {
-        Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
-        None => World::default_world(),
-    };
+    let world = super::load_world(world.map(PathBuf::as_path)).map_err(|d| anyhow::anyhow!("{d}"))?;
     let store = canopy_server::GridStore::from_world(&world).context("building the world store")?;
     let cfg = canopy_server::ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() };
     let server = runtime.block_on(canopy_server::Server::start(store.shared(), cfg))?;

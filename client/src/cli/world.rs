@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use canopy_worlds::world::World;
 use clap::Subcommand;
 
 #[derive(Subcommand, Debug)]
@@ -28,10 +27,7 @@ pub fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
 }
 
 fn stats(manifest: Option<PathBuf>, repeat: u32) -> ExitCode {
-    let load = || match &manifest {
-        Some(path) => World::load(path),
-        None => Ok(World::default_world()),
-    };
+    let load = || super::load_world(manifest.as_deref());
     let mut times: Vec<Duration> = Vec::new();
     let mut world = None;
     for _ in 0..repeat {

@@ -71,7 +71,8 @@ impl Arena {
     }
 
     /// The longest free range.
-    pub fn largest_free(&self) -> u64 {
+    #[cfg(test)]
+    fn largest_free(&self) -> u64 {
         self.free.values().copied().max().unwrap_or(0)
     }
 }

@@ -7,7 +7,7 @@ use std::ops::Range;
 use bytemuck::{Pod, Zeroable};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into, mesh_into_where};
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::species_near_mesh;
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
@@ -23,11 +23,6 @@ pub enum UnitShape {
     Sphere = 1,
     /// A box centred on the origin (`shape = edge lengths`).
     Box = 2,
-}
-
-impl UnitShape {
-    /// All unit shapes.
-    pub const ALL: [UnitShape; 3] = [UnitShape::Frustum, UnitShape::Sphere, UnitShape::Box];
 }
 
 /// One primitive instance as the shaders read it (64 bytes): the species-space transform's three rows, the shape's
@@ -68,8 +63,6 @@ pub struct TreeGeometry {
     pub indices: Vec<u32>,
     /// Primitives amplified.
     pub primitives: usize,
-    /// Species-space bounds `(min, max)` of everything; empty geometry has `min > max`.
-    pub bounds: ([f32; 3], [f32; 3]),
 }
 
 impl TreeGeometry {
@@ -152,11 +145,7 @@ pub fn build_tree(
         if let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
             match species_near_mesh(&stream, &o) {
                 Ok(m) => {
-                    let mut out = TreeGeometry {
-                        primitives: stream.primitives.len(),
-                        bounds: stream.bounds(),
-                        ..Default::default()
-                    };
+                    let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
                     set_mesh(&mut out, m);
                     return Ok(out);
                 }
@@ -170,33 +159,26 @@ pub fn build_tree(
 /// Build the geometry of an amplified stream (see [`build_tree`]).
 pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
     let opts = MeshOptions::for_detail(detail);
-    let mut out =
-        TreeGeometry { primitives: stream.primitives.len(), bounds: stream.bounds(), ..Default::default() };
+    let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
     let mut mesh = Mesh::new();
     match mode {
         NearMode::Merged => mesh_into(stream, &opts, &mut mesh),
         NearMode::Instanced => {
             let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
-            let mut rest = PrimitiveStream { primitives: Vec::new(), leaf_points: Vec::new() };
+            // Leaves and trunk bases (never unit shapes) are meshed.
+            let meshed = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_));
             for p in &stream.primitives {
-                match unit_instance(p) {
-                    Some((shape, size)) => {
-                        let m = &p.transform.m;
-                        by_shape[shape as usize].push(PrimInstance {
-                            rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
-                            shape: size,
-                            color: pack_unorm(p.color),
-                        });
-                    }
-                    None if matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_)) => {
-                        rest.primitives.push(p.clone());
-                    }
-                    None => {}
+                if let Some((shape, size)) = unit_instance(p) {
+                    let m = &p.transform.m;
+                    by_shape[shape as usize].push(PrimInstance {
+                        rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
+                        shape: size,
+                        color: pack_unorm(p.color),
+                    });
                 }
             }
-            if !rest.primitives.is_empty() {
-                rest.leaf_points = stream.leaf_points.clone();
-                mesh_into(&rest, &opts, &mut mesh);
+            if stream.primitives.iter().any(meshed) {
+                mesh_into_where(stream, &opts, meshed, &mut mesh);
             }
             let mut start = 0u32;
             for (k, v) in by_shape.iter_mut().enumerate() {
@@ -269,7 +251,7 @@ mod tests {
         let first = stream.primitives.iter().find(|p| unit_instance(p).map(|u| u.0) == Some(UnitShape::Frustum));
         let first = first.unwrap();
         assert_eq!(geo.prims[0].rows[0][3], first.transform.m[3]);
-        let (lo, hi) = geo.bounds;
+        let (lo, hi) = stream.bounds();
         assert!(hi[1] - lo[1] > 5.0, "a conifer is several metres tall: {lo:?} {hi:?}");
     }
 

@@ -68,7 +68,7 @@ impl Gpu {
             });
         }
         let have = adapter.limits();
-        let need_binding = cfg.prim_memory.max(cfg.mesh_memory * 2 / 3);
+        let need_binding = cfg.prim_memory.max(cfg.vertex_memory()).max(cfg.index_memory());
         if have.max_storage_buffer_binding_size < need_binding || have.max_buffer_size < need_binding {
             return Err(GpuError::Unsupported {
                 adapter: info.name,

@@ -210,17 +210,6 @@ impl InstanceLod {
     }
 }
 
-/// The 4×4 Bayer threshold of a pixel, in `[0, 1)` (the same table as the shaders').
-pub fn bayer4(x: u32, y: u32) -> f32 {
-    const M: [u8; 16] = [0, 8, 2, 10, 12, 4, 14, 6, 3, 11, 1, 9, 15, 7, 13, 5];
-    (f32::from(M[((y & 3) * 4 + (x & 3)) as usize]) + 0.5) / 16.0
-}
-
-/// Whether a mask keeps a pixel with Bayer threshold `b` (see [`LodDraw::mask`]).
-pub fn mask_keeps(mask: f32, b: f32) -> bool {
-    if mask >= 0.0 { b < mask } else { b >= -mask }
-}
-
 /// Projected height in pixels of a sphere of `radius` at `distance`, for a viewport `height_px` tall with
 /// `tan(fov_y / 2) = tan_half`.
 pub fn projected_size(radius: f32, distance: f32, tan_half: f32, height_px: f32) -> f32 {
@@ -233,6 +222,17 @@ pub fn projected_size(radius: f32, distance: f32, tan_half: f32, height_px: f32)
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The 4×4 Bayer threshold of a pixel, in `[0, 1)` (the same table as the shaders').
+    fn bayer4(x: u32, y: u32) -> f32 {
+        const M: [u8; 16] = [0, 8, 2, 10, 12, 4, 14, 6, 3, 11, 1, 9, 15, 7, 13, 5];
+        (f32::from(M[((y & 3) * 4 + (x & 3)) as usize]) + 0.5) / 16.0
+    }
+
+    /// Whether a mask keeps a pixel with Bayer threshold `b` (the shaders' `dither_keeps`, see [`LodDraw::mask`]).
+    fn mask_keeps(mask: f32, b: f32) -> bool {
+        if mask >= 0.0 { b < mask } else { b >= -mask }
+    }
 
     fn cfg() -> LodConfig {
         LodConfig { near_px: 400.0, far_px: 50.0, mid_levels: 3, ..LodConfig::default() }

@@ -40,10 +40,11 @@ pub use renderer::{FrameStats, Renderer};
 pub use scene::{Scene, SceneInstance};
 
 use canopy_worlds::amplify::Budget;
+use canopy_worlds::hypertree::render::{Light, RenderOptions, Shading};
 
 /// How near geometry is represented on the GPU (the choice the issue asks to make by measurement; see
-/// `docs/renderer.md`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+/// `docs/renderer.md`). Also the values of `--near-mode`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
 pub enum NearMode {
     /// Cones, cylinders, spheres and boxes as instances of unit meshes (64 bytes per primitive, shaped in the
     /// vertex shader); leaves and trunk bases as meshes.
@@ -80,18 +81,37 @@ pub struct Lighting {
 
 impl Default for Lighting {
     fn default() -> Self {
-        // The CPU reference renderer's defaults (worlds/src/hypertree/render.rs) for sun, ambient and diffuse.
+        // Sun, ambient, diffuse and opacity are the CPU reference renderer's defaults.
+        let r = RenderOptions::default();
+        let sun = r.lights[0];
         Lighting {
-            sun_direction: [-0.55, 0.75, 0.45],
-            sun_color: [1.0, 0.97, 0.9],
-            ambient: 0.45,
-            diffuse: 0.85,
-            ambient_falloff: 1.6,
-            density_scale: 1.0,
-            volume_shadows: true,
+            sun_direction: sun.direction,
+            sun_color: sun.color,
+            ambient: r.ambient,
+            diffuse: r.diffuse,
+            ambient_falloff: r.ambient_falloff,
+            density_scale: r.density_scale,
+            volume_shadows: r.shadows,
             sky_zenith: [0.42, 0.6, 0.85],
             sky_horizon: [0.78, 0.85, 0.92],
             fog_density: 0.0007,
+        }
+    }
+}
+
+impl Lighting {
+    /// The CPU reference renderer's options that shade a hypertree as this lighting does (its default diffuse model,
+    /// one light: the sun); what the far field bakes per voxel.
+    pub fn reference_options(&self) -> RenderOptions {
+        RenderOptions {
+            lights: vec![Light { direction: self.sun_direction, color: self.sun_color }],
+            ambient: self.ambient,
+            ambient_falloff: self.ambient_falloff,
+            diffuse: self.diffuse,
+            density_scale: self.density_scale,
+            shadows: self.volume_shadows,
+            shading: Shading::Diffuse,
+            ..RenderOptions::default()
         }
     }
 }
@@ -120,10 +140,9 @@ pub struct RenderConfig {
     /// Voxels along the longest axis of a species' far-field volume; a second, halved resolution is derived by
     /// voxel fusion (seed 000 §9) for the farthest instances.
     pub volume_resolution: u32,
-    /// Vertical field of view is the camera's; this is the near clip plane, metres.
+    /// Vertical field of view is the camera's; this is the near clip plane, metres (there is no far plane: the
+    /// projection is reversed-Z to infinity).
     pub near_clip: f32,
-    /// Far clip plane, metres.
-    pub far_clip: f32,
 }
 
 impl Default for RenderConfig {
@@ -137,7 +156,7 @@ impl Default for RenderConfig {
             prim_memory: 96 << 20,
             mesh_memory: 96 << 20,
             upload_budget: 16 << 20,
-            max_jobs: 4 * workers + 8,
+            max_jobs: Self::jobs_for(workers),
             amplify_budget: Budget {
                 max_primitives: 400_000,
                 max_depth: 1_024,
@@ -146,7 +165,6 @@ impl Default for RenderConfig {
             },
             volume_resolution: 64,
             near_clip: 0.25,
-            far_clip: 6_000.0,
         }
     }
 }
@@ -160,6 +178,21 @@ pub enum ConfigError {
 }
 
 impl RenderConfig {
+    /// The job bound for `workers` worker threads: four jobs each, plus a few (the default `max_jobs`).
+    pub fn jobs_for(workers: usize) -> usize {
+        4 * workers + 8
+    }
+
+    /// Bytes of the mesh arena for vertices: two thirds of `mesh_memory`.
+    pub fn vertex_memory(&self) -> u64 {
+        self.mesh_memory * 2 / 3
+    }
+
+    /// Bytes of the mesh arena for indices: a third of `mesh_memory`.
+    pub fn index_memory(&self) -> u64 {
+        self.mesh_memory / 3
+    }
+
     /// Check every number (the CLI validates once, the renderer trusts a checked config).
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.lod.validate()?;
@@ -181,7 +214,6 @@ impl RenderConfig {
             ((1..=4096).contains(&self.max_jobs), "job count"),
             ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
             (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
-            (self.far_clip > self.near_clip && self.far_clip <= 1e6, "far clip plane"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

@@ -144,7 +144,6 @@ struct CacheEntry {
     shape_ranges: [Range<u32>; 3],
     verts: Range<u64>,
     indices: Range<u64>,
-    detail: u8,
     last_used: u64,
 }
 
@@ -240,6 +239,28 @@ struct PrimDraw {
     instances: u32,
 }
 
+/// The working lists of [`Renderer::update`]'s selection, kept between frames so that a frame allocates only when
+/// one of them grows.
+#[derive(Default)]
+struct Scratch {
+    /// Geometry to draw: key, position, dither mask.
+    geo_draws: Vec<(TreeKey, [f32; 3], f32)>,
+    /// Far instances with their distance.
+    far: Vec<(f32, FarInstance)>,
+    /// Far instances back to front, as uploaded.
+    far_sorted: Vec<FarInstance>,
+    /// Geometry to ask the workers for: projected size, instance index, detail.
+    requests: Vec<(f32, usize, u8)>,
+    /// Segments per (unit shape, tessellation).
+    lists: [[Vec<Segment>; 4]; 3],
+    /// Mesh segments.
+    meshes: Vec<Segment>,
+    /// Every segment of the frame, as uploaded.
+    all: Vec<Segment>,
+    /// The per-draw uniforms, as uploaded.
+    uniforms: Vec<u8>,
+}
+
 /// The renderer (see the module docs of [`super`]).
 pub struct Renderer {
     cfg: RenderConfig,
@@ -279,7 +300,12 @@ pub struct Renderer {
     uploads: VecDeque<(TreeKey, TreeGeometry)>,
     vols: Vec<Option<VolState>>,
     inst: Vec<InstState>,
+    /// The previous scene generation's states while they are carried over (kept for its allocation).
+    inst_spare: Vec<InstState>,
     generation: Option<u64>,
+    /// Every level an instance can show, finest first (for cross-fades).
+    levels: Vec<Level>,
+    scratch: Scratch,
     frame: u64,
     instant: bool,
     // This frame's draw lists.
@@ -338,8 +364,8 @@ impl Renderer {
         });
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let prim_units = cfg.prim_memory / size_of::<PrimInstance>() as u64;
-        let vert_units = (cfg.mesh_memory * 2 / 3) / size_of::<MeshVertex>() as u64;
-        let index_units = (cfg.mesh_memory / 3) / 4;
+        let vert_units = cfg.vertex_memory() / size_of::<MeshVertex>() as u64;
+        let index_units = cfg.index_memory() / 4;
         let buf = |label: &str, bytes: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -405,7 +431,10 @@ impl Renderer {
             uploads: VecDeque::new(),
             vols: Vec::new(),
             inst: Vec::new(),
+            inst_spare: Vec::new(),
             generation: None,
+            levels: (0..=cfg.lod.mid_levels).map(Level::Detail).chain([Level::Far]).collect(),
+            scratch: Scratch::default(),
             frame: 0,
             instant: false,
             prim_draws: Vec::new(),
@@ -415,11 +444,6 @@ impl Renderer {
             last: FrameStats::default(),
             cfg,
         })
-    }
-
-    /// The configuration.
-    pub fn config(&self) -> &RenderConfig {
-        &self.cfg
     }
 
     /// Switch levels at once instead of cross-fading (offscreen stills).
@@ -493,12 +517,22 @@ impl Renderer {
             self.terrain = Some(TerrainGpu { source: Arc::clone(&scene.terrain), mesh, vertices, indices });
         }
         if self.generation != Some(scene.generation) || self.inst.len() != scene.instances.len() {
-            let old: HashMap<u32, InstState> = self.inst.drain(..).map(|s| (s.id, s)).collect();
-            self.inst = scene
-                .instances
-                .iter()
-                .map(|i| old.get(&i.id).copied().unwrap_or(InstState { id: i.id, ..InstState::default() }))
-                .collect();
+            // Carry states over by id: both lists are sorted by id, so one merge pass (an instance the old list
+            // does not have starts afresh).
+            let mut old = std::mem::replace(&mut self.inst, std::mem::take(&mut self.inst_spare));
+            self.inst.clear();
+            let mut j = 0;
+            for i in &scene.instances {
+                while old.get(j).is_some_and(|s| s.id < i.id) {
+                    j += 1;
+                }
+                self.inst.push(match old.get(j) {
+                    Some(s) if s.id == i.id => *s,
+                    _ => InstState { id: i.id, ..InstState::default() },
+                });
+            }
+            old.clear();
+            self.inst_spare = old;
             self.generation = Some(scene.generation);
         }
         if self.vols.len() < scene.species.len() {
@@ -761,7 +795,6 @@ impl Renderer {
                     shape_ranges: geo.shape_ranges.clone(),
                     verts: vr,
                     indices: ir,
-                    detail: key.detail,
                     last_used: self.frame,
                 },
             );
@@ -778,13 +811,12 @@ impl Renderer {
         let height_px = h as f32;
         let lod = &self.cfg.lod;
         let progress = if self.instant || lod.fade_seconds <= 0.0 { 1.0 } else { (dt / lod.fade_seconds).max(0.0) };
-        let mut levels: Vec<Level> = (0..=lod.mid_levels).map(Level::Detail).collect();
-        levels.push(Level::Far);
-        let mut geo_draws: Vec<(TreeKey, [f32; 3], f32)> = Vec::new();
-        let mut far: Vec<(f32, FarInstance)> = Vec::new();
-        let mut requests: Vec<(f32, usize, u8)> = Vec::new();
+        let mut s = std::mem::take(&mut self.scratch);
+        s.geo_draws.clear();
+        s.far.clear();
+        s.requests.clear();
         {
-            let Renderer { inst, vols, cache, pending, failed, deferred, .. } = self;
+            let Renderer { inst, vols, cache, pending, failed, deferred, levels, .. } = self;
             let unavailable = |k: &TreeKey| failed.contains(k) || deferred.contains_key(k);
             for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
                 let Some(graph) = scene.graph(si.species) else { continue };
@@ -829,7 +861,7 @@ impl Renderer {
                         Level::Detail(d) => {
                             let k = key(d);
                             if !pending.contains(&k) {
-                                requests.push((size, idx, d));
+                                s.requests.push((size, idx, d));
                             }
                             stats.waiting += 1;
                         }
@@ -840,7 +872,7 @@ impl Renderer {
                         }
                     }
                 }
-                st.lod.step(wanted, progress, &ready, &levels);
+                st.lod.step(wanted, progress, &ready, levels);
                 match st.lod.shown.map(Level::band) {
                     Some(Band::Near) => stats.near += 1,
                     Some(Band::Mid) => stats.mid += 1,
@@ -849,7 +881,7 @@ impl Renderer {
                 }
                 for d in st.lod.draws() {
                     match d.level {
-                        Level::Detail(det) => geo_draws.push((key(det), si.position, d.mask)),
+                        Level::Detail(det) => s.geo_draws.push((key(det), si.position, d.mask)),
                         Level::Far => {
                             if let Some(v) = vs {
                                 let volume = if size < lod.low_res_px { v.low } else { v.full };
@@ -858,7 +890,7 @@ impl Renderer {
                                     volume,
                                     mask: d.mask,
                                 };
-                                far.push((dist, fi));
+                                s.far.push((dist, fi));
                             }
                         }
                     }
@@ -866,8 +898,8 @@ impl Renderer {
             }
         }
         // Requests, biggest on screen first, within the job bound.
-        requests.sort_by(|a, b| b.0.total_cmp(&a.0));
-        for (size, idx, d) in requests {
+        s.requests.sort_by(|a, b| b.0.total_cmp(&a.0));
+        for &(size, idx, d) in &s.requests {
             if self.workers.outstanding() + self.uploads.len() >= self.cfg.max_jobs {
                 break;
             }
@@ -890,9 +922,9 @@ impl Renderer {
             );
         }
         // Geometry draw lists: one per (unit shape, tessellation), one for meshes.
-        let mut lists: [[Vec<Segment>; 4]; 3] = Default::default();
-        let mut meshes: Vec<Segment> = Vec::new();
-        for (key, pos, mask) in geo_draws {
+        s.lists.iter_mut().flatten().for_each(Vec::clear);
+        s.meshes.clear();
+        for &(key, pos, mask) in &s.geo_draws {
             let Some(e) = self.cache.get_mut(&key) else { continue };
             if e.last_used != self.frame {
                 self.lru.remove(&(e.last_used, key));
@@ -903,7 +935,7 @@ impl Renderer {
                 if r.is_empty() {
                     continue;
                 }
-                lists[k][tess(e.detail)].push(Segment {
+                s.lists[k][tess(key.detail)].push(Segment {
                     first: 0,
                     base: (e.prims.start + u64::from(r.start)) as u32,
                     vbase: 0,
@@ -913,7 +945,7 @@ impl Renderer {
                 });
             }
             if !e.indices.is_empty() {
-                meshes.push(Segment {
+                s.meshes.push(Segment {
                     first: 0,
                     base: e.indices.start as u32,
                     vbase: e.verts.start as u32,
@@ -923,8 +955,9 @@ impl Renderer {
                 });
             }
         }
-        let mut all: Vec<Segment> = Vec::new();
-        let mut uniforms = vec![0u8; (DRAW_STRIDE * DRAW_SLOTS) as usize];
+        s.all.clear();
+        s.uniforms.clear();
+        s.uniforms.resize((DRAW_STRIDE * DRAW_SLOTS) as usize, 0);
         let mut slot = 0u32;
         self.prim_draws.clear();
         let put = |u: DrawUniform, slot: u32, uniforms: &mut Vec<u8>| {
@@ -941,61 +974,63 @@ impl Renderer {
             all.extend_from_slice(list);
             (first, list.len() as u32, total)
         };
-        for (shape, per_tess) in lists.iter_mut().enumerate() {
+        for (shape, per_tess) in s.lists.iter_mut().enumerate() {
             for (t, list) in per_tess.iter_mut().enumerate() {
                 if list.is_empty() {
                     continue;
                 }
-                let (first, count, total) = append(list, &mut all);
+                let (first, count, total) = append(list, &mut s.all);
                 put(
                     DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 },
                     slot,
-                    &mut uniforms,
+                    &mut s.uniforms,
                 );
                 self.prim_draws.push(PrimDraw { shape, tess: t, slot, instances: total });
                 stats.primitives += u64::from(total);
                 slot += 1;
             }
         }
-        self.mesh_draw = if meshes.is_empty() {
+        self.mesh_draw = if s.meshes.is_empty() {
             None
         } else {
-            let (first, count, total) = append(&mut meshes, &mut all);
-            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut uniforms);
+            let (first, count, total) = append(&mut s.meshes, &mut s.all);
+            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut s.uniforms);
             stats.mesh_triangles = u64::from(total / 3);
             Some((slot, total))
         };
-        self.queue.write_buffer(&self.draws, 0, &uniforms);
-        if all.is_empty() {
-            all.push(Segment::zeroed());
+        self.queue.write_buffer(&self.draws, 0, &s.uniforms);
+        if s.all.is_empty() {
+            s.all.push(Segment::zeroed());
         }
-        let grew = self.segments.write(&self.device, &self.queue, bytemuck::cast_slice(&all));
+        let grew = self.segments.write(&self.device, &self.queue, bytemuck::cast_slice(&s.all));
         if grew || self.prims_bg.is_none() {
             self.prims_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("prims"),
                 layout: &self.p.prims_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.prim_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: self.prim_buf.as_entire_binding() },
                 ],
             }));
             self.mesh_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("meshes"),
                 layout: &self.p.mesh_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.vert_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.index_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 2, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: self.vert_buf.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 2, resource: self.index_buf.as_entire_binding() },
                 ],
             }));
         }
         // Far instances back to front.
-        far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-        let far: Vec<FarInstance> = far.into_iter().map(|(_, f)| f).collect();
-        self.far_count = far.len() as u32;
-        if !far.is_empty() {
-            self.far_buf.write(&self.device, &self.queue, bytemuck::cast_slice(&far));
+        s.far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+        s.far_sorted.clear();
+        s.far_sorted.extend(s.far.iter().map(|&(_, f)| f));
+        self.far_count = s.far_sorted.len() as u32;
+        if !s.far_sorted.is_empty() {
+            self.far_buf.write(&self.device, &self.queue, bytemuck::cast_slice(&s.far_sorted));
         }
+        self.scratch = s;
         // Terrain chunks.
         self.terrain_draws.clear();
         if let Some(t) = &self.terrain {

@@ -41,7 +41,8 @@ pub struct Scene {
     pub species: Vec<Option<Arc<SpeciesGraph>>>,
     /// Far-field volumes by species id; `None` lets the renderer voxelise the species itself on a worker thread.
     pub volumes: Vec<Option<SceneVolume>>,
-    /// The instances.
+    /// The instances, sorted by id (the renderer carries their level-of-detail state across generations by
+    /// merging on id; an instance out of order starts afresh).
     pub instances: Vec<SceneInstance>,
     /// The terrain.
     pub terrain: Arc<Terrain>,

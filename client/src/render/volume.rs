@@ -4,16 +4,17 @@
 //! The CPU reference renderer (`canopy_worlds::hypertree::render`) shades at voxel centres — a voxel is a
 //! homogeneous region — so its default shading (attenuated ambient toward the crown's interior, diffuse with
 //! procedural normals from the first-level structure flow, shadow rays to the sun, depth colour spans) is
-//! view-independent and is computed here once per voxel with the same formulas. The GPU then only marches: samples
-//! at the same positions (`t0 + (n + ½)·Δs`, `Δs` the smallest voxel side, from the entry into the voxels' box),
-//! nearest-voxel lookups, `α = 1 − (1 − µ)^(k·Δs)` (Δs in the reference's units) and front-to-back accumulation with the same early exit — so a GPU
-//! image of a lone hypertree matches the reference's (tested in `client/tests/render.rs`).
+//! view-independent: it is taken from the reference once per voxel (`shade_voxels`) and only packed here. The GPU
+//! then only marches: samples at the same positions (`t0 + (n + ½)·Δs`, `Δs` the smallest voxel side, from the
+//! entry into the voxels' box), nearest-voxel lookups, `α = 1 − (1 − µ)^(k·Δs)` (Δs in the reference's units) and
+//! front-to-back accumulation with the same early exit — so a GPU image of a lone hypertree matches the
+//! reference's (tested in `client/tests/render.rs`).
 //!
 //! Texels are RGBA16F: rgb the lit colour, a the voxel's opacity α.
 
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify, instance_params};
-use canopy_worlds::hypertree::render::REFERENCE_STEP;
+use canopy_worlds::hypertree::render::{RenderError, shade_voxels};
 use canopy_worlds::hypertree::voxelise::{VoxeliseError, VoxeliseOptions, voxelise};
 use canopy_worlds::hypertree::{Hypertree, StorageType, ops};
 use canopy_worlds::rng::InstanceRng;
@@ -55,11 +56,6 @@ impl FarVolume {
         let h: [f32; 3] = std::array::from_fn(|i| 0.5 * (self.aabb_max[i] - self.aabb_min[i]) * self.units);
         (c, (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt())
     }
-
-    /// Bytes of texels.
-    pub fn bytes(&self) -> u64 {
-        self.texels.len() as u64 * 2
-    }
 }
 
 /// A species' far field: the full and the halved resolution, and how instances scale.
@@ -87,6 +83,9 @@ pub enum VolumeError {
     /// Reducing the resolution failed.
     #[error("reducing the volume: {0}")]
     Reduce(String),
+    /// The lighting is out of the reference shading's range.
+    #[error("shading the volume: {0}")]
+    Shade(#[from] RenderError),
     /// The volume has no voxels.
     #[error("the volume is empty")]
     Empty,
@@ -179,146 +178,26 @@ pub fn volumes_of(
     })
 }
 
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn norm(a: [f32; 3]) -> f32 {
-    libm::sqrtf(dot(a, a))
-}
-
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let n = norm(a);
-    if n > 0.0 { a.map(|v| v / n) } else { a }
-}
-
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-/// `α = 1 − (1 − µ)^e` for every density byte, with `e = k·Δs` (the reference's table).
-pub fn alpha_table(k: f32) -> [f32; 256] {
-    std::array::from_fn(|d| {
-        let mu = d as f32 / 255.0;
-        if d == 0 {
-            0.0
-        } else if d == 255 {
-            1.0
-        } else {
-            1.0 - libm::powf(1.0 - mu, k)
-        }
-    })
-}
-
 /// Bake one hypertree: per-voxel lit colour and opacity (see the module docs).
 pub fn bake(tree: &Hypertree, origin: [f32; 3], units: f32, lighting: &Lighting) -> Result<FarVolume, VolumeError> {
     let aabb = tree.aabb().ok_or(VolumeError::Empty)?;
     let vol = tree.volume;
-    let dims = vol.resolution;
-    let n = vol.voxel_count() as usize;
-    let mut density = vec![0u8; n];
-    let mut level = vec![0u8; n];
-    tree.store.for_each(|i, v| {
-        density[i as usize] = v.density;
-        level[i as usize] = v.level;
-    });
-    let vsize = vol.voxel_size();
-    let inv = vsize.map(|s| 1.0 / s);
-    let step = vsize[0].min(vsize[1]).min(vsize[2]);
-    // Δs in units of the reference step of the longest extent, as the reference measures it, so a reduced
-    // volume keeps its look.
-    let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
-    let alpha = alpha_table(lighting.density_scale * step / (longest * REFERENCE_STEP));
-    let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
-    let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
-    let inv_half = half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 });
-    let light = normalize(lighting.sun_direction);
-    let flows: Vec<([f32; 3], [f32; 3], f32, [f32; 3])> = tree
-        .flows
-        .iter()
-        .map(|f| {
-            let d = sub(f.to, f.from);
-            (f.from, d, dot(d, d), normalize(d))
-        })
-        .collect();
-    let normal = |c: [f32; 3]| -> [f32; 3] {
-        let mut radial = [0.0f32; 3];
-        let mut flow = [0.0f32; 3];
-        for &(a, d, dd, dir) in &flows {
-            let t = if dd > 0.0 { (dot(sub(c, a), d) / dd).clamp(0.0, 1.0) } else { 0.0 };
-            let q = [a[0] + d[0] * t, a[1] + d[1] * t, a[2] + d[2] * t];
-            let r = sub(c, q);
-            let w = 1.0 / (dot(r, r) + 1e-6);
-            let rn = normalize(r);
-            for i in 0..3 {
-                radial[i] += w * rn[i];
-                flow[i] += w * dir[i];
-            }
-        }
-        let t = normalize(flow);
-        let k = dot(radial, t);
-        let nn = [radial[0] - k * t[0], radial[1] - k * t[1], radial[2] - k * t[2]];
-        if norm(nn) > 1e-6 { normalize(nn) } else { normalize(sub(c, center)) }
-    };
-    // Shadow ray from a voxel centre toward the light, as the reference casts it: steps of Δs from the centre to
-    // the exit of the voxels' box.
-    let transmittance = |c: [f32; 3]| -> f32 {
-        let inv_d = light.map(|v| 1.0 / v);
-        let mut t1 = f32::INFINITY;
-        let mut t0 = 0.0f32;
-        for i in 0..3 {
-            let a = (aabb.min[i] - c[i]) * inv_d[i];
-            let b = (aabb.max[i] - c[i]) * inv_d[i];
-            let (lo, hi) = if a <= b { (a, b) } else { (b, a) };
-            if lo > t0 {
-                t0 = lo;
-            }
-            if hi < t1 {
-                t1 = hi;
-            }
-        }
-        if t0 > t1 {
-            return 1.0;
-        }
-        let mut tr = 1.0f32;
-        let end = libm::floorf(t1 / step) as i64;
-        for s in 1..=end {
-            let t = s as f32 * step;
-            let p = [c[0] + light[0] * t, c[1] + light[1] * t, c[2] + light[2] * t];
-            let Some(v) = vol.voxel_at(p, inv) else { break };
-            let d = density[vol.index(v) as usize];
-            if d != 0 {
-                tr *= 1.0 - alpha[usize::from(d)];
-                if tr < 0.01 {
-                    return 0.0;
-                }
-            }
-        }
-        tr
-    };
-    let mut texels = vec![0u16; 4 * n];
-    let mut voxels = 0;
-    for idx in 0..n {
-        let d = density[idx];
-        if d == 0 {
-            continue;
-        }
-        voxels += 1;
-        let v = vol.coords(idx as u32);
-        let c = vol.center(v);
-        let base = tree.level_color(level[idx]);
-        let e: [f32; 3] = std::array::from_fn(|i| (c[i] - center[i]) * inv_half[i]);
-        let depth = (1.0 - norm(e)).max(0.0);
-        let ambient = lighting.ambient * libm::expf(-lighting.ambient_falloff * depth);
-        let lambert = dot(normal(c), light).max(0.0);
-        let s = if lighting.volume_shadows { transmittance(c) } else { 1.0 };
-        for i in 0..3 {
-            let lit = ambient + lighting.diffuse * lambert * s * lighting.sun_color[i];
-            texels[4 * idx + i] = f16_bits(base[i] * lit);
-        }
-        texels[4 * idx + 3] = f16_bits(alpha[usize::from(d)]);
+    let shaded = shade_voxels(tree, &lighting.reference_options())?;
+    let mut texels = vec![0u16; 4 * vol.voxel_count() as usize];
+    for s in &shaded {
+        let [r, g, b] = s.color.map(f16_bits);
+        texels[4 * s.index as usize..][..4].copy_from_slice(&[r, g, b, f16_bits(s.alpha)]);
     }
-    Ok(FarVolume { dims, voxel_size: vsize, aabb_min: aabb.min, aabb_max: aabb.max, origin, units, texels, voxels })
+    Ok(FarVolume {
+        dims: vol.resolution,
+        voxel_size: vol.voxel_size(),
+        aabb_min: aabb.min,
+        aabb_max: aabb.max,
+        origin,
+        units,
+        texels,
+        voxels: shaded.len(),
+    })
 }
 
 /// One ray through a baked volume exactly as `shaders/volume.wgsl` marches it (origin and unit direction in box
@@ -484,7 +363,7 @@ mod tests {
     #[test]
     fn marching_the_baked_volume_reproduces_the_cpu_reference() {
         use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
-        use canopy_worlds::hypertree::render::{RenderOptions, render};
+        use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render};
         let def = canopy_worlds::hypertree::library::find("apple").unwrap().load().unwrap();
         let opts = GenerateOptions { resolution: Some([40, 40, 40]), ..GenerateOptions::default() };
         let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).unwrap();
@@ -493,30 +372,12 @@ mod tests {
         let ro = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
         let (img, _) = render(&tree, &ro, &mut |_, _| {}).unwrap();
         let v = volumes_of(&tree, [0.0; 3], 1.0, 64, &Lighting::default()).unwrap().full;
-        // The reference's camera.
-        let aabb = tree.aabb().unwrap();
-        let c: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
-        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
-        let radius = norm(half);
-        let (fov, el) = (ro.fov.to_radians(), ro.elevation.to_radians());
-        let tan_half = (0.5 * fov).tan();
-        let fit = radius / (0.5 * fov).sin().min(tan_half.atan().sin());
-        let back = [0.0, el.sin(), el.cos()];
-        let eye: [f32; 3] = std::array::from_fn(|i| c[i] + back[i] * fit * ro.zoom_out);
-        let fwd = back.map(|x| -x);
-        let right = normalize([fwd[1] * 0.0 - fwd[2] * 1.0, fwd[2] * 0.0 - fwd[0] * 0.0, fwd[0] * 1.0 - fwd[1] * 0.0]);
-        let up = [
-            right[1] * fwd[2] - right[2] * fwd[1],
-            right[2] * fwd[0] - right[0] * fwd[2],
-            right[0] * fwd[1] - right[1] * fwd[0],
-        ];
+        let cam = ReferenceCamera::new(&tree.aabb().unwrap(), &ro);
         let mut bad = 0;
         for py in 0..h {
             for px in 0..w {
-                let nx = (2.0 * (px as f32 + 0.5) / w as f32 - 1.0) * tan_half;
-                let ny = (1.0 - 2.0 * (py as f32 + 0.5) / h as f32) * tan_half;
-                let d = normalize(std::array::from_fn(|i| fwd[i] + right[i] * nx + up[i] * ny));
-                let (col, a) = march(&v, eye, d);
+                let d = cam.ray((px as f32 + 0.5) / w as f32, (py as f32 + 0.5) / h as f32);
+                let (col, a) = march(&v, cam.eye, d);
                 let ours: [u8; 3] =
                     std::array::from_fn(|i| ((col[i] + (1.0 - a) * bg[i]).clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
                 let theirs = img.pixel(px, py);

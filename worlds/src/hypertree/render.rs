@@ -245,6 +245,100 @@ pub fn render(
     }
 }
 
+/// The camera of [`render`]: around the box of the non-empty voxels at `opts.azimuth` and `opts.elevation`, at
+/// `opts.zoom_out` times the distance at which the box's bounding sphere just fits the field of view (vertical and
+/// horizontal), looking at the box's centre with +y up.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReferenceCamera {
+    /// The eye, box units.
+    pub eye: [f32; 3],
+    /// Where it looks: the box's centre.
+    pub center: [f32; 3],
+    /// Unit view direction.
+    pub forward: [f32; 3],
+    /// Unit right vector of the image plane.
+    pub right: [f32; 3],
+    /// Unit up vector of the image plane.
+    pub up: [f32; 3],
+    /// `tan(fov / 2)`, the vertical half extent of the image plane at unit distance.
+    pub tan_half: f32,
+    /// Width over height.
+    pub aspect: f32,
+}
+
+impl ReferenceCamera {
+    /// The camera for a tree whose non-empty voxels span `aabb`, with the view and image size of `opts`.
+    pub fn new(aabb: &Aabb, opts: &RenderOptions) -> ReferenceCamera {
+        let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+        let radius = norm(half);
+        let rad = |deg: f32| deg * (std::f32::consts::PI / 180.0);
+        let (az, el) = (rad(opts.azimuth), rad(opts.elevation));
+        let back = [libm::cosf(el) * libm::sinf(az), libm::sinf(el), libm::cosf(el) * libm::cosf(az)];
+        let tan_half = libm::tanf(rad(opts.fov) * 0.5);
+        let aspect = opts.width as f32 / opts.height as f32;
+        let fit = radius / libm::sinf(rad(opts.fov) * 0.5).min(libm::sinf(libm::atanf(tan_half * aspect)));
+        let dist = fit * opts.zoom_out;
+        let eye: [f32; 3] = std::array::from_fn(|i| center[i] + back[i] * dist);
+        let forward = back.map(|v| -v);
+        let right = normalize(cross(forward, [0.0, 1.0, 0.0]));
+        let up = cross(right, forward);
+        ReferenceCamera { eye, center, forward, right, up, tan_half, aspect }
+    }
+
+    /// The unit direction of the ray through image point `(fx, fy)`, both in `[0, 1]` from the top left corner.
+    pub fn ray(&self, fx: f32, fy: f32) -> [f32; 3] {
+        let nx = (2.0 * fx - 1.0) * self.tan_half * self.aspect;
+        let ny = (1.0 - 2.0 * fy) * self.tan_half;
+        normalize(std::array::from_fn(|i| self.forward[i] + self.right[i] * nx + self.up[i] * ny))
+    }
+}
+
+/// One non-empty voxel's shading as [`render`] computes it: lit colour (not premultiplied) and the opacity of one
+/// step through it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ShadedVoxel {
+    /// The voxel's index in the hypervolume.
+    pub index: u32,
+    /// Base colour times the light it receives.
+    pub color: [f32; 3],
+    /// `α = 1 − (1 − µ)^(k·Δs)` for a step of the smallest voxel side.
+    pub alpha: f32,
+}
+
+/// The view-independent shading of every non-empty voxel, in index order, exactly as [`render`] shades them at
+/// voxel centres with `opts` (attenuated ambient, diffuse with procedural normals, shadow rays to the lights);
+/// the specular term depends on the eye and is left out (`Shading::Specular` shades like `Shading::Diffuse`).
+/// The image size and camera of `opts` are not used, but are checked like every other number. For baking the
+/// shading into a volume that a GPU only marches.
+pub fn shade_voxels(tree: &Hypertree, opts: &RenderOptions) -> Result<Vec<ShadedVoxel>, RenderError> {
+    check(opts)?;
+    Ok(match &tree.store {
+        VoxelStore::Dense(s) => shade_with(tree, s, opts),
+        VoxelStore::IndexList(s) => shade_with(tree, s, opts),
+        VoxelStore::IndexBits(s) => shade_with(tree, s, opts),
+        VoxelStore::Partitioned(s) => shade_with(tree, s, opts),
+    })
+}
+
+fn shade_with<Q: VoxelQuery>(tree: &Hypertree, q: &Q, opts: &RenderOptions) -> Vec<ShadedVoxel> {
+    let Some(aabb) = tree.aabb() else { return Vec::new() };
+    let mut o = opts.clone();
+    if o.shading == Shading::Specular {
+        o.shading = Shading::Diffuse;
+    }
+    let mut scene = Scene::new(tree, q, aabb, &o, [0.0; 3]);
+    let mut out = Vec::new();
+    let vol = tree.volume;
+    tree.store.for_each(|i, voxel| {
+        if voxel.density != 0 {
+            let color = scene.lit(voxel, vol.coords(i));
+            out.push(ShadedVoxel { index: i, color, alpha: scene.alpha[usize::from(voxel.density)] });
+        }
+    });
+    out
+}
+
 #[inline]
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -462,6 +556,74 @@ struct Scene<'a, Q: VoxelQuery> {
     stats: RenderStats,
 }
 
+impl<'a, Q: VoxelQuery> Scene<'a, Q> {
+    /// Everything but the shading memo and the ray cache (empty), for a tree whose non-empty voxels span `aabb`,
+    /// seen from `eye`.
+    fn new(tree: &Hypertree, q: &'a Q, aabb: Aabb, opts: &RenderOptions, eye: [f32; 3]) -> Self {
+        let vol = tree.volume;
+        let vsize = vol.voxel_size();
+        let step = vsize[0].min(vsize[1]).min(vsize[2]);
+        // α = 1 − (1 − µ)^(k·Δs), Δs measured in units of REFERENCE_STEP of the longest extent, so a voxel of a
+        // given density is as opaque per unit length at every resolution (a reduced hypertree keeps its look).
+        let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
+        let ds = step / (longest * REFERENCE_STEP);
+        let alpha = std::array::from_fn(|d| {
+            let mu = d as f32 / 255.0;
+            if d == 0 {
+                0.0
+            } else if d == 255 {
+                1.0
+            } else {
+                1.0 - libm::powf(1.0 - mu, opts.density_scale * ds)
+            }
+        });
+        let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
+        let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
+        let flows = tree
+            .flows
+            .iter()
+            .map(|f| {
+                let d = sub(f.to, f.from);
+                FlowSeg { a: f.from, d, dd: dot(d, d), dir: normalize(d) }
+            })
+            .collect();
+        let mut colors = [[0.0f32; 3]; 256];
+        for (l, c) in colors.iter_mut().enumerate() {
+            *c = tree.level_color(l as u8);
+        }
+        let use_spheres = opts.bounds == BoundingScheme::Spheres && !tree.bounds.is_empty();
+        let mut o = opts.clone();
+        if !use_spheres {
+            o.bounds = BoundingScheme::Aabb;
+        }
+        let mask = VoxelMask::build(tree, opts.skip_empty);
+        Scene {
+            q,
+            vol,
+            inv: std::array::from_fn(|i| 1.0 / vsize[i]),
+            vsize,
+            brick_dist: brick_distances(&tree.occupancy, &mask),
+            mask,
+            skip: opts.skip_empty,
+            step,
+            alpha,
+            aabb,
+            spheres: tree.bounds.spheres.iter().map(|s| (s.center, s.radius)).collect(),
+            boxes: tree.bounds.boxes.clone(),
+            colors,
+            flows,
+            crown_center: center,
+            crown_inv_half: half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 }),
+            lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
+            eye,
+            o,
+            memo: Vec::new(),
+            ray_cache: Vec::new(),
+            stats: RenderStats::default(),
+        }
+    }
+}
+
 impl<Q: VoxelQuery> Scene<'_, Q> {
     #[inline]
     fn brick_exit(&self, v: [u32; 3], o: [f32; 3], inv_d: [f32; 3]) -> f32 {
@@ -659,6 +821,13 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
         if !memo[0].is_nan() {
             return memo;
         }
+        let out = self.lit(voxel, v);
+        self.memo[rank as usize] = out;
+        out
+    }
+
+    /// The shading of non-empty voxel `v` (not memoised).
+    fn lit(&mut self, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
         self.stats.shaded += 1;
         let c = self.vol.center(v);
         let base = self.colors[voxel.level as usize];
@@ -696,9 +865,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                 }
             }
         }
-        let out = std::array::from_fn(|i| base[i] * light[i] + spec[i]);
-        self.memo[rank as usize] = out;
-        out
+        std::array::from_fn(|i| base[i] * light[i] + spec[i])
     }
 }
 
@@ -726,81 +893,14 @@ fn render_with<Q: VoxelQuery>(
         }
         return Ok((Image { width: w, height: h, pixels }, RenderStats::default()));
     };
-    let vol = tree.volume;
-    let vsize = vol.voxel_size();
-    let step = vsize[0].min(vsize[1]).min(vsize[2]);
-    // α = 1 − (1 − µ)^(k·Δs), Δs measured in units of REFERENCE_STEP of the longest extent, so a voxel of a given
-    // density is as opaque per unit length at every resolution (a reduced hypertree keeps its look).
-    let longest = vol.extent[0].max(vol.extent[1]).max(vol.extent[2]);
-    let ds = step / (longest * REFERENCE_STEP);
-    let alpha = std::array::from_fn(|d| {
-        let mu = d as f32 / 255.0;
-        if d == 0 {
-            0.0
-        } else if d == 255 {
-            1.0
-        } else {
-            1.0 - libm::powf(1.0 - mu, opts.density_scale * ds)
-        }
-    });
-    let center: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.min[i] + aabb.max[i]));
-    let half: [f32; 3] = std::array::from_fn(|i| 0.5 * (aabb.max[i] - aabb.min[i]));
-    let radius = norm(half);
-    let rad = |deg: f32| deg * (std::f32::consts::PI / 180.0);
-    let (az, el) = (rad(opts.azimuth), rad(opts.elevation));
-    let back = [libm::cosf(el) * libm::sinf(az), libm::sinf(el), libm::cosf(el) * libm::cosf(az)];
-    let tan_half = libm::tanf(rad(opts.fov) * 0.5);
-    let aspect = w as f32 / h as f32;
-    let fit = radius / libm::sinf(rad(opts.fov) * 0.5).min(libm::sinf(libm::atanf(tan_half * aspect)));
-    let dist = fit * opts.zoom_out;
-    let eye: [f32; 3] = std::array::from_fn(|i| center[i] + back[i] * dist);
-    let fwd = back.map(|v| -v);
-    let right = normalize(cross(fwd, [0.0, 1.0, 0.0]));
-    let up = cross(right, fwd);
-    let flows = tree
-        .flows
-        .iter()
-        .map(|f| {
-            let d = sub(f.to, f.from);
-            FlowSeg { a: f.from, d, dd: dot(d, d), dir: normalize(d) }
-        })
-        .collect();
-    let mut colors = [[0.0f32; 3]; 256];
-    for (l, c) in colors.iter_mut().enumerate() {
-        *c = tree.level_color(l as u8);
+    let cam = ReferenceCamera::new(&aabb, opts);
+    let eye = cam.eye;
+    let mut scene = Scene::new(tree, q, aabb, opts, eye);
+    let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / scene.step) as usize + 4;
+    scene.memo = vec![[f32::NAN; 3]; scene.mask.count()];
+    if opts.ray_cache {
+        scene.ray_cache = vec![(u32::MAX, Voxel::EMPTY); diag_steps];
     }
-    let use_spheres = opts.bounds == BoundingScheme::Spheres && !tree.bounds.is_empty();
-    let mut o = opts.clone();
-    if !use_spheres {
-        o.bounds = BoundingScheme::Aabb;
-    }
-    let diag_steps = (norm(std::array::from_fn(|i| aabb.max[i] - aabb.min[i])) / step) as usize + 4;
-    let mask = VoxelMask::build(tree, opts.skip_empty);
-    let voxels = mask.count();
-    let mut scene = Scene {
-        q,
-        vol,
-        inv: std::array::from_fn(|i| 1.0 / vsize[i]),
-        vsize,
-        brick_dist: brick_distances(&tree.occupancy, &mask),
-        mask,
-        skip: opts.skip_empty,
-        step,
-        alpha,
-        aabb,
-        spheres: tree.bounds.spheres.iter().map(|s| (s.center, s.radius)).collect(),
-        boxes: tree.bounds.boxes.clone(),
-        colors,
-        flows,
-        crown_center: center,
-        crown_inv_half: half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 }),
-        lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
-        eye,
-        o,
-        memo: vec![[f32::NAN; 3]; voxels],
-        ray_cache: if opts.ray_cache { vec![(u32::MAX, Voxel::EMPTY); diag_steps] } else { Vec::new() },
-        stats: RenderStats::default(),
-    };
     let mut intervals = Vec::new();
     let inv_s = 1.0 / s as f32;
     let weight = 1.0 / (s * s) as f32;
@@ -811,9 +911,7 @@ fn render_with<Q: VoxelQuery>(
                 for sx in 0..s {
                     let fx = (px as f32 + (sx as f32 + 0.5) * inv_s) / w as f32;
                     let fy = (py as f32 + (sy as f32 + 0.5) * inv_s) / h as f32;
-                    let nx = (2.0 * fx - 1.0) * tan_half * aspect;
-                    let ny = (1.0 - 2.0 * fy) * tan_half;
-                    let d = normalize(std::array::from_fn(|i| fwd[i] + right[i] * nx + up[i] * ny));
+                    let d = cam.ray(fx, fy);
                     let (c, a) = scene.march(eye, d, &mut intervals);
                     let b = bg(fy);
                     for i in 0..3 {

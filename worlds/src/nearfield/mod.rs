@@ -150,23 +150,45 @@ pub(crate) fn perpendicular(a: V3) -> V3 {
     normalize(cross(helper, a)).unwrap_or([1.0, 0.0, 0.0])
 }
 
-/// An instance meshed as its species asks with `nearfield(continuous = 1, …)`, for close-ups: the continuous mesh
-/// of the branches (with contours along long pieces where a bark is asked for, so the plates are about square),
-/// the outer bark over the trunk, and the foliage, merged into one mesh. The renderer's near band draws this;
-/// `canopy species export` writes the same parts as named meshes.
-pub fn species_near_mesh(
+/// The parts of an instance meshed as its species asks with `nearfield(continuous = 1, …)`: the continuous mesh of
+/// the branches (with contours along long pieces where a bark is asked for, so the plates are about square) and the
+/// foliage, both in [`NearParts::continuous`], and the outer bark over the trunk.
+#[derive(Clone, Debug)]
+pub struct NearParts {
+    /// The branches (`mesh`) and the foliage (`foliage`), with what a LOD chain needs.
+    pub continuous: continuous::ContinuousMesh,
+    /// The outer bark, when one is asked for.
+    pub bark: Option<Mesh>,
+}
+
+/// Mesh an instance's near-field parts (see [`NearParts`]); `canopy species export` writes them as named meshes.
+pub fn species_near_parts(
     stream: &crate::primitive::PrimitiveStream,
     opts: &NearFieldOptions,
-) -> Result<Mesh, NearFieldError> {
+) -> Result<NearParts, NearFieldError> {
     let mesh_opts = if opts.bark.is_some() {
         continuous::ContinuousOptions { subdivide: true, ..opts.mesh }
     } else {
         opts.mesh
     };
     let cm = continuous::continuous_mesh(stream, &mesh_opts)?;
-    let mut out = cm.mesh.clone();
-    if let Some(b) = &opts.bark {
-        out.append(&bark::outer_bark(&cm.mesh, &bark::trunk_places(&cm.tags), b)?, [0.0; 3]);
+    let bark = match &opts.bark {
+        Some(b) => Some(bark::outer_bark(&cm.mesh, &bark::trunk_places(&cm.tags), b)?),
+        None => None,
+    };
+    Ok(NearParts { continuous: cm, bark })
+}
+
+/// An instance's near-field parts ([`species_near_parts`]) merged into one mesh: branches, bark, foliage. The
+/// renderer's near band draws this.
+pub fn species_near_mesh(
+    stream: &crate::primitive::PrimitiveStream,
+    opts: &NearFieldOptions,
+) -> Result<Mesh, NearFieldError> {
+    let NearParts { continuous: cm, bark } = species_near_parts(stream, opts)?;
+    let mut out = cm.mesh;
+    if let Some(b) = &bark {
+        out.append(b, [0.0; 3]);
     }
     out.append(&cm.foliage, [0.0; 3]);
     Ok(out)
