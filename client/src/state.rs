@@ -453,10 +453,7 @@ impl ClientState {
     }
 }
 
-/// The seed of instance `id` in a world of seed `world_seed` (the same derivation as the world's).
-pub fn instance_seed(world_seed: u64, id: u32) -> u64 {
-    canopy_worlds::rng::child_key(world_seed, u64::from(id))
-}
+pub use canopy_worlds::world::instance_seed;
 
 #[cfg(test)]
 mod tests {

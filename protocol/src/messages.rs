@@ -206,6 +206,17 @@ impl ServerMsgKind {
             ServerMsgKind::Geometry => "geometry",
         }
     }
+
+    /// The phase after a message of this kind, or an error if it is not legal in `phase`: the welcome answers a
+    /// hello, everything else streams.
+    pub fn next_phase(self, phase: Phase) -> Result<Phase, PhaseError> {
+        match (self, phase) {
+            (ServerMsgKind::Welcome, Phase::Hello) => Ok(Phase::Welcomed),
+            (ServerMsgKind::Welcome, _) => Err(PhaseError { phase, message: self.name() }),
+            (_, Phase::Streaming) => Ok(Phase::Streaming),
+            _ => Err(PhaseError { phase, message: self.name() }),
+        }
+    }
 }
 
 /// The server's answer to a hello: the world, its species table and the area-of-interest rules.
@@ -606,11 +617,7 @@ impl ServerMsg {
 
     /// The phase after this message, or an error if it is not legal in `phase`.
     pub fn next_phase(&self, phase: Phase) -> Result<Phase, PhaseError> {
-        match (self, phase) {
-            (ServerMsg::Handshake(ServerHandshake::Welcome(_)), Phase::Hello) => Ok(Phase::Welcomed),
-            (ServerMsg::Streaming(_), Phase::Streaming) => Ok(Phase::Streaming),
-            _ => Err(PhaseError { phase, message: self.name() }),
-        }
+        self.kind().next_phase(phase)
     }
 }
 

@@ -373,8 +373,8 @@ impl Session {
                     return Err(SessionError::Version { client: h.version, server: PROTOCOL_VERSION });
                 }
                 self.client = h.client;
-                // The hello moves to `next` (Hello), the welcome sent at once on to Welcomed.
-                self.phase = Phase::Welcomed;
+                // The hello moves to `next` (Hello), the welcome sent at once on to the phase after it.
+                self.phase = MsgClass::Welcome.next_phase(next)?;
                 let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
                 let t = Transmit { stream: StreamId::Control, bytes, class: MsgClass::Welcome, records: 0 };
                 self.urgent.push_back(t);

@@ -388,7 +388,7 @@ impl World {
     /// `mix64(seed ^ mix64(id + 0x9e37_79b9_7f4a_7c15))` with SplitMix64's finaliser `mix64`
     /// ([`crate::rng::mix64`]).
     pub fn instance_seed(&self, id: u32) -> u64 {
-        crate::rng::child_key(self.seed, u64::from(id))
+        instance_seed(self.seed, id)
     }
 
     /// The instance `id` at a detail level: its seed and stored parameter values.
@@ -511,4 +511,10 @@ impl World {
         }
         s
     }
+}
+
+/// The seed of instance `id` in a world of seed `world_seed`: [`World::instance_seed`], for a client that holds the
+/// world's seed (from the welcome) but not the world.
+pub fn instance_seed(world_seed: u64, id: u32) -> u64 {
+    crate::rng::child_key(world_seed, u64::from(id))
 }
