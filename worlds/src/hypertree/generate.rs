@@ -325,111 +325,150 @@ impl Grid<'_> {
         self.points.clear();
     }
 
-    /// Every voxel the segment passes through, by a 3D DDA (Amanatides–Woo) over the part of the segment inside
-    /// the box, so the work is bounded by the volume's resolution, not by the segment.
+    /// Record every voxel the segment passes through (see [`dda`]): straight into a dense array or a brick grid,
+    /// or handed to the recorder in batches (in order, so the result is the same).
     fn segment(&mut self, a: [f32; 3], b: [f32; 3], level: u8, part: u8) -> bool {
-        // Voxel coordinates.
-        let a: [f32; 3] = std::array::from_fn(|i| (a[i] + self.offset[i]) * self.inv[i]);
-        let b: [f32; 3] = std::array::from_fn(|i| (b[i] + self.offset[i]) * self.inv[i]);
-        let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
-        let res = self.volume.resolution.map(|r| r as f32);
-        let (mut t0, mut t1) = (0.0f32, 1.0f32);
-        for i in 0..3 {
-            if d[i] == 0.0 {
-                if !(a[i] >= 0.0 && a[i] < res[i]) {
-                    return false;
-                }
-            } else {
-                let (u, v) = ((0.0 - a[i]) / d[i], (res[i] - a[i]) / d[i]);
-                t0 = t0.max(u.min(v));
-                t1 = t1.min(u.max(v));
-            }
+        let (volume, offset, inv) = (&self.volume, self.offset, self.inv);
+        if let Some(mut dense) = self.recorder.dense_hits() {
+            return dda(volume, offset, inv, a, b, |v, index| dense.hit(v, index, level));
         }
-        if !(t0 <= t1) {
-            return false;
+        if let Some(mut bricks) = self.recorder.brick_hits(part) {
+            return dda(volume, offset, inv, a, b, |v, _| bricks.hit(v, level));
         }
-        let p: [f32; 3] = std::array::from_fn(|i| a[i] + d[i] * t0);
-        let max = self.volume.resolution.map(|r| r as i64 - 1);
-        let v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
-        let end: [i64; 3] = std::array::from_fn(|i| ((a[i] + d[i] * t1).max(0.0) as i64).min(max[i]));
-        let step: [i64; 3] = std::array::from_fn(|i| {
-            if d[i] > 0.0 {
-                1
-            } else if d[i] < 0.0 {
-                -1
-            } else {
-                0
-            }
-        });
-        let delta: [f32; 3] = std::array::from_fn(|i| if d[i] != 0.0 { (1.0 / d[i]).abs() } else { f32::INFINITY });
-        let next: [f32; 3] = std::array::from_fn(|i| {
-            if d[i] > 0.0 {
-                ((v[i] + 1) as f32 - a[i]) / d[i]
-            } else if d[i] < 0.0 {
-                (v[i] as f32 - a[i]) / d[i]
-            } else {
-                f32::INFINITY
-            }
-        });
-        // At most one step per voxel boundary crossed: bounded by the sum of the resolutions. The index moves by
-        // one stride per step.
-        let limit = (self.volume.resolution.iter().sum::<u32>() + 3) as usize;
-        let [rx, ry, _] = self.volume.resolution.map(i64::from);
-        let stride = [step[0], step[1] * rx, step[2] * rx * ry];
-        let mut idx = i64::from(self.volume.index([v[0] as u32, v[1] as u32, v[2] as u32]));
-        // The crossed voxels are handed to the recorder in batches (in order, so the result is the same).
         const BATCH: usize = 64;
         let mut buf = [([0u32; 3], 0u32); BATCH];
         let mut n = 0;
-        // The axis state lives in scalars (not arrays indexed by the axis) so it stays in registers.
-        let [mut v0, mut v1, mut v2] = v;
-        let [mut n0, mut n1, mut n2] = next;
-        let [e0, e1, e2] = end;
-        for _ in 0..limit {
-            buf[n] = ([v0 as u32, v1 as u32, v2 as u32], idx as u32);
+        let recorder = &mut *self.recorder;
+        let inside = dda(volume, offset, inv, a, b, |v, index| {
+            buf[n] = (v, index);
             n += 1;
             if n == BATCH {
-                self.recorder.record_many(&buf, level, part);
+                recorder.record_many(&buf, level, part);
                 n = 0;
             }
-            if v0 == e0 && v1 == e1 && v2 == e2 {
+        });
+        recorder.record_many(&buf[..n], level, part);
+        inside
+    }
+}
+
+/// Visit every voxel (coordinates and index) the segment from `a` to `b` (tree coordinates, `offset` from the box
+/// corner, `inv` voxels per unit) passes through, by a 3D DDA (Amanatides–Woo) over the part of the segment inside
+/// the box, so the work is bounded by the volume's resolution, not by the segment. False when it misses the box.
+#[inline(always)]
+fn dda(
+    volume: &Hypervolume,
+    offset: [f32; 3],
+    inv: [f32; 3],
+    a: [f32; 3],
+    b: [f32; 3],
+    mut visit: impl FnMut([u32; 3], u32),
+) -> bool {
+    // Voxel coordinates.
+    let a: [f32; 3] = std::array::from_fn(|i| (a[i] + offset[i]) * inv[i]);
+    let b: [f32; 3] = std::array::from_fn(|i| (b[i] + offset[i]) * inv[i]);
+    let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
+    let res = volume.resolution.map(|r| r as f32);
+    // With both ends inside, the clip is [0, 1] (see `clip`), so the common case skips its divisions.
+    let inside = |p: [f32; 3]| (0..3).all(|i| p[i] >= 0.0 && p[i] < res[i]);
+    let (t0, t1) = if inside(a) && inside(b) {
+        (0.0, 1.0)
+    } else {
+        match clip(a, d, res) {
+            Some(t) => t,
+            None => return false,
+        }
+    };
+    let p: [f32; 3] = std::array::from_fn(|i| a[i] + d[i] * t0);
+    let max = volume.resolution.map(|r| r as i64 - 1);
+    let v: [i64; 3] = std::array::from_fn(|i| (p[i].max(0.0) as i64).min(max[i]));
+    let end: [i64; 3] = std::array::from_fn(|i| ((a[i] + d[i] * t1).max(0.0) as i64).min(max[i]));
+    let step: [i64; 3] = std::array::from_fn(|i| {
+        if d[i] > 0.0 {
+            1
+        } else if d[i] < 0.0 {
+            -1
+        } else {
+            0
+        }
+    });
+    let delta: [f32; 3] = std::array::from_fn(|i| if d[i] != 0.0 { (1.0 / d[i]).abs() } else { f32::INFINITY });
+    let next: [f32; 3] = std::array::from_fn(|i| {
+        if d[i] > 0.0 {
+            ((v[i] + 1) as f32 - a[i]) / d[i]
+        } else if d[i] < 0.0 {
+            (v[i] as f32 - a[i]) / d[i]
+        } else {
+            f32::INFINITY
+        }
+    });
+    // At most one step per voxel boundary crossed: bounded by the sum of the resolutions. The index moves by
+    // one stride per step.
+    let limit = (volume.resolution.iter().sum::<u32>() + 3) as usize;
+    let [rx, ry, _] = volume.resolution.map(i64::from);
+    let stride = [step[0], step[1] * rx, step[2] * rx * ry];
+    let mut idx = i64::from(volume.index([v[0] as u32, v[1] as u32, v[2] as u32]));
+    // The axis state lives in scalars (not arrays indexed by the axis) so it stays in registers.
+    let [mut v0, mut v1, mut v2] = v;
+    let [mut n0, mut n1, mut n2] = next;
+    let [e0, e1, e2] = end;
+    for _ in 0..limit {
+        visit([v0 as u32, v1 as u32, v2 as u32], idx as u32);
+        if v0 == e0 && v1 == e1 && v2 == e2 {
+            break;
+        }
+        if n0 <= n1 && n0 <= n2 {
+            if n0 > t1 {
                 break;
             }
-            if n0 <= n1 && n0 <= n2 {
-                if n0 > t1 {
-                    break;
-                }
-                v0 += step[0];
-                if v0 < 0 || v0 > max[0] {
-                    break;
-                }
-                idx += stride[0];
-                n0 += delta[0];
-            } else if n1 <= n2 {
-                if n1 > t1 {
-                    break;
-                }
-                v1 += step[1];
-                if v1 < 0 || v1 > max[1] {
-                    break;
-                }
-                idx += stride[1];
-                n1 += delta[1];
-            } else {
-                if n2 > t1 {
-                    break;
-                }
-                v2 += step[2];
-                if v2 < 0 || v2 > max[2] {
-                    break;
-                }
-                idx += stride[2];
-                n2 += delta[2];
+            v0 += step[0];
+            if v0 < 0 || v0 > max[0] {
+                break;
             }
+            idx += stride[0];
+            n0 += delta[0];
+        } else if n1 <= n2 {
+            if n1 > t1 {
+                break;
+            }
+            v1 += step[1];
+            if v1 < 0 || v1 > max[1] {
+                break;
+            }
+            idx += stride[1];
+            n1 += delta[1];
+        } else {
+            if n2 > t1 {
+                break;
+            }
+            v2 += step[2];
+            if v2 < 0 || v2 > max[2] {
+                break;
+            }
+            idx += stride[2];
+            n2 += delta[2];
         }
-        self.recorder.record_many(&buf[..n], level, part);
-        true
     }
+    true
+}
+
+/// The parameter range `[t0, t1]` of the segment `a + t·d`, `t ∈ [0, 1]`, inside the box `[0, res)`; `None` when it
+/// misses. With both ends inside the result is `[0, 1]` exactly, up to the sign of a zero `t0` (which `a + d·t0`
+/// does not see): rounding is monotonic, so the rounded distance to a face is never below the rounded `d`.
+fn clip(a: [f32; 3], d: [f32; 3], res: [f32; 3]) -> Option<(f32, f32)> {
+    let (mut t0, mut t1) = (0.0f32, 1.0f32);
+    for i in 0..3 {
+        if d[i] == 0.0 {
+            if !(a[i] >= 0.0 && a[i] < res[i]) {
+                return None;
+            }
+        } else {
+            let (u, v) = ((0.0 - a[i]) / d[i], (res[i] - a[i]) / d[i]);
+            t0 = t0.max(u.min(v));
+            t1 = t1.min(u.max(v));
+        }
+    }
+    (t0 <= t1).then_some((t0, t1))
 }
 
 /// Cumulative selection thresholds (out of 2³²) over the transformations allowed at one level, with a guide
@@ -702,5 +741,47 @@ impl Offset for Segment {
     #[inline]
     fn at(self, p: [f32; 3]) -> Self {
         Segment(add(self.0, p), add(self.1, p))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Segments with both ends inside the box clip to exactly `[0, 1]`, so `dda` may skip the clip: checked on
+    /// random segments and on ends at the faces (0 and the largest coordinate below the resolution).
+    #[test]
+    fn clip_of_inside_segments_is_the_whole_segment() {
+        let mut rng = InstanceRng::new(5);
+        let mut ctx = Context { rng: &mut rng, key: 1, counter: 0 };
+        let mut checked = 0;
+        for n in 0..200_000 {
+            let res: [f32; 3] = std::array::from_fn(|_| (1 + ctx.next_u32() % 400) as f32);
+            let mut end = |i: usize| {
+                let r = res[i];
+                match ctx.next_u32() % 8 {
+                    0 => 0.0,
+                    1 => f32::from_bits(r.to_bits() - 1),
+                    2 => f32::from_bits(r.to_bits() - 1 - ctx.next_u32() % 64),
+                    _ => unit_f32(ctx.next_u32()) * r,
+                }
+            };
+            let a: [f32; 3] = std::array::from_fn(&mut end);
+            let mut b: [f32; 3] = std::array::from_fn(&mut end);
+            if n % 5 == 0 {
+                // Nearly parallel to an axis, or very short.
+                b[n % 3] = a[n % 3];
+            }
+            let d: [f32; 3] = std::array::from_fn(|i| b[i] - a[i]);
+            assert!((0..3).all(|i| a[i] < res[i] && b[i] < res[i]));
+            let (t0, t1) = clip(a, d, res).expect("inside segments are not clipped away");
+            assert_eq!(t1, 1.0, "a {a:?} b {b:?} res {res:?}");
+            assert_eq!(t0, 0.0, "a {a:?} b {b:?} res {res:?}");
+            for i in 0..3 {
+                assert_eq!((a[i] + d[i] * t0).to_bits(), a[i].to_bits(), "a {a:?} b {b:?}");
+            }
+            checked += 1;
+        }
+        assert_eq!(checked, 200_000);
     }
 }

@@ -848,17 +848,34 @@ impl HitRecorder {
         self.record_at(v, index, level, subpart);
     }
 
+    /// The dense array's hit counting, for a caller that records voxel by voxel without batching; `None` for the
+    /// lists.
+    #[inline]
+    pub(crate) fn dense_hits(&mut self) -> Option<DenseHits<'_>> {
+        match &mut self.mode {
+            Mode::Dense { array, touched } => Some(DenseHits { array, touched, hits: &mut self.hits }),
+            _ => None,
+        }
+    }
+
+    /// The brick grid's hit counting for hits of `subpart`, for a caller that records the voxels of one
+    /// generator one at a time; `None` unless hits are counted in bricks and `subpart` is 0.
+    #[inline]
+    pub(crate) fn brick_hits(&mut self, subpart: u8) -> Option<BrickHits<'_>> {
+        match &mut self.mode {
+            Mode::Bricks(grid) if subpart == 0 => {
+                Some(BrickHits { grid, hits: &mut self.hits, last: u32::MAX, base: 0 })
+            }
+            _ => None,
+        }
+    }
+
     /// Record one hit of each voxel in `hits` (coordinates and index), all by one generator: the same as calling
-    /// [`HitRecorder::record_at`] for each in order, with the structure chosen once.
+    /// [`HitRecorder::record_at`] for each in order, with the narrow keys' test made once. (A dense array or a
+    /// brick grid is better fed one voxel at a time: [`HitRecorder::dense_hits`], [`HitRecorder::brick_hits`].)
     #[inline]
     pub fn record_many(&mut self, hits: &[([u32; 3], u32)], level: u8, subpart: u8) {
         match &mut self.mode {
-            Mode::Dense { array, touched } => {
-                self.hits += hits.len() as u64;
-                for &(v, index) in hits {
-                    array.hit(v, index, level, touched);
-                }
-            }
             Mode::Keys32 { raw, compact, scratch } if subpart == 0 && u32::from(level) < 1 << LEVEL_BITS => {
                 self.hits += hits.len() as u64;
                 for &(_, index) in hits {
@@ -866,20 +883,6 @@ impl HitRecorder {
                 }
                 if raw.len() >= CHUNK {
                     flush32(raw, compact, scratch);
-                }
-            }
-            Mode::Bricks(grid) if subpart == 0 => {
-                self.hits += hits.len() as u64;
-                // Neighbouring voxels of a segment mostly share a brick: look its slot up once per brick.
-                let mut last = u32::MAX;
-                let mut base = 0usize;
-                for &(v, _) in hits {
-                    let b = grid.brick(v);
-                    if b != last {
-                        last = b;
-                        base = grid.slot(b) << 9;
-                    }
-                    grid.bump(base | BrickGrid::local(v), level);
                 }
             }
             _ => {
@@ -1017,6 +1020,47 @@ impl HitRecorder {
             let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
             self.mode = Mode::Keys { raw: Vec::with_capacity(1 << 16), compact, scratch: Vec::new() };
         }
+    }
+}
+
+/// A dense recorder's array, borrowed to count hits one at a time ([`HitRecorder::dense_hits`]).
+pub(crate) struct DenseHits<'a> {
+    array: &'a mut DenseArray,
+    touched: &'a mut Vec<u32>,
+    hits: &'a mut u64,
+}
+
+impl DenseHits<'_> {
+    /// Count one hit of voxel `v` (index `index`) at `level`, as [`HitRecorder::record_at`] does.
+    #[inline(always)]
+    pub(crate) fn hit(&mut self, v: [u32; 3], index: u32, level: u8) {
+        *self.hits += 1;
+        self.array.hit(v, index, level, self.touched);
+    }
+}
+
+/// A brick-counting recorder's grid, borrowed to count one generator's hits one at a time
+/// ([`HitRecorder::brick_hits`]).
+pub(crate) struct BrickHits<'a> {
+    grid: &'a mut BrickGrid,
+    hits: &'a mut u64,
+    /// The brick of the last hit and its slot's first cell: neighbouring voxels of a segment mostly share a
+    /// brick, so its slot is looked up once per brick.
+    last: u32,
+    base: usize,
+}
+
+impl BrickHits<'_> {
+    /// Count one hit of voxel `v` at `level`, as [`HitRecorder::record_at`] does.
+    #[inline(always)]
+    pub(crate) fn hit(&mut self, v: [u32; 3], level: u8) {
+        *self.hits += 1;
+        let b = self.grid.brick(v);
+        if b != self.last {
+            self.last = b;
+            self.base = self.grid.slot(b) << 9;
+        }
+        self.grid.bump(self.base | BrickGrid::local(v), level);
     }
 }
 
