@@ -618,8 +618,8 @@ async fn bot_session(
     progress.connected.fetch_sub(1, Relaxed);
     report.read(&conn);
     let state = conn.close_into_state();
-    if result.is_ok() {
-        if let Some(world) = &cfg.verify {
+    if result.is_ok()
+        && let Some(world) = &cfg.verify {
             // Checking thousands of records is CPU work: keep it off the runtime's workers, which carry the other
             // bots' connections.
             static CHECKS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
@@ -628,7 +628,6 @@ async fn bot_session(
             let checked = tokio::task::spawn_blocking(move || verify(&state, &world)).await;
             report.verify = Some(checked.unwrap_or_else(|e| Err(format!("check task: {e}"))));
         }
-    }
     result
 }
 

@@ -69,13 +69,14 @@ fn grove_camera(world: &World) -> Camera {
 }
 
 fn grove_config(mode: NearMode) -> RenderConfig {
-    let mut cfg = RenderConfig::default();
-    // Thresholds for a small image: the nearest trees near, a few mid, the rest far.
-    cfg.lod = LodConfig { near_px: 150.0, far_px: 30.0, ..LodConfig::default() };
-    cfg.near_mode = mode;
-    cfg.workers = 2;
-    cfg.volume_resolution = 48;
-    cfg
+    RenderConfig {
+        // Thresholds for a small image: the nearest trees near, a few mid, the rest far.
+        lod: LodConfig { near_px: 150.0, far_px: 30.0, ..LodConfig::default() },
+        near_mode: mode,
+        workers: 2,
+        volume_resolution: 48,
+        ..RenderConfig::default()
+    }
 }
 
 const W: u32 = 320;
@@ -161,14 +162,16 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
         terrain: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)),
         generation: 1,
     };
-    let mut cfg = RenderConfig::default();
-    cfg.lod = LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, low_res_px: 0.0, ..LodConfig::default() };
+    let mut cfg = RenderConfig {
+        lod: LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, low_res_px: 0.0, ..LodConfig::default() },
+        volume_resolution: 64,
+        workers: 1,
+        near_clip: 0.01,
+        ..RenderConfig::default()
+    };
     cfg.lighting.fog_density = 0.0;
     cfg.lighting.sky_zenith = bg;
     cfg.lighting.sky_horizon = bg;
-    cfg.volume_resolution = 64;
-    cfg.workers = 1;
-    cfg.near_clip = 0.01;
     let (gpu, stats) =
         render_still(cfg, &scene, &camera, w, h, Duration::from_secs(120)).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(stats.far, 1, "{stats:?}");

@@ -45,7 +45,7 @@ pub enum GridError {
 impl Grid {
     /// Check the grid's numbers (decoders call this).
     pub fn validate(&self) -> Result<(), GridError> {
-        if !(self.cell_size.is_finite() && self.cell_size > 0.0) || !self.origin.iter().all(|v| v.is_finite()) {
+        if !(self.cell_size.is_finite() && self.cell_size > 0.0 && self.origin.iter().all(|v| v.is_finite())) {
             return Err(GridError::CellSize(self.cell_size));
         }
         let span = |a: i32, b: i32| i64::from(b) - i64::from(a);

@@ -304,7 +304,7 @@ impl TerrainDesc {
         if self.params.len() > limits::MAX_PARAMS || !self.params.iter().all(|(_, v)| v.is_finite()) {
             return bad("terrain parameters out of range");
         }
-        if !(self.tile_size.is_finite() && self.tile_size > 0.0) || !self.origin.iter().all(|v| v.is_finite()) {
+        if !(self.tile_size.is_finite() && self.tile_size > 0.0 && self.origin.iter().all(|v| v.is_finite())) {
             return bad("terrain tile size or origin out of range");
         }
         Ok(())

@@ -363,7 +363,7 @@ fn random_bytes_never_panic() {
                 let i = (next() as usize) % b.len();
                 b[i] = next() as u8;
             }
-            if next() % 8 == 0 {
+            if next().is_multiple_of(8) {
                 b.truncate((next() as usize) % (b.len() + 1));
             }
             if is_client {

@@ -460,11 +460,10 @@ impl Session {
         if self.phase != Phase::Streaming || idle || self.unflushed >= self.cfg.window {
             return None;
         }
-        if let Some(b) = &mut self.bucket {
-            if !b.ready(now) {
+        if let Some(b) = &mut self.bucket
+            && !b.ready(now) {
                 return None;
             }
-        }
         if self.staged.is_empty() {
             self.stage_next_unit();
         }
@@ -575,8 +574,8 @@ impl Session {
         let lane = StreamId::Lane(h.lane);
         // A species goes out just before the first batch that needs it, on the same lane: its program, or its mesh
         // when instanced; unique meshes need none.
-        if mode != PayloadMode::UniqueMesh {
-            if let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
+        if mode != PayloadMode::UniqueMesh
+            && let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
                 let id = r.species;
                 self.set_species(id);
                 match (mode, &geometry) {
@@ -592,7 +591,6 @@ impl Session {
                 }
                 return;
             }
-        }
         let ids = view.first_id + start as u32..view.first_id + end as u32;
         match (mode, &geometry) {
             (PayloadMode::UniqueMesh, Some(g)) => {

@@ -91,11 +91,10 @@ fn drain(s: &mut Session, now: Instant) -> Vec<(StreamId, ServerMsg)> {
 fn cells_of(msgs: &[(StreamId, ServerMsg)]) -> Vec<CellCoord> {
     let mut cells = vec![];
     for (_, m) in msgs {
-        if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m {
-            if cells.last() != Some(&b.cell) {
+        if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m
+            && cells.last() != Some(&b.cell) {
                 cells.push(b.cell);
             }
-        }
     }
     cells
 }
@@ -338,7 +337,7 @@ fn the_window_holds_back_until_bytes_are_flushed() {
     while let Some(t) = s.poll_transmit(t0) {
         held += t.bytes.len();
     }
-    assert!(held >= 300 && held < 300 + 200, "{held}");
+    assert!((300..300 + 200).contains(&held), "{held}");
     assert!(!s.is_complete());
     s.on_flushed(held);
     assert!(s.poll_transmit(t0).is_some());
@@ -427,7 +426,7 @@ struct FakeGeometry;
 impl canopy_server::session::GeometrySource for FakeGeometry {
     fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>> {
         // Large enough to need several chunks for every third instance.
-        let n = if id % 3 == 0 { 2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5 } else { 100 + id as usize };
+        let n = if id.is_multiple_of(3) { 2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5 } else { 100 + id as usize };
         Arc::new(vec![id as u8; n])
     }
     fn species_mesh(&self, species: u8) -> Arc<Vec<u8>> {

@@ -83,7 +83,7 @@ async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
     assert_eq!(summary.verified, 20, "{summary}");
     for r in &reports {
         assert_eq!(r.species_duplicates, 0);
-        assert!(r.held > 0 && r.latencies.len() >= 1, "bot {} {r:?}", r.id);
+        assert!(r.held > 0 && !r.latencies.is_empty(), "bot {} {r:?}", r.id);
         // Each species at most once per bot, and only species its area of interest needed.
         assert!(r.species_received as usize <= world().species.len());
     }

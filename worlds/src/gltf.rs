@@ -161,7 +161,7 @@ pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Vec<u8> {
     }
 
     let mut json_bytes = serde_json::to_vec(&Value::Object(root)).unwrap_or_default();
-    while json_bytes.len() % 4 != 0 {
+    while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
     let bin_chunk = if bin.is_empty() { 0 } else { 8 + bin.len() };
@@ -184,7 +184,7 @@ fn push_view(bin: &mut Vec<u8>, views: &mut Vec<Value>, data: &[u8], target: u32
     views.push(json!({ "buffer": 0, "byteOffset": bin.len(), "byteLength": data.len(), "target": target }));
     bin.extend_from_slice(data);
     // Everything is 4-byte data, so this never pads; it keeps the alignment invariant explicit.
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     views.len() - 1

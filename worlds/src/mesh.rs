@@ -540,7 +540,7 @@ fn strip(e: &mut Emitter<'_>, points: &[[f32; 3]]) -> bool {
         return false;
     }
     let n = points.len();
-    let corners = |k: usize| if k % 2 == 0 { [k, k + 1, k + 2] } else { [k + 1, k, k + 2] };
+    let corners = |k: usize| if k.is_multiple_of(2) { [k, k + 1, k + 2] } else { [k + 1, k, k + 2] };
     let mut sums = vec![[0.0f32; 3]; n];
     let mut total = [0.0f32; 3];
     for k in 0..n - 2 {

@@ -452,11 +452,10 @@ impl Measure<'_> {
 impl DriveHooks for Measure<'_> {
     fn event(&mut self, ev: &Event) {
         let species_ids = &mut self.r.species_ids;
-        if let Event::Species { id, .. } = ev {
-            if !species_ids.contains(id) {
+        if let Event::Species { id, .. } = ev
+            && !species_ids.contains(id) {
                 species_ids.push(*id);
             }
-        }
         if let Event::Geometry { kind: GeometryKind::SpeciesMesh, id, offset: 0, .. } = ev {
             let id = u8::try_from(*id).unwrap_or(u8::MAX);
             if !species_ids.contains(&id) {

@@ -72,6 +72,8 @@ pub struct BotsArgs {
 }
 
 /// Run `canopy bots`.
+// Negated comparisons are deliberate: NaN is rejected too.
+#[allow(clippy::neg_cmp_op_on_partial_ord, clippy::nonminimal_bool)]
 pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     if args.count == 0
         || !(args.speed.is_finite() && args.speed >= 0.0)

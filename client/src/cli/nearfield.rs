@@ -2,7 +2,7 @@
 //! continuous mesh, seed 002's junctions, the double bark and a LOD chain; `canopy species nearfield` (seed 004's
 //! Table 1 and the LOD reduction); `canopy species render` (a PNG close-up from the software rasteriser).
 
-use std::path::PathBuf;
+use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::bail;
@@ -289,7 +289,7 @@ pub fn render_png(
     budget: &Budget,
     plan: &Plan,
     view: View,
-    out: &PathBuf,
+    out: &Path,
     size: (u32, u32),
     angles: (f64, f64, f64),
 ) -> anyhow::Result<ExitCode> {

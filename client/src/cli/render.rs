@@ -52,16 +52,18 @@ pub struct RendererArgs {
 impl RendererArgs {
     /// The validated renderer configuration.
     pub fn config(&self) -> anyhow::Result<RenderConfig> {
-        let mut cfg = RenderConfig::default();
-        cfg.lod = LodConfig {
-            near_px: self.near_px,
-            far_px: self.far_px,
-            mid_levels: self.mid_levels,
-            hysteresis: self.hysteresis,
-            fade_seconds: self.fade,
-            ..LodConfig::default()
+        let mut cfg = RenderConfig {
+            lod: LodConfig {
+                near_px: self.near_px,
+                far_px: self.far_px,
+                mid_levels: self.mid_levels,
+                hysteresis: self.hysteresis,
+                fade_seconds: self.fade,
+                ..LodConfig::default()
+            },
+            near_mode: self.near_mode,
+            ..RenderConfig::default()
         };
-        cfg.near_mode = self.near_mode;
         if let Some(w) = self.workers {
             cfg.workers = w;
             cfg.max_jobs = RenderConfig::jobs_for(w);

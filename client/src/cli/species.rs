@@ -1,7 +1,7 @@
 //! `canopy species check|stats|amplify|export|list` and `canopy demo`.
 
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -309,7 +309,7 @@ fn write_stream(w: &mut dyn Write, s: &PrimitiveStream) -> std::io::Result<()> {
 
 fn export(
     cfg: &InstanceConfig,
-    out: &PathBuf,
+    out: &Path,
     grove: u32,
     spacing: f32,
     near: &nearfield::NearFieldArgs,
@@ -344,7 +344,7 @@ fn export(
     Ok(ExitCode::SUCCESS)
 }
 
-fn write_glb(out: &PathBuf, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
+fn write_glb(out: &Path, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
     let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
     super::write_file(out, &glb(&refs))
 }

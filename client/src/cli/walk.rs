@@ -383,11 +383,10 @@ impl App {
         let now = Instant::now();
         let dt = now.duration_since(self.last_frame).as_secs_f32().min(0.25);
         self.last_frame = now;
-        if let Ok(mut g) = self.shared.scene.try_lock() {
-            if let Some(s) = g.take() {
+        if let Ok(mut g) = self.shared.scene.try_lock()
+            && let Some(s) = g.take() {
                 self.scene = Some(s);
             }
-        }
         if let (false, Some(scene)) = (self.camera_placed, &self.scene) {
             let t = Arc::clone(&scene.terrain);
             self.camera = self.spec.resolve(&|x, z| t.height(x, z));
@@ -563,7 +562,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         (None, Some(addr), f, insecure) => (addr, Trust::from_flags(f.as_deref(), insecure)?),
         (None, None, _, _) => unreachable!("without --server an in-process server runs"),
     };
-    if !(args.radius.is_finite() && args.radius > 0.0) || !(args.speed.is_finite() && args.speed > 0.0) {
+    if !(args.radius.is_finite() && args.radius > 0.0 && args.speed.is_finite() && args.speed > 0.0) {
         bail!("--radius and --speed must be positive");
     }
     if !(0.0..=1e6).contains(&args.exit_after) {

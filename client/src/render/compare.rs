@@ -2,6 +2,8 @@
 //! committed reference PNG within a tolerance; on failure `NAME-actual.png` and `NAME-difference.png` are written
 //! next to the reference. A missing reference fails too, unless `CANOPY_BLESS=1` asks to write it.
 
+#![allow(clippy::result_large_err)]
+
 use std::path::{Path, PathBuf};
 
 use super::offscreen::RenderedImage;
@@ -43,7 +45,8 @@ impl Comparison {
     }
 }
 
-/// Why an image check failed.
+/// Why an image check failed. (Its mismatch carries both reports and paths by value: it is the cold end of an image
+/// test, where a large `Err` costs nothing.)
 #[derive(Debug, thiserror::Error)]
 pub enum CompareError {
     /// The images differ in size.

@@ -141,8 +141,8 @@ pub fn build_tree(
     let stream = amplify(graph, instance, budget)?;
     // Full detail of a species that asks for near-field meshing (`nearfield(continuous = 1, …)`): its continuous
     // mesh with bark and foliage, as `canopy species export` writes it.
-    if instance.detail == 0 {
-        if let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
+    if instance.detail == 0
+        && let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
             match species_near_mesh(&stream, &o) {
                 Ok(m) => {
                     let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
@@ -152,7 +152,6 @@ pub fn build_tree(
                 Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
             }
         }
-    }
     Ok(geometry_of(&stream, instance.detail, mode))
 }
 

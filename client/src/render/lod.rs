@@ -159,17 +159,15 @@ impl InstanceLod {
     /// levels for which `ready` holds. When `wanted` is not ready the shown level stays; when nothing is shown
     /// yet, the nearest ready level (coarser first) stands in.
     pub fn step(&mut self, wanted: Level, progress: f32, ready: &dyn Fn(Level) -> bool, others: &[Level]) {
-        if let Some(s) = self.shown {
-            if !ready(s) {
+        if let Some(s) = self.shown
+            && !ready(s) {
                 self.shown = None;
                 self.fade = 1.0;
             }
-        }
-        if let Some(o) = self.old {
-            if !ready(o) {
+        if let Some(o) = self.old
+            && !ready(o) {
                 self.old = None;
             }
-        }
         if self.fade < 1.0 {
             self.fade = (self.fade + progress).min(1.0);
         }

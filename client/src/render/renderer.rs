@@ -847,11 +847,10 @@ impl Renderer {
                 let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d };
                 let mut wanted = lod.select(st.target, size);
                 st.target = Some(wanted);
-                if let Level::Detail(d) = wanted {
-                    if unavailable(&key(d)) {
+                if let Level::Detail(d) = wanted
+                    && unavailable(&key(d)) {
                         wanted = Level::Far;
                     }
-                }
                 let ready = |l: Level| match l {
                     Level::Detail(d) => cache.contains_key(&key(d)),
                     Level::Far => vs.is_some(),

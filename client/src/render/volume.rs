@@ -25,7 +25,7 @@ use super::Lighting;
 pub const MAX_SLOT: u32 = 128;
 
 /// The seed of the representative instance a species' far-field volume is voxelised from.
-pub const REPRESENTATIVE_SEED: u64 = 0x5eed_0f_ca40_b1e5;
+pub const REPRESENTATIVE_SEED: u64 = 0x005e_ed0f_ca40_b1e5;
 
 /// A hypertree volume ready for the GPU.
 #[derive(Clone, Debug, PartialEq)]
@@ -227,8 +227,8 @@ pub fn march(v: &FarVolume, o: [f32; 3], d: [f32; 3]) -> ([f32; 3], f32) {
         let a = half_to_f32(v.texels[4 * idx + 3]);
         if a > 0.0 {
             let w = (1.0 - alpha) * a;
-            for i in 0..3 {
-                color[i] += w * half_to_f32(v.texels[4 * idx + i]);
+            for (i, c) in color.iter_mut().enumerate() {
+                *c += w * half_to_f32(v.texels[4 * idx + i]);
             }
             alpha += w;
             if alpha >= 0.995 {

@@ -731,11 +731,10 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                 } else {
                     self.stats.samples += 1;
                     let vx = self.q.voxel_at(v, idx);
-                    if self.o.ray_cache {
-                        if let Some(e) = self.ray_cache.get_mut(n as usize) {
+                    if self.o.ray_cache
+                        && let Some(e) = self.ray_cache.get_mut(n as usize) {
                             *e = (idx, vx);
                         }
-                    }
                     vx
                 };
                 if voxel.density != 0 {

@@ -57,7 +57,7 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
         return Err(NearFieldError::Empty);
     }
     // meshoptimizer reads these arrays unchecked: check them here.
-    if m.indices.len() % 3 != 0 || m.indices.iter().any(|&i| i as usize >= m.positions.len()) {
+    if !m.indices.len().is_multiple_of(3) || m.indices.iter().any(|&i| i as usize >= m.positions.len()) {
         return Err(NearFieldError::Malformed("index out of range"));
     }
     if cm.radius.len() != m.positions.len() || !m.positions.iter().flatten().all(|x| x.is_finite()) {
