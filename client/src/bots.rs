@@ -183,19 +183,8 @@ impl Walker {
         let a = rng.range(0.0, std::f32::consts::TAU);
         let ring = rng.range(50.0, 250.0).min((hi[0] - lo[0]).min(hi[1] - lo[1]) * 0.4);
         let centre = [pos[0].clamp(lo[0] + ring, hi[0] - ring), pos[1].clamp(lo[1] + ring, hi[1] - ring)];
-        let mut w = Walker {
-            kind,
-            speed,
-            lo,
-            hi,
-            rng,
-            pos,
-            dir: [a.sin(), a.cos()],
-            centre,
-            ring,
-            angle: a,
-            timer: 0.0,
-        };
+        let mut w =
+            Walker { kind, speed, lo, hi, rng, pos, dir: [a.sin(), a.cos()], centre, ring, angle: a, timer: 0.0 };
         if kind == PathKind::Circle {
             w.pos = [centre[0] + ring * a.cos(), centre[1] + ring * a.sin()];
         }
@@ -619,15 +608,16 @@ async fn bot_session(
     report.read(&conn);
     let state = conn.close_into_state();
     if result.is_ok()
-        && let Some(world) = &cfg.verify {
-            // Checking thousands of records is CPU work: keep it off the runtime's workers, which carry the other
-            // bots' connections.
-            static CHECKS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
-            let world = Arc::clone(world);
-            let _permit = CHECKS.acquire().await.expect("the semaphore is never closed");
-            let checked = tokio::task::spawn_blocking(move || verify(&state, &world)).await;
-            report.verify = Some(checked.unwrap_or_else(|e| Err(format!("check task: {e}"))));
-        }
+        && let Some(world) = &cfg.verify
+    {
+        // Checking thousands of records is CPU work: keep it off the runtime's workers, which carry the other
+        // bots' connections.
+        static CHECKS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
+        let world = Arc::clone(world);
+        let _permit = CHECKS.acquire().await.expect("the semaphore is never closed");
+        let checked = tokio::task::spawn_blocking(move || verify(&state, &world)).await;
+        report.verify = Some(checked.unwrap_or_else(|e| Err(format!("check task: {e}"))));
+    }
     result
 }
 

@@ -15,6 +15,6 @@ pub mod record;
 pub mod species;
 
 pub use expr::{Expr, Func, Op};
-pub use species::{DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, ValidateError};
-pub use messages::{ClientMsg, CloseCode, MessageError, Phase, ServerMsg, SpeciesHash, ALPN, PROTOCOL_VERSION};
+pub use messages::{ALPN, ClientMsg, CloseCode, MessageError, PROTOCOL_VERSION, Phase, ServerMsg, SpeciesHash};
 pub use record::{CellBatch, CellCoord, InstanceRecord, POSITION_STEPS};
+pub use species::{DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, ValidateError};

@@ -584,7 +584,11 @@ impl ServerMsg {
                 count("geometry blob", g.total as usize, netlimits::MAX_GEOMETRY_BYTES)?;
                 let end = u64::from(g.offset) + g.bytes.len() as u64;
                 if end > u64::from(g.total) {
-                    return Err(MessageError::Count { what: "geometry chunk end", len: end as usize, max: g.total as usize });
+                    return Err(MessageError::Count {
+                        what: "geometry chunk end",
+                        len: end as usize,
+                        max: g.total as usize,
+                    });
                 }
                 Ok(())
             }
@@ -692,7 +696,12 @@ mod tests {
         let world =
             WorldInfo { name: "wörld".into(), seed: 7, grid, position_steps: POSITION_STEPS, instances: 12, terrain };
         let species = vec![SpeciesEntry { hash: SpeciesHash::of(b"a"), size: 300 }; 3];
-        Welcome { version: PROTOCOL_VERSION, world, species, aoi: AoiParams { max_radius: 123.0, ..AoiParams::default() } }
+        Welcome {
+            version: PROTOCOL_VERSION,
+            world,
+            species,
+            aoi: AoiParams { max_radius: 123.0, ..AoiParams::default() },
+        }
     }
 
     #[test]

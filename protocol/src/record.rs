@@ -221,8 +221,8 @@ impl CellBatch {
         }
         for (i, c) in self.params.iter().enumerate() {
             let ordered = i == 0 || self.params[i - 1].slot < c.slot;
-            let fits =
-                c.present.len() == n.div_ceil(8) && (n.is_multiple_of(8) || c.present.last().is_none_or(|&b| b >> (n % 8) == 0));
+            let fits = c.present.len() == n.div_ceil(8)
+                && (n.is_multiple_of(8) || c.present.last().is_none_or(|&b| b >> (n % 8) == 0));
             let count: usize = c.present.iter().map(|b| b.count_ones() as usize).sum();
             if !ordered || !fits || count != c.values.len() || count == 0 || !c.values.iter().all(|v| v.0.is_finite()) {
                 return Err(BatchError::Column(i));
@@ -244,9 +244,10 @@ impl CellBatch {
             for (byte, &bits) in c.present.iter().enumerate() {
                 for bit in 0..8 {
                     if bits & (1 << bit) != 0
-                        && let Some(v) = values.next() {
-                            out.push(ParamOverride { record: (byte * 8 + bit) as u16, slot: c.slot, value: v.0 });
-                        }
+                        && let Some(v) = values.next()
+                    {
+                        out.push(ParamOverride { record: (byte * 8 + bit) as u16, slot: c.slot, value: v.0 });
+                    }
                 }
             }
         }

@@ -173,8 +173,19 @@ impl TrunkBaseNode {
 
     /// The expressions in field order (the order they are encoded, hashed and evaluated in).
     pub fn exprs(&self) -> [&Expr; TrunkBaseNode::LEN] {
-        let TrunkBaseNode { spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed } =
-            self;
+        let TrunkBaseNode {
+            spread,
+            height,
+            bottom,
+            top,
+            tilt,
+            lobes,
+            ellipses,
+            resolution,
+            randomiser,
+            transition,
+            seed,
+        } = self;
         [spread, height, bottom, top, tilt, lobes, ellipses, resolution, randomiser, transition, seed]
     }
 

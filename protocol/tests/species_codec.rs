@@ -1,7 +1,7 @@
 //! The species graph encoding: byte snapshot, round trip, and rejection of malformed or hostile bytes.
 
 use canopy_protocol::expr::ExprError;
-use canopy_protocol::{limits, DecodeError, Expr, Node, Op, ParamDecl, ParamScope, SpeciesGraph, ValidateError};
+use canopy_protocol::{DecodeError, Expr, Node, Op, ParamDecl, ParamScope, SpeciesGraph, ValidateError, limits};
 
 /// Worm(4) of seed 001 Figure 2, built by hand.
 fn worm() -> SpeciesGraph {
@@ -39,7 +39,11 @@ fn every_node_kind_round_trips() {
     let k = || Expr::constant(1.0);
     let g = SpeciesGraph {
         name: "all".into(),
-        params: vec![ParamDecl { name: "w".into(), default: Expr { ops: vec![Op::Call(canopy_protocol::Func::Rand)] }, scope: ParamScope::Turtle }],
+        params: vec![ParamDecl {
+            name: "w".into(),
+            default: Expr { ops: vec![Op::Call(canopy_protocol::Func::Rand)] },
+            scope: ParamScope::Turtle,
+        }],
         nodes: vec![
             Node::Group((1..=15).collect()),
             Node::Separator(vec![]),
@@ -67,7 +71,10 @@ fn every_node_kind_round_trips() {
 fn invalid_graphs_are_rejected() {
     let mut g = worm();
     g.nodes[6] = Node::RecursionSeparator(vec![99]);
-    assert_eq!(SpeciesGraph::decode(&g.encode()), Err(DecodeError::Invalid(ValidateError::Child { node: 6, child: 99 })));
+    assert_eq!(
+        SpeciesGraph::decode(&g.encode()),
+        Err(DecodeError::Invalid(ValidateError::Child { node: 6, child: 99 }))
+    );
     let mut g = worm();
     g.nodes[0] = Node::Selection { expr: Expr { ops: vec![Op::Add] }, children: vec![1] };
     assert!(matches!(g.validate(), Err(ValidateError::Expr { node: 0, error: ExprError::Underflow(0) })));
@@ -98,7 +105,10 @@ fn invalid_graphs_are_rejected() {
 #[test]
 fn oversized_truncated_and_trailing_input_is_rejected() {
     let bytes = worm().encode();
-    assert_eq!(SpeciesGraph::decode(&vec![0u8; limits::MAX_SPECIES_BYTES + 1]), Err(DecodeError::TooLarge(limits::MAX_SPECIES_BYTES + 1)));
+    assert_eq!(
+        SpeciesGraph::decode(&vec![0u8; limits::MAX_SPECIES_BYTES + 1]),
+        Err(DecodeError::TooLarge(limits::MAX_SPECIES_BYTES + 1))
+    );
     for cut in 0..bytes.len() {
         assert!(SpeciesGraph::decode(&bytes[..cut]).is_err(), "truncated at {cut}");
     }

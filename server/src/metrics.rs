@@ -121,10 +121,8 @@ impl Metrics {
         metric("canopy_received_bytes_total", "counter", "Bytes received from clients.", &one(&self.bytes_in));
         metric("canopy_viewpoints_total", "counter", "Viewpoints received.", &one(&self.viewpoints));
         let labels = CloseCode::ALL.iter().map(|c| c.label()).chain(["transport"]);
-        let closed: Vec<_> = labels
-            .zip(&self.closed)
-            .map(|(l, n)| (format!("{{reason=\"{l}\"}}"), n.load(Relaxed)))
-            .collect();
+        let closed: Vec<_> =
+            labels.zip(&self.closed).map(|(l, n)| (format!("{{reason=\"{l}\"}}"), n.load(Relaxed))).collect();
         metric("canopy_closed_total", "counter", "Connections closed, by reason.", &closed);
         metric(
             "canopy_uptime_seconds",

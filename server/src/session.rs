@@ -461,9 +461,10 @@ impl Session {
             return None;
         }
         if let Some(b) = &mut self.bucket
-            && !b.ready(now) {
-                return None;
-            }
+            && !b.ready(now)
+        {
+            return None;
+        }
         if self.staged.is_empty() {
             self.stage_next_unit();
         }
@@ -535,8 +536,7 @@ impl Session {
         let mut offset = 0usize;
         loop {
             let end = (offset + netlimits::MAX_GEOMETRY_CHUNK).min(blob.len());
-            let chunk =
-                GeometryChunk { kind, id, offset: offset as u32, total, bytes: blob[offset..end].to_vec() };
+            let chunk = GeometryChunk { kind, id, offset: offset as u32, total, bytes: blob[offset..end].to_vec() };
             let msg = ServerMsg::Streaming(ServerStreaming::Geometry(chunk));
             let t = Self::transmit(StreamId::Lane(lane), &msg);
             self.staged.push_back((cell, t));
@@ -575,22 +575,23 @@ impl Session {
         // A species goes out just before the first batch that needs it, on the same lane: its program, or its mesh
         // when instanced; unique meshes need none.
         if mode != PayloadMode::UniqueMesh
-            && let Some(r) = records.iter().find(|r| !self.has_species(r.species)) {
-                let id = r.species;
-                self.set_species(id);
-                match (mode, &geometry) {
-                    (PayloadMode::Instanced, Some(g)) => {
-                        let blob = g.species_mesh(id);
-                        self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
-                    }
-                    _ => {
-                        let bytes = store.species_frame(id).expect("records name species of the table");
-                        let t = Transmit { stream: lane, bytes, class: MsgClass::Species, records: 0 };
-                        self.staged.push_back((cell, t));
-                    }
+            && let Some(r) = records.iter().find(|r| !self.has_species(r.species))
+        {
+            let id = r.species;
+            self.set_species(id);
+            match (mode, &geometry) {
+                (PayloadMode::Instanced, Some(g)) => {
+                    let blob = g.species_mesh(id);
+                    self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
                 }
-                return;
+                _ => {
+                    let bytes = store.species_frame(id).expect("records name species of the table");
+                    let t = Transmit { stream: lane, bytes, class: MsgClass::Species, records: 0 };
+                    self.staged.push_back((cell, t));
+                }
             }
+            return;
+        }
         let ids = view.first_id + start as u32..view.first_id + end as u32;
         match (mode, &geometry) {
             (PayloadMode::UniqueMesh, Some(g)) => {

@@ -4,8 +4,8 @@
 
 use std::sync::Arc;
 
-use canopy_protocol::aoi::Grid;
 use bytes::Bytes;
+use canopy_protocol::aoi::Grid;
 use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
@@ -177,8 +177,14 @@ impl StoreBuilder {
         while !name.is_char_boundary(end) {
             end -= 1;
         }
-        let world =
-            WorldInfo { name: name[..end].to_owned(), seed, grid, position_steps: POSITION_STEPS, instances: 0, terrain };
+        let world = WorldInfo {
+            name: name[..end].to_owned(),
+            seed,
+            grid,
+            position_steps: POSITION_STEPS,
+            instances: 0,
+            terrain,
+        };
         world.validate().map_err(|e| match e {
             MessageError::Grid(e) => StoreError::Grid(e),
             e => StoreError::World(e),

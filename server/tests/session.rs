@@ -92,9 +92,10 @@ fn cells_of(msgs: &[(StreamId, ServerMsg)]) -> Vec<CellCoord> {
     let mut cells = vec![];
     for (_, m) in msgs {
         if let ServerMsg::Streaming(ServerStreaming::Cells(b)) = m
-            && cells.last() != Some(&b.cell) {
-                cells.push(b.cell);
-            }
+            && cells.last() != Some(&b.cell)
+        {
+            cells.push(b.cell);
+        }
     }
     cells
 }
@@ -426,7 +427,11 @@ struct FakeGeometry;
 impl canopy_server::session::GeometrySource for FakeGeometry {
     fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>> {
         // Large enough to need several chunks for every third instance.
-        let n = if id.is_multiple_of(3) { 2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5 } else { 100 + id as usize };
+        let n = if id.is_multiple_of(3) {
+            2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5
+        } else {
+            100 + id as usize
+        };
         Arc::new(vec![id as u8; n])
     }
     fn species_mesh(&self, species: u8) -> Arc<Vec<u8>> {
@@ -511,7 +516,8 @@ fn a_release_takes_back_staged_geometry() {
     use canopy_server::session::PayloadMode;
     let store = store();
     let t0 = Instant::now();
-    let mut s = streaming(&store, payload_config(PayloadMode::UniqueMesh), Viewpoint::at(0, [10.0, 10.0], 100.0), vec![], t0);
+    let mut s =
+        streaming(&store, payload_config(PayloadMode::UniqueMesh), Viewpoint::at(0, [10.0, 10.0], 100.0), vec![], t0);
     // Start one unit, then jump far away before it is through: its cell is released, the rest never goes.
     let first = s.poll_transmit(t0).unwrap();
     s.on_flushed(first.bytes.len());

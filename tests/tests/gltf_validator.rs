@@ -9,15 +9,15 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use canopy_protocol::LeafTopology;
-use canopy_worlds::amplify::{amplify, Budget, Instance};
+use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::gltf::{glb, parse_glb_header};
 use canopy_worlds::load::parse_source;
-use canopy_worlds::mesh::{mesh, Mesh, MeshOptions};
-use canopy_worlds::nearfield::bark::{outer_bark, trunk_places, BarkOptions, ChiselMode};
-use canopy_worlds::nearfield::continuous::{continuous_mesh, ContinuousOptions};
-use canopy_worlds::nearfield::junction::{junction_mesh, JunctionOptions};
-use canopy_worlds::nearfield::lod::{lod_chain, LodOptions};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh};
+use canopy_worlds::nearfield::bark::{BarkOptions, ChiselMode, outer_bark, trunk_places};
+use canopy_worlds::nearfield::continuous::{ContinuousOptions, continuous_mesh};
+use canopy_worlds::nearfield::junction::{JunctionOptions, junction_mesh};
+use canopy_worlds::nearfield::lod::{LodOptions, lod_chain};
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 use canopy_worlds::transform::Transform;
 

@@ -4,11 +4,11 @@
 
 use std::hint::black_box;
 
-use canopy_worlds::amplify::{amplify_into, Budget, Instance};
+use canopy_worlds::amplify::{Budget, Instance, amplify_into};
 use canopy_worlds::library::SPECIES;
-use canopy_worlds::mesh::{mesh_into, Mesh, MeshOptions};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into};
 use canopy_worlds::primitive::PrimitiveStream;
-use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 fn bench_amplify(c: &mut Criterion) {
     let mut group = c.benchmark_group("amplify");

@@ -11,7 +11,7 @@ use canopy_protocol::{Node, NodeId, ParamScope, SpeciesGraph};
 
 use crate::eval::{eval, eval_simple, eval_stack};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
-use crate::rng::{child_key, BlockCache, Context, InstanceRng, ROOT_KEY};
+use crate::rng::{BlockCache, Context, InstanceRng, ROOT_KEY, child_key};
 use crate::transform::Transform;
 
 /// One instance of a species: the seed, parameter values that override the defaults, and the detail level.
@@ -182,7 +182,12 @@ pub fn amplify_into(
             if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
                 return Err(AmplifyError::Depth(budget.max_depth));
             }
-            recursions.push(SavedRecursion { key, counter: counter + 1, params_at: saved_params.len(), cache: rng.cache });
+            recursions.push(SavedRecursion {
+                key,
+                counter: counter + 1,
+                params_at: saved_params.len(),
+                cache: rng.cache,
+            });
             saved_params.extend_from_slice(&params);
             key = child_key(key, counter);
             counter = 0;
@@ -270,9 +275,7 @@ pub fn amplify_into(
                 let (x, y, z) = (ev!(x), ev!(y), ev!(z));
                 transform = transform.translated(x, y, z);
             }
-            Node::Rotate { .. } | Node::Scale(_) | Node::Matrix(_)
-                if fixed[id as usize].is_some() =>
-            {
+            Node::Rotate { .. } | Node::Scale(_) | Node::Matrix(_) if fixed[id as usize].is_some() => {
                 // A transformation whose arguments are all constants: computed once per traversal.
                 transform = transform.mul(fixed[id as usize].as_ref().expect("checked by the guard"));
             }
@@ -363,9 +366,7 @@ fn constant_transform(node: &Node) -> Option<Transform> {
 pub fn resolve_params(graph: &SpeciesGraph, settings: &[(String, f32)]) -> Result<Vec<(u16, f32)>, String> {
     settings
         .iter()
-        .map(|(name, v)| {
-            graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| unknown_param(graph, name))
-        })
+        .map(|(name, v)| graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| unknown_param(graph, name)))
         .collect()
 }
 

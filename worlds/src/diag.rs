@@ -73,7 +73,8 @@ impl fmt::Display for Diagnostic {
         writeln!(f, "{}:{}:{}: error: {}", self.file, self.line, self.col, self.message)?;
         writeln!(f, "{:gutter$} |", "")?;
         writeln!(f, "{} | {}", self.line, self.line_text)?;
-        let pad: String = self.line_text.chars().take(self.col - 1).map(|c| if c == '\t' { '\t' } else { ' ' }).collect();
+        let pad: String =
+            self.line_text.chars().take(self.col - 1).map(|c| if c == '\t' { '\t' } else { ' ' }).collect();
         write!(f, "{:gutter$} | {}{}", "", pad, "^".repeat(self.width))
     }
 }

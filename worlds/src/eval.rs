@@ -4,7 +4,7 @@
 //! every transcendental function goes through `libm`, and random draws come from a [`Draw`] source whose floats
 //! are made from bits by the explicit formulas in [`unit_f32`] and [`open_unit_f32`].
 
-use canopy_protocol::{limits, Expr, Func, Op};
+use canopy_protocol::{Expr, Func, Op, limits};
 
 /// A source of random bits for the drawing functions (`rand`, `uniform`, `normal`, `chance`, `choose`) and of
 /// position-keyed noise.

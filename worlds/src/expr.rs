@@ -9,9 +9,9 @@
 
 use std::ops::Range;
 
-use canopy_protocol::{limits, Expr, Func, Op};
+use canopy_protocol::{Expr, Func, Op, limits};
 
-use crate::eval::{eval, NoDraw};
+use crate::eval::{NoDraw, eval};
 use crate::text::{Cursor, ParseError};
 
 /// Deepest nesting of parentheses and operators the parser accepts before giving up (no stack overflow on
@@ -313,7 +313,10 @@ pub fn compile(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>) -> Resul
     let mut ops = Vec::new();
     emit(ast, resolve, &mut ops)?;
     if ops.len() > limits::MAX_EXPR_OPS {
-        return Err(ParseError::new(0..0, format!("expression compiles to {} operations (max {})", ops.len(), limits::MAX_EXPR_OPS)));
+        return Err(ParseError::new(
+            0..0,
+            format!("expression compiles to {} operations (max {})", ops.len(), limits::MAX_EXPR_OPS),
+        ));
     }
     let expr = Expr { ops };
     // Everything emitted here is well formed by construction; validation guards the stack-depth limit.
@@ -429,7 +432,7 @@ fn emit(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>, out: &mut Vec<O
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::eval::{eval, NoDraw};
+    use crate::eval::{NoDraw, eval};
 
     fn value(src: &str, params: &[(&str, f32)]) -> f32 {
         let ast = parse_str(src).unwrap();

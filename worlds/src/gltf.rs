@@ -11,7 +11,7 @@
 //! The JSON is built with `serde_json` (sorted keys) and the binary data is little-endian, so the same meshes give
 //! the same bytes everywhere.
 
-use serde_json::{json, Map, Value};
+use serde_json::{Map, Value, json};
 
 use crate::mesh::Mesh;
 
@@ -238,7 +238,7 @@ pub fn parse_glb_header(bytes: &[u8]) -> Result<(Value, Vec<u8>), GltfError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::{mesh, MeshOptions};
+    use crate::mesh::{MeshOptions, mesh};
     use crate::primitive::{Primitive, PrimitiveStream, Shape};
     use crate::transform::Transform;
     use canopy_protocol::LeafTopology;

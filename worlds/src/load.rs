@@ -71,14 +71,15 @@ pub fn load_file(path: &Path) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
 /// Load a species named by a path, or else by a name in the embedded [`crate::library`].
 pub fn load(name_or_path: &str) -> Result<SpeciesGraph, Diagnostics> {
     let path = Path::new(name_or_path);
-    let (graph, diags) = if path.exists() || Format::of(name_or_path).is_some() && crate::library::find(name_or_path).is_none() {
-        load_file(path)
-    } else if let Some(entry) = crate::library::find(name_or_path) {
-        parse_source(&SourceFile::new(entry.file, entry.text))
-    } else {
-        let known: Vec<&str> = crate::library::SPECIES.iter().map(|e| e.name()).collect();
-        let msg = format!("no such file, and no library species of that name (library: {})", known.join(", "));
-        (None, vec![SourceFile::new(name_or_path, "").diag(0..0, msg)])
-    };
+    let (graph, diags) =
+        if path.exists() || Format::of(name_or_path).is_some() && crate::library::find(name_or_path).is_none() {
+            load_file(path)
+        } else if let Some(entry) = crate::library::find(name_or_path) {
+            parse_source(&SourceFile::new(entry.file, entry.text))
+        } else {
+            let known: Vec<&str> = crate::library::SPECIES.iter().map(|e| e.name()).collect();
+            let msg = format!("no such file, and no library species of that name (library: {})", known.join(", "));
+            (None, vec![SourceFile::new(name_or_path, "").diag(0..0, msg)])
+        };
     graph.ok_or(Diagnostics(diags))
 }

@@ -315,11 +315,7 @@ fn size_ok(x: f32) -> bool {
 
 /// A colour channel clamped to `0..=1`, NaN to 0 (glTF requires clamped vertex colours).
 fn channel(x: f32) -> f32 {
-    if x > 0.0 {
-        x.min(1.0)
-    } else {
-        0.0
-    }
+    if x > 0.0 { x.min(1.0) } else { 0.0 }
 }
 
 /// Mesh one primitive; false when it is degenerate (the caller rolls back whatever was written).

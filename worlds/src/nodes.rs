@@ -23,15 +23,30 @@
 use std::ops::Range;
 
 use canopy_protocol::species::{NearFieldNode, TrunkBaseNode};
-use canopy_protocol::{limits, Expr, LeafTopology, Node};
+use canopy_protocol::{Expr, LeafTopology, Node, limits};
 
-use crate::expr::{compile, parse_expr, Ast};
+use crate::expr::{Ast, compile, parse_expr};
 use crate::text::{Cursor, ParseError};
 
 /// Names of the calls this module parses.
 pub const NODE_CALLS: [&str; 17] = [
-    "translate", "rotate", "rotx", "roty", "rotz", "scale", "matrix", "material", "cone", "cylinder", "sphere", "box",
-    "leaf", "leafstrip", "leaf_strip", "trunkbase", "nearfield",
+    "translate",
+    "rotate",
+    "rotx",
+    "roty",
+    "rotz",
+    "scale",
+    "matrix",
+    "material",
+    "cone",
+    "cylinder",
+    "sphere",
+    "box",
+    "leaf",
+    "leafstrip",
+    "leaf_strip",
+    "trunkbase",
+    "nearfield",
 ];
 
 /// The arguments of `trunkbase(...)` in positional order, with their defaults: seed 002 §4's base spread
@@ -259,7 +274,10 @@ fn leaf(
         cur.expect(",")?;
     }
     if points.len() < 3 {
-        return Err(ParseError::new(name_span.start..cur.pos, format!("`{name}` needs at least 3 points, got {}", points.len())));
+        return Err(ParseError::new(
+            name_span.start..cur.pos,
+            format!("`{name}` needs at least 3 points, got {}", points.len()),
+        ));
     }
     Ok(Node::Leaf { topology, points })
 }

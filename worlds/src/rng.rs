@@ -8,7 +8,7 @@
 //! string rewriting agree draw for draw — and why lowering the recursion depth for LOD does not reshuffle the rest
 //! of the tree.
 
-use crate::eval::{unit_f32, Draw};
+use crate::eval::{Draw, unit_f32};
 
 /// The context key at the root of a traversal.
 pub const ROOT_KEY: u64 = 0;
@@ -175,7 +175,12 @@ mod tests {
             oracle.set_word_pos(u128::from(start));
             let mut ours = InstanceRng::new(seed);
             for i in 0..64 {
-                assert_eq!(ours.word(stream, start + i), oracle.next_u32(), "seed {seed} stream {stream} word {}", start + i);
+                assert_eq!(
+                    ours.word(stream, start + i),
+                    oracle.next_u32(),
+                    "seed {seed} stream {stream} word {}",
+                    start + i
+                );
             }
         }
     }

@@ -24,7 +24,7 @@
 use std::collections::BTreeMap;
 use std::ops::Range;
 
-use canopy_protocol::{limits, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph};
+use canopy_protocol::{Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, limits};
 
 use crate::diag::{Diagnostic, SourceFile};
 use crate::expr::{compile, parse_expr};
@@ -227,12 +227,18 @@ impl Parser<'_> {
                 self.cur.expect("{")?;
                 let mut assignments = Vec::new();
                 while !self.cur.eat("}") {
-                    let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a parameter name or `}`"))?;
-                    let slot = self.slot(name).ok_or_else(|| ParseError::new(nspan.clone(), format!("unknown parameter `{name}`")))?;
+                    let (name, nspan) =
+                        self.cur.ident().ok_or_else(|| self.cur.unexpected("a parameter name or `}`"))?;
+                    let slot = self
+                        .slot(name)
+                        .ok_or_else(|| ParseError::new(nspan.clone(), format!("unknown parameter `{name}`")))?;
                     self.cur.expect("=")?;
                     let ast = parse_expr(&mut self.cur)?;
                     if assignments.len() == limits::MAX_ASSIGNMENTS {
-                        return Err(ParseError::new(nspan, format!("more than {} assignments", limits::MAX_ASSIGNMENTS)));
+                        return Err(ParseError::new(
+                            nspan,
+                            format!("more than {} assignments", limits::MAX_ASSIGNMENTS),
+                        ));
                     }
                     assignments.push((slot, self.compile(&ast)?));
                     let _ = self.cur.eat(",") || self.cur.eat(";");
@@ -312,7 +318,8 @@ impl Parser<'_> {
                 None => self.errors.push(ParseError::new(u.span, format!("`use {}` names no `def`", u.name))),
             }
         }
-        let mut diags: Vec<Diagnostic> = self.errors.iter().map(|e| src.diag(e.span.clone(), e.message.clone())).collect();
+        let mut diags: Vec<Diagnostic> =
+            self.errors.iter().map(|e| src.diag(e.span.clone(), e.message.clone())).collect();
         diags.sort_by_key(|d| (d.line, d.col));
         let Some(root) = root.filter(|_| diags.is_empty()) else { return (None, diags) };
         let name = self.name.unwrap_or_else(|| file_stem(&src.name));

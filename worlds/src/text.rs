@@ -84,11 +84,7 @@ impl<'a> Cursor<'a> {
     pub fn expect(&mut self, s: &str) -> Result<Range<usize>, ParseError> {
         self.skip_trivia();
         let start = self.pos;
-        if self.eat(s) {
-            Ok(start..self.pos)
-        } else {
-            Err(self.unexpected(&format!("`{s}`")))
-        }
+        if self.eat(s) { Ok(start..self.pos) } else { Err(self.unexpected(&format!("`{s}`"))) }
     }
 
     /// An error "expected WHAT, found ..." at the next token.

@@ -121,8 +121,7 @@ impl Transform {
     /// Determinant of the linear part.
     pub fn determinant(&self) -> f32 {
         let m = &self.m;
-        m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8])
-            + m[2] * (m[4] * m[9] - m[5] * m[8])
+        m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) + m[2] * (m[4] * m[9] - m[5] * m[8])
     }
 
     /// The scale factor along local axis `c` (0, 1 or 2): the length of column `c` of the linear part.

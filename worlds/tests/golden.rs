@@ -6,9 +6,9 @@
 //! To re-bless after an intended change: `CANOPY_BLESS=1 cargo test -p canopy-worlds --test golden` and review
 //! the diff of the golden file.
 
-use canopy_worlds::amplify::{amplify, Budget, Instance};
+use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::library::SPECIES;
-use canopy_worlds::mesh::{mesh, MeshOptions};
+use canopy_worlds::mesh::{MeshOptions, mesh};
 
 const GOLDEN: &str = include_str!("golden/amplify.txt");
 const SEEDS: [u64; 3] = [0, 1, 0xdead_beef];

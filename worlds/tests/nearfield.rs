@@ -8,7 +8,6 @@ use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::load::parse_source;
 use canopy_worlds::mesh::{Mesh, MeshOptions, mesh};
-use canopy_worlds::nearfield::{NearFieldError, NearFieldOptions};
 use canopy_worlds::nearfield::bark::{BarkOptions, BarkPlace, ChiselMode, outer_bark};
 use canopy_worlds::nearfield::continuous::{ContinuousOptions, continuous_mesh};
 use canopy_worlds::nearfield::curves::{GeneratorEllipses, astroid_residual, deltoid_residual, hypocycloid, rose};
@@ -16,6 +15,7 @@ use canopy_worlds::nearfield::junction::{JunctionKind, JunctionOptions, classify
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::skeleton::Skeleton;
 use canopy_worlds::nearfield::trunkbase::TrunkBase;
+use canopy_worlds::nearfield::{NearFieldError, NearFieldOptions};
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 use canopy_worlds::transform::Transform;
 
@@ -244,17 +244,10 @@ fn the_species_near_mesh_is_branches_bark_and_foliage() {
     let opts = species_options(&g, &Instance::new(3)).unwrap().unwrap();
     let all = canopy_worlds::nearfield::species_near_mesh(&s, &opts).unwrap();
     let cm = continuous_mesh(&s, &ContinuousOptions { subdivide: true, ..opts.mesh }).unwrap();
-    let bark = outer_bark(
-        &cm.mesh,
-        &canopy_worlds::nearfield::bark::trunk_places(&cm.tags),
-        &opts.bark.unwrap(),
-    )
-    .unwrap();
+    let bark =
+        outer_bark(&cm.mesh, &canopy_worlds::nearfield::bark::trunk_places(&cm.tags), &opts.bark.unwrap()).unwrap();
     assert!(bark.triangle_count() > 0 && cm.foliage.triangle_count() > 0);
-    assert_eq!(
-        all.triangle_count(),
-        cm.mesh.triangle_count() + bark.triangle_count() + cm.foliage.triangle_count()
-    );
+    assert_eq!(all.triangle_count(), cm.mesh.triangle_count() + bark.triangle_count() + cm.foliage.triangle_count());
     // Without a bark the branches are not subdivided: fewer triangles than the bark-carrying mesh.
     let bare = canopy_worlds::nearfield::species_near_mesh(&s, &NearFieldOptions { bark: None, ..opts }).unwrap();
     assert!(bare.triangle_count() < cm.mesh.triangle_count() + cm.foliage.triangle_count());

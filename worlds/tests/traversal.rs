@@ -1,7 +1,7 @@
 //! Traversal semantics: what each node kind does to the state and the primitive stream, and the budgets.
 
 use canopy_protocol::SpeciesGraph;
-use canopy_worlds::amplify::{amplify, AmplifyError, Budget, Instance};
+use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::primitive::{PrimitiveStream, Shape};
 use canopy_worlds::species_text::parse_species;
@@ -38,7 +38,8 @@ fn worm_of_seed_001_is_four_spheres_then_a_cone() {
 
 #[test]
 fn separator_restores_transform_material_and_parameters() {
-    let s = run("param r = 1\nseparator { translate(5, 0, 0) material(1, 0, 0) calc { r = 2 } sphere(r) }\nsphere(r)\n");
+    let s =
+        run("param r = 1\nseparator { translate(5, 0, 0) material(1, 0, 0) calc { r = 2 } sphere(r) }\nsphere(r)\n");
     assert_eq!(origin(&s, 1), [0.0, 0.0, 0.0]);
     assert_eq!(s.primitives[1].color, [0.8, 0.8, 0.8]);
     assert_eq!(s.primitives[1].shape, Shape::Sphere { radius: 1.0 });
@@ -67,7 +68,9 @@ fn calculation_assigns_simultaneously() {
 
 #[test]
 fn selection_truncates_and_clamps_and_lod_follows_detail() {
-    let s = run("select(1.9) { sphere(0) sphere(1) sphere(2) }\nselect(-4) { sphere(10) sphere(11) }\nselect(99) { sphere(20) sphere(21) }\n");
+    let s = run(
+        "select(1.9) { sphere(0) sphere(1) sphere(2) }\nselect(-4) { sphere(10) sphere(11) }\nselect(99) { sphere(20) sphere(21) }\n",
+    );
     let radii: Vec<Shape> = s.primitives.iter().map(|p| p.shape.clone()).collect();
     assert_eq!(radii, [1.0, 10.0, 21.0].map(|radius| Shape::Sphere { radius }));
     let g = species("lod { sphere(0) sphere(1) }\nsphere(detail)\n");
@@ -119,9 +122,15 @@ fn hostile_graphs_end_in_typed_errors_within_budget() {
         // Exponential fan-out without separators: pending tasks.
         ("def A group { use A use A }", AmplifyError::Pending(10_000)),
         // Exponential recursion with a terminating counter, but 2^40 leaves: primitives.
-        ("param n = 40\ndef A select(n > 0) { sphere(1) recurse { calc { n = n - 1 } use A use A } }", AmplifyError::Primitives(10_000)),
+        (
+            "param n = 40\ndef A select(n > 0) { sphere(1) recurse { calc { n = n - 1 } use A use A } }",
+            AmplifyError::Primitives(10_000),
+        ),
         // Exponential recursion without primitives: steps.
-        ("param n = 40\ndef A select(n > 0) { group {} recurse { calc { n = n - 1 } use A use A } }", AmplifyError::Steps(1_000_000)),
+        (
+            "param n = 40\ndef A select(n > 0) { group {} recurse { calc { n = n - 1 } use A use A } }",
+            AmplifyError::Steps(1_000_000),
+        ),
     ];
     for (text, want) in cases {
         let g = species(text);
@@ -140,7 +149,9 @@ fn parameter_defaults_see_earlier_overrides() {
 #[test]
 fn lod_substitutes_do_not_shift_draws_outside_them() {
     // The full child draws three times, the substitute none; the sphere after the LOD node must not care.
-    let g = species("param r = 1\nlod { group { calc { r = rand() + rand() + rand() } } group {} }\nsphere(rand())\nsphere(r)\n");
+    let g = species(
+        "param r = 1\nlod { group { calc { r = rand() + rand() + rand() } } group {} }\nsphere(rand())\nsphere(r)\n",
+    );
     let at = |detail| amplify(&g, &Instance::new(11).with_detail(detail), &Budget::default()).unwrap();
     let (full, coarse) = (at(0), at(1));
     assert_eq!(full.primitives[0].shape, coarse.primitives[0].shape);

@@ -5,8 +5,8 @@
 //! sees a slow, lossy, distant link and its congestion control has to cope.
 
 use std::net::SocketAddr;
-use std::sync::{Arc, OnceLock};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use tokio::net::UdpSocket;
@@ -293,7 +293,12 @@ mod tests {
 
     #[test]
     fn shaper_serialises_at_the_rate_and_drops_tail() {
-        let spec = LinkSpec { rate: Some(8_000), latency: Duration::from_millis(50), loss: 0.0, queue: Duration::from_secs(1) };
+        let spec = LinkSpec {
+            rate: Some(8_000),
+            latency: Duration::from_millis(50),
+            loss: 0.0,
+            queue: Duration::from_secs(1),
+        };
         let mut s = Shaper::new(spec, 1);
         let t0 = Instant::now();
         // 972 + 28 bytes = 8000 bits = 1 s at 8 kbit/s.

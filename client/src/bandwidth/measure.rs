@@ -223,7 +223,10 @@ pub struct CompletenessStats {
 
 impl CompletenessStats {
     /// Over the samples `keep` selects.
-    pub fn over<'a>(samples: impl IntoIterator<Item = &'a Sample>, keep: impl Fn(&Sample) -> bool) -> CompletenessStats {
+    pub fn over<'a>(
+        samples: impl IntoIterator<Item = &'a Sample>,
+        keep: impl Fn(&Sample) -> bool,
+    ) -> CompletenessStats {
         let mut s = CompletenessStats { min: 1.0, ..CompletenessStats::default() };
         for x in samples.into_iter().filter(|x| keep(x)) {
             s.samples += 1;
@@ -334,8 +337,8 @@ mod tests {
     #[test]
     fn held_ids_read_the_client_state() {
         use canopy_protocol::aoi::{AoiParams, Viewpoint};
-        use canopy_protocol::messages::{ServerHandshake, ServerStreaming, TerrainDesc, Welcome, WorldInfo};
         use canopy_protocol::messages::SpeciesEntry;
+        use canopy_protocol::messages::{ServerHandshake, ServerStreaming, TerrainDesc, Welcome, WorldInfo};
         use canopy_protocol::{CellBatch, InstanceRecord, POSITION_STEPS, PROTOCOL_VERSION, ServerMsg, SpeciesHash};
         let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap().encode();
         // Cell (-1, 0) holds ids 0..10, cell (0, 0) ids 10..14.
@@ -355,7 +358,14 @@ mod tests {
         };
         let welcome = Welcome {
             version: PROTOCOL_VERSION,
-            world: WorldInfo { name: "t".into(), seed: 1, grid, position_steps: POSITION_STEPS, instances: 14, terrain },
+            world: WorldInfo {
+                name: "t".into(),
+                seed: 1,
+                grid,
+                position_steps: POSITION_STEPS,
+                instances: 14,
+                terrain,
+            },
             species: vec![SpeciesEntry { hash: SpeciesHash::of(&worm), size: worm.len() as u32 }],
             aoi: AoiParams { max_radius: 100.0, hysteresis: 10.0, lookahead_s: 0.0, max_lookahead: 0.0 },
         };

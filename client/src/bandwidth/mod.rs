@@ -307,7 +307,11 @@ impl ScenarioResult {
         if self.bots.iter().all(|b| b.teleported_at.is_none()) {
             return None;
         }
-        self.bots.iter().filter(|b| b.teleported_at.is_some()).map(|b| b.teleport_complete).try_fold(0.0f64, |m, t| t.map(|t| m.max(t)))
+        self.bots
+            .iter()
+            .filter(|b| b.teleported_at.is_some())
+            .map(|b| b.teleport_complete)
+            .try_fold(0.0f64, |m, t| t.map(|t| m.max(t)))
     }
 }
 
@@ -453,9 +457,10 @@ impl DriveHooks for Measure<'_> {
     fn event(&mut self, ev: &Event) {
         let species_ids = &mut self.r.species_ids;
         if let Event::Species { id, .. } = ev
-            && !species_ids.contains(id) {
-                species_ids.push(*id);
-            }
+            && !species_ids.contains(id)
+        {
+            species_ids.push(*id);
+        }
         if let Event::Geometry { kind: GeometryKind::SpeciesMesh, id, offset: 0, .. } = ev {
             let id = u8::try_from(*id).unwrap_or(u8::MAX);
             if !species_ids.contains(&id) {
@@ -584,7 +589,8 @@ async fn run_scenario(
     let mut tasks = Vec::new();
     for id in 0..cfg.bots {
         let (relay, addr) = if scenario.link.is_shaped() {
-            let relay = Relay::start(server, scenario.link, cfg.seed.wrapping_mul(1000).wrapping_add(id as u64)).await?;
+            let relay =
+                Relay::start(server, scenario.link, cfg.seed.wrapping_mul(1000).wrapping_add(id as u64)).await?;
             let addr = relay.addr();
             (Some(relay), addr)
         } else {
@@ -637,8 +643,10 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
     let truth = Arc::new(GroundTruth::new(Arc::clone(&world)));
     // The server and the bots run on separate runtimes, so that a server encoding meshes (baseline 1) does not
     // delay the bots' clocks, samples and acknowledgements.
-    let server_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-server").enable_all().build()?;
-    let bots_rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-bots").enable_all().build()?;
+    let server_rt =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-server").enable_all().build()?;
+    let bots_rt =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-bots").enable_all().build()?;
     let store: Option<Arc<dyn WorldStore>> = match &cfg.external {
         Some(_) => None,
         None => Some(GridStore::from_world(&world).map_err(|e| BandwidthError::Store(e.to_string()))?.shared()),
@@ -669,11 +677,8 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
                     session.bandwidth = Some(((rate as f64 / 8.0) * cfg.pace).max(1.0) as u64);
                 }
                 session.payload = Payload::new(scenario.mode, Arc::clone(&source) as Arc<dyn GeometrySource>);
-                let server_cfg = ServerConfig {
-                    listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-                    session,
-                    ..ServerConfig::default()
-                };
+                let server_cfg =
+                    ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), session, ..ServerConfig::default() };
                 let server = server_rt.block_on(Server::start(Arc::clone(store), server_cfg))?;
                 let trust = Trust::pinned(server.fingerprint())
                     .ok_or_else(|| BandwidthError::Config("the server's fingerprint is not pinnable".into()))?;

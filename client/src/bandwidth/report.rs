@@ -133,7 +133,10 @@ pub fn projections(o: &Outcome, [p, u, i]: [&ScenarioResult; 3]) -> [Option<Proj
     let needed: f64 = p
         .bots
         .iter()
-        .map(|b| b.species_ids.iter().map(|&id| o.species_meshes.get(usize::from(id)).copied().unwrap_or(0)).sum::<u64>() as f64)
+        .map(|b| {
+            b.species_ids.iter().map(|&id| o.species_meshes.get(usize::from(id)).copied().unwrap_or(0)).sum::<u64>()
+                as f64
+        })
         .sum::<f64>()
         / bots(p);
     let instanced = (!o.species_meshes.is_empty())
@@ -212,7 +215,11 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     let errors: Vec<String> = o
         .scenarios
         .iter()
-        .flat_map(|r| r.bots.iter().filter_map(move |b| b.bot.error.as_ref().map(|e| format!("{} bot {}: {e}", r.scenario.name, b.bot.id))))
+        .flat_map(|r| {
+            r.bots
+                .iter()
+                .filter_map(move |b| b.bot.error.as_ref().map(|e| format!("{} bot {}: {e}", r.scenario.name, b.bot.id)))
+        })
         .collect();
     if !errors.is_empty() {
         let _ = writeln!(s, "\nErrors:\n");
@@ -242,7 +249,10 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         })
         .collect();
     if !links.is_empty() {
-        let _ = writeln!(s, "\nEmulated links (datagrams): server → client offered, lost, dropped at the bottleneck queue; client → server offered, dropped; server → client bytes offered.\n");
+        let _ = writeln!(
+            s,
+            "\nEmulated links (datagrams): server → client offered, lost, dropped at the bottleneck queue; client → server offered, dropped; server → client bytes offered.\n"
+        );
         let _ = writeln!(s, "| scenario | down | lost | queue drops | up | up drops | down bytes offered |");
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|");
         for l in links {
@@ -280,7 +290,10 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             p.scenario.link.label(),
             n
         );
-        let _ = writeln!(s, "| payload | instances received | fixed bytes | bytes/instance | projected | ratio | without records | ratio |");
+        let _ = writeln!(
+            s,
+            "| payload | instances received | fixed bytes | bytes/instance | projected | ratio | without records | ratio |"
+        );
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|");
         let proj = projections(o, c);
         let base = proj[0].as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
@@ -316,7 +329,11 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         let _ = writeln!(s);
     }
     if let Some(m) = &o.mesh_sample {
-        let _ = writeln!(s, "Unique meshes of {} instances evenly spread over the world ({:.1} s to encode):\n", m.count, m.seconds);
+        let _ = writeln!(
+            s,
+            "Unique meshes of {} instances evenly spread over the world ({:.1} s to encode):\n",
+            m.count, m.seconds
+        );
         let _ = writeln!(s, "| species | instances | mean compressed mesh |");
         let _ = writeln!(s, "|---|---:|---:|");
         for (name, k, b) in &m.by_species {
@@ -330,7 +347,10 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             s,
             "Per instance, mean over the first seeds. explicit: as seed 001 §7 counts it (cones/cylinders 7 floats, spheres 4, triangles 9); mesh: 8-segment tessellation quantised to 16 bytes per vertex and 4 per index; compressed: meshoptimizer's codecs and deflate.\n"
         );
-        let _ = writeln!(s, "| species | encoded | primitives | explicit (§7) | ratio | triangles | quantised mesh | compressed mesh | ratio |");
+        let _ = writeln!(
+            s,
+            "| species | encoded | primitives | explicit (§7) | ratio | triangles | quantised mesh | compressed mesh | ratio |"
+        );
         let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|");
         for r in &o.sizes {
             let (q, c, cr) = if r.compressed > 0 {
@@ -363,7 +383,11 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     }
     let _ = writeln!(s, "\n## Plots\n");
     for r in &o.scenarios {
-        let _ = writeln!(s, "- {}: ![bytes](bytes-{}.svg) ![completeness](completeness-{}.svg)", r.scenario.name, r.scenario.name, r.scenario.name);
+        let _ = writeln!(
+            s,
+            "- {}: ![bytes](bytes-{}.svg) ![completeness](completeness-{}.svg)",
+            r.scenario.name, r.scenario.name, r.scenario.name
+        );
     }
     let _ = writeln!(s, "- all scenarios: ![cumulative bytes](bytes-all.svg)");
     let _ = writeln!(s, "\n## Method\n");
@@ -412,7 +436,11 @@ fn csv_scenarios(o: &Outcome) -> String {
                 b.geometry[2],
                 b.bot.records,
                 b.bot.held,
-                if b.bot.records > 0 { format!("{:.3}", x.total() as f64 / b.bot.records as f64) } else { String::new() },
+                if b.bot.records > 0 {
+                    format!("{:.3}", x.total() as f64 / b.bot.records as f64)
+                } else {
+                    String::new()
+                },
                 b.walking().mean(),
                 b.walking().min,
                 b.overall().mean(),
@@ -486,7 +514,9 @@ fn csv_samples(o: &Outcome) -> String {
 }
 
 fn csv_sizes(o: &Outcome) -> String {
-    let mut s = String::from("species,encoded,primitives,explicit_s7,triangles,quantised_mesh,compressed_mesh,alternative,alternative_bytes\n");
+    let mut s = String::from(
+        "species,encoded,primitives,explicit_s7,triangles,quantised_mesh,compressed_mesh,alternative,alternative_bytes\n",
+    );
     for r in &o.sizes {
         let _ = writeln!(
             s,
@@ -551,20 +581,31 @@ pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series], 
     let px = |x: f64| l + (x - x0) / (x1 - x0) * (w - l - r);
     let py = |y: f64| h - b - (y - y0) / (y1 - y0) * (h - t - b);
     let mut s = String::new();
-    let _ = writeln!(s, r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">"#);
+    let _ = writeln!(
+        s,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">"#
+    );
     let _ = writeln!(s, r#"<rect width="{w}" height="{h}" fill="white"/>"#);
     let _ = writeln!(s, r#"<text x="{}" y="22" text-anchor="middle" font-size="15">{}</text>"#, w / 2.0, escape(title));
     let _ = writeln!(s, r#"<line x1="{l}" y1="{}" x2="{}" y2="{}" stroke="black"/>"#, h - b, w - r, h - b);
     let _ = writeln!(s, r#"<line x1="{l}" y1="{t}" x2="{l}" y2="{}" stroke="black"/>"#, h - b);
     for i in 0..=5 {
         let x = x0 + (x1 - x0) * f64::from(i) / 5.0;
-        let _ = writeln!(s, r#"<text x="{:.1}" y="{}" text-anchor="middle">{}</text>"#, px(x), h - b + 16.0, fmt_tick(x));
+        let _ =
+            writeln!(s, r#"<text x="{:.1}" y="{}" text-anchor="middle">{}</text>"#, px(x), h - b + 16.0, fmt_tick(x));
         let y = y0 + (y1 - y0) * f64::from(i) / 5.0;
         let label = if log_y { human(10f64.powf(y)) } else { fmt_tick(y) };
         let _ = writeln!(s, r##"<line x1="{l}" y1="{:.1}" x2="{}" y2="{:.1}" stroke="#ddd"/>"##, py(y), w - r, py(y));
-        let _ = writeln!(s, r#"<text x="{}" y="{:.1}" text-anchor="end">{}</text>"#, l - 6.0, py(y) + 4.0, escape(&label));
+        let _ =
+            writeln!(s, r#"<text x="{}" y="{:.1}" text-anchor="end">{}</text>"#, l - 6.0, py(y) + 4.0, escape(&label));
     }
-    let _ = writeln!(s, r#"<text x="{}" y="{}" text-anchor="middle">{}</text>"#, (l + w - r) / 2.0, h - 12.0, escape(x_label));
+    let _ = writeln!(
+        s,
+        r#"<text x="{}" y="{}" text-anchor="middle">{}</text>"#,
+        (l + w - r) / 2.0,
+        h - 12.0,
+        escape(x_label)
+    );
     let _ = writeln!(
         s,
         r#"<text x="16" y="{}" text-anchor="middle" transform="rotate(-90 16 {})">{}</text>"#,
@@ -577,7 +618,12 @@ pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series], 
         let path: Vec<String> = se.points.iter().map(|&(x, y)| format!("{:.1},{:.1}", px(x), py(ty(y)))).collect();
         let _ = writeln!(s, r#"<polyline fill="none" stroke="{c}" stroke-width="1.6" points="{}"/>"#, path.join(" "));
         let ly = t + 8.0 + 16.0 * i as f64;
-        let _ = writeln!(s, r#"<line x1="{}" y1="{ly}" x2="{}" y2="{ly}" stroke="{c}" stroke-width="3"/>"#, w - r - 200.0, w - r - 180.0);
+        let _ = writeln!(
+            s,
+            r#"<line x1="{}" y1="{ly}" x2="{}" y2="{ly}" stroke="{c}" stroke-width="3"/>"#,
+            w - r - 200.0,
+            w - r - 180.0
+        );
         let _ = writeln!(s, r#"<text x="{}" y="{}">{}</text>"#, w - r - 175.0, ly + 4.0, escape(&se.name));
     }
     s.push_str("</svg>\n");
@@ -615,22 +661,40 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
         let bytes: Vec<Series> = r
             .bots
             .iter()
-            .map(|b| Series { name: format!("bot {}", b.bot.id), points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect() })
+            .map(|b| Series {
+                name: format!("bot {}", b.bot.id),
+                points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect(),
+            })
             .collect();
         let title = format!("{} — {}: bytes on the wire", r.scenario.name, r.scenario.link.label());
-        put(&format!("bytes-{}.svg", r.scenario.name), line_chart(&title, "time (s)", "bytes (UDP, both ways)", &bytes, false))?;
+        put(
+            &format!("bytes-{}.svg", r.scenario.name),
+            line_chart(&title, "time (s)", "bytes (UDP, both ways)", &bytes, false),
+        )?;
         let comp: Vec<Series> = r
             .bots
             .iter()
-            .map(|b| Series { name: format!("bot {}", b.bot.id), points: b.samples.iter().map(|x| (x.t, 100.0 * x.completeness())).collect() })
+            .map(|b| Series {
+                name: format!("bot {}", b.bot.id),
+                points: b.samples.iter().map(|x| (x.t, 100.0 * x.completeness())).collect(),
+            })
             .collect();
         let title = format!("{} — {}: visible completeness", r.scenario.name, r.scenario.link.label());
-        put(&format!("completeness-{}.svg", r.scenario.name), line_chart(&title, "time (s)", "instances within view held (%)", &comp, false))?;
+        put(
+            &format!("completeness-{}.svg", r.scenario.name),
+            line_chart(&title, "time (s)", "instances within view held (%)", &comp, false),
+        )?;
         if let Some(b) = r.bots.first() {
-            all.push(Series { name: r.scenario.name.clone(), points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect() });
+            all.push(Series {
+                name: r.scenario.name.clone(),
+                points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect(),
+            });
         }
     }
-    put("bytes-all.svg", line_chart("Bytes on the wire, bot 0 of each scenario", "time (s)", "bytes (log)", &all, true))?;
+    put(
+        "bytes-all.svg",
+        line_chart("Bytes on the wire, bot 0 of each scenario", "time (s)", "bytes (log)", &all, true),
+    )?;
     Ok(files)
 }
 
@@ -638,9 +702,15 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
 mod tests {
     use super::*;
 
-    fn scenario(mode: PayloadMode, bytes: super::super::measure::Bytes, geometry: [u64; 3], records: u64, species: Vec<u8>) -> ScenarioResult {
-        use super::super::{BotResult, Scenario};
+    fn scenario(
+        mode: PayloadMode,
+        bytes: super::super::measure::Bytes,
+        geometry: [u64; 3],
+        records: u64,
+        species: Vec<u8>,
+    ) -> ScenarioResult {
         use super::super::link::LinkSpec;
+        use super::super::{BotResult, Scenario};
         let report = crate::bots::BotReport { records, ..Default::default() };
         let bot = BotResult { bot: report, bytes, geometry, species_ids: species, ..BotResult::default() };
         ScenarioResult {

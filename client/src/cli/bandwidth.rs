@@ -153,7 +153,9 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
         };
         cfg.scenarios = rates
             .iter()
-            .flat_map(|&rate| modes.iter().map(move |&m| Scenario::new(m, LinkSpec::new(rate, args.latency_ms, args.loss))))
+            .flat_map(|&rate| {
+                modes.iter().map(move |&m| Scenario::new(m, LinkSpec::new(rate, args.latency_ms, args.loss)))
+            })
             .collect();
     }
     if let Some(server) = args.server {
@@ -183,7 +185,8 @@ pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
         let n = c[0].records() as f64 / c[0].bots.len().max(1) as f64;
         let [p, u, i] = report::projections(&outcome, c);
         let base = p.as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
-        let ratio = |x: &Option<report::Projection>| x.as_ref().map_or("-".into(), |x| format!("{:.0}×", x.bytes(n) / base));
+        let ratio =
+            |x: &Option<report::Projection>| x.as_ref().map_or("-".into(), |x| format!("{:.0}×", x.bytes(n) / base));
         println!(
             "{}: unique meshes {} the procedural bytes, instanced {} (to deliver the {n:.0} instances per bot procedural delivered)",
             c[0].scenario.link.label(),

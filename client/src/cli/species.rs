@@ -5,14 +5,14 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{bail, Context};
+use anyhow::{Context, bail};
 use canopy_client::bandwidth::report::group;
 use canopy_protocol::SpeciesGraph;
-use canopy_worlds::amplify::{amplify, resolve_params, Budget, Instance};
+use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
 use canopy_worlds::gltf::glb;
 use canopy_worlds::library;
 use canopy_worlds::load::{load, load_file};
-use canopy_worlds::mesh::{explicit_bytes, mesh, Mesh, MeshOptions};
+use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
 use clap::{Args, Subcommand};
 
@@ -192,7 +192,14 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::List => {
             for e in library::SPECIES {
                 let g = e.load().map_err(|d| anyhow::anyhow!("{d}"))?;
-                println!("{:<14} {:<22} {:>5} nodes {:>6} bytes  {}", e.name(), e.file, g.nodes.len(), g.encode().len(), g.name);
+                println!(
+                    "{:<14} {:<22} {:>5} nodes {:>6} bytes  {}",
+                    e.name(),
+                    e.file,
+                    g.nodes.len(),
+                    g.encode().len(),
+                    g.name
+                );
             }
             Ok(ExitCode::SUCCESS)
         }
@@ -227,7 +234,11 @@ fn check(files: &[PathBuf]) -> ExitCode {
 
 fn counts_line(s: &PrimitiveStream) -> String {
     let c = s.counts();
-    PrimitiveKind::ALL.iter().map(|k| format!("{} {}", k.name(), group(c[*k as usize] as u64))).collect::<Vec<_>>().join("  ")
+    PrimitiveKind::ALL
+        .iter()
+        .map(|k| format!("{} {}", k.name(), group(c[*k as usize] as u64)))
+        .collect::<Vec<_>>()
+        .join("  ")
 }
 
 fn median_ms(mut v: Vec<f64>) -> f64 {

@@ -384,9 +384,10 @@ impl App {
         let dt = now.duration_since(self.last_frame).as_secs_f32().min(0.25);
         self.last_frame = now;
         if let Ok(mut g) = self.shared.scene.try_lock()
-            && let Some(s) = g.take() {
-                self.scene = Some(s);
-            }
+            && let Some(s) = g.take()
+        {
+            self.scene = Some(s);
+        }
         if let (false, Some(scene)) = (self.camera_placed, &self.scene) {
             let t = Arc::clone(&scene.terrain);
             self.camera = self.spec.resolve(&|x, z| t.height(x, z));

@@ -389,16 +389,18 @@ impl Connection {
                 let ev = self.state.handle(m).map_err(ClientError::from);
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
-                        && let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g)) {
-                            tracing::warn!("species cache: {e}");
-                        }
+                    && let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g))
+                {
+                    tracing::warn!("species cache: {e}");
+                }
                 ev
             }
         };
         if let Err(e) = &result
-            && let Some(code) = e.close_code() {
-                self.conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
-            }
+            && let Some(code) = e.close_code()
+        {
+            self.conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
+        }
         result
     }
 

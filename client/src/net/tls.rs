@@ -30,8 +30,9 @@ impl Trust {
     /// The trust the command-line flags ask for: `--cert-fingerprint` (pinned) or `--insecure`; one is required.
     pub fn from_flags(fingerprint: Option<&str>, insecure: bool) -> anyhow::Result<Trust> {
         match (fingerprint, insecure) {
-            (Some(f), _) => Trust::pinned(f)
-                .ok_or_else(|| anyhow::anyhow!("`{f}` is not a SHA-256 fingerprint (64 hex digits)")),
+            (Some(f), _) => {
+                Trust::pinned(f).ok_or_else(|| anyhow::anyhow!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))
+            }
             (None, true) => Ok(Trust::Insecure),
             (None, false) => {
                 anyhow::bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use")

@@ -142,16 +142,17 @@ pub fn build_tree(
     // Full detail of a species that asks for near-field meshing (`nearfield(continuous = 1, …)`): its continuous
     // mesh with bark and foliage, as `canopy species export` writes it.
     if instance.detail == 0
-        && let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous) {
-            match species_near_mesh(&stream, &o) {
-                Ok(m) => {
-                    let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
-                    set_mesh(&mut out, m);
-                    return Ok(out);
-                }
-                Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
+        && let Some(o) = species_options(graph, instance)?.filter(|o| o.continuous)
+    {
+        match species_near_mesh(&stream, &o) {
+            Ok(m) => {
+                let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
+                set_mesh(&mut out, m);
+                return Ok(out);
             }
+            Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
         }
+    }
     Ok(geometry_of(&stream, instance.detail, mode))
 }
 
@@ -227,7 +228,8 @@ mod tests {
         assert_eq!(near.indices.len(), m.indices.len());
         assert_eq!(near.vertices.len(), m.positions.len());
         // Coarser details keep the ordinary path.
-        let mid = build_tree(&g, &Instance { detail: 1, ..inst.clone() }, NearMode::Instanced, &Budget::default()).unwrap();
+        let mid =
+            build_tree(&g, &Instance { detail: 1, ..inst.clone() }, NearMode::Instanced, &Budget::default()).unwrap();
         assert!(!mid.prims.is_empty());
     }
 

@@ -160,14 +160,16 @@ impl InstanceLod {
     /// yet, the nearest ready level (coarser first) stands in.
     pub fn step(&mut self, wanted: Level, progress: f32, ready: &dyn Fn(Level) -> bool, others: &[Level]) {
         if let Some(s) = self.shown
-            && !ready(s) {
-                self.shown = None;
-                self.fade = 1.0;
-            }
+            && !ready(s)
+        {
+            self.shown = None;
+            self.fade = 1.0;
+        }
         if let Some(o) = self.old
-            && !ready(o) {
-                self.old = None;
-            }
+            && !ready(o)
+        {
+            self.old = None;
+        }
         if self.fade < 1.0 {
             self.fade = (self.fade + progress).min(1.0);
         }

@@ -424,13 +424,7 @@ mod tests {
             let (v, i) = frustum(n);
             assert_eq!(i.len() as u32, 3 * 4 * n);
             // The axis point at the triangle's height is inside (caps: a point just inside the cap).
-            outward(&v, &i, |m| {
-                [
-                    0.0,
-                    if m[1] == 1.0 || m[1] == 0.0 { 0.5 } else { m[1] },
-                    0.0,
-                ]
-            });
+            outward(&v, &i, |m| [0.0, if m[1] == 1.0 || m[1] == 0.0 { 0.5 } else { m[1] }, 0.0]);
         }
         for r in SPHERE_RINGS {
             let (v, i) = sphere(r);

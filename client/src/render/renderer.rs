@@ -848,9 +848,10 @@ impl Renderer {
                 let mut wanted = lod.select(st.target, size);
                 st.target = Some(wanted);
                 if let Level::Detail(d) = wanted
-                    && unavailable(&key(d)) {
-                        wanted = Level::Far;
-                    }
+                    && unavailable(&key(d))
+                {
+                    wanted = Level::Far;
+                }
                 let ready = |l: Level| match l {
                     Level::Detail(d) => cache.contains_key(&key(d)),
                     Level::Far => vs.is_some(),

@@ -687,10 +687,11 @@ impl<'a> DefParser<'a> {
         let end = self.src.text.len();
         let tree_depth = self.tree_depth.clone().map_or(6, |t| t.0);
         if let Some((b, s)) = &self.branch_depth
-            && *b >= tree_depth {
-                let msg = format!("branch depth {b} is not below tree depth {tree_depth}");
-                self.errors.push(ParseError::new(s.clone(), msg));
-            }
+            && *b >= tree_depth
+        {
+            let msg = format!("branch depth {b} is not below tree depth {tree_depth}");
+            self.errors.push(ParseError::new(s.clone(), msg));
+        }
         if self.errors.is_empty() {
             if self.condensations.is_empty() {
                 self.errors.push(ParseError::new(end..end, "a hypertree needs at least one CONDENSATION"));

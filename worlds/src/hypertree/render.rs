@@ -732,9 +732,10 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                     self.stats.samples += 1;
                     let vx = self.q.voxel_at(v, idx);
                     if self.o.ray_cache
-                        && let Some(e) = self.ray_cache.get_mut(n as usize) {
-                            *e = (idx, vx);
-                        }
+                        && let Some(e) = self.ray_cache.get_mut(n as usize)
+                    {
+                        *e = (idx, vx);
+                    }
                     vx
                 };
                 if voxel.density != 0 {

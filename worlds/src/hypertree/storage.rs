@@ -171,10 +171,8 @@ impl PackedList {
         for k in 0..list.len() {
             seen[usize::from(list.densities[k]) << 8 | usize::from(list.levels[k])] = true;
         }
-        let palette: Vec<Voxel> = (0..1usize << 16)
-            .filter(|&p| seen[p])
-            .map(|p| Voxel { density: (p >> 8) as u8, level: p as u8 })
-            .collect();
+        let palette: Vec<Voxel> =
+            (0..1usize << 16).filter(|&p| seen[p]).map(|p| Voxel { density: (p >> 8) as u8, level: p as u8 }).collect();
         let mut code_of = vec![0u16; 1 << 16];
         for (c, v) in palette.iter().enumerate() {
             code_of[usize::from(v.density) << 8 | usize::from(v.level)] = c as u16;
@@ -792,15 +790,26 @@ pub struct HitRecorder {
 }
 
 enum Mode {
-    Dense { array: DenseArray, touched: Vec<u32> },
+    Dense {
+        array: DenseArray,
+        touched: Vec<u32>,
+    },
     /// Narrow keys `index << LEVEL_BITS | level` (subpart 0, index below 2²⁷, level below 32): half the memory
     /// traffic of the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
-    Keys32 { raw: Vec<u32>, compact: Vec<Compact>, scratch: Vec<u32> },
+    Keys32 {
+        raw: Vec<u32>,
+        compact: Vec<Compact>,
+        scratch: Vec<u32>,
+    },
     /// Hit counts and levels in bricks of 8³ allocated on first touch (subpart 0 only; for coherent hits such as
     /// line generators', which cross runs of neighbouring voxels): no sort at all. A hit of another subpart turns
     /// the bricks into compact records and switches to wide keys for good.
     Bricks(BrickGrid),
-    Keys { raw: Vec<u64>, compact: Vec<Compact>, scratch: Vec<u64> },
+    Keys {
+        raw: Vec<u64>,
+        compact: Vec<Compact>,
+        scratch: Vec<u64>,
+    },
 }
 
 /// Level bits of a narrow key.
@@ -826,9 +835,7 @@ impl HitRecorder {
     /// of at most 2³⁰ voxels count them in bricks allocated on first touch instead of sorting the raw hits. The
     /// result is the same as [`HitRecorder::new`]'s.
     pub fn new_coherent(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
-        if ty != StorageType::Dense
-            && resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= BRICK_GRID_VOXELS
-        {
+        if ty != StorageType::Dense && resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= BRICK_GRID_VOXELS {
             return HitRecorder { mode: Mode::Bricks(BrickGrid::new(resolution)), hits: 0 };
         }
         HitRecorder::new(ty, resolution)
@@ -1011,10 +1018,8 @@ impl HitRecorder {
     #[cold]
     fn widen(&mut self) {
         if let Mode::Keys32 { raw, compact, .. } = &mut self.mode {
-            let raw: Vec<u64> = raw
-                .iter()
-                .map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1)))
-                .collect();
+            let raw: Vec<u64> =
+                raw.iter().map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1))).collect();
             self.mode = Mode::Keys { raw, compact: std::mem::take(compact), scratch: Vec::new() };
         } else if let Mode::Bricks(grid) = &mut self.mode {
             let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
@@ -1212,7 +1217,6 @@ impl BrickGrid {
         (map, any.then_some((lo, hi)))
     }
 }
-
 
 /// [`flush`] for narrow keys: the same compact records.
 fn flush32(raw: &mut Vec<u32>, compact: &mut Vec<Compact>, scratch: &mut Vec<u32>) {

@@ -240,11 +240,12 @@ pub fn bridge(positions: &[V3], loops: &[Vec<u32>]) -> Vec<u32> {
             out.push(x);
             f.detoured = true;
             if let Some(&(q, j)) = bridge_at.get(&(f.l, pos))
-                && !visited[q] {
-                    visited[q] = true;
-                    stack.push(Frame { l: q, entry: j, step: 0, detoured: false, ret: Some(x) });
-                    continue;
-                }
+                && !visited[q]
+            {
+                visited[q] = true;
+                stack.push(Frame { l: q, entry: j, step: 0, detoured: false, ret: Some(x) });
+                continue;
+            }
         }
         f.step += 1;
         f.detoured = false;

@@ -104,7 +104,8 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
         let (indices, err) = match chosen {
             Some(c) => c,
             None => {
-                let err = current_err.unwrap_or_else(|| hausdorff(&originals, &m.positions, &current, f64::from(bound)));
+                let err =
+                    current_err.unwrap_or_else(|| hausdorff(&originals, &m.positions, &current, f64::from(bound)));
                 (current.clone(), err)
             }
         };

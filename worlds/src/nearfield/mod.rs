@@ -166,11 +166,8 @@ pub fn species_near_parts(
     stream: &crate::primitive::PrimitiveStream,
     opts: &NearFieldOptions,
 ) -> Result<NearParts, NearFieldError> {
-    let mesh_opts = if opts.bark.is_some() {
-        continuous::ContinuousOptions { subdivide: true, ..opts.mesh }
-    } else {
-        opts.mesh
-    };
+    let mesh_opts =
+        if opts.bark.is_some() { continuous::ContinuousOptions { subdivide: true, ..opts.mesh } } else { opts.mesh };
     let cm = continuous::continuous_mesh(stream, &mesh_opts)?;
     let bark = match &opts.bark {
         Some(b) => Some(bark::outer_bark(&cm.mesh, &bark::trunk_places(&cm.tags), b)?),

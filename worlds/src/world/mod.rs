@@ -91,13 +91,13 @@ use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 pub use populate::{ParamValue, Ramp, ScatterRule};
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
 
-/// Positions are snapped to `cell_size / POSITION_STEPS` per axis within their cell: a position is its cell and
-/// two integers below `POSITION_STEPS` (12 bits each), as the protocol's instance records carry them.
-pub use canopy_protocol::record::POSITION_STEPS;
 /// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
 pub use canopy_protocol::netlimits::MAX_SPECIES;
 /// Deepest terrain recursion: the protocol's limit for the terrain it describes.
 pub use canopy_protocol::netlimits::MAX_TERRAIN_DEPTH;
+/// Positions are snapped to `cell_size / POSITION_STEPS` per axis within their cell: a position is its cell and
+/// two integers below `POSITION_STEPS` (12 bits each), as the protocol's instance records carry them.
+pub use canopy_protocol::record::POSITION_STEPS;
 
 /// Dart attempts per background cell of a `scatter` rule.
 pub const SCATTER_ATTEMPTS: u32 = 10;

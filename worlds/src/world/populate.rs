@@ -646,10 +646,11 @@ pub(crate) fn build(
                             }
                         }
                         if let ParamValue::Range { lo, hi, step: Some(step) } = p.value
-                            && ParamValue::levels(lo, hi, step) > MAX_RANGE_STEPS {
-                                diags.push(src.diag(p.span.clone(), format!("more than {MAX_RANGE_STEPS} steps")));
-                                ok = false;
-                            }
+                            && ParamValue::levels(lo, hi, step) > MAX_RANGE_STEPS
+                        {
+                            diags.push(src.diag(p.span.clone(), format!("more than {MAX_RANGE_STEPS} steps")));
+                            ok = false;
+                        }
                     }
                     params.sort_by_key(|&(s, _)| s);
                 }
