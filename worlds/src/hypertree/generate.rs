@@ -754,7 +754,6 @@ mod tests {
     fn clip_of_inside_segments_is_the_whole_segment() {
         let mut rng = InstanceRng::new(5);
         let mut ctx = Context { rng: &mut rng, key: 1, counter: 0 };
-        let mut checked = 0;
         for n in 0..200_000 {
             let res: [f32; 3] = std::array::from_fn(|_| (1 + ctx.next_u32() % 400) as f32);
             let mut end = |i: usize| {
@@ -780,8 +779,6 @@ mod tests {
             for i in 0..3 {
                 assert_eq!((a[i] + d[i] * t0).to_bits(), a[i].to_bits(), "a {a:?} b {b:?}");
             }
-            checked += 1;
         }
-        assert_eq!(checked, 200_000);
     }
 }
