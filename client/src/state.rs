@@ -470,16 +470,7 @@ mod tests {
     fn welcome() -> ServerMsg {
         let grid =
             Grid { origin: [0.0, 0.0], cell_size: 10.0, min: CellCoord::new(-50, -50), max: CellCoord::new(49, 49) };
-        let terrain = TerrainDesc {
-            graph: None,
-            seed: 0,
-            origin: [-500.0, -500.0],
-            tile_size: 1000.0,
-            tiles: [1, 1],
-            depth: 0,
-            corners: vec![0.0; 4],
-            params: vec![],
-        };
+        let terrain = TerrainDesc::flat([-500.0, -500.0], 1000.0);
         let w = Welcome {
             version: PROTOCOL_VERSION,
             world: WorldInfo {

@@ -285,6 +285,20 @@ pub struct TerrainDesc {
 }
 
 impl TerrainDesc {
+    /// Flat ground at height 0: one tile of edge `tile_size` with its corner at `origin`, no terrain species.
+    pub fn flat(origin: [f32; 2], tile_size: f32) -> TerrainDesc {
+        TerrainDesc {
+            graph: None,
+            seed: 0,
+            origin,
+            tile_size,
+            tiles: [1, 1],
+            depth: 0,
+            corners: vec![0.0; 4],
+            params: Vec::new(),
+        }
+    }
+
     /// Check counts and numbers (decoders call this; the graph itself is checked when decoded).
     pub fn validate(&self) -> Result<(), MessageError> {
         let bad = |what| Err(MessageError::World(what));

@@ -39,16 +39,7 @@ fn store() -> Arc<dyn WorldStore> {
 }
 
 fn terrain() -> canopy_protocol::messages::TerrainDesc {
-    canopy_protocol::messages::TerrainDesc {
-        graph: None,
-        seed: 0,
-        origin: [-256.0, -256.0],
-        tile_size: 512.0,
-        tiles: [1, 1],
-        depth: 0,
-        corners: vec![0.0; 4],
-        params: vec![],
-    }
+    canopy_protocol::messages::TerrainDesc::flat([-256.0, -256.0], 512.0)
 }
 
 fn config() -> SessionConfig {

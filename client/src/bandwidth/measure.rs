@@ -346,16 +346,7 @@ mod tests {
         let t = GroundTruth::new(world("-8 0 8 8", &at));
         let grid = Grid { origin: [0.0, 0.0], cell_size: 8.0, min: CellCoord::new(-1, 0), max: CellCoord::new(0, 0) };
         assert_eq!(grid, t.grid);
-        let terrain = TerrainDesc {
-            graph: None,
-            seed: 0,
-            origin: [-8.0, 0.0],
-            tile_size: 16.0,
-            tiles: [1, 1],
-            depth: 0,
-            corners: vec![0.0; 4],
-            params: vec![],
-        };
+        let terrain = TerrainDesc::flat([-8.0, 0.0], 16.0);
         let welcome = Welcome {
             version: PROTOCOL_VERSION,
             world: WorldInfo {
