@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use canopy_server::session::PayloadMode;
 
-use super::measure::fraction;
+use super::measure::{Bytes, fraction};
 use super::{BandwidthConfig, Outcome, ScenarioResult};
 
 /// Thousands separators for readability: `1234567` → `1,234,567`.
@@ -421,16 +421,9 @@ fn csv_scenarios(o: &Outcome) -> String {
             let x = &b.bytes;
             let _ = writeln!(
                 s,
-                "{head},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},{}",
+                "{head},{},{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},{}",
                 b.bot.id,
-                x.total(),
-                x.udp_rx,
-                x.udp_tx,
-                x.species,
-                x.records,
-                x.geometry,
-                x.control,
-                x.overhead,
+                byte_columns(x),
                 b.geometry[0],
                 b.geometry[1],
                 b.geometry[2],
@@ -454,15 +447,8 @@ fn csv_scenarios(o: &Outcome) -> String {
         let g = |k: usize| r.bots.iter().map(|b| b.geometry[k]).sum::<u64>();
         let _ = writeln!(
             s,
-            "{head},all,{},{},{},{},{},{},{},{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},",
-            x.total(),
-            x.udp_rx,
-            x.udp_tx,
-            x.species,
-            x.records,
-            x.geometry,
-            x.control,
-            x.overhead,
+            "{head},all,{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},",
+            byte_columns(&x),
             g(0),
             g(1),
             g(2),
@@ -478,6 +464,21 @@ fn csv_scenarios(o: &Outcome) -> String {
         );
     }
     s
+}
+
+/// The byte columns of a scenarios row: `wire_bytes` (UDP both ways), `udp_rx`, `udp_tx`, then by class.
+fn byte_columns(x: &Bytes) -> String {
+    format!(
+        "{},{},{},{},{},{},{},{}",
+        x.total(),
+        x.udp_rx,
+        x.udp_tx,
+        x.species,
+        x.records,
+        x.geometry,
+        x.control,
+        x.overhead
+    )
 }
 
 fn csv_samples(o: &Outcome) -> String {
