@@ -25,7 +25,7 @@ PORT=${PORT:-4433}
 METRICS_PORT=${METRICS_PORT:-9433}
 TARGET=${CARGO_TARGET_DIR:-target}
 
-cargo build --release -q -p canopy-server -p canopy-client
+cargo build --release -q -p canopy-server -p canopy-app
 WORK=$(mktemp -d)
 SERVER_LOG="$WORK/server.log"
 

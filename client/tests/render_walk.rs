@@ -103,8 +103,8 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
     let store = GridStore::from_world(&w).expect("store");
     let cfg = ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..ServerConfig::default() };
     let server: Server = rt.block_on(Server::start(store.shared(), cfg)).expect("server starts");
-    let xdg = std::env::temp_dir().join(format!("canopy-walk-xdg-{}", std::process::id()));
-    std::fs::create_dir_all(&xdg).unwrap();
+    let xdg_dir = tempfile::tempdir().unwrap();
+    let xdg = xdg_dir.path();
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
@@ -163,5 +163,4 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
     assert!(held > 0 && held as usize <= expected, "{held} instances held of {expected}");
     assert!(out.contains("species 2/2"), "both species arrived");
     rt.block_on(server.shutdown(Duration::from_secs(1)));
-    let _ = std::fs::remove_dir_all(&xdg);
 }

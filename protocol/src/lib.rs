@@ -13,6 +13,7 @@ pub mod messages;
 pub mod netlimits;
 pub mod record;
 pub mod species;
+pub mod xorshift;
 
 pub use expr::{Expr, Func, Op};
 pub use messages::{ALPN, ClientMsg, CloseCode, MessageError, PROTOCOL_VERSION, Phase, ServerMsg, SpeciesHash};

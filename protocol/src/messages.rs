@@ -219,6 +219,43 @@ impl ServerMsgKind {
     }
 }
 
+/// One value per [`ServerMsgKind`], indexed by the kind: the per-class byte and message counters of sessions,
+/// metrics, clients and the harness.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ByKind<T>(pub [T; ServerMsgKind::ALL.len()]);
+
+impl<T> std::ops::Index<ServerMsgKind> for ByKind<T> {
+    type Output = T;
+    fn index(&self, kind: ServerMsgKind) -> &T {
+        &self.0[kind as usize]
+    }
+}
+
+impl<T> std::ops::IndexMut<ServerMsgKind> for ByKind<T> {
+    fn index_mut(&mut self, kind: ServerMsgKind) -> &mut T {
+        &mut self.0[kind as usize]
+    }
+}
+
+impl<T> ByKind<T> {
+    /// Every kind with its value, in index order.
+    pub fn iter(&self) -> impl Iterator<Item = (ServerMsgKind, &T)> {
+        ServerMsgKind::ALL.into_iter().zip(&self.0)
+    }
+
+    /// A value per kind computed from this one's.
+    pub fn map<U>(&self, f: impl FnMut(&T) -> U) -> ByKind<U> {
+        ByKind(self.0.each_ref().map(f))
+    }
+}
+
+impl ByKind<u64> {
+    /// The sum over every kind.
+    pub fn total(&self) -> u64 {
+        self.0.iter().sum()
+    }
+}
+
 /// The server's answer to a hello: the world, its species table and the area-of-interest rules.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Welcome {

@@ -7,6 +7,7 @@ use canopy_protocol::messages::{
     ClientHandshake, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome,
     WorldInfo,
 };
+use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase, ServerMsg,
@@ -336,13 +337,8 @@ fn server_messages() -> Vec<ServerMsg> {
 }
 
 fn xorshift(seed: u64) -> impl FnMut() -> u64 {
-    let mut x = seed;
-    move || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    }
+    let mut x = XorShift64::new(seed);
+    move || x.next()
 }
 
 #[test]

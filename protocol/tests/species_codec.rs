@@ -124,13 +124,8 @@ fn oversized_truncated_and_trailing_input_is_rejected() {
 fn random_bytes_never_panic() {
     // A deterministic xorshift stream of mutations of a valid encoding; decode must return, never panic.
     let base = worm().encode();
-    let mut x: u64 = 0x2545_f491_4f6c_dd1d;
-    let mut next = || {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        x
-    };
+    let mut x = canopy_protocol::xorshift::XorShift64::new(0x2545_f491_4f6c_dd1d);
+    let mut next = || x.next();
     for _ in 0..20_000 {
         let mut b = base.clone();
         for _ in 0..1 + next() % 4 {

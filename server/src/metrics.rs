@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
 
 use canopy_protocol::CloseCode;
+use canopy_protocol::messages::ByKind;
 
 use crate::session::MsgClass;
 
@@ -19,10 +20,10 @@ pub struct Metrics {
     pub connections: AtomicU64,
     /// Sessions that reached the streaming phase.
     pub sessions: AtomicU64,
-    /// Bytes by [`MsgClass`] index.
-    pub bytes: [AtomicU64; 5],
-    /// Messages by [`MsgClass`] index.
-    pub messages: [AtomicU64; 5],
+    /// Bytes by [`MsgClass`].
+    pub bytes: ByKind<AtomicU64>,
+    /// Messages by [`MsgClass`].
+    pub messages: ByKind<AtomicU64>,
     /// Instance records sent.
     pub records: AtomicU64,
     /// Bytes received from clients (frames).
@@ -67,8 +68,8 @@ impl Metrics {
 
     /// Count one transmitted message.
     pub fn sent(&self, class: MsgClass, bytes: usize, records: u32) {
-        self.bytes[class as usize].fetch_add(bytes as u64, Relaxed);
-        self.messages[class as usize].fetch_add(1, Relaxed);
+        self.bytes[class].fetch_add(bytes as u64, Relaxed);
+        self.messages[class].fetch_add(1, Relaxed);
         self.records.fetch_add(u64::from(records), Relaxed);
     }
 
@@ -103,11 +104,8 @@ impl Metrics {
         metric("canopy_clients", "gauge", "Clients connected now.", &one(&self.clients));
         metric("canopy_connections_total", "counter", "Connections accepted.", &one(&self.connections));
         metric("canopy_sessions_total", "counter", "Sessions that reached streaming.", &one(&self.sessions));
-        let by_class = |a: &[AtomicU64; 5]| {
-            MsgClass::ALL
-                .iter()
-                .map(|c| (format!("{{class=\"{}\"}}", c.name()), a[*c as usize].load(Relaxed)))
-                .collect::<Vec<_>>()
+        let by_class = |a: &ByKind<AtomicU64>| {
+            a.iter().map(|(c, v)| (format!("{{class=\"{}\"}}", c.name()), v.load(Relaxed))).collect::<Vec<_>>()
         };
         metric("canopy_sent_bytes_total", "counter", "Bytes sent by message class.", &by_class(&self.bytes));
         metric("canopy_sent_messages_total", "counter", "Messages sent by message class.", &by_class(&self.messages));

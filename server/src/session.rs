@@ -166,6 +166,7 @@ pub enum StreamId {
 
 /// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
 pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
+use canopy_protocol::messages::ByKind;
 
 /// One framed message to write.
 #[derive(Clone, Debug, PartialEq)]
@@ -229,10 +230,10 @@ impl SessionError {
 /// What a session has sent, for tests, logs and metrics.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct SessionStats {
-    /// Bytes by [`MsgClass`] index, framing included.
-    pub bytes: [u64; 5],
-    /// Messages by [`MsgClass`] index.
-    pub messages: [u64; 5],
+    /// Bytes by [`MsgClass`], framing included.
+    pub bytes: ByKind<u64>,
+    /// Messages by [`MsgClass`].
+    pub messages: ByKind<u64>,
     /// Explicit-geometry blobs not sent because they exceed [`netlimits::MAX_GEOMETRY_BYTES`].
     pub oversize: u64,
     /// Instance records sent.
@@ -473,9 +474,8 @@ impl Session {
     }
 
     fn account(&mut self, now: Instant, t: Transmit) -> Transmit {
-        let i = t.class as usize;
-        self.stats.bytes[i] += t.bytes.len() as u64;
-        self.stats.messages[i] += 1;
+        self.stats.bytes[t.class] += t.bytes.len() as u64;
+        self.stats.messages[t.class] += 1;
         self.stats.records += u64::from(t.records);
         self.unflushed += t.bytes.len();
         if let Some(b) = &mut self.bucket {

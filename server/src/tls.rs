@@ -117,8 +117,8 @@ mod tests {
 
     #[test]
     fn generated_once_then_loaded_with_the_same_fingerprint() {
-        let dir = std::env::temp_dir().join(format!("canopy-tls-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("identity");
         let a = Identity::load_or_generate(&dir).unwrap();
         assert!(a.generated);
         let b = Identity::load_or_generate(&dir).unwrap();
@@ -126,6 +126,5 @@ mod tests {
         assert_eq!(a.fingerprint(), b.fingerprint());
         assert_eq!(a.fingerprint().len(), 64);
         b.server_config().unwrap();
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -155,7 +155,7 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
     let in_view_first: Vec<f32> =
         cells.iter().filter(|c| in_view(c)).map(|c| grid.distance2(*c, vp.position).sqrt()).collect();
     assert!(in_view_first.windows(2).all(|w| w[0] <= w[1]), "{in_view_first:?}");
-    assert_eq!(s.stats().messages[MsgClass::Species as usize], 3);
+    assert_eq!(s.stats().messages[MsgClass::Species], 3);
 }
 
 #[test]
@@ -497,8 +497,8 @@ fn explicit_payloads_go_through_the_same_area_of_interest() {
             .filter(|(_, m)| matches!(m, ServerMsg::Streaming(ServerStreaming::Geometry(_))))
             .map(|(_, m)| m.encode().len() as u64 + 4)
             .sum();
-        assert_eq!(s.stats().bytes[MsgClass::Geometry as usize], geometry);
-        assert_eq!(s.stats().bytes[MsgClass::Species as usize], 0);
+        assert_eq!(s.stats().bytes[MsgClass::Geometry], geometry);
+        assert_eq!(s.stats().bytes[MsgClass::Species], 0);
     }
 }
 

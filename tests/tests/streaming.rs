@@ -8,13 +8,13 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::net::{endpoint, tls};
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::frame;
-use canopy_protocol::messages::{ClientHandshake, Hello};
+use canopy_protocol::messages::{ClientHandshake, Hello, ServerMsgKind};
 use canopy_protocol::{ClientMsg, CloseCode};
 use canopy_server::{GridStore, Server, ServerConfig, SessionConfig, WorldStore};
 use canopy_worlds::world::World;
@@ -97,8 +97,8 @@ async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reconnecting_client_is_sent_no_species_again() {
     let server = start_server().await;
-    let dir = std::env::temp_dir().join(format!("canopy-reconnect-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("cache");
     let open = || Arc::new(SpeciesCache::open(&dir, CacheLimits::default()).unwrap());
     let first = complete_client(&server, [0.0, 0.0], Some(open())).await;
     let received = first.state().stats().species_received;
@@ -107,15 +107,14 @@ async fn a_reconnecting_client_is_sent_no_species_again() {
     let held_first: usize = first.state().record_count();
     first.close();
     // A new session, a new cache object on the same directory: the species come from disk.
-    let species_before = server.metrics().messages[1].load(Relaxed);
+    let species_before = server.metrics().messages[ServerMsgKind::Species].load(Relaxed);
     let again = complete_client(&server, [0.0, 0.0], Some(open())).await;
     assert_eq!(again.state().stats().species_received, 0, "species were sent again");
-    assert_eq!(server.metrics().messages[1].load(Relaxed), species_before);
+    assert_eq!(server.metrics().messages[ServerMsgKind::Species].load(Relaxed), species_before);
     assert_eq!(again.state().record_count(), held_first);
     bots::verify(again.state(), &world()).unwrap();
     again.close();
     server.shutdown(Duration::from_secs(1)).await;
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Open a raw connection, write `bytes` on the control stream, and return how the server closed it.

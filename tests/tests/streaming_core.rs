@@ -7,9 +7,10 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
-use canopy_client::bots::verify;
+use canopy_harness::bots::verify;
 use canopy_client::state::ClientState;
 use canopy_protocol::aoi::{Aoi, Viewpoint};
+use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, ServerMsg};
 use canopy_server::session::{Session, SessionConfig, StreamId};
 use canopy_server::{GridStore, WorldStore};
@@ -24,7 +25,7 @@ struct Pair {
     server: Session,
     client: ClientState,
     lanes: HashMap<StreamId, VecDeque<Vec<u8>>>,
-    rng: u64,
+    rng: XorShift64,
     now: Instant,
     seq: u32,
 }
@@ -40,14 +41,11 @@ impl Pair {
         server.on_flushed(welcome.bytes.len());
         client.on_welcome(ServerMsg::decode(&welcome.bytes[4..]).unwrap()).unwrap();
         server.handle(now, client.ready(start).unwrap()).unwrap();
-        Pair { server, client, lanes: HashMap::new(), rng: seed, now, seq: 0 }
+        Pair { server, client, lanes: HashMap::new(), rng: XorShift64::new(seed), now, seq: 0 }
     }
 
     fn next(&mut self) -> u64 {
-        self.rng ^= self.rng << 13;
-        self.rng ^= self.rng >> 7;
-        self.rng ^= self.rng << 17;
-        self.rng
+        self.rng.next()
     }
 
     /// Let the server send up to `n` messages into the lanes, and deliver up to `m` of the queued ones, picking a

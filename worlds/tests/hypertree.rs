@@ -2,6 +2,7 @@
 //! (golden hashes), the generation rules, storage structures agreeing voxel for voxel, union/add/clear/set/reduce
 //! semantics, saved volumes, rendering invariants and the species voxelisation.
 
+use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::hypertree::{HypertreeDecodeError, HypertreeDef, HypertreeError, MAX_HYPERTREE_BYTES};
 use canopy_worlds::amplify::{Budget, Instance};
 use canopy_worlds::diag::SourceFile;
@@ -199,11 +200,9 @@ fn encoding_rejects_hostile_bytes_without_panicking() {
     for n in 0..bytes.len() {
         let _ = HypertreeDef::decode(&bytes[..n]);
     }
-    let mut x = 0x2545_f491_4f6c_dd1du64;
+    let mut rng = XorShift64::new(0x2545_f491_4f6c_dd1d);
     for _ in 0..3000 {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
+        let x = rng.next();
         let mut b = bytes.clone();
         let i = (x % b.len() as u64) as usize;
         b[i] = (x >> 32) as u8;
@@ -573,11 +572,9 @@ fn volumes_round_trip_and_reject_corruption() {
     assert_eq!(load_volume(b"not a volume").map(|_| ()), Err(VolumeFileError::Magic));
     let t = small("fork", StorageType::IndexList, 32, 3_000);
     let bytes = save_volume(&t);
-    let mut x = 0x9e37_79b9_7f4a_7c15u64;
+    let mut rng = XorShift64::new(0x9e37_79b9_7f4a_7c15);
     for _ in 0..2000 {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
+        let x = rng.next();
         let mut b = bytes.clone();
         let i = 9 + (x % (b.len() as u64 - 9)) as usize;
         b[i] ^= (x >> 40) as u8 | 1;

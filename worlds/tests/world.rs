@@ -365,7 +365,8 @@ fn mangled_manifests_give_diagnostics_not_panics() {
 
 #[test]
 fn species_files_report_their_own_diagnostics() {
-    let dir = std::env::temp_dir().join(format!("canopy-world-test-{}", std::process::id()));
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
     std::fs::create_dir_all(dir.join("sp")).unwrap();
     std::fs::write(dir.join("sp/good.species"), "param c = 2\ncone(1, 0, c)\n").unwrap();
     std::fs::write(dir.join("sp/bad.species"), "param c = 2\ncone(1, 0, q)\nsphre(1)\n").unwrap();
@@ -393,7 +394,6 @@ fn species_files_report_their_own_diagnostics() {
     assert_eq!(w.name, "w");
     assert_eq!(w.instances[0].params, [(0, 3.0)]);
     assert!(World::load(&dir.join("missing.world")).is_err());
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 // ---- population ----

@@ -1,6 +1,6 @@
 //! `canopy bandwidth`: the bandwidth measurement harness — procedural streaming against explicit geometry
 //! (unique meshes, instanced meshes) through the same server, paths and emulated links; writes a markdown report,
-//! CSV files and SVG plots (see `canopy_client::bandwidth` and docs/bandwidth.md).
+//! CSV files and SVG plots (see `canopy_harness::bandwidth` and docs/bandwidth.md).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -10,8 +10,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use canopy_client::Trust;
-use canopy_client::bandwidth::link::{LinkSpec, parse_rate};
-use canopy_client::bandwidth::{self, BandwidthConfig, External, Scenario, report};
+use canopy_harness::bandwidth::link::{LinkSpec, parse_rate};
+use canopy_harness::bandwidth::{self, BandwidthConfig, External, Scenario, report};
 use canopy_server::session::PayloadMode;
 use canopy_worlds::world::World;
 use clap::{Args, ValueEnum};

@@ -10,7 +10,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::bail;
-use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::{ConnectConfig, Trust};
 use canopy_worlds::world::World;
 use clap::Args;
@@ -22,7 +22,7 @@ pub struct BotsArgs {
     #[arg(long, default_value_t = 10)]
     count: usize,
     /// Their path.
-    #[arg(long, value_enum, default_value_t = PathKind::Line)]
+    #[arg(long, value_parser = super::named(&PathKind::NAMES), default_value_t = PathKind::Line)]
     path: PathKind,
     /// Walking speed, metres per second.
     #[arg(long, default_value_t = 5.0)]

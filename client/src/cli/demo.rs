@@ -14,7 +14,8 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use canopy_client::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_harness::numbers::kib;
 use canopy_client::{ConnectConfig, Trust};
 use canopy_server::metrics::Metrics;
 use canopy_server::session::MsgClass;
@@ -32,7 +33,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 30.0)]
     duration: f64,
     /// Their path.
-    #[arg(long, value_enum, default_value_t = PathKind::Random)]
+    #[arg(long, value_parser = super::named(&PathKind::NAMES), default_value_t = PathKind::Random)]
     path: PathKind,
     /// Walking speed, metres per second.
     #[arg(long, default_value_t = 8.0)]
@@ -63,16 +64,13 @@ struct WalkCli {
     walk: super::walk::WalkArgs,
 }
 
-fn kib(b: u64) -> String {
-    format!("{:.1} KiB", b as f64 / 1024.0)
-}
 
 fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (Instant, u64)) -> String {
     let records = m.records.load(Relaxed);
     let now = Instant::now();
     let rate = (records - last.1) as f64 / now.duration_since(last.0).as_secs_f64().max(1e-3);
     *last = (now, records);
-    let b = |c: MsgClass| m.bytes[c as usize].load(Relaxed);
+    let b = |c: MsgClass| m.bytes[c].load(Relaxed);
     let cells = b(MsgClass::Cells);
     let per = if records > 0 { cells as f64 / records as f64 } else { 0.0 };
     format!(
@@ -196,13 +194,13 @@ fn demo(
         let summary = BotsSummary::new(&reports, started.elapsed());
         print!("{summary}");
         let m = server.metrics();
-        let sent: u64 = MsgClass::ALL.iter().map(|c| m.bytes[*c as usize].load(Relaxed)).sum();
+        let sent: u64 = m.bytes.iter().map(|(_, b)| b.load(Relaxed)).sum();
         println!(
             "server sent {} in {} messages; {} records; species sent {} times to {} bots",
             kib(sent),
-            MsgClass::ALL.iter().map(|c| m.messages[*c as usize].load(Relaxed)).sum::<u64>(),
+            m.messages.iter().map(|(_, n)| n.load(Relaxed)).sum::<u64>(),
             m.records.load(Relaxed),
-            m.messages[MsgClass::Species as usize].load(Relaxed),
+            m.messages[MsgClass::Species].load(Relaxed),
             args.bots
         );
         server.shutdown(Duration::from_secs(1)).await;

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use canopy_harness::numbers::median;
 use canopy_worlds::diag::Diagnostics;
 use canopy_worlds::hypertree::file::{load as load_volume, save as save_volume};
 use canopy_worlds::hypertree::format::{load_forest, load_hypertree};
@@ -616,10 +617,6 @@ fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
     (out, t)
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// The Table 1 reproduction (see `docs/hypertrees.md`).
 fn bench(repeat: u32, only: Option<&str>) -> anyhow::Result<ExitCode> {
@@ -706,10 +703,10 @@ mod tests {
         run(w.command)
     }
 
+    /// A path in this test process's temporary directory (removed when the process ends).
     fn temp(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("canopy-hypertree-cli-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        dir.join(name)
+        static DIR: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+        DIR.get_or_init(|| tempfile::tempdir().expect("temp dir")).path().join(name)
     }
 
     fn s(p: &Path) -> &str {

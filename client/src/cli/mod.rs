@@ -62,6 +62,16 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     }
 }
 
+/// A `value_parser` for a library enum that names its values (`NAMES`) and parses them (`FromStr`): `--help` lists
+/// the names, and the libraries need no clap.
+fn named<T>(names: &'static [(&'static str, T)]) -> impl clap::builder::TypedValueParser<Value = T>
+where
+    T: std::str::FromStr<Err = String> + Clone + Send + Sync + 'static,
+{
+    use clap::builder::TypedValueParser;
+    clap::builder::PossibleValuesParser::new(names.iter().map(|(n, _)| *n)).try_map(|s| s.parse::<T>())
+}
+
 /// A world manifest, or the embedded default world without one.
 fn load_world(manifest: Option<&Path>) -> Result<World, Diagnostics> {
     match manifest {

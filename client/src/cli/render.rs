@@ -6,9 +6,9 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use canopy_client::render::camera::{Camera, CameraSpec};
-use canopy_client::render::offscreen::Offscreen;
-use canopy_client::render::{LodConfig, NearMode, RenderConfig, Scene};
+use canopy_render::camera::{Camera, CameraSpec};
+use canopy_render::offscreen::Offscreen;
+use canopy_render::{LodConfig, NearMode, RenderConfig, Scene};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -33,7 +33,7 @@ pub struct RendererArgs {
     #[arg(long, default_value_t = LodConfig::default().fade_seconds)]
     fade: f32,
     /// Near geometry: instanced unit primitives or merged meshes.
-    #[arg(long, value_enum, default_value_t = NearMode::Instanced)]
+    #[arg(long, value_parser = super::named(&NearMode::NAMES), default_value_t = NearMode::Instanced)]
     near_mode: NearMode,
     /// Worker threads for amplification (default: cores − 1).
     #[arg(long)]
@@ -119,11 +119,8 @@ pub fn camera_spec(arg: Option<&str>) -> anyhow::Result<CameraSpec> {
     }
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    canopy_harness::numbers::percentile(sorted, q).unwrap_or(0.0)
 }
 
 /// Run `canopy render`.

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use canopy_client::bandwidth::report::group;
+use canopy_harness::numbers::{group, median};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
 use canopy_worlds::gltf::glb;
@@ -241,10 +241,6 @@ fn counts_line(s: &PrimitiveStream) -> String {
         .join("  ")
 }
 
-fn median_ms(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
     let g = &cfg.graph;
@@ -255,7 +251,7 @@ fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
         stream = amplify(g, &cfg.instance, &cfg.budget)?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
-    let ms = median_ms(times);
+    let ms = median(times);
     let opts = MeshOptions::for_detail(cfg.instance.detail);
     let t = Instant::now();
     let m = mesh(&stream, &opts);

@@ -20,8 +20,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
-use canopy_client::render::camera::{Camera, CameraSpec};
-use canopy_client::render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
+use canopy_render::camera::{Camera, CameraSpec};
+use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
+use canopy_client::state::viewpoint_due;
 use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_worlds::world::Terrain;
@@ -171,7 +172,8 @@ async fn net_session(
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut dirty = false;
     let mut last_publish = Instant::now();
-    let mut last_sent = (start, Instant::now());
+    let grid = conn.welcome().world.grid;
+    let mut sent_at = Instant::now();
     while !shared.stop.load(Ordering::Relaxed) {
         tokio::select! {
             ev = conn.next_event() => {
@@ -187,12 +189,10 @@ async fn net_session(
             }
             _ = tick.tick() => {
                 let pose = *lock(&shared.pose);
-                let (prev, at) = last_sent;
-                let moved = ((pose.position[0] - prev.position[0]).powi(2) + (pose.position[1] - prev.position[1]).powi(2)).sqrt();
-                let turned = (pose.yaw - prev.yaw).abs();
-                if moved > 4.0 || turned > 0.15 || (at.elapsed() > Duration::from_secs(2) && moved > 0.0) {
+                let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
+                if viewpoint_due(&grid, sent, pose.position, pose.yaw, sent_at.elapsed()) {
                     conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
-                    last_sent = (pose, Instant::now());
+                    sent_at = Instant::now();
                 }
             }
         }

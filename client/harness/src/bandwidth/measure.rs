@@ -7,9 +7,10 @@ use std::sync::Arc;
 
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::messages::ByKind;
 use canopy_worlds::world::{CellKey, World};
 
-use crate::state::ClientState;
+use canopy_client::state::ClientState;
 
 /// One client's bytes, both directions, split by what they carried. The classes sum to `udp_rx + udp_tx`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -34,9 +35,9 @@ pub struct Bytes {
 impl Bytes {
     /// Split a client's counters: frame bytes received by class (welcome, species, cells, release, geometry),
     /// frame bytes it sent, and its connection's UDP totals.
-    pub fn split(frames_rx: [u64; 5], frames_tx: u64, udp_rx: u64, udp_tx: u64) -> Bytes {
-        let [welcome, species, records, release, geometry] = frames_rx;
-        let rx: u64 = frames_rx.iter().sum();
+    pub fn split(frames_rx: ByKind<u64>, frames_tx: u64, udp_rx: u64, udp_tx: u64) -> Bytes {
+        let ByKind([welcome, species, records, release, geometry]) = frames_rx;
+        let rx = frames_rx.total();
         Bytes {
             species,
             records,
@@ -257,13 +258,13 @@ mod tests {
 
     #[test]
     fn byte_classes_add_up_to_the_wire() {
-        let b = Bytes::split([300, 2_000, 10_000, 50, 7], 400, 14_000, 1_000);
+        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7]), 400, 14_000, 1_000);
         assert_eq!(b.class_sum(), b.total());
         assert_eq!(b.total(), 15_000);
         assert_eq!((b.species, b.records, b.geometry, b.control), (2_000, 10_000, 7, 300 + 50 + 400));
         assert_eq!(b.overhead, (14_000 - 12_357) + (1_000 - 400));
         // Counters read a moment apart can see frames before their datagrams: the totals never fall below them.
-        let odd = Bytes::split([0, 0, 500, 0, 0], 10, 400, 5);
+        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0]), 10, 400, 5);
         assert_eq!(odd.class_sum(), odd.total());
         let mut sum = b;
         sum.add(&odd);

@@ -4,15 +4,16 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use canopy_client::bandwidth::link::LinkSpec;
-use canopy_client::bandwidth::{self, BandwidthConfig, Scenario};
+use canopy_harness::bandwidth::link::LinkSpec;
+use canopy_harness::bandwidth::{self, BandwidthConfig, Scenario};
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_server::session::PayloadMode;
 use canopy_worlds::world::World;
 
 #[test]
 fn short_run_writes_a_consistent_report() {
-    let out = std::env::temp_dir().join(format!("canopy-bandwidth-test-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("report");
     let mut cfg = BandwidthConfig::default_run();
     cfg.bots = 1;
     cfg.duration = Duration::from_secs(3);
@@ -56,7 +57,13 @@ fn short_run_writes_a_consistent_report() {
         }
         // The server's frames by class bound what the client received.
         let sent = r.server_bytes.expect("in-process server");
-        assert!(b.species <= sent[1] && b.records <= sent[2] && b.geometry <= sent[4], "{}", r.scenario.name);
+        assert!(
+            b.species <= sent[ServerMsgKind::Species]
+                && b.records <= sent[ServerMsgKind::Cells]
+                && b.geometry <= sent[ServerMsgKind::Geometry],
+            "{}",
+            r.scenario.name
+        );
     }
     let [plain, lossy, inst] = [&o.scenarios[0], &o.scenarios[1], &o.scenarios[2]];
     // Procedural on a free link: complete at the end, and then every visible instance is held (the ground truth
@@ -77,15 +84,14 @@ fn short_run_writes_a_consistent_report() {
     assert!(inst.bots[0].geometry[1] > 0 && b.geometry >= inst.bots[0].geometry.iter().sum::<u64>());
 
     // The CSV's per-scenario row is the sum of its bots.
-    let csv = std::fs::read_to_string(out.join("scenarios.csv")).unwrap();
-    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    let rows: Vec<csv::StringRecord> =
+        csv::Reader::from_path(out.join("scenarios.csv")).unwrap().records().map(Result::unwrap).collect();
     for s in &cfg.scenarios {
         let wire = |bot: &str| -> u64 {
-            rows.iter().find(|r| r[0] == s.name && r[5] == bot).map(|r| r[6].parse().unwrap()).unwrap()
+            rows.iter().find(|r| &r[0] == s.name.as_str() && &r[5] == bot).map(|r| r[6].parse().unwrap()).unwrap()
         };
         assert_eq!(wire("all"), wire("0"));
     }
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("| procedural-unlimited |") && report.contains("instanced-10M"));
-    let _ = std::fs::remove_dir_all(&out);
 }

@@ -177,7 +177,7 @@ impl Drop for Relay {
 impl Relay {
     /// Start a relay on loopback towards `server` (one client per relay).
     pub async fn start(server: SocketAddr, spec: LinkSpec, seed: u64) -> std::io::Result<Relay> {
-        let bind = crate::net::loopback_for(server);
+        let bind = canopy_client::net::loopback_for(server);
         let front = Arc::new(UdpSocket::bind(bind).await?);
         let back = Arc::new(UdpSocket::bind(bind).await?);
         back.connect(server).await?;

@@ -7,10 +7,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
-use canopy_client::render::compare::{Tolerance, check_reference, compare};
-use canopy_client::render::offscreen::{RenderedImage, render_still};
-use canopy_client::render::scene::SceneVolume;
-use canopy_client::render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInstance};
+use canopy_render::compare::{Tolerance, check_reference, compare};
+use canopy_render::offscreen::{RenderedImage, render_still};
+use canopy_render::scene::SceneVolume;
+use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInstance};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
@@ -82,7 +82,7 @@ fn grove_config(mode: NearMode) -> RenderConfig {
 const W: u32 = 320;
 const H: u32 = 200;
 
-fn render_grove(cfg: RenderConfig, camera: fn(&World) -> Camera) -> (RenderedImage, canopy_client::render::FrameStats) {
+fn render_grove(cfg: RenderConfig, camera: fn(&World) -> Camera) -> (RenderedImage, canopy_render::FrameStats) {
     let world = small_world();
     let scene = Scene::from_world(&world);
     render_still(cfg, &scene, &camera(&world), W, H, Duration::from_secs(600))

@@ -28,17 +28,24 @@ impl Trust {
     }
 
     /// The trust the command-line flags ask for: `--cert-fingerprint` (pinned) or `--insecure`; one is required.
-    pub fn from_flags(fingerprint: Option<&str>, insecure: bool) -> anyhow::Result<Trust> {
+    pub fn from_flags(fingerprint: Option<&str>, insecure: bool) -> Result<Trust, TrustFlagsError> {
         match (fingerprint, insecure) {
-            (Some(f), _) => {
-                Trust::pinned(f).ok_or_else(|| anyhow::anyhow!("`{f}` is not a SHA-256 fingerprint (64 hex digits)"))
-            }
+            (Some(f), _) => Trust::pinned(f).ok_or_else(|| TrustFlagsError::NotAFingerprint(f.to_owned())),
             (None, true) => Ok(Trust::Insecure),
-            (None, false) => {
-                anyhow::bail!("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use")
-            }
+            (None, false) => Err(TrustFlagsError::Missing),
         }
     }
+}
+
+/// Why the trust flags name no trust.
+#[derive(Debug, thiserror::Error)]
+pub enum TrustFlagsError {
+    /// `--cert-fingerprint` is not 64 hex digits.
+    #[error("`{0}` is not a SHA-256 fingerprint (64 hex digits)")]
+    NotAFingerprint(String),
+    /// Neither flag was given.
+    #[error("pass --cert-fingerprint (printed by canopy-server) or --insecure for local use")]
+    Missing,
 }
 
 #[derive(Debug)]

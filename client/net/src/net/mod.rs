@@ -13,13 +13,13 @@ use std::time::Duration;
 
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
-use canopy_protocol::messages::{MessageError, ServerStreaming, Welcome};
+use canopy_protocol::messages::{ByKind, MessageError, ServerMsgKind, ServerStreaming, Welcome};
 use canopy_protocol::{CloseCode, ServerMsg, netlimits};
 use quinn::{Endpoint, VarInt};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
-use crate::cache::SpeciesCache;
+use crate::cache::{CacheError, SpeciesCache};
 use crate::state::{ClientState, Event, StateError};
 pub use tls::Trust;
 
@@ -91,9 +91,18 @@ pub enum ClientError {
     /// The connection was lost.
     #[error("connection lost: {0}")]
     Lost(quinn::ConnectionError),
-    /// A stream failed.
-    #[error("stream: {0}")]
-    Stream(String),
+    /// Reading a stream failed (other than by losing the connection).
+    #[error("reading a stream: {0}")]
+    Read(quinn::ReadError),
+    /// Writing the control stream failed (other than by losing the connection).
+    #[error("writing the control stream: {0}")]
+    Write(quinn::WriteError),
+    /// The server ended its streams before the step named here.
+    #[error("the server ended its streams {0}")]
+    Ended(&'static str),
+    /// The species cache could not be opened.
+    #[error("species cache: {0}")]
+    Cache(#[from] CacheError),
     /// A frame was too large, empty or truncated.
     #[error(transparent)]
     Frame(#[from] FrameError),
@@ -112,6 +121,13 @@ pub enum ClientError {
 }
 
 impl ClientError {
+    fn from_write(e: quinn::WriteError) -> ClientError {
+        match e {
+            quinn::WriteError::ConnectionLost(e) => ClientError::from_connection(e),
+            e => ClientError::Write(e),
+        }
+    }
+
     fn from_connection(e: quinn::ConnectionError) -> ClientError {
         match e {
             quinn::ConnectionError::ApplicationClosed(c) => ClientError::Closed {
@@ -179,7 +195,7 @@ pub struct Connection {
     cache: Option<Arc<SpeciesCache>>,
     seq: u32,
     bytes_out: u64,
-    frame_bytes: [u64; 5],
+    frame_bytes: ByKind<u64>,
     _tasks: AbortOnDrop,
 }
 
@@ -205,7 +221,7 @@ async fn read_frame(
                 return Ok(None);
             }
             Err(quinn::ReadError::ConnectionLost(e)) => return Err(ClientError::from_connection(e)),
-            Err(e) => return Err(ClientError::Stream(e.to_string())),
+            Err(e) => return Err(ClientError::Read(e)),
         }
     }
 }
@@ -252,10 +268,10 @@ impl Connection {
         let (mut control, mut recv) = conn.open_bi().await.map_err(ClientError::from_connection)?;
         let mut state = ClientState::new();
         let hello = frame(&state.hello(&cfg.client_name)?.encode());
-        control.write_all(&hello).await.map_err(|e| ClientError::Stream(e.to_string()))?;
+        control.write_all(&hello).await.map_err(ClientError::from_write)?;
         let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
         let (msg, welcome_len) =
-            read_frame(&mut recv, &mut decoder).await?.ok_or(ClientError::Stream("no welcome".into()))?;
+            read_frame(&mut recv, &mut decoder).await?.ok_or(ClientError::Ended("before the welcome"))?;
         let welcome = state.on_welcome(msg)?;
         if let Some(cache) = &cache {
             for (id, entry) in welcome.species.iter().enumerate() {
@@ -266,7 +282,7 @@ impl Connection {
         }
         let viewpoint = viewpoint(&welcome);
         let ready = frame(&state.ready(viewpoint)?.encode());
-        control.write_all(&ready).await.map_err(|e| ClientError::Stream(e.to_string()))?;
+        control.write_all(&ready).await.map_err(ClientError::from_write)?;
         let (tx, inbox) = mpsc::channel(256);
         let mut tasks = Vec::new();
         // The control stream carries nothing after the welcome: anything more is out of order.
@@ -321,7 +337,11 @@ impl Connection {
             cache,
             seq: viewpoint.seq,
             bytes_out: (hello.len() + ready.len()) as u64,
-            frame_bytes: [welcome_len as u64, 0, 0, 0, 0],
+            frame_bytes: {
+                let mut b = ByKind::default();
+                b[ServerMsgKind::Welcome] = welcome_len as u64;
+                b
+            },
             _tasks: AbortOnDrop(tasks),
         })
     }
@@ -346,8 +366,8 @@ impl Connection {
         self.conn.stats().udp_tx.bytes
     }
 
-    /// Frame bytes received by message class: welcome (0), species (1), cells (2), release (3), geometry (4).
-    pub fn frame_bytes_received(&self) -> [u64; 5] {
+    /// Frame bytes received by message class.
+    pub fn frame_bytes_received(&self) -> ByKind<u64> {
         self.frame_bytes
     }
 
@@ -363,24 +383,14 @@ impl Connection {
         let msg = self.state.set_viewpoint(vp)?;
         let bytes = frame(&msg.encode());
         self.bytes_out += bytes.len() as u64;
-        self.control.write_all(&bytes).await.map_err(|e| match e {
-            quinn::WriteError::ConnectionLost(e) => ClientError::from_connection(e),
-            e => ClientError::Stream(e.to_string()),
-        })
+        self.control.write_all(&bytes).await.map_err(ClientError::from_write)
     }
 
     fn apply(&mut self, inbound: Inbound) -> Result<Event, ClientError> {
         let result = match inbound {
             Inbound::Failed(e) => Err(e),
             Inbound::Msg(m, len) => {
-                let class = match &m {
-                    ServerMsg::Handshake(_) => 0,
-                    ServerMsg::Streaming(ServerStreaming::Species(_)) => 1,
-                    ServerMsg::Streaming(ServerStreaming::Cells(_)) => 2,
-                    ServerMsg::Streaming(ServerStreaming::Release(_)) => 3,
-                    ServerMsg::Streaming(ServerStreaming::Geometry(_)) => 4,
-                };
-                self.frame_bytes[class] += len as u64;
+                self.frame_bytes[m.kind()] += len as u64;
                 // The program's bytes are kept only for a cache to store.
                 let species = match (&m, &self.cache) {
                     (ServerMsg::Streaming(ServerStreaming::Species(s)), Some(_)) => Some(s.graph.clone()),
@@ -424,7 +434,7 @@ impl Connection {
     fn closed_error(&self) -> ClientError {
         match self.conn.close_reason() {
             Some(e) => ClientError::from_connection(e),
-            None => ClientError::Stream("lanes ended".into()),
+            None => ClientError::Ended("while streaming"),
         }
     }
 

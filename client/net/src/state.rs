@@ -11,8 +11,9 @@
 
 use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
+use std::time::Duration;
 
-use canopy_protocol::aoi::{Aoi, Viewpoint};
+use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
 use canopy_protocol::messages::{PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome};
 use canopy_protocol::record::{ParamOverride, dequantize};
 use canopy_protocol::{CellBatch, CellCoord, ClientMsg, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash};
@@ -455,10 +456,22 @@ impl ClientState {
 
 pub use canopy_worlds::world::instance_seed;
 
+/// The one rule for when a client sends a new viewpoint (bots, the bandwidth harness and the walkthrough window
+/// alike): it moved at least a sixteenth of a cell (and at least 1 m) from the viewpoint last `sent`, turned more
+/// than a quarter radian, or moved at all and the last one is `STALE` old. `since_sent` is an argument: the rule
+/// reads no clock.
+pub fn viewpoint_due(grid: &Grid, sent: &Viewpoint, position: [f32; 2], yaw: f32, since_sent: Duration) -> bool {
+    /// After this long any movement is worth a viewpoint (the look-ahead and the server's priorities use it).
+    const STALE: Duration = Duration::from_secs(2);
+    let min_move = (grid.cell_size / 16.0).max(1.0);
+    let moved = ((position[0] - sent.position[0]).powi(2) + (position[1] - sent.position[1]).powi(2)).sqrt();
+    moved >= min_move || (yaw - sent.yaw).abs() > 0.25 || (since_sent >= STALE && moved > 0.0)
+}
+
 #[cfg(test)]
 mod tests {
     use canopy_protocol::POSITION_STEPS;
-    use canopy_protocol::aoi::{AoiParams, Grid};
+    use canopy_protocol::aoi::AoiParams;
     use canopy_protocol::messages::{SpeciesEntry, TerrainDesc, WorldInfo};
 
     use super::*;
@@ -611,5 +624,20 @@ mod tests {
         // A new grant for a cell already out of range is dropped (its release follows).
         assert_eq!(s.handle(batch(CellCoord::new(40, 40), 4, 0, 1, 1)), Ok(Event::Dropped));
         assert!(!s.cells().contains_key(&CellCoord::new(40, 40)));
+    }
+
+    #[test]
+    fn a_viewpoint_is_due_after_a_sixteenth_of_a_cell_a_quarter_radian_or_two_quiet_seconds() {
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-5, -5), max: CellCoord::new(5, 5) };
+        let sent = Viewpoint { seq: 1, position: [10.0, 10.0], yaw: 0.5, velocity: [0.0, 0.0], radius: 100.0 };
+        let fresh = Duration::from_millis(100);
+        assert!(!viewpoint_due(&grid, &sent, [10.0, 10.0], 0.5, Duration::from_secs(60)), "still: never due");
+        assert!(!viewpoint_due(&grid, &sent, [13.9, 10.0], 0.5, fresh), "3.9 m < 64/16 m");
+        assert!(viewpoint_due(&grid, &sent, [14.0, 10.0], 0.5, fresh), "4 m");
+        assert!(!viewpoint_due(&grid, &sent, [10.0, 10.0], 0.74, fresh));
+        assert!(viewpoint_due(&grid, &sent, [10.0, 10.0], 0.76, fresh), "turned more than 0.25 rad");
+        assert!(viewpoint_due(&grid, &sent, [10.5, 10.0], 0.5, Duration::from_secs(2)), "stale and moved");
+        let small = Grid { cell_size: 8.0, ..grid };
+        assert!(!viewpoint_due(&small, &sent, [10.9, 10.0], 0.5, fresh), "at least 1 m even for small cells");
     }
 }

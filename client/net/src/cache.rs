@@ -151,9 +151,12 @@ impl SpeciesCache {
             let path = path.to_path_buf();
             move |source| CacheError::Io { path, source }
         };
-        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-        std::fs::write(&tmp, encoded).map_err(io(&tmp))?;
-        std::fs::rename(&tmp, &path).map_err(io(&path))?;
+        // A fresh file with a random name, created exclusively (never through a planted link), then renamed into
+        // place: a reader sees a whole entry or none.
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io(dir))?;
+        std::io::Write::write_all(&mut tmp, encoded).map_err(io(tmp.path()))?;
+        tmp.persist(&path).map_err(|e| CacheError::Io { path: path.clone(), source: e.error })?;
         self.trim_disk();
         Ok(())
     }
@@ -210,8 +213,8 @@ mod tests {
 
     #[test]
     fn survives_a_restart_and_rejects_corrupt_files() {
-        let dir = std::env::temp_dir().join(format!("canopy-cache-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("cache");
         let (hash, bytes, graph) = worm();
         let a = SpeciesCache::open(&dir, CacheLimits::default()).unwrap();
         assert!(a.get(&hash).is_none());
@@ -227,13 +230,12 @@ mod tests {
         assert!(c.get(&hash).is_none());
         assert_eq!(c.stats().corrupt, 1);
         assert!(!dir.join(format!("{}.species", hash.hex())).exists());
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
     fn bounded_in_memory_and_on_disk() {
-        let dir = std::env::temp_dir().join(format!("canopy-cache-bound-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("cache");
         let limits = CacheLimits { memory_entries: 2, disk_entries: 3, disk_bytes: 1 << 20 };
         let cache = SpeciesCache::open(&dir, limits).unwrap();
         for name in ["worm", "monopodial", "conifer", "terrain", "morpho"] {
@@ -244,6 +246,5 @@ mod tests {
         assert_eq!(cache.memory.lock().unwrap().map.len(), 2);
         let files = std::fs::read_dir(&dir).unwrap().count();
         assert_eq!(files, 3);
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -17,8 +17,8 @@ pub const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
 /// Sphere latitude bands by detail level.
 pub const SPHERE_RINGS: [u32; 4] = [6, 4, 2, 2];
 
-const COMMON: &str = include_str!("../../shaders/common.wgsl");
-const SEGMENT: &str = include_str!("../../shaders/segment.wgsl");
+const COMMON: &str = include_str!("../shaders/common.wgsl");
+const SEGMENT: &str = include_str!("../shaders/segment.wgsl");
 
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
 #[repr(C)]
@@ -286,7 +286,7 @@ impl Pipelines {
         };
         let greater = wgpu::CompareFunction::Greater;
 
-        let sky_mod = module(device, "sky", &[COMMON, include_str!("../../shaders/sky.wgsl")]);
+        let sky_mod = module(device, "sky", &[COMMON, include_str!("../shaders/sky.wgsl")]);
         let sky = pipeline(
             "sky",
             &layout("sky", &[&globals_layout]),
@@ -298,7 +298,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let terrain_mod = module(device, "terrain", &[COMMON, include_str!("../../shaders/terrain.wgsl")]);
+        let terrain_mod = module(device, "terrain", &[COMMON, include_str!("../shaders/terrain.wgsl")]);
         let terrain_attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Uint32, 2 => Uint32];
         let terrain = pipeline(
             "terrain",
@@ -315,7 +315,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let prims_mod = module(device, "prims", &[COMMON, include_str!("../../shaders/prims.wgsl"), SEGMENT]);
+        let prims_mod = module(device, "prims", &[COMMON, include_str!("../shaders/prims.wgsl"), SEGMENT]);
         let unit_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4];
         // No culling: a mirroring transform flips a primitive's winding.
         let prims = pipeline(
@@ -333,7 +333,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let mesh_mod = module(device, "meshes", &[COMMON, include_str!("../../shaders/mesh.wgsl"), SEGMENT]);
+        let mesh_mod = module(device, "meshes", &[COMMON, include_str!("../shaders/mesh.wgsl"), SEGMENT]);
         let mesh = pipeline(
             "meshes",
             &layout("meshes", &[&globals_layout, &mesh_layout, &draw_layout]),
@@ -345,7 +345,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let volume_mod = module(device, "volumes", &[COMMON, include_str!("../../shaders/volume.wgsl")]);
+        let volume_mod = module(device, "volumes", &[COMMON, include_str!("../shaders/volume.wgsl")]);
         let far_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32, 2 => Float32];
         let volume = pipeline(
             "volumes",

@@ -21,15 +21,15 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
-use canopy_protocol::messages::GeometryKind;
+use canopy_protocol::messages::{ByKind, GeometryKind};
 use canopy_server::session::{GeometrySource, Payload, PayloadMode, SessionConfig};
 use canopy_server::{GridStore, Server, ServerConfig, WorldStore};
 use canopy_worlds::world::World;
 use quinn::Endpoint;
 
 use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, PathKind, Walker};
-use crate::net::{ClientError, ConnectConfig, Connection, Trust};
-use crate::state::Event;
+use canopy_client::net::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_client::state::Event;
 use geometry::{MeshSource, SourceStats};
 use link::{LinkSpec, Relay};
 use measure::{Bytes, CompletenessStats, GroundTruth, Sample, SamplePhase};
@@ -161,6 +161,14 @@ pub enum BandwidthError {
     /// The configuration is not usable.
     #[error("{0}")]
     Config(String),
+    /// The server streams another world than the one the ground truth was computed from.
+    #[error("the server's world has {server} instances, the ground truth {truth}: not the same world")]
+    WorldMismatch {
+        /// Instances in the server's welcome.
+        server: u32,
+        /// Instances in the ground truth.
+        truth: usize,
+    },
 }
 
 /// The link's counters for one bot at the end.
@@ -229,7 +237,7 @@ pub struct ScenarioResult {
     /// What the server's mesh source encoded (explicit modes, in-process server).
     pub source: Option<SourceStats>,
     /// Frame bytes the server sent, by message class (in-process server).
-    pub server_bytes: Option<[u64; 5]>,
+    pub server_bytes: Option<ByKind<u64>>,
 }
 
 impl ScenarioResult {
@@ -512,20 +520,16 @@ async fn bot_session(
     endpoint: &Endpoint,
     mut connect: ConnectConfig,
     p: &BotParams,
-) -> Result<(), ClientError> {
+) -> Result<(), BandwidthError> {
     connect.client_name = format!("bandwidth-{}", r.bot.id);
     let started = Instant::now();
     let seed = p.seed.wrapping_add(r.bot.id as u64);
     let (mut conn, mut walker) =
         bots::connect_walking(endpoint, &connect, None, (PathKind::Line, p.speed, p.radius, seed)).await?;
     if conn.welcome().world.instances as usize != p.truth.len() {
-        let msg = format!(
-            "the server's world has {} instances, the ground truth {}: not the same world",
-            conn.welcome().world.instances,
-            p.truth.len()
-        );
+        let server = conn.welcome().world.instances;
         conn.close();
-        return Err(ClientError::Stream(msg));
+        return Err(BandwidthError::WorldMismatch { server, truth: p.truth.len() });
     }
     let plan = DrivePlan {
         radius: p.radius,
@@ -555,7 +559,7 @@ async fn bot_session(
     r.bot.complete = conn.state().is_complete();
     r.bytes = bytes_of(&conn);
     conn.close();
-    result.map(|_| ())
+    result.map(|_| ()).map_err(BandwidthError::from)
 }
 
 /// Run one scenario against a server at `server`: a relay per bot when the link is shaped, the bots, their
@@ -568,7 +572,7 @@ async fn run_scenario(
     truth: Arc<GroundTruth>,
     bar: &indicatif::ProgressBar,
 ) -> Result<Vec<BotResult>, BandwidthError> {
-    let endpoint = crate::net::endpoint(crate::net::loopback_for(server))?;
+    let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(server))?;
     let params = Arc::new(BotParams {
         duration: cfg.duration,
         speed: cfg.speed,
@@ -690,7 +694,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         let bots = bots_rt.block_on(run_scenario(cfg, scenario, addr, trust, Arc::clone(&truth), &bar));
         let server_bytes = server.as_ref().map(|s| {
             let m = s.metrics();
-            std::array::from_fn(|i| m.bytes[i].load(Relaxed))
+            m.bytes.map(|b| b.load(Relaxed))
         });
         if let Some(s) = server {
             server_rt.block_on(s.shutdown(Duration::from_secs(1)));

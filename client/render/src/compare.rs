@@ -184,8 +184,8 @@ mod tests {
         assert!((c.mean - 205.0 / 300.0).abs() < 1e-9);
         assert!(matches!(compare(&a, &img(5, 5, |_, _| [0; 4]), 0), Err(CompareError::Size(..))));
 
-        let dir = std::env::temp_dir().join(format!("canopy-compare-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let reference = dir.join("scene.png");
         a.save_png(&reference).unwrap();
         let strict = Tolerance { channel: 10, max_fraction: 0.01, max_mean: 10.0 };
@@ -205,6 +205,5 @@ mod tests {
             assert!(matches!(check_reference(&a, &missing, &loose), Err(CompareError::Missing(..))));
             assert!(dir.join("missing-actual.png").exists());
         }
-        let _ = std::fs::remove_dir_all(&dir);
     }
 }

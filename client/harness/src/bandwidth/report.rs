@@ -11,30 +11,7 @@ use canopy_server::session::PayloadMode;
 use super::measure::{Bytes, fraction};
 use super::{BandwidthConfig, Outcome, ScenarioResult};
 
-/// Thousands separators for readability: `1234567` → `1,234,567`.
-pub fn group(v: u64) -> String {
-    let s = v.to_string();
-    let mut out = String::new();
-    for (i, c) in s.chars().enumerate() {
-        if i > 0 && (s.len() - i).is_multiple_of(3) {
-            out.push(',');
-        }
-        out.push(c);
-    }
-    out
-}
-
-fn human(b: f64) -> String {
-    if b >= 1e9 {
-        format!("{:.2} GB", b / 1e9)
-    } else if b >= 1e6 {
-        format!("{:.2} MB", b / 1e6)
-    } else if b >= 1e3 {
-        format!("{:.1} kB", b / 1e3)
-    } else {
-        format!("{b:.0} B")
-    }
-}
+use crate::numbers::{group, human_bytes as human};
 
 fn secs(t: Option<f64>) -> String {
     t.map_or("never".to_string(), |t| format!("{t:.2} s"))
@@ -402,138 +379,143 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     s
 }
 
+/// A CSV file from a header and rows, quoted and escaped by the `csv` crate (names may hold commas, quotes or
+/// newlines: an error message does).
+fn csv_table(header: &[&str], rows: impl IntoIterator<Item = Vec<String>>) -> String {
+    let mut w = csv::Writer::from_writer(Vec::new());
+    // Writing into memory cannot fail on IO; a row with the wrong width is a bug in the caller.
+    w.write_record(header).expect("in-memory CSV");
+    for row in rows {
+        assert_eq!(row.len(), header.len(), "a CSV row has as many fields as the header");
+        w.write_record(&row).expect("in-memory CSV");
+    }
+    String::from_utf8(w.into_inner().expect("in-memory CSV")).expect("fields are UTF-8")
+}
+
 fn csv_scenarios(o: &Outcome) -> String {
-    let mut s = String::from(
-        "scenario,payload,rate_bps,latency_ms,loss,bot,wire_bytes,udp_rx,udp_tx,species,records,geometry,control,transport,instance_mesh_bytes,species_mesh_bytes,transform_bytes,instances_received,instances_held,bytes_per_instance,walking_completeness,walking_min,overall_completeness,first_complete_s,teleport_complete_s,complete_at_end,error\n",
-    );
+    const HEADER: &[&str] = &[
+        "scenario", "payload", "rate_bps", "latency_ms", "loss", "bot", "wire_bytes", "udp_rx", "udp_tx", "species",
+        "records", "geometry", "control", "transport", "instance_mesh_bytes", "species_mesh_bytes", "transform_bytes",
+        "instances_received", "instances_held", "bytes_per_instance", "walking_completeness", "walking_min",
+        "overall_completeness", "first_complete_s", "teleport_complete_s", "complete_at_end", "error",
+    ];
+    let mut rows = Vec::new();
     for r in &o.scenarios {
         let sc = &r.scenario;
-        let head = format!(
-            "{},{},{},{},{}",
-            sc.name,
-            sc.mode.label(),
+        let head = [
+            sc.name.clone(),
+            sc.mode.label().to_string(),
             sc.link.rate.map_or(String::new(), |v| v.to_string()),
-            sc.link.latency.as_millis(),
-            sc.link.loss
-        );
+            sc.link.latency.as_millis().to_string(),
+            sc.link.loss.to_string(),
+        ];
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.3}"));
+        let row = |bot: String, x: &Bytes, geometry: [u64; 3], tail: [String; 10]| {
+            let mut row = head.to_vec();
+            row.push(bot);
+            row.extend(byte_columns(x));
+            row.extend(geometry.map(|g| g.to_string()));
+            row.extend(tail);
+            row
+        };
         for b in &r.bots {
             let x = &b.bytes;
-            let _ = writeln!(
-                s,
-                "{head},{},{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},{}",
-                b.bot.id,
-                byte_columns(x),
-                b.geometry[0],
-                b.geometry[1],
-                b.geometry[2],
-                b.bot.records,
-                b.bot.held,
-                if b.bot.records > 0 {
-                    format!("{:.3}", x.total() as f64 / b.bot.records as f64)
-                } else {
-                    String::new()
-                },
-                b.walking().mean(),
-                b.walking().min,
-                b.overall().mean(),
-                opt(b.first_complete()),
-                opt(b.teleport_complete),
-                b.bot.complete,
-                b.bot.error.as_deref().unwrap_or("").replace([',', '\n'], ";")
-            );
+            rows.push(row(
+                b.bot.id.to_string(),
+                x,
+                b.geometry,
+                [
+                    b.bot.records.to_string(),
+                    b.bot.held.to_string(),
+                    if b.bot.records > 0 { format!("{:.3}", x.total() as f64 / b.bot.records as f64) } else { String::new() },
+                    format!("{:.6}", b.walking().mean()),
+                    format!("{:.6}", b.walking().min),
+                    format!("{:.6}", b.overall().mean()),
+                    opt(b.first_complete()),
+                    opt(b.teleport_complete),
+                    b.bot.complete.to_string(),
+                    b.bot.error.clone().unwrap_or_default(),
+                ],
+            ));
         }
-        let x = r.bytes();
         let g = |k: usize| r.bots.iter().map(|b| b.geometry[k]).sum::<u64>();
-        let _ = writeln!(
-            s,
-            "{head},all,{},{},{},{},{},{},{},{:.6},{:.6},{:.6},{},{},{},",
-            byte_columns(&x),
-            g(0),
-            g(1),
-            g(2),
-            r.records(),
-            r.bots.iter().map(|b| b.bot.held).sum::<usize>(),
-            r.bytes_per_instance().map_or(String::new(), |v| format!("{v:.3}")),
-            r.walking().mean(),
-            r.walking().min,
-            r.overall().mean(),
-            opt(r.first_complete()),
-            opt(r.teleport_complete()),
-            r.bots.iter().all(|b| b.bot.complete)
-        );
+        rows.push(row(
+            "all".into(),
+            &r.bytes(),
+            [g(0), g(1), g(2)],
+            [
+                r.records().to_string(),
+                r.bots.iter().map(|b| b.bot.held).sum::<usize>().to_string(),
+                r.bytes_per_instance().map_or(String::new(), |v| format!("{v:.3}")),
+                format!("{:.6}", r.walking().mean()),
+                format!("{:.6}", r.walking().min),
+                format!("{:.6}", r.overall().mean()),
+                opt(r.first_complete()),
+                opt(r.teleport_complete()),
+                r.bots.iter().all(|b| b.bot.complete).to_string(),
+                String::new(),
+            ],
+        ));
     }
-    s
+    csv_table(HEADER, rows)
 }
 
 /// The byte columns of a scenarios row: `wire_bytes` (UDP both ways), `udp_rx`, `udp_tx`, then by class.
-fn byte_columns(x: &Bytes) -> String {
-    format!(
-        "{},{},{},{},{},{},{},{}",
-        x.total(),
-        x.udp_rx,
-        x.udp_tx,
-        x.species,
-        x.records,
-        x.geometry,
-        x.control,
-        x.overhead
-    )
+fn byte_columns(x: &Bytes) -> [String; 8] {
+    [x.total(), x.udp_rx, x.udp_tx, x.species, x.records, x.geometry, x.control, x.overhead].map(|v| v.to_string())
 }
 
 fn csv_samples(o: &Outcome) -> String {
-    let mut s = String::from(
-        "scenario,bot,t_s,phase,x,z,wire_bytes,species,records,geometry,control,transport,visible,held,completeness,aoi_complete\n",
-    );
-    for r in &o.scenarios {
-        for b in &r.bots {
-            for x in &b.samples {
-                let _ = writeln!(
-                    s,
-                    "{},{},{:.3},{},{:.1},{:.1},{},{},{},{},{},{},{},{},{:.6},{}",
-                    r.scenario.name,
-                    b.bot.id,
-                    x.t,
-                    x.phase.label(),
-                    x.position[0],
-                    x.position[1],
-                    x.bytes.total(),
-                    x.bytes.species,
-                    x.bytes.records,
-                    x.bytes.geometry,
-                    x.bytes.control,
-                    x.bytes.overhead,
-                    x.visible,
-                    x.held,
-                    fraction(x.visible, x.held),
-                    x.aoi_complete
-                );
-            }
-        }
-    }
-    s
+    const HEADER: &[&str] = &[
+        "scenario", "bot", "t_s", "phase", "x", "z", "wire_bytes", "species", "records", "geometry", "control",
+        "transport", "visible", "held", "completeness", "aoi_complete",
+    ];
+    let rows = o.scenarios.iter().flat_map(|r| {
+        r.bots.iter().flat_map(move |b| {
+            b.samples.iter().map(move |x| {
+                vec![
+                    r.scenario.name.clone(),
+                    b.bot.id.to_string(),
+                    format!("{:.3}", x.t),
+                    x.phase.label().to_string(),
+                    format!("{:.1}", x.position[0]),
+                    format!("{:.1}", x.position[1]),
+                    x.bytes.total().to_string(),
+                    x.bytes.species.to_string(),
+                    x.bytes.records.to_string(),
+                    x.bytes.geometry.to_string(),
+                    x.bytes.control.to_string(),
+                    x.bytes.overhead.to_string(),
+                    x.visible.to_string(),
+                    x.held.to_string(),
+                    format!("{:.6}", fraction(x.visible, x.held)),
+                    x.aoi_complete.to_string(),
+                ]
+            })
+        })
+    });
+    csv_table(HEADER, rows)
 }
 
 fn csv_sizes(o: &Outcome) -> String {
-    let mut s = String::from(
-        "species,encoded,primitives,explicit_s7,triangles,quantised_mesh,compressed_mesh,alternative,alternative_bytes\n",
-    );
-    for r in &o.sizes {
-        let _ = writeln!(
-            s,
-            "{},{},{},{},{},{},{},{},{}",
-            r.name.replace(',', ";"),
-            r.encoded,
-            r.primitives,
-            r.explicit,
-            r.triangles,
-            r.quantised,
-            r.compressed,
-            r.alternative.map_or("", |a| a.0),
-            r.alternative.map_or(String::new(), |a| a.1.to_string())
-        );
-    }
-    s
+    const HEADER: &[&str] = &[
+        "species", "encoded", "primitives", "explicit_s7", "triangles", "quantised_mesh", "compressed_mesh",
+        "alternative", "alternative_bytes",
+    ];
+    let rows = o.sizes.iter().map(|r| {
+        vec![
+            r.name.clone(),
+            r.encoded.to_string(),
+            r.primitives.to_string(),
+            r.explicit.to_string(),
+            r.triangles.to_string(),
+            r.quantised.to_string(),
+            r.compressed.to_string(),
+            r.alternative.map_or(String::new(), |a| a.0.to_string()),
+            r.alternative.map_or(String::new(), |a| a.1.to_string()),
+        ]
+    });
+    csv_table(HEADER, rows)
 }
 
 /// A series of a line chart.
@@ -702,6 +684,7 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use canopy_protocol::messages::ByKind;
 
     fn scenario(
         mode: PayloadMode,
@@ -728,10 +711,10 @@ mod tests {
         use super::super::measure::Bytes;
         use super::super::{MeshSample, Outcome};
         // Procedural: 1,000 species bytes, 5,000 record bytes for 1,000 instances; 8,000 bytes on the wire in all.
-        let p = Bytes::split([500, 1_000, 5_000, 0, 0], 500, 7_000, 1_000);
-        let u = Bytes::split([500, 0, 0, 0, 1_000_000], 500, 1_049_500, 1_000);
+        let p = Bytes::split(ByKind([500, 1_000, 5_000, 0, 0]), 500, 7_000, 1_000);
+        let u = Bytes::split(ByKind([500, 0, 0, 0, 1_000_000]), 500, 1_049_500, 1_000);
         // Instanced: two species meshes started, 100 instances with 20 bytes of transforms each.
-        let i = Bytes::split([500, 0, 500, 0, 502_000], 500, 504_000, 1_000);
+        let i = Bytes::split(ByKind([500, 0, 500, 0, 502_000]), 500, 504_000, 1_000);
         let o = Outcome {
             scenarios: vec![
                 scenario(PayloadMode::Procedural, p, [0; 3], 1_000, vec![0, 2]),
@@ -785,5 +768,16 @@ mod tests {
         }
         let empty = line_chart("t", "x", "y", &[], false);
         assert!(!empty.contains("NaN"));
+    }
+
+    #[test]
+    fn csv_fields_with_commas_quotes_and_newlines_round_trip() {
+        let awkward = vec!["a,b".to_string(), "say \"hi\"".to_string(), "two\nlines".to_string()];
+        let text = csv_table(&["x", "y", "z"], [awkward.clone(), vec!["1".into(), "2".into(), "3".into()]]);
+        let rows: Vec<Vec<String>> = csv::Reader::from_reader(text.as_bytes())
+            .records()
+            .map(|r| r.unwrap().iter().map(str::to_owned).collect())
+            .collect();
+        assert_eq!(rows, [awkward, vec!["1".to_string(), "2".into(), "3".into()]]);
     }
 }

@@ -44,13 +44,32 @@ use canopy_worlds::hypertree::render::{Light, RenderOptions, Shading};
 
 /// How near geometry is represented on the GPU (the choice the issue asks to make by measurement; see
 /// `docs/renderer.md`). Also the values of `--near-mode`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum NearMode {
     /// Cones, cylinders, spheres and boxes as instances of unit meshes (64 bytes per primitive, shaped in the
     /// vertex shader); leaves and trunk bases as meshes.
     Instanced,
     /// Every primitive meshed on the CPU ([`canopy_worlds::mesh`]) into one merged mesh per tree.
     Merged,
+}
+
+impl NearMode {
+    /// The modes with their names (the values of `--near-mode`).
+    pub const NAMES: [(&'static str, NearMode); 2] = [("instanced", NearMode::Instanced), ("merged", NearMode::Merged)];
+}
+
+impl std::fmt::Display for NearMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = NearMode::NAMES.iter().find(|(_, m)| m == self).map_or("?", |(n, _)| n);
+        f.write_str(name)
+    }
+}
+
+impl std::str::FromStr for NearMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<NearMode, String> {
+        NearMode::NAMES.iter().find(|(n, _)| *n == s).map(|(_, m)| *m).ok_or_else(|| format!("no near mode `{s}`"))
+    }
 }
 
 /// Lighting and atmosphere, shared by every band so that they match (and the far field's baked shading matches

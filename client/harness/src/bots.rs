@@ -12,16 +12,19 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
+use canopy_protocol::messages::{ByKind, ServerMsgKind};
 use canopy_protocol::{CellCoord, SpeciesHash};
 use canopy_worlds::world::{CellKey, World};
 use quinn::Endpoint;
 
-use crate::cache::{CacheLimits, SpeciesCache};
-use crate::net::{ClientError, ConnectConfig, Connection};
-use crate::state::{ClientState, Event};
+use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::net::{ClientError, ConnectConfig, Connection};
+use canopy_client::state::{ClientState, Event, viewpoint_due};
+
+use crate::numbers::percentile;
 
 /// The scripted path a bot walks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PathKind {
     /// Straight lines, turning back at the world's edge.
     Line,
@@ -31,6 +34,30 @@ pub enum PathKind {
     Random,
     /// Stand still, then jump to a random place, again and again.
     Teleport,
+}
+
+impl PathKind {
+    /// The paths with their names (the values of `--path`).
+    pub const NAMES: [(&'static str, PathKind); 4] = [
+        ("line", PathKind::Line),
+        ("circle", PathKind::Circle),
+        ("random", PathKind::Random),
+        ("teleport", PathKind::Teleport),
+    ];
+}
+
+impl std::fmt::Display for PathKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = PathKind::NAMES.iter().find(|(_, k)| k == self).map_or("?", |(n, _)| n);
+        f.write_str(name)
+    }
+}
+
+impl std::str::FromStr for PathKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<PathKind, String> {
+        PathKind::NAMES.iter().find(|(n, _)| *n == s).map(|(_, k)| *k).ok_or_else(|| format!("no path `{s}`"))
+    }
 }
 
 /// How a group of bots runs.
@@ -122,7 +149,7 @@ pub struct BotReport {
     /// Records held at the end.
     pub held: usize,
     /// All frame bytes received by class (welcome, species, cells, release, geometry).
-    pub frame_bytes: [u64; 5],
+    pub frame_bytes: ByKind<u64>,
     /// UDP payload bytes received.
     pub udp_bytes: u64,
     /// Species received over the wire.
@@ -406,15 +433,6 @@ pub async fn connect_walking(
     Ok((conn, walker.expect("placed in the handshake")))
 }
 
-/// Whether a walker has moved far enough from the viewpoint last `sent` (a sixteenth of a cell, at least 1 m) or
-/// turned enough (a quarter radian) to send a new one.
-pub fn viewpoint_due(grid: &Grid, sent: &Viewpoint, walker: &Walker) -> bool {
-    let min_move = (grid.cell_size / 16.0).max(1.0);
-    let p = walker.position();
-    let moved = ((p[0] - sent.position[0]).powi(2) + (p[1] - sent.position[1]).powi(2)).sqrt();
-    moved >= min_move || (walker.yaw() - sent.yaw).abs() > 0.25
-}
-
 /// How [`drive`] walks a connection.
 #[derive(Clone, Debug)]
 pub struct DrivePlan {
@@ -471,6 +489,7 @@ pub async fn drive(
         i
     });
     let mut last = Instant::now();
+    let mut sent_at = last;
     let mut stop = plan.stop;
     // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
     let mut stoppable = stop.has_changed().is_ok();
@@ -490,8 +509,9 @@ pub async fn drive(
                 last = now;
                 let jumped = walker.step(dt) | hooks.stepped(now, walker);
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
-                if jumped || viewpoint_due(&grid, sent, walker) {
+                if jumped || viewpoint_due(&grid, sent, walker.position(), walker.yaw(), now - sent_at) {
                     conn.set_viewpoint(walker.viewpoint(plan.radius)).await?;
+                    sent_at = now;
                     hooks.changed(conn);
                 }
             }
@@ -657,19 +677,16 @@ pub struct BotsSummary {
 }
 
 fn percentiles(mut v: Vec<Duration>) -> Option<[Duration; 4]> {
-    if v.is_empty() {
-        return None;
-    }
     v.sort_unstable();
-    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
-    Some([at(0.5), at(0.9), at(0.99), v[v.len() - 1]])
+    let at = |q: f64| percentile(&v, q);
+    Some([at(0.5)?, at(0.9)?, at(0.99)?, at(1.0)?])
 }
 
 impl BotsSummary {
     /// Summarise bot reports.
     pub fn new(reports: &[BotReport], wall: Duration) -> BotsSummary {
         let records: u64 = reports.iter().map(|r| r.records).sum();
-        let batch: u64 = reports.iter().map(|r| r.frame_bytes[2]).sum();
+        let batch: u64 = reports.iter().map(|r| r.frame_bytes[ServerMsgKind::Cells]).sum();
         let udp: u64 = reports.iter().map(|r| r.udp_bytes).sum();
         let per = |b: u64| if records == 0 { 0.0 } else { b as f64 / records as f64 };
         let checked: Vec<_> = reports.iter().filter_map(|r| r.verify.as_ref()).collect();
@@ -760,12 +777,12 @@ pub async fn join<T>(tasks: Vec<tokio::task::JoinHandle<T>>, failed: impl Fn(usi
 
 /// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report.
 pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotReport>, ClientError> {
-    let bind = crate::net::loopback_for(cfg.connect.server);
+    let bind = canopy_client::net::loopback_for(cfg.connect.server);
     let endpoints: Vec<Endpoint> =
-        (0..cfg.endpoints.max(1)).map(|_| crate::net::endpoint(bind)).collect::<Result<_, _>>()?;
+        (0..cfg.endpoints.max(1)).map(|_| canopy_client::net::endpoint(bind)).collect::<Result<_, _>>()?;
     let cache = match &cfg.cache_dir {
         Some(dir) => Some(Arc::new(
-            SpeciesCache::open(dir, CacheLimits::default()).map_err(|e| ClientError::Stream(e.to_string()))?,
+            SpeciesCache::open(dir, CacheLimits::default())?,
         )),
         None => None,
     };

@@ -1,0 +1,192 @@
+//! House rules, checked over the whole tree (rust-analyzer's tidy test in spirit): the crate dependency rules that
+//! ARCHITECTURE.md states, read from `cargo metadata`; every Rust file opens with a `//!` line; the sans-IO cores
+//! read no clock and use no tokio or quinn; no `#[ignore]` without a reason; no file over 1,000 lines unless it is
+//! listed below with its reason.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The workspace root.
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
+}
+
+/// What each crate may not depend on, directly or through any normal (non-dev, non-build) dependency.
+const FORBIDDEN: &[(&str, &[&str])] = &[
+    ("canopy-protocol", &["tokio", "quinn", "wgpu", "winit", "clap", "anyhow", "canopy-worlds", "canopy-server"]),
+    ("canopy-worlds", &["tokio", "quinn", "wgpu", "winit", "clap", "anyhow", "indicatif", "canopy-server"]),
+    ("canopy-server", &["wgpu", "winit", "indicatif", "canopy-client", "canopy-render", "canopy-harness"]),
+    (
+        "canopy-client",
+        &["wgpu", "winit", "clap", "indicatif", "anyhow", "canopy-server", "canopy-render", "canopy-harness"],
+    ),
+    (
+        "canopy-render",
+        &["quinn", "tokio", "winit", "clap", "indicatif", "anyhow", "canopy-server", "canopy-client", "canopy-harness"],
+    ),
+    ("canopy-harness", &["wgpu", "winit", "clap", "anyhow", "canopy-render"]),
+];
+
+/// Each workspace package's name and its normal dependencies' closure, from `cargo metadata`.
+fn dependency_closures() -> BTreeMap<String, BTreeSet<String>> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args(["metadata", "--format-version", "1", "--offline"])
+        .current_dir(root())
+        .output()
+        .expect("cargo metadata runs");
+    assert!(out.status.success(), "cargo metadata failed: {}", String::from_utf8_lossy(&out.stderr));
+    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON");
+    let names: BTreeMap<String, String> = meta["packages"]
+        .as_array()
+        .expect("packages")
+        .iter()
+        .map(|p| (p["id"].as_str().expect("id").to_owned(), p["name"].as_str().expect("name").to_owned()))
+        .collect();
+    // Normal dependency edges by package id (a dependency used only in tests or build scripts is not an edge).
+    let mut edges: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    for node in meta["resolve"]["nodes"].as_array().expect("resolve.nodes") {
+        let id = node["id"].as_str().expect("node id").to_owned();
+        let deps = node["deps"].as_array().expect("deps").iter().filter(|d| {
+            d["dep_kinds"].as_array().expect("dep_kinds").iter().any(|k| k["kind"].is_null())
+        });
+        edges.insert(id, deps.map(|d| d["pkg"].as_str().expect("pkg").to_owned()).collect());
+    }
+    let members: Vec<String> = meta["workspace_members"]
+        .as_array()
+        .expect("workspace_members")
+        .iter()
+        .map(|m| m.as_str().expect("member").to_owned())
+        .collect();
+    members
+        .iter()
+        .map(|m| {
+            let mut seen = BTreeSet::new();
+            let mut stack = vec![m.clone()];
+            while let Some(id) = stack.pop() {
+                for d in edges.get(&id).into_iter().flatten() {
+                    if seen.insert(d.clone()) {
+                        stack.push(d.clone());
+                    }
+                }
+            }
+            (names[m].clone(), seen.iter().map(|id| names[id].clone()).collect())
+        })
+        .collect()
+}
+
+#[test]
+fn crates_depend_only_on_what_architecture_allows() {
+    let closures = dependency_closures();
+    let mut broken = Vec::new();
+    for (krate, forbidden) in FORBIDDEN {
+        let deps = closures.get(*krate).unwrap_or_else(|| panic!("{krate} is not a workspace member"));
+        for f in *forbidden {
+            if deps.contains(*f) {
+                broken.push(format!("{krate} depends on {f}"));
+            }
+        }
+    }
+    assert!(broken.is_empty(), "dependency rules of ARCHITECTURE.md broken:\n{}", broken.join("\n"));
+    // The rule has teeth: the app really does pull what the libraries may not.
+    let app = &closures["canopy-app"];
+    assert!(app.contains("wgpu") && app.contains("clap") && app.contains("canopy-server"), "{app:?}");
+}
+
+/// Every `.rs` file git knows (the tree as committed or staged, plus new files not ignored).
+fn rust_files() -> Vec<PathBuf> {
+    let out = Command::new("git")
+        .args(["ls-files", "--cached", "--others", "--exclude-standard", "*.rs"])
+        .current_dir(root())
+        .output()
+        .expect("git ls-files runs");
+    assert!(out.status.success(), "git ls-files failed");
+    let files: Vec<PathBuf> = String::from_utf8(out.stdout)
+        .expect("paths are UTF-8")
+        .lines()
+        .map(|l| root().join(l))
+        .filter(|p| p.is_file())
+        .collect();
+    assert!(files.len() > 100, "found only {} Rust files", files.len());
+    files
+}
+
+fn relative(p: &Path) -> String {
+    p.strip_prefix(root()).unwrap_or(p).display().to_string()
+}
+
+#[test]
+fn every_rust_file_opens_with_a_doc_line() {
+    let missing: Vec<String> = rust_files()
+        .into_iter()
+        .filter(|p| !std::fs::read_to_string(p).expect("readable").starts_with("//!"))
+        .map(|p| relative(&p))
+        .collect();
+    assert!(missing.is_empty(), "files that do not open with a `//!` line:\n{}", missing.join("\n"));
+}
+
+/// Files allowed past 1,000 lines, with the reason.
+const LONG_FILES: &[(&str, &str)] = &[];
+
+#[test]
+fn no_file_is_over_a_thousand_lines_unless_listed() {
+    let listed: BTreeSet<&str> = LONG_FILES.iter().map(|(f, _)| *f).collect();
+    let long: Vec<String> = rust_files()
+        .into_iter()
+        .map(|p| (relative(&p), std::fs::read_to_string(&p).expect("readable").lines().count()))
+        .filter(|(f, n)| *n > 1000 && !listed.contains(f.as_str()))
+        .map(|(f, n)| format!("{f}: {n} lines"))
+        .collect();
+    assert!(long.is_empty(), "files over 1,000 lines (split them, or list them with a reason):\n{}", long.join("\n"));
+}
+
+/// The code of a file without line comments and without its `#[cfg(test)]` part (tests may read the clock).
+fn code_outside_tests(text: &str) -> String {
+    let body = text.split("#[cfg(test)]").next().unwrap_or("");
+    body.lines().map(|l| l.split("//").next().unwrap_or("")).collect::<Vec<_>>().join("\n")
+}
+
+/// The sans-IO cores: fed `now` and messages by their drivers, they never read a clock or touch a socket.
+const SANS_IO: &[&str] = &["server/src/session.rs", "server/src/pacing.rs", "client/net/src/state.rs"];
+
+#[test]
+fn sans_io_cores_read_no_clock_and_use_no_runtime() {
+    let mut found = Vec::new();
+    for f in SANS_IO {
+        let code = code_outside_tests(&std::fs::read_to_string(root().join(f)).expect("sans-IO core exists"));
+        for word in ["Instant::now", "SystemTime", "tokio", "quinn", "std::net", "std::fs"] {
+            if code.contains(word) {
+                found.push(format!("{f}: {word}"));
+            }
+        }
+    }
+    // The protocol crate as a whole is sans-IO.
+    for p in rust_files().into_iter().filter(|p| relative(p).starts_with("protocol/src/")) {
+        let code = code_outside_tests(&std::fs::read_to_string(&p).expect("readable"));
+        for word in ["Instant::now", "SystemTime", "tokio", "quinn", "std::net", "std::fs"] {
+            if code.contains(word) {
+                found.push(format!("{}: {word}", relative(&p)));
+            }
+        }
+    }
+    assert!(found.is_empty(), "sans-IO code that reaches for a clock or IO:\n{}", found.join("\n"));
+    assert!(code_outside_tests("let t = Instant::now(); // x\n#[cfg(test)] SystemTime").contains("Instant::now"));
+}
+
+#[test]
+fn no_ignored_test_without_a_reason() {
+    let bare: Vec<String> = rust_files()
+        .into_iter()
+        .flat_map(|p| {
+            let text = std::fs::read_to_string(&p).expect("readable");
+            let f = relative(&p);
+            text.lines()
+                .enumerate()
+                .filter(|(_, l)| l.trim() == "#[ignore]")
+                .map(|(i, _)| format!("{f}:{}", i + 1))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    assert!(bare.is_empty(), "#[ignore] without a reason (write #[ignore = \"why\"]):\n{}", bare.join("\n"));
+}
