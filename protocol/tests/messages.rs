@@ -7,8 +7,8 @@ use canopy_protocol::messages::{
     ClientHandshake, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome,
     WorldInfo,
 };
-use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
+use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase, ServerMsg,
     SpeciesHash, netlimits,

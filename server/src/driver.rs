@@ -20,6 +20,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 
+use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::metrics::Metrics;
 use crate::session::{Session, SessionConfig, StreamId, Transmit};
 use crate::store::WorldStore;
@@ -39,12 +40,15 @@ pub struct ServerConfig {
     pub data_dir: Option<PathBuf>,
     /// Per-session behaviour.
     pub session: SessionConfig,
-    /// Most clients at once; more are refused.
-    pub max_clients: usize,
+    /// Admission: most clients, handshakes and connections per source; when to ask for a Retry.
+    pub admission: AdmissionConfig,
     /// UDP socket send and receive buffer size, bytes.
     pub socket_buffer: usize,
     /// A connection with no traffic for this long is closed.
     pub idle_timeout: Duration,
+    /// A session that sent no viewpoint for this long is closed while the server is near capacity (it holds a
+    /// client slot without streaming: keep-alive PINGs alone do not keep a slot).
+    pub idle_slot: Duration,
 }
 
 impl Default for ServerConfig {
@@ -54,9 +58,10 @@ impl Default for ServerConfig {
             metrics: None,
             data_dir: None,
             session: SessionConfig::default(),
-            max_clients: 20_000,
+            admission: AdmissionConfig::default(),
             socket_buffer: SOCKET_BUFFER,
             idle_timeout: Duration::from_secs(30),
+            idle_slot: Duration::from_secs(120),
         }
     }
 }
@@ -217,35 +222,68 @@ async fn accept_loop(
     metrics: Arc<Metrics>,
     mut shutdown: watch::Receiver<bool>,
 ) {
+    let admission = Arc::new(std::sync::Mutex::new(Admission::new(cfg.admission.clone())));
+    let admit = |f: &mut dyn FnMut(&mut Admission)| f(&mut admission.lock().unwrap_or_else(|e| e.into_inner()));
     let cfg = Arc::new(cfg);
     loop {
         let incoming = tokio::select! {
             i = endpoint.accept() => match i { Some(i) => i, None => break },
             _ = shutdown.changed() => break,
         };
-        if metrics.clients.load(Relaxed) as usize >= cfg.max_clients {
-            metrics.closed(Some(CloseCode::Full));
-            incoming.refuse();
-            continue;
+        let peer = incoming.remote_address();
+        let mut verdict = Verdict::Accept;
+        admit(&mut |a| verdict = a.incoming(peer.ip(), incoming.remote_address_validated()));
+        match verdict {
+            Verdict::Accept => {}
+            Verdict::Retry if incoming.may_retry() => {
+                metrics.retries.fetch_add(1, Relaxed);
+                let _ = incoming.retry();
+                continue;
+            }
+            Verdict::Retry | Verdict::Refuse(_) => {
+                let reason = match verdict {
+                    Verdict::Refuse(r) => r,
+                    _ => Refusal::Busy,
+                };
+                metrics.refused(reason);
+                incoming.refuse();
+                continue;
+            }
         }
         metrics.connections.fetch_add(1, Relaxed);
-        metrics.clients.fetch_add(1, Relaxed);
-        let (store, cfg, metrics) = (Arc::clone(&store), Arc::clone(&cfg), Arc::clone(&metrics));
+        metrics.handshakes.fetch_add(1, Relaxed);
+        let (store, cfg, metrics, admission) =
+            (Arc::clone(&store), Arc::clone(&cfg), Arc::clone(&metrics), Arc::clone(&admission));
         tokio::spawn(async move {
-            let peer = incoming.remote_address();
-            let code = match tokio::time::timeout(cfg.session.handshake_timeout, incoming).await {
-                Ok(Ok(conn)) => serve(conn, store, &cfg, &metrics).await,
+            let lock = || admission.lock().unwrap_or_else(|e| e.into_inner());
+            let handshake = tokio::time::timeout(cfg.session.handshake_timeout, incoming).await;
+            metrics.handshakes.fetch_sub(1, Relaxed);
+            let code = match handshake {
+                Ok(Ok(conn)) => {
+                    // A completed handshake has proved its address: only now does it take a client slot.
+                    if lock().handshake_done(peer.ip(), true) {
+                        metrics.clients.fetch_add(1, Relaxed);
+                        let code = serve(conn, store, &cfg, &metrics, &admission).await;
+                        metrics.clients.fetch_sub(1, Relaxed);
+                        lock().closed(peer.ip());
+                        code
+                    } else {
+                        conn.close(VarInt::from_u32(CloseCode::Full as u32), b"the server is full");
+                        Some(CloseCode::Full)
+                    }
+                }
                 Ok(Err(e)) => {
                     debug!(%peer, "QUIC handshake failed: {e}");
+                    lock().handshake_done(peer.ip(), false);
                     None
                 }
                 Err(_) => {
                     debug!(%peer, "QUIC handshake timed out");
+                    lock().handshake_done(peer.ip(), false);
                     Some(CloseCode::Timeout)
                 }
             };
             metrics.closed(code);
-            metrics.clients.fetch_sub(1, Relaxed);
         });
     }
 }
@@ -268,9 +306,10 @@ async fn serve(
     store: Arc<dyn WorldStore>,
     cfg: &ServerConfig,
     metrics: &Metrics,
+    admission: &std::sync::Mutex<Admission>,
 ) -> Option<CloseCode> {
     let peer = conn.remote_address();
-    match run_session(&conn, store, cfg, metrics).await {
+    match run_session(&conn, store, cfg, metrics, admission).await {
         Ok(()) => Some(CloseCode::Normal),
         Err(Closing { code: Some(code), reason }) => {
             if code != CloseCode::Normal && code != CloseCode::Shutdown {
@@ -300,8 +339,11 @@ async fn run_session(
     store: Arc<dyn WorldStore>,
     cfg: &ServerConfig,
     metrics: &Metrics,
+    admission: &std::sync::Mutex<Admission>,
 ) -> Result<(), Closing> {
     let started = Instant::now();
+    let mut last_viewpoint = started;
+    let mut idle_check = tokio::time::Instant::from_std(started + cfg.idle_slot);
     let mut session = Session::new(store, cfg.session.clone(), started);
     let deadline = tokio::time::Instant::from_std(started + cfg.session.handshake_timeout);
     let (ctl_send, mut ctl_recv) = match tokio::time::timeout_at(deadline, conn.accept_bi()).await {
@@ -334,7 +376,11 @@ async fn run_session(
                     decoder.push(&chunk.bytes);
                     let before = session.stats().viewpoints;
                     let handled = handle_frames(&mut decoder, &mut session, Instant::now());
-                    metrics.viewpoints.fetch_add(session.stats().viewpoints - before, Relaxed);
+                    let viewpoints = session.stats().viewpoints - before;
+                    metrics.viewpoints.fetch_add(viewpoints, Relaxed);
+                    if viewpoints > 0 {
+                        last_viewpoint = Instant::now();
+                    }
                     if let Err(c) = handled {
                         break Err(c);
                     }
@@ -359,6 +405,16 @@ async fn run_session(
                 if let Err(e) = session.handle_timeout(Instant::now()) {
                     break Err(Closing::new(e.close_code(), e));
                 }
+            }
+            _ = tokio::time::sleep_until(idle_check) => {
+                let now = Instant::now();
+                let near_capacity = admission.lock().unwrap_or_else(|e| e.into_inner()).near_capacity();
+                if now.duration_since(last_viewpoint) >= cfg.idle_slot && near_capacity {
+                    let reason = format!("no viewpoint for {:?} while the server is near capacity", cfg.idle_slot);
+                    break Err(Closing::new(CloseCode::Full, reason));
+                }
+                let next = (last_viewpoint + cfg.idle_slot).max(now + Duration::from_secs(1));
+                idle_check = tokio::time::Instant::from_std(next);
             }
             w = &mut writer => {
                 break Err(match w {
@@ -425,14 +481,40 @@ async fn write_loop(
     Ok(())
 }
 
+/// Metrics connections served at once; more wait in the listen backlog.
+const MAX_METRICS_CONNECTIONS: usize = 16;
+
 async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_METRICS_CONNECTIONS));
+    let mut backoff = AcceptBackoff::default();
     loop {
-        let (mut sock, _) = tokio::select! {
-            a = listener.accept() => match a { Ok(a) => a, Err(e) => { warn!("metrics endpoint: {e}"); continue } },
+        let Ok(slot) = Arc::clone(&slots).acquire_owned().await else { return };
+        let accepted = tokio::select! {
+            a = listener.accept() => a,
             _ = shutdown.changed() => return,
+        };
+        let mut sock = match accepted {
+            Ok((sock, _)) => {
+                backoff.accepted();
+                sock
+            }
+            Err(e) => {
+                // At the file-descriptor limit (EMFILE, ENFILE) accept fails at once, again and again: wait before
+                // the next try, longer each time, and log once per interval instead of once per failure.
+                let (wait, log) = backoff.failed(Instant::now());
+                if let Some(suppressed) = log {
+                    warn!("metrics endpoint: {e} ({suppressed} more since the last report); retrying in {wait:?}");
+                }
+                drop(slot);
+                tokio::select! {
+                    _ = tokio::time::sleep(wait) => continue,
+                    _ = shutdown.changed() => return,
+                }
+            }
         };
         let metrics = Arc::clone(&metrics);
         tokio::spawn(async move {
+            let _slot = slot;
             // Read the request head (bounded in size and time); only `GET /metrics` is served.
             let mut buf = vec![0u8; 4096];
             let mut n = 0;
@@ -466,6 +548,46 @@ async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>,
     }
 }
 
+/// The accept loop's answer to failures: exponential backoff from 10 ms to 1 s, and a log line at most every
+/// 10 s that counts the failures it did not report. Sans-IO: `now` is an argument.
+#[derive(Debug, Default)]
+struct AcceptBackoff {
+    /// Failures in a row.
+    failures: u32,
+    /// When a failure was last logged.
+    logged: Option<Instant>,
+    /// Failures since then.
+    unreported: u64,
+}
+
+impl AcceptBackoff {
+    const FIRST: Duration = Duration::from_millis(10);
+    const MAX: Duration = Duration::from_secs(1);
+    const LOG_EVERY: Duration = Duration::from_secs(10);
+
+    /// An accept succeeded: the next failure waits the shortest time again.
+    fn accepted(&mut self) {
+        self.failures = 0;
+    }
+
+    /// An accept failed at `now`: how long to wait, and `Some(failures not reported)` if this one is to be logged.
+    fn failed(&mut self, now: Instant) -> (Duration, Option<u64>) {
+        let wait = Self::FIRST.saturating_mul(1 << self.failures.min(7)).min(Self::MAX);
+        self.failures = self.failures.saturating_add(1);
+        let log = match self.logged {
+            Some(t) if now.duration_since(t) < Self::LOG_EVERY => {
+                self.unreported += 1;
+                None
+            }
+            _ => {
+                self.logged = Some(now);
+                Some(std::mem::take(&mut self.unreported))
+            }
+        };
+        (wait, log)
+    }
+}
+
 async fn tick_metrics(metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>) {
     let mut every = tokio::time::interval(Duration::from_secs(1));
     loop {
@@ -473,5 +595,33 @@ async fn tick_metrics(metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>
             _ = every.tick() => metrics.tick(Instant::now()),
             _ = shutdown.changed() => return,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn accept_failures_back_off_and_log_once_per_interval() {
+        let t0 = Instant::now();
+        let mut b = AcceptBackoff::default();
+        let mut logged = 0;
+        let mut waited = Duration::ZERO;
+        // A million failures within 10 s of virtual time (an accept loop at the fd limit).
+        for i in 0..1_000_000u32 {
+            let now = t0 + Duration::from_micros(u64::from(i) * 9);
+            let (wait, log) = b.failed(now);
+            assert!(wait >= AcceptBackoff::FIRST && wait <= AcceptBackoff::MAX);
+            waited += wait;
+            logged += usize::from(log.is_some());
+        }
+        assert_eq!(logged, 1, "one line for a burst under 10 s");
+        assert!(waited >= Duration::from_secs(900_000), "the waits add up: at most ~1 try a second once backed off");
+        let (wait, log) = b.failed(t0 + Duration::from_secs(11));
+        assert_eq!(wait, AcceptBackoff::MAX);
+        assert_eq!(log, Some(999_999), "the next line counts what was not reported");
+        b.accepted();
+        assert_eq!(b.failed(t0 + Duration::from_secs(12)).0, AcceptBackoff::FIRST);
     }
 }

@@ -7,6 +7,7 @@
 //! sends is untrusted: a message that does not decode, is too large or comes out of order closes that client's
 //! connection with a [`canopy_protocol::CloseCode`] and a reason, and the server carries on.
 
+pub mod admission;
 pub mod driver;
 pub mod metrics;
 pub mod pacing;
@@ -15,6 +16,7 @@ pub mod store;
 pub mod terrain;
 pub mod tls;
 
+pub use admission::AdmissionConfig;
 pub use canopy_worlds as worlds;
 pub use driver::{Server, ServerConfig, StartError};
 pub use session::{Session, SessionConfig, SessionError, Transmit};

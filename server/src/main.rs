@@ -11,7 +11,7 @@ use anyhow::Context;
 use canopy_protocol::aoi::AoiParams;
 use canopy_server::metrics::resident_bytes;
 use canopy_server::worlds::world::World;
-use canopy_server::{GridStore, Server, ServerConfig, SessionConfig};
+use canopy_server::{AdmissionConfig, GridStore, Server, ServerConfig, SessionConfig};
 use clap::Parser;
 use tracing::info;
 
@@ -46,9 +46,21 @@ struct Args {
     /// Per-client bandwidth cap, bytes per second (default: none).
     #[arg(long)]
     bandwidth: Option<u64>,
-    /// Most clients at once.
-    #[arg(long, default_value_t = ServerConfig::default().max_clients)]
+    /// Most clients at once (a client takes a slot when its handshake completes).
+    #[arg(long, default_value_t = AdmissionConfig::default().max_clients)]
     max_clients: usize,
+    /// Most QUIC handshakes in flight at once.
+    #[arg(long, default_value_t = AdmissionConfig::default().max_handshakes)]
+    max_handshakes: usize,
+    /// Handshakes in flight above which a source must prove its address with a QUIC Retry first (0: always).
+    #[arg(long, default_value_t = AdmissionConfig::default().retry_above)]
+    retry_above: usize,
+    /// Most connections (handshakes included) from one source address.
+    #[arg(long, default_value_t = AdmissionConfig::default().max_per_source)]
+    max_per_source: usize,
+    /// Close a session that sent no viewpoint for this many seconds while the server is near capacity.
+    #[arg(long, default_value_t = ServerConfig::default().idle_slot.as_secs())]
+    idle_slot: u64,
     /// Log a line with clients, records per second and memory this often, seconds (0: never).
     #[arg(long, default_value_t = 10)]
     stats_every: u64,
@@ -95,7 +107,13 @@ fn main() -> anyhow::Result<()> {
         metrics: (!args.no_metrics).then_some(args.metrics),
         data_dir: Some(args.data_dir.clone()),
         session,
-        max_clients: args.max_clients,
+        admission: AdmissionConfig {
+            max_clients: args.max_clients,
+            max_handshakes: args.max_handshakes,
+            retry_above: args.retry_above,
+            max_per_source: args.max_per_source,
+        },
+        idle_slot: Duration::from_secs(args.idle_slot),
         ..ServerConfig::default()
     };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;

@@ -8,14 +8,21 @@ use std::time::Instant;
 use canopy_protocol::CloseCode;
 use canopy_protocol::messages::ByKind;
 
+use crate::admission::Refusal;
 use crate::session::MsgClass;
 
 /// Counters shared by every connection of one server.
 #[derive(Debug)]
 pub struct Metrics {
     started: Instant,
-    /// Clients connected now (handshake done or in progress).
+    /// Clients connected now (handshake completed: holding a client slot).
     pub clients: AtomicU64,
+    /// QUIC handshakes in flight now.
+    pub handshakes: AtomicU64,
+    /// Incoming connections answered with a QUIC Retry (address validation).
+    pub retries: AtomicU64,
+    /// Incoming connections refused: server full, too many handshakes, the source's share taken.
+    pub refused: [AtomicU64; 3],
     /// Connections accepted since start.
     pub connections: AtomicU64,
     /// Sessions that reached the streaming phase.
@@ -53,6 +60,9 @@ impl Metrics {
         Metrics {
             started: now,
             clients: AtomicU64::new(0),
+            handshakes: AtomicU64::new(0),
+            retries: AtomicU64::new(0),
+            refused: Default::default(),
             connections: AtomicU64::new(0),
             sessions: AtomicU64::new(0),
             bytes: Default::default(),
@@ -63,6 +73,19 @@ impl Metrics {
             closed: Default::default(),
             records_per_second: AtomicU64::new(0),
             last_tick: std::sync::Mutex::new((now, 0)),
+        }
+    }
+
+    /// Count one refused incoming connection.
+    pub fn refused(&self, why: Refusal) {
+        self.refused[Self::refusal_slot(why)].fetch_add(1, Relaxed);
+    }
+
+    fn refusal_slot(why: Refusal) -> usize {
+        match why {
+            Refusal::Full => 0,
+            Refusal::Busy => 1,
+            Refusal::PerSource => 2,
         }
     }
 
@@ -102,6 +125,20 @@ impl Metrics {
         };
         let one = |v: &AtomicU64| vec![(String::new(), v.load(Relaxed))];
         metric("canopy_clients", "gauge", "Clients connected now.", &one(&self.clients));
+        metric("canopy_handshakes", "gauge", "QUIC handshakes in flight now.", &one(&self.handshakes));
+        metric("canopy_retries_total", "counter", "Incoming connections sent a QUIC Retry.", &one(&self.retries));
+        let refused: Vec<(String, u64)> = [Refusal::Full, Refusal::Busy, Refusal::PerSource]
+            .into_iter()
+            .map(|r| {
+                let label = match r {
+                    Refusal::Full => "full",
+                    Refusal::Busy => "busy",
+                    Refusal::PerSource => "per_source",
+                };
+                (format!("{{reason=\"{label}\"}}"), self.refused[Self::refusal_slot(r)].load(Relaxed))
+            })
+            .collect();
+        metric("canopy_refused_total", "counter", "Incoming connections refused, by reason.", &refused);
         metric("canopy_connections_total", "counter", "Connections accepted.", &one(&self.connections));
         metric("canopy_sessions_total", "counter", "Sessions that reached streaming.", &one(&self.sessions));
         let by_class = |a: &ByKind<AtomicU64>| {

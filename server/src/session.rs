@@ -164,9 +164,9 @@ pub enum StreamId {
     Lane(u8),
 }
 
+use canopy_protocol::messages::ByKind;
 /// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
 pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
-use canopy_protocol::messages::ByKind;
 
 /// One framed message to write.
 #[derive(Clone, Debug, PartialEq)]

@@ -64,8 +64,10 @@ impl Identity {
         };
         let (cert_path, key_path) = (dir.join("cert.der"), dir.join("key.der"));
         if cert_path.exists() && key_path.exists() {
-            let cert = std::fs::read(&cert_path).map_err(io(&cert_path))?;
-            let key = std::fs::read(&key_path).map_err(io(&key_path))?;
+            // A certificate or key is a few KiB; anything but a small regular file is refused.
+            let read = |p: &Path| canopy_worlds::fsread::read_bounded(p, 1 << 20).map_err(std::io::Error::other);
+            let cert = read(&cert_path).map_err(io(&cert_path))?;
+            let key = read(&key_path).map_err(io(&key_path))?;
             return Ok(Identity {
                 cert: CertificateDer::from(cert),
                 key: PrivatePkcs8KeyDer::from(key),

@@ -8,10 +8,10 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::net::{endpoint, tls};
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{ClientHandshake, Hello, ServerMsgKind};

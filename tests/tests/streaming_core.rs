@@ -7,8 +7,8 @@ use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
-use canopy_harness::bots::verify;
 use canopy_client::state::ClientState;
+use canopy_harness::bots::verify;
 use canopy_protocol::aoi::{Aoi, Viewpoint};
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, ServerMsg};

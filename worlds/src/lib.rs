@@ -8,6 +8,7 @@ pub mod amplify;
 pub mod diag;
 pub mod eval;
 pub mod expr;
+pub mod fsread;
 pub mod gltf;
 pub mod hypertree;
 pub mod library;

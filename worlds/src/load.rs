@@ -44,14 +44,11 @@ pub fn parse_source(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>)
 /// hyperforest).
 pub const MAX_SOURCE_BYTES: usize = 1 << 20;
 
-/// Read one source file of at most [`MAX_SOURCE_BYTES`], named by its path; the error says why not, without the
-/// name (the caller's diagnostic names the file).
+/// Read one source file of at most [`MAX_SOURCE_BYTES`], named by its path: a regular file only (a device, FIFO or
+/// socket is refused before it is opened; see [`crate::fsread`]). The error says why not, without the name (the
+/// caller's diagnostic names the file).
 pub fn read_source(path: &Path) -> Result<SourceFile, String> {
-    let len = std::fs::metadata(path).map_err(|e| format!("cannot read: {e}"))?.len();
-    if len > MAX_SOURCE_BYTES as u64 {
-        return Err(format!("file of {len} bytes exceeds {MAX_SOURCE_BYTES}"));
-    }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read: {e}"))?;
+    let text = crate::fsread::read_text(path, MAX_SOURCE_BYTES as u64).map_err(|e| e.to_string())?;
     Ok(SourceFile::new(path.display().to_string(), text))
 }
 

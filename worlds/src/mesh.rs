@@ -19,6 +19,7 @@ use canopy_protocol::LeafTopology;
 
 use crate::primitive::{Fnv, Primitive, PrimitiveStream, Shape};
 use crate::transform::Transform;
+use crate::vec3::{cross, normalize, sub};
 
 /// An indexed triangle list: every vertex has a position, a unit normal and a linear RGB colour.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -286,28 +287,6 @@ impl Emitter<'_> {
     }
 }
 
-/// `v / |v|`, scaled first so that huge or tiny vectors normalise too; `None` for a zero or non-finite vector.
-fn normalize(v: [f32; 3]) -> Option<[f32; 3]> {
-    if !v.iter().all(|x| x.is_finite()) {
-        return None;
-    }
-    let m = v[0].abs().max(v[1].abs()).max(v[2].abs());
-    if m == 0.0 {
-        return None;
-    }
-    let s = [v[0] / m, v[1] / m, v[2] / m];
-    let len = libm::sqrtf(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]);
-    Some([s[0] / len, s[1] / len, s[2] / len])
-}
-
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
 /// A size is usable when it is positive and finite.
 fn size_ok(x: f32) -> bool {
     x > 0.0 && x.is_finite()
@@ -570,6 +549,7 @@ fn strip(e: &mut Emitter<'_>, points: &[[f32; 3]]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vec3::dot;
     use std::collections::BTreeMap;
 
     fn prim(shape: Shape, transform: Transform) -> Primitive {
@@ -589,10 +569,6 @@ mod tests {
             }],
             leaf_points: points.to_vec(),
         }
-    }
-
-    fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-        a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
     }
 
     fn tilted() -> Transform {

@@ -2,8 +2,8 @@
 //! (golden hashes), the generation rules, storage structures agreeing voxel for voxel, union/add/clear/set/reduce
 //! semantics, saved volumes, rendering invariants and the species voxelisation.
 
-use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::hypertree::{HypertreeDecodeError, HypertreeDef, HypertreeError, MAX_HYPERTREE_BYTES};
+use canopy_protocol::xorshift::XorShift64;
 use canopy_worlds::amplify::{Budget, Instance};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::file::{VolumeFileError, load as load_volume, save as save_volume};

@@ -781,9 +781,7 @@ pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotRepo
     let endpoints: Vec<Endpoint> =
         (0..cfg.endpoints.max(1)).map(|_| canopy_client::net::endpoint(bind)).collect::<Result<_, _>>()?;
     let cache = match &cfg.cache_dir {
-        Some(dir) => Some(Arc::new(
-            SpeciesCache::open(dir, CacheLimits::default())?,
-        )),
+        Some(dir) => Some(Arc::new(SpeciesCache::open(dir, CacheLimits::default())?)),
         None => None,
     };
     let cfg = Arc::new(cfg);

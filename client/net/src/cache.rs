@@ -40,6 +40,9 @@ pub enum CacheError {
         /// What failed.
         source: std::io::Error,
     },
+    /// The directory belongs to another user, or is a link: its entries could be planted or read by others.
+    #[error("{0}: the cache directory is not this user's own (owner or link); refusing to use it")]
+    NotOwned(PathBuf),
 }
 
 #[derive(Debug, Default)]
@@ -76,9 +79,29 @@ impl SpeciesCache {
         SpeciesCache { dir: None, limits, memory: Mutex::default(), stats: Mutex::default() }
     }
 
-    /// A cache in memory backed by `dir` (created if missing).
+    /// A cache in memory backed by `dir`, created with mode 700 if missing. A directory that is a link or belongs
+    /// to another user is refused: whoever can write it could plant entries.
     pub fn open(dir: &Path, limits: CacheLimits) -> Result<SpeciesCache, CacheError> {
-        std::fs::create_dir_all(dir).map_err(|source| CacheError::Io { path: dir.to_path_buf(), source })?;
+        let io = |source| CacheError::Io { path: dir.to_path_buf(), source };
+        let mut builder = std::fs::DirBuilder::new();
+        builder.recursive(true);
+        #[cfg(unix)]
+        std::os::unix::fs::DirBuilderExt::mode(&mut builder, 0o700);
+        builder.create(dir).map_err(io)?;
+        let meta = std::fs::symlink_metadata(dir).map_err(io)?;
+        if !meta.is_dir() {
+            return Err(CacheError::NotOwned(dir.to_path_buf()));
+        }
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            // A file this process creates is owned by its effective user: compare the directory's owner with it.
+            let probe = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+            let me = probe.as_file().metadata().map_err(io)?.uid();
+            if meta.uid() != me {
+                return Err(CacheError::NotOwned(dir.to_path_buf()));
+            }
+        }
         Ok(SpeciesCache { dir: Some(dir.to_path_buf()), limits, memory: Mutex::default(), stats: Mutex::default() })
     }
 
@@ -119,7 +142,7 @@ impl SpeciesCache {
                 Some(graph)
             }
             None => {
-                if path.exists() {
+                if std::fs::symlink_metadata(&path).is_ok() {
                     let _ = std::fs::remove_file(&path);
                     self.count(|s| s.corrupt += 1);
                 }
@@ -144,7 +167,8 @@ impl SpeciesCache {
     pub fn insert(&self, hash: SpeciesHash, encoded: &[u8], graph: Arc<SpeciesGraph>) -> Result<(), CacheError> {
         self.remember(hash, graph);
         let Some(path) = self.path(&hash) else { return Ok(()) };
-        if path.exists() {
+        // A regular entry is already there; anything else at the name (a planted link) is replaced, not followed.
+        if std::fs::symlink_metadata(&path).is_ok_and(|m| m.file_type().is_file()) {
             return Ok(());
         }
         let io = |path: &Path| {
@@ -190,11 +214,11 @@ impl SpeciesCache {
 
 /// Read a cache file, bounded in size, and accept it only if it hashes to `hash` and decodes.
 fn read_verified(path: &Path, hash: &SpeciesHash) -> Option<SpeciesGraph> {
-    let meta = std::fs::metadata(path).ok()?;
-    if meta.len() > limits::MAX_SPECIES_BYTES as u64 {
+    // An entry is a regular file, never a link (whoever can write the directory could plant one).
+    if !std::fs::symlink_metadata(path).ok()?.file_type().is_file() {
         return None;
     }
-    let bytes = std::fs::read(path).ok()?;
+    let bytes = canopy_worlds::fsread::read_bounded(path, limits::MAX_SPECIES_BYTES as u64).ok()?;
     if SpeciesHash::of(&bytes) != *hash {
         return None;
     }
@@ -246,5 +270,35 @@ mod tests {
         assert_eq!(cache.memory.lock().unwrap().map.len(), 2);
         let files = std::fs::read_dir(&dir).unwrap().count();
         assert_eq!(files, 3);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn planted_links_are_never_followed() {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("cache");
+        let cache = SpeciesCache::open(&dir, CacheLimits::default()).unwrap();
+        {
+            use std::os::unix::fs::PermissionsExt;
+            assert_eq!(std::fs::metadata(&dir).unwrap().permissions().mode() & 0o777, 0o700);
+        }
+        // Someone plants the entry's name as a link to a file outside the cache.
+        let victim = tmp.path().join("victim.txt");
+        std::fs::write(&victim, "precious").unwrap();
+        let (hash, bytes, graph) = worm();
+        let entry = dir.join(format!("{}.species", hash.hex()));
+        std::os::unix::fs::symlink(&victim, &entry).unwrap();
+        // Reading does not follow it (and removes it); writing replaces the link, never the target.
+        assert!(cache.get(&hash).is_none());
+        std::os::unix::fs::symlink(&victim, &entry).unwrap();
+        cache.insert(hash, &bytes, Arc::clone(&graph)).unwrap();
+        assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious");
+        assert!(std::fs::symlink_metadata(&entry).unwrap().file_type().is_file());
+        let again = SpeciesCache::open(&dir, CacheLimits::default()).unwrap();
+        assert_eq!(again.get(&hash).as_deref(), Some(&*graph));
+        // A cache directory that is a link is refused.
+        let link = tmp.path().join("link");
+        std::os::unix::fs::symlink(&dir, &link).unwrap();
+        assert!(matches!(SpeciesCache::open(&link, CacheLimits::default()), Err(CacheError::NotOwned(_))));
     }
 }

@@ -202,12 +202,11 @@ fn syntax(line: usize, message: impl Into<String>) -> CameraError {
 impl CameraSpec {
     /// Read a camera file.
     pub fn load(path: &std::path::Path) -> Result<CameraSpec, CameraError> {
-        let read = |e: std::io::Error| CameraError::Read { path: path.display().to_string(), reason: e.to_string() };
-        let meta = std::fs::metadata(path).map_err(read)?;
-        if meta.len() > MAX_CAMERA_FILE {
-            return Err(CameraError::TooLarge(path.display().to_string()));
-        }
-        let text = std::fs::read_to_string(path).map_err(read)?;
+        use canopy_worlds::fsread::{ReadError, read_text};
+        let text = read_text(path, MAX_CAMERA_FILE).map_err(|e| match e {
+            ReadError::TooLarge { .. } => CameraError::TooLarge(path.display().to_string()),
+            e => CameraError::Read { path: path.display().to_string(), reason: e.to_string() },
+        })?;
         CameraSpec::parse(&text)
     }
 

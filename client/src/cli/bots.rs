@@ -10,8 +10,8 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::bail;
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_client::{ConnectConfig, Trust};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_worlds::world::World;
 use clap::Args;
 

@@ -14,9 +14,9 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
+use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_harness::numbers::kib;
-use canopy_client::{ConnectConfig, Trust};
 use canopy_server::metrics::Metrics;
 use canopy_server::session::MsgClass;
 use canopy_server::{GridStore, Server, ServerConfig};
@@ -63,7 +63,6 @@ struct WalkCli {
     #[command(flatten)]
     walk: super::walk::WalkArgs,
 }
-
 
 fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (Instant, u64)) -> String {
     let records = m.records.load(Relaxed);

@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use canopy_harness::numbers::median;
 use canopy_worlds::diag::Diagnostics;
-use canopy_worlds::hypertree::file::{load as load_volume, save as save_volume};
+use canopy_worlds::hypertree::file::{MAX_VOLUME_BYTES, load as load_volume, save as save_volume};
 use canopy_worlds::hypertree::format::{load_forest, load_hypertree};
 use canopy_worlds::hypertree::generate::{GenerateOptions, GenerationStats, generate, generate_forest};
 use canopy_worlds::hypertree::library::{self, TABLE1};
@@ -335,7 +335,8 @@ fn load_input(
 ) -> anyhow::Result<(Hypertree, Option<(GenerationStats, f64)>)> {
     let path = Path::new(input);
     if input.ends_with(".hvol") {
-        let bytes = std::fs::read(path).with_context(|| format!("reading {input}"))?;
+        let bytes = canopy_worlds::fsread::read_bounded(path, MAX_VOLUME_BYTES as u64)
+            .with_context(|| format!("reading {input}"))?;
         let mut t = load_volume(&bytes).with_context(|| format!("loading {input}"))?;
         if let Some(ty) = convert.filter(|&ty| ty != t.store.storage_type() || t.store.is_partitioned()) {
             // A saved volume is re-stored only when a structure is asked for explicitly.
@@ -616,7 +617,6 @@ fn timed<T>(f: impl FnOnce() -> T) -> (T, f64) {
     };
     (out, t)
 }
-
 
 /// The Table 1 reproduction (see `docs/hypertrees.md`).
 fn bench(repeat: u32, only: Option<&str>) -> anyhow::Result<ExitCode> {

@@ -241,7 +241,6 @@ fn counts_line(s: &PrimitiveStream) -> String {
         .join("  ")
 }
 
-
 fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
     let g = &cfg.graph;
     let mut times = Vec::new();

@@ -20,11 +20,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
-use canopy_render::camera::{Camera, CameraSpec};
-use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
 use canopy_client::state::viewpoint_due;
 use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
+use canopy_render::camera::{Camera, CameraSpec};
+use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
 use canopy_worlds::world::Terrain;
 use clap::Args;
 use glam::Vec3;

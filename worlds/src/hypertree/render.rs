@@ -17,6 +17,7 @@ use std::io::Cursor;
 use super::storage::{BRICK_SHIFT, BrickMap, VoxelQuery, VoxelStore};
 use super::{Aabb, Hypertree, Hypervolume, Voxel};
 use crate::primitive::Fnv;
+use crate::vec3::{cross, dot, norm, sub, unit};
 
 /// The unit of the raymarching step `Δs` in the opacity equation, as a fraction of the hypervolume's longest extent
 /// (one voxel side at the paper's average resolution of 300).
@@ -281,7 +282,7 @@ impl ReferenceCamera {
         let dist = fit * opts.zoom_out;
         let eye: [f32; 3] = std::array::from_fn(|i| center[i] + back[i] * dist);
         let forward = back.map(|v| -v);
-        let right = normalize(cross(forward, [0.0, 1.0, 0.0]));
+        let right = unit(cross(forward, [0.0, 1.0, 0.0]));
         let up = cross(right, forward);
         ReferenceCamera { eye, center, forward, right, up, tan_half, aspect }
     }
@@ -290,7 +291,7 @@ impl ReferenceCamera {
     pub fn ray(&self, fx: f32, fy: f32) -> [f32; 3] {
         let nx = (2.0 * fx - 1.0) * self.tan_half * self.aspect;
         let ny = (1.0 - 2.0 * fy) * self.tan_half;
-        normalize(std::array::from_fn(|i| self.forward[i] + self.right[i] * nx + self.up[i] * ny))
+        unit(std::array::from_fn(|i| self.forward[i] + self.right[i] * nx + self.up[i] * ny))
     }
 }
 
@@ -337,31 +338,6 @@ fn shade_with<Q: VoxelQuery>(tree: &Hypertree, q: &Q, opts: &RenderOptions) -> V
         }
     });
     out
-}
-
-#[inline]
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline]
-fn norm(a: [f32; 3]) -> f32 {
-    libm::sqrtf(dot(a, a))
-}
-
-#[inline]
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let n = norm(a);
-    if n > 0.0 { a.map(|v| v / n) } else { a }
-}
-
-#[inline]
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 
 /// The entry and exit parameters of a ray through a box, if it meets it ahead of the origin.
@@ -584,7 +560,7 @@ impl<'a, Q: VoxelQuery> Scene<'a, Q> {
             .iter()
             .map(|f| {
                 let d = sub(f.to, f.from);
-                FlowSeg { a: f.from, d, dd: dot(d, d), dir: normalize(d) }
+                FlowSeg { a: f.from, d, dd: dot(d, d), dir: unit(d) }
             })
             .collect();
         let mut colors = [[0.0f32; 3]; 256];
@@ -614,7 +590,7 @@ impl<'a, Q: VoxelQuery> Scene<'a, Q> {
             flows,
             crown_center: center,
             crown_inv_half: half.map(|v| if v > 0.0 { 1.0 / v } else { 0.0 }),
-            lights: opts.lights.iter().map(|l| (normalize(l.direction), l.color)).collect(),
+            lights: opts.lights.iter().map(|l| (unit(l.direction), l.color)).collect(),
             eye,
             o,
             memo: Vec::new(),
@@ -804,16 +780,16 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             let r = sub(c, q);
             let d2 = dot(r, r);
             let w = 1.0 / (d2 + 1e-6);
-            let rn = normalize(r);
+            let rn = unit(r);
             for i in 0..3 {
                 radial[i] += w * rn[i];
                 flow[i] += w * f.dir[i];
             }
         }
-        let t = normalize(flow);
+        let t = unit(flow);
         let k = dot(radial, t);
         let n = [radial[0] - k * t[0], radial[1] - k * t[1], radial[2] - k * t[2]];
-        if norm(n) > 1e-6 { normalize(n) } else { normalize(sub(c, self.crown_center)) }
+        if norm(n) > 1e-6 { unit(n) } else { unit(sub(c, self.crown_center)) }
     }
 
     fn shade(&mut self, rank: u32, voxel: Voxel, v: [u32; 3]) -> [f32; 3] {
@@ -847,7 +823,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             }
             Shading::Diffuse | Shading::Specular => {
                 let n = self.normal(c);
-                let view = normalize(sub(self.eye, c));
+                let view = unit(sub(self.eye, c));
                 for k in 0..self.lights.len() {
                     let (l, col) = self.lights[k];
                     let lambert = dot(n, l).max(0.0);
@@ -856,7 +832,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
                         light[i] += self.o.diffuse * lambert * s * col[i];
                     }
                     if self.o.shading == Shading::Specular {
-                        let h = normalize([l[0] + view[0], l[1] + view[1], l[2] + view[2]]);
+                        let h = unit([l[0] + view[0], l[1] + view[1], l[2] + view[2]]);
                         let sp = self.o.specular * libm::powf(dot(n, h).max(0.0), self.o.shininess) * s;
                         for i in 0..3 {
                             spec[i] += sp * col[i];

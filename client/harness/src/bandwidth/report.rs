@@ -394,10 +394,33 @@ fn csv_table(header: &[&str], rows: impl IntoIterator<Item = Vec<String>>) -> St
 
 fn csv_scenarios(o: &Outcome) -> String {
     const HEADER: &[&str] = &[
-        "scenario", "payload", "rate_bps", "latency_ms", "loss", "bot", "wire_bytes", "udp_rx", "udp_tx", "species",
-        "records", "geometry", "control", "transport", "instance_mesh_bytes", "species_mesh_bytes", "transform_bytes",
-        "instances_received", "instances_held", "bytes_per_instance", "walking_completeness", "walking_min",
-        "overall_completeness", "first_complete_s", "teleport_complete_s", "complete_at_end", "error",
+        "scenario",
+        "payload",
+        "rate_bps",
+        "latency_ms",
+        "loss",
+        "bot",
+        "wire_bytes",
+        "udp_rx",
+        "udp_tx",
+        "species",
+        "records",
+        "geometry",
+        "control",
+        "transport",
+        "instance_mesh_bytes",
+        "species_mesh_bytes",
+        "transform_bytes",
+        "instances_received",
+        "instances_held",
+        "bytes_per_instance",
+        "walking_completeness",
+        "walking_min",
+        "overall_completeness",
+        "first_complete_s",
+        "teleport_complete_s",
+        "complete_at_end",
+        "error",
     ];
     let mut rows = Vec::new();
     for r in &o.scenarios {
@@ -427,7 +450,11 @@ fn csv_scenarios(o: &Outcome) -> String {
                 [
                     b.bot.records.to_string(),
                     b.bot.held.to_string(),
-                    if b.bot.records > 0 { format!("{:.3}", x.total() as f64 / b.bot.records as f64) } else { String::new() },
+                    if b.bot.records > 0 {
+                        format!("{:.3}", x.total() as f64 / b.bot.records as f64)
+                    } else {
+                        String::new()
+                    },
                     format!("{:.6}", b.walking().mean()),
                     format!("{:.6}", b.walking().min),
                     format!("{:.6}", b.overall().mean()),
@@ -467,8 +494,22 @@ fn byte_columns(x: &Bytes) -> [String; 8] {
 
 fn csv_samples(o: &Outcome) -> String {
     const HEADER: &[&str] = &[
-        "scenario", "bot", "t_s", "phase", "x", "z", "wire_bytes", "species", "records", "geometry", "control",
-        "transport", "visible", "held", "completeness", "aoi_complete",
+        "scenario",
+        "bot",
+        "t_s",
+        "phase",
+        "x",
+        "z",
+        "wire_bytes",
+        "species",
+        "records",
+        "geometry",
+        "control",
+        "transport",
+        "visible",
+        "held",
+        "completeness",
+        "aoi_complete",
     ];
     let rows = o.scenarios.iter().flat_map(|r| {
         r.bots.iter().flat_map(move |b| {
@@ -499,8 +540,15 @@ fn csv_samples(o: &Outcome) -> String {
 
 fn csv_sizes(o: &Outcome) -> String {
     const HEADER: &[&str] = &[
-        "species", "encoded", "primitives", "explicit_s7", "triangles", "quantised_mesh", "compressed_mesh",
-        "alternative", "alternative_bytes",
+        "species",
+        "encoded",
+        "primitives",
+        "explicit_s7",
+        "triangles",
+        "quantised_mesh",
+        "compressed_mesh",
+        "alternative",
+        "alternative_bytes",
     ];
     let rows = o.sizes.iter().map(|r| {
         vec![
