@@ -1,0 +1,316 @@
+//! Parametric L-systems (`.lsys`) and their translation into a species DCG (seed 001 §3.1–3.2), plus the
+//! string-rewriting reference derivation the translation is tested against.
+//!
+//! # The format
+//!
+//! Line oriented; `#` starts a comment. Directives and productions, in any order:
+//!
+//! ```text
+//! lsystem Bush                 # name (optional; default: the file name without extension)
+//! derive 6 - detail            # derivation depth (required): an expression of the params and `detail`
+//! angle 22.5                   # default turning angle in degrees; the same as `param angle = 22.5`
+//! width 0.1                    # initial line width (default 0.05)
+//! param len = uniform(0.8, 1.2)  # a species parameter; its default may draw and read earlier params
+//! palette (0.4,0.3,0.2) (0.2,0.6,0.2)   # colours for `'`
+//! module L(s) = material(0.2, 0.7, 0.2) leaf((0,0,0), (0.1*s, 0.5*s, 0), (0, s, 0), (-0.1*s, 0.5*s, 0))
+//! axiom: A(1) B
+//! A(x) : x > 0.5 -> F(x) [ +(angle) A(x*0.7) ] [ -(angle) A(x*0.7) ]    # condition after `:`
+//! A(x) -> F(x) L(1)
+//! B -> F B : 0.3               # stochastic: weight after the successor
+//! B -> f B : 0.7
+//! A(x) => L(x)                 # terminal production, used once the depth is reached
+//! ```
+//!
+//! * **Non-terminals** are the symbols with productions (`->` or `=>`); **terminals** are the turtle symbols and
+//!   `module`-defined symbols. A symbol that is used but neither defined nor produced is an error, and so is a
+//!   non-terminal in a terminal production (`=>`). A non-terminal without `=>` is erased at the end.
+//! * Successor modules are names (`A`, `Apex(x, 2)`, separated by spaces or punctuation) or the turtle symbols
+//!   (heading = local +Y, the primitives' axis): `F(l)` cylinder of radius = width and height `l`, then move `l`
+//!   (default 1); `f(l)` move; `+(a)`/`-(a)` rotate ±a about Z; `&(a)`/`^(a)` ±a about X; `\(a)`/`/(a)` ±a about
+//!   Y (default `angle`); `|` turn 180° about Z; `[` `]` push/pop the turtle; `!(w)` set the width, `!` multiply
+//!   it by 0.7; `'(r,g,b)` set the colour, `'` advance the colour index (starting at 0) and take that palette entry
+//!   (1-based, clamped to the last). Width and colour index are turtle state: `]` restores them.
+//! * A `module` body is a list of the node calls of [`crate::nodes`] (`material`, `translate`, `cone`, `leaf`, …)
+//!   whose expressions read the module's formals and the species params. It is drawn in the turtle's frame and
+//!   leaves the turtle unchanged (it is a separator). Module bodies may not draw random numbers: randomness
+//!   belongs in the arguments, where it is drawn in the derivation's RNG context.
+//! * Productions of one symbol are tried in order: the first whose condition holds applies, or — if any of them
+//!   carries a weight — one is chosen among those whose condition holds with probability proportional to its
+//!   weight (default 1). If none applies the module is left unchanged.
+//! * Expressions are those of [`crate::expr`]: the predecessor's formals, the species params, `detail`.
+//! * Limits: [`MAX_SYMBOLS`] symbols, [`MAX_PRODUCTIONS`] productions, [`MAX_FORMALS`] formals per module,
+//!   [`MAX_SUCCESSOR_LEN`] modules per successor, [`MAX_BRACKET_NESTING`] nested brackets, [`MAX_CHOOSE`]
+//!   productions for a stochastic symbol.
+//!
+//! # The DCG (seed 001 §3.2)
+//!
+//! Parameter slots: the species params, `_d` (remaining derivation steps), `_w` and `_c` (width and colour
+//! index, [`ParamScope::Turtle`]), one local slot `Sym.formal` per formal of every module. One
+//! [`Node::Selection`] per non-terminal with children `[rhs_1 … rhs_n, identity, final]`, selected by
+//! `_d <= 0 ? n+1 : choice`. `rhs_i = Group[Calc(_d = _d - 1), successors…]`; a non-terminal successor
+//! `B(e…)` is `RecursionSeparator[Calc(B.p… = e…), <B's selection>]` (the cycle); a terminal is
+//! `Calc(T.p… = e…)` followed by a link to the symbol's one shared body node; `[…]` is a [`Node::Separator`].
+//! The root is `Group[Calc(_d = derive, _w = width, _c = 0), axiom…]`.
+//!
+//! # The reference
+//!
+//! [`rewrite`] derives the module string by ordinary parallel rewriting, giving every non-terminal occurrence the
+//! RNG context the DCG traversal gives its recursion separator (see [`crate::rng`]); [`interpret`] draws a
+//! terminal string with the turtle. The two agree with [`amplify`] of the DCG bit for bit.
+//!
+//! [`ParamScope::Turtle`]: canopy_protocol::ParamScope::Turtle
+//! [`Node::Selection`]: canopy_protocol::Node::Selection
+//! [`Node::Separator`]: canopy_protocol::Node::Separator
+//! [`amplify`]: crate::amplify::amplify
+
+use canopy_protocol::{Expr, NodeId, SpeciesGraph, limits};
+
+use crate::diag::{Diagnostic, SourceFile};
+
+mod compile;
+mod parse;
+mod reference;
+
+pub use reference::{ModuleOcc, RewriteError, interpret, reference_stream, rewrite};
+
+/// Most user symbols (non-terminals and modules) in one L-system.
+pub const MAX_SYMBOLS: usize = 256;
+/// Most productions (`->` and `=>`) in one L-system.
+pub const MAX_PRODUCTIONS: usize = 256;
+/// Most formal parameters of one module.
+pub const MAX_FORMALS: usize = 64;
+/// Most modules in one successor (brackets included).
+pub const MAX_SUCCESSOR_LEN: usize = 4096;
+/// Deepest nesting of `[ ]` in one successor.
+pub const MAX_BRACKET_NESTING: usize = 256;
+/// Most `param` declarations (the `angle` directive included).
+pub const MAX_SPECIES_PARAMS: usize = 256;
+/// Most palette entries.
+pub const MAX_PALETTE: usize = 64;
+/// Most productions of one stochastic symbol (the weights of one `choose`).
+pub const MAX_CHOOSE: usize = limits::MAX_CHOOSE;
+/// Longest symbol, formal or parameter name, in bytes (so `Sym.formal` fits a parameter name).
+pub const MAX_IDENT_LEN: usize = 63;
+/// Largest source accepted, in bytes.
+pub const MAX_SOURCE_LEN: usize = 1 << 20;
+/// Most parallel rewriting steps of the reference derivation.
+pub const MAX_REWRITE_STEPS: u32 = 1024;
+/// Longest module string of the reference derivation.
+pub const MAX_STRING_LEN: usize = 1 << 21;
+
+/// Width multiplier of `!` without an argument.
+pub const WIDTH_DECREASE: f32 = 0.7;
+/// Initial line width when no `width` directive is given.
+pub const DEFAULT_WIDTH: f32 = 0.05;
+
+/// Index of a symbol in [`LSystem::symbols`].
+pub type SymbolId = u16;
+
+/// The turtle's built-in symbols; each is its own terminal (`!` and `'` come in two arities).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Turtle {
+    /// `F(l)`: draw a cylinder of the current width and height `l`, then move `l` along +Y.
+    Forward,
+    /// `f(l)`: move `l` along +Y.
+    Move,
+    /// `+(a)`: rotate by `a` degrees about Z.
+    TurnLeft,
+    /// `-(a)`: rotate by `-a` degrees about Z.
+    TurnRight,
+    /// `&(a)`: rotate by `a` degrees about X.
+    PitchDown,
+    /// `^(a)`: rotate by `-a` degrees about X.
+    PitchUp,
+    /// `\(a)`: rotate by `a` degrees about Y (the heading).
+    RollLeft,
+    /// `/(a)`: rotate by `-a` degrees about Y.
+    RollRight,
+    /// `|`: rotate 180 degrees about Z.
+    TurnAround,
+    /// `!(w)`: set the width.
+    SetWidth,
+    /// `!`: multiply the width by [`WIDTH_DECREASE`].
+    ScaleWidth,
+    /// `'(r, g, b)`: set the material colour.
+    SetColor,
+    /// `'`: advance the colour index and take that palette entry.
+    NextColor,
+    /// `[`: save the turtle.
+    Push,
+    /// `]`: restore the turtle.
+    Pop,
+}
+
+impl Turtle {
+    /// Every turtle symbol; the first symbols of every [`LSystem`] are these, in this order.
+    pub const ALL: [Turtle; 15] = [
+        Turtle::Forward,
+        Turtle::Move,
+        Turtle::TurnLeft,
+        Turtle::TurnRight,
+        Turtle::PitchDown,
+        Turtle::PitchUp,
+        Turtle::RollLeft,
+        Turtle::RollRight,
+        Turtle::TurnAround,
+        Turtle::SetWidth,
+        Turtle::ScaleWidth,
+        Turtle::SetColor,
+        Turtle::NextColor,
+        Turtle::Push,
+        Turtle::Pop,
+    ];
+
+    /// How the symbol is written.
+    pub const fn text(self) -> &'static str {
+        match self {
+            Turtle::Forward => "F",
+            Turtle::Move => "f",
+            Turtle::TurnLeft => "+",
+            Turtle::TurnRight => "-",
+            Turtle::PitchDown => "&",
+            Turtle::PitchUp => "^",
+            Turtle::RollLeft => "\\",
+            Turtle::RollRight => "/",
+            Turtle::TurnAround => "|",
+            Turtle::SetWidth | Turtle::ScaleWidth => "!",
+            Turtle::SetColor | Turtle::NextColor => "'",
+            Turtle::Push => "[",
+            Turtle::Pop => "]",
+        }
+    }
+
+    /// The names of its formal parameters.
+    pub const fn formals(self) -> &'static [&'static str] {
+        match self {
+            Turtle::Forward | Turtle::Move => &["l"],
+            Turtle::TurnLeft
+            | Turtle::TurnRight
+            | Turtle::PitchDown
+            | Turtle::PitchUp
+            | Turtle::RollLeft
+            | Turtle::RollRight => &["a"],
+            Turtle::SetWidth => &["w"],
+            Turtle::SetColor => &["r", "g", "b"],
+            Turtle::TurnAround | Turtle::ScaleWidth | Turtle::NextColor | Turtle::Push | Turtle::Pop => &[],
+        }
+    }
+
+    /// The symbol's id in every [`LSystem`].
+    pub fn id(self) -> SymbolId {
+        Turtle::ALL.iter().position(|&t| t == self).expect("every turtle symbol is in ALL") as SymbolId
+    }
+}
+
+/// What a symbol is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SymbolKind {
+    /// A built-in turtle symbol (terminal).
+    Turtle(Turtle),
+    /// A `module`-defined terminal.
+    Module,
+    /// A symbol with productions.
+    NonTerminal,
+}
+
+/// One module of a successor: a symbol and its argument expressions (one per formal; turtle defaults filled in).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Successor {
+    /// The symbol.
+    pub symbol: SymbolId,
+    /// One expression per formal of the symbol.
+    pub args: Vec<Expr>,
+}
+
+/// A symbol of the alphabet, with what the DCG made of it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Symbol {
+    /// As written.
+    pub name: String,
+    /// Turtle, module or non-terminal.
+    pub kind: SymbolKind,
+    /// The parameter slots of its formals.
+    pub formals: Vec<u16>,
+    /// A terminal's shared body node (none for `[`, `]`, or a turtle symbol the L-system does not use).
+    pub body: Option<NodeId>,
+    /// Primitives one occurrence of a terminal emits.
+    pub primitives: usize,
+    /// A non-terminal's selection node.
+    pub selection: Option<NodeId>,
+    /// A non-terminal's selection expression (also in the selection node): `n` productions, then identity (`n`)
+    /// and final (`n + 1`).
+    pub select: Option<Expr>,
+    /// A non-terminal's productions' successors, in order.
+    pub productions: Vec<Vec<Successor>>,
+    /// A non-terminal's terminal (`=>`) successors.
+    pub terminal: Vec<Successor>,
+}
+
+impl Symbol {
+    /// A symbol with no formals, body, productions or selection node yet.
+    pub(super) fn blank(name: &str, kind: SymbolKind) -> Symbol {
+        Symbol {
+            name: name.to_string(),
+            kind,
+            formals: Vec::new(),
+            body: None,
+            primitives: 0,
+            selection: None,
+            select: None,
+            productions: Vec::new(),
+            terminal: Vec::new(),
+        }
+    }
+}
+
+/// A parsed and compiled L-system: the DCG and what the reference rewriter needs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LSystem {
+    /// The compiled species graph (valid).
+    pub graph: SpeciesGraph,
+    /// The alphabet: [`Turtle::ALL`] first, then modules and non-terminals in order of appearance.
+    pub symbols: Vec<Symbol>,
+    /// The axiom.
+    pub axiom: Vec<Successor>,
+    /// The derivation depth expression.
+    pub derive: Expr,
+    /// The initial width expression.
+    pub width: Expr,
+    /// Slot of `_d`, the remaining derivation steps.
+    pub depth_slot: u16,
+    /// Slot of `_w`, the width.
+    pub width_slot: u16,
+    /// Slot of `_c`, the colour index.
+    pub color_slot: u16,
+}
+
+impl LSystem {
+    /// Parse and compile an L-system. Returns it if there were no errors, and every diagnostic found.
+    pub fn parse(src: &SourceFile) -> (Option<LSystem>, Vec<Diagnostic>) {
+        let mut errors = Vec::new();
+        let lsys = compile::parse_inner(src, &mut errors);
+        errors.sort_by_key(|e| (e.span.start, e.span.end));
+        let diags: Vec<Diagnostic> = errors.into_iter().map(|e| src.diag(e.span, e.message)).collect();
+        if diags.is_empty() { (lsys, diags) } else { (None, diags) }
+    }
+
+    /// The id of a user symbol (module or non-terminal) by name.
+    pub fn symbol(&self, name: &str) -> Option<SymbolId> {
+        self.symbols
+            .iter()
+            .position(|s| s.name == name && !matches!(s.kind, SymbolKind::Turtle(_)))
+            .map(|i| i as SymbolId)
+    }
+
+    /// Primitives a terminal string emits when interpreted (the sum of its terminals' body primitives).
+    pub fn primitive_count(&self, string: &[ModuleOcc]) -> usize {
+        string.iter().map(|m| self.symbols[m.symbol as usize].primitives).sum()
+    }
+}
+
+/// Parse an L-system into its species graph (see the module docs). Returns the graph if there were no errors,
+/// and every diagnostic found.
+pub fn parse_lsystem(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
+    let (l, d) = LSystem::parse(src);
+    (l.map(|l| l.graph), d)
+}
