@@ -6,12 +6,13 @@ use std::ops::Range;
 
 use canopy_protocol::{Expr, Node, NodeId, Op, ParamDecl, ParamScope, SpeciesGraph, limits};
 
+use crate::amplify::{DEPTH_PARAM, MAX_DEPTH_LIMIT};
 use crate::diag::SourceFile;
 use crate::expr::{Ast, BinOp, compile};
 use crate::nodes::{NODE_CALLS, parse_node_call};
 use crate::text::{Cursor, ParseError};
 
-use super::parse::{Ghost, Item, KEYWORDS, Production, RESERVED, RawSucc, at_line_end, ghost, parse_line};
+use super::parse::{Ghost, Item, KEYWORDS, Production, RESERVED, RawSucc, Section, at_line_end, ghost, parse_line};
 use super::{
     DEFAULT_WIDTH, LSystem, MAX_CHOOSE, MAX_PRODUCTIONS, MAX_SOURCE_LEN, MAX_SPECIES_PARAMS, MAX_SYMBOLS, Successor,
     Symbol, SymbolId, SymbolKind, Turtle, WIDTH_DECREASE,
@@ -105,6 +106,15 @@ struct Compiler<'s> {
     d: u16,
     w: u16,
     c: u16,
+    /// `_x`, the cut flag, if the L-system uses `%`.
+    cut: Option<u16>,
+    /// The turtle's frame (the columns X, Y, Z: left is -X, heading Y, up Z), if the L-system uses `$`.
+    frame: Option<[u16; 9]>,
+    /// A shared empty group: what a guarded body becomes after a cut.
+    empty: Option<NodeId>,
+    /// Symbols with an interpretation rule, and the rule.
+    interps: Vec<(SymbolId, usize)>,
+    max_depth: u32,
 }
 
 fn expr_param(slot: u16) -> Expr {
@@ -129,10 +139,28 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
     let mut items = Vec::new();
     let mut ghosts = Vec::new();
     let mut pos = 0;
+    let mut section = Section::Productions;
     while pos < text.len() {
         let end = text[pos..].find('\n').map_or(text.len(), |i| pos + i);
         let mut cur = Cursor { src: text, pos, newlines_are_space: false };
         match parse_line(&mut cur) {
+            Ok(Some(Item::Section(kind, span))) => {
+                if kind == Section::Decomposition {
+                    errors.push(ParseError::new(
+                        span,
+                        "`decomposition:` sections are not supported: decomposition rules rewrite a module again and \
+                         again within one derivation step, and a species DCG (seed 001 §3.2) applies one production \
+                         per module per step; write the decomposed structure into the productions",
+                    ));
+                }
+                section = kind;
+            }
+            // The rules of an unsupported section: their symbols count as declared, so no follow-up errors.
+            Ok(Some(Item::Production(p))) if section == Section::Decomposition => ghosts.push(Ghost::Symbol(p.pred)),
+            Err(_) if section == Section::Decomposition => ghosts.extend(ghost(text, pos)),
+            Ok(Some(Item::Production(p))) if section == Section::Interpretation => {
+                items.push(Item::Interpretation(p));
+            }
             Ok(Some(item)) => items.push(item),
             Ok(None) => {}
             Err(e) => {
@@ -157,6 +185,11 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
         d: 0,
         w: 0,
         c: 0,
+        cut: None,
+        frame: None,
+        empty: None,
+        interps: Vec::new(),
+        max_depth: crate::amplify::Budget::default().max_depth,
     };
     let mut broken_directives = HashSet::new();
     for g in ghosts {
@@ -236,6 +269,24 @@ impl Compiler<'_> {
         self.params.push(hidden("_w", ParamScope::Turtle));
         self.c = self.params.len() as u16;
         self.params.push(hidden("_c", ParamScope::Turtle));
+        // The slots only some L-systems need come after, so the others' graphs stay as they were.
+        let uses = |name: &str| items.iter().any(|i| item_successors(i).iter().any(|r| r.name == name));
+        if uses("%") {
+            self.cut = Some(self.params.len() as u16);
+            self.params.push(hidden("_x", ParamScope::Turtle));
+        }
+        if uses("$") {
+            let mut slots = [0u16; 9];
+            for (k, slot) in slots.iter_mut().enumerate() {
+                *slot = self.params.len() as u16;
+                let (col, row) = (k / 3, k % 3);
+                let name = format!("_{}.{}", ["X", "Y", "Z"][col], ["x", "y", "z"][row]);
+                let one = if col == row { 1.0 } else { 0.0 };
+                self.params.push(ParamDecl { name, default: Expr::constant(one), scope: ParamScope::Turtle });
+            }
+            self.frame = Some(slots);
+        }
+        self.max_depth_directive(items);
 
         // The palette.
         for item in items {
@@ -322,6 +373,66 @@ impl Compiler<'_> {
             };
             prods.push((id, p));
         }
+        // Interpretation rules: a symbol without productions becomes a terminal drawn by its rule.
+        let mut interps: Vec<(SymbolId, usize)> = Vec::new();
+        for (k, item) in items.iter().enumerate() {
+            let Item::Interpretation(p) = item else { continue };
+            productions += 1;
+            if productions > MAX_PRODUCTIONS {
+                self.err(p.pred_span.clone(), format!("more than {MAX_PRODUCTIONS} productions"));
+                break;
+            }
+            if p.terminal {
+                self.err(
+                    p.pred_span.clone(),
+                    "an interpretation rule is written with `->` (`=>` is for the derivation)",
+                );
+                continue;
+            }
+            if p.cond.is_some() || p.weight.is_some() {
+                let what = if p.cond.is_some() { "condition" } else { "probability" };
+                self.err(p.pred_span.clone(), format!("an interpretation rule takes no {what}"));
+                continue;
+            }
+            let id = match self.by_name.get(&p.pred) {
+                Some(&id) if interps.iter().any(|i| i.0 == id) => {
+                    self.err(p.pred_span.clone(), format!("`{}` has a second interpretation rule", p.pred));
+                    continue;
+                }
+                Some(&id) if self.symbols[id as usize].kind == SymbolKind::Module => {
+                    let msg = format!("`{}` is defined by `module` and cannot have an interpretation rule too", p.pred);
+                    self.err(p.pred_span.clone(), msg);
+                    continue;
+                }
+                Some(&id) => {
+                    let head = heads.iter().find(|h| h.0 == id).expect("every user symbol has a head");
+                    if head.1.len() != p.formals.len() {
+                        let (line, _) = src.line_col(head.2.start);
+                        let msg = format!(
+                            "`{}` has {} parameter(s) in its first production (line {line}), here {}",
+                            p.pred,
+                            head.1.len(),
+                            p.formals.len()
+                        );
+                        self.err(p.pred_span.clone(), msg);
+                        continue;
+                    }
+                    id
+                }
+                None => {
+                    if user_symbols == MAX_SYMBOLS {
+                        self.err(p.pred_span.clone(), format!("more than {MAX_SYMBOLS} symbols"));
+                        break;
+                    }
+                    user_symbols += 1;
+                    let id = self.new_symbol(&p.pred, SymbolKind::Module);
+                    heads.push((id, p.formals.iter().map(|f| f.0.clone()).collect(), p.pred_span.clone()));
+                    id
+                }
+            };
+            interps.push((id, k));
+        }
+        self.interps = interps;
         // Formal slots, `Sym.formal`, in symbol order.
         heads.sort_by_key(|h| h.0);
         for (id, formals, span) in &heads {
@@ -344,6 +455,12 @@ impl Compiler<'_> {
             self.module_body(id, formals, *body, span);
         }
 
+        // Interpretation rules' successors: terminals, drawn as they are.
+        for (id, k) in self.interps.clone() {
+            let Item::Interpretation(p) = &items[k] else { unreachable!("interps index interpretation items") };
+            self.interpretation(id, p);
+        }
+
         // Selection nodes first, so successors can link to them (cycles).
         for s in 0..self.symbols.len() {
             if self.symbols[s].kind == SymbolKind::NonTerminal {
@@ -357,6 +474,14 @@ impl Compiler<'_> {
                 continue;
             }
             let mine: Vec<&Production> = prods.iter().filter(|p| p.0 as usize == s).map(|p| p.1).collect();
+            self.symbols[s].production_at = mine
+                .iter()
+                .filter(|p| !p.terminal)
+                .map(|p| {
+                    let d = src.diag(p.pred_span.clone(), "");
+                    format!("{}:{}:{} `{}`", d.file, d.line, d.col, strip_comment(&d.line_text))
+                })
+                .collect();
             self.non_terminal(s as SymbolId, &mine);
         }
 
@@ -421,6 +546,8 @@ impl Compiler<'_> {
             depth_slot: self.d,
             width_slot: self.w,
             color_slot: self.c,
+            cut_slot: self.cut,
+            max_depth: self.max_depth,
         })
     }
 
@@ -475,6 +602,7 @@ impl Compiler<'_> {
         let primitives = nodes.iter().filter(|n| n.is_primitive()).count();
         let children = nodes.into_iter().map(|n| self.b.push(n)).collect();
         let body = self.b.push(Node::Separator(children));
+        let body = self.guard(body);
         let s = &mut self.symbols[id as usize];
         s.body = Some(body);
         s.primitives = primitives;
@@ -511,47 +639,260 @@ impl Compiler<'_> {
             Turtle::SetColor => {
                 Node::Material([expr_param(formals[0]), expr_param(formals[1]), expr_param(formals[2])])
             }
-            Turtle::NextColor => {
-                let Some(palette) = self.palette.clone() else {
-                    if !self.palette_broken {
-                        self.err(span.clone(), "`'` without arguments needs a `palette`");
-                    }
-                    return None;
+            Turtle::NextColor | Turtle::ColorUp | Turtle::ColorDown | Turtle::SetColorIndex => {
+                let index = match t {
+                    Turtle::SetColorIndex => expr_param(formals[0]),
+                    Turtle::ColorDown => Expr {
+                        ops: vec![
+                            Op::Param(c),
+                            Op::Const(1.0),
+                            Op::Sub,
+                            Op::Const(1.0),
+                            Op::Call(canopy_protocol::Func::Max),
+                        ],
+                    },
+                    _ => Expr { ops: vec![Op::Param(c), Op::Const(1.0), Op::Add] },
                 };
-                // Channel k: `_c <= 1 ? p1 : _c <= 2 ? p2 : … : p_last`.
-                let mut channels = Vec::new();
-                for k in 0..3 {
-                    let mut ast = palette[palette.len() - 1][k].clone();
-                    for i in (0..palette.len() - 1).rev() {
-                        let test = Ast::bin(BinOp::Le, Ast::var("$c"), Ast::Num((i + 1) as f32));
-                        ast = Ast::cond(test, palette[i][k].clone(), ast);
-                    }
-                    let internal = [("$c", c)];
-                    let r = compile_at(&ast, &mut self.names.resolver(&[], &internal), span);
-                    match r {
-                        Ok(e) if e.draws() => {
-                            self.err(span.clone(), "palette colours may not draw random numbers");
-                            return None;
-                        }
-                        Ok(e) => channels.push(e),
-                        Err(e) => {
-                            self.errors.push(e);
-                            return None;
-                        }
-                    }
-                }
-                let advance = Expr { ops: vec![Op::Param(c), Op::Const(1.0), Op::Add] };
-                let calc = self.b.push(Node::Calculation(vec![(c, advance)]));
-                let [r, g, b] = <[Expr; 3]>::try_from(channels).expect("three channels");
-                let mat = self.b.push(Node::Material([r, g, b]));
+                let channels = self.palette_channels(t, span)?;
+                let calc = self.b.push(Node::Calculation(vec![(c, index)]));
+                let mat = self.b.push(Node::Material(channels));
                 Node::Group(vec![calc, mat])
             }
+            Turtle::Cut => Node::Calculation(vec![(self.cut.expect("`%` is used"), Expr::constant(1.0))]),
+            Turtle::RollToHorizontal => return self.roll_to_horizontal(),
             Turtle::Push | Turtle::Pop => unreachable!("brackets have no body"),
         };
-        let body = self.b.push(body);
+        let mut body = self.b.push(body);
+        // Rotations keep the turtle's frame up to date for `$`.
+        let rotation = match t {
+            Turtle::TurnLeft | Turtle::TurnRight => Some(2),
+            Turtle::PitchDown | Turtle::PitchUp => Some(0),
+            Turtle::RollLeft | Turtle::RollRight => Some(1),
+            Turtle::TurnAround => Some(2),
+            _ => None,
+        };
+        if let (Some(axis), Some(frame)) = (rotation, self.frame) {
+            let degrees = match t {
+                Turtle::TurnAround => Ast::Num(180.0),
+                Turtle::TurnRight | Turtle::PitchUp | Turtle::RollRight => {
+                    Ast::Unary(crate::expr::UnOp::Neg, Box::new(Ast::var("$a")))
+                }
+                _ => Ast::var("$a"),
+            };
+            let radians = Ast::bin(BinOp::Mul, degrees, Ast::Num(std::f32::consts::PI / 180.0));
+            let cos = Ast::Call(canopy_protocol::Func::Cos, vec![radians.clone()]);
+            let sin = Ast::Call(canopy_protocol::Func::Sin, vec![radians]);
+            let angle_slot = formals.first().copied().unwrap_or(self.d);
+            let update = self.frame_update(frame, axis, cos, sin, angle_slot, span)?;
+            body = self.b.push(Node::Group(vec![body, update]));
+        }
+        let body = if t == Turtle::Cut { body } else { self.guard(body) };
         self.symbols[id].formals = formals;
         self.symbols[id].body = Some(body);
         Some(())
+    }
+
+    /// `body`, or — if the L-system uses `%` — a selection that skips it once the branch is cut.
+    fn guard(&mut self, body: NodeId) -> NodeId {
+        let Some(x) = self.cut else { return body };
+        let empty = self.empty_group();
+        self.b.push(Node::Selection { expr: Expr::param(x), children: vec![body, empty] })
+    }
+
+    fn empty_group(&mut self) -> NodeId {
+        match self.empty {
+            Some(e) => e,
+            None => {
+                let e = self.b.push(Node::Group(Vec::new()));
+                self.empty = Some(e);
+                e
+            }
+        }
+    }
+
+    /// The palette entry `_c` selects, per channel: `_c <= 1 ? p1 : _c <= 2 ? p2 : … : p_last`.
+    fn palette_channels(&mut self, t: Turtle, span: &Range<usize>) -> Option<[Expr; 3]> {
+        let Some(palette) = self.palette.clone() else {
+            if !self.palette_broken {
+                let written = if t == Turtle::SetColorIndex { "with an index" } else { "without arguments" };
+                self.err(span.clone(), format!("`{}` {written} needs a `palette`", &self.src[span.clone()]));
+            }
+            return None;
+        };
+        let mut channels = Vec::new();
+        for k in 0..3 {
+            let mut ast = palette[palette.len() - 1][k].clone();
+            for i in (0..palette.len() - 1).rev() {
+                let test = Ast::bin(BinOp::Le, Ast::var("$c"), Ast::Num((i + 1) as f32));
+                ast = Ast::cond(test, palette[i][k].clone(), ast);
+            }
+            let internal = [("$c", self.c)];
+            let r = compile_at(&ast, &mut self.names.resolver(&[], &internal), span);
+            match r {
+                Ok(e) if e.draws() => {
+                    self.err(span.clone(), "palette colours may not draw random numbers");
+                    return None;
+                }
+                Ok(e) => channels.push(e),
+                Err(e) => {
+                    self.errors.push(e);
+                    return None;
+                }
+            }
+        }
+        Some(<[Expr; 3]>::try_from(channels).expect("three channels"))
+    }
+
+    /// A calculation turning the tracked frame by the angle whose cosine and sine are given, about local axis
+    /// `axis`: with `(i, j)` the next two axes in cyclic order, `i' = c i + s j` and `j' = c j - s i`.
+    fn frame_update(
+        &mut self,
+        frame: [u16; 9],
+        axis: usize,
+        cos: Ast,
+        sin: Ast,
+        angle_slot: u16,
+        span: &Range<usize>,
+    ) -> Option<NodeId> {
+        const NAMES: [&str; 9] = ["$0", "$1", "$2", "$3", "$4", "$5", "$6", "$7", "$8"];
+        let (i, j) = ((axis + 1) % 3, (axis + 2) % 3);
+        let mut assign = Vec::new();
+        for row in 0..3 {
+            let (vi, vj) = (Ast::var(NAMES[i * 3 + row]), Ast::var(NAMES[j * 3 + row]));
+            let ni = Ast::bin(
+                BinOp::Add,
+                Ast::bin(BinOp::Mul, cos.clone(), vi.clone()),
+                Ast::bin(BinOp::Mul, sin.clone(), vj.clone()),
+            );
+            let nj = Ast::bin(BinOp::Sub, Ast::bin(BinOp::Mul, cos.clone(), vj), Ast::bin(BinOp::Mul, sin.clone(), vi));
+            assign.push((frame[i * 3 + row], ni));
+            assign.push((frame[j * 3 + row], nj));
+        }
+        let mut internal: Vec<(&'static str, u16)> = NAMES.iter().copied().zip(frame).collect();
+        internal.push(("$a", angle_slot));
+        let mut out = Vec::new();
+        for (slot, ast) in assign {
+            match compile_at(&ast, &mut self.names.resolver(&[], &internal), span) {
+                Ok(e) => out.push((slot, e)),
+                Err(e) => {
+                    self.errors.push(e);
+                    return None;
+                }
+            }
+        }
+        Some(self.b.push(Node::Calculation(out)))
+    }
+
+    /// The body of `$`: roll about the heading (local Y) by the angle that makes X, and so the left vector -X,
+    /// horizontal: `cos = Z.y / r`, `sin = X.y / r` with `r = |(X.y, Z.y)|`; no roll when the heading is vertical.
+    fn roll_to_horizontal(&mut self) -> Option<()> {
+        let frame = self.frame.expect("`$` is used");
+        let (xy, zy) = (Ast::var("$1"), Ast::var("$7"));
+        let r = Ast::Call(
+            canopy_protocol::Func::Sqrt,
+            vec![Ast::bin(
+                BinOp::Add,
+                Ast::bin(BinOp::Mul, xy.clone(), xy.clone()),
+                Ast::bin(BinOp::Mul, zy.clone(), zy.clone()),
+            )],
+        );
+        let level = Ast::bin(BinOp::Gt, r.clone(), Ast::Num(1e-6));
+        let cos = Ast::cond(level.clone(), Ast::bin(BinOp::Div, zy, r.clone()), Ast::Num(1.0));
+        let sin = Ast::cond(level, Ast::bin(BinOp::Div, xy, r), Ast::Num(0.0));
+        let span = 0..0;
+        let update = self.frame_update(frame, 1, cos.clone(), sin.clone(), self.d, &span)?;
+        // Rot_y(φ), 3 rows of 4: [c 0 s 0; 0 1 0 0; -s 0 c 0].
+        const NAMES: [&str; 9] = ["$0", "$1", "$2", "$3", "$4", "$5", "$6", "$7", "$8"];
+        let internal: Vec<(&'static str, u16)> = NAMES.iter().copied().zip(frame).collect();
+        let neg_sin = Ast::Unary(crate::expr::UnOp::Neg, Box::new(sin.clone()));
+        let zero = || Ast::Num(0.0);
+        let m = [cos.clone(), zero(), sin, zero(), zero(), Ast::Num(1.0), zero(), zero(), neg_sin, zero(), cos, zero()];
+        let mut exprs = Vec::new();
+        for ast in &m {
+            match compile_at(ast, &mut self.names.resolver(&[], &internal), &span) {
+                Ok(e) => exprs.push(e),
+                Err(e) => {
+                    self.errors.push(e);
+                    return None;
+                }
+            }
+        }
+        let m = <[Expr; 12]>::try_from(exprs).expect("twelve entries");
+        let rot = self.b.push(Node::Matrix(Box::new(m)));
+        let body = self.b.push(Node::Group(vec![rot, update]));
+        let body = self.guard(body);
+        self.symbols[Turtle::RollToHorizontal.id() as usize].body = Some(body);
+        Some(())
+    }
+
+    /// Compile a symbol's interpretation rule: a terminal gets it as its body (it moves the turtle like the
+    /// successor it stands for); a non-terminal keeps it for its final alternative.
+    fn interpretation(&mut self, id: SymbolId, p: &Production) {
+        let slots = self.symbols[id as usize].formals.clone();
+        let scope: Vec<(String, u16)> = p.formals.iter().map(|f| f.0.clone()).zip(slots.iter().copied()).collect();
+        let before = self.errors.len();
+        let succ = self.successors(&p.succ, &scope, true);
+        for r in &p.succ {
+            if let Some(&other) = self.by_name.get(&r.name)
+                && self.interps.iter().any(|i| i.0 == other)
+            {
+                let msg =
+                    format!("an interpretation rule may not use `{}`, which has an interpretation rule itself", r.name);
+                self.err(r.span.clone(), msg);
+            }
+        }
+        if succ.iter().any(|s| s.args.iter().any(Expr::draws)) {
+            let msg = "an interpretation rule may not draw random numbers; pass a random argument instead";
+            self.err(p.pred_span.clone(), msg);
+        }
+        if self.errors.len() > before {
+            return;
+        }
+        let primitives = succ.iter().map(|s| self.symbols[s.symbol as usize].primitives).sum();
+        if self.symbols[id as usize].kind == SymbolKind::Module {
+            let nodes = self.emit(&succ);
+            let body = self.b.container(Node::Group, nodes);
+            self.symbols[id as usize].body = Some(body);
+        }
+        let s = &mut self.symbols[id as usize];
+        s.primitives = primitives;
+        s.interpretation = Some(succ);
+    }
+
+    /// The `maxdepth N` directive: the nesting this species asks of the traversal, stored as [`DEPTH_PARAM`].
+    fn max_depth_directive(&mut self, items: &[Item]) {
+        let mut seen = false;
+        for item in items {
+            let Item::MaxDepth(ast, span) = item else { continue };
+            if seen {
+                self.err(span.clone(), "`maxdepth` given twice");
+                continue;
+            }
+            seen = true;
+            let v = match compile_at(ast, &mut |_: &str| None, span) {
+                Ok(e) => e.as_constant(),
+                Err(e) => {
+                    self.errors.push(e);
+                    continue;
+                }
+            };
+            let default = self.max_depth;
+            match v {
+                Some(v) if v.fract() == 0.0 && v >= 1.0 && v <= MAX_DEPTH_LIMIT as f32 => {
+                    self.max_depth = (v as u32).max(default);
+                    let decl = ParamDecl {
+                        name: DEPTH_PARAM.to_string(),
+                        default: Expr::constant(v),
+                        scope: ParamScope::Local,
+                    };
+                    self.params.push(decl);
+                }
+                _ => self.err(
+                    span.clone(),
+                    format!("`maxdepth` takes a whole number from 1 to {MAX_DEPTH_LIMIT} (the default is {default})"),
+                ),
+            }
+        }
     }
 
     /// Resolve and compile one successor list in the scope of a predecessor's formals.
@@ -573,6 +914,18 @@ impl Compiler<'_> {
                 "!" => Some(match nargs {
                     0 => Ok(Turtle::ScaleWidth),
                     1 => Ok(Turtle::SetWidth),
+                    _ => Err("0 or 1"),
+                }),
+                "%" => Some(Ok(Turtle::Cut)),
+                "$" => Some(Ok(Turtle::RollToHorizontal)),
+                ";" => Some(match nargs {
+                    0 => Ok(Turtle::ColorUp),
+                    1 => Ok(Turtle::SetColorIndex),
+                    _ => Err("0 or 1"),
+                }),
+                "," => Some(match nargs {
+                    0 => Ok(Turtle::ColorDown),
+                    1 => Ok(Turtle::SetColorIndex),
                     _ => Err("0 or 1"),
                 }),
                 "'" => Some(match nargs {
@@ -738,7 +1091,17 @@ impl Compiler<'_> {
         };
         let select = Ast::cond(Ast::bin(BinOp::Le, Ast::var("$d"), Ast::Num(0.0)), Ast::Num((n + 1) as f32), choice);
         let internal: Vec<(String, u16)> = slots.iter().enumerate().map(|(i, &s)| (format!("$f{i}"), s)).collect();
-        let internal_d = [("$d", self.d)];
+        let internal_d = [("$d", self.d), ("$x", self.cut.unwrap_or(self.d))];
+        // After a cut, a call does nothing: `_x > 0 ? n + 2 : select` in the node, child n + 2 empty.
+        let cut_select =
+            Ast::cond(Ast::bin(BinOp::Gt, Ast::var("$x"), Ast::Num(0.0)), Ast::Num((n + 2) as f32), select.clone());
+        let node_expr = match compile_at(&cut_select, &mut self.names.resolver(&internal, &internal_d), &first_span) {
+            Ok(e) => e,
+            Err(e) => {
+                self.errors.push(e);
+                return;
+            }
+        };
         let select = match compile_at(&select, &mut self.names.resolver(&internal, &internal_d), &first_span) {
             Ok(e) => e,
             Err(e) => {
@@ -748,6 +1111,16 @@ impl Compiler<'_> {
         };
         if !self.errors.is_empty() {
             // Nodes are pointless once there are errors; keep checking the other symbols.
+            return;
+        }
+        let interpretation = self.symbols[id as usize].interpretation.clone();
+        if terminal.is_some() && interpretation.is_some() {
+            let msg = format!(
+                "`{}` has both a terminal production (`=>`) and an interpretation rule; keep one: the interpretation \
+                 rule draws the occurrences left at the end",
+                self.symbols[id as usize].name
+            );
+            self.err(first_span.clone(), msg);
             return;
         }
         let terminal = terminal.unwrap_or_default();
@@ -766,9 +1139,16 @@ impl Compiler<'_> {
         call.push(selection);
         let call = self.b.push(Node::RecursionSeparator(call));
         children.push(self.b.push(Node::Group(vec![dec, call])));
-        let fin = self.emit(&terminal);
+        let fin = self.emit(interpretation.as_deref().unwrap_or(&terminal));
         children.push(self.b.container(Node::Group, fin));
-        self.b.nodes[selection as usize] = Node::Selection { expr: select.clone(), children };
+        // After a cut, a call does nothing: `_x > 0 ? n + 2 : select`, child n + 2 empty.
+        let node_expr = if self.cut.is_some() {
+            children.push(self.empty_group());
+            node_expr
+        } else {
+            select.clone()
+        };
+        self.b.nodes[selection as usize] = Node::Selection { expr: node_expr, children };
         let s = &mut self.symbols[id as usize];
         s.select = Some(select);
         s.productions = rhs;
@@ -811,6 +1191,20 @@ impl Compiler<'_> {
         debug_assert_eq!(stack.len(), 1, "brackets are balanced");
         stack.pop().unwrap_or_default()
     }
+}
+
+/// The successors an item holds (the axiom's, a production's or an interpretation rule's).
+fn item_successors(item: &Item) -> &[RawSucc] {
+    match item {
+        Item::Axiom(s, _) => s,
+        Item::Production(p) | Item::Interpretation(p) => &p.succ,
+        _ => &[],
+    }
+}
+
+/// A production's line without its comment.
+fn strip_comment(line: &str) -> &str {
+    line.split('#').next().unwrap_or("").trim()
 }
 
 /// Rename a production's formals to `$f<i>` so the combined selection expression resolves them to the symbol's

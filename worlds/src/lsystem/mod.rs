@@ -65,7 +65,9 @@
 
 use canopy_protocol::{Expr, NodeId, SpeciesGraph, limits};
 
+use crate::amplify::{AmplifyError, Budget, Instance, MAX_DEPTH_LIMIT, amplify};
 use crate::diag::{Diagnostic, SourceFile};
+use crate::primitive::PrimitiveStream;
 
 mod compile;
 mod parse;
@@ -94,7 +96,7 @@ pub const MAX_IDENT_LEN: usize = 63;
 /// Largest source accepted, in bytes.
 pub const MAX_SOURCE_LEN: usize = 1 << 20;
 /// Most parallel rewriting steps of the reference derivation.
-pub const MAX_REWRITE_STEPS: u32 = 1024;
+pub const MAX_REWRITE_STEPS: u32 = MAX_DEPTH_LIMIT;
 /// Longest module string of the reference derivation.
 pub const MAX_STRING_LEN: usize = 1 << 21;
 
@@ -135,6 +137,16 @@ pub enum Turtle {
     SetColor,
     /// `'`: advance the colour index and take that palette entry.
     NextColor,
+    /// `;`: the same as `'` (ABOP's and L-Py's spelling).
+    ColorUp,
+    /// `,`: lower the colour index (not below 1) and take that palette entry.
+    ColorDown,
+    /// `;(i)` or `,(i)`: set the colour index to `i` and take that palette entry.
+    SetColorIndex,
+    /// `$`: roll about the heading so that the left vector is horizontal (ABOP §1.6).
+    RollToHorizontal,
+    /// `%`: cut the rest of the branch, up to its closing `]` (ABOP §1.10).
+    Cut,
     /// `[`: save the turtle.
     Push,
     /// `]`: restore the turtle.
@@ -143,7 +155,7 @@ pub enum Turtle {
 
 impl Turtle {
     /// Every turtle symbol; the first symbols of every [`LSystem`] are these, in this order.
-    pub const ALL: [Turtle; 15] = [
+    pub const ALL: [Turtle; 20] = [
         Turtle::Forward,
         Turtle::Move,
         Turtle::TurnLeft,
@@ -157,6 +169,11 @@ impl Turtle {
         Turtle::ScaleWidth,
         Turtle::SetColor,
         Turtle::NextColor,
+        Turtle::ColorUp,
+        Turtle::ColorDown,
+        Turtle::SetColorIndex,
+        Turtle::RollToHorizontal,
+        Turtle::Cut,
         Turtle::Push,
         Turtle::Pop,
     ];
@@ -175,6 +192,10 @@ impl Turtle {
             Turtle::TurnAround => "|",
             Turtle::SetWidth | Turtle::ScaleWidth => "!",
             Turtle::SetColor | Turtle::NextColor => "'",
+            Turtle::ColorUp | Turtle::SetColorIndex => ";",
+            Turtle::ColorDown => ",",
+            Turtle::RollToHorizontal => "$",
+            Turtle::Cut => "%",
             Turtle::Push => "[",
             Turtle::Pop => "]",
         }
@@ -192,7 +213,16 @@ impl Turtle {
             | Turtle::RollRight => &["a"],
             Turtle::SetWidth => &["w"],
             Turtle::SetColor => &["r", "g", "b"],
-            Turtle::TurnAround | Turtle::ScaleWidth | Turtle::NextColor | Turtle::Push | Turtle::Pop => &[],
+            Turtle::SetColorIndex => &["i"],
+            Turtle::TurnAround
+            | Turtle::ScaleWidth
+            | Turtle::NextColor
+            | Turtle::ColorUp
+            | Turtle::ColorDown
+            | Turtle::RollToHorizontal
+            | Turtle::Cut
+            | Turtle::Push
+            | Turtle::Pop => &[],
         }
     }
 
@@ -244,6 +274,12 @@ pub struct Symbol {
     pub productions: Vec<Vec<Successor>>,
     /// A non-terminal's terminal (`=>`) successors.
     pub terminal: Vec<Successor>,
+    /// The symbol's interpretation rule (`interpretation:` section), if it has one: the terminals it is drawn as.
+    /// Applied only when the final string is drawn; a non-terminal with one keeps its last occurrences (it has no
+    /// `=>`) and they are drawn by it.
+    pub interpretation: Option<Vec<Successor>>,
+    /// Where each of a non-terminal's `->` productions is written: `file:line:col` and the line's text.
+    pub production_at: Vec<String>,
 }
 
 impl Symbol {
@@ -259,6 +295,8 @@ impl Symbol {
             select: None,
             productions: Vec::new(),
             terminal: Vec::new(),
+            interpretation: None,
+            production_at: Vec::new(),
         }
     }
 }
@@ -282,6 +320,11 @@ pub struct LSystem {
     pub width_slot: u16,
     /// Slot of `_c`, the colour index.
     pub color_slot: u16,
+    /// Slot of `_x`, set by `%` until the branch ends (only if the L-system uses `%`).
+    pub cut_slot: Option<u16>,
+    /// The nesting of separators and calls the traversal allows this species: the `maxdepth` directive (stored in
+    /// the graph as the parameter [`crate::amplify::DEPTH_PARAM`], see [`crate::amplify`]) or the default budget's.
+    pub max_depth: u32,
 }
 
 impl LSystem {
@@ -302,10 +345,81 @@ impl LSystem {
             .map(|i| i as SymbolId)
     }
 
+    /// Amplify the L-system's graph for `instance` within `budget` (raised to the file's `maxdepth`, see
+    /// [`Budget::depth_for`]). A derivation that nests too deep is reported in the file's terms: the derivation
+    /// depth, the production that nests deepest per step and how to allow more.
+    pub fn amplify(&self, instance: &Instance, budget: &Budget) -> Result<PrimitiveStream, DeriveError> {
+        match amplify(&self.graph, instance, budget) {
+            Err(AmplifyError::Depth(limit)) => {
+                let depth = reference::root(self, instance).map_or(f32::NAN, |r| r.derive);
+                Err(DeriveError::TooDeep {
+                    depth: if depth.is_finite() { format!("{depth}") } else { "unbounded".to_string() },
+                    limit,
+                    production: self.deepest_production(),
+                })
+            }
+            r => Ok(r?),
+        }
+    }
+
+    /// The `->` production that nests deepest per derivation step: the most brackets around a non-terminal it
+    /// calls, plus the call itself (ties: the first written).
+    fn deepest_production(&self) -> String {
+        let (push, pop) = (Turtle::Push.id(), Turtle::Pop.id());
+        let mut best: Option<(usize, &str)> = None;
+        for sym in &self.symbols {
+            for (succ, at) in sym.productions.iter().zip(&sym.production_at) {
+                let mut depth = 0usize;
+                let mut most = None;
+                for s in succ {
+                    if s.symbol == push {
+                        depth += 1;
+                    } else if s.symbol == pop {
+                        depth = depth.saturating_sub(1);
+                    } else if self.symbols[s.symbol as usize].kind == SymbolKind::NonTerminal {
+                        most = most.max(Some(depth + 1));
+                    }
+                }
+                if let Some(m) = most
+                    && best.is_none_or(|b| m > b.0)
+                {
+                    best = Some((m, at));
+                }
+            }
+        }
+        match best {
+            Some((n, at)) => format!("{at} nests {n} level(s) deeper at every step"),
+            None => "the axiom".to_string(),
+        }
+    }
+
     /// Primitives a terminal string emits when interpreted (the sum of its terminals' body primitives).
     pub fn primitive_count(&self, string: &[ModuleOcc]) -> usize {
         string.iter().map(|m| self.symbols[m.symbol as usize].primitives).sum()
     }
+}
+
+/// Why [`LSystem::amplify`] failed.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum DeriveError {
+    /// The derivation nests calls and brackets deeper than the traversal allows.
+    #[error(
+        "derivation depth {depth} nests calls and brackets deeper than {limit}: {production}; lower `derive`, or \
+         raise the limit with `maxdepth N` (at most {max})",
+        max = MAX_DEPTH_LIMIT
+    )]
+    TooDeep {
+        /// The `derive` value for the instance.
+        depth: String,
+        /// The nesting the traversal allowed.
+        limit: u32,
+        /// Where the production that nests deepest per step is written (`file:line:col` and its text), and how
+        /// deep it nests.
+        production: String,
+    },
+    /// Any other amplification error.
+    #[error(transparent)]
+    Amplify(#[from] AmplifyError),
 }
 
 /// Parse an L-system into its species graph (see the module docs). Returns the graph if there were no errors,

@@ -9,6 +9,18 @@ use crate::text::{Cursor, ParseError, is_ident_start};
 
 use super::{MAX_BRACKET_NESTING, MAX_FORMALS, MAX_IDENT_LEN, MAX_PALETTE, MAX_SUCCESSOR_LEN};
 
+/// The section a line belongs to: L-Py's `production:`, `interpretation:` (`homomorphism:`) and
+/// `decomposition:` headers switch between them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Section {
+    /// Productions applied in the derivation (the default).
+    Productions,
+    /// Interpretation rules, applied only when the final string is drawn.
+    Interpretation,
+    /// Decomposition rules: not supported (an error at the header); the section's lines are skipped.
+    Decomposition,
+}
+
 pub(super) struct RawSucc {
     pub(super) name: String,
     pub(super) span: Range<usize>,
@@ -31,14 +43,24 @@ pub(super) enum Item {
     Width(Ast, Range<usize>),
     Param(String, Range<usize>, Ast),
     Palette(Vec<[Ast; 3]>, Range<usize>),
-    Module { name: String, span: Range<usize>, formals: Vec<(String, Range<usize>)>, body: usize },
+    Module {
+        name: String,
+        span: Range<usize>,
+        formals: Vec<(String, Range<usize>)>,
+        body: usize,
+    },
     Axiom(Vec<RawSucc>, Range<usize>),
     Production(Production),
+    /// A production in an `interpretation:` section (turned from [`Item::Production`] by the line loop).
+    Interpretation(Production),
+    Section(Section, Range<usize>),
+    MaxDepth(Ast, Range<usize>),
 }
 
-pub(super) const KEYWORDS: [&str; 8] = ["lsystem", "derive", "angle", "width", "param", "palette", "module", "axiom"];
+pub(super) const KEYWORDS: [&str; 10] =
+    ["lsystem", "derive", "angle", "width", "param", "palette", "module", "axiom", "Axiom", "maxdepth"];
 pub(super) const RESERVED: [&str; 4] = ["detail", "pi", "true", "false"];
-const TURTLE_CHARS: &str = "+-&^\\/|!'[]";
+const TURTLE_CHARS: &str = "+-&^\\/|!'[]%$;,";
 
 pub(super) fn at_line_end(cur: &mut Cursor<'_>) -> bool {
     matches!(cur.peek(), None | Some('\n'))
@@ -100,7 +122,7 @@ fn successors(cur: &mut Cursor<'_>) -> Result<Vec<RawSucc>, ParseError> {
             cur.pos += c.len_utf8();
             c.to_string()
         } else {
-            return Err(cur.unexpected("a module (a name or one of `+ - & ^ \\ / | ! ' [ ]`)"));
+            return Err(cur.unexpected("a module (a name or one of `+ - & ^ \\ / | ! ' ; , $ % [ ]`)"));
         };
         let span = start..cur.pos;
         if out.len() == MAX_SUCCESSOR_LEN {
@@ -134,10 +156,23 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
         return Err(ParseError::new(pred_span, format!("name of {} bytes (at most {MAX_IDENT_LEN})", pred.len())));
     }
     let formals = if cur.peek() == Some('(') { formal_list(cur)? } else { Vec::new() };
+    if let Some(c @ ('<' | '>')) = cur.peek() {
+        let at = cur.pos..cur.pos + 1;
+        let side = if c == '<' { "left" } else { "right" };
+        return Err(ParseError::new(
+            at,
+            format!(
+                "context-sensitive productions are not supported (`{c}` gives a {side} context): a species DCG \
+                 rewrites each module on its own, and its traversal sees no neighbours (seed 001 §3.2 compiles \
+                 context-free L-systems); pass what the context would tell as a parameter instead"
+            ),
+        ));
+    }
     let cond = if cur.eat(":") { Some(parse_expr(cur)?) } else { None };
     cur.skip_trivia();
     let arrow = cur.pos..cur.pos + 2;
-    let terminal = if cur.eat("->") {
+    // `-->` is L-Py's spelling of `->`.
+    let terminal = if cur.eat("-->") || cur.eat("->") {
         false
     } else if cur.eat("=>") {
         true
@@ -161,19 +196,59 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
     Ok(Item::Production(Production { pred: pred.to_string(), pred_span, formals, cond, terminal, succ, weight }))
 }
 
+/// `#define NAME value` (cpfg's C preprocessor constants): the position after `#define` if the line starts with it.
+fn define(cur: &Cursor<'_>) -> Option<usize> {
+    let rest = cur.rest();
+    let trimmed = rest.trim_start_matches([' ', '\t']);
+    let after = trimmed.strip_prefix("#define")?;
+    after.starts_with([' ', '\t']).then(|| cur.pos + (rest.len() - after.len()))
+}
+
+/// A section header (`interpretation:` …) if the line is one.
+fn section(word: &str, span: &Range<usize>, cur: &mut Cursor<'_>) -> Option<Item> {
+    let kind = match word {
+        "production" | "productions" => Section::Productions,
+        "interpretation" | "homomorphism" => Section::Interpretation,
+        "decomposition" => Section::Decomposition,
+        _ => return None,
+    };
+    let save = cur.pos;
+    if cur.eat(":") && at_line_end(cur) {
+        return Some(Item::Section(kind, span.start..cur.pos));
+    }
+    cur.pos = save;
+    None
+}
+
 pub(super) fn parse_line(cur: &mut Cursor<'_>) -> Result<Option<Item>, ParseError> {
+    if let Some(pos) = define(cur) {
+        cur.pos = pos;
+        let (n, s) = name(cur, "a constant name")?;
+        let item = Item::Param(n, s, parse_expr(cur)?);
+        end_of_line(cur)?;
+        return Ok(Some(item));
+    }
     if at_line_end(cur) {
         return Ok(None);
     }
     let Some((word, span)) = cur.ident() else {
         return Err(cur.unexpected("a directive (`lsystem`, `derive`, `angle`, `width`, `param`, `palette`, `module`, `axiom:`) or a production `A(x) -> …`"));
     };
+    if let Some(item) = section(word, &span, cur) {
+        return Ok(Some(item));
+    }
     let item = match word {
         "lsystem" => {
             let (n, s) = name(cur, "a name")?;
             Item::Name(n, s)
         }
         "derive" => Item::Derive(parse_expr(cur)?, span),
+        // L-Py's `derivation length: N`.
+        "derivation" if cur.eat_keyword("length") => {
+            cur.expect(":")?;
+            Item::Derive(parse_expr(cur)?, span)
+        }
+        "maxdepth" => Item::MaxDepth(parse_expr(cur)?, span),
         "width" => Item::Width(parse_expr(cur)?, span),
         "angle" => Item::Param("angle".to_string(), span, parse_expr(cur)?),
         "param" => {
@@ -213,7 +288,8 @@ pub(super) fn parse_line(cur: &mut Cursor<'_>) -> Result<Option<Item>, ParseErro
             cur.pos += cur.rest().find('\n').unwrap_or(cur.rest().len());
             Item::Module { name: n, span: s, formals, body }
         }
-        "axiom" => {
+        // `Axiom:` is L-Py's spelling.
+        "axiom" | "Axiom" => {
             cur.expect(":")?;
             Item::Axiom(successors(cur)?, span)
         }
@@ -232,13 +308,19 @@ pub(super) enum Ghost {
 
 pub(super) fn ghost(src: &str, pos: usize) -> Option<Ghost> {
     let mut cur = Cursor { src, pos, newlines_are_space: false };
+    if let Some(p) = define(&cur) {
+        cur.pos = p;
+        return Some(Ghost::Param(cur.ident()?.0.to_string()));
+    }
     let (word, _) = cur.ident()?;
     Some(match word {
         "module" => Ghost::Symbol(cur.ident()?.0.to_string()),
         "param" => Ghost::Param(cur.ident()?.0.to_string()),
         "angle" => Ghost::Param("angle".to_string()),
         w => match KEYWORDS.iter().find(|&&k| k == w) {
+            Some(&"Axiom") => Ghost::Directive("axiom"),
             Some(k) => Ghost::Directive(k),
+            None if w == "derivation" => Ghost::Directive("derive"),
             None => Ghost::Symbol(w.to_string()),
         },
     })

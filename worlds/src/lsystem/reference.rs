@@ -44,16 +44,16 @@ pub enum RewriteError {
     NotTerminal(String),
 }
 
-struct Root {
+pub(super) struct Root {
     rng: InstanceRng,
     env: Vec<f32>,
     counter: u64,
-    derive: f32,
+    pub(super) derive: f32,
     width: f32,
 }
 
 /// The instance's parameters and the root calculation `_d = derive, _w = width`, in the root RNG context.
-fn root(ls: &LSystem, instance: &Instance) -> Result<Root, RewriteError> {
+pub(super) fn root(ls: &LSystem, instance: &Instance) -> Result<Root, RewriteError> {
     let mut rng = InstanceRng::new(instance.seed);
     let (env, counter) = instance_params(&ls.graph, instance, &mut rng)?;
     let detail = f32::from(instance.detail);
@@ -108,7 +108,8 @@ impl Rewriter<'_> {
 /// Derive the terminal string of `ls` for `instance` by parallel rewriting (see the module docs). The remaining
 /// depth starts at the `derive` expression's value, or at `steps` if given (the expression is still evaluated,
 /// so the draws stay aligned); every step rewrites every non-terminal and lowers it by one; once it is `<= 0`
-/// every non-terminal takes its terminal production (or is erased).
+/// every non-terminal takes its terminal production, or stays if it has an interpretation rule, or is erased.
+/// After the axiom and after every step, each `%` is removed with the rest of its branch (ABOP's cut).
 pub fn rewrite(ls: &LSystem, instance: &Instance, steps: Option<u32>) -> Result<Vec<ModuleOcc>, RewriteError> {
     if let Some(s) = steps
         && s > MAX_REWRITE_STEPS
@@ -124,13 +125,17 @@ pub fn rewrite(ls: &LSystem, instance: &Instance, steps: Option<u32>) -> Result<
     let mut string = Vec::new();
     let mut counter = counter;
     r.expand(&ls.axiom, ROOT_KEY, &mut counter, &mut string)?;
+    string = cut(ls, string);
     let mut step = 0;
-    while string.iter().any(|m| ls.symbols[m.symbol as usize].kind == SymbolKind::NonTerminal) {
+    let mut last = false;
+    while !last && string.iter().any(|m| ls.symbols[m.symbol as usize].kind == SymbolKind::NonTerminal) {
         // One more pass than the limit: the last one only substitutes terminal productions.
         if step > MAX_REWRITE_STEPS {
             return Err(RewriteError::TooManySteps(MAX_REWRITE_STEPS));
         }
         step += 1;
+        // Every non-terminal takes its final alternative in this pass: what stays after it is drawn as it is.
+        last = d <= 0.0;
         let mut next = Vec::with_capacity(string.len());
         for m in string {
             let sym = &ls.symbols[m.symbol as usize];
@@ -158,6 +163,9 @@ pub fn rewrite(ls: &LSystem, instance: &Instance, steps: Option<u32>) -> Result<
                 // Identity: the same module, called again with its own values.
                 let child = child_key(m.key, counter);
                 next.push(ModuleOcc { symbol: m.symbol, args: m.args, key: child, counter: 0 });
+            } else if sym.interpretation.is_some() {
+                // Left for the interpretation rule, which applies only when the string is drawn.
+                next.push(m);
             } else {
                 r.expand(&sym.terminal, m.key, &mut counter, &mut next)?;
             }
@@ -165,21 +173,71 @@ pub fn rewrite(ls: &LSystem, instance: &Instance, steps: Option<u32>) -> Result<
                 return Err(RewriteError::TooLong(MAX_STRING_LEN));
             }
         }
-        string = next;
+        string = cut(ls, next);
         d -= 1.0;
     }
     Ok(string)
 }
 
-/// Draw a terminal string with the turtle: a flat graph of the terminals' bodies, each after a calculation of its
-/// argument values, `[ ]` as separators, amplified for `instance` within `budget`.
+/// ABOP's cut: every `%` is removed together with the rest of its branch, up to (not including) the `]` that
+/// closes it, or to the end of the string.
+fn cut(ls: &LSystem, string: Vec<ModuleOcc>) -> Vec<ModuleOcc> {
+    if ls.cut_slot.is_none() {
+        return string;
+    }
+    let (cut, push, pop) = (Turtle::Cut.id(), Turtle::Push.id(), Turtle::Pop.id());
+    let mut out = Vec::with_capacity(string.len());
+    let mut depth = 0usize;
+    // The bracket depth of the branch being cut.
+    let mut cutting: Option<usize> = None;
+    for m in string {
+        if m.symbol == push {
+            depth += 1;
+        } else if m.symbol == pop {
+            if cutting == Some(depth) {
+                cutting = None;
+            }
+            depth = depth.saturating_sub(1);
+        } else if m.symbol == cut && cutting.is_none() {
+            cutting = Some(depth);
+        }
+        if cutting.is_none() {
+            out.push(m);
+        }
+    }
+    out
+}
+
+/// Draw a terminal string with the turtle: first every module with an interpretation rule is replaced by the
+/// rule's terminals (the homomorphism), then a flat graph of the terminals' bodies, each after a calculation of
+/// its argument values, `[ ]` as separators, is amplified for `instance` within `budget`.
 pub fn interpret(
     ls: &LSystem,
     instance: &Instance,
     string: &[ModuleOcc],
     budget: &Budget,
 ) -> Result<PrimitiveStream, RewriteError> {
-    let r = root(ls, instance)?;
+    let mut r = root(ls, instance)?;
+    let detail = f32::from(instance.detail);
+    let mut drawn: Vec<ModuleOcc> = Vec::with_capacity(string.len());
+    for m in string {
+        let interpretation = ls.symbols.get(m.symbol as usize).and_then(|s| Some((s, s.interpretation.as_ref()?)));
+        match interpretation {
+            Some((sym, succ)) if m.args.len() == sym.formals.len() => {
+                for (&slot, &v) in sym.formals.iter().zip(&m.args) {
+                    r.env[slot as usize] = v;
+                }
+                // Interpretation rules draw no random numbers; the context is the occurrence's for form's sake.
+                let mut ctx = Context { rng: &mut r.rng, key: m.key, counter: m.counter };
+                for s in succ {
+                    let args = s.args.iter().map(|e| eval(e, &r.env, detail, &mut ctx)).collect();
+                    drawn.push(ModuleOcc { symbol: s.symbol, args, key: m.key, counter: m.counter });
+                }
+            }
+            _ => drawn.push(m.clone()),
+        }
+    }
+    let string = &drawn;
     let mut b = Builder { nodes: ls.graph.nodes.clone(), calcs: HashMap::new() };
     let init = b.push(Node::Calculation(vec![
         (ls.depth_slot, Expr::constant(r.derive)),
