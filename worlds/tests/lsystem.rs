@@ -737,3 +737,19 @@ fn lsystem_maxdepth_raises_the_limit() {
     let d = errors("derive 1\nmaxdepth 2000\nmaxdepth 3000\naxiom: F\n");
     assert!(d[0].message.contains("`maxdepth` given twice"), "{}", d[0].message);
 }
+
+#[test]
+fn lsystem_format_doc_example_compiles_and_equals_string_rewriting() {
+    let src = include_str!("../src/lsystem/mod.rs");
+    let start = src.find("//! ```text\n").expect("the format doc has an example") + "//! ```text\n".len();
+    let end = start + src[start..].find("//! ```\n").expect("the example ends");
+    let text: String =
+        src[start..end].lines().map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start())).collect();
+    assert!(text.contains("interpretation:") && text.contains("#define"), "{text}");
+    let (l, d) = LSystem::parse(&SourceFile::new("doc.lsys", text));
+    assert!(d.is_empty(), "{}", render(&d));
+    let l = l.unwrap();
+    assert_eq!(l.max_depth, 2048);
+    assert!(l.symbols[l.symbol("B").unwrap() as usize].interpretation.is_some());
+    assert_equivalent("format doc", &l, &[0, 1]);
+}

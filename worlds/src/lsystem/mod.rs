@@ -3,7 +3,7 @@
 //!
 //! # The format
 //!
-//! Line oriented; `#` starts a comment. Directives and productions, in any order:
+//! Line oriented; `#` starts a comment (except `#define`). Directives and productions, in any order:
 //!
 //! ```text
 //! lsystem Bush                 # name (optional; default: the file name without extension)
@@ -11,7 +11,9 @@
 //! angle 22.5                   # default turning angle in degrees; the same as `param angle = 22.5`
 //! width 0.1                    # initial line width (default 0.05)
 //! param len = uniform(0.8, 1.2)  # a species parameter; its default may draw and read earlier params
-//! palette (0.4,0.3,0.2) (0.2,0.6,0.2)   # colours for `'`
+//! #define LEAF 0.3             # cpfg's constants: the same as `param LEAF = 0.3`
+//! palette (0.4,0.3,0.2) (0.2,0.6,0.2)   # colours for `'`, `;` and `,`
+//! maxdepth 2048                # nesting the traversal must allow (default 1024, at most 8192), see below
 //! module L(s) = material(0.2, 0.7, 0.2) leaf((0,0,0), (0.1*s, 0.5*s, 0), (0, s, 0), (-0.1*s, 0.5*s, 0))
 //! axiom: A(1) B
 //! A(x) : x > 0.5 -> F(x) [ +(angle) A(x*0.7) ] [ -(angle) A(x*0.7) ]    # condition after `:`
@@ -19,17 +21,34 @@
 //! B -> F B : 0.3               # stochastic: weight after the successor
 //! B -> f B : 0.7
 //! A(x) => L(x)                 # terminal production, used once the depth is reached
+//! interpretation:              # (or `homomorphism:`) rules applied only when the final string is drawn
+//! B --> F(0.1) $ ;             # `-->` is L-Py's `->`
+//! production:                  # back to productions
 //! ```
 //!
-//! * **Non-terminals** are the symbols with productions (`->` or `=>`); **terminals** are the turtle symbols and
-//!   `module`-defined symbols. A symbol that is used but neither defined nor produced is an error, and so is a
-//!   non-terminal in a terminal production (`=>`). A non-terminal without `=>` is erased at the end.
+//! * L-Py's spellings `Axiom:`, `derivation length: N`, `-->` and the section headers `production:`,
+//!   `interpretation:`, `homomorphism:` are accepted. What a DCG cannot express is an error that says why:
+//!   context-sensitive productions (`A < B > C -> …`: the traversal sees no neighbours, seed 001 §3.2 compiles
+//!   context-free L-systems) and `decomposition:` sections (rules applied again and again within one step).
+//! * **Non-terminals** are the symbols with productions (`->` or `=>`); **terminals** are the turtle symbols,
+//!   `module`-defined symbols and symbols with only an interpretation rule. A symbol that is used but neither
+//!   defined nor produced is an error, and so is a non-terminal in a terminal production (`=>`). A non-terminal
+//!   without `=>` is erased at the end, unless it has an interpretation rule.
+//! * **Interpretation rules** `X(p…) -> successor` (in an `interpretation:` or `homomorphism:` section) say how
+//!   `X` is drawn; they are not rewritten further. The successor holds turtle symbols and `module`s only (no
+//!   symbol with an interpretation rule of its own) and draws no random numbers; no condition, weight or `=>`.
+//!   A symbol with only an interpretation rule is a terminal; a non-terminal with one (and no `=>`) keeps the
+//!   occurrences left when the depth is reached, and they are drawn by the rule.
 //! * Successor modules are names (`A`, `Apex(x, 2)`, separated by spaces or punctuation) or the turtle symbols
 //!   (heading = local +Y, the primitives' axis): `F(l)` cylinder of radius = width and height `l`, then move `l`
 //!   (default 1); `f(l)` move; `+(a)`/`-(a)` rotate ±a about Z; `&(a)`/`^(a)` ±a about X; `\(a)`/`/(a)` ±a about
 //!   Y (default `angle`); `|` turn 180° about Z; `[` `]` push/pop the turtle; `!(w)` set the width, `!` multiply
 //!   it by 0.7; `'(r,g,b)` set the colour, `'` advance the colour index (starting at 0) and take that palette entry
-//!   (1-based, clamped to the last). Width and colour index are turtle state: `]` restores them.
+//!   (1-based, clamped to the last); `;` is the same as `'`, `,` lowers the index (not below 1) and takes that
+//!   entry, `;(i)` and `,(i)` set it to `i`. Width and colour index are turtle state: `]` restores them. `$` rolls
+//!   the turtle about its heading so that its left vector (-X) is horizontal (ABOP §1.6; up = the species' +Y;
+//!   no roll while the heading is vertical). `%` cuts the branch: what follows it up to the `]` that closes its
+//!   branch (or the end of the string) is removed (ABOP §1.10).
 //! * A `module` body is a list of the node calls of [`crate::nodes`] (`material`, `translate`, `cone`, `leaf`, …)
 //!   whose expressions read the module's formals and the species params. It is drawn in the turtle's frame and
 //!   leaves the turtle unchanged (it is a separator). Module bodies may not draw random numbers: randomness
@@ -38,25 +57,41 @@
 //!   carries a weight — one is chosen among those whose condition holds with probability proportional to its
 //!   weight (default 1). If none applies the module is left unchanged.
 //! * Expressions are those of [`crate::expr`]: the predecessor's formals, the species params, `detail`.
-//! * Limits: [`MAX_SYMBOLS`] symbols, [`MAX_PRODUCTIONS`] productions, [`MAX_FORMALS`] formals per module,
-//!   [`MAX_SUCCESSOR_LEN`] modules per successor, [`MAX_BRACKET_NESTING`] nested brackets, [`MAX_CHOOSE`]
-//!   productions for a stochastic symbol.
+//! * Limits: [`MAX_SYMBOLS`] symbols, [`MAX_PRODUCTIONS`] productions and interpretation rules, [`MAX_FORMALS`]
+//!   formals per module, [`MAX_SUCCESSOR_LEN`] modules per successor, [`MAX_BRACKET_NESTING`] nested brackets,
+//!   [`MAX_CHOOSE`] productions for a stochastic symbol.
+//! * **Depth.** Every derivation step nests one call (plus the brackets around it) deeper in the traversal, which
+//!   allows the budget's `max_depth` (1024 by default). `maxdepth N` asks for more, up to
+//!   [`MAX_DEPTH_LIMIT`](crate::amplify::MAX_DEPTH_LIMIT); the graph carries it as the parameter
+//!   [`DEPTH_PARAM`](crate::amplify::DEPTH_PARAM), so every amplifier honours it. [`LSystem::amplify`] reports a
+//!   derivation that still nests too deep with its depth and the production that nests deepest per step.
 //!
 //! # The DCG (seed 001 §3.2)
 //!
 //! Parameter slots: the species params, `_d` (remaining derivation steps), `_w` and `_c` (width and colour
-//! index, [`ParamScope::Turtle`]), one local slot `Sym.formal` per formal of every module. One
+//! index, [`ParamScope::Turtle`]); if the file uses them, `_x` (the cut flag, turtle), `_X.x … _Z.z` (the
+//! turtle's frame for `$`, turtle) and `_maxdepth`; then one local slot `Sym.formal` per formal of every module. One
 //! [`Node::Selection`] per non-terminal with children `[rhs_1 … rhs_n, identity, final]`, selected by
 //! `_d <= 0 ? n+1 : choice`. `rhs_i = Group[Calc(_d = _d - 1), successors…]`; a non-terminal successor
 //! `B(e…)` is `RecursionSeparator[Calc(B.p… = e…), <B's selection>]` (the cycle); a terminal is
 //! `Calc(T.p… = e…)` followed by a link to the symbol's one shared body node; `[…]` is a [`Node::Separator`].
-//! The root is `Group[Calc(_d = derive, _w = width, _c = 0), axiom…]`.
+//! The root is `Group[Calc(_d = derive, _w = width, _c = 0), axiom…]`. A symbol with an interpretation rule and
+//! no productions has the rule's successor nodes as its shared body; a non-terminal's interpretation rule is its
+//! `final` child.
+//!
+//! `%` is `Calc(_x = 1)`; `_x` is turtle state, so it flows out of calls and only the `]` that closes the branch
+//! restores it. With `%` in the file every terminal body is `Selection(_x)[body, Group[]]` and every selection
+//! node's expression is `_x > 0 ? n+2 : …` with an empty child `n+2`: after a cut nothing is drawn or expanded,
+//! while the argument calculations still draw, so the RNG stays aligned with the reference, which removes the
+//! branch from the string after every step. With `$` in the file every rotation body also turns the frame slots
+//! (`libm` sines and cosines), and `$` is a `Matrix` roll about Y computed from them.
 //!
 //! # The reference
 //!
 //! [`rewrite`] derives the module string by ordinary parallel rewriting, giving every non-terminal occurrence the
-//! RNG context the DCG traversal gives its recursion separator (see [`crate::rng`]); [`interpret`] draws a
-//! terminal string with the turtle. The two agree with [`amplify`] of the DCG bit for bit.
+//! RNG context the DCG traversal gives its recursion separator (see [`crate::rng`]) and cutting at every `%`;
+//! [`interpret`] applies the interpretation rules and draws the terminal string with the turtle. The two agree
+//! with [`amplify`] of the DCG bit for bit.
 //!
 //! [`ParamScope::Turtle`]: canopy_protocol::ParamScope::Turtle
 //! [`Node::Selection`]: canopy_protocol::Node::Selection
