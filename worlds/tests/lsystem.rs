@@ -690,6 +690,8 @@ fn lsystem_interpretation_mistakes_are_diagnosed() {
         "which has an interpretation rule itself",
     );
     one(&format!("{head}interpretation:\nA(x) -> F\n"), 6, "parameter(s) in its first production");
+    // A broken module used by an interpretation rule: errors, no panic.
+    one("derive 1\naxiom: X\nmodule M = frobnicate(1)\ninterpretation:\nX -> M F\n", 3, "unknown node call");
 }
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -752,4 +754,20 @@ fn lsystem_format_doc_example_compiles_and_equals_string_rewriting() {
     assert_eq!(l.max_depth, 2048);
     assert!(l.symbols[l.symbol("B").unwrap() as usize].interpretation.is_some());
     assert_equivalent("format doc", &l, &[0, 1]);
+}
+
+#[test]
+fn lsystem_mangled_new_syntax_never_panics() {
+    // Every grammar above with one character removed, and cut short at every character: diagnostics or an
+    // L-system, never a panic.
+    for text in
+        [CUT, ROLL, HOMOMORPHISM, "#define A 1\nmaxdepth 2000\nderive A\naxiom: B ; , $ %\ndecomposition:\nB -> F\n"]
+    {
+        let chars: Vec<(usize, char)> = text.char_indices().collect();
+        for &(i, c) in &chars {
+            let removed = format!("{}{}", &text[..i], &text[i + c.len_utf8()..]);
+            let _ = LSystem::parse(&SourceFile::new("m.lsys", removed));
+            let _ = LSystem::parse(&SourceFile::new("m.lsys", &text[..i]));
+        }
+    }
 }

@@ -665,10 +665,9 @@ impl Compiler<'_> {
         let mut body = self.b.push(body);
         // Rotations keep the turtle's frame up to date for `$`.
         let rotation = match t {
-            Turtle::TurnLeft | Turtle::TurnRight => Some(2),
+            Turtle::TurnLeft | Turtle::TurnRight | Turtle::TurnAround => Some(2),
             Turtle::PitchDown | Turtle::PitchUp => Some(0),
             Turtle::RollLeft | Turtle::RollRight => Some(1),
-            Turtle::TurnAround => Some(2),
             _ => None,
         };
         if let (Some(axis), Some(frame)) = (rotation, self.frame) {
@@ -830,7 +829,6 @@ impl Compiler<'_> {
     fn interpretation(&mut self, id: SymbolId, p: &Production) {
         let slots = self.symbols[id as usize].formals.clone();
         let scope: Vec<(String, u16)> = p.formals.iter().map(|f| f.0.clone()).zip(slots.iter().copied()).collect();
-        let before = self.errors.len();
         let succ = self.successors(&p.succ, &scope, true);
         for r in &p.succ {
             if let Some(&other) = self.by_name.get(&r.name)
@@ -845,7 +843,8 @@ impl Compiler<'_> {
             let msg = "an interpretation rule may not draw random numbers; pass a random argument instead";
             self.err(p.pred_span.clone(), msg);
         }
-        if self.errors.len() > before {
+        if !self.errors.is_empty() {
+            // Bodies are pointless once there are errors (and a broken module has none to link to).
             return;
         }
         let primitives = succ.iter().map(|s| self.symbols[s.symbol as usize].primitives).sum();
