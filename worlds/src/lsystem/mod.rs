@@ -48,7 +48,7 @@
 //!   entry, `;(i)` and `,(i)` set it to `i`. Width and colour index are turtle state: `]` restores them. `$` rolls
 //!   the turtle about its heading so that its left vector (-X) is horizontal (ABOP §1.6; up = the species' +Y;
 //!   no roll while the heading is vertical). `%` cuts the branch: what follows it up to the `]` that closes its
-//!   branch (or the end of the string) is removed (ABOP §1.10).
+//!   branch (or the end of the string) is removed (the cut of cpfg and L-Py).
 //! * A `module` body is a list of the node calls of [`crate::nodes`] (`material`, `translate`, `cone`, `leaf`, …)
 //!   whose expressions read the module's formals and the species params. It is drawn in the turtle's frame and
 //!   leaves the turtle unchanged (it is a separator). Module bodies may not draw random numbers: randomness
@@ -180,7 +180,7 @@ pub enum Turtle {
     SetColorIndex,
     /// `$`: roll about the heading so that the left vector is horizontal (ABOP §1.6).
     RollToHorizontal,
-    /// `%`: cut the rest of the branch, up to its closing `]` (ABOP §1.10).
+    /// `%`: cut the rest of the branch, up to its closing `]` (the cut of cpfg and L-Py).
     Cut,
     /// `[`: save the turtle.
     Push,
