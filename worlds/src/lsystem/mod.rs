@@ -62,7 +62,7 @@
 //!   [`MAX_CHOOSE`] productions for a stochastic symbol.
 //! * **Depth.** Every derivation step nests one call (plus the brackets around it) deeper in the traversal, which
 //!   allows the budget's `max_depth` (1024 by default). `maxdepth N` asks for more, up to
-//!   [`MAX_DEPTH_LIMIT`](crate::amplify::MAX_DEPTH_LIMIT); the graph carries it as the parameter
+//!   [`MAX_DEPTH_LIMIT`]; the graph carries it as the parameter
 //!   [`DEPTH_PARAM`](crate::amplify::DEPTH_PARAM), so every amplifier honours it. [`LSystem::amplify`] reports a
 //!   derivation that still nests too deep with its depth and the production that nests deepest per step.
 //!
