@@ -52,6 +52,27 @@ pub struct Budget {
     pub max_pending: u32,
 }
 
+/// The species parameter through which a species asks for more nesting than the budget's `max_depth` (an
+/// L-system's `maxdepth` directive): its default, a constant, is honoured up to [`MAX_DEPTH_LIMIT`].
+pub const DEPTH_PARAM: &str = "_maxdepth";
+/// The most nesting a species may ask for through [`DEPTH_PARAM`] (bounds the saved state: one parameter vector
+/// per level).
+pub const MAX_DEPTH_LIMIT: u32 = 8_192;
+
+impl Budget {
+    /// The nesting allowed when traversing `graph`: `max_depth`, or what the graph asks for through
+    /// [`DEPTH_PARAM`] if that is more (at most [`MAX_DEPTH_LIMIT`]).
+    pub fn depth_for(&self, graph: &SpeciesGraph) -> u32 {
+        let asked = graph.param_slot(DEPTH_PARAM).and_then(|s| graph.params[s as usize].default.as_constant());
+        match asked {
+            Some(d) if d.is_finite() && d > self.max_depth as f32 => {
+                (d as u32).min(MAX_DEPTH_LIMIT).max(self.max_depth)
+            }
+            _ => self.max_depth,
+        }
+    }
+}
+
 impl Default for Budget {
     fn default() -> Self {
         Budget { max_primitives: 1_000_000, max_depth: 1_024, max_steps: 100_000_000, max_pending: 1 << 20 }
@@ -142,6 +163,7 @@ pub fn amplify_into(
         graph.params.iter().enumerate().filter(|(_, p)| p.scope == ParamScope::Local).map(|(i, _)| i).collect();
     let all_local = local_slots.len() == params.len();
     let np = params.len();
+    let max_depth = budget.depth_for(graph);
 
     let mut transform = Transform::IDENTITY;
     let mut color = [0.8f32, 0.8, 0.8];
@@ -179,8 +201,8 @@ pub fn amplify_into(
     // context `(child_key(key, counter), 0)` (see `crate::rng`). `Task::EndRecursion` closes it.
     macro_rules! enter_frame {
         () => {{
-            if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
-                return Err(AmplifyError::Depth(budget.max_depth));
+            if (separators.len() + recursions.len()) as u32 >= max_depth {
+                return Err(AmplifyError::Depth(max_depth));
             }
             recursions.push(SavedRecursion {
                 key,
@@ -232,8 +254,8 @@ pub fn amplify_into(
                 tasks.extend(children.iter().rev().map(|&c| Task::Visit(c)));
             }
             Node::Separator(children) => {
-                if (separators.len() + recursions.len()) as u32 >= budget.max_depth {
-                    return Err(AmplifyError::Depth(budget.max_depth));
+                if (separators.len() + recursions.len()) as u32 >= max_depth {
+                    return Err(AmplifyError::Depth(max_depth));
                 }
                 separators.push(SavedSeparator { transform, color, params_at: saved_params.len() });
                 saved_params.extend_from_slice(&params);

@@ -5,8 +5,8 @@ use canopy_protocol::{Node, ParamScope};
 use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::{Diagnostic, SourceFile};
 use canopy_worlds::lsystem::{
-    LSystem, MAX_BRACKET_NESTING, MAX_FORMALS, MAX_PRODUCTIONS, MAX_SUCCESSOR_LEN, SymbolKind, Turtle, interpret,
-    parse_lsystem, reference_stream, rewrite,
+    DeriveError, LSystem, MAX_BRACKET_NESTING, MAX_FORMALS, MAX_PRODUCTIONS, MAX_SUCCESSOR_LEN, SymbolKind, Turtle,
+    interpret, parse_lsystem, reference_stream, rewrite,
 };
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream, Shape};
 
@@ -492,6 +492,282 @@ fn lsystem_species_files_parse_and_amplify() {
                 full.counts(),
                 coarse.primitives.len()
             );
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Syntax users bring from ABOP and L-Py.
+
+/// `%` inside branches, at the top level, after random draws and inside a terminal production.
+const CUT: &str = "
+derive 5 - detail
+angle 25
+axiom: A(0) [ & F % F A(0) ] F(0.5)
+A(n) : n > 2 -> F(uniform(0.5, 1)) % F A(n + 1)
+A(n) -> F(uniform(0.5, 1)) [ + A(n + 1) % F(uniform(0, 1)) A(n) ] [ - F A(n + 1) ] F(uniform(0.5, 1)) A(n + 1)
+A(n) => F(0.2) [ % F ] F
+";
+
+#[test]
+fn lsystem_cut_equals_string_rewriting() {
+    let l = lsys(CUT);
+    assert_equivalent("cut", &l, &[0, 1, 2]);
+    // The reference removes every `%` with the rest of its branch during the derivation.
+    let string = rewrite(&l, &Instance::new(3), None).unwrap();
+    assert!(string.iter().all(|m| m.symbol != Turtle::Cut.id()));
+    // Without the cuts the plant is bigger.
+    let uncut = lsys(&CUT.replace('%', ""));
+    let (a, b) = (dcg(&l, &Instance::new(3)), dcg(&uncut, &Instance::new(3)));
+    assert!(a.primitives.len() < b.primitives.len(), "{} >= {}", a.primitives.len(), b.primitives.len());
+}
+
+#[test]
+fn lsystem_cut_removes_the_rest_of_the_branch() {
+    let l = lsys("derive 0\naxiom: F(1) [ F(2) [ F(3) ] % F(4) [ F(5) ] F(6) ] F(7) % F(8) [ F(9) ]\n");
+    let s = dcg(&l, &Instance::new(0));
+    let heights: Vec<f32> =
+        s.primitives.iter().map(|p| if let Shape::Cylinder { height, .. } = p.shape { height } else { 0.0 }).collect();
+    assert_eq!(heights, [1.0, 2.0, 3.0, 7.0]);
+    assert_eq!(reference_stream(&l, &Instance::new(0), &Budget::default()).unwrap(), s);
+    // A cut branch calls nothing: the non-terminal after `%` is not expanded (its `=>` would draw).
+    let l = lsys("derive 3\naxiom: [ % A ] F\nA -> F A\nA => F\n");
+    assert_eq!(dcg(&l, &Instance::new(0)).primitives.len(), 1);
+}
+
+/// `$` after turns, pitches and rolls, in branches and across recursion.
+const ROLL: &str = "
+derive 4
+angle 30
+axiom: A
+A -> F [ & + A $ F ] / / & A $ [ ^ - F A ] \\ | F
+A => F $ F
+";
+
+#[test]
+fn lsystem_roll_to_horizontal_equals_string_rewriting() {
+    let l = lsys(ROLL);
+    assert_equivalent("roll to horizontal", &l, &[0, 1]);
+}
+
+#[test]
+fn lsystem_roll_to_horizontal_levels_the_left_vector() {
+    let l = lsys("derive 0\nangle 35\naxiom: & + / / & - F(1) $ F(1) [ ^ ^ $ F(1) ] | & $ F(1)\n");
+    let s = dcg(&l, &Instance::new(0));
+    // Column j of the rotation is the local axis j; left is -X, the heading Y.
+    let col = |i: usize, j: usize| {
+        let m = s.primitives[i].transform.m;
+        [m[j], m[4 + j], m[8 + j]]
+    };
+    assert!(col(0, 0)[1].abs() > 0.1, "the first cylinder's left vector is tilted: {:?}", col(0, 0));
+    for i in 1..4 {
+        assert!(col(i, 0)[1].abs() < 1e-5, "cylinder {i}: left vector {:?} not horizontal", col(i, 0));
+        let x = col(i, 0);
+        assert!((x[0] * x[0] + x[2] * x[2] - 1.0).abs() < 1e-5, "cylinder {i}: still a unit vector");
+    }
+    // `$` rolls about the heading: the heading does not change.
+    let (h0, h1) = (col(0, 1), col(1, 1));
+    assert!(h0.iter().zip(h1).all(|(a, b)| (a - b).abs() < 1e-5), "{h0:?} -> {h1:?}");
+    // Left is horizontal and up points up: the heading's side of the frame faces the sky.
+    assert!(col(1, 2)[1] > 0.0, "up vector {:?}", col(1, 2));
+}
+
+/// Interpretation rules: a non-terminal drawn by its rule at the end, a terminal that is only interpreted.
+const HOMOMORPHISM: &str = "
+derive 4 - detail
+angle 20
+palette (0.3,0.2,0.1) (0.2,0.6,0.2)
+Axiom: A(1)
+production:
+A(s) -> I(s) [ + A(s * 0.8) Bud(s) ] [ - A(s * 0.7) ] I(s) A(s * 0.9)
+I(s) -> I(s) I(s * 0.5)
+interpretation:
+I(l) --> F(l * 0.3) !
+A(s) --> [ ' & F(0.1 * s) ]
+homomorphism:
+Bud(r) -> , f(r * 0.1) ' F(0.05)
+";
+
+#[test]
+fn lsystem_interpretation_rules_equal_string_rewriting() {
+    let l = lsys(HOMOMORPHISM);
+    assert_equivalent("homomorphism", &l, &[0, 1, 2]);
+    // The rules apply only when drawing: the derived string still holds `I`, `A` and `Bud`.
+    let inst = Instance::new(1);
+    let string = rewrite(&l, &inst, None).unwrap();
+    for name in ["I", "A", "Bud"] {
+        let id = l.symbol(name).unwrap();
+        assert!(string.iter().any(|m| m.symbol == id), "`{name}` is left in the string");
+    }
+    assert_eq!(l.primitive_count(&string), dcg(&l, &inst).primitives.len());
+    // `I(s)` is still rewritten by its production: after one step the three `A`s make two each and the two `I`s
+    // double.
+    let i = l.symbol("I").unwrap();
+    let count = |steps| rewrite(&l, &inst, Some(steps)).unwrap().iter().filter(|m| m.symbol == i).count();
+    assert_eq!((count(1), count(2)), (2, 10));
+    // An interpretation rule of a non-terminal draws what a terminal production would.
+    let terminal =
+        lsys(&HOMOMORPHISM.replace("I(l) --> F(l * 0.3) !\n", "").replace("production:\n", "I(l) => F(l * 0.3) !\n"));
+    assert_eq!(dcg(&terminal, &inst), dcg(&l, &inst));
+}
+
+#[test]
+fn lsystem_colour_index_up_and_down() {
+    let l = lsys(
+        "derive 0\npalette (1,0,0) (0,1,0) (0,0,1)\nmodule S = sphere(1)\naxiom: S ; S ; S , S , , S ;(3) S ,(2) S [ ; S ] S\n",
+    );
+    let s = dcg(&l, &Instance::new(0));
+    let colors: Vec<[f32; 3]> = s.primitives.iter().map(|p| p.color).collect();
+    let (r, g, b) = ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]);
+    assert_eq!(colors, [[0.8, 0.8, 0.8], r, g, r, r, b, g, b, g]);
+    // In a recursive grammar, against the reference.
+    let l = lsys(
+        "derive 4\nangle 30\npalette (1,0,0) (0,1,0) (0,0,1) (1,1,0)\naxiom: A\nA -> F ; [ + A , F ] ;(2) A , F\nA => , F ; F\n",
+    );
+    assert_equivalent("colour index", &l, &[0, 1]);
+}
+
+#[test]
+fn lsystem_define_constants() {
+    let text = "#define LEN 0.5\n  #define\tANG 10 * 3   # a comment\nderive 3\naxiom: A\nA -> F(LEN) [ +(ANG) A ] A\n";
+    let l = lsys(text);
+    assert!(l.graph.param_slot("LEN").is_some() && l.graph.param_slot("ANG").is_some());
+    assert_equivalent("define", &l, &[0]);
+    let spelled = lsys("param LEN = 0.5\nparam ANG = 10 * 3\nderive 3\naxiom: A\nA -> F(LEN) [ +(ANG) A ] A\n");
+    assert_eq!(dcg(&l, &Instance::new(0)), dcg(&spelled, &Instance::new(0)));
+    // A broken `#define` is an error on its line, and its name is not reported again where it is used.
+    let d = errors("derive 1\n#define LEN\naxiom: F(LEN)\n");
+    assert_eq!(d.len(), 1, "{}", render(&d));
+    assert_eq!((d[0].line, d[0].message.contains("expected an expression")), (2, true), "{}", render(&d));
+    // `#` followed by anything else is still a comment.
+    lsys("#defined behaviour\n#include nothing\nderive 1\naxiom: F\n");
+}
+
+#[test]
+fn lsystem_lpy_spellings_are_accepted() {
+    let a = lsys("derivation length: 3\nangle 30\nAxiom: A\nA --> F [ + A ] A\n");
+    let b = lsys("derive 3\nangle 30\naxiom: A\nA -> F [ + A ] A\n");
+    assert_eq!(dcg(&a, &Instance::new(0)), dcg(&b, &Instance::new(0)));
+}
+
+#[test]
+fn lsystem_context_sensitive_rules_are_explained() {
+    let d = errors("derive 1\naxiom: A B\nA < B > C -> F\nB -> F\n");
+    assert_eq!(d.len(), 1, "{}", render(&d));
+    assert_eq!((d[0].line, d[0].col), (3, 3));
+    assert!(d[0].message.contains("context-sensitive productions are not supported"), "{}", d[0].message);
+    assert!(d[0].message.contains("left context") && d[0].message.contains("seed 001 §3.2"), "{}", d[0].message);
+    let d = errors("derive 1\naxiom: A(1) B\nA(x) > B -> F\nB -> F\n");
+    assert_eq!((d[0].line, d[0].col), (3, 6));
+    assert!(d[0].message.contains("right context"), "{}", d[0].message);
+}
+
+#[test]
+fn lsystem_decomposition_sections_are_explained() {
+    let d = errors("derive 1\naxiom: A\nA -> F A\ndecomposition:\nA -> F F\nB(x) < C -> F\ninterpretation:\nA -> F\n");
+    assert_eq!(d.len(), 1, "only the header is reported:\n{}", render(&d));
+    assert_eq!((d[0].line, d[0].col, d[0].width), (4, 1, 14));
+    assert!(d[0].message.contains("`decomposition:` sections are not supported"), "{}", d[0].message);
+}
+
+#[test]
+fn lsystem_interpretation_mistakes_are_diagnosed() {
+    let one = |text: &str, line: usize, want: &str| {
+        let d = errors(text);
+        assert!(d.iter().any(|d| d.line == line && d.message.contains(want)), "want `{want}`:\n{}", render(&d));
+    };
+    let head = "derive 1\naxiom: A B\nA -> F A\nB -> F\n";
+    one(&format!("{head}interpretation:\nA => F\n"), 6, "written with `->`");
+    one(&format!("{head}interpretation:\nA : 1 -> F\n"), 6, "takes no condition");
+    one(&format!("{head}interpretation:\nA -> F(uniform(1, 2))\n"), 6, "may not draw random numbers");
+    one(&format!("{head}interpretation:\nA -> F\nA -> f\n"), 7, "second interpretation rule");
+    one(&format!("{head}interpretation:\nA -> B\n"), 6, "may only contain terminals");
+    one(&format!("{head}module M = sphere(1)\ninterpretation:\nM -> F\n"), 7, "defined by `module`");
+    one(&format!("{head}A => F\ninterpretation:\nA -> F\n"), 3, "both a terminal production");
+    one(
+        "derive 1\naxiom: L(1)\ninterpretation:\nL(s) -> F(s) P\nP -> f\n",
+        4,
+        "which has an interpretation rule itself",
+    );
+    one(&format!("{head}interpretation:\nA(x) -> F\n"), 6, "parameter(s) in its first production");
+    // A broken module used by an interpretation rule: errors, no panic.
+    one("derive 1\naxiom: X\nmodule M = frobnicate(1)\ninterpretation:\nX -> M F\n", 3, "unknown node call");
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Derivation depth.
+
+#[test]
+fn lsystem_depth_error_names_the_derivation_and_the_production() {
+    let l = lsys("derive 2000\nangle 10\naxiom: B A\nA -> F A   # apex\nB -> F [ + B ] B\n");
+    let e = l.amplify(&Instance::new(0), &Budget::default()).unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, DeriveError::TooDeep { limit: 1024, .. }), "{msg}");
+    assert!(msg.contains("derivation depth 2000"), "{msg}");
+    assert!(msg.contains("test.lsys:5:1 `B -> F [ + B ] B` nests 2 level(s)"), "{msg}");
+    assert!(msg.contains("`maxdepth N` (at most 8192)"), "{msg}");
+    assert!(!msg.contains("separator"), "{msg}");
+    // Within the limit nothing changes.
+    let l = lsys("derive 1000\naxiom: A\nA -> F A\n");
+    assert_eq!(l.amplify(&Instance::new(0), &Budget::default()).unwrap().primitives.len(), 1000);
+}
+
+#[test]
+fn lsystem_maxdepth_raises_the_limit() {
+    let text = "derive 3000\nmaxdepth 4000\naxiom: A\nA -> F(0.01) A\nA => F\n";
+    let l = lsys(text);
+    assert_eq!(l.max_depth, 4000);
+    // The graph carries the request, so plain amplification honours it too, and agrees with string rewriting.
+    let s = amplify(&l.graph, &Instance::new(0), &Budget::default()).unwrap();
+    assert_eq!(s.primitives.len(), 3001);
+    assert_eq!(l.amplify(&Instance::new(0), &Budget::default()).unwrap(), s);
+    assert_eq!(reference_stream(&l, &Instance::new(0), &Budget::default()).unwrap(), s);
+    // Still bounded: past the file's limit the error names it.
+    let l = lsys("derive 5000\nmaxdepth 4000\naxiom: A\nA -> F A\n");
+    let e = l.amplify(&Instance::new(0), &Budget::default()).unwrap_err();
+    assert!(matches!(e, DeriveError::TooDeep { limit: 4000, .. }), "{e}");
+    // A larger budget is not lowered by a smaller `maxdepth`.
+    let l = lsys("derive 10\nmaxdepth 5\naxiom: A\nA -> F A\n");
+    assert_eq!(l.max_depth, 1024);
+    assert_eq!(dcg(&l, &Instance::new(0)).primitives.len(), 10);
+    for bad in ["0", "8193", "1.5", "-3", "len"] {
+        let d = errors(&format!("derive 1\nmaxdepth {bad}\naxiom: F\n"));
+        assert!(d.iter().any(|d| d.line == 2), "{bad}: {}", render(&d));
+    }
+    let d = errors("derive 1\nmaxdepth 9000\naxiom: F\n");
+    assert!(d[0].message.contains("whole number from 1 to 8192"), "{}", d[0].message);
+    let d = errors("derive 1\nmaxdepth 2000\nmaxdepth 3000\naxiom: F\n");
+    assert!(d[0].message.contains("`maxdepth` given twice"), "{}", d[0].message);
+}
+
+#[test]
+fn lsystem_format_doc_example_compiles_and_equals_string_rewriting() {
+    let src = include_str!("../src/lsystem/mod.rs");
+    let start = src.find("//! ```text\n").expect("the format doc has an example") + "//! ```text\n".len();
+    let end = start + src[start..].find("//! ```\n").expect("the example ends");
+    let text: String =
+        src[start..end].lines().map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start())).collect();
+    assert!(text.contains("interpretation:") && text.contains("#define"), "{text}");
+    let (l, d) = LSystem::parse(&SourceFile::new("doc.lsys", text));
+    assert!(d.is_empty(), "{}", render(&d));
+    let l = l.unwrap();
+    assert_eq!(l.max_depth, 2048);
+    assert!(l.symbols[l.symbol("B").unwrap() as usize].interpretation.is_some());
+    assert_equivalent("format doc", &l, &[0, 1]);
+}
+
+#[test]
+fn lsystem_mangled_new_syntax_never_panics() {
+    // Every grammar above with one character removed, and cut short at every character: diagnostics or an
+    // L-system, never a panic.
+    for text in
+        [CUT, ROLL, HOMOMORPHISM, "#define A 1\nmaxdepth 2000\nderive A\naxiom: B ; , $ %\ndecomposition:\nB -> F\n"]
+    {
+        let chars: Vec<(usize, char)> = text.char_indices().collect();
+        for &(i, c) in &chars {
+            let removed = format!("{}{}", &text[..i], &text[i + c.len_utf8()..]);
+            let _ = LSystem::parse(&SourceFile::new("m.lsys", removed));
+            let _ = LSystem::parse(&SourceFile::new("m.lsys", &text[..i]));
         }
     }
 }
