@@ -1,0 +1,546 @@
+//! Per-frame selection, pure (no GPU, no clock, no threads): from the camera, the scene's instances, their
+//! level-of-detail state and what is resident, a [`FramePlan`] — which instance is in view, in which band and at
+//! which level, which geometry the workers must make, the far instances back to front, the geometry draw lists
+//! packed as the shaders read them, and the terrain chunks with their steps. The renderer submits the jobs and
+//! writes the plan's buffers; nothing here touches wgpu.
+
+use std::collections::HashSet;
+use std::ops::Range;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use super::cache::GeometryCache;
+use super::camera::{Camera, Frustum};
+use super::lod::{Band, InstanceLod, Level, LodConfig, projected_size};
+use super::scene::{Scene, SceneInstance};
+use super::stats::FrameStats;
+use super::terrain::TerrainMesh;
+use super::volume::instance_scale;
+use super::workers::TreeKey;
+
+/// Height of the bounding sphere's centre above the species origin, metres at scale 1, while the species'
+/// far-field volume (which gives the true sphere) is not known: about a mid-sized tree's crown.
+pub const FALLBACK_CENTER_HEIGHT: f32 = 6.0;
+/// Radius of that stand-in bounding sphere, metres at scale 1 (generous, so a tree is culled late rather than
+/// early).
+pub const FALLBACK_RADIUS: f32 = 8.0;
+/// Terrain chunks take the coarsest step whose grid squares are at most this many pixels on screen.
+pub const TERRAIN_SQUARE_PX: f32 = 12.0;
+/// Nearest distance, metres, a terrain chunk's step is chosen for (a chunk around the eye counts as this far).
+pub const TERRAIN_NEAREST: f32 = 1.0;
+/// Unit shapes of primitive instances (frusta, spheres, boxes: [`super::geometry::UnitShape`]).
+pub const UNIT_SHAPES: usize = 3;
+/// Tessellations of the unit meshes, one per detail level (coarser levels share the last).
+pub const TESSELLATIONS: usize = 4;
+/// Alignment of per-draw uniforms (the WebGPU minimum for dynamic offsets).
+pub const DRAW_STRIDE: u64 = 256;
+/// Draw slots: one per unit shape and tessellation, one for meshes, and spare.
+pub const DRAW_SLOTS: u64 = 16;
+const _: () = assert!((UNIT_SHAPES * TESSELLATIONS + 1) as u64 <= DRAW_SLOTS);
+/// Bytes of one [`DrawUniform`] within its slot.
+pub const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
+
+/// The tessellation of a detail level.
+pub fn tess(detail: u8) -> usize {
+    usize::from(detail).min(TESSELLATIONS - 1)
+}
+
+/// A run of one tree's primitives (or mesh indices) drawn at a position, as the shaders read it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct Segment {
+    /// First instance (or index) of the run within its draw.
+    pub first: u32,
+    /// First primitive (or index) in the arena.
+    pub base: u32,
+    /// First vertex in the arena (meshes).
+    pub vbase: u32,
+    /// Primitives (or indices) of the run.
+    pub count: u32,
+    /// World position of the species origin.
+    pub pos: [f32; 3],
+    /// Dither mask (see [`super::lod::LodDraw::mask`]).
+    pub mask: f32,
+}
+
+/// The uniform of one draw: its segments and unit shape.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct DrawUniform {
+    /// First segment in the frame's segment list.
+    pub seg_first: u32,
+    /// Segments.
+    pub seg_count: u32,
+    /// Unit shape (0 for meshes).
+    pub kind: u32,
+    /// Padding.
+    pub pad: u32,
+}
+
+/// One far instance as the volume pipeline reads it (a vertex buffer entry).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct FarInstance {
+    /// Position of the species origin and the instance scale.
+    pub pos_scale: [f32; 4],
+    /// Index of the volume (full or low resolution).
+    pub volume: u32,
+    /// Dither mask.
+    pub mask: f32,
+}
+
+/// One instanced primitive draw of the frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PrimDraw {
+    /// Unit shape.
+    pub shape: usize,
+    /// Tessellation.
+    pub tess: usize,
+    /// Uniform slot.
+    pub slot: u32,
+    /// Instances (primitives).
+    pub instances: u32,
+}
+
+/// One tree to draw from the geometry cache.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeoDraw {
+    /// The cached geometry.
+    pub key: TreeKey,
+    /// World position of the species origin.
+    pub position: [f32; 3],
+    /// Dither mask.
+    pub mask: f32,
+}
+
+/// Geometry the workers must make: a key for an instance, with its projected size as priority.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JobRequest {
+    /// What to make.
+    pub key: TreeKey,
+    /// Index of the instance in [`Scene::instances`] (its graph, seed and parameters).
+    pub instance: usize,
+    /// Projected size, pixels (bigger on screen first).
+    pub priority: f32,
+}
+
+/// A species' far-field volumes, resident in the atlas.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SpeciesVol {
+    /// Volume index at full resolution.
+    pub full: u32,
+    /// Volume index at the halved resolution.
+    pub low: u32,
+    /// Bounding sphere centre relative to the species origin, metres at scale 1.
+    pub center: Vec3,
+    /// Bounding sphere radius, metres at scale 1.
+    pub radius: f32,
+    /// The species' `height` parameter slot and the representative's value (instance scales).
+    pub height: Option<(u16, f32)>,
+}
+
+/// Where a species' far-field volumes stand.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum VolState {
+    /// Being voxelised.
+    Pending,
+    /// Resident.
+    Ready(SpeciesVol),
+    /// Voxelisation failed or the atlas is full: the species has no far field.
+    Failed,
+}
+
+/// One instance's selection state, carried across frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct InstState {
+    /// The instance id.
+    pub id: u32,
+    /// What it draws while levels change.
+    pub lod: InstanceLod,
+    /// The level chosen last (with hysteresis), whether or not it can be drawn.
+    pub target: Option<Level>,
+    /// The instance scale, once the species' volume gave its reference height.
+    pub scale: Option<f32>,
+}
+
+/// What is resident, as the selection sees it.
+#[derive(Clone, Copy, Debug)]
+pub struct Residency<'a> {
+    /// The geometry cache.
+    pub cache: &'a GeometryCache,
+    /// Far-field volumes by species id (`None`: not asked for yet).
+    pub volumes: &'a [Option<VolState>],
+}
+
+impl Residency<'_> {
+    fn volume(&self, species: u16) -> Option<SpeciesVol> {
+        match self.volumes.get(usize::from(species)).copied().flatten() {
+            Some(VolState::Ready(v)) => Some(v),
+            _ => None,
+        }
+    }
+
+    fn volume_pending(&self, species: u16) -> bool {
+        matches!(self.volumes.get(usize::from(species)), Some(Some(VolState::Pending)))
+    }
+}
+
+/// The camera as the selection needs it, and how far fades advance this frame.
+#[derive(Clone, Copy, Debug)]
+pub struct View {
+    /// The view frustum.
+    pub frustum: Frustum,
+    /// Eye position.
+    pub eye: Vec3,
+    /// `tan(fov_y / 2)`.
+    pub tan_half: f32,
+    /// Viewport height, pixels.
+    pub height_px: f32,
+    /// Fade progress of this frame (`dt / fade_seconds`; 1 switches at once).
+    pub progress: f32,
+}
+
+impl View {
+    /// The view of `camera` on a `size` viewport, `dt` seconds after the previous frame (`instant` finishes every
+    /// fade at once).
+    pub fn new(camera: &Camera, size: (u32, u32), near_clip: f32, lod: &LodConfig, dt: f32, instant: bool) -> View {
+        let (w, h) = size;
+        let vp = camera.view_projection(w as f32 / h as f32, near_clip);
+        let progress = if instant || lod.fade_seconds <= 0.0 { 1.0 } else { (dt / lod.fade_seconds).max(0.0) };
+        View {
+            frustum: Frustum::from_matrix(vp),
+            eye: camera.position,
+            tan_half: camera.tan_half_fov(),
+            height_px: h as f32,
+            progress,
+        }
+    }
+}
+
+/// Everything a frame's plan reads.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInputs<'a> {
+    /// The scene.
+    pub scene: &'a Scene,
+    /// What is resident.
+    pub residency: Residency<'a>,
+    /// Bands, thresholds, hysteresis and fade time.
+    pub lod: &'a LodConfig,
+    /// The camera.
+    pub view: View,
+    /// The terrain mesh, once there is one.
+    pub terrain: Option<&'a TerrainMesh>,
+    /// Jobs the workers can take now (the job bound less what is queued, running or waiting for upload).
+    pub job_room: usize,
+}
+
+/// The selection state of every instance, carried across frames and scene generations.
+#[derive(Debug)]
+pub struct LodState {
+    /// Per instance, in [`Scene::instances`] order.
+    pub inst: Vec<InstState>,
+    /// The previous generation's states while they are carried over (kept for its allocation).
+    spare: Vec<InstState>,
+    generation: Option<u64>,
+    /// Every level an instance can show, finest first (for stand-ins).
+    levels: Vec<Level>,
+    /// Switch levels at once instead of cross-fading (offscreen stills).
+    pub instant: bool,
+}
+
+impl LodState {
+    /// No instances yet; levels `0..=mid_levels` and the far field.
+    pub fn new(lod: &LodConfig) -> LodState {
+        LodState {
+            inst: Vec::new(),
+            spare: Vec::new(),
+            generation: None,
+            levels: (0..=lod.mid_levels).map(Level::Detail).chain([Level::Far]).collect(),
+            instant: false,
+        }
+    }
+
+    /// Follow a new scene generation: carry states over by id (both lists are sorted by id, so one merge pass; an
+    /// instance the old list does not have starts afresh).
+    pub fn sync(&mut self, generation: u64, instances: &[SceneInstance]) {
+        if self.generation == Some(generation) && self.inst.len() == instances.len() {
+            return;
+        }
+        let mut old = std::mem::replace(&mut self.inst, std::mem::take(&mut self.spare));
+        self.inst.clear();
+        let mut j = 0;
+        for i in instances {
+            while old.get(j).is_some_and(|s| s.id < i.id) {
+                j += 1;
+            }
+            self.inst.push(match old.get(j) {
+                Some(s) if s.id == i.id => *s,
+                _ => InstState { id: i.id, ..InstState::default() },
+            });
+        }
+        old.clear();
+        self.spare = old;
+        self.generation = Some(generation);
+    }
+}
+
+/// One frame's plan (see the module docs). Kept between frames so that a frame allocates only when a list grows.
+#[derive(Debug, Default)]
+pub struct FramePlan {
+    /// Trees to draw from the geometry cache, in instance order.
+    pub geo_draws: Vec<GeoDraw>,
+    /// Far instances with their distance, in instance order.
+    far: Vec<(f32, FarInstance)>,
+    /// Far instances back to front, as uploaded.
+    pub far_sorted: Vec<FarInstance>,
+    /// Geometry wanted and not pending, in instance order.
+    requests: Vec<JobRequest>,
+    /// Keys already taken into `jobs`.
+    requested: HashSet<TreeKey>,
+    /// Jobs to submit: biggest on screen first, each key once, within the job bound.
+    pub jobs: Vec<JobRequest>,
+    /// Segments per (unit shape, tessellation).
+    lists: [[Vec<Segment>; TESSELLATIONS]; UNIT_SHAPES],
+    /// Mesh segments.
+    meshes: Vec<Segment>,
+    /// Every segment of the frame, as uploaded (never empty: a zeroed one when nothing is drawn).
+    pub segments: Vec<Segment>,
+    /// The per-draw uniforms, as uploaded: [`DRAW_SLOTS`] slots of [`DRAW_STRIDE`] bytes.
+    pub uniforms: Vec<u8>,
+    /// Instanced primitive draws, by unit shape then tessellation.
+    pub prim_draws: Vec<PrimDraw>,
+    /// The mesh draw: uniform slot and index count.
+    pub mesh_draw: Option<(u32, u32)>,
+    /// Terrain index ranges to draw.
+    pub terrain_draws: Vec<Range<u32>>,
+}
+
+impl FramePlan {
+    /// Draw nothing but the sky.
+    pub fn clear(&mut self) {
+        self.geo_draws.clear();
+        self.far_sorted.clear();
+        self.jobs.clear();
+        self.prim_draws.clear();
+        self.mesh_draw = None;
+        self.terrain_draws.clear();
+    }
+
+    /// Far instances to draw.
+    pub fn far_count(&self) -> u32 {
+        self.far_sorted.len() as u32
+    }
+
+    /// Plan a frame: levels (stepping `state`), jobs, draw lists, far instances, terrain chunks; counts in `stats`.
+    /// The caller submits [`FramePlan::jobs`], marks the drawn keys used and uploads the lists.
+    pub fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
+        self.choose_levels(input, state, stats);
+        self.choose_jobs(input.job_room);
+        self.build_draw_lists(input.residency.cache, stats);
+        self.sort_far();
+        self.choose_terrain(input.terrain, &input.view, stats);
+        // The sky, the terrain chunks, the primitive draws, the meshes, the far field.
+        stats.draw_calls = 1
+            + self.terrain_draws.len() as u32
+            + self.prim_draws.len() as u32
+            + u32::from(self.mesh_draw.is_some())
+            + u32::from(!self.far_sorted.is_empty());
+    }
+
+    /// Cull, choose each instance's level with hysteresis, ask for what is missing, step the cross-fades and list
+    /// the draws.
+    fn choose_levels(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
+        let FrameInputs { scene, residency: res, lod, view, .. } = input;
+        self.geo_draws.clear();
+        self.far.clear();
+        self.requests.clear();
+        let LodState { inst, levels, .. } = state;
+        for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
+            let Some(graph) = scene.graph(si.species) else { continue };
+            let vs = res.volume(si.species);
+            let scale = match (st.scale, vs) {
+                (Some(s), _) => s,
+                (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
+                (None, None) => 1.0,
+            };
+            let (c_off, radius) = match vs {
+                Some(v) => (v.center * scale, v.radius * scale),
+                None => (Vec3::new(0.0, FALLBACK_CENTER_HEIGHT, 0.0) * scale, FALLBACK_RADIUS * scale),
+            };
+            let center = Vec3::from(si.position) + c_off;
+            if !view.frustum.sphere_visible(center, radius) {
+                continue;
+            }
+            let dist = (center - view.eye).length();
+            let size = projected_size(radius, dist, view.tan_half, view.height_px);
+            if size < lod.cull_px {
+                continue;
+            }
+            stats.in_view += 1;
+            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d };
+            let mut wanted = lod.select(st.target, size);
+            st.target = Some(wanted);
+            if let Level::Detail(d) = wanted
+                && res.cache.unavailable(&key(d))
+            {
+                wanted = Level::Far;
+            }
+            let ready = |l: Level| match l {
+                Level::Detail(d) => res.cache.get(&key(d)).is_some(),
+                Level::Far => vs.is_some(),
+            };
+            if !ready(wanted) {
+                match wanted {
+                    Level::Detail(d) => {
+                        if !res.cache.is_pending(&key(d)) {
+                            self.requests.push(JobRequest { key: key(d), instance: idx, priority: size });
+                        }
+                        stats.waiting += 1;
+                    }
+                    Level::Far => {
+                        if res.volume_pending(si.species) {
+                            stats.waiting += 1;
+                        }
+                    }
+                }
+            }
+            st.lod.step(wanted, view.progress, &ready, levels);
+            match st.lod.shown.map(Level::band) {
+                Some(Band::Near) => stats.near += 1,
+                Some(Band::Mid) => stats.mid += 1,
+                Some(Band::Far) => stats.far += 1,
+                None => stats.hidden += 1,
+            }
+            for d in st.lod.draws() {
+                match (d.level, vs) {
+                    (Level::Detail(det), _) => {
+                        self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
+                    }
+                    (Level::Far, Some(v)) => {
+                        let volume = if size < lod.low_res_px { v.low } else { v.full };
+                        let [x, y, z] = si.position;
+                        self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
+                    }
+                    (Level::Far, None) => {}
+                }
+            }
+        }
+    }
+
+    /// The requests biggest on screen first (stable among equals), each key once, at most `room`.
+    fn choose_jobs(&mut self, room: usize) {
+        self.requests.sort_by(|a, b| b.priority.total_cmp(&a.priority));
+        self.jobs.clear();
+        self.requested.clear();
+        for r in &self.requests {
+            if self.jobs.len() >= room {
+                break;
+            }
+            if self.requested.insert(r.key) {
+                self.jobs.push(*r);
+            }
+        }
+    }
+
+    /// Geometry draw lists: one per (unit shape, tessellation), one for meshes; packed into one segment list with
+    /// a uniform slot per draw.
+    fn build_draw_lists(&mut self, cache: &GeometryCache, stats: &mut FrameStats) {
+        self.lists.iter_mut().flatten().for_each(Vec::clear);
+        self.meshes.clear();
+        for g in &self.geo_draws {
+            let Some(e) = cache.get(&g.key) else { continue };
+            for (k, r) in e.shape_ranges.iter().enumerate() {
+                if r.is_empty() {
+                    continue;
+                }
+                self.lists[k][tess(g.key.detail)].push(Segment {
+                    first: 0,
+                    base: (e.prims.start + u64::from(r.start)) as u32,
+                    vbase: 0,
+                    count: r.len() as u32,
+                    pos: g.position,
+                    mask: g.mask,
+                });
+            }
+            if !e.indices.is_empty() {
+                self.meshes.push(Segment {
+                    first: 0,
+                    base: e.indices.start as u32,
+                    vbase: e.verts.start as u32,
+                    count: (e.indices.end - e.indices.start) as u32,
+                    pos: g.position,
+                    mask: g.mask,
+                });
+            }
+        }
+        self.segments.clear();
+        self.uniforms.clear();
+        self.uniforms.resize((DRAW_STRIDE * DRAW_SLOTS) as usize, 0);
+        self.prim_draws.clear();
+        let put = |u: DrawUniform, slot: u32, uniforms: &mut Vec<u8>| {
+            let at = (u64::from(slot) * DRAW_STRIDE) as usize;
+            uniforms[at..at + DRAW_UNIFORM_BYTES].copy_from_slice(bytemuck::bytes_of(&u));
+        };
+        // Number a list's segments within its draw and append them; (first segment, segments, instances).
+        let append = |list: &mut Vec<Segment>, all: &mut Vec<Segment>| -> (u32, u32, u32) {
+            let first = all.len() as u32;
+            let mut total = 0u32;
+            for s in list.iter_mut() {
+                s.first = total;
+                total += s.count;
+            }
+            all.extend_from_slice(list);
+            (first, list.len() as u32, total)
+        };
+        let mut slot = 0u32;
+        for (shape, per_tess) in self.lists.iter_mut().enumerate() {
+            for (t, list) in per_tess.iter_mut().enumerate() {
+                if list.is_empty() {
+                    continue;
+                }
+                let (first, count, total) = append(list, &mut self.segments);
+                let u = DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 };
+                put(u, slot, &mut self.uniforms);
+                self.prim_draws.push(PrimDraw { shape, tess: t, slot, instances: total });
+                stats.primitives += u64::from(total);
+                slot += 1;
+            }
+        }
+        self.mesh_draw = if self.meshes.is_empty() {
+            None
+        } else {
+            let (first, count, total) = append(&mut self.meshes, &mut self.segments);
+            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut self.uniforms);
+            stats.mesh_triangles = u64::from(total / 3);
+            Some((slot, total))
+        };
+        if self.segments.is_empty() {
+            self.segments.push(Segment::zeroed());
+        }
+    }
+
+    /// Far instances back to front (they blend).
+    fn sort_far(&mut self) {
+        self.far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+        self.far_sorted.clear();
+        self.far_sorted.extend(self.far.iter().map(|&(_, f)| f));
+    }
+
+    /// Terrain chunks in view, each at the coarsest step whose squares stay within [`TERRAIN_SQUARE_PX`].
+    fn choose_terrain(&mut self, terrain: Option<&TerrainMesh>, view: &View, stats: &mut FrameStats) {
+        self.terrain_draws.clear();
+        let Some(mesh) = terrain else { return };
+        let px_per_rad = view.height_px / (2.0 * view.tan_half);
+        for c in &mesh.chunks {
+            if !view.frustum.sphere_visible(c.center, c.radius) {
+                continue;
+            }
+            let d = ((c.center - view.eye).length() - c.radius).max(TERRAIN_NEAREST);
+            let r = c.levels[mesh.level_for(d, px_per_rad, TERRAIN_SQUARE_PX)].clone();
+            stats.terrain_triangles += u64::from(r.end - r.start) / 3;
+            self.terrain_draws.push(r);
+        }
+    }
+}
+
