@@ -263,3 +263,83 @@ impl GeometryCache {
     }
 }
 
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn geo(prims: usize, verts: usize, indices: usize) -> TreeGeometry {
+        TreeGeometry {
+            prims: vec![bytemuck::Zeroable::zeroed(); prims],
+            shape_ranges: [0..prims as u32, 0..0, 0..0],
+            vertices: vec![bytemuck::Zeroable::zeroed(); verts],
+            indices: vec![0; indices],
+            primitives: prims,
+        }
+    }
+
+    fn key(seed: u64) -> TreeKey {
+        TreeKey { species: 0, seed, detail: 0 }
+    }
+
+    #[test]
+    fn uploads_place_geometry_and_evict_the_least_recently_drawn() {
+        let mut c = GeometryCache::new(100, 100, 100);
+        let mut stats = FrameStats::default();
+        let mut placed = Vec::new();
+        for seed in 1..=2 {
+            assert!(c.mark_pending(key(seed)));
+            c.finished(key(seed), Ok(geo(40, 0, 0)));
+        }
+        c.upload(1, u64::MAX, &mut stats, &mut |g, p| placed.push((g.prims.len(), p.prims.clone())));
+        assert_eq!(placed, vec![(40, 0..40), (40, 40..80)]);
+        assert_eq!(c.get(&key(1)).map(|e| e.prims.clone()), Some(0..40));
+        assert!(!c.is_pending(&key(1)) && !c.is_pending(&key(2)));
+        assert_eq!(c.bytes_used(), 80 * size_of::<PrimInstance>() as u64);
+        // Frame 5 drew key 2 only; key 3 needs room: key 1 goes.
+        c.touch(key(2), 5);
+        c.finished(key(3), Ok(geo(40, 0, 0)));
+        let mut stats = FrameStats::default();
+        c.upload(6, u64::MAX, &mut stats, &mut |_, _| {});
+        assert_eq!(stats.evicted, 1);
+        assert!(c.get(&key(1)).is_none() && c.get(&key(2)).is_some() && c.get(&key(3)).is_some());
+    }
+
+    #[test]
+    fn what_the_last_frame_drew_is_never_evicted_and_the_newcomer_waits() {
+        let mut c = GeometryCache::new(100, 100, 100);
+        c.finished(key(1), Ok(geo(80, 0, 0)));
+        c.upload(1, u64::MAX, &mut FrameStats::default(), &mut |_, _| {});
+        c.touch(key(1), 9);
+        c.mark_pending(key(2));
+        c.finished(key(2), Ok(geo(80, 0, 0)));
+        let mut stats = FrameStats::default();
+        c.upload(10, u64::MAX, &mut stats, &mut |_, _| panic!("nothing fits"));
+        assert_eq!((stats.evicted, stats.deferred), (0, 1));
+        assert!(c.unavailable(&key(2)) && !c.is_pending(&key(2)));
+        c.expire_deferred(10 + DEFER_FRAMES - 1);
+        assert!(c.unavailable(&key(2)));
+        c.expire_deferred(10 + DEFER_FRAMES);
+        assert!(!c.unavailable(&key(2)), "asked for again after DEFER_FRAMES");
+    }
+
+    #[test]
+    fn the_budget_holds_back_all_but_the_first_upload_and_failures_are_remembered() {
+        let mut c = GeometryCache::new(1000, 1000, 1000);
+        for seed in 1..=3 {
+            c.finished(key(seed), Ok(geo(10, 0, 0)));
+        }
+        let one = geo(10, 0, 0).gpu_bytes();
+        let mut stats = FrameStats::default();
+        c.upload(1, one + one / 2, &mut stats, &mut |_, _| {});
+        assert_eq!((stats.uploaded_bytes, c.len(), c.uploads_waiting()), (one, 1, 2));
+        c.mark_pending(key(7));
+        c.finished(key(7), Ok(TreeGeometry::default()));
+        c.mark_pending(key(8));
+        c.finished(key(8), Err("too many primitives".into()));
+        c.finished(key(9), Ok(geo(2000, 0, 0)));
+        c.upload(2, u64::MAX, &mut FrameStats::default(), &mut |_, _| {});
+        assert_eq!(c.failed(), 3, "empty, failed and larger than the cache");
+        assert!(c.unavailable(&key(7)) && c.unavailable(&key(8)) && c.unavailable(&key(9)));
+        assert_eq!(c.len(), 3);
+    }
+}
