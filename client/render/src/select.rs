@@ -856,7 +856,7 @@ mod tests {
         // beyond the plane is within it. Its projected size is bigger too: instance 0 wants full detail.
         let mut g = Frame::new();
         g.run(&s, &GeometryCache::new(100, 100, 100), &[Some(VolState::Pending)], &view(0.0, true), 100);
-        assert!(R * 1.1 < FALLBACK_RADIUS);
+        const { assert!(R * 1.1 < FALLBACK_RADIUS) };
         assert_eq!(g.stats.in_view, 3, "all but the one behind and the one below a pixel");
         let jobs: Vec<_> = g.plan.jobs.iter().map(|j| (j.key, j.instance)).collect();
         assert_eq!(jobs, vec![(key(0, 0), 0), (key(0, 1), 2)], "instances 2 and 3 share a key");
