@@ -19,6 +19,7 @@
 //! drawn at the nearest resident level, or not at all.
 
 pub mod arena;
+mod cache;
 pub mod camera;
 pub mod compare;
 pub mod geometry;
@@ -28,6 +29,8 @@ pub mod offscreen;
 mod pipelines;
 mod renderer;
 pub mod scene;
+mod select;
+mod stats;
 mod terrain;
 pub mod volume;
 pub mod workers;

@@ -1,8 +1,9 @@
-//! The renderer proper (see the module docs of [`super`]): per-frame LOD selection, the geometry cache in GPU
-//! arenas, the far-field atlas, and the render pass.
+//! The renderer proper (see the module docs of [`super`]): it drives the workers, the geometry cache
+//! ([`super::cache`]) and the per-frame selection ([`super::select`]), and does everything that touches wgpu —
+//! buffer writes and bind groups for the plan of each frame, the GPU arenas, the far-field atlas, and the render
+//! pass.
 
-use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
-use std::ops::Range;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -13,71 +14,35 @@ use glam::{Mat4, Vec3};
 use wgpu::util::DeviceExt;
 
 use super::RenderConfig;
-use super::arena::Arena;
-use super::camera::{Camera, Frustum};
+use super::cache::{GeometryCache, INDEX_BYTES, Placement};
+use super::camera::Camera;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
-use super::lod::{Band, InstanceLod, Level, projected_size};
 use super::pipelines::{ATLAS_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
+use super::select::{
+    DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, SpeciesVol,
+    View, VolState,
+};
 use super::terrain::TerrainMesh;
-use super::volume::{FarVolume, instance_scale};
-use super::workers::{Job, JobResult, TreeKey, Workers};
+use super::volume::FarVolume;
+use super::workers::{Job, JobResult, Workers};
 
-/// What a frame did: the counts per band, the cache, the workers (for overlays, logs and tests).
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct FrameStats {
-    /// Instances in the scene.
-    pub instances: usize,
-    /// Instances in the view frustum and above the cull size.
-    pub in_view: usize,
-    /// Instances drawn at full detail.
-    pub near: usize,
-    /// Instances drawn with LOD substitutes.
-    pub mid: usize,
-    /// Instances drawn as hypertree volumes.
-    pub far: usize,
-    /// Instances in view whose wanted level is still being made or uploaded.
-    pub waiting: usize,
-    /// Instances in view with nothing to draw yet.
-    pub hidden: usize,
-    /// Primitive instances drawn.
-    pub primitives: u64,
-    /// Mesh triangles drawn (leaves, trunk bases, merged meshes).
-    pub mesh_triangles: u64,
-    /// Terrain triangles drawn.
-    pub terrain_triangles: u64,
-    /// Draw calls.
-    pub draw_calls: u32,
-    /// Geometry cache entries (species, seed, detail).
-    pub cache_entries: usize,
-    /// Bytes of the geometry arenas in use.
-    pub cache_bytes: u64,
-    /// Bytes of the geometry arenas in all (the cache's bound).
-    pub cache_capacity: u64,
-    /// Species whose far-field volumes are resident.
-    pub volumes: usize,
-    /// Jobs queued or running on the workers.
-    pub jobs: usize,
-    /// Finished geometry waiting for upload budget.
-    pub uploads_waiting: usize,
-    /// Bytes uploaded this frame.
-    pub uploaded_bytes: u64,
-    /// Cache entries evicted this frame.
-    pub evicted: usize,
-    /// Cache keys that failed to amplify (drawn far instead).
-    pub failed: usize,
-    /// Geometry given up this frame because the cache was full of what is in view (drawn at a stand-in level).
-    pub deferred: usize,
-    /// CPU time of [`Renderer::update`], milliseconds.
-    pub update_ms: f64,
-}
+pub use super::stats::FrameStats;
 
-impl FrameStats {
-    /// Whether nothing in view waits for a worker or an upload.
-    pub fn settled(&self) -> bool {
-        self.waiting == 0 && self.uploads_waiting == 0
-    }
-}
+/// Initial bytes of the segment buffer and of the far-instance buffer (both grow to the next power of two).
+const INITIAL_LIST_BYTES: u64 = 64 * 1024;
+/// Initial bytes of the volume-info buffer (a few dozen species).
+const INITIAL_VOLUME_INFO_BYTES: u64 = 4096;
+/// Priority of voxelisation jobs: before any amplification (priorities are projected sizes in pixels).
+const VOLUME_PRIORITY: f32 = f32::MAX;
+/// Atlas slots per row at most (the atlas grows by doubling its rows).
+const ATLAS_MAX_PER_ROW: u32 = 8;
+/// Bytes of one atlas texel ([`ATLAS_FORMAT`]: four halves).
+const ATLAS_TEXEL_BYTES: u32 = 4 * size_of::<u16>() as u32;
+/// Vertices of the sky's full-screen triangle.
+const SKY_VERTICES: u32 = 3;
+/// Vertices of a far instance's proxy box (12 triangles, no index buffer).
+const PROXY_BOX_VERTICES: u32 = 36;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -94,34 +59,6 @@ struct Globals {
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct Segment {
-    first: u32,
-    base: u32,
-    vbase: u32,
-    count: u32,
-    pos: [f32; 3],
-    mask: f32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct DrawUniform {
-    seg_first: u32,
-    seg_count: u32,
-    kind: u32,
-    pad: u32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct FarInstance {
-    pos_scale: [f32; 4],
-    volume: u32,
-    mask: f32,
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct VolumeInfo {
     atlas: [u32; 4],
     dims: [u32; 4],
@@ -129,46 +66,6 @@ struct VolumeInfo {
     lo: [f32; 4],
     hi: [f32; 4],
     origin: [f32; 4],
-}
-
-/// Frames before geometry that did not fit the cache is asked for again.
-const DEFER_FRAMES: u64 = 120;
-
-/// Alignment of per-draw uniforms (the WebGPU minimum for dynamic offsets).
-const DRAW_STRIDE: u64 = 256;
-/// Draw slots: 3 unit shapes × 4 tessellations + meshes.
-const DRAW_SLOTS: u64 = 16;
-
-struct CacheEntry {
-    prims: Range<u64>,
-    shape_ranges: [Range<u32>; 3],
-    verts: Range<u64>,
-    indices: Range<u64>,
-    last_used: u64,
-}
-
-#[derive(Clone, Copy, Debug)]
-struct SpeciesVol {
-    full: u32,
-    low: u32,
-    center: Vec3,
-    radius: f32,
-    height: Option<(u16, f32)>,
-}
-
-#[derive(Clone, Copy, Debug)]
-enum VolState {
-    Pending,
-    Ready(SpeciesVol),
-    Failed,
-}
-
-#[derive(Clone, Copy, Debug, Default)]
-struct InstState {
-    id: u32,
-    lod: InstanceLod,
-    target: Option<Level>,
-    scale: Option<f32>,
 }
 
 struct Atlas {
@@ -230,40 +127,8 @@ impl Growable {
     }
 }
 
-/// One draw of the frame.
-#[derive(Clone, Copy, Debug)]
-struct PrimDraw {
-    shape: usize,
-    tess: usize,
-    slot: u32,
-    instances: u32,
-}
-
-/// The working lists of [`Renderer::update`]'s selection, kept between frames so that a frame allocates only when
-/// one of them grows.
-#[derive(Default)]
-struct Scratch {
-    /// Geometry to draw: key, position, dither mask.
-    geo_draws: Vec<(TreeKey, [f32; 3], f32)>,
-    /// Far instances with their distance.
-    far: Vec<(f32, FarInstance)>,
-    /// Far instances back to front, as uploaded.
-    far_sorted: Vec<FarInstance>,
-    /// Geometry to ask the workers for: projected size, instance index, detail.
-    requests: Vec<(f32, usize, u8)>,
-    /// Segments per (unit shape, tessellation).
-    lists: [[Vec<Segment>; 4]; 3],
-    /// Mesh segments.
-    meshes: Vec<Segment>,
-    /// Every segment of the frame, as uploaded.
-    all: Vec<Segment>,
-    /// The per-draw uniforms, as uploaded.
-    uniforms: Vec<u8>,
-}
-
-/// The renderer (see the module docs of [`super`]).
-pub struct Renderer {
-    cfg: RenderConfig,
+/// The device, the target's size and depth buffer, the pipelines and the frame-wide uniforms.
+struct GpuCore {
     device: wgpu::Device,
     queue: wgpu::Queue,
     size: (u32, u32),
@@ -271,54 +136,72 @@ pub struct Renderer {
     p: Pipelines,
     globals: wgpu::Buffer,
     globals_bg: wgpu::BindGroup,
-    prim_buf: wgpu::Buffer,
-    prim_arena: Arena,
-    vert_buf: wgpu::Buffer,
-    vert_arena: Arena,
-    index_buf: wgpu::Buffer,
-    index_arena: Arena,
+}
+
+/// The GPU side of near and mid geometry: the arenas' buffers (their bookkeeping is the [`GeometryCache`]), the
+/// frame's segments and per-draw uniforms, and their bind groups.
+struct GeometryGpu {
+    prims: wgpu::Buffer,
+    verts: wgpu::Buffer,
+    indices: wgpu::Buffer,
     segments: Growable,
     draws: wgpu::Buffer,
     draw_bg: wgpu::BindGroup,
     prims_bg: Option<wgpu::BindGroup>,
     mesh_bg: Option<wgpu::BindGroup>,
-    far_buf: Growable,
-    volume_infos: Vec<VolumeInfo>,
-    volume_buf: Growable,
-    volume_bg: Option<wgpu::BindGroup>,
-    atlas: Option<Atlas>,
-    terrain: Option<TerrainGpu>,
-    workers: Workers,
-    received: VecDeque<JobResult>,
-    cache: HashMap<TreeKey, CacheEntry>,
-    lru: BTreeSet<(u64, TreeKey)>,
-    pending: HashSet<TreeKey>,
-    /// Keys whose geometry did not fit the cache, by the frame they were given up; retried after
-    /// [`DEFER_FRAMES`].
-    deferred: HashMap<TreeKey, u64>,
-    failed: HashSet<TreeKey>,
-    uploads: VecDeque<(TreeKey, TreeGeometry)>,
+}
+
+impl GeometryGpu {
+    /// Copy placed geometry into the arenas' buffers.
+    fn write(&self, queue: &wgpu::Queue, geo: &TreeGeometry, at: &Placement) {
+        if !geo.prims.is_empty() {
+            let offset = at.prims.start * size_of::<PrimInstance>() as u64;
+            queue.write_buffer(&self.prims, offset, bytemuck::cast_slice(&geo.prims));
+        }
+        if !geo.vertices.is_empty() {
+            let offset = at.verts.start * size_of::<MeshVertex>() as u64;
+            queue.write_buffer(&self.verts, offset, bytemuck::cast_slice(&geo.vertices));
+        }
+        if !geo.indices.is_empty() {
+            queue.write_buffer(&self.indices, at.indices.start * INDEX_BYTES, bytemuck::cast_slice(&geo.indices));
+        }
+    }
+}
+
+/// The far field: each species' volumes, the atlas holding them, their infos, and the frame's far instances.
+struct FarField {
+    /// Volume state by species id (`None`: not asked for yet).
     vols: Vec<Option<VolState>>,
-    inst: Vec<InstState>,
-    /// The previous scene generation's states while they are carried over (kept for its allocation).
-    inst_spare: Vec<InstState>,
-    generation: Option<u64>,
-    /// Every level an instance can show, finest first (for cross-fades).
-    levels: Vec<Level>,
-    scratch: Scratch,
+    atlas: Option<Atlas>,
+    infos: Vec<VolumeInfo>,
+    info_buf: Growable,
+    bg: Option<wgpu::BindGroup>,
+    instances: Growable,
+}
+
+/// The renderer (see the module docs of [`super`]).
+pub struct Renderer {
+    cfg: RenderConfig,
+    gpu: GpuCore,
+    geometry: GeometryGpu,
+    far: FarField,
+    terrain: Option<TerrainGpu>,
+    /// Which geometry is resident, pending, failed or waiting for upload.
+    cache: GeometryCache,
+    workers: Workers,
+    /// Results taken from the workers and not yet handled.
+    received: VecDeque<JobResult>,
+    /// Every instance's level-of-detail state.
+    lod: LodState,
+    /// This frame's plan (kept between frames for its allocations).
+    plan: FramePlan,
     frame: u64,
-    instant: bool,
-    // This frame's draw lists.
-    prim_draws: Vec<PrimDraw>,
-    mesh_draw: Option<(u32, u32)>,
-    far_count: u32,
-    terrain_draws: Vec<Range<u32>>,
     last: FrameStats,
 }
 
 impl std::fmt::Debug for Renderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Renderer").field("size", &self.size).field("frame", &self.frame).finish()
+        f.debug_struct("Renderer").field("size", &self.gpu.size).field("frame", &self.frame).finish()
     }
 }
 
@@ -335,10 +218,6 @@ fn depth_view(device: &wgpu::Device, (w, h): (u32, u32)) -> wgpu::TextureView {
             view_formats: &[],
         })
         .create_view(&wgpu::TextureViewDescriptor::default())
-}
-
-fn tess(detail: u8) -> usize {
-    usize::from(detail).min(3)
 }
 
 impl Renderer {
@@ -365,7 +244,7 @@ impl Renderer {
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let prim_units = cfg.prim_memory / size_of::<PrimInstance>() as u64;
         let vert_units = cfg.vertex_memory() / size_of::<MeshVertex>() as u64;
-        let index_units = cfg.index_memory() / 4;
+        let index_units = cfg.index_memory() / INDEX_BYTES;
         let buf = |label: &str, bytes: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -374,9 +253,6 @@ impl Renderer {
                 mapped_at_creation: false,
             })
         };
-        let prim_buf = buf("primitive arena", prim_units * size_of::<PrimInstance>() as u64);
-        let vert_buf = buf("vertex arena", vert_units * size_of::<MeshVertex>() as u64);
-        let index_buf = buf("index arena", index_units * 4);
         let draws = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("draws"),
             size: DRAW_STRIDE * DRAW_SLOTS,
@@ -391,56 +267,48 @@ impl Renderer {
                 resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                     buffer: &draws,
                     offset: 0,
-                    size: wgpu::BufferSize::new(16),
+                    size: wgpu::BufferSize::new(DRAW_UNIFORM_BYTES as u64),
                 }),
             }],
         });
-        let workers = Workers::new(cfg.workers)?;
-        Ok(Renderer {
-            depth: depth_view(device, size),
-            device: device.clone(),
-            queue: queue.clone(),
-            size,
-            p,
-            globals,
-            globals_bg,
-            prim_buf,
-            prim_arena: Arena::new(prim_units),
-            vert_buf,
-            vert_arena: Arena::new(vert_units),
-            index_buf,
-            index_arena: Arena::new(index_units),
-            segments: Growable::new(device, "segments", 64 * 1024, wgpu::BufferUsages::STORAGE),
+        let geometry = GeometryGpu {
+            prims: buf("primitive arena", prim_units * size_of::<PrimInstance>() as u64),
+            verts: buf("vertex arena", vert_units * size_of::<MeshVertex>() as u64),
+            indices: buf("index arena", index_units * INDEX_BYTES),
+            segments: Growable::new(device, "segments", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
             draws,
             draw_bg,
             prims_bg: None,
             mesh_bg: None,
-            far_buf: Growable::new(device, "far instances", 64 * 1024, wgpu::BufferUsages::VERTEX),
-            volume_infos: Vec::new(),
-            volume_buf: Growable::new(device, "volume infos", 4096, wgpu::BufferUsages::STORAGE),
-            volume_bg: None,
+        };
+        let far = FarField {
+            vols: Vec::new(),
             atlas: None,
+            infos: Vec::new(),
+            info_buf: Growable::new(device, "volume infos", INITIAL_VOLUME_INFO_BYTES, wgpu::BufferUsages::STORAGE),
+            bg: None,
+            instances: Growable::new(device, "far instances", INITIAL_LIST_BYTES, wgpu::BufferUsages::VERTEX),
+        };
+        let workers = Workers::new(cfg.workers)?;
+        Ok(Renderer {
+            gpu: GpuCore {
+                depth: depth_view(device, size),
+                device: device.clone(),
+                queue: queue.clone(),
+                size,
+                p,
+                globals,
+                globals_bg,
+            },
+            geometry,
+            far,
             terrain: None,
+            cache: GeometryCache::new(prim_units, vert_units, index_units),
             workers,
             received: VecDeque::new(),
-            cache: HashMap::new(),
-            lru: BTreeSet::new(),
-            pending: HashSet::new(),
-            deferred: HashMap::new(),
-            failed: HashSet::new(),
-            uploads: VecDeque::new(),
-            vols: Vec::new(),
-            inst: Vec::new(),
-            inst_spare: Vec::new(),
-            generation: None,
-            levels: (0..=cfg.lod.mid_levels).map(Level::Detail).chain([Level::Far]).collect(),
-            scratch: Scratch::default(),
+            lod: LodState::new(&cfg.lod),
+            plan: FramePlan::default(),
             frame: 0,
-            instant: false,
-            prim_draws: Vec::new(),
-            mesh_draw: None,
-            far_count: 0,
-            terrain_draws: Vec::new(),
             last: FrameStats::default(),
             cfg,
         })
@@ -448,13 +316,13 @@ impl Renderer {
 
     /// Switch levels at once instead of cross-fading (offscreen stills).
     pub fn set_instant_transitions(&mut self, instant: bool) {
-        self.instant = instant;
+        self.lod.instant = instant;
     }
 
     /// The target size changed.
     pub fn resize(&mut self, width: u32, height: u32) {
-        self.size = (width.max(1), height.max(1));
-        self.depth = depth_view(&self.device, self.size);
+        self.gpu.size = (width.max(1), height.max(1));
+        self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
     }
 
     /// Block up to `timeout` until a worker finishes something (offscreen rendering waits; the window never does).
@@ -477,21 +345,20 @@ impl Renderer {
         let mut stats = FrameStats::default();
         self.sync_scene(scene);
         self.collect();
-        let frame = self.frame;
-        self.deferred.retain(|_, at| *at + DEFER_FRAMES > frame);
-        self.upload(&mut stats);
+        self.cache.expire_deferred(self.frame);
+        let (gpu, geometry) = (&self.gpu, &self.geometry);
+        self.cache
+            .upload(self.frame, self.cfg.upload_budget, &mut stats, &mut |geo, at| geometry.write(&gpu.queue, geo, at));
         self.select(scene, camera, dt, &mut stats);
         self.write_globals(camera);
         stats.instances = scene.instances.len();
         stats.cache_entries = self.cache.len();
-        stats.cache_bytes = self.prim_arena.used() * size_of::<PrimInstance>() as u64
-            + self.vert_arena.used() * size_of::<MeshVertex>() as u64
-            + self.index_arena.used() * 4;
-        stats.cache_capacity = self.prim_buf.size() + self.vert_buf.size() + self.index_buf.size();
-        stats.volumes = self.vols.iter().filter(|v| matches!(v, Some(VolState::Ready(_)))).count();
+        stats.cache_bytes = self.cache.bytes_used();
+        stats.cache_capacity = self.geometry.prims.size() + self.geometry.verts.size() + self.geometry.indices.size();
+        stats.volumes = self.far.vols.iter().filter(|v| matches!(v, Some(VolState::Ready(_)))).count();
         stats.jobs = self.workers.outstanding() + self.received.len();
-        stats.uploads_waiting = self.uploads.len();
-        stats.failed = self.failed.len();
+        stats.uploads_waiting = self.cache.uploads_waiting();
+        stats.failed = self.cache.failed();
         stats.update_ms = started.elapsed().as_secs_f64() * 1e3;
         self.last = stats.clone();
         stats
@@ -504,42 +371,25 @@ impl Renderer {
         };
         if terrain_changed {
             let mesh = TerrainMesh::build(&scene.terrain);
-            let vertices = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            let vertices = self.gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("terrain vertices"),
                 contents: bytemuck::cast_slice(&mesh.vertices),
                 usage: wgpu::BufferUsages::VERTEX,
             });
-            let indices = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            let indices = self.gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("terrain indices"),
                 contents: bytemuck::cast_slice(&mesh.indices),
                 usage: wgpu::BufferUsages::INDEX,
             });
             self.terrain = Some(TerrainGpu { source: Arc::clone(&scene.terrain), mesh, vertices, indices });
         }
-        if self.generation != Some(scene.generation) || self.inst.len() != scene.instances.len() {
-            // Carry states over by id: both lists are sorted by id, so one merge pass (an instance the old list
-            // does not have starts afresh).
-            let mut old = std::mem::replace(&mut self.inst, std::mem::take(&mut self.inst_spare));
-            self.inst.clear();
-            let mut j = 0;
-            for i in &scene.instances {
-                while old.get(j).is_some_and(|s| s.id < i.id) {
-                    j += 1;
-                }
-                self.inst.push(match old.get(j) {
-                    Some(s) if s.id == i.id => *s,
-                    _ => InstState { id: i.id, ..InstState::default() },
-                });
-            }
-            old.clear();
-            self.inst_spare = old;
-            self.generation = Some(scene.generation);
-        }
-        if self.vols.len() < scene.species.len() {
-            self.vols.resize(scene.species.len(), None);
+        self.lod.sync(scene.generation, &scene.instances);
+        let vols = &mut self.far.vols;
+        if vols.len() < scene.species.len() {
+            vols.resize(scene.species.len(), None);
         }
         for (id, graph) in scene.species.iter().enumerate() {
-            let (Some(graph), None) = (graph, &self.vols[id]) else { continue };
+            let (Some(graph), None) = (graph, &vols[id]) else { continue };
             self.workers.submit(
                 Job::Volume {
                     species: id as u16,
@@ -549,9 +399,9 @@ impl Renderer {
                     budget: self.cfg.amplify_budget,
                     lighting: self.cfg.lighting.clone(),
                 },
-                f32::MAX,
+                VOLUME_PRIORITY,
             );
-            self.vols[id] = Some(VolState::Pending);
+            vols[id] = Some(VolState::Pending);
         }
     }
 
@@ -561,22 +411,7 @@ impl Renderer {
         }
         while let Some(r) = self.received.pop_front() {
             match r {
-                JobResult::Tree { key, result, .. } => {
-                    // A key stays pending until its geometry is uploaded (or given up), so it is not asked for
-                    // twice.
-                    match result {
-                        Ok(geo) if !geo.is_empty() => self.uploads.push_back((key, geo)),
-                        Ok(_) => {
-                            self.pending.remove(&key);
-                            self.failed.insert(key);
-                        }
-                        Err(e) => {
-                            self.pending.remove(&key);
-                            tracing::warn!("species {} seed {:#x} detail {}: {e}", key.species, key.seed, key.detail);
-                            self.failed.insert(key);
-                        }
-                    }
-                }
+                JobResult::Tree { key, result, .. } => self.cache.finished(key, result),
                 JobResult::Volume { species, result, took } => {
                     let state = match result {
                         Ok(v) => {
@@ -598,7 +433,7 @@ impl Renderer {
                             VolState::Failed
                         }
                     };
-                    if let Some(slot) = self.vols.get_mut(usize::from(species)) {
+                    if let Some(slot) = self.far.vols.get_mut(usize::from(species)) {
                         *slot = Some(state);
                     }
                 }
@@ -609,28 +444,29 @@ impl Renderer {
     /// Place a volume in the atlas (growing it if needed); returns its index and bounding sphere.
     fn add_volume(&mut self, v: Arc<FarVolume>) -> Option<(u32, Vec3, f32)> {
         let slot_edge = self.cfg.volume_resolution.next_power_of_two();
-        let max3d = self.device.limits().max_texture_dimension_3d;
+        let max3d = self.gpu.device.limits().max_texture_dimension_3d;
         if v.dims.iter().any(|&d| d > slot_edge) || slot_edge > max3d {
             return None;
         }
-        let per_row = (max3d / slot_edge).clamp(1, 8);
+        let per_row = (max3d / slot_edge).clamp(1, ATLAS_MAX_PER_ROW);
         let max_rows = (max3d / slot_edge).max(1);
-        let full = self.atlas.as_ref().is_some_and(|a| a.used >= a.per_row * a.rows);
-        if full && self.atlas.as_ref().is_some_and(|a| a.rows * 2 > max_rows) {
+        let far = &mut self.far;
+        let full = far.atlas.as_ref().is_some_and(|a| a.used >= a.per_row * a.rows);
+        if full && far.atlas.as_ref().is_some_and(|a| a.rows * 2 > max_rows) {
             return None;
         }
-        if self.atlas.is_none() || full {
-            let (rows, old) = match self.atlas.take() {
+        if far.atlas.is_none() || full {
+            let (rows, old) = match far.atlas.take() {
                 None => (1, Vec::new()),
                 Some(a) => (a.rows * 2, a.volumes),
             };
-            self.atlas = Some(self.make_atlas(slot_edge, per_row, rows, old));
+            far.atlas = Some(make_atlas(&self.gpu, slot_edge, per_row, rows, old));
         }
-        let atlas = self.atlas.as_mut()?;
+        let atlas = far.atlas.as_mut()?;
         let index = atlas.used;
         atlas.used += 1;
         atlas.volumes.push((index, Arc::clone(&v)));
-        let origin = Self::write_volume(&self.queue, atlas, index, &v);
+        let origin = write_volume(&self.gpu.queue, atlas, index, &v);
         let info = VolumeInfo {
             atlas: [origin[0], origin[1], origin[2], 0],
             dims: [v.dims[0], v.dims[1], v.dims[2], 0],
@@ -644,426 +480,91 @@ impl Renderer {
             hi: [v.aabb_max[0], v.aabb_max[1], v.aabb_max[2], 0.0],
             origin: [v.origin[0], v.origin[1], v.origin[2], 0.0],
         };
-        let id = self.volume_infos.len() as u32;
-        self.volume_infos.push(info);
-        self.volume_buf.write(&self.device, &self.queue, bytemuck::cast_slice(&self.volume_infos));
-        self.rebuild_volume_bg();
+        let id = far.infos.len() as u32;
+        far.infos.push(info);
+        far.info_buf.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&far.infos));
+        if let Some(atlas) = &far.atlas {
+            let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
+            far.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("volumes"),
+                layout: &self.gpu.p.volume_layout,
+                entries: &[
+                    wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
+                    wgpu::BindGroupEntry { binding: 1, resource: far.info_buf.buffer.as_entire_binding() },
+                ],
+            }));
+        }
         let (c, r) = v.bounding_sphere();
         Some((id, Vec3::from(c), r))
     }
 
-    fn make_atlas(&self, slot: u32, per_row: u32, rows: u32, volumes: Vec<(u32, Arc<FarVolume>)>) -> Atlas {
-        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("far-field atlas"),
-            size: wgpu::Extent3d { width: slot * per_row, height: slot, depth_or_array_layers: slot * rows },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D3,
-            format: ATLAS_FORMAT,
-            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
-            view_formats: &[],
-        });
-        let mut atlas = Atlas { texture, slot, per_row, rows, used: volumes.len() as u32, volumes };
-        for (index, v) in atlas.volumes.clone() {
-            Self::write_volume(&self.queue, &mut atlas, index, &v);
-        }
-        atlas
-    }
-
-    fn write_volume(queue: &wgpu::Queue, atlas: &mut Atlas, index: u32, v: &FarVolume) -> [u32; 3] {
-        let origin = [(index % atlas.per_row) * atlas.slot, 0, (index / atlas.per_row) * atlas.slot];
-        queue.write_texture(
-            wgpu::TexelCopyTextureInfo {
-                texture: &atlas.texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d { x: origin[0], y: origin[1], z: origin[2] },
-                aspect: wgpu::TextureAspect::All,
-            },
-            bytemuck::cast_slice(&v.texels),
-            wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(v.dims[0] * 8),
-                rows_per_image: Some(v.dims[1]),
-            },
-            wgpu::Extent3d { width: v.dims[0], height: v.dims[1], depth_or_array_layers: v.dims[2] },
-        );
-        origin
-    }
-
-    fn rebuild_volume_bg(&mut self) {
-        let Some(atlas) = &self.atlas else { return };
-        let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
-        self.volume_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("volumes"),
-            layout: &self.p.volume_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
-                wgpu::BindGroupEntry { binding: 1, resource: self.volume_buf.buffer.as_entire_binding() },
-            ],
-        }));
-    }
-
-    fn evict_one(&mut self) -> bool {
-        let Some(&(last, key)) = self.lru.iter().next() else { return false };
-        // Never evict what the previous frame drew: this frame most likely draws it again.
-        if last + 1 >= self.frame {
-            return false;
-        }
-        self.lru.remove(&(last, key));
-        if let Some(e) = self.cache.remove(&key) {
-            self.prim_arena.free(e.prims);
-            self.vert_arena.free(e.verts);
-            self.index_arena.free(e.indices);
-        }
-        true
-    }
-
-    fn upload(&mut self, stats: &mut FrameStats) {
-        while let Some((key, geo)) = self.uploads.front() {
-            let bytes = geo.gpu_bytes();
-            if stats.uploaded_bytes > 0 && stats.uploaded_bytes + bytes > self.cfg.upload_budget {
-                break;
-            }
-            let need = (geo.prims.len() as u64, geo.vertices.len() as u64, geo.indices.len() as u64);
-            if need.0 > self.prim_arena.capacity()
-                || need.1 > self.vert_arena.capacity()
-                || need.2 > self.index_arena.capacity()
-            {
-                tracing::warn!("species {} seed {:#x}: geometry larger than the cache", key.species, key.seed);
-                let key = *key;
-                self.pending.remove(&key);
-                self.failed.insert(key);
-                self.uploads.pop_front();
-                continue;
-            }
-            let ranges = loop {
-                let p = self.prim_arena.alloc(need.0);
-                let v = p.as_ref().and_then(|_| self.vert_arena.alloc(need.1));
-                let i = v.as_ref().and_then(|_| self.index_arena.alloc(need.2));
-                match (p, v, i) {
-                    (Some(p), Some(v), Some(i)) => break Some((p, v, i)),
-                    (p, v, _) => {
-                        if let Some(p) = p {
-                            self.prim_arena.free(p);
-                        }
-                        if let Some(v) = v {
-                            self.vert_arena.free(v);
-                        }
-                        if !self.evict_one() {
-                            break None;
-                        }
-                        stats.evicted += 1;
-                    }
-                }
-            };
-            let Some((pr, vr, ir)) = ranges else {
-                // The cache is full of what the last frames drew: this instance keeps its stand-in for a while
-                // (and asks again later), and smaller geometry behind it may still fit.
-                let (key, _) = self.uploads.pop_front().expect("front exists");
-                self.pending.remove(&key);
-                self.deferred.insert(key, self.frame);
-                stats.deferred += 1;
-                if stats.deferred >= 8 {
-                    break;
-                }
-                continue;
-            };
-            let (key, geo) = self.uploads.pop_front().expect("front exists");
-            self.pending.remove(&key);
-            if !geo.prims.is_empty() {
-                self.queue.write_buffer(&self.prim_buf, pr.start * 64, bytemuck::cast_slice(&geo.prims));
-            }
-            if !geo.vertices.is_empty() {
-                self.queue.write_buffer(&self.vert_buf, vr.start * 20, bytemuck::cast_slice(&geo.vertices));
-            }
-            if !geo.indices.is_empty() {
-                self.queue.write_buffer(&self.index_buf, ir.start * 4, bytemuck::cast_slice(&geo.indices));
-            }
-            stats.uploaded_bytes += bytes;
-            // A stale duplicate (requested again after an eviction) replaces the old entry.
-            if let Some(old) = self.cache.remove(&key) {
-                self.lru.remove(&(old.last_used, key));
-                self.prim_arena.free(old.prims);
-                self.vert_arena.free(old.verts);
-                self.index_arena.free(old.indices);
-            }
-            self.lru.insert((self.frame, key));
-            self.cache.insert(
-                key,
-                CacheEntry {
-                    prims: pr,
-                    shape_ranges: geo.shape_ranges.clone(),
-                    verts: vr,
-                    indices: ir,
-                    last_used: self.frame,
-                },
-            );
-        }
-    }
-
+    /// Plan the frame ([`FramePlan::plan`]), submit its jobs, mark what it draws as used, and write its lists.
     fn select(&mut self, scene: &Scene, camera: &Camera, dt: f32, stats: &mut FrameStats) {
-        let (w, h) = self.size;
-        let aspect = w as f32 / h as f32;
-        let vp = camera.view_projection(aspect, self.cfg.near_clip);
-        let frustum = Frustum::from_matrix(vp);
-        let eye = camera.position;
-        let tan_half = camera.tan_half_fov();
-        let height_px = h as f32;
-        let lod = &self.cfg.lod;
-        let progress = if self.instant || lod.fade_seconds <= 0.0 { 1.0 } else { (dt / lod.fade_seconds).max(0.0) };
-        let mut s = std::mem::take(&mut self.scratch);
-        s.geo_draws.clear();
-        s.far.clear();
-        s.requests.clear();
-        {
-            let Renderer { inst, vols, cache, pending, failed, deferred, levels, .. } = self;
-            let unavailable = |k: &TreeKey| failed.contains(k) || deferred.contains_key(k);
-            for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
-                let Some(graph) = scene.graph(si.species) else { continue };
-                let vs = match vols.get(usize::from(si.species)).copied().flatten() {
-                    Some(VolState::Ready(v)) => Some(v),
-                    _ => None,
-                };
-                let scale = match (st.scale, vs) {
-                    (Some(s), _) => s,
-                    (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
-                    (None, None) => 1.0,
-                };
-                let (c_off, radius) = match vs {
-                    Some(v) => (v.center * scale, v.radius * scale),
-                    None => (Vec3::new(0.0, 6.0, 0.0) * scale, 8.0 * scale),
-                };
-                let pos = Vec3::from(si.position);
-                let center = pos + c_off;
-                if !frustum.sphere_visible(center, radius) {
-                    continue;
-                }
-                let dist = (center - eye).length();
-                let size = projected_size(radius, dist, tan_half, height_px);
-                if size < lod.cull_px {
-                    continue;
-                }
-                stats.in_view += 1;
-                let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d };
-                let mut wanted = lod.select(st.target, size);
-                st.target = Some(wanted);
-                if let Level::Detail(d) = wanted
-                    && unavailable(&key(d))
-                {
-                    wanted = Level::Far;
-                }
-                let ready = |l: Level| match l {
-                    Level::Detail(d) => cache.contains_key(&key(d)),
-                    Level::Far => vs.is_some(),
-                };
-                if !ready(wanted) {
-                    match wanted {
-                        Level::Detail(d) => {
-                            let k = key(d);
-                            if !pending.contains(&k) {
-                                s.requests.push((size, idx, d));
-                            }
-                            stats.waiting += 1;
-                        }
-                        Level::Far => {
-                            if matches!(vols.get(usize::from(si.species)), Some(Some(VolState::Pending))) {
-                                stats.waiting += 1;
-                            }
-                        }
-                    }
-                }
-                st.lod.step(wanted, progress, &ready, levels);
-                match st.lod.shown.map(Level::band) {
-                    Some(Band::Near) => stats.near += 1,
-                    Some(Band::Mid) => stats.mid += 1,
-                    Some(Band::Far) => stats.far += 1,
-                    None => stats.hidden += 1,
-                }
-                for d in st.lod.draws() {
-                    match d.level {
-                        Level::Detail(det) => s.geo_draws.push((key(det), si.position, d.mask)),
-                        Level::Far => {
-                            if let Some(v) = vs {
-                                let volume = if size < lod.low_res_px { v.low } else { v.full };
-                                let fi = FarInstance {
-                                    pos_scale: [si.position[0], si.position[1], si.position[2], scale],
-                                    volume,
-                                    mask: d.mask,
-                                };
-                                s.far.push((dist, fi));
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        // Requests, biggest on screen first, within the job bound.
-        s.requests.sort_by(|a, b| b.0.total_cmp(&a.0));
-        for &(size, idx, d) in &s.requests {
-            if self.workers.outstanding() + self.uploads.len() >= self.cfg.max_jobs {
-                break;
-            }
-            let si = &scene.instances[idx];
+        let view = View::new(camera, self.gpu.size, self.cfg.near_clip, &self.cfg.lod, dt, self.lod.instant);
+        let room = self.cfg.max_jobs.saturating_sub(self.workers.outstanding() + self.cache.uploads_waiting());
+        let input = FrameInputs {
+            scene,
+            residency: Residency { cache: &self.cache, volumes: &self.far.vols },
+            lod: &self.cfg.lod,
+            view,
+            terrain: self.terrain.as_ref().map(|t| &t.mesh),
+            job_room: room,
+        };
+        self.plan.plan(&input, &mut self.lod, stats);
+        for j in &self.plan.jobs {
+            let si = &scene.instances[j.instance];
             let Some(graph) = scene.graph(si.species) else { continue };
-            let key = TreeKey { species: si.species, seed: si.seed, detail: d };
-            if !self.pending.insert(key) {
+            if !self.cache.mark_pending(j.key) {
                 continue;
             }
-            let instance = Instance { seed: si.seed, params: si.params.clone(), detail: d };
-            self.workers.submit(
-                Job::Tree {
-                    key,
-                    graph: Arc::clone(graph),
-                    instance,
-                    mode: self.cfg.near_mode,
-                    budget: self.cfg.amplify_budget,
-                },
-                size,
-            );
+            let instance = Instance { seed: si.seed, params: si.params.clone(), detail: j.key.detail };
+            let job = Job::Tree {
+                key: j.key,
+                graph: Arc::clone(graph),
+                instance,
+                mode: self.cfg.near_mode,
+                budget: self.cfg.amplify_budget,
+            };
+            self.workers.submit(job, j.priority);
         }
-        // Geometry draw lists: one per (unit shape, tessellation), one for meshes.
-        s.lists.iter_mut().flatten().for_each(Vec::clear);
-        s.meshes.clear();
-        for &(key, pos, mask) in &s.geo_draws {
-            let Some(e) = self.cache.get_mut(&key) else { continue };
-            if e.last_used != self.frame {
-                self.lru.remove(&(e.last_used, key));
-                self.lru.insert((self.frame, key));
-                e.last_used = self.frame;
-            }
-            for (k, r) in e.shape_ranges.iter().enumerate() {
-                if r.is_empty() {
-                    continue;
-                }
-                s.lists[k][tess(key.detail)].push(Segment {
-                    first: 0,
-                    base: (e.prims.start + u64::from(r.start)) as u32,
-                    vbase: 0,
-                    count: r.len() as u32,
-                    pos,
-                    mask,
-                });
-            }
-            if !e.indices.is_empty() {
-                s.meshes.push(Segment {
-                    first: 0,
-                    base: e.indices.start as u32,
-                    vbase: e.verts.start as u32,
-                    count: (e.indices.end - e.indices.start) as u32,
-                    pos,
-                    mask,
-                });
-            }
+        for g in &self.plan.geo_draws {
+            self.cache.touch(g.key, self.frame);
         }
-        s.all.clear();
-        s.uniforms.clear();
-        s.uniforms.resize((DRAW_STRIDE * DRAW_SLOTS) as usize, 0);
-        let mut slot = 0u32;
-        self.prim_draws.clear();
-        let put = |u: DrawUniform, slot: u32, uniforms: &mut Vec<u8>| {
-            let at = (u64::from(slot) * DRAW_STRIDE) as usize;
-            uniforms[at..at + 16].copy_from_slice(bytemuck::bytes_of(&u));
-        };
-        let append = |list: &mut Vec<Segment>, all: &mut Vec<Segment>| -> (u32, u32, u32) {
-            let first = all.len() as u32;
-            let mut total = 0u32;
-            for s in list.iter_mut() {
-                s.first = total;
-                total += s.count;
-            }
-            all.extend_from_slice(list);
-            (first, list.len() as u32, total)
-        };
-        for (shape, per_tess) in s.lists.iter_mut().enumerate() {
-            for (t, list) in per_tess.iter_mut().enumerate() {
-                if list.is_empty() {
-                    continue;
-                }
-                let (first, count, total) = append(list, &mut s.all);
-                put(
-                    DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 },
-                    slot,
-                    &mut s.uniforms,
-                );
-                self.prim_draws.push(PrimDraw { shape, tess: t, slot, instances: total });
-                stats.primitives += u64::from(total);
-                slot += 1;
-            }
-        }
-        self.mesh_draw = if s.meshes.is_empty() {
-            None
-        } else {
-            let (first, count, total) = append(&mut s.meshes, &mut s.all);
-            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut s.uniforms);
-            stats.mesh_triangles = u64::from(total / 3);
-            Some((slot, total))
-        };
-        self.queue.write_buffer(&self.draws, 0, &s.uniforms);
-        if s.all.is_empty() {
-            s.all.push(Segment::zeroed());
-        }
-        let grew = self.segments.write(&self.device, &self.queue, bytemuck::cast_slice(&s.all));
-        if grew || self.prims_bg.is_none() {
-            self.prims_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let (gpu, geo, far) = (&self.gpu, &mut self.geometry, &mut self.far);
+        gpu.queue.write_buffer(&geo.draws, 0, &self.plan.uniforms);
+        let grew = geo.segments.write(&gpu.device, &gpu.queue, bytemuck::cast_slice(&self.plan.segments));
+        if grew || geo.prims_bg.is_none() {
+            geo.prims_bg = Some(gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("prims"),
-                layout: &self.p.prims_layout,
+                layout: &gpu.p.prims_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.prim_buf.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: geo.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: geo.prims.as_entire_binding() },
                 ],
             }));
-            self.mesh_bg = Some(self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            geo.mesh_bg = Some(gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("meshes"),
-                layout: &self.p.mesh_layout,
+                layout: &gpu.p.mesh_layout,
                 entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: self.segments.buffer.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 1, resource: self.vert_buf.as_entire_binding() },
-                    wgpu::BindGroupEntry { binding: 2, resource: self.index_buf.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 0, resource: geo.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: geo.verts.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 2, resource: geo.indices.as_entire_binding() },
                 ],
             }));
         }
-        // Far instances back to front.
-        s.far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
-        s.far_sorted.clear();
-        s.far_sorted.extend(s.far.iter().map(|&(_, f)| f));
-        self.far_count = s.far_sorted.len() as u32;
-        if !s.far_sorted.is_empty() {
-            self.far_buf.write(&self.device, &self.queue, bytemuck::cast_slice(&s.far_sorted));
+        if !self.plan.far_sorted.is_empty() {
+            far.instances.write(&gpu.device, &gpu.queue, bytemuck::cast_slice(&self.plan.far_sorted));
         }
-        self.scratch = s;
-        // Terrain chunks.
-        self.terrain_draws.clear();
-        if let Some(t) = &self.terrain {
-            let px_per_m = height_px / (2.0 * tan_half);
-            for c in &t.mesh.chunks {
-                if !frustum.sphere_visible(c.center, c.radius) {
-                    continue;
-                }
-                let d = ((c.center - eye).length() - c.radius).max(1.0);
-                let level = t.mesh.level_for(d, px_per_m, 12.0);
-                let r = c.levels[level].clone();
-                stats.terrain_triangles += u64::from(r.end - r.start) / 3;
-                self.terrain_draws.push(r);
-            }
-        }
-        stats.draw_calls = 1
-            + self.terrain_draws.len() as u32
-            + self.prim_draws.len() as u32
-            + u32::from(self.mesh_draw.is_some())
-            + u32::from(self.far_count > 0);
     }
 
     /// Prepare a frame with nothing but the sky and whatever terrain is loaded (before any scene arrives).
     pub fn update_view(&mut self, camera: &Camera) {
-        self.prim_draws.clear();
-        self.mesh_draw = None;
-        self.far_count = 0;
-        self.terrain_draws.clear();
+        self.plan.clear();
         self.write_globals(camera);
     }
 
     fn write_globals(&self, camera: &Camera) {
-        let (w, h) = self.size;
+        let (w, h) = self.gpu.size;
         let vp: Mat4 = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
         let l = &self.cfg.lighting;
         let sun = Vec3::from(l.sun_direction).normalize_or(Vec3::Y);
@@ -1077,12 +578,13 @@ impl Renderer {
             sky_horizon: [l.sky_horizon[0], l.sky_horizon[1], l.sky_horizon[2], 0.0],
             viewport: [w as f32, h as f32, 1.0 / w as f32, 1.0 / h as f32],
         };
-        self.queue.write_buffer(&self.globals, 0, bytemuck::bytes_of(&g));
+        self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));
     }
 
     /// Encode and submit the frame prepared by [`Renderer::update`] into `view` (render).
     pub fn render(&mut self, view: &wgpu::TextureView) -> wgpu::SubmissionIndex {
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let gpu = &self.gpu;
+        let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         {
             let hz = self.cfg.lighting.sky_horizon;
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -1102,7 +604,7 @@ impl Renderer {
                     },
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &self.depth,
+                    view: &gpu.depth,
                     depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
                     stencil_ops: None,
                 }),
@@ -1110,45 +612,86 @@ impl Renderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_bind_group(0, &self.globals_bg, &[]);
-            pass.set_pipeline(&self.p.sky);
-            pass.draw(0..3, 0..1);
+            pass.set_bind_group(0, &gpu.globals_bg, &[]);
+            pass.set_pipeline(&gpu.p.sky);
+            pass.draw(0..SKY_VERTICES, 0..1);
             if let Some(t) = &self.terrain {
-                pass.set_pipeline(&self.p.terrain);
+                pass.set_pipeline(&gpu.p.terrain);
                 pass.set_vertex_buffer(0, t.vertices.slice(..));
                 pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
-                for r in &self.terrain_draws {
+                for r in &self.plan.terrain_draws {
                     pass.draw_indexed(r.clone(), 0, 0..1);
                 }
             }
-            if let (false, Some(bg)) = (self.prim_draws.is_empty(), &self.prims_bg) {
-                pass.set_pipeline(&self.p.prims);
+            let geo = &self.geometry;
+            if let (false, Some(bg)) = (self.plan.prim_draws.is_empty(), &geo.prims_bg) {
+                pass.set_pipeline(&gpu.p.prims);
                 pass.set_bind_group(1, bg, &[]);
-                for d in &self.prim_draws {
+                for d in &self.plan.prim_draws {
                     let mesh = match d.shape {
-                        0 => &self.p.frusta[d.tess],
-                        1 => &self.p.spheres[d.tess],
-                        _ => &self.p.cube,
+                        0 => &gpu.p.frusta[d.tess],
+                        1 => &gpu.p.spheres[d.tess],
+                        _ => &gpu.p.cube,
                     };
-                    pass.set_bind_group(2, &self.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
+                    pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
                     pass.set_vertex_buffer(0, mesh.vertices.slice(..));
                     pass.set_index_buffer(mesh.indices.slice(..), wgpu::IndexFormat::Uint16);
                     pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
                 }
             }
-            if let (Some((slot, count)), Some(bg)) = (self.mesh_draw, &self.mesh_bg) {
-                pass.set_pipeline(&self.p.mesh);
+            if let (Some((slot, count)), Some(bg)) = (self.plan.mesh_draw, &geo.mesh_bg) {
+                pass.set_pipeline(&gpu.p.mesh);
                 pass.set_bind_group(1, bg, &[]);
-                pass.set_bind_group(2, &self.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
+                pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
                 pass.draw(0..count, 0..1);
             }
-            if let (true, Some(bg)) = (self.far_count > 0, &self.volume_bg) {
-                pass.set_pipeline(&self.p.volume);
+            let far_count = self.plan.far_count();
+            if let (true, Some(bg)) = (far_count > 0, &self.far.bg) {
+                pass.set_pipeline(&gpu.p.volume);
                 pass.set_bind_group(1, bg, &[]);
-                pass.set_vertex_buffer(0, self.far_buf.buffer.slice(..u64::from(self.far_count) * 24));
-                pass.draw(0..36, 0..self.far_count);
+                let bytes = u64::from(far_count) * size_of::<FarInstance>() as u64;
+                pass.set_vertex_buffer(0, self.far.instances.buffer.slice(..bytes));
+                pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
             }
         }
-        self.queue.submit([enc.finish()])
+        gpu.queue.submit([enc.finish()])
     }
+}
+
+fn make_atlas(gpu: &GpuCore, slot: u32, per_row: u32, rows: u32, volumes: Vec<(u32, Arc<FarVolume>)>) -> Atlas {
+    let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("far-field atlas"),
+        size: wgpu::Extent3d { width: slot * per_row, height: slot, depth_or_array_layers: slot * rows },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D3,
+        format: ATLAS_FORMAT,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let mut atlas = Atlas { texture, slot, per_row, rows, used: volumes.len() as u32, volumes };
+    for (index, v) in atlas.volumes.clone() {
+        write_volume(&gpu.queue, &mut atlas, index, &v);
+    }
+    atlas
+}
+
+fn write_volume(queue: &wgpu::Queue, atlas: &mut Atlas, index: u32, v: &FarVolume) -> [u32; 3] {
+    let origin = [(index % atlas.per_row) * atlas.slot, 0, (index / atlas.per_row) * atlas.slot];
+    queue.write_texture(
+        wgpu::TexelCopyTextureInfo {
+            texture: &atlas.texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d { x: origin[0], y: origin[1], z: origin[2] },
+            aspect: wgpu::TextureAspect::All,
+        },
+        bytemuck::cast_slice(&v.texels),
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(v.dims[0] * ATLAS_TEXEL_BYTES),
+            rows_per_image: Some(v.dims[1]),
+        },
+        wgpu::Extent3d { width: v.dims[0], height: v.dims[1], depth_or_array_layers: v.dims[2] },
+    );
+    origin
 }

@@ -1,0 +1,917 @@
+//! Per-frame selection, pure (no GPU, no clock, no threads): from the camera, the scene's instances, their
+//! level-of-detail state and what is resident, a [`FramePlan`] — which instance is in view, in which band and at
+//! which level, which geometry the workers must make, the far instances back to front, the geometry draw lists
+//! packed as the shaders read them, and the terrain chunks with their steps. The renderer submits the jobs and
+//! writes the plan's buffers; nothing here touches wgpu.
+
+use std::collections::HashSet;
+use std::ops::Range;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use super::cache::GeometryCache;
+use super::camera::{Camera, Frustum};
+use super::lod::{Band, InstanceLod, Level, LodConfig, projected_size};
+use super::scene::{Scene, SceneInstance};
+use super::stats::FrameStats;
+use super::terrain::TerrainMesh;
+use super::volume::instance_scale;
+use super::workers::TreeKey;
+
+/// Height of the bounding sphere's centre above the species origin, metres at scale 1, while the species'
+/// far-field volume (which gives the true sphere) is not known: about a mid-sized tree's crown.
+pub const FALLBACK_CENTER_HEIGHT: f32 = 6.0;
+/// Radius of that stand-in bounding sphere, metres at scale 1 (generous, so a tree is culled late rather than
+/// early).
+pub const FALLBACK_RADIUS: f32 = 8.0;
+/// Terrain chunks take the coarsest step whose grid squares are at most this many pixels on screen.
+pub const TERRAIN_SQUARE_PX: f32 = 12.0;
+/// Nearest distance, metres, a terrain chunk's step is chosen for (a chunk around the eye counts as this far).
+pub const TERRAIN_NEAREST: f32 = 1.0;
+/// Unit shapes of primitive instances (frusta, spheres, boxes: [`super::geometry::UnitShape`]).
+pub const UNIT_SHAPES: usize = 3;
+/// Tessellations of the unit meshes, one per detail level (coarser levels share the last).
+pub const TESSELLATIONS: usize = 4;
+/// Alignment of per-draw uniforms (the WebGPU minimum for dynamic offsets).
+pub const DRAW_STRIDE: u64 = 256;
+/// Draw slots: one per unit shape and tessellation, one for meshes, and spare.
+pub const DRAW_SLOTS: u64 = 16;
+const _: () = assert!((UNIT_SHAPES * TESSELLATIONS + 1) as u64 <= DRAW_SLOTS);
+/// Bytes of one [`DrawUniform`] within its slot.
+pub const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
+
+/// The tessellation of a detail level.
+pub fn tess(detail: u8) -> usize {
+    usize::from(detail).min(TESSELLATIONS - 1)
+}
+
+/// A run of one tree's primitives (or mesh indices) drawn at a position, as the shaders read it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct Segment {
+    /// First instance (or index) of the run within its draw.
+    pub first: u32,
+    /// First primitive (or index) in the arena.
+    pub base: u32,
+    /// First vertex in the arena (meshes).
+    pub vbase: u32,
+    /// Primitives (or indices) of the run.
+    pub count: u32,
+    /// World position of the species origin.
+    pub pos: [f32; 3],
+    /// Dither mask (see [`super::lod::LodDraw::mask`]).
+    pub mask: f32,
+}
+
+/// The uniform of one draw: its segments and unit shape.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct DrawUniform {
+    /// First segment in the frame's segment list.
+    pub seg_first: u32,
+    /// Segments.
+    pub seg_count: u32,
+    /// Unit shape (0 for meshes).
+    pub kind: u32,
+    /// Padding.
+    pub pad: u32,
+}
+
+/// One far instance as the volume pipeline reads it (a vertex buffer entry).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct FarInstance {
+    /// Position of the species origin and the instance scale.
+    pub pos_scale: [f32; 4],
+    /// Index of the volume (full or low resolution).
+    pub volume: u32,
+    /// Dither mask.
+    pub mask: f32,
+}
+
+/// One instanced primitive draw of the frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PrimDraw {
+    /// Unit shape.
+    pub shape: usize,
+    /// Tessellation.
+    pub tess: usize,
+    /// Uniform slot.
+    pub slot: u32,
+    /// Instances (primitives).
+    pub instances: u32,
+}
+
+/// One tree to draw from the geometry cache.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GeoDraw {
+    /// The cached geometry.
+    pub key: TreeKey,
+    /// World position of the species origin.
+    pub position: [f32; 3],
+    /// Dither mask.
+    pub mask: f32,
+}
+
+/// Geometry the workers must make: a key for an instance, with its projected size as priority.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JobRequest {
+    /// What to make.
+    pub key: TreeKey,
+    /// Index of the instance in [`Scene::instances`] (its graph, seed and parameters).
+    pub instance: usize,
+    /// Projected size, pixels (bigger on screen first).
+    pub priority: f32,
+}
+
+/// A species' far-field volumes, resident in the atlas.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SpeciesVol {
+    /// Volume index at full resolution.
+    pub full: u32,
+    /// Volume index at the halved resolution.
+    pub low: u32,
+    /// Bounding sphere centre relative to the species origin, metres at scale 1.
+    pub center: Vec3,
+    /// Bounding sphere radius, metres at scale 1.
+    pub radius: f32,
+    /// The species' `height` parameter slot and the representative's value (instance scales).
+    pub height: Option<(u16, f32)>,
+}
+
+/// Where a species' far-field volumes stand.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum VolState {
+    /// Being voxelised.
+    Pending,
+    /// Resident.
+    Ready(SpeciesVol),
+    /// Voxelisation failed or the atlas is full: the species has no far field.
+    Failed,
+}
+
+/// One instance's selection state, carried across frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct InstState {
+    /// The instance id.
+    pub id: u32,
+    /// What it draws while levels change.
+    pub lod: InstanceLod,
+    /// The level chosen last (with hysteresis), whether or not it can be drawn.
+    pub target: Option<Level>,
+    /// The instance scale, once the species' volume gave its reference height.
+    pub scale: Option<f32>,
+}
+
+/// What is resident, as the selection sees it.
+#[derive(Clone, Copy, Debug)]
+pub struct Residency<'a> {
+    /// The geometry cache.
+    pub cache: &'a GeometryCache,
+    /// Far-field volumes by species id (`None`: not asked for yet).
+    pub volumes: &'a [Option<VolState>],
+}
+
+impl Residency<'_> {
+    fn volume(&self, species: u16) -> Option<SpeciesVol> {
+        match self.volumes.get(usize::from(species)).copied().flatten() {
+            Some(VolState::Ready(v)) => Some(v),
+            _ => None,
+        }
+    }
+
+    fn volume_pending(&self, species: u16) -> bool {
+        matches!(self.volumes.get(usize::from(species)), Some(Some(VolState::Pending)))
+    }
+}
+
+/// The camera as the selection needs it, and how far fades advance this frame.
+#[derive(Clone, Copy, Debug)]
+pub struct View {
+    /// The view frustum.
+    pub frustum: Frustum,
+    /// Eye position.
+    pub eye: Vec3,
+    /// `tan(fov_y / 2)`.
+    pub tan_half: f32,
+    /// Viewport height, pixels.
+    pub height_px: f32,
+    /// Fade progress of this frame (`dt / fade_seconds`; 1 switches at once).
+    pub progress: f32,
+}
+
+impl View {
+    /// The view of `camera` on a `size` viewport, `dt` seconds after the previous frame (`instant` finishes every
+    /// fade at once).
+    pub fn new(camera: &Camera, size: (u32, u32), near_clip: f32, lod: &LodConfig, dt: f32, instant: bool) -> View {
+        let (w, h) = size;
+        let vp = camera.view_projection(w as f32 / h as f32, near_clip);
+        let progress = if instant || lod.fade_seconds <= 0.0 { 1.0 } else { (dt / lod.fade_seconds).max(0.0) };
+        View {
+            frustum: Frustum::from_matrix(vp),
+            eye: camera.position,
+            tan_half: camera.tan_half_fov(),
+            height_px: h as f32,
+            progress,
+        }
+    }
+}
+
+/// Everything a frame's plan reads.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameInputs<'a> {
+    /// The scene.
+    pub scene: &'a Scene,
+    /// What is resident.
+    pub residency: Residency<'a>,
+    /// Bands, thresholds, hysteresis and fade time.
+    pub lod: &'a LodConfig,
+    /// The camera.
+    pub view: View,
+    /// The terrain mesh, once there is one.
+    pub terrain: Option<&'a TerrainMesh>,
+    /// Jobs the workers can take now (the job bound less what is queued, running or waiting for upload).
+    pub job_room: usize,
+}
+
+/// The selection state of every instance, carried across frames and scene generations.
+#[derive(Debug)]
+pub struct LodState {
+    /// Per instance, in [`Scene::instances`] order.
+    pub inst: Vec<InstState>,
+    /// The previous generation's states while they are carried over (kept for its allocation).
+    spare: Vec<InstState>,
+    generation: Option<u64>,
+    /// Every level an instance can show, finest first (for stand-ins).
+    levels: Vec<Level>,
+    /// Switch levels at once instead of cross-fading (offscreen stills).
+    pub instant: bool,
+}
+
+impl LodState {
+    /// No instances yet; levels `0..=mid_levels` and the far field.
+    pub fn new(lod: &LodConfig) -> LodState {
+        LodState {
+            inst: Vec::new(),
+            spare: Vec::new(),
+            generation: None,
+            levels: (0..=lod.mid_levels).map(Level::Detail).chain([Level::Far]).collect(),
+            instant: false,
+        }
+    }
+
+    /// Follow a new scene generation: carry states over by id (both lists are sorted by id, so one merge pass; an
+    /// instance the old list does not have starts afresh).
+    pub fn sync(&mut self, generation: u64, instances: &[SceneInstance]) {
+        if self.generation == Some(generation) && self.inst.len() == instances.len() {
+            return;
+        }
+        let mut old = std::mem::replace(&mut self.inst, std::mem::take(&mut self.spare));
+        self.inst.clear();
+        let mut j = 0;
+        for i in instances {
+            while old.get(j).is_some_and(|s| s.id < i.id) {
+                j += 1;
+            }
+            self.inst.push(match old.get(j) {
+                Some(s) if s.id == i.id => *s,
+                _ => InstState { id: i.id, ..InstState::default() },
+            });
+        }
+        old.clear();
+        self.spare = old;
+        self.generation = Some(generation);
+    }
+}
+
+/// One frame's plan (see the module docs). Kept between frames so that a frame allocates only when a list grows.
+#[derive(Debug, Default)]
+pub struct FramePlan {
+    /// Trees to draw from the geometry cache, in instance order.
+    pub geo_draws: Vec<GeoDraw>,
+    /// Far instances with their distance, in instance order.
+    far: Vec<(f32, FarInstance)>,
+    /// Far instances back to front, as uploaded.
+    pub far_sorted: Vec<FarInstance>,
+    /// Geometry wanted and not pending, in instance order.
+    requests: Vec<JobRequest>,
+    /// Keys already taken into `jobs`.
+    requested: HashSet<TreeKey>,
+    /// Jobs to submit: biggest on screen first, each key once, within the job bound.
+    pub jobs: Vec<JobRequest>,
+    /// Segments per (unit shape, tessellation).
+    lists: [[Vec<Segment>; TESSELLATIONS]; UNIT_SHAPES],
+    /// Mesh segments.
+    meshes: Vec<Segment>,
+    /// Every segment of the frame, as uploaded (never empty: a zeroed one when nothing is drawn).
+    pub segments: Vec<Segment>,
+    /// The per-draw uniforms, as uploaded: [`DRAW_SLOTS`] slots of [`DRAW_STRIDE`] bytes.
+    pub uniforms: Vec<u8>,
+    /// Instanced primitive draws, by unit shape then tessellation.
+    pub prim_draws: Vec<PrimDraw>,
+    /// The mesh draw: uniform slot and index count.
+    pub mesh_draw: Option<(u32, u32)>,
+    /// Terrain index ranges to draw.
+    pub terrain_draws: Vec<Range<u32>>,
+}
+
+impl FramePlan {
+    /// Draw nothing but the sky.
+    pub fn clear(&mut self) {
+        self.geo_draws.clear();
+        self.far_sorted.clear();
+        self.jobs.clear();
+        self.prim_draws.clear();
+        self.mesh_draw = None;
+        self.terrain_draws.clear();
+    }
+
+    /// Far instances to draw.
+    pub fn far_count(&self) -> u32 {
+        self.far_sorted.len() as u32
+    }
+
+    /// Plan a frame: levels (stepping `state`), jobs, draw lists, far instances, terrain chunks; counts in `stats`.
+    /// The caller submits [`FramePlan::jobs`], marks the drawn keys used and uploads the lists.
+    pub fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
+        self.choose_levels(input, state, stats);
+        self.choose_jobs(input.job_room);
+        self.build_draw_lists(input.residency.cache, stats);
+        self.sort_far();
+        self.choose_terrain(input.terrain, &input.view, stats);
+        // The sky, the terrain chunks, the primitive draws, the meshes, the far field.
+        stats.draw_calls = 1
+            + self.terrain_draws.len() as u32
+            + self.prim_draws.len() as u32
+            + u32::from(self.mesh_draw.is_some())
+            + u32::from(!self.far_sorted.is_empty());
+    }
+
+    /// Cull, choose each instance's level with hysteresis, ask for what is missing, step the cross-fades and list
+    /// the draws.
+    fn choose_levels(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
+        let FrameInputs { scene, residency: res, lod, view, .. } = input;
+        self.geo_draws.clear();
+        self.far.clear();
+        self.requests.clear();
+        let LodState { inst, levels, .. } = state;
+        for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
+            let Some(graph) = scene.graph(si.species) else { continue };
+            let vs = res.volume(si.species);
+            let scale = match (st.scale, vs) {
+                (Some(s), _) => s,
+                (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
+                (None, None) => 1.0,
+            };
+            let (c_off, radius) = match vs {
+                Some(v) => (v.center * scale, v.radius * scale),
+                None => (Vec3::new(0.0, FALLBACK_CENTER_HEIGHT, 0.0) * scale, FALLBACK_RADIUS * scale),
+            };
+            let center = Vec3::from(si.position) + c_off;
+            if !view.frustum.sphere_visible(center, radius) {
+                continue;
+            }
+            let dist = (center - view.eye).length();
+            let size = projected_size(radius, dist, view.tan_half, view.height_px);
+            if size < lod.cull_px {
+                continue;
+            }
+            stats.in_view += 1;
+            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d };
+            let mut wanted = lod.select(st.target, size);
+            st.target = Some(wanted);
+            if let Level::Detail(d) = wanted
+                && res.cache.unavailable(&key(d))
+            {
+                wanted = Level::Far;
+            }
+            let ready = |l: Level| match l {
+                Level::Detail(d) => res.cache.get(&key(d)).is_some(),
+                Level::Far => vs.is_some(),
+            };
+            if !ready(wanted) {
+                match wanted {
+                    Level::Detail(d) => {
+                        if !res.cache.is_pending(&key(d)) {
+                            self.requests.push(JobRequest { key: key(d), instance: idx, priority: size });
+                        }
+                        stats.waiting += 1;
+                    }
+                    Level::Far => {
+                        if res.volume_pending(si.species) {
+                            stats.waiting += 1;
+                        }
+                    }
+                }
+            }
+            st.lod.step(wanted, view.progress, &ready, levels);
+            match st.lod.shown.map(Level::band) {
+                Some(Band::Near) => stats.near += 1,
+                Some(Band::Mid) => stats.mid += 1,
+                Some(Band::Far) => stats.far += 1,
+                None => stats.hidden += 1,
+            }
+            for d in st.lod.draws() {
+                match (d.level, vs) {
+                    (Level::Detail(det), _) => {
+                        self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
+                    }
+                    (Level::Far, Some(v)) => {
+                        let volume = if size < lod.low_res_px { v.low } else { v.full };
+                        let [x, y, z] = si.position;
+                        self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
+                    }
+                    (Level::Far, None) => {}
+                }
+            }
+        }
+    }
+
+    /// The requests biggest on screen first (stable among equals), each key once, at most `room`.
+    fn choose_jobs(&mut self, room: usize) {
+        self.requests.sort_by(|a, b| b.priority.total_cmp(&a.priority));
+        self.jobs.clear();
+        self.requested.clear();
+        for r in &self.requests {
+            if self.jobs.len() >= room {
+                break;
+            }
+            if self.requested.insert(r.key) {
+                self.jobs.push(*r);
+            }
+        }
+    }
+
+    /// Geometry draw lists: one per (unit shape, tessellation), one for meshes; packed into one segment list with
+    /// a uniform slot per draw.
+    fn build_draw_lists(&mut self, cache: &GeometryCache, stats: &mut FrameStats) {
+        self.lists.iter_mut().flatten().for_each(Vec::clear);
+        self.meshes.clear();
+        for g in &self.geo_draws {
+            let Some(e) = cache.get(&g.key) else { continue };
+            for (k, r) in e.shape_ranges.iter().enumerate() {
+                if r.is_empty() {
+                    continue;
+                }
+                self.lists[k][tess(g.key.detail)].push(Segment {
+                    first: 0,
+                    base: (e.prims.start + u64::from(r.start)) as u32,
+                    vbase: 0,
+                    count: r.len() as u32,
+                    pos: g.position,
+                    mask: g.mask,
+                });
+            }
+            if !e.indices.is_empty() {
+                self.meshes.push(Segment {
+                    first: 0,
+                    base: e.indices.start as u32,
+                    vbase: e.verts.start as u32,
+                    count: (e.indices.end - e.indices.start) as u32,
+                    pos: g.position,
+                    mask: g.mask,
+                });
+            }
+        }
+        self.segments.clear();
+        self.uniforms.clear();
+        self.uniforms.resize((DRAW_STRIDE * DRAW_SLOTS) as usize, 0);
+        self.prim_draws.clear();
+        let put = |u: DrawUniform, slot: u32, uniforms: &mut Vec<u8>| {
+            let at = (u64::from(slot) * DRAW_STRIDE) as usize;
+            uniforms[at..at + DRAW_UNIFORM_BYTES].copy_from_slice(bytemuck::bytes_of(&u));
+        };
+        // Number a list's segments within its draw and append them; (first segment, segments, instances).
+        let append = |list: &mut Vec<Segment>, all: &mut Vec<Segment>| -> (u32, u32, u32) {
+            let first = all.len() as u32;
+            let mut total = 0u32;
+            for s in list.iter_mut() {
+                s.first = total;
+                total += s.count;
+            }
+            all.extend_from_slice(list);
+            (first, list.len() as u32, total)
+        };
+        let mut slot = 0u32;
+        for (shape, per_tess) in self.lists.iter_mut().enumerate() {
+            for (t, list) in per_tess.iter_mut().enumerate() {
+                if list.is_empty() {
+                    continue;
+                }
+                let (first, count, total) = append(list, &mut self.segments);
+                let u = DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 };
+                put(u, slot, &mut self.uniforms);
+                self.prim_draws.push(PrimDraw { shape, tess: t, slot, instances: total });
+                stats.primitives += u64::from(total);
+                slot += 1;
+            }
+        }
+        self.mesh_draw = if self.meshes.is_empty() {
+            None
+        } else {
+            let (first, count, total) = append(&mut self.meshes, &mut self.segments);
+            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut self.uniforms);
+            stats.mesh_triangles = u64::from(total / 3);
+            Some((slot, total))
+        };
+        if self.segments.is_empty() {
+            self.segments.push(Segment::zeroed());
+        }
+    }
+
+    /// Far instances back to front (they blend).
+    fn sort_far(&mut self) {
+        self.far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+        self.far_sorted.clear();
+        self.far_sorted.extend(self.far.iter().map(|&(_, f)| f));
+    }
+
+    /// Terrain chunks in view, each at the coarsest step whose squares stay within [`TERRAIN_SQUARE_PX`].
+    fn choose_terrain(&mut self, terrain: Option<&TerrainMesh>, view: &View, stats: &mut FrameStats) {
+        self.terrain_draws.clear();
+        let Some(mesh) = terrain else { return };
+        let px_per_rad = view.height_px / (2.0 * view.tan_half);
+        for c in &mesh.chunks {
+            if !view.frustum.sphere_visible(c.center, c.radius) {
+                continue;
+            }
+            let d = ((c.center - view.eye).length() - c.radius).max(TERRAIN_NEAREST);
+            let r = c.levels[mesh.level_for(d, px_per_rad, TERRAIN_SQUARE_PX)].clone();
+            stats.terrain_triangles += u64::from(r.end - r.start) / 3;
+            self.terrain_draws.push(r);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use canopy_worlds::world::{Terrain, World};
+
+    use super::*;
+    use crate::geometry::TreeGeometry;
+
+    const VIEWPORT: (u32, u32) = (1000, 1000);
+    /// Bounding radius of the test species' volume, metres.
+    const R: f32 = 5.0;
+
+    fn lod() -> LodConfig {
+        LodConfig { near_px: 400.0, far_px: 50.0, mid_levels: 3, low_res_px: 24.0, ..LodConfig::default() }
+    }
+
+    /// A camera at the origin looking along +z with a 60° field of view.
+    fn camera() -> Camera {
+        Camera { position: Vec3::ZERO, yaw: 0.0, pitch: 0.0, fov_y: 60.0 }
+    }
+
+    fn view(dt: f32, instant: bool) -> View {
+        View::new(&camera(), VIEWPORT, 0.1, &lod(), dt, instant)
+    }
+
+    /// The distance along +z at which the test volume's sphere is `px` pixels tall.
+    fn at_size(px: f32) -> [f32; 3] {
+        let tan_half = camera().tan_half_fov();
+        [0.0, 0.0, R * VIEWPORT.1 as f32 / (px * tan_half)]
+    }
+
+    fn instance(id: u32, seed: u64, position: [f32; 3]) -> SceneInstance {
+        SceneInstance { id, species: 0, position, seed, params: Vec::new() }
+    }
+
+    fn scene(instances: Vec<SceneInstance>) -> Scene {
+        let graph = canopy_worlds::library::find("conifer").unwrap().load().unwrap();
+        Scene {
+            species: vec![Some(Arc::new(graph))],
+            volumes: vec![None],
+            instances,
+            terrain: Arc::new(Terrain::flat([0.0, 0.0], 1.0)),
+            generation: 1,
+        }
+    }
+
+    fn key(seed: u64, detail: u8) -> TreeKey {
+        TreeKey { species: 0, seed, detail }
+    }
+
+    /// Geometry with `shapes[k]` primitives of unit shape `k` and `indices` mesh indices.
+    fn geometry(shapes: [u32; 3], indices: usize) -> TreeGeometry {
+        let mut start = 0;
+        let shape_ranges = shapes.map(|n| {
+            start += n;
+            start - n..start
+        });
+        TreeGeometry {
+            prims: vec![Zeroable::zeroed(); start as usize],
+            shape_ranges,
+            vertices: vec![Zeroable::zeroed(); indices],
+            indices: vec![0; indices],
+            primitives: start as usize,
+        }
+    }
+
+    /// A cache with these keys resident (ten frustum primitives each unless given).
+    fn resident(keys: &[(TreeKey, TreeGeometry)]) -> GeometryCache {
+        let mut c = GeometryCache::new(10_000, 10_000, 10_000);
+        for (k, g) in keys {
+            c.finished(*k, Ok(g.clone()));
+        }
+        c.upload(1, u64::MAX, &mut FrameStats::default(), &mut |_, _| {});
+        assert_eq!(c.len(), keys.len());
+        c
+    }
+
+    fn ready_volume() -> Vec<Option<VolState>> {
+        let v = SpeciesVol { full: 10, low: 11, center: Vec3::ZERO, radius: R, height: None };
+        vec![Some(VolState::Ready(v))]
+    }
+
+    /// Everything resident for seeds `seeds` at every detail.
+    fn all_resident(seeds: std::ops::RangeInclusive<u64>) -> GeometryCache {
+        let keys: Vec<_> = seeds.flat_map(|s| (0..=3).map(move |d| (key(s, d), geometry([10, 0, 0], 0)))).collect();
+        resident(&keys)
+    }
+
+    struct Frame {
+        plan: FramePlan,
+        state: LodState,
+        stats: FrameStats,
+    }
+
+    impl Frame {
+        fn new() -> Frame {
+            Frame { plan: FramePlan::default(), state: LodState::new(&lod()), stats: FrameStats::default() }
+        }
+
+        fn run(&mut self, scene: &Scene, cache: &GeometryCache, vols: &[Option<VolState>], view: &View, room: usize) {
+            self.state.sync(scene.generation, &scene.instances);
+            self.stats = FrameStats::default();
+            let residency = Residency { cache, volumes: vols };
+            let lod = lod();
+            let input = FrameInputs { scene, residency, lod: &lod, view: *view, terrain: None, job_room: room };
+            self.plan.plan(&input, &mut self.state, &mut self.stats);
+        }
+
+        fn shown(&self) -> Vec<Option<Level>> {
+            self.state.inst.iter().map(|s| s.lod.shown).collect()
+        }
+    }
+
+    #[test]
+    fn instances_fall_in_bands_by_projected_size() {
+        let sizes = [800.0, 300.0, 150.0, 80.0, 30.0, 10.0];
+        let s = scene(sizes.iter().enumerate().map(|(i, &px)| instance(i as u32, i as u64, at_size(px))).collect());
+        let cache = all_resident(0..=5);
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        use Level::{Detail, Far};
+        assert_eq!(
+            f.shown(),
+            vec![Some(Detail(0)), Some(Detail(1)), Some(Detail(2)), Some(Detail(3)), Some(Far), Some(Far)]
+        );
+        assert_eq!((f.stats.in_view, f.stats.near, f.stats.mid, f.stats.far), (6, 1, 3, 2));
+        assert_eq!((f.stats.waiting, f.stats.hidden), (0, 0));
+        assert!(f.plan.jobs.is_empty(), "everything is resident");
+        // Geometry draws in instance order; the far field back to front, the smallest at the halved resolution.
+        let drawn: Vec<_> = f.plan.geo_draws.iter().map(|g| g.key).collect();
+        assert_eq!(drawn, vec![key(0, 0), key(1, 1), key(2, 2), key(3, 3)]);
+        assert!(f.plan.geo_draws.iter().all(|g| g.mask == 1.0));
+        let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
+        assert_eq!(far, vec![(at_size(10.0)[2], 11), (at_size(30.0)[2], 10)]);
+    }
+
+    #[test]
+    fn hysteresis_holds_a_level_near_its_threshold() {
+        let cache = all_resident(0..=0);
+        let vols = ready_volume();
+        let mut f = Frame::new();
+        let at = |px: f32| scene(vec![instance(0, 0, at_size(px))]);
+        f.run(&at(210.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(1))]);
+        // Detail 1 is [200, 400) px: 180 px is within 15 % of its border, 160 px is not.
+        f.run(&at(180.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(1))]);
+        f.run(&at(160.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(2))]);
+        // Back up to 220 px stays at detail 2; 240 px goes back to detail 1.
+        f.run(&at(220.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(2))]);
+        f.run(&at(240.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(1))]);
+        // A fresh instance at 180 px takes the ideal level at once.
+        let mut fresh = Frame::new();
+        fresh.run(&at(180.0), &cache, &vols, &view(0.0, true), 100);
+        assert_eq!(fresh.shown(), vec![Some(Level::Detail(2))]);
+    }
+
+    #[test]
+    fn a_level_change_cross_fades_with_complementary_masks() {
+        let cache = all_resident(0..=0);
+        let vols = ready_volume();
+        let mut f = Frame::new();
+        let at = |px: f32| scene(vec![instance(0, 0, at_size(px))]);
+        // A fresh instance fades in from nothing; a whole fade time later it shows detail 1.
+        f.run(&at(300.0), &cache, &vols, &view(lod().fade_seconds, false), 100);
+        assert_eq!(f.plan.geo_draws.iter().map(|g| (g.key.detail, g.mask)).collect::<Vec<_>>(), vec![(1, 1.0)]);
+        // A quarter of the fade time later, at 120 px: detail 2 fades in over detail 1.
+        f.run(&at(120.0), &cache, &vols, &view(lod().fade_seconds / 4.0, false), 100);
+        let draws: Vec<_> = f.plan.geo_draws.iter().map(|g| (g.key.detail, g.mask)).collect();
+        assert_eq!(draws, vec![(2, 0.25), (1, -0.25)]);
+        assert_eq!(f.stats.mid, 1, "counted once, at the level fading in");
+    }
+
+    #[test]
+    fn missing_geometry_is_asked_for_and_the_nearest_resident_level_stands_in() {
+        // Instance 0 wants detail 1 and has detail 3 resident; instance 1 wants detail 0 and has nothing but the
+        // far volume.
+        let s = scene(vec![instance(0, 1, at_size(300.0)), instance(1, 2, at_size(1000.0))]);
+        let mut cache = resident(&[(key(1, 3), geometry([10, 0, 0], 0))]);
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        assert_eq!(f.shown(), vec![Some(Level::Detail(3)), Some(Level::Far)], "coarser stand-ins first");
+        assert_eq!(f.stats.waiting, 2);
+        let jobs: Vec<_> = f.plan.jobs.iter().map(|j| (j.key, j.instance)).collect();
+        assert_eq!(jobs, vec![(key(2, 0), 1), (key(1, 1), 0)], "biggest on screen first");
+        assert!(f.plan.jobs[0].priority > f.plan.jobs[1].priority);
+        // Once asked for, a key is not asked for again; the stand-ins stay.
+        for j in &f.plan.jobs {
+            cache.mark_pending(j.key);
+        }
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        assert!(f.plan.jobs.is_empty());
+        assert_eq!((f.stats.waiting, f.shown()), (2, vec![Some(Level::Detail(3)), Some(Level::Far)]));
+        // A key that failed is drawn far instead, and neither waited for nor asked for.
+        cache.finished(key(1, 1), Err("budget".into()));
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        assert_eq!(f.state.inst[0].lod.shown, Some(Level::Far));
+        assert_eq!(f.stats.waiting, 1);
+        // Without a volume or any geometry, nothing is drawn; the instance waits for its volume.
+        let pending = vec![Some(VolState::Pending)];
+        let mut bare = Frame::new();
+        bare.run(&s, &GeometryCache::new(100, 100, 100), &pending, &view(0.0, true), 100);
+        assert_eq!(bare.shown(), vec![None, None]);
+        assert_eq!((bare.stats.hidden, bare.stats.waiting), (2, 2));
+        assert!(bare.plan.geo_draws.is_empty() && bare.plan.far_sorted.is_empty());
+    }
+
+    #[test]
+    fn jobs_are_bounded_and_each_key_is_asked_for_once() {
+        // Instances 0 and 3 share a seed: one key.
+        let s = scene(vec![
+            instance(0, 7, at_size(500.0)),
+            instance(1, 8, at_size(900.0)),
+            instance(2, 9, at_size(450.0)),
+            instance(3, 7, at_size(1000.0)),
+        ]);
+        let cache = GeometryCache::new(100, 100, 100);
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 2);
+        let jobs: Vec<_> = f.plan.jobs.iter().map(|j| (j.key.seed, j.instance)).collect();
+        assert_eq!(jobs, vec![(7, 3), (8, 1)]);
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 10);
+        let jobs: Vec<_> = f.plan.jobs.iter().map(|j| (j.key.seed, j.instance)).collect();
+        assert_eq!(jobs, vec![(7, 3), (8, 1), (9, 2)]);
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 0);
+        assert!(f.plan.jobs.is_empty());
+        assert_eq!(f.stats.waiting, 4, "every instance still waits");
+    }
+
+    #[test]
+    fn draw_lists_group_segments_by_shape_and_tessellation() {
+        let s = scene(vec![instance(0, 1, at_size(800.0)), instance(1, 2, at_size(150.0))]);
+        // Seed 1 at detail 0: 4 frusta, 6 spheres and a 9-index mesh; seed 2 at detail 2: 3 frusta and 2 boxes.
+        let cache = resident(&[(key(1, 0), geometry([4, 6, 0], 9)), (key(2, 2), geometry([3, 0, 2], 0))]);
+        let e1 = cache.get(&key(1, 0)).unwrap().clone();
+        let e2 = cache.get(&key(2, 2)).unwrap().clone();
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        let draws: Vec<_> = f.plan.prim_draws.iter().map(|d| (d.shape, d.tess, d.slot, d.instances)).collect();
+        assert_eq!(draws, vec![(0, 0, 0, 4), (0, 2, 1, 3), (1, 0, 2, 6), (2, 2, 3, 2)]);
+        assert_eq!(f.plan.mesh_draw, Some((4, 9)));
+        let seg = |base: u64, count: u32, pos: [f32; 3]| (base as u32, count, pos);
+        let segs: Vec<_> = f.plan.segments.iter().map(|s| (s.base, s.count, s.pos)).collect();
+        let (a, b) = (at_size(800.0), at_size(150.0));
+        assert_eq!(
+            segs,
+            vec![
+                seg(e1.prims.start, 4, a),
+                seg(e2.prims.start, 3, b),
+                seg(e1.prims.start + 4, 6, a),
+                seg(e2.prims.start + 3, 2, b),
+                seg(e1.indices.start, 9, a),
+            ]
+        );
+        assert_eq!(f.plan.segments[4].vbase, e1.verts.start as u32);
+        // Each draw's uniform names its segments and shape.
+        let uniform = |slot: u64| -> DrawUniform {
+            let at = (slot * DRAW_STRIDE) as usize;
+            bytemuck::pod_read_unaligned(&f.plan.uniforms[at..at + DRAW_UNIFORM_BYTES])
+        };
+        assert_eq!(f.plan.uniforms.len() as u64, DRAW_STRIDE * DRAW_SLOTS);
+        assert_eq!(uniform(1), DrawUniform { seg_first: 1, seg_count: 1, kind: 0, pad: 0 });
+        assert_eq!(uniform(3), DrawUniform { seg_first: 3, seg_count: 1, kind: 2, pad: 0 });
+        assert_eq!(uniform(4), DrawUniform { seg_first: 4, seg_count: 1, kind: 0, pad: 0 });
+        assert_eq!((f.stats.primitives, f.stats.mesh_triangles), (15, 3));
+        // The sky, four primitive draws, the meshes (no terrain, no far field).
+        assert_eq!(f.stats.draw_calls, 6);
+    }
+
+    #[test]
+    fn segments_of_one_draw_are_numbered_within_it() {
+        let s = scene((0..3).map(|i| instance(i, 1, [i as f32, 0.0, at_size(800.0)[2]])).collect());
+        let cache = resident(&[(key(1, 0), geometry([5, 0, 0], 0))]);
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        assert_eq!(f.plan.prim_draws.len(), 1);
+        assert_eq!(f.plan.prim_draws[0].instances, 15);
+        let firsts: Vec<_> = f.plan.segments.iter().map(|s| (s.first, s.pos[0])).collect();
+        assert_eq!(firsts, vec![(0, 0.0), (5, 1.0), (10, 2.0)]);
+        // Nothing to draw: one zeroed segment, so the buffer is never empty.
+        f.run(&scene(Vec::new()), &cache, &ready_volume(), &view(0.0, true), 100);
+        assert_eq!(f.plan.segments, vec![Segment::zeroed()]);
+        assert_eq!((f.plan.prim_draws.len(), f.plan.mesh_draw, f.stats.draw_calls), (0, None, 1));
+    }
+
+    #[test]
+    fn the_frustum_culls_instances_behind_and_beside_and_tiny_ones() {
+        let z = at_size(300.0)[2];
+        // The 60° frustum's side plane at this depth; a sphere just beyond it by less than its radius is in view.
+        let edge = z * camera().tan_half_fov();
+        let beyond = |m: f32| [edge + m / (30f32.to_radians().cos()), 0.0, z];
+        let s = scene(vec![
+            instance(0, 0, [0.0, 0.0, z]),
+            instance(1, 0, [0.0, 0.0, -z]),
+            instance(2, 0, beyond(R * 0.9)),
+            instance(3, 0, beyond(R * 1.1)),
+            instance(4, 0, [0.0, 0.0, z * 1000.0]),
+        ]);
+        let cache = all_resident(0..=0);
+        let mut f = Frame::new();
+        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+        assert_eq!(f.stats.in_view, 2, "ahead and just touching the side; not behind, beyond, or below a pixel");
+        assert_eq!(f.shown(), vec![Some(Level::Detail(1)), None, Some(Level::Detail(1)), None, None]);
+        assert_eq!(f.plan.geo_draws.len(), 2);
+        // Without a volume the stand-in sphere (FALLBACK_RADIUS, raised FALLBACK_CENTER_HEIGHT) decides: 1.1 R
+        // beyond the plane is within it. Its projected size is bigger too: instance 0 wants full detail.
+        let mut g = Frame::new();
+        g.run(&s, &GeometryCache::new(100, 100, 100), &[Some(VolState::Pending)], &view(0.0, true), 100);
+        const { assert!(R * 1.1 < FALLBACK_RADIUS) };
+        assert_eq!(g.stats.in_view, 3, "all but the one behind and the one below a pixel");
+        let jobs: Vec<_> = g.plan.jobs.iter().map(|j| (j.key, j.instance)).collect();
+        assert_eq!(jobs, vec![(key(0, 0), 0), (key(0, 1), 2)], "instances 2 and 3 share a key");
+    }
+
+    #[test]
+    fn lod_state_is_carried_over_by_id() {
+        let mut st = LodState::new(&lod());
+        let ids = |v: &[u32]| v.iter().map(|&id| instance(id, 0, [0.0; 3])).collect::<Vec<_>>();
+        st.sync(1, &ids(&[1, 3, 5]));
+        for s in &mut st.inst {
+            s.target = Some(Level::Detail(s.id as u8));
+        }
+        st.sync(2, &ids(&[0, 3, 4, 5, 9]));
+        let got: Vec<_> = st.inst.iter().map(|s| (s.id, s.target)).collect();
+        use Level::Detail;
+        assert_eq!(got, vec![(0, None), (3, Some(Detail(3))), (4, None), (5, Some(Detail(5))), (9, None)]);
+        // The same generation keeps everything.
+        st.inst[0].target = Some(Level::Far);
+        st.sync(2, &ids(&[0, 3, 4, 5, 9]));
+        assert_eq!(st.inst[0].target, Some(Level::Far));
+    }
+
+    #[test]
+    fn terrain_chunks_are_culled_and_coarser_far_away() {
+        let world = World::default_world();
+        let mesh = TerrainMesh::build(&world.terrain);
+        // In the middle of the 2 km world, looking north-east.
+        let eye = Vec3::new(0.0, world.height(0.0, 0.0) + 20.0, 0.0);
+        let cam = Camera { position: eye, yaw: 45f32.to_radians(), pitch: -0.05, fov_y: 60.0 };
+        let v = View::new(&cam, VIEWPORT, 0.1, &lod(), 0.0, true);
+        let mut plan = FramePlan::default();
+        let mut stats = FrameStats::default();
+        plan.choose_terrain(Some(&mesh), &v, &mut stats);
+        let drawn = &plan.terrain_draws;
+        assert!(!drawn.is_empty() && drawn.len() < mesh.chunks.len(), "{} of {}", drawn.len(), mesh.chunks.len());
+        // (distance, step) of each drawn chunk, nearest first.
+        let mut steps: Vec<(f32, usize)> = drawn
+            .iter()
+            .map(|r| {
+                let (c, level) = mesh
+                    .chunks
+                    .iter()
+                    .find_map(|c| c.levels.iter().position(|l| l == r).map(|level| (c, level)))
+                    .expect("a chunk's level");
+                ((c.center - eye).length(), level)
+            })
+            .collect();
+        steps.sort_by(|a, b| a.0.total_cmp(&b.0));
+        assert_eq!(steps[0].1, 0, "the chunk under the eye at full detail");
+        assert!(steps.last().unwrap().1 >= 1, "the farthest chunk coarser: {steps:?}");
+        let tris: u64 = drawn.iter().map(|r| u64::from(r.end - r.start) / 3).sum();
+        assert_eq!(stats.terrain_triangles, tris);
+        // Chunks behind the camera are not drawn.
+        let behind = mesh.chunks.iter().filter(|c| (c.center - eye).dot(cam.forward()) < -c.radius).count();
+        assert!(behind > 0 && drawn.len() <= mesh.chunks.len() - behind);
+    }
+}
