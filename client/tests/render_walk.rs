@@ -108,7 +108,7 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(&xdg, std::fs::Permissions::from_mode(0o700)).unwrap();
+        std::fs::set_permissions(xdg, std::fs::Permissions::from_mode(0o700)).unwrap();
     }
     let started = Instant::now();
     let mut child = Reap(
@@ -136,7 +136,7 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
                 "32",
             ])
             .env("DISPLAY", &display)
-            .env("XDG_RUNTIME_DIR", &xdg)
+            .env("XDG_RUNTIME_DIR", xdg)
             .env("WGPU_BACKEND", std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "vulkan".into()))
             .env_remove("WAYLAND_DISPLAY")
             .stdout(Stdio::piped())
