@@ -146,7 +146,7 @@ impl Default for SessionConfig {
             batch_records: 128,
             bandwidth: None,
             burst: 16 * 1024,
-            window: 256 * 1024,
+            window: 64 * 1024,
             lanes: 4,
             fov_deg: 120.0,
             handshake_timeout: Duration::from_secs(10),

@@ -1,0 +1,144 @@
+//! Admission over real QUIC on loopback: half-open handshakes from one source (Initials that are never followed
+//! up, as a spoofing flood sends them) hold no client slots and do not stop another source from connecting (it is
+//! asked for a Retry and gets in); a source over its share is refused; a session that holds a slot without
+//! streaming is closed while the server is near capacity, and kept while it is not.
+
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use canopy_client::net::endpoint;
+use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_protocol::CloseCode;
+use canopy_protocol::aoi::Viewpoint;
+use canopy_server::{AdmissionConfig, GridStore, Server, ServerConfig, SessionConfig, WorldStore};
+use canopy_worlds::world::World;
+
+fn store() -> Arc<dyn WorldStore> {
+    static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
+    Arc::clone(STORE.get_or_init(|| {
+        GridStore::from_world(&World::default_world()).expect("the default world builds a store").shared()
+    }))
+}
+
+async fn server(admission: AdmissionConfig, idle_slot: Duration) -> Server {
+    let cfg = ServerConfig {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        session: SessionConfig { handshake_timeout: Duration::from_secs(5), ..SessionConfig::default() },
+        admission,
+        idle_slot,
+        ..ServerConfig::default()
+    };
+    Server::start(store(), cfg).await.expect("server starts")
+}
+
+fn pinned(server: &Server) -> ConnectConfig {
+    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
+}
+
+/// A client bound to `from` (any loopback address), connected with a small area of interest.
+async fn connect_from(server: &Server, from: &str) -> Result<Connection, ClientError> {
+    let ep = endpoint(from.parse::<SocketAddr>().unwrap()).unwrap();
+    Connection::connect(&ep, &pinned(server), None, |_| Viewpoint::at(0, [0.0, 0.0], 60.0)).await
+}
+
+/// A fresh client Initial packet: a real client connects to a UDP socket that never answers, and its first
+/// datagram is kept.
+async fn initial_packet() -> Vec<u8> {
+    let trap = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let cfg = ConnectConfig::new(trap.local_addr().unwrap(), Trust::Insecure);
+    let attempt = tokio::spawn(async move {
+        let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+        Connection::connect(&ep, &cfg, None, |_| Viewpoint::at(0, [0.0, 0.0], 60.0)).await
+    });
+    let mut buf = vec![0u8; 2048];
+    let (n, _) = tokio::time::timeout(Duration::from_secs(5), trap.recv_from(&mut buf)).await.unwrap().unwrap();
+    attempt.abort();
+    buf.truncate(n);
+    buf
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
+    let admission = AdmissionConfig { max_clients: 4, max_handshakes: 16, retry_above: 3, max_per_source: 6 };
+    let server = server(admission, Duration::from_secs(120)).await;
+    // Twelve half-open handshakes from 127.0.0.1: each Initial sent once from its own port, never followed up.
+    let mut flood = Vec::new();
+    for _ in 0..12 {
+        let initial = initial_packet().await;
+        let s = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        s.send_to(&initial, server.local_addr()).await.unwrap();
+        flood.push(s);
+    }
+    let m = Arc::clone(server.metrics());
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+    while m.handshakes.load(Relaxed) < 3 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(m.handshakes.load(Relaxed), 3, "three take handshake slots, the rest are asked for a Retry");
+    assert_eq!(m.clients.load(Relaxed), 0, "a half-open handshake holds no client slot");
+    assert!(m.retries.load(Relaxed) >= 9, "retries: {}", m.retries.load(Relaxed));
+    // Honest clients from other sources answer the Retry and get in, up to the client slots.
+    let mut honest = Vec::new();
+    for from in ["127.0.0.2:0", "127.0.0.3:0", "127.0.0.4:0", "127.0.0.5:0"] {
+        let mut c = connect_from(&server, from).await.unwrap_or_else(|e| panic!("{from}: {e}"));
+        c.wait_complete(Duration::from_secs(30)).await.unwrap();
+        honest.push(c);
+    }
+    assert_eq!(m.clients.load(Relaxed), 4);
+    // Every client slot taken: the next one is refused, however it asks.
+    assert!(connect_from(&server, "127.0.0.6:0").await.is_err());
+    assert!(m.refused[0].load(Relaxed) >= 1, "refused as full");
+    drop(flood);
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_source_gets_its_share_and_no_more() {
+    let admission = AdmissionConfig { max_clients: 10, max_handshakes: 16, retry_above: 16, max_per_source: 2 };
+    let server = server(admission, Duration::from_secs(120)).await;
+    let a = connect_from(&server, "127.0.0.7:0").await.unwrap();
+    let b = connect_from(&server, "127.0.0.7:0").await.unwrap();
+    assert!(connect_from(&server, "127.0.0.7:0").await.is_err(), "a third connection from one source");
+    assert!(server.metrics().refused[2].load(Relaxed) >= 1, "refused for the source's share");
+    let c = connect_from(&server, "127.0.0.8:0").await.expect("another source is admitted");
+    drop((a, b, c));
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
+    // Near capacity (2 of 2 slots), sessions that send no viewpoint for a second are closed with a reason.
+    let admission = AdmissionConfig { max_clients: 2, ..AdmissionConfig::default() };
+    let server = server(admission, Duration::from_secs(1)).await;
+    let mut idle = connect_from(&server, "127.0.0.1:0").await.unwrap();
+    let _other = connect_from(&server, "127.0.0.1:0").await.unwrap();
+    let closed = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            if let Err(e) = idle.next_event().await {
+                return e;
+            }
+        }
+    })
+    .await
+    .expect("closed within 10 s");
+    assert!(matches!(closed, ClientError::Closed { code: Some(CloseCode::Full), .. }), "{closed}");
+    assert!(closed.to_string().contains("no viewpoint"), "{closed}");
+    // Well below capacity, the same idleness is kept.
+    let roomy = AdmissionConfig { max_clients: 100, ..AdmissionConfig::default() };
+    let server2 = server(roomy, Duration::from_secs(1)).await;
+    let mut kept = connect_from(&server2, "127.0.0.1:0").await.unwrap();
+    kept.wait_complete(Duration::from_secs(30)).await.unwrap();
+    let quiet = tokio::time::timeout(Duration::from_secs(3), async {
+        loop {
+            if let Err(e) = kept.next_event().await {
+                return e;
+            }
+        }
+    })
+    .await;
+    assert!(quiet.is_err(), "not closed: {quiet:?}");
+    server.shutdown(Duration::from_secs(1)).await;
+    server2.shutdown(Duration::from_secs(1)).await;
+}
