@@ -77,6 +77,24 @@ fn export_writes_a_grove_glb() {
 }
 
 #[test]
+fn export_over_the_size_limit_fails_before_writing() {
+    let out = temp("too-large.glb");
+    let _ = std::fs::remove_file(&out);
+    // The same check as the 4 GiB GLB limit, under a limit a test can reach: the grove needs far more than 10 kB.
+    let o = canopy(&["species", "export", "worm", "--grove", "4", "--max-bytes", "10000", "-o", out.to_str().unwrap()]);
+    let msg = text(&o);
+    assert!(!o.status.success(), "{msg}");
+    assert!(msg.contains("not writing") && msg.contains("over the limit of 10000 bytes"), "{msg}");
+    assert!(msg.contains("4294967295 bytes: its lengths are u32"), "{msg}");
+    assert!(msg.contains("--grove") && msg.contains("--detail") && msg.contains("--lod"), "{msg}");
+    assert!(!out.exists(), "no file is written");
+    // The limit cannot be raised past the GLB's.
+    let o = canopy(&["species", "export", "worm", "--max-bytes", "5000000000", "-o", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(out.exists());
+}
+
+#[test]
 fn check_reports_non_finite_constants_and_species_that_cannot_finish() {
     let nan = temp("nan.species");
     std::fs::write(&nan, "species Nan\nparam c = 0/0\nsphere(c)\n").unwrap();

@@ -118,10 +118,11 @@ fn khronos_validator_accepts_exported_glb() {
                 ("tree-0".to_string(), &full, [0.0; 3]),
                 ("tree-1".to_string(), &coarse, [2.0, 0.0, -1.0]),
                 ("nothing".to_string(), &empty, [0.0; 3]),
-            ]),
+            ])
+            .unwrap(),
         ),
-        ("grove", glb(&[("grove".to_string(), &grove, [0.0; 3])])),
-        ("empty", glb(&[])),
+        ("grove", glb(&[("grove".to_string(), &grove, [0.0; 3])]).unwrap()),
+        ("empty", glb(&[]).unwrap()),
     ];
     validate("khronos_validator_accepts_exported_glb", &files);
 }
@@ -159,5 +160,5 @@ fn khronos_validator_accepts_near_field_exports() {
         assert!(m.positions.iter().chain(&m.normals).flatten().all(|x| x.is_finite()), "{name}");
     }
     let refs: Vec<(String, &Mesh, [f32; 3])> = parts.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    validate("khronos_validator_accepts_near_field_exports", &[("nearfield", glb(&refs))]);
+    validate("khronos_validator_accepts_near_field_exports", &[("nearfield", glb(&refs).unwrap())]);
 }

@@ -9,7 +9,7 @@ use anyhow::{Context, bail};
 use canopy_client::bandwidth::report::group;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
-use canopy_worlds::gltf::glb;
+use canopy_worlds::gltf::{GlbError, MAX_GLB_BYTES, glb, glb_within, mesh_bin_bytes};
 use canopy_worlds::library;
 use canopy_worlds::load::{CHECK_SEED, check_file, load};
 use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
@@ -57,6 +57,10 @@ pub enum SpeciesCommand {
         /// Grid spacing of the grove, metres.
         #[arg(long, default_value_t = 8.0)]
         spacing: f32,
+        /// Refuse to write a file over this many bytes (checked before writing; at most and by default 4294967295,
+        /// the GLB limit: its lengths are u32).
+        #[arg(long, default_value_t = MAX_GLB_BYTES)]
+        max_bytes: u64,
         #[command(flatten)]
         near: nearfield::NearFieldArgs,
     },
@@ -168,8 +172,8 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::Check { files } => Ok(check(&files)),
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
         SpeciesCommand::Amplify { instance, out } => amplify_cmd(&instance.config()?, out),
-        SpeciesCommand::Export { instance, out, grove, spacing, near } => {
-            export(&instance.config()?, &out, grove, spacing, &near)
+        SpeciesCommand::Export { instance, out, grove, spacing, max_bytes, near } => {
+            export(&instance.config()?, &out, grove, spacing, max_bytes, &near)
         }
         SpeciesCommand::Nearfield { instance, levels, error } => {
             let cfg = instance.config()?;
@@ -341,6 +345,7 @@ fn export(
     out: &Path,
     grove: u32,
     spacing: f32,
+    max_bytes: u64,
     near: &nearfield::NearFieldArgs,
 ) -> anyhow::Result<ExitCode> {
     if grove == 0 || grove > 10_000 {
@@ -349,7 +354,17 @@ fn export(
     let side = (f64::from(grove)).sqrt().ceil() as u32;
     let opts = MeshOptions::for_detail(cfg.instance.detail);
     let mut meshes: Vec<(String, Mesh, [f32; 3])> = Vec::new();
+    // The BIN data of the meshes made so far: once it alone is over the limit, stop before making (and holding)
+    // the rest. `glb_within` checks the exact length, JSON included, before writing.
+    let limit = max_bytes.min(MAX_GLB_BYTES);
+    let (mut bin_bytes, mut counted) = (0u64, 0usize);
     for i in 0..grove {
+        bin_bytes += meshes[counted..].iter().map(|m| mesh_bin_bytes(&m.1)).sum::<u64>();
+        counted = meshes.len();
+        if bin_bytes > limit {
+            let err = GlbError::TooLarge { bytes: bin_bytes, limit };
+            return Err(too_large(out, err, &format!("the first {i} of {grove} instances")));
+        }
         let inst = Instance { seed: cfg.instance.seed.wrapping_add(u64::from(i)), ..cfg.instance.clone() };
         let stream = amplify(&cfg.graph, &inst, &cfg.budget)?;
         let at = [(i % side) as f32 * spacing, 0.0, (i / side) as f32 * spacing];
@@ -367,15 +382,25 @@ fn export(
             meshes.push((format!("{}-{}-{part}", cfg.graph.name, inst.seed), m, offset));
         }
     }
-    write_glb(out, &meshes)?;
+    let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
+    let bytes = glb_within(&refs, limit).map_err(|e| too_large(out, e, &format!("{grove} instance(s)")))?;
+    super::write_file(out, &bytes)?;
     let tris: usize = meshes.iter().map(|m| m.1.triangle_count()).sum();
     println!("wrote {} ({} instance(s), {} triangles)", out.display(), grove, group(tris as u64));
     Ok(ExitCode::SUCCESS)
 }
 
+/// The error for an export over the size limit: what was too large, and the flags that make it smaller.
+fn too_large(out: &Path, err: GlbError, what: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "not writing {}: {what}: {err} (flags: a smaller --grove, a higher --detail, --continuous --lod N)",
+        out.display()
+    )
+}
+
 fn write_glb(out: &Path, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
     let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    super::write_file(out, &glb(&refs))
+    super::write_file(out, &glb(&refs)?)
 }
 
 pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
