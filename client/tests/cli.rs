@@ -76,6 +76,71 @@ fn export_writes_a_grove_glb() {
     assert_eq!(json["nodes"].as_array().unwrap().len(), 4);
 }
 
+#[test]
+fn export_over_the_size_limit_fails_before_writing() {
+    let out = temp("too-large.glb");
+    let _ = std::fs::remove_file(&out);
+    // The same check as the 4 GiB GLB limit, under a limit a test can reach: the grove needs far more than 10 kB.
+    let o = canopy(&["species", "export", "worm", "--grove", "4", "--max-bytes", "10000", "-o", out.to_str().unwrap()]);
+    let msg = text(&o);
+    assert!(!o.status.success(), "{msg}");
+    assert!(msg.contains("not writing") && msg.contains("over the limit of 10000 bytes"), "{msg}");
+    assert!(msg.contains("4294967295 bytes: its lengths are u32"), "{msg}");
+    assert!(msg.contains("--grove") && msg.contains("--detail") && msg.contains("--lod"), "{msg}");
+    assert!(!out.exists(), "no file is written");
+    // The limit cannot be raised past the GLB's.
+    let o = canopy(&["species", "export", "worm", "--max-bytes", "5000000000", "-o", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(out.exists());
+}
+
+#[test]
+fn check_reports_non_finite_constants_and_species_that_cannot_finish() {
+    let nan = temp("nan.species");
+    std::fs::write(&nan, "species Nan\nparam c = 0/0\nsphere(c)\n").unwrap();
+    let inf = temp("inf.lsys");
+    std::fs::write(&inf, "lsystem Inf\nderive 2\nparam len = 1/0\naxiom: A\nA -> F(1) A\n").unwrap();
+    let runaway = temp("runaway.species");
+    std::fs::write(&runaway, "species Runaway\ndef A separator { sphere(1) use A }\n").unwrap();
+    let div = temp("div.species");
+    std::fs::write(&div, "species Div\nparam n = 1\ncylinder(1 / (n - 1), 2)\n").unwrap();
+    let good = concat!(env!("CARGO_MANIFEST_DIR"), "/../worlds/species/worm.species");
+    let files = [&nan, &inf, &runaway, &div].map(|p| p.to_str().unwrap().to_string());
+    let mut args = vec!["species", "check", good];
+    args.extend(files.iter().map(String::as_str));
+    let o = canopy(&args);
+    let out = text(&o);
+    assert!(!o.status.success(), "{out}");
+    assert!(out.contains("nan.species:2:11: error: constant expression evaluates to NaN"), "{out}");
+    assert!(out.contains("inf.lsys:3:13: error: constant expression evaluates to inf"), "{out}");
+    assert!(
+        out.contains("runaway.species:1:1: error: species `Runaway` cannot finish with its default parameters"),
+        "{out}"
+    );
+    assert!(out.contains("div.species:1:1: error: species `Div` cannot finish"), "{out}");
+    assert!(out.contains("non-finite"), "{out}");
+    assert!(out.contains("seed 0 with default parameters: 5 primitives"), "worm(4) is 4 spheres and a cone: {out}");
+    assert!(out.contains("5 file(s) checked, 4 failed"), "{out}");
+}
+
+#[test]
+fn stats_prints_the_real_ratio_below_one() {
+    // Worm(0) is one cone: 28 explicit bytes against a 165-byte species.
+    let o = canopy(&["species", "stats", "worm", "--param", "c=0", "--repeat", "1"]);
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    let line = |prefix: &str| out.lines().find(|l| l.starts_with(prefix)).unwrap_or_else(|| panic!("{prefix}: {out}"));
+    let number = |prefix: &str| -> f64 {
+        line(prefix)[prefix.len()..].split_whitespace().next().unwrap().replace(',', "").parse().unwrap()
+    };
+    let (explicit, encoded) = (number("explicit"), number("encoded"));
+    assert!(explicit > 0.0 && explicit < encoded, "{out}");
+    let printed: f64 = line("explicit").rsplit(": ").next().unwrap().split('×').next().unwrap().trim().parse().unwrap();
+    let real = explicit / encoded;
+    assert!(printed > 0.0 && (printed - real).abs() <= 0.005, "printed {printed}×, real {real}: {out}");
+    assert!(out.contains(&format!("{real:.2}× the species")), "{out}");
+}
+
 /// The README's main command, short: the in-process server on the default world, bots walking, the live summary,
 /// and every bot checked against the world at the end. With `DISPLAY` pointing at no X server the window fails and
 /// the demo goes on headless.

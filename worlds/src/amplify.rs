@@ -6,6 +6,10 @@
 //! restores all of it except the RNG context, [`Node::RecursionSeparator`] saves and restores the
 //! [`ParamScope::Local`] parameters and opens a child RNG context (see [`crate::rng`]). Every instance runs under
 //! a [`Budget`]: a hostile graph ends in an [`AmplifyError`] after bounded work and memory.
+//!
+//! Every emitted primitive is finite: its sizes, leaf points, transform and colour. A primitive node whose values
+//! are not (a parameter that makes `1 / (n - 1)` divide by zero, an overflowing scale) ends the traversal in
+//! [`AmplifyError::NonFinite`] naming the node; nothing non-finite reaches a mesh, a renderer or the wire.
 
 use canopy_protocol::{Node, NodeId, ParamScope, SpeciesGraph};
 
@@ -97,6 +101,18 @@ pub enum AmplifyError {
     /// An instance parameter names a slot the species does not declare.
     #[error("instance sets parameter slot {0}, which the species does not declare")]
     Param(u16),
+    /// A primitive node evaluated to a non-finite size, leaf point, transform or colour (an expression divided by
+    /// zero, took a root or logarithm out of range, or overflowed).
+    #[error(
+        "node {node} makes a {kind} with a non-finite size, point, transform or colour (NaN or infinity: a division \
+         by zero, a root or logarithm out of range, or an overflow in its expressions or the transforms above it)"
+    )]
+    NonFinite {
+        /// The primitive node.
+        node: NodeId,
+        /// Its kind, as [`crate::primitive::PrimitiveKind::name`] names it.
+        kind: &'static str,
+    },
 }
 
 #[derive(Clone, Copy)]
@@ -356,7 +372,11 @@ pub fn amplify_into(
                     }
                     _ => unreachable!("every non-primitive node is matched above"),
                 };
-                out.primitives.push(Primitive { shape, transform, color });
+                let p = Primitive { shape, transform, color };
+                if !finite(&p, out) {
+                    return Err(AmplifyError::NonFinite { node: id, kind: p.shape.kind().name() });
+                }
+                out.primitives.push(p);
             }
         }
         if tasks.len() as u32 > budget.max_pending {
@@ -364,6 +384,16 @@ pub fn amplify_into(
         }
     }
     Ok(())
+}
+
+/// Whether every value of `p` is finite: sizes, transform, colour and, for a leaf, its points in `stream`.
+fn finite(p: &Primitive, stream: &PrimitiveStream) -> bool {
+    let (sizes, n) = p.shape.sizes();
+    let points = match p.shape {
+        Shape::Leaf { start, end, .. } => &stream.leaf_points[start as usize..end as usize],
+        _ => &[],
+    };
+    sizes[..n].iter().chain(&p.transform.m).chain(&p.color).chain(points.iter().flatten()).all(|v| v.is_finite())
 }
 
 /// The matrix of a rotation, scale or general matrix node whose arguments are all constants (translations are

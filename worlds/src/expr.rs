@@ -5,7 +5,9 @@
 //! (`< <= > >= == !=`), `+ -`, `* / %`, unary `- !`, `^` (right-associative, binds tighter than unary minus),
 //! then numbers, names, calls `f(a, b)` and parentheses. `pi` is a constant and `detail` the instance's detail
 //! level; every other name is a parameter, resolved when compiling. Constant sub-expressions are folded with the
-//! same evaluator traversal uses, so folding never changes a result.
+//! same evaluator traversal uses, so folding never changes a result. A constant sub-expression whose value is not
+//! finite (`0 / 0`, `1 / 0`, `sqrt(-1)`, `1e30 * 1e30`) is an error: [`parse_expr`] reports it at the expression's
+//! span, [`compile`] for expressions built in code.
 
 use std::ops::Range;
 
@@ -110,9 +112,110 @@ impl Ast {
     }
 }
 
-/// Parse one expression at the cursor. The cursor stops after the expression.
+/// Parse one expression at the cursor. The cursor stops after the expression. An expression with a constant
+/// sub-expression that folds to a non-finite value is an error at the expression's span (see
+/// [`non_finite_constant`]).
 pub fn parse_expr(cur: &mut Cursor<'_>) -> Result<Ast, ParseError> {
-    Parser { cur, depth: 0 }.cond()
+    cur.skip_trivia();
+    let start = cur.pos;
+    let ast = Parser { cur: &mut *cur, depth: 0 }.cond()?;
+    if let Some(v) = non_finite_constant(&ast) {
+        return Err(ParseError::new(start..cur.pos, non_finite_message(v)));
+    }
+    Ok(ast)
+}
+
+/// The value of the first constant sub-expression of `ast` (depth first) that folds to a non-finite value — NaN or
+/// an infinity, as in `0 / 0`, `1 / 0`, `sqrt(-1)`, `ln(0)` or `1e30 * 1e30` — if any. Sub-expressions fold as
+/// [`compile`] folds them: bottom-up, with the evaluator traversal uses, and never across `?:`, `&&`, `||`, a
+/// random draw or `noise`.
+pub fn non_finite_constant(ast: &Ast) -> Option<f32> {
+    fold(ast).err()
+}
+
+/// The message for a constant sub-expression that folds to `v` (not finite).
+fn non_finite_message(v: f32) -> String {
+    format!(
+        "constant expression evaluates to {v}, not a finite number (division by zero, a root or logarithm out of \
+         range, or overflow)"
+    )
+}
+
+/// `Ok(Some(v))` for a constant sub-expression with the finite value `v`, `Ok(None)` for one that is not constant,
+/// `Err(v)` for the first constant part, depth first, that folds to the non-finite `v`.
+fn fold(ast: &Ast) -> Result<Option<f32>, f32> {
+    let eval_ops = |ops: Vec<Op>| -> Result<Option<f32>, f32> {
+        let v = eval(&Expr { ops }, &[], 0.0, &mut NoDraw);
+        if v.is_finite() { Ok(Some(v)) } else { Err(v) }
+    };
+    match ast {
+        Ast::Num(v) if v.is_finite() => Ok(Some(*v)),
+        Ast::Num(v) => Err(*v),
+        Ast::Var(..) | Ast::Detail => Ok(None),
+        Ast::Unary(op, a) => match fold(a)? {
+            Some(x) => eval_ops(vec![Op::Const(x), unary_op(*op)]),
+            None => Ok(None),
+        },
+        Ast::Binary(op, a, b) => match (fold(a)?, fold(b)?) {
+            (Some(x), Some(y)) => eval_ops(vec![Op::Const(x), Op::Const(y), binary_op(*op)]),
+            _ => Ok(None),
+        },
+        Ast::And(a, b) | Ast::Or(a, b) => {
+            fold(a)?;
+            fold(b)?;
+            Ok(None)
+        }
+        Ast::Cond(c, a, b) => {
+            fold(c)?;
+            fold(a)?;
+            fold(b)?;
+            Ok(None)
+        }
+        Ast::Call(f, args) => {
+            let mut ops = Vec::with_capacity(args.len() + 1);
+            for a in args {
+                if let Some(x) = fold(a)? {
+                    ops.push(Op::Const(x));
+                }
+            }
+            if ops.len() == args.len() && !args.is_empty() && !f.draws() && *f != Func::Noise {
+                ops.push(Op::Call(*f));
+                eval_ops(ops)
+            } else {
+                Ok(None)
+            }
+        }
+        Ast::Choose(ws) => {
+            for w in ws {
+                fold(w)?;
+            }
+            Ok(None)
+        }
+    }
+}
+
+fn unary_op(op: UnOp) -> Op {
+    match op {
+        UnOp::Neg => Op::Neg,
+        UnOp::Not => Op::Not,
+    }
+}
+
+fn binary_op(op: BinOp) -> Op {
+    match op {
+        BinOp::Add => Op::Add,
+        BinOp::Sub => Op::Sub,
+        BinOp::Mul => Op::Mul,
+        BinOp::Div => Op::Div,
+        BinOp::Rem => Op::Rem,
+        BinOp::Pow => Op::Pow,
+        BinOp::Lt => Op::Lt,
+        BinOp::Le => Op::Le,
+        BinOp::Gt => Op::Gt,
+        BinOp::Ge => Op::Ge,
+        BinOp::Eq => Op::Eq,
+        BinOp::Ne => Op::Ne,
+    }
 }
 
 /// Parse a whole string as one expression (for tests and command-line parameter values).
@@ -340,28 +443,12 @@ fn emit(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>, out: &mut Vec<O
         Ast::Detail => out.push(Op::Detail),
         Ast::Unary(op, a) => {
             emit(a, resolve, out)?;
-            out.push(match op {
-                UnOp::Neg => Op::Neg,
-                UnOp::Not => Op::Not,
-            });
+            out.push(unary_op(*op));
         }
         Ast::Binary(op, a, b) => {
             emit(a, resolve, out)?;
             emit(b, resolve, out)?;
-            out.push(match op {
-                BinOp::Add => Op::Add,
-                BinOp::Sub => Op::Sub,
-                BinOp::Mul => Op::Mul,
-                BinOp::Div => Op::Div,
-                BinOp::Rem => Op::Rem,
-                BinOp::Pow => Op::Pow,
-                BinOp::Lt => Op::Lt,
-                BinOp::Le => Op::Le,
-                BinOp::Gt => Op::Gt,
-                BinOp::Ge => Op::Ge,
-                BinOp::Eq => Op::Eq,
-                BinOp::Ne => Op::Ne,
-            });
+            out.push(binary_op(*op));
         }
         Ast::Cond(c, a, b) => {
             emit(c, resolve, out)?;
@@ -418,13 +505,15 @@ fn emit(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>, out: &mut Vec<O
             _ => true,
         });
     if foldable {
-        // A non-finite result (`0 / 0`, `1e30 * 1e30`) stays unfolded: constants on the wire are finite, and
-        // evaluating the operations at traversal gives the same value.
+        // A non-finite result (`0 / 0`, `1e30 * 1e30`) is an error: constants on the wire are finite, and a species
+        // whose constant sizes or angles are NaN can only make non-finite primitives. `parse_expr` finds these
+        // first and points at the expression; this catches expressions built in code (span filled in by the caller).
         let v = eval(&Expr { ops: code.to_vec() }, &[], 0.0, &mut NoDraw);
-        if v.is_finite() {
-            out.truncate(start);
-            out.push(Op::Const(v));
+        if !v.is_finite() {
+            return Err(ParseError::new(0..0, non_finite_message(v)));
         }
+        out.truncate(start);
+        out.push(Op::Const(v));
     }
     Ok(())
 }
@@ -476,10 +565,6 @@ mod tests {
         assert_eq!(value("c > 0 ? c - 1 : 0", &[("c", 4.0)]), 3.0);
         let e = compile(&parse_str("2 * 3 + sin(0)").unwrap(), &mut |_| None).unwrap();
         assert_eq!(e.ops, vec![Op::Const(6.0)]);
-        // Non-finite results are not folded into constants (the wire accepts finite constants only).
-        let nan = compile(&parse_str("0 / 0 + 1").unwrap(), &mut |_| None).unwrap();
-        assert!(nan.ops.iter().all(|op| !matches!(op, Op::Const(v) if !v.is_finite())), "{:?}", nan.ops);
-        nan.validate(0).unwrap();
         let e = compile(&parse_str("x * (2 + 2)").unwrap(), &mut |_| Some(0)).unwrap();
         assert_eq!(e.ops, vec![Op::Param(0), Op::Const(4.0), Op::Mul]);
     }
@@ -495,6 +580,39 @@ mod tests {
         let ast = parse_str("a + bee").unwrap();
         let err = compile(&ast, &mut |n| (n == "a").then_some(0)).unwrap_err();
         assert_eq!((err.span, err.message.as_str()), (4..7, "unknown parameter `bee`"));
+    }
+
+    #[test]
+    fn non_finite_constants_are_errors_at_the_expression() {
+        // (source, span of the error): the whole expression, after leading whitespace.
+        let cases: &[(&str, std::ops::Range<usize>)] = &[
+            ("0/0", 0..3),
+            ("  1 / 0", 2..7),
+            ("x + 1/0", 0..7),
+            ("sqrt(-1) * x", 0..12),
+            ("ln(0)", 0..5),
+            ("1e30 * 1e30", 0..11),
+            ("x > 0 ? 0/0 : 1", 0..15),
+            ("choose(1, 0/0)", 0..14),
+            ("-(2 - 2) ^ -1", 0..13),
+        ];
+        for (src, span) in cases {
+            let err = parse_str(src).unwrap_err();
+            assert_eq!(&err.span, span, "{src}");
+            assert!(err.message.contains("not a finite number"), "{src}: {}", err.message);
+        }
+        assert!(parse_str("0/0").unwrap_err().message.starts_with("constant expression evaluates to NaN"));
+        assert!(parse_str("1/0").unwrap_err().message.starts_with("constant expression evaluates to inf"));
+        // Not constant, or finite: fine. A parameter or a draw can make the value finite at traversal.
+        for src in ["1 / x", "x / 0", "rand() / 0", "noise(0, 0) / 0", "1e30 * 10", "0 ? 1 : 2", "sqrt(4)"] {
+            assert!(parse_str(src).is_ok(), "{src}");
+        }
+        // Built in code (no parser): compile reports it, with an empty span for the caller to fill in.
+        let built = Ast::bin(BinOp::Div, Ast::Num(1.0), Ast::bin(BinOp::Sub, Ast::Num(2.0), Ast::Num(2.0)));
+        assert_eq!(non_finite_constant(&built), Some(f32::INFINITY));
+        let err = compile(&built, &mut |_| None).unwrap_err();
+        assert_eq!(err.span, 0..0);
+        assert!(err.message.contains("evaluates to inf"), "{}", err.message);
     }
 
     #[test]

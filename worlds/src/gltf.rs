@@ -10,6 +10,10 @@
 //!
 //! The JSON is built with `serde_json` (sorted keys) and the binary data is little-endian, so the same meshes give
 //! the same bytes everywhere.
+//!
+//! A GLB's lengths are `u32` (glTF 2.0 §4.4, "GLB file format specification"), so a file holds at most
+//! [`MAX_GLB_BYTES`], 4 GiB − 1. [`glb`] computes the file's length before it writes a byte of the BIN chunk and
+//! returns [`GlbError::TooLarge`] instead of a file whose header has wrapped around.
 
 use serde_json::{Map, Value, json};
 
@@ -33,6 +37,47 @@ const FLOAT: u32 = 5126;
 const UNSIGNED_INT: u32 = 5125;
 /// `primitive.mode` TRIANGLES.
 const TRIANGLES: u32 = 4;
+
+/// The largest `.glb` there can be: the header's total length is a `u32`.
+pub const MAX_GLB_BYTES: u64 = u32::MAX as u64;
+
+/// Why [`glb`] writes no file.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum GlbError {
+    /// The file would be longer than `limit` ([`MAX_GLB_BYTES`] at most: GLB lengths are `u32`).
+    #[error(
+        "the .glb would be at least {bytes} bytes, over the limit of {limit} bytes (a GLB file holds at most \
+         4 GiB − 1 = {MAX_GLB_BYTES} bytes: its lengths are u32, glTF 2.0 §4.4); export fewer trees, coarser meshes \
+         (a higher detail level) or the continuous/LOD mesh"
+    )]
+    TooLarge {
+        /// The file's length (or a lower bound of it, from the meshes made so far).
+        bytes: u64,
+        /// The limit it exceeds.
+        limit: u64,
+    },
+}
+
+/// The bytes one mesh adds to the BIN chunk: positions, normals and colours (3 floats each) per vertex, three `u32`
+/// indices per triangle; nothing for a mesh without triangles (left out of the file).
+pub fn bin_bytes(vertices: u64, triangles: u64) -> u64 {
+    if triangles == 0 { 0 } else { vertices.saturating_mul(36).saturating_add(triangles.saturating_mul(12)) }
+}
+
+/// [`bin_bytes`] of a mesh.
+pub fn mesh_bin_bytes(mesh: &Mesh) -> u64 {
+    bin_bytes(mesh.vertex_count() as u64, mesh.triangle_count() as u64)
+}
+
+/// The length of a GLB file with `json` bytes of JSON (before padding) and `bin` bytes of BIN data: the 12-byte
+/// header, the JSON chunk padded to 4 bytes and, when there is data, the BIN chunk; an error when it is over
+/// `limit` (capped at [`MAX_GLB_BYTES`]).
+pub fn glb_len(json: u64, bin: u64, limit: u64) -> Result<u64, GlbError> {
+    let limit = limit.min(MAX_GLB_BYTES);
+    let chunk = |len: u64| len.div_ceil(4).saturating_mul(4).saturating_add(8);
+    let bytes = 12u64.saturating_add(chunk(json)).saturating_add(if bin == 0 { 0 } else { chunk(bin) });
+    if bytes > limit { Err(GlbError::TooLarge { bytes, limit }) } else { Ok(bytes) }
+}
 
 /// Why bytes are not a well-formed GLB container (checked by [`parse_glb_header`]).
 #[derive(Debug, thiserror::Error)]
@@ -76,25 +121,29 @@ pub enum GltfError {
 /// mesh. Entries whose mesh has no triangles are left out; with none left, the file is still valid (a scene
 /// without nodes, no buffer). Non-finite translation components are written as 0. Each mesh must be well formed, as
 /// [`crate::mesh::mesh`] makes them: one normal and colour per position, finite values, colours in `0..=1`,
-/// indices in range.
-pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Vec<u8> {
-    let mut bin: Vec<u8> = Vec::new();
+/// indices in range. A file longer than [`MAX_GLB_BYTES`] is an error, found before the BIN data is written.
+pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Result<Vec<u8>, GlbError> {
+    glb_within(meshes, MAX_GLB_BYTES)
+}
+
+/// [`glb`] with a lower size limit: a file longer than `limit` bytes (or [`MAX_GLB_BYTES`]) is an error.
+pub fn glb_within(meshes: &[(String, &Mesh, [f32; 3])], limit: u64) -> Result<Vec<u8>, GlbError> {
+    // First the layout and the JSON, with the BIN offsets computed; then the length check; then the data.
+    let mut bin_len: u64 = 0;
     let (mut nodes, mut gl_meshes, mut accessors, mut views) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut written: Vec<&Mesh> = Vec::new();
 
     for (name, mesh, translation) in meshes {
         if mesh.triangle_count() == 0 {
             continue;
         }
+        written.push(mesh);
         let vertices = mesh.positions.len();
-        let floats = |data: &[[f32; 3]]| -> Vec<u8> { data.iter().flatten().flat_map(|x| x.to_le_bytes()).collect() };
-        let pos_view = push_view(&mut bin, &mut views, &floats(&mesh.positions), ARRAY_BUFFER);
-        let normal_view =
-            push_view(&mut bin, &mut views, &floats(&mesh.normals[..vertices.min(mesh.normals.len())]), ARRAY_BUFFER);
-        let color_view =
-            push_view(&mut bin, &mut views, &floats(&mesh.colors[..vertices.min(mesh.colors.len())]), ARRAY_BUFFER);
-        let index_bytes: Vec<u8> =
-            mesh.indices[..mesh.triangle_count() * 3].iter().flat_map(|i| i.to_le_bytes()).collect();
-        let index_view = push_view(&mut bin, &mut views, &index_bytes, ELEMENT_ARRAY_BUFFER);
+        let vec3s = |n: usize| 12 * vertices.min(n) as u64;
+        let pos_view = push_view(&mut bin_len, &mut views, vec3s(vertices), ARRAY_BUFFER);
+        let normal_view = push_view(&mut bin_len, &mut views, vec3s(mesh.normals.len()), ARRAY_BUFFER);
+        let color_view = push_view(&mut bin_len, &mut views, vec3s(mesh.colors.len()), ARRAY_BUFFER);
+        let index_view = push_view(&mut bin_len, &mut views, 12 * mesh.triangle_count() as u64, ELEMENT_ARRAY_BUFFER);
 
         let (lo, hi) = mesh.bounds();
         // f32 → f64 is exact, so the JSON numbers are exactly the stored floats.
@@ -157,36 +206,44 @@ pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Vec<u8> {
         );
         root.insert("accessors".into(), Value::Array(accessors));
         root.insert("bufferViews".into(), Value::Array(views));
-        root.insert("buffers".into(), json!([{ "byteLength": bin.len() }]));
+        root.insert("buffers".into(), json!([{ "byteLength": bin_len }]));
     }
 
     let mut json_bytes = serde_json::to_vec(&Value::Object(root)).unwrap_or_default();
+    let total = glb_len(json_bytes.len() as u64, bin_len, limit)?;
     while !json_bytes.len().is_multiple_of(4) {
         json_bytes.push(b' ');
     }
-    let bin_chunk = if bin.is_empty() { 0 } else { 8 + bin.len() };
-    let total = 12 + 8 + json_bytes.len() + bin_chunk;
-    let mut out = Vec::with_capacity(total);
+    // The check above bounds every length by `u32::MAX`.
+    let mut out = Vec::with_capacity(total as usize);
     for word in [MAGIC, VERSION, total as u32, json_bytes.len() as u32, CHUNK_JSON] {
         out.extend_from_slice(&word.to_le_bytes());
     }
     out.extend_from_slice(&json_bytes);
-    if !bin.is_empty() {
-        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    if bin_len > 0 {
+        out.extend_from_slice(&(bin_len as u32).to_le_bytes());
         out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
-        out.extend_from_slice(&bin);
+        let floats = |out: &mut Vec<u8>, data: &[[f32; 3]]| {
+            out.extend(data.iter().flatten().flat_map(|x| x.to_le_bytes()));
+        };
+        // In the order of the buffer views above.
+        for mesh in written {
+            let vertices = mesh.positions.len();
+            floats(&mut out, &mesh.positions);
+            floats(&mut out, &mesh.normals[..vertices.min(mesh.normals.len())]);
+            floats(&mut out, &mesh.colors[..vertices.min(mesh.colors.len())]);
+            out.extend(mesh.indices[..mesh.triangle_count() * 3].iter().flat_map(|i| i.to_le_bytes()));
+        }
     }
-    out
+    debug_assert_eq!(out.len() as u64, total);
+    Ok(out)
 }
 
-/// Append `data` to the buffer as a new buffer view; returns the view's index.
-fn push_view(bin: &mut Vec<u8>, views: &mut Vec<Value>, data: &[u8], target: u32) -> usize {
-    views.push(json!({ "buffer": 0, "byteOffset": bin.len(), "byteLength": data.len(), "target": target }));
-    bin.extend_from_slice(data);
-    // Everything is 4-byte data, so this never pads; it keeps the alignment invariant explicit.
-    while !bin.len().is_multiple_of(4) {
-        bin.push(0);
-    }
+/// Reserve `len` bytes of the buffer as a new buffer view at offset `bin_len`; returns the view's index.
+fn push_view(bin_len: &mut u64, views: &mut Vec<Value>, len: u64, target: u32) -> usize {
+    views.push(json!({ "buffer": 0, "byteOffset": *bin_len, "byteLength": len, "target": target }));
+    // Everything is 4-byte data, so views stay 4-byte aligned without padding.
+    *bin_len = bin_len.saturating_add(len);
     views.len() - 1
 }
 
@@ -264,7 +321,7 @@ mod tests {
     #[test]
     fn header_and_chunk_lengths_are_consistent() {
         let m = mesh(&sample(), &MeshOptions::default());
-        let bytes = glb(&[("tree".to_string(), &m, [1.0, 0.0, -2.0])]);
+        let bytes = glb(&[("tree".to_string(), &m, [1.0, 0.0, -2.0])]).unwrap();
         assert_eq!(&bytes[0..4], b"glTF");
         assert_eq!(u32_at(&bytes, 4), 2);
         assert_eq!(u32_at(&bytes, 8) as usize, bytes.len());
@@ -291,7 +348,8 @@ mod tests {
             ("a".to_string(), &a, [0.0; 3]),
             ("empty".to_string(), &empty, [0.0; 3]),
             ("b".to_string(), &b, [3.0, 0.0, 0.0]),
-        ]);
+        ])
+        .unwrap();
         let (json, bin) = parse_glb_header(&bytes).expect("well-formed GLB");
         assert_eq!(json["asset"]["version"], "2.0");
         assert_eq!(json["asset"]["generator"], "canopy");
@@ -333,7 +391,7 @@ mod tests {
     #[test]
     fn no_meshes_still_make_a_valid_container() {
         let empty = crate::mesh::Mesh::default();
-        for bytes in [glb(&[]), glb(&[("e".to_string(), &empty, [0.0; 3])])] {
+        for bytes in [glb(&[]).unwrap(), glb(&[("e".to_string(), &empty, [0.0; 3])]).unwrap()] {
             let (json, bin) = parse_glb_header(&bytes).unwrap();
             assert!(bin.is_empty());
             assert!(json.get("buffers").is_none() && json.get("nodes").is_none());
@@ -345,13 +403,47 @@ mod tests {
     fn export_is_deterministic() {
         let m = mesh(&sample(), &MeshOptions::default());
         let entry = [("tree".to_string(), &m, [0.5, 0.0, 0.5])];
-        assert_eq!(glb(&entry), glb(&entry));
+        assert_eq!(glb(&entry).unwrap(), glb(&entry).unwrap());
+    }
+
+    #[test]
+    fn the_length_is_known_before_writing_and_capped_at_4_gib() {
+        // The grove of issue 12: 4,804,616,672 bytes, which a u32 header wrapped to 509,649,376.
+        let err = glb_len(10_000, 4_804_606_000, MAX_GLB_BYTES).unwrap_err();
+        assert_eq!(err, GlbError::TooLarge { bytes: 12 + 8 + 10_000 + 8 + 4_804_606_000, limit: MAX_GLB_BYTES });
+        let msg = err.to_string();
+        assert!(msg.contains("4294967295") && msg.contains("u32") && msg.contains("fewer trees"), "{msg}");
+        // Exactly at the limit is fine, one 4-byte word more is not; a higher limit is capped at the GLB's.
+        let fits = MAX_GLB_BYTES - 3 - 12 - 8 - 100 - 8;
+        assert_eq!(fits % 4, 0);
+        assert_eq!(glb_len(100, fits, u64::MAX), Ok(MAX_GLB_BYTES - 3));
+        assert!(glb_len(100, fits + 4, u64::MAX).is_err());
+        // Huge meshes: counts whose bytes overflow neither u32 nor u64 silently.
+        assert_eq!(bin_bytes(120_000_000, 240_000_000), 120_000_000 * 36 + 240_000_000 * 12);
+        assert!(glb_len(0, bin_bytes(120_000_000, 240_000_000), MAX_GLB_BYTES).is_err());
+        assert_eq!(bin_bytes(u64::MAX, 1), u64::MAX);
+        assert_eq!(bin_bytes(1_000, 0), 0, "a mesh without triangles is left out");
+    }
+
+    #[test]
+    fn the_length_check_matches_the_bytes_written() {
+        let m = mesh(&sample(), &MeshOptions::default());
+        let entries = [("a".to_string(), &m, [0.0; 3]), ("b".to_string(), &m, [2.0, 0.0, 0.0])];
+        let bytes = glb(&entries).unwrap();
+        let (json, bin) = parse_glb_header(&bytes).unwrap();
+        assert_eq!(bin.len() as u64, 2 * mesh_bin_bytes(&m));
+        let json_len = serde_json::to_vec(&json).unwrap().len() as u64;
+        assert_eq!(glb_len(json_len, bin.len() as u64, MAX_GLB_BYTES), Ok(bytes.len() as u64));
+        // A limit one byte short refuses, and says by how much it is over.
+        let short = bytes.len() as u64 - 1;
+        assert_eq!(glb_within(&entries, short), Err(GlbError::TooLarge { bytes: bytes.len() as u64, limit: short }));
+        assert_eq!(glb_within(&entries, bytes.len() as u64).unwrap(), bytes);
     }
 
     #[test]
     fn parse_rejects_malformed_containers() {
         let m = mesh(&sample(), &MeshOptions::default());
-        let good = glb(&[("tree".to_string(), &m, [0.0; 3])]);
+        let good = glb(&[("tree".to_string(), &m, [0.0; 3])]).unwrap();
         assert!(matches!(parse_glb_header(&good[..8]), Err(GltfError::Truncated(_))));
         let mut bad = good.clone();
         bad[0] = b'x';

@@ -1,10 +1,12 @@
 //! Loading species from files and from the embedded library, by format: `.species` (species text) or `.lsys`
 //! (parametric L-system). Loading many files collects every file's diagnostics; one bad file never hides another.
+//! [`check_source`] is `canopy species check`: parsing, then one amplification with the default parameters.
 
 use std::path::Path;
 
 use canopy_protocol::SpeciesGraph;
 
+use crate::amplify::{Budget, Instance, amplify};
 use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 use crate::lsystem::parse_lsystem;
 use crate::species_text::parse_species;
@@ -79,4 +81,48 @@ pub fn load(name_or_path: &str) -> Result<SpeciesGraph, Diagnostics> {
             (None, vec![SourceFile::new(name_or_path, "").diag(0..0, msg)])
         };
     graph.ok_or(Diagnostics(diags))
+}
+
+/// The seed of the instance [`check_source`] amplifies (with the declared default parameters, at full detail).
+pub const CHECK_SEED: u64 = 0;
+
+/// A species that parsed and amplified once with its default parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checked {
+    /// The compiled species.
+    pub graph: SpeciesGraph,
+    /// Primitives of the instance with seed [`CHECK_SEED`], default parameters and full detail.
+    pub primitives: usize,
+}
+
+/// Check a species source as `canopy species check` does: parse it, then amplify one instance — seed
+/// [`CHECK_SEED`], the declared default parameters, full detail — under `budget` (the CLI passes
+/// [`Budget::default`], the budget everything else amplifies under). A species that parses but cannot finish (over
+/// the budget: runaway recursion, too many primitives; or a non-finite primitive) gets an error diagnostic at the
+/// start of the file and no [`Checked`], like one that does not parse: a server would otherwise serve a species
+/// that no client can amplify.
+pub fn check_source(src: &SourceFile, budget: &Budget) -> (Option<Checked>, Vec<Diagnostic>) {
+    let (graph, mut diags) = parse_source(src);
+    let Some(graph) = graph else { return (None, diags) };
+    match amplify(&graph, &Instance::new(CHECK_SEED), budget) {
+        Ok(stream) => (Some(Checked { graph, primitives: stream.primitives.len() }), diags),
+        Err(e) => {
+            diags.push(src.diag(
+                0..0,
+                format!(
+                    "species `{}` cannot finish with its default parameters (seed {CHECK_SEED}, detail 0): {e}",
+                    graph.name
+                ),
+            ));
+            (None, diags)
+        }
+    }
+}
+
+/// [`check_source`] on a file; an unreadable or oversized file is a diagnostic too.
+pub fn check_file(path: &Path, budget: &Budget) -> (Option<Checked>, Vec<Diagnostic>) {
+    match read_source(path) {
+        Ok(src) => check_source(&src, budget),
+        Err(e) => (None, vec![file_diag(path, e)]),
+    }
 }

@@ -115,8 +115,14 @@ impl Parser<'_> {
                 }
                 return out;
             }
-            if !top && self.cur.eat("}") {
-                return out;
+            if self.cur.eat("}") {
+                if !top {
+                    return out;
+                }
+                // A `}` at the top level closes nothing (recovery stops before one, so it must be consumed here).
+                let p = self.cur.pos - 1;
+                self.errors.push(ParseError::new(p..p + 1, "unmatched `}`"));
+                continue;
             }
             if out.len() == limits::MAX_CHILDREN {
                 let p = self.cur.pos;

@@ -9,9 +9,9 @@ use anyhow::{Context, bail};
 use canopy_harness::numbers::{group, median};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
-use canopy_worlds::gltf::glb;
+use canopy_worlds::gltf::{GlbError, MAX_GLB_BYTES, glb, glb_within, mesh_bin_bytes};
 use canopy_worlds::library;
-use canopy_worlds::load::{load, load_file};
+use canopy_worlds::load::{CHECK_SEED, check_file, load};
 use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
 use clap::{Args, Subcommand};
@@ -21,7 +21,8 @@ mod nearfield;
 
 #[derive(Subcommand, Debug)]
 pub enum SpeciesCommand {
-    /// Validate species files (.species, .lsys); print every diagnostic with file:line:col.
+    /// Validate species files (.species, .lsys); print every diagnostic with file:line:col. Each species that
+    /// parses is also amplified once (seed 0, default parameters, default budget): one that cannot finish fails.
     Check {
         /// Files to check; all are checked even if one fails.
         #[arg(required = true)]
@@ -56,6 +57,10 @@ pub enum SpeciesCommand {
         /// Grid spacing of the grove, metres.
         #[arg(long, default_value_t = 8.0)]
         spacing: f32,
+        /// Refuse to write a file over this many bytes (checked before writing; at most and by default 4294967295,
+        /// the GLB limit: its lengths are u32).
+        #[arg(long, default_value_t = MAX_GLB_BYTES)]
+        max_bytes: u64,
         #[command(flatten)]
         near: nearfield::NearFieldArgs,
     },
@@ -167,8 +172,8 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::Check { files } => Ok(check(&files)),
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
         SpeciesCommand::Amplify { instance, out } => amplify_cmd(&instance.config()?, out),
-        SpeciesCommand::Export { instance, out, grove, spacing, near } => {
-            export(&instance.config()?, &out, grove, spacing, &near)
+        SpeciesCommand::Export { instance, out, grove, spacing, max_bytes, near } => {
+            export(&instance.config()?, &out, grove, spacing, max_bytes, &near)
         }
         SpeciesCommand::Nearfield { instance, levels, error } => {
             let cfg = instance.config()?;
@@ -209,18 +214,20 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
 fn check(files: &[PathBuf]) -> ExitCode {
     let mut failed = 0;
     for f in files {
-        let (g, diags) = load_file(f);
+        let (checked, diags) = check_file(f, &Budget::default());
         for d in &diags {
             println!("{d}\n");
         }
-        match g {
-            Some(g) => println!(
-                "ok      {} — species `{}`: {} nodes, {} parameters, {} bytes encoded",
+        match checked {
+            Some(c) => println!(
+                "ok      {} — species `{}`: {} nodes, {} parameters, {} bytes encoded; seed {CHECK_SEED} with default \
+                 parameters: {} primitives",
                 f.display(),
-                g.name,
-                g.nodes.len(),
-                g.params.len(),
-                g.encode().len()
+                c.graph.name,
+                c.graph.nodes.len(),
+                c.graph.params.len(),
+                c.graph.encode().len(),
+                group(c.primitives as u64)
             ),
             None => {
                 failed += 1;
@@ -263,9 +270,9 @@ fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
     println!("primitives  {}  ({})", group(n as u64), counts_line(&stream));
     println!("encoded     {} bytes (postcard species graph)", group(encoded as u64));
     println!(
-        "explicit    {} bytes as seed 001 §7 counts it (cones/cylinders 7 floats, triangle vertices 3 floats): {:.0}× the species",
+        "explicit    {} bytes as seed 001 §7 counts it (cones/cylinders 7 floats, triangle vertices 3 floats): {}× the species",
         group(explicit as u64),
-        explicit as f64 / encoded as f64
+        ratio(explicit as f64 / encoded as f64)
     );
     println!("traversal   {ms:.3} ms median of {repeat} ({:.2} M primitives/s)", n as f64 / ms / 1e3);
     println!(
@@ -274,6 +281,21 @@ fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
         group(m.positions.len() as u64)
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// A size ratio for people: whole numbers from 10 up, two significant digits below (`0.14`, `3.5`), so a species
+/// whose explicit geometry is smaller than its encoding does not read as `0`.
+fn ratio(r: f64) -> String {
+    if !r.is_finite() || r >= 9.95 {
+        format!("{r:.0}")
+    } else if r >= 0.995 {
+        format!("{r:.1}")
+    } else if r > 0.0 {
+        let decimals = (1.0 - r.log10().floor()).clamp(2.0, 12.0) as usize;
+        format!("{r:.decimals$}")
+    } else {
+        "0".to_string()
+    }
 }
 
 fn amplify_cmd(cfg: &InstanceConfig, out: Option<PathBuf>) -> anyhow::Result<ExitCode> {
@@ -318,6 +340,7 @@ fn export(
     out: &Path,
     grove: u32,
     spacing: f32,
+    max_bytes: u64,
     near: &nearfield::NearFieldArgs,
 ) -> anyhow::Result<ExitCode> {
     if grove == 0 || grove > 10_000 {
@@ -326,7 +349,17 @@ fn export(
     let side = (f64::from(grove)).sqrt().ceil() as u32;
     let opts = MeshOptions::for_detail(cfg.instance.detail);
     let mut meshes: Vec<(String, Mesh, [f32; 3])> = Vec::new();
+    // The BIN data of the meshes made so far: once it alone is over the limit, stop before making (and holding)
+    // the rest. `glb_within` checks the exact length, JSON included, before writing.
+    let limit = max_bytes.min(MAX_GLB_BYTES);
+    let (mut bin_bytes, mut counted) = (0u64, 0usize);
     for i in 0..grove {
+        bin_bytes += meshes[counted..].iter().map(|m| mesh_bin_bytes(&m.1)).sum::<u64>();
+        counted = meshes.len();
+        if bin_bytes > limit {
+            let err = GlbError::TooLarge { bytes: bin_bytes, limit };
+            return Err(too_large(out, err, &format!("the first {i} of {grove} instances")));
+        }
         let inst = Instance { seed: cfg.instance.seed.wrapping_add(u64::from(i)), ..cfg.instance.clone() };
         let stream = amplify(&cfg.graph, &inst, &cfg.budget)?;
         let at = [(i % side) as f32 * spacing, 0.0, (i / side) as f32 * spacing];
@@ -344,15 +377,25 @@ fn export(
             meshes.push((format!("{}-{}-{part}", cfg.graph.name, inst.seed), m, offset));
         }
     }
-    write_glb(out, &meshes)?;
+    let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
+    let bytes = glb_within(&refs, limit).map_err(|e| too_large(out, e, &format!("{grove} instance(s)")))?;
+    super::write_file(out, &bytes)?;
     let tris: usize = meshes.iter().map(|m| m.1.triangle_count()).sum();
     println!("wrote {} ({} instance(s), {} triangles)", out.display(), grove, group(tris as u64));
     Ok(ExitCode::SUCCESS)
 }
 
+/// The error for an export over the size limit: what was too large, and the flags that make it smaller.
+fn too_large(out: &Path, err: GlbError, what: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "not writing {}: {what}: {err} (flags: a smaller --grove, a higher --detail, --continuous --lod N)",
+        out.display()
+    )
+}
+
 fn write_glb(out: &Path, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
     let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    super::write_file(out, &glb(&refs))
+    super::write_file(out, &glb(&refs)?)
 }
 
 pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
@@ -385,13 +428,13 @@ pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
         let n = args.per_species.max(1) as f64;
         let encoded = g.encode().len();
         println!(
-            "{:<16} {:>6} {:>8} {:>9} {:>11} {:>6.0}× {:>9.3} {:>9.2}",
+            "{:<16} {:>6} {:>8} {:>9} {:>11} {:>6}× {:>9.3} {:>9.2}",
             entry.name(),
             g.nodes.len(),
             encoded,
             group((prims as f64 / n) as u64),
             group((explicit as f64 / n) as u64),
-            explicit as f64 / n / encoded as f64,
+            ratio(explicit as f64 / n / encoded as f64),
             secs * 1e3 / n,
             prims as f64 / secs / 1e6
         );
