@@ -102,9 +102,23 @@ pub struct Checked {
 /// start of the file and no [`Checked`], like one that does not parse: a server would otherwise serve a species
 /// that no client can amplify.
 pub fn check_source(src: &SourceFile, budget: &Budget) -> (Option<Checked>, Vec<Diagnostic>) {
-    let (graph, mut diags) = parse_source(src);
-    let Some(graph) = graph else { return (None, diags) };
-    match amplify(&graph, &Instance::new(CHECK_SEED), budget) {
+    let instance = Instance::new(CHECK_SEED);
+    // An L-system reports a derivation too deep in its own terms (the derivation depth and the production), not
+    // as nested separators its author never wrote.
+    let (graph, mut diags, amplified) = match Format::of(&src.name) {
+        Some(Format::LSystem) => {
+            let (l, diags) = crate::lsystem::LSystem::parse(src);
+            let amplified = l.as_ref().map(|l| l.amplify(&instance, budget).map_err(|e| e.to_string()));
+            (l.map(|l| l.graph), diags, amplified)
+        }
+        _ => {
+            let (graph, diags) = parse_source(src);
+            let amplified = graph.as_ref().map(|g| amplify(g, &instance, budget).map_err(|e| e.to_string()));
+            (graph, diags, amplified)
+        }
+    };
+    let (Some(graph), Some(amplified)) = (graph, amplified) else { return (None, diags) };
+    match amplified {
         Ok(stream) => (Some(Checked { graph, primitives: stream.primitives.len() }), diags),
         Err(e) => {
             diags.push(src.diag(

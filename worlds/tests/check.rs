@@ -124,3 +124,15 @@ fn every_library_species_passes_the_check() {
         assert!(checked > 0, "{}", entry.file);
     }
 }
+
+#[test]
+fn an_l_system_too_deep_is_reported_in_its_own_terms() {
+    // A derivation that nests a branch per step: 2,000 steps nest deeper than the default 1,024.
+    let text = "lsystem Deep\nderive 2000\nangle 30\naxiom: A\nA -> F [ + A ] \n";
+    let (checked, diags) = check("deep.lsys", text);
+    assert_eq!(checked, None);
+    let m = &diags.last().expect("a diagnostic").message;
+    assert!(m.contains("derivation depth 2000") && m.contains("maxdepth"), "{m}");
+    assert!(m.contains("A -> F [ + A ]"), "names the production: {m}");
+    assert!(!m.contains("separators"), "{m}");
+}
