@@ -22,7 +22,7 @@ use tracing::{debug, info, warn};
 
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::metrics::Metrics;
-use crate::session::{Session, SessionConfig, StreamId, Transmit};
+use crate::session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
 use crate::store::WorldStore;
 use crate::tls::{Identity, IdentityError};
 
@@ -45,6 +45,9 @@ pub struct ServerConfig {
     pub session: SessionConfig,
     /// Admission: most clients, handshakes and connections per source; when to ask for a Retry.
     pub admission: AdmissionConfig,
+    /// Bytes queued for clients and not yet taken by the transport, across every session, beyond which sessions
+    /// pause (`None`: only each session's own window).
+    pub send_budget: Option<usize>,
     /// UDP socket send and receive buffer size, bytes.
     pub socket_buffer: usize,
     /// A connection with no traffic for this long is closed.
@@ -62,6 +65,7 @@ impl Default for ServerConfig {
             data_dir: None,
             session: SessionConfig::default(),
             admission: AdmissionConfig::default(),
+            send_budget: None,
             socket_buffer: SOCKET_BUFFER,
             idle_timeout: Duration::from_secs(30),
             idle_slot: Duration::from_secs(120),
@@ -137,7 +141,10 @@ fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
 
 impl Server {
     /// Bind, load or generate the certificate, and start accepting clients of `store`.
-    pub async fn start(store: Arc<dyn WorldStore>, cfg: ServerConfig) -> Result<Server, StartError> {
+    pub async fn start(store: Arc<dyn WorldStore>, mut cfg: ServerConfig) -> Result<Server, StartError> {
+        if let Some(limit) = cfg.send_budget {
+            cfg.session.send_budget = Some(SendBudget::new(limit));
+        }
         let identity = match &cfg.data_dir {
             Some(dir) => Identity::load_or_generate(dir)?,
             None => Identity::generate()?,

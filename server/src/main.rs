@@ -43,9 +43,16 @@ struct Args {
     /// Look-ahead along the velocity, seconds.
     #[arg(long, default_value_t = AoiParams::default().lookahead_s)]
     lookahead: f32,
-    /// Per-client bandwidth cap, bytes per second (default: none).
-    #[arg(long)]
-    bandwidth: Option<u64>,
+    /// Per-client egress cap, bytes per second (0: none). The default, 4 MB/s (32 Mbit/s), is far above what a
+    /// walking or flying client needs and bounds what a viewpoint flood can make the server send.
+    #[arg(long, default_value_t = 4_000_000)]
+    bandwidth: u64,
+    /// Most viewpoints a second a client may send (a burst of twice as many); faster ends its session.
+    #[arg(long, default_value_t = SessionConfig::default().viewpoint_rate.0)]
+    viewpoint_rate: u32,
+    /// Send data queued for clients across all sessions, MiB, beyond which sessions pause instead of queueing more.
+    #[arg(long, default_value_t = 256)]
+    send_budget_mib: usize,
     /// Most clients at once (a client takes a slot when its handshake completes).
     #[arg(long, default_value_t = AdmissionConfig::default().max_clients)]
     max_clients: usize,
@@ -98,7 +105,8 @@ fn main() -> anyhow::Result<()> {
             lookahead_s: args.lookahead,
             ..AoiParams::default()
         },
-        bandwidth: args.bandwidth,
+        bandwidth: (args.bandwidth > 0).then_some(args.bandwidth),
+        viewpoint_rate: (args.viewpoint_rate.max(1), args.viewpoint_rate.max(1).saturating_mul(2)),
         ..SessionConfig::default()
     };
     session.aoi.validate().context("area-of-interest options")?;
@@ -114,6 +122,7 @@ fn main() -> anyhow::Result<()> {
             max_per_source: args.max_per_source,
         },
         idle_slot: Duration::from_secs(args.idle_slot),
+        send_budget: Some(args.send_budget_mib.saturating_mul(1 << 20)),
         ..ServerConfig::default()
     };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;

@@ -137,6 +137,50 @@ pub struct SessionConfig {
     pub handshake_timeout: Duration,
     /// What goes out per instance and species (procedural unless a bandwidth baseline asks otherwise).
     pub payload: Payload,
+    /// Most viewpoints a second a client may send, and the burst; faster is a flood and ends the session
+    /// (viewpoints are never coalesced: each one releases cells on both sides).
+    pub viewpoint_rate: (u32, u32),
+    /// The budget of unflushed bytes shared by every session of a server (`None`: only each session's window).
+    pub send_budget: Option<Arc<SendBudget>>,
+}
+
+/// Bytes handed to the transport and not yet flushed, summed over every session of a server, against a limit:
+/// past it, sessions pause (they send releases, nothing new) until bytes are flushed, instead of queueing more.
+#[derive(Debug)]
+pub struct SendBudget {
+    limit: usize,
+    used: std::sync::atomic::AtomicUsize,
+}
+
+impl SendBudget {
+    /// A budget of `limit` bytes, none used.
+    pub fn new(limit: usize) -> Arc<SendBudget> {
+        Arc::new(SendBudget { limit, used: std::sync::atomic::AtomicUsize::new(0) })
+    }
+
+    /// Bytes in use now.
+    pub fn used(&self) -> usize {
+        self.used.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether the budget is spent.
+    pub fn spent(&self) -> bool {
+        self.used() >= self.limit
+    }
+
+    fn add(&self, n: usize) {
+        self.used.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    fn sub(&self, n: usize) {
+        self.used.fetch_sub(n, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl PartialEq for SendBudget {
+    fn eq(&self, other: &SendBudget) -> bool {
+        std::ptr::eq(self, other)
+    }
 }
 
 impl Default for SessionConfig {
@@ -151,6 +195,8 @@ impl Default for SessionConfig {
             fov_deg: 120.0,
             handshake_timeout: Duration::from_secs(10),
             payload: Payload::default(),
+            viewpoint_rate: (50, 100),
+            send_budget: None,
         }
     }
 }
@@ -212,6 +258,9 @@ pub enum SessionError {
     /// The client did not finish its handshake in time.
     #[error("handshake not finished within {0:?}")]
     HandshakeTimeout(Duration),
+    /// Viewpoints arrive faster than the session's rate allows.
+    #[error("viewpoints faster than {0} a second")]
+    ViewpointFlood(u32),
 }
 
 impl SessionError {
@@ -223,6 +272,7 @@ impl SessionError {
             SessionError::Version { .. } => CloseCode::Version,
             SessionError::UnknownSpecies(_) => CloseCode::Invalid,
             SessionError::HandshakeTimeout(_) => CloseCode::Timeout,
+            SessionError::ViewpointFlood(_) => CloseCode::Invalid,
         }
     }
 }
@@ -273,8 +323,21 @@ pub struct Session {
     staged: VecDeque<(CellCoord, Transmit)>,
     next_grant: u32,
     bucket: Option<TokenBucket>,
+    /// Viewpoints a client may still send (one token each).
+    viewpoints: TokenBucket,
     unflushed: usize,
+    /// When the shared send budget last paused this session.
+    paused: Option<Instant>,
     stats: SessionStats,
+}
+
+impl Drop for Session {
+    fn drop(&mut self) {
+        // Whatever was never flushed goes back to the shared budget with the session.
+        if let Some(b) = &self.cfg.send_budget {
+            b.sub(self.unflushed);
+        }
+    }
 }
 
 impl std::fmt::Debug for Session {
@@ -294,6 +357,8 @@ impl Session {
         cfg.batch_records = cfg.batch_records.clamp(1, netlimits::MAX_BATCH_RECORDS);
         cfg.lanes = cfg.lanes.clamp(1, 8);
         let bucket = cfg.bandwidth.map(|rate| TokenBucket::new(rate, cfg.burst, now));
+        let (rate, burst) = cfg.viewpoint_rate;
+        let viewpoints = TokenBucket::new(u64::from(rate), u64::from(burst), now);
         Session {
             store,
             deadline: now + cfg.handshake_timeout,
@@ -310,7 +375,9 @@ impl Session {
             staged: VecDeque::new(),
             next_grant: 1,
             bucket,
+            viewpoints,
             unflushed: 0,
+            paused: None,
             stats: SessionStats::default(),
         }
     }
@@ -355,18 +422,18 @@ impl Session {
     }
 
     /// Decode and handle one frame from the control stream.
-    pub fn handle_frame(&mut self, _now: Instant, frame: &[u8]) -> Result<(), SessionError> {
+    pub fn handle_frame(&mut self, now: Instant, frame: &[u8]) -> Result<(), SessionError> {
         // The decoder validates.
-        self.handle_valid(ClientMsg::decode(frame)?)
+        self.handle_valid(now, ClientMsg::decode(frame)?)
     }
 
     /// Handle one decoded message from the client.
-    pub fn handle(&mut self, _now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
+    pub fn handle(&mut self, now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
         msg.validate()?;
-        self.handle_valid(msg)
+        self.handle_valid(now, msg)
     }
 
-    fn handle_valid(&mut self, msg: ClientMsg) -> Result<(), SessionError> {
+    fn handle_valid(&mut self, now: Instant, msg: ClientMsg) -> Result<(), SessionError> {
         let next = msg.next_phase(self.phase)?;
         match msg {
             ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
@@ -396,6 +463,11 @@ impl Session {
                 if v.seq <= last {
                     return Err(SessionError::Stale { seq: v.seq, last });
                 }
+                // A flood of viewpoints costs the server a release pass each: bounded by a token bucket.
+                if !self.viewpoints.ready(now) {
+                    return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
+                }
+                self.viewpoints.take(now, 1);
                 self.set_viewpoint(v);
             }
         }
@@ -441,12 +513,25 @@ impl Session {
         if self.queue.is_empty() && self.staged.is_empty() {
             return None;
         }
+        // Paused by the shared budget: other sessions' flushes do not wake this one, so look again shortly.
+        if let Some(at) = self.paused {
+            return Some(at + Duration::from_millis(5));
+        }
         self.bucket.as_ref().and_then(TokenBucket::ready_at)
     }
 
     /// The transport took `bytes` of what was transmitted (reopens the window).
     pub fn on_flushed(&mut self, bytes: usize) {
-        self.unflushed = self.unflushed.saturating_sub(bytes);
+        let n = bytes.min(self.unflushed);
+        self.unflushed -= n;
+        if let Some(b) = &self.cfg.send_budget {
+            b.sub(n);
+        }
+    }
+
+    /// Bytes handed to the transport and not yet flushed.
+    pub fn unflushed(&self) -> usize {
+        self.unflushed
     }
 
     /// The next message to write, or `None` until a message arrives, bytes are flushed or the timeout passes.
@@ -461,6 +546,11 @@ impl Session {
         if self.phase != Phase::Streaming || idle || self.unflushed >= self.cfg.window {
             return None;
         }
+        if self.cfg.send_budget.as_ref().is_some_and(|b| b.spent()) {
+            self.paused = Some(now);
+            return None;
+        }
+        self.paused = None;
         if let Some(b) = &mut self.bucket
             && !b.ready(now)
         {
@@ -478,6 +568,9 @@ impl Session {
         self.stats.messages[t.class] += 1;
         self.stats.records += u64::from(t.records);
         self.unflushed += t.bytes.len();
+        if let Some(b) = &self.cfg.send_budget {
+            b.add(t.bytes.len());
+        }
         if let Some(b) = &mut self.bucket {
             b.take(now, t.bytes.len());
         }

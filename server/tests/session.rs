@@ -400,10 +400,12 @@ fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
         x = x.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
         let p = [((x >> 33) % 600) as f32 - 300.0, ((x >> 13) % 600) as f32 - 300.0];
         let vp = Viewpoint { seq, position: p, yaw: 0.0, velocity: [(x % 50) as f32, 0.0], radius: 1e9 };
-        s.handle(t0, ClientMsg::viewpoint(vp)).unwrap();
+        // Ten viewpoints a second: within the session's viewpoint rate.
+        let now = t0 + Duration::from_millis(100 * u64::from(seq));
+        s.handle(now, ClientMsg::viewpoint(vp)).unwrap();
         // Send a little, not all: partially sent cells must be bounded too.
         for _ in 0..(x % 20) {
-            if let Some(t) = s.poll_transmit(t0) {
+            if let Some(t) = s.poll_transmit(now) {
                 s.on_flushed(t.bytes.len());
             }
         }
@@ -557,4 +559,92 @@ fn a_world_a_client_would_refuse_is_refused_by_the_store() {
     let bad_grid = Grid { cell_size: -1.0, ..grid };
     let e = StoreBuilder::new("test", 1, bad_grid, terrain(), &[]).unwrap_err();
     assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
+}
+
+#[test]
+fn a_viewpoint_flood_ends_the_session() {
+    let store = store();
+    let t0 = Instant::now();
+    let mut s = streaming(&store, config(), Viewpoint::at(0, [0.0, 0.0], 100.0), vec![0, 1, 2], t0);
+    // Ten a second for a minute is fine (an honest client sends at most that).
+    let mut seq = 0;
+    for i in 0..600u64 {
+        seq += 1;
+        let now = t0 + Duration::from_millis(100 * i);
+        let vp = Viewpoint::at(seq, [(i % 40) as f32, 0.0], 100.0);
+        s.handle(now, ClientMsg::viewpoint(vp)).unwrap();
+        drain(&mut s, now);
+    }
+    // Thousands within one second are not: the burst (twice the rate) goes, then the session ends.
+    let now = t0 + Duration::from_secs(61);
+    let mut accepted = 0;
+    let err = loop {
+        seq += 1;
+        match s.handle(now, ClientMsg::viewpoint(Viewpoint::at(seq, [0.0, 0.0], 100.0))) {
+            Ok(()) => accepted += 1,
+            Err(e) => break e,
+        }
+        assert!(accepted <= 200, "never stopped");
+    };
+    let (rate, burst) = SessionConfig::default().viewpoint_rate;
+    assert!(accepted <= burst as usize + 1, "{accepted}");
+    assert!(matches!(err, SessionError::ViewpointFlood(r) if r == rate), "{err}");
+    assert_eq!(err.close_code(), CloseCode::Invalid);
+}
+
+#[test]
+fn a_session_never_flushed_stays_within_its_window_through_teleports() {
+    let store = store();
+    let t0 = Instant::now();
+    let cfg = SessionConfig { window: 4 * 1024, ..config() };
+    let mut s = streaming(&store, cfg.clone(), Viewpoint::at(0, [0.0, 0.0], 200.0), vec![], t0);
+    let mut most = 0;
+    let mut largest = 0;
+    // A client that never acknowledges anything, teleporting corner to corner for ten virtual minutes.
+    for i in 0..6_000u64 {
+        let now = t0 + Duration::from_millis(100 * i);
+        if i % 10 == 0 {
+            let corner = [[-200.0, -200.0], [200.0, 200.0], [-200.0, 200.0], [200.0, -200.0]][(i / 10 % 4) as usize];
+            s.handle(now, ClientMsg::viewpoint(Viewpoint::at(1 + (i / 10) as u32, corner, 200.0))).unwrap();
+        }
+        while let Some(t) = s.poll_transmit(now) {
+            if t.class != MsgClass::Release {
+                largest = largest.max(t.bytes.len());
+            }
+        }
+        most = most.max(s.unflushed());
+    }
+    // Paced messages stop at the window (one may cross it); releases are small and bounded by the cells held.
+    let releases = s.stats().bytes[MsgClass::Release] as usize;
+    assert!(most <= cfg.window + largest + releases, "{most}");
+    assert!(s.unflushed() <= cfg.window + largest + releases);
+    assert!(s.stats().bytes[MsgClass::Cells] as usize <= cfg.window + largest, "nothing paced past the window");
+}
+
+#[test]
+fn the_shared_send_budget_pauses_sessions_until_bytes_are_flushed() {
+    use canopy_server::session::SendBudget;
+    let store = store();
+    let t0 = Instant::now();
+    let budget = SendBudget::new(6 * 1024);
+    let cfg = SessionConfig { window: 64 * 1024, send_budget: Some(Arc::clone(&budget)), ..config() };
+    let mut a = streaming(&store, cfg.clone(), Viewpoint::at(0, [0.0, 0.0], 200.0), vec![], t0);
+    let mut b = streaming(&store, cfg, Viewpoint::at(0, [50.0, 50.0], 200.0), vec![], t0);
+    // Neither flushes: together they stop at the shared budget, far below their windows.
+    let mut a_sent = vec![];
+    while let Some(t) = a.poll_transmit(t0) {
+        a_sent.push(t.bytes.len());
+    }
+    while b.poll_transmit(t0).is_some() {}
+    assert!(budget.spent());
+    assert!(budget.used() < 6 * 1024 + 2 * 4096, "{}", budget.used());
+    assert_eq!(budget.used(), a.unflushed() + b.unflushed());
+    assert!(b.poll_timeout().is_some(), "a paused session asks to be polled again");
+    // A flushes what it had: B goes on.
+    a.on_flushed(a_sent.iter().sum());
+    assert!(!budget.spent());
+    assert!(b.poll_transmit(t0 + Duration::from_millis(5)).is_some());
+    // A session that ends gives its bytes back.
+    drop(b);
+    assert_eq!(budget.used(), a.unflushed());
 }

@@ -22,7 +22,7 @@ fn store() -> Arc<dyn WorldStore> {
     }))
 }
 
-async fn server(admission: AdmissionConfig, idle_slot: Duration) -> Server {
+async fn start_server(admission: AdmissionConfig, idle_slot: Duration) -> Server {
     let cfg = ServerConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
         session: SessionConfig { handshake_timeout: Duration::from_secs(5), ..SessionConfig::default() },
@@ -62,7 +62,7 @@ async fn initial_packet() -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
     let admission = AdmissionConfig { max_clients: 4, max_handshakes: 16, retry_above: 3, max_per_source: 6 };
-    let server = server(admission, Duration::from_secs(120)).await;
+    let server = start_server(admission, Duration::from_secs(120)).await;
     // Twelve half-open handshakes from 127.0.0.1: each Initial sent once from its own port, never followed up.
     let mut flood = Vec::new();
     for _ in 0..12 {
@@ -97,7 +97,7 @@ async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_source_gets_its_share_and_no_more() {
     let admission = AdmissionConfig { max_clients: 10, max_handshakes: 16, retry_above: 16, max_per_source: 2 };
-    let server = server(admission, Duration::from_secs(120)).await;
+    let server = start_server(admission, Duration::from_secs(120)).await;
     let a = connect_from(&server, "127.0.0.7:0").await.unwrap();
     let b = connect_from(&server, "127.0.0.7:0").await.unwrap();
     assert!(connect_from(&server, "127.0.0.7:0").await.is_err(), "a third connection from one source");
@@ -111,7 +111,7 @@ async fn one_source_gets_its_share_and_no_more() {
 async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     // Near capacity (2 of 2 slots), sessions that send no viewpoint for a second are closed with a reason.
     let admission = AdmissionConfig { max_clients: 2, ..AdmissionConfig::default() };
-    let server = server(admission, Duration::from_secs(1)).await;
+    let server = start_server(admission, Duration::from_secs(1)).await;
     let mut idle = connect_from(&server, "127.0.0.1:0").await.unwrap();
     let _other = connect_from(&server, "127.0.0.1:0").await.unwrap();
     let closed = tokio::time::timeout(Duration::from_secs(10), async {
@@ -127,7 +127,7 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     assert!(closed.to_string().contains("no viewpoint"), "{closed}");
     // Well below capacity, the same idleness is kept.
     let roomy = AdmissionConfig { max_clients: 100, ..AdmissionConfig::default() };
-    let server2 = server(roomy, Duration::from_secs(1)).await;
+    let server2 = start_server(roomy, Duration::from_secs(1)).await;
     let mut kept = connect_from(&server2, "127.0.0.1:0").await.unwrap();
     kept.wait_complete(Duration::from_secs(30)).await.unwrap();
     let quiet = tokio::time::timeout(Duration::from_secs(3), async {

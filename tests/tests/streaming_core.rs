@@ -74,6 +74,8 @@ impl Pair {
     }
 
     fn moved(&mut self, position: [f32; 2], velocity: [f32; 2], radius: f32) {
+        // A viewpoint every 100 ms of virtual time, as a walking client sends them.
+        self.now += std::time::Duration::from_millis(100);
         self.seq += 1;
         let vp = Viewpoint { seq: self.seq, position, yaw: velocity[0].atan2(velocity[1]), velocity, radius };
         let msg = self.client.set_viewpoint(vp).unwrap();
