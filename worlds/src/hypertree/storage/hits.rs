@@ -6,11 +6,14 @@ use super::VoxelStore;
 use super::bricks::{BrickGrid, BrickMap};
 use super::classes::{DensityClasses, classify};
 use super::dense::DenseArray;
-use super::sort::{radix_sort, radix_sort32};
+use super::sort::{RadixKey, radix_sort};
 use super::validate::{Compact, build_lists, merge_runs};
 
 /// Raw hits flushed to the compact list once this many have accumulated (bounds memory for any iteration count).
 const CHUNK: usize = 1 << 22;
+
+/// Most voxels of a volume recorded in bricks (the brick slot table is 4 bytes per 512 voxels).
+const BRICK_GRID_VOXELS: u64 = 1 << 30;
 
 /// Where generation records voxel hits (§6 steps c and v): straight into a dense array, or as an index list that
 /// validation compacts (§5: sort, remove duplicates, count).
@@ -25,39 +28,138 @@ enum Mode {
         array: DenseArray,
         touched: Vec<u32>,
     },
-    /// Narrow keys `index << LEVEL_BITS | level` (subpart 0, index below 2²⁷, level below 32): half the memory
-    /// traffic of the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
-    Keys32 {
-        raw: Vec<u32>,
-        compact: Vec<Compact>,
-        scratch: Vec<u32>,
-    },
+    /// Narrow keys `index << 5 | level` (subpart 0, index below 2²⁷, level below 32): half the memory traffic of
+    /// the wide keys and fewer radix passes. A hit that does not fit widens every key for good.
+    Narrow(Keys<u32>),
     /// Hit counts and levels in bricks of 8³ allocated on first touch (subpart 0 only; for coherent hits such as
     /// line generators', which cross runs of neighbouring voxels): no sort at all. A hit of another subpart turns
     /// the bricks into compact records and switches to wide keys for good.
     Bricks(BrickGrid),
-    Keys {
-        raw: Vec<u64>,
-        compact: Vec<Compact>,
-        scratch: Vec<u64>,
-    },
+    /// Wide keys `subpart << 40 | index << 8 | level`: the level in the low byte (the shallowest sorts first), the
+    /// index above it and the subpart on top, so an unpartitioned index list needs only the passes its index bits
+    /// take.
+    Wide(Keys<u64>),
 }
 
-/// Level bits of a narrow key.
-const LEVEL_BITS: u32 = 5;
+/// A raw hit as a sortable key: the record `subpart << 32 | index` above [`HitKey::LEVEL_BITS`] bits of level, so
+/// keys sort by subpart, then voxel, then shallowest level first.
+trait HitKey: RadixKey {
+    /// Bits of the level, below the record.
+    const LEVEL_BITS: u32;
 
-/// Most voxels of a volume recorded in bricks (the brick slot table is 4 bytes per 512 voxels).
-const BRICK_GRID_VOXELS: u64 = 1 << 30;
+    /// The key of a hit of voxel `index` of `subpart` at `level` (they must fit the key).
+    fn pack(index: u32, subpart: u8, level: u8) -> Self;
+
+    /// The record, `subpart << 32 | index`.
+    #[inline(always)]
+    fn record(self) -> u64 {
+        self.to_u64() >> Self::LEVEL_BITS
+    }
+
+    /// The level.
+    #[inline(always)]
+    fn level(self) -> u8 {
+        (self.to_u64() & ((1 << Self::LEVEL_BITS) - 1)) as u8
+    }
+}
+
+impl HitKey for u32 {
+    const LEVEL_BITS: u32 = 5;
+
+    #[inline(always)]
+    fn pack(index: u32, subpart: u8, level: u8) -> u32 {
+        debug_assert!(subpart == 0 && u32::from(level) < 1 << Self::LEVEL_BITS && index < 1 << (32 - Self::LEVEL_BITS));
+        index << Self::LEVEL_BITS | u32::from(level)
+    }
+}
+
+impl HitKey for u64 {
+    const LEVEL_BITS: u32 = 8;
+
+    #[inline(always)]
+    fn pack(index: u32, subpart: u8, level: u8) -> u64 {
+        (u64::from(subpart) << 32 | u64::from(index)) << Self::LEVEL_BITS | u64::from(level)
+    }
+}
+
+/// Whether a hit of `subpart` at `level` fits a narrow key (its index always does: the volume was checked).
+#[inline(always)]
+fn fits_narrow(subpart: u8, level: u8) -> bool {
+    subpart == 0 && u32::from(level) < 1 << <u32 as HitKey>::LEVEL_BITS
+}
+
+/// Raw hit keys of one width and the compact records counted from them so far.
+struct Keys<K> {
+    raw: Vec<K>,
+    compact: Vec<Compact>,
+    scratch: Vec<K>,
+}
+
+impl<K: HitKey> Keys<K> {
+    fn new() -> Keys<K> {
+        Keys { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() }
+    }
+
+    /// Add one raw key, flushing once [`CHUNK`] have accumulated.
+    #[inline]
+    fn push(&mut self, key: K) {
+        self.raw.push(key);
+        if self.raw.len() >= CHUNK {
+            self.flush();
+        }
+    }
+
+    /// Add raw keys, flushing once [`CHUNK`] have accumulated.
+    #[inline]
+    fn extend(&mut self, keys: impl IntoIterator<Item = K>) {
+        self.raw.extend(keys);
+        if self.raw.len() >= CHUNK {
+            self.flush();
+        }
+    }
+
+    /// Sort the raw keys, count repeats into runs (hit count saturating at 255, the shallowest level: the first
+    /// key of a run) and merge them into the compact records.
+    fn flush(&mut self) {
+        let raw = &mut self.raw;
+        if raw.is_empty() {
+            return;
+        }
+        radix_sort(raw, &mut self.scratch);
+        let mut runs: Vec<Compact> = Vec::with_capacity(raw.len() / 2);
+        let mut k = 0;
+        while k < raw.len() {
+            let key = raw[k].record();
+            let level = raw[k].level();
+            let start = k;
+            k += 1;
+            while k < raw.len() && raw[k].record() == key {
+                k += 1;
+            }
+            runs.push(Compact { key, hits: (k - start).min(255) as u8, level });
+        }
+        raw.clear();
+        merge_runs(&mut self.compact, runs);
+    }
+
+    /// Every hit as compact records sorted by (subpart, index); the raw buffers are freed.
+    fn into_compact(mut self) -> Vec<Compact> {
+        self.flush();
+        self.compact
+    }
+}
 
 impl HitRecorder {
     /// A recorder for a volume of `resolution` that will be stored as `ty`.
     pub fn new(ty: StorageType, resolution: [u32; 3]) -> HitRecorder {
         let mode = match ty {
             StorageType::Dense => Mode::Dense { array: DenseArray::new(resolution), touched: Vec::new() },
-            _ if resolution.iter().map(|&r| u64::from(r)).product::<u64>() <= 1 << (32 - LEVEL_BITS) => {
-                Mode::Keys32 { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() }
+            _ if resolution.iter().map(|&r| u64::from(r)).product::<u64>()
+                <= 1 << (32 - <u32 as HitKey>::LEVEL_BITS) =>
+            {
+                Mode::Narrow(Keys::new())
             }
-            _ => Mode::Keys { raw: Vec::with_capacity(1 << 16), compact: Vec::new(), scratch: Vec::new() },
+            _ => Mode::Wide(Keys::new()),
         };
         HitRecorder { mode, hits: 0 }
     }
@@ -111,14 +213,9 @@ impl HitRecorder {
     #[inline]
     pub fn record_many(&mut self, hits: &[([u32; 3], u32)], level: u8, subpart: u8) {
         match &mut self.mode {
-            Mode::Keys32 { raw, compact, scratch } if subpart == 0 && u32::from(level) < 1 << LEVEL_BITS => {
+            Mode::Narrow(keys) if fits_narrow(subpart, level) => {
                 self.hits += hits.len() as u64;
-                for &(_, index) in hits {
-                    raw.push(index << LEVEL_BITS | u32::from(level));
-                }
-                if raw.len() >= CHUNK {
-                    flush32(raw, compact, scratch);
-                }
+                keys.extend(hits.iter().map(|&(_, index)| u32::pack(index, subpart, level)));
             }
             _ => {
                 for &(v, index) in hits {
@@ -153,16 +250,13 @@ impl HitRecorder {
         self.hits += 1;
         match &mut self.mode {
             Mode::Dense { array, touched } => array.hit(v, index, level, touched),
-            Mode::Keys32 { raw, compact, scratch } => {
-                if subpart != 0 || u32::from(level) >= 1 << LEVEL_BITS {
+            Mode::Narrow(keys) => {
+                if !fits_narrow(subpart, level) {
                     self.widen();
                     self.hits -= 1;
                     return self.record_at(v, index, level, subpart);
                 }
-                raw.push(index << LEVEL_BITS | u32::from(level));
-                if raw.len() >= CHUNK {
-                    flush32(raw, compact, scratch);
-                }
+                keys.push(u32::pack(index, subpart, level));
             }
             Mode::Bricks(grid) => {
                 if subpart != 0 {
@@ -172,14 +266,7 @@ impl HitRecorder {
                 }
                 grid.hit(v, level);
             }
-            Mode::Keys { raw, compact, scratch } => {
-                // Level in the low byte (the shallowest sorts first), the index above it and the subpart on top,
-                // so an unpartitioned index list needs only the passes its index bits take.
-                raw.push(u64::from(subpart) << 40 | u64::from(index) << 8 | u64::from(level));
-                if raw.len() >= CHUNK {
-                    flush(raw, compact, scratch);
-                }
-            }
+            Mode::Wide(keys) => keys.push(u64::pack(index, subpart, level)),
         }
     }
 
@@ -194,6 +281,11 @@ impl HitRecorder {
         classes: u8,
         branch_depth: u8,
     ) -> (VoxelStore, BrickMap, Option<VoxelBox>) {
+        let lists = |compact: Vec<Compact>| build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
+        let with_map = |store: VoxelStore| {
+            let (map, vbox) = BrickMap::build(volume, &store);
+            (store, map, vbox)
+        };
         match self.mode {
             Mode::Dense { mut array, touched } => {
                 let mut histogram = [0u64; 256];
@@ -210,14 +302,8 @@ impl HitRecorder {
                 let (map, vbox) = BrickMap::from_indices(volume, touched.iter().copied());
                 (VoxelStore::Dense(array), map, vbox)
             }
-            Mode::Keys32 { mut raw, mut compact, mut scratch } => {
-                flush32(&mut raw, &mut compact, &mut scratch);
-                drop(raw);
-                drop(scratch);
-                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
-                let (map, vbox) = BrickMap::build(volume, &store);
-                (store, map, vbox)
-            }
+            Mode::Narrow(keys) => with_map(lists(keys.into_compact())),
+            Mode::Wide(keys) => with_map(lists(keys.into_compact())),
             Mode::Bricks(grid) if !partitioned => {
                 let (list, hits_of, map, vbox) = grid.into_list();
                 let list = classify(list, &hits_of, classes, branch_depth);
@@ -225,34 +311,28 @@ impl HitRecorder {
             }
             Mode::Bricks(grid) => {
                 let (compact, map, vbox) = grid.into_compact();
-                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
-                (store, map, vbox)
-            }
-            Mode::Keys { mut raw, mut compact, mut scratch } => {
-                flush(&mut raw, &mut compact, &mut scratch);
-                drop(raw);
-                drop(scratch);
-                let store = build_lists(&compact, ty, partitioned, volume, classes, branch_depth);
-                let (map, vbox) = BrickMap::build(volume, &store);
-                (store, map, vbox)
+                (lists(compact), map, vbox)
             }
         }
     }
-}
 
-impl HitRecorder {
     /// Switch from narrow keys or bricks to wide keys (a hit of a subpart other than 0, or a narrow key's level
     /// of 32 or more).
     #[cold]
     fn widen(&mut self) {
-        if let Mode::Keys32 { raw, compact, .. } = &mut self.mode {
-            let raw: Vec<u64> =
-                raw.iter().map(|&k| u64::from(k >> LEVEL_BITS) << 8 | u64::from(k & ((1 << LEVEL_BITS) - 1))).collect();
-            self.mode = Mode::Keys { raw, compact: std::mem::take(compact), scratch: Vec::new() };
-        } else if let Mode::Bricks(grid) = &mut self.mode {
-            let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
-            self.mode = Mode::Keys { raw: Vec::with_capacity(1 << 16), compact, scratch: Vec::new() };
-        }
+        let wide = match &mut self.mode {
+            Mode::Narrow(keys) => Keys {
+                raw: keys.raw.iter().map(|&k| u64::pack(k.record() as u32, 0, k.level())).collect(),
+                compact: std::mem::take(&mut keys.compact),
+                scratch: Vec::new(),
+            },
+            Mode::Bricks(grid) => {
+                let (compact, _, _) = std::mem::replace(grid, BrickGrid::new([0; 3])).into_compact();
+                Keys { compact, ..Keys::new() }
+            }
+            Mode::Dense { .. } | Mode::Wide(_) => return,
+        };
+        self.mode = Mode::Wide(wide);
     }
 }
 
@@ -295,48 +375,4 @@ impl BrickHits<'_> {
         }
         self.grid.bump(self.base | BrickGrid::local(v), level);
     }
-}
-
-/// [`flush`] for narrow keys: the same compact records.
-fn flush32(raw: &mut Vec<u32>, compact: &mut Vec<Compact>, scratch: &mut Vec<u32>) {
-    if raw.is_empty() {
-        return;
-    }
-    radix_sort32(raw, scratch);
-    let mut runs: Vec<Compact> = Vec::with_capacity(raw.len() / 2);
-    let mut k = 0;
-    while k < raw.len() {
-        let key = raw[k] >> LEVEL_BITS;
-        let level = (raw[k] & ((1 << LEVEL_BITS) - 1)) as u8;
-        let start = k;
-        k += 1;
-        while k < raw.len() && raw[k] >> LEVEL_BITS == key {
-            k += 1;
-        }
-        runs.push(Compact { key: u64::from(key), hits: (k - start).min(255) as u8, level });
-    }
-    raw.clear();
-    merge_runs(compact, runs);
-}
-
-/// Sort the raw hits, count repeats and merge them into the compact list.
-fn flush(raw: &mut Vec<u64>, compact: &mut Vec<Compact>, scratch: &mut Vec<u64>) {
-    if raw.is_empty() {
-        return;
-    }
-    radix_sort(raw, scratch);
-    let mut runs: Vec<Compact> = Vec::new();
-    let mut k = 0;
-    while k < raw.len() {
-        let key = raw[k] >> 8;
-        let level = (raw[k] & 0xff) as u8;
-        let mut n = 0usize;
-        while k < raw.len() && raw[k] >> 8 == key {
-            n += 1;
-            k += 1;
-        }
-        runs.push(Compact { key, hits: n.min(255) as u8, level });
-    }
-    raw.clear();
-    merge_runs(compact, runs);
 }

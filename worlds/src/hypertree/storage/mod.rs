@@ -31,7 +31,7 @@ pub use hits::HitRecorder;
 pub use list::{IndexList, VoxelList};
 pub use packed::PackedList;
 pub use partitioned::{Part, PartStore, Partitioned};
-pub use sort::{radix_sort, radix_sort32};
+pub use sort::{RadixKey, radix_sort};
 
 use super::{Hypervolume, StorageType, Voxel};
 
