@@ -16,16 +16,19 @@ pub struct VoxelList {
 
 impl VoxelList {
     /// Number of voxels.
+    #[inline]
     pub fn len(&self) -> usize {
         self.indices.len()
     }
 
     /// Whether the list is empty.
+    #[inline]
     pub fn is_empty(&self) -> bool {
         self.indices.is_empty()
     }
 
     /// Append a voxel (its index must exceed every index already present).
+    #[inline]
     pub fn push(&mut self, index: u32, v: Voxel) {
         debug_assert!(self.indices.last().is_none_or(|&l| l < index));
         self.indices.push(index);
@@ -60,6 +63,7 @@ impl VoxelList {
     }
 
     /// Bytes of the three arrays.
+    #[inline]
     pub(super) fn bytes(&self) -> usize {
         self.indices.len() * 4 + self.densities.len() + self.levels.len()
     }

@@ -89,11 +89,13 @@ impl PackedList {
     }
 
     /// Number of voxels.
+    #[inline]
     pub fn len(&self) -> usize {
         self.low.len()
     }
 
     /// Whether the list is empty.
+    #[inline]
     pub fn is_empty(&self) -> bool {
         self.low.is_empty()
     }

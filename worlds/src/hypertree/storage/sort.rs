@@ -1,65 +1,83 @@
 //! The LSD radix sort behind validation (§5: sort, dedupe, count), one implementation for 32- and 64-bit keys.
 
-/// An unsigned integer key that [`radix_sort`] orders by its value.
+/// An unsigned integer key that [`radix_sort`] orders by its value. The sort works in the key's own width (widening
+/// 32-bit keys to 64 bits made their sort measurably slower).
 pub trait RadixKey: Copy + Default {
     /// The key's value, zero-extended to 64 bits.
     fn to_u64(self) -> u64;
+
+    /// Bitwise or.
+    fn or(self, other: Self) -> Self;
+
+    /// The number of bits up to and including the highest set bit.
+    fn significant_bits(self) -> u32;
+
+    /// Bits `shift..` of the key, masked by `mask`: a digit.
+    fn digit(self, shift: u32, mask: usize) -> usize;
 }
 
-impl RadixKey for u32 {
-    #[inline(always)]
-    fn to_u64(self) -> u64 {
-        u64::from(self)
-    }
+macro_rules! radix_key {
+    ($($t:ty),*) => {$(
+        impl RadixKey for $t {
+            #[inline(always)]
+            fn to_u64(self) -> u64 {
+                u64::from(self)
+            }
+
+            #[inline(always)]
+            fn or(self, other: Self) -> Self {
+                self | other
+            }
+
+            #[inline(always)]
+            fn significant_bits(self) -> u32 {
+                <$t>::BITS - self.leading_zeros()
+            }
+
+            #[inline(always)]
+            fn digit(self, shift: u32, mask: usize) -> usize {
+                (self >> shift) as usize & mask
+            }
+        }
+    )*};
 }
 
-impl RadixKey for u64 {
-    #[inline(always)]
-    fn to_u64(self) -> u64 {
-        self
-    }
-}
+radix_key!(u32, u64);
 
 /// Widest digit, in bits: 2 048 buckets of counts stay in the L1 cache.
 const MAX_DIGIT_BITS: u32 = 11;
 
-/// LSD radix sort of `keys` (`scratch` is working space, its contents are lost). Only the span of bits that differ
-/// between keys is sorted, in as few passes of at most [`MAX_DIGIT_BITS`] as it takes, with the span split into
-/// digits of equal width (fewer buckets than fixed 11-bit digits); a pass whose digit is the same in every key is
-/// skipped. The histograms of all digits are counted in one pass over the keys.
+/// LSD radix sort of `keys` (`scratch` is working space, its contents are lost) over their significant bits (up to
+/// the highest bit set in any key), in as few passes of at most [`MAX_DIGIT_BITS`] as they take, with digits of
+/// equal width (fewer buckets than fixed 11-bit digits); a pass whose digit is the same in every key is skipped. The
+/// histograms of all digits are counted in one pass over the keys.
 pub fn radix_sort<K: RadixKey>(keys: &mut Vec<K>, scratch: &mut Vec<K>) {
     let n = keys.len();
     if n < 2 {
         return;
     }
-    let (all_or, all_and) = keys.iter().fold((0u64, u64::MAX), |(o, a), &k| (o | k.to_u64(), a & k.to_u64()));
-    let varying = all_or ^ all_and;
-    if varying == 0 {
-        return; // every key is equal
+    let bits = keys.iter().fold(K::default(), |a, &k| a.or(k)).significant_bits();
+    if bits == 0 {
+        return; // every key is 0
     }
-    let low = varying.trailing_zeros();
-    let bits = u64::BITS - varying.leading_zeros() - low;
-    let passes = bits.div_ceil(MAX_DIGIT_BITS) as usize;
-    let width = bits.div_ceil(passes as u32);
+    let passes = bits.div_ceil(MAX_DIGIT_BITS);
+    let width = bits.div_ceil(passes);
     let buckets = 1usize << width;
-    let mask = (buckets - 1) as u64;
-    // Digit `p` is bits `low + p · width ..` of a key; the last one ends at or below bit 63 (`(passes − 1)² < bits`).
-    let shift = |p: usize| low + p as u32 * width;
-    let mut counts = vec![0usize; buckets * passes];
+    let mask = buckets - 1;
+    let mut counts = vec![0usize; buckets * passes as usize];
     for &k in keys.iter() {
-        let k = k.to_u64();
         for p in 0..passes {
-            counts[p * buckets + ((k >> shift(p)) & mask) as usize] += 1;
+            counts[p as usize * buckets + k.digit(p * width, mask)] += 1;
         }
     }
     scratch.clear();
     scratch.resize(n, K::default());
     for p in 0..passes {
-        let count = &mut counts[p * buckets..(p + 1) * buckets];
+        let count = &mut counts[p as usize * buckets..(p as usize + 1) * buckets];
         if count.contains(&n) {
             continue; // every key has the same digit here
         }
-        let s = shift(p);
+        let shift = p * width;
         let mut sum = 0;
         for c in count.iter_mut() {
             let t = *c;
@@ -67,7 +85,7 @@ pub fn radix_sort<K: RadixKey>(keys: &mut Vec<K>, scratch: &mut Vec<K>) {
             sum += t;
         }
         for &k in keys.iter() {
-            let b = ((k.to_u64() >> s) & mask) as usize;
+            let b = k.digit(shift, mask);
             scratch[count[b]] = k;
             count[b] += 1;
         }
