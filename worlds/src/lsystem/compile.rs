@@ -12,6 +12,9 @@ use crate::expr::{Ast, BinOp, compile};
 use crate::nodes::{NODE_CALLS, parse_node_call};
 use crate::text::{Cursor, ParseError};
 
+mod productions;
+mod turtle;
+
 use super::parse::{Ghost, Item, KEYWORDS, Production, RESERVED, RawSucc, Section, at_line_end, ghost, parse_line};
 use super::{
     DEFAULT_WIDTH, LSystem, MAX_CHOOSE, MAX_PRODUCTIONS, MAX_SOURCE_LEN, MAX_SPECIES_PARAMS, MAX_SYMBOLS, Successor,
@@ -345,31 +348,11 @@ impl Compiler<'_> {
                     );
                     continue;
                 }
-                Some(&id) => {
-                    let head = heads.iter().find(|h| h.0 == id).expect("every user symbol has a head");
-                    if head.1.len() != p.formals.len() {
-                        let (line, _) = src.line_col(head.2.start);
-                        let msg = format!(
-                            "`{}` has {} parameter(s) in its first production (line {line}), here {}",
-                            p.pred,
-                            head.1.len(),
-                            p.formals.len()
-                        );
-                        self.err(p.pred_span.clone(), msg);
-                        continue;
-                    }
-                    id
-                }
-                None => {
-                    if user_symbols == MAX_SYMBOLS {
-                        self.err(p.pred_span.clone(), format!("more than {MAX_SYMBOLS} symbols"));
-                        break;
-                    }
-                    user_symbols += 1;
-                    let id = self.new_symbol(&p.pred, SymbolKind::NonTerminal);
-                    heads.push((id, p.formals.iter().map(|f| f.0.clone()).collect(), p.pred_span.clone()));
-                    id
-                }
+                _ => match self.rule_symbol(src, p, &mut heads, &mut user_symbols, SymbolKind::NonTerminal) {
+                    Ok(id) => id,
+                    Err(RuleSymbol::Skip) => continue,
+                    Err(RuleSymbol::Stop) => break,
+                },
             };
             prods.push((id, p));
         }
@@ -404,31 +387,11 @@ impl Compiler<'_> {
                     self.err(p.pred_span.clone(), msg);
                     continue;
                 }
-                Some(&id) => {
-                    let head = heads.iter().find(|h| h.0 == id).expect("every user symbol has a head");
-                    if head.1.len() != p.formals.len() {
-                        let (line, _) = src.line_col(head.2.start);
-                        let msg = format!(
-                            "`{}` has {} parameter(s) in its first production (line {line}), here {}",
-                            p.pred,
-                            head.1.len(),
-                            p.formals.len()
-                        );
-                        self.err(p.pred_span.clone(), msg);
-                        continue;
-                    }
-                    id
-                }
-                None => {
-                    if user_symbols == MAX_SYMBOLS {
-                        self.err(p.pred_span.clone(), format!("more than {MAX_SYMBOLS} symbols"));
-                        break;
-                    }
-                    user_symbols += 1;
-                    let id = self.new_symbol(&p.pred, SymbolKind::Module);
-                    heads.push((id, p.formals.iter().map(|f| f.0.clone()).collect(), p.pred_span.clone()));
-                    id
-                }
+                _ => match self.rule_symbol(src, p, &mut heads, &mut user_symbols, SymbolKind::Module) {
+                    Ok(id) => id,
+                    Err(RuleSymbol::Skip) => continue,
+                    Err(RuleSymbol::Stop) => break,
+                },
             };
             interps.push((id, k));
         }
@@ -551,6 +514,41 @@ impl Compiler<'_> {
         })
     }
 
+    /// The symbol a production or interpretation rule `p` rewrites: an existing one whose first production takes
+    /// as many parameters, or a new one of `kind` (`Stop` when the symbol table is full, `Skip` on an arity error).
+    fn rule_symbol(
+        &mut self,
+        src: &SourceFile,
+        p: &Production,
+        heads: &mut Vec<(SymbolId, Vec<String>, Range<usize>)>,
+        user_symbols: &mut usize,
+        kind: SymbolKind,
+    ) -> Result<SymbolId, RuleSymbol> {
+        if let Some(&id) = self.by_name.get(&p.pred) {
+            let head = heads.iter().find(|h| h.0 == id).expect("every user symbol has a head");
+            if head.1.len() != p.formals.len() {
+                let (line, _) = src.line_col(head.2.start);
+                let msg = format!(
+                    "`{}` has {} parameter(s) in its first production (line {line}), here {}",
+                    p.pred,
+                    head.1.len(),
+                    p.formals.len()
+                );
+                self.err(p.pred_span.clone(), msg);
+                return Err(RuleSymbol::Skip);
+            }
+            return Ok(id);
+        }
+        if *user_symbols == MAX_SYMBOLS {
+            self.err(p.pred_span.clone(), format!("more than {MAX_SYMBOLS} symbols"));
+            return Err(RuleSymbol::Stop);
+        }
+        *user_symbols += 1;
+        let id = self.new_symbol(&p.pred, kind);
+        heads.push((id, p.formals.iter().map(|f| f.0.clone()).collect(), p.pred_span.clone()));
+        Ok(id)
+    }
+
     fn new_symbol(&mut self, name: &str, kind: SymbolKind) -> SymbolId {
         let id = self.symbols.len() as SymbolId;
         self.symbols.push(Symbol::blank(name, kind));
@@ -606,222 +604,6 @@ impl Compiler<'_> {
         let s = &mut self.symbols[id as usize];
         s.body = Some(body);
         s.primitives = primitives;
-    }
-
-    /// The shared body of a turtle symbol, built on first use.
-    fn turtle_body(&mut self, t: Turtle, span: &Range<usize>) -> Option<()> {
-        let id = t.id() as usize;
-        if self.symbols[id].body.is_some() || matches!(t, Turtle::Push | Turtle::Pop) {
-            return Some(());
-        }
-        let formals: Vec<u16> = t.formals().iter().map(|f| self.new_slot(format!("{}.{f}", t.text()))).collect();
-        let (w, c) = (self.w, self.c);
-        let body = match t {
-            Turtle::Forward => {
-                let l = formals[0];
-                let cyl = self.b.push(Node::Cylinder { radius: expr_param(w), height: expr_param(l) });
-                let mv = self.b.push(Node::Translate([Expr::constant(0.0), expr_param(l), Expr::constant(0.0)]));
-                self.symbols[id].primitives = 1;
-                Node::Group(vec![cyl, mv])
-            }
-            Turtle::Move => Node::Translate([Expr::constant(0.0), expr_param(formals[0]), Expr::constant(0.0)]),
-            Turtle::TurnLeft => Node::Rotate { axis: axis(2), angle: expr_param(formals[0]) },
-            Turtle::TurnRight => Node::Rotate { axis: axis(2), angle: neg_param(formals[0]) },
-            Turtle::PitchDown => Node::Rotate { axis: axis(0), angle: expr_param(formals[0]) },
-            Turtle::PitchUp => Node::Rotate { axis: axis(0), angle: neg_param(formals[0]) },
-            Turtle::RollLeft => Node::Rotate { axis: axis(1), angle: expr_param(formals[0]) },
-            Turtle::RollRight => Node::Rotate { axis: axis(1), angle: neg_param(formals[0]) },
-            Turtle::TurnAround => Node::Rotate { axis: axis(2), angle: Expr::constant(180.0) },
-            Turtle::SetWidth => Node::Calculation(vec![(w, expr_param(formals[0]))]),
-            Turtle::ScaleWidth => {
-                Node::Calculation(vec![(w, Expr { ops: vec![Op::Param(w), Op::Const(WIDTH_DECREASE), Op::Mul] })])
-            }
-            Turtle::SetColor => {
-                Node::Material([expr_param(formals[0]), expr_param(formals[1]), expr_param(formals[2])])
-            }
-            Turtle::NextColor | Turtle::ColorUp | Turtle::ColorDown | Turtle::SetColorIndex => {
-                let index = match t {
-                    Turtle::SetColorIndex => expr_param(formals[0]),
-                    Turtle::ColorDown => Expr {
-                        ops: vec![
-                            Op::Param(c),
-                            Op::Const(1.0),
-                            Op::Sub,
-                            Op::Const(1.0),
-                            Op::Call(canopy_protocol::Func::Max),
-                        ],
-                    },
-                    _ => Expr { ops: vec![Op::Param(c), Op::Const(1.0), Op::Add] },
-                };
-                let channels = self.palette_channels(t, span)?;
-                let calc = self.b.push(Node::Calculation(vec![(c, index)]));
-                let mat = self.b.push(Node::Material(channels));
-                Node::Group(vec![calc, mat])
-            }
-            Turtle::Cut => Node::Calculation(vec![(self.cut.expect("`%` is used"), Expr::constant(1.0))]),
-            Turtle::RollToHorizontal => return self.roll_to_horizontal(),
-            Turtle::Push | Turtle::Pop => unreachable!("brackets have no body"),
-        };
-        let mut body = self.b.push(body);
-        // Rotations keep the turtle's frame up to date for `$`.
-        let rotation = match t {
-            Turtle::TurnLeft | Turtle::TurnRight | Turtle::TurnAround => Some(2),
-            Turtle::PitchDown | Turtle::PitchUp => Some(0),
-            Turtle::RollLeft | Turtle::RollRight => Some(1),
-            _ => None,
-        };
-        if let (Some(axis), Some(frame)) = (rotation, self.frame) {
-            let degrees = match t {
-                Turtle::TurnAround => Ast::Num(180.0),
-                Turtle::TurnRight | Turtle::PitchUp | Turtle::RollRight => {
-                    Ast::Unary(crate::expr::UnOp::Neg, Box::new(Ast::var("$a")))
-                }
-                _ => Ast::var("$a"),
-            };
-            let radians = Ast::bin(BinOp::Mul, degrees, Ast::Num(std::f32::consts::PI / 180.0));
-            let cos = Ast::Call(canopy_protocol::Func::Cos, vec![radians.clone()]);
-            let sin = Ast::Call(canopy_protocol::Func::Sin, vec![radians]);
-            let angle_slot = formals.first().copied().unwrap_or(self.d);
-            let update = self.frame_update(frame, axis, cos, sin, angle_slot, span)?;
-            body = self.b.push(Node::Group(vec![body, update]));
-        }
-        let body = if t == Turtle::Cut { body } else { self.guard(body) };
-        self.symbols[id].formals = formals;
-        self.symbols[id].body = Some(body);
-        Some(())
-    }
-
-    /// `body`, or — if the L-system uses `%` — a selection that skips it once the branch is cut.
-    fn guard(&mut self, body: NodeId) -> NodeId {
-        let Some(x) = self.cut else { return body };
-        let empty = self.empty_group();
-        self.b.push(Node::Selection { expr: Expr::param(x), children: vec![body, empty] })
-    }
-
-    fn empty_group(&mut self) -> NodeId {
-        match self.empty {
-            Some(e) => e,
-            None => {
-                let e = self.b.push(Node::Group(Vec::new()));
-                self.empty = Some(e);
-                e
-            }
-        }
-    }
-
-    /// The palette entry `_c` selects, per channel: `_c <= 1 ? p1 : _c <= 2 ? p2 : … : p_last`.
-    fn palette_channels(&mut self, t: Turtle, span: &Range<usize>) -> Option<[Expr; 3]> {
-        let Some(palette) = self.palette.clone() else {
-            if !self.palette_broken {
-                let written = if t == Turtle::SetColorIndex { "with an index" } else { "without arguments" };
-                self.err(span.clone(), format!("`{}` {written} needs a `palette`", &self.src[span.clone()]));
-            }
-            return None;
-        };
-        let mut channels = Vec::new();
-        for k in 0..3 {
-            let mut ast = palette[palette.len() - 1][k].clone();
-            for i in (0..palette.len() - 1).rev() {
-                let test = Ast::bin(BinOp::Le, Ast::var("$c"), Ast::Num((i + 1) as f32));
-                ast = Ast::cond(test, palette[i][k].clone(), ast);
-            }
-            let internal = [("$c", self.c)];
-            let r = compile_at(&ast, &mut self.names.resolver(&[], &internal), span);
-            match r {
-                Ok(e) if e.draws() => {
-                    self.err(span.clone(), "palette colours may not draw random numbers");
-                    return None;
-                }
-                Ok(e) => channels.push(e),
-                Err(e) => {
-                    self.errors.push(e);
-                    return None;
-                }
-            }
-        }
-        Some(<[Expr; 3]>::try_from(channels).expect("three channels"))
-    }
-
-    /// A calculation turning the tracked frame by the angle whose cosine and sine are given, about local axis
-    /// `axis`: with `(i, j)` the next two axes in cyclic order, `i' = c i + s j` and `j' = c j - s i`.
-    fn frame_update(
-        &mut self,
-        frame: [u16; 9],
-        axis: usize,
-        cos: Ast,
-        sin: Ast,
-        angle_slot: u16,
-        span: &Range<usize>,
-    ) -> Option<NodeId> {
-        const NAMES: [&str; 9] = ["$0", "$1", "$2", "$3", "$4", "$5", "$6", "$7", "$8"];
-        let (i, j) = ((axis + 1) % 3, (axis + 2) % 3);
-        let mut assign = Vec::new();
-        for row in 0..3 {
-            let (vi, vj) = (Ast::var(NAMES[i * 3 + row]), Ast::var(NAMES[j * 3 + row]));
-            let ni = Ast::bin(
-                BinOp::Add,
-                Ast::bin(BinOp::Mul, cos.clone(), vi.clone()),
-                Ast::bin(BinOp::Mul, sin.clone(), vj.clone()),
-            );
-            let nj = Ast::bin(BinOp::Sub, Ast::bin(BinOp::Mul, cos.clone(), vj), Ast::bin(BinOp::Mul, sin.clone(), vi));
-            assign.push((frame[i * 3 + row], ni));
-            assign.push((frame[j * 3 + row], nj));
-        }
-        let mut internal: Vec<(&'static str, u16)> = NAMES.iter().copied().zip(frame).collect();
-        internal.push(("$a", angle_slot));
-        let mut out = Vec::new();
-        for (slot, ast) in assign {
-            match compile_at(&ast, &mut self.names.resolver(&[], &internal), span) {
-                Ok(e) => out.push((slot, e)),
-                Err(e) => {
-                    self.errors.push(e);
-                    return None;
-                }
-            }
-        }
-        Some(self.b.push(Node::Calculation(out)))
-    }
-
-    /// The body of `$`: roll about the heading (local Y) by the angle that makes X, and so the left vector -X,
-    /// horizontal: `cos = Z.y / r`, `sin = X.y / r` with `r = |(X.y, Z.y)|`; no roll when the heading is vertical.
-    fn roll_to_horizontal(&mut self) -> Option<()> {
-        let frame = self.frame.expect("`$` is used");
-        let (xy, zy) = (Ast::var("$1"), Ast::var("$7"));
-        let r = Ast::Call(
-            canopy_protocol::Func::Sqrt,
-            vec![Ast::bin(
-                BinOp::Add,
-                Ast::bin(BinOp::Mul, xy.clone(), xy.clone()),
-                Ast::bin(BinOp::Mul, zy.clone(), zy.clone()),
-            )],
-        );
-        let level = Ast::bin(BinOp::Gt, r.clone(), Ast::Num(1e-6));
-        let cos = Ast::cond(level.clone(), Ast::bin(BinOp::Div, zy, r.clone()), Ast::Num(1.0));
-        let sin = Ast::cond(level, Ast::bin(BinOp::Div, xy, r), Ast::Num(0.0));
-        let span = 0..0;
-        let update = self.frame_update(frame, 1, cos.clone(), sin.clone(), self.d, &span)?;
-        // Rot_y(φ), 3 rows of 4: [c 0 s 0; 0 1 0 0; -s 0 c 0].
-        const NAMES: [&str; 9] = ["$0", "$1", "$2", "$3", "$4", "$5", "$6", "$7", "$8"];
-        let internal: Vec<(&'static str, u16)> = NAMES.iter().copied().zip(frame).collect();
-        let neg_sin = Ast::Unary(crate::expr::UnOp::Neg, Box::new(sin.clone()));
-        let zero = || Ast::Num(0.0);
-        let m = [cos.clone(), zero(), sin, zero(), zero(), Ast::Num(1.0), zero(), zero(), neg_sin, zero(), cos, zero()];
-        let mut exprs = Vec::new();
-        for ast in &m {
-            match compile_at(ast, &mut self.names.resolver(&[], &internal), &span) {
-                Ok(e) => exprs.push(e),
-                Err(e) => {
-                    self.errors.push(e);
-                    return None;
-                }
-            }
-        }
-        let m = <[Expr; 12]>::try_from(exprs).expect("twelve entries");
-        let rot = self.b.push(Node::Matrix(Box::new(m)));
-        let body = self.b.push(Node::Group(vec![rot, update]));
-        let body = self.guard(body);
-        self.symbols[Turtle::RollToHorizontal.id() as usize].body = Some(body);
-        Some(())
     }
 
     /// Compile a symbol's interpretation rule: a terminal gets it as its body (it moves the turtle like the
@@ -1025,171 +807,6 @@ impl Compiler<'_> {
         }
         out
     }
-
-    fn non_terminal(&mut self, id: SymbolId, prods: &[&Production]) {
-        let slots = self.symbols[id as usize].formals.clone();
-        let first_span = prods.first().map_or(0..0, |p| p.pred_span.clone());
-        let mut rhs = Vec::new();
-        let mut terminal: Option<Vec<Successor>> = None;
-        // Per `->` production: condition and weight, already checked to compile on their own.
-        let mut tests: Vec<(Option<Ast>, Option<Ast>)> = Vec::new();
-        for p in prods {
-            let scope: Vec<(String, u16)> = p.formals.iter().map(|f| f.0.clone()).zip(slots.iter().copied()).collect();
-            if p.terminal {
-                let succ = self.successors(&p.succ, &scope, true);
-                if terminal.is_some() {
-                    self.err(p.pred_span.clone(), format!("`{}` has a second terminal production (`=>`)", p.pred));
-                } else {
-                    terminal = Some(succ);
-                }
-                continue;
-            }
-            let succ = self.successors(&p.succ, &scope, false);
-            // Rename the production's formals to the symbol's slots by compiling the ASTs with their own scope now
-            // (for errors at the right place), then with `$f<i>` names in the combined selection expression.
-            let mut renamed = [None, None];
-            for (k, ast) in [&p.cond, &p.weight].into_iter().enumerate() {
-                let Some(ast) = ast else { continue };
-                match compile_at(ast, &mut self.names.resolver(&scope, &[]), &p.pred_span) {
-                    Ok(_) => renamed[k] = Some(rename(ast, &p.formals)),
-                    Err(e) => self.errors.push(e),
-                }
-            }
-            let [cond, weight] = renamed;
-            rhs.push(succ);
-            tests.push((cond, weight));
-        }
-        let n = rhs.len();
-        let stochastic = prods.iter().any(|p| !p.terminal && p.weight.is_some());
-        let choice = if stochastic {
-            if n > MAX_CHOOSE {
-                self.err(first_span.clone(), format!("a stochastic symbol has at most {MAX_CHOOSE} productions"));
-                return;
-            }
-            Ast::Choose(
-                tests
-                    .into_iter()
-                    .map(|(c, w)| {
-                        let w = w.unwrap_or(Ast::Num(1.0));
-                        match c {
-                            Some(c) => Ast::cond(c, w, Ast::Num(0.0)),
-                            None => w,
-                        }
-                    })
-                    .collect(),
-            )
-        } else {
-            let mut acc = Ast::Num(n as f32);
-            for (i, (c, _)) in tests.into_iter().enumerate().rev() {
-                acc = match c {
-                    Some(c) => Ast::cond(c, Ast::Num(i as f32), acc),
-                    None => Ast::Num(i as f32),
-                };
-            }
-            acc
-        };
-        let select = Ast::cond(Ast::bin(BinOp::Le, Ast::var("$d"), Ast::Num(0.0)), Ast::Num((n + 1) as f32), choice);
-        let internal: Vec<(String, u16)> = slots.iter().enumerate().map(|(i, &s)| (format!("$f{i}"), s)).collect();
-        let internal_d = [("$d", self.d), ("$x", self.cut.unwrap_or(self.d))];
-        // After a cut, a call does nothing: `_x > 0 ? n + 2 : select` in the node, child n + 2 empty.
-        let cut_select =
-            Ast::cond(Ast::bin(BinOp::Gt, Ast::var("$x"), Ast::Num(0.0)), Ast::Num((n + 2) as f32), select.clone());
-        let node_expr = match compile_at(&cut_select, &mut self.names.resolver(&internal, &internal_d), &first_span) {
-            Ok(e) => e,
-            Err(e) => {
-                self.errors.push(e);
-                return;
-            }
-        };
-        let select = match compile_at(&select, &mut self.names.resolver(&internal, &internal_d), &first_span) {
-            Ok(e) => e,
-            Err(e) => {
-                self.errors.push(e);
-                return;
-            }
-        };
-        if !self.errors.is_empty() {
-            // Nodes are pointless once there are errors; keep checking the other symbols.
-            return;
-        }
-        let interpretation = self.symbols[id as usize].interpretation.clone();
-        if terminal.is_some() && interpretation.is_some() {
-            let msg = format!(
-                "`{}` has both a terminal production (`=>`) and an interpretation rule; keep one: the interpretation \
-                 rule draws the occurrences left at the end",
-                self.symbols[id as usize].name
-            );
-            self.err(first_span.clone(), msg);
-            return;
-        }
-        let terminal = terminal.unwrap_or_default();
-        let dec = self.b.calc(vec![(self.d, Expr { ops: vec![Op::Param(self.d), Op::Const(1.0), Op::Sub] })]);
-        let mut children = Vec::new();
-        for succ in &rhs {
-            let mut c = vec![dec];
-            c.extend(self.emit(succ));
-            children.push(self.b.container(Node::Group, c));
-        }
-        let selection = self.symbols[id as usize].selection.expect("selection nodes are made first");
-        let mut call = Vec::new();
-        if !slots.is_empty() {
-            call.push(self.b.calc(slots.iter().map(|&s| (s, Expr::param(s))).collect()));
-        }
-        call.push(selection);
-        let call = self.b.push(Node::RecursionSeparator(call));
-        children.push(self.b.push(Node::Group(vec![dec, call])));
-        let fin = self.emit(interpretation.as_deref().unwrap_or(&terminal));
-        children.push(self.b.container(Node::Group, fin));
-        // After a cut, a call does nothing: `_x > 0 ? n + 2 : select`, child n + 2 empty.
-        let node_expr = if self.cut.is_some() {
-            children.push(self.empty_group());
-            node_expr
-        } else {
-            select.clone()
-        };
-        self.b.nodes[selection as usize] = Node::Selection { expr: node_expr, children };
-        let s = &mut self.symbols[id as usize];
-        s.select = Some(select);
-        s.productions = rhs;
-        s.terminal = terminal;
-    }
-
-    /// The nodes of a successor list (see the module docs).
-    fn emit(&mut self, succ: &[Successor]) -> Vec<NodeId> {
-        let mut stack: Vec<Vec<NodeId>> = vec![Vec::new()];
-        for s in succ {
-            let sym = &self.symbols[s.symbol as usize];
-            let assign: Vec<(u16, Expr)> = sym.formals.iter().copied().zip(s.args.iter().cloned()).collect();
-            match sym.kind {
-                SymbolKind::Turtle(Turtle::Push) => stack.push(Vec::new()),
-                SymbolKind::Turtle(Turtle::Pop) => {
-                    let inner = stack.pop().expect("brackets are balanced");
-                    let sep = self.b.container(Node::Separator, inner);
-                    stack.last_mut().expect("brackets are balanced").push(sep);
-                }
-                SymbolKind::NonTerminal => {
-                    let selection = sym.selection.expect("selection nodes are made first");
-                    let mut c = Vec::new();
-                    if !assign.is_empty() {
-                        c.push(self.b.calc(assign));
-                    }
-                    c.push(selection);
-                    let rs = self.b.push(Node::RecursionSeparator(c));
-                    stack.last_mut().expect("at least the outer list").push(rs);
-                }
-                SymbolKind::Turtle(_) | SymbolKind::Module => {
-                    let body = sym.body.expect("terminals in successors have bodies");
-                    if !assign.is_empty() {
-                        let calc = self.b.calc(assign);
-                        stack.last_mut().expect("at least the outer list").push(calc);
-                    }
-                    stack.last_mut().expect("at least the outer list").push(body);
-                }
-            }
-        }
-        debug_assert_eq!(stack.len(), 1, "brackets are balanced");
-        stack.pop().unwrap_or_default()
-    }
 }
 
 /// The successors an item holds (the axiom's, a production's or an interpretation rule's).
@@ -1236,4 +853,12 @@ fn split_hint(name: &str, known: &HashMap<String, SymbolId>) -> String {
     } else {
         String::new()
     }
+}
+
+/// Why `Compiler::rule_symbol` found no symbol for a rule.
+enum RuleSymbol {
+    /// The rule has an error: skip it and go on.
+    Skip,
+    /// The symbol table is full: stop reading rules.
+    Stop,
 }
