@@ -1,34 +1,62 @@
-//! f32 3-vector helpers for the mesher, the hypertree generator, voxeliser and CPU raymarcher, with a fixed
-//! operation order (component by component, sums left to right, `libm::sqrtf`) so results are the same bits on
-//! every platform.
+//! 3-vector helpers, generic over `f32` (the mesher, the hypertree generator, voxeliser and CPU raymarcher) and
+//! `f64` (the near field), with a fixed operation order (component by component, sums left to right, `libm`
+//! square roots) so results are the same bits on every platform.
+
+use std::ops::{Add, Mul, Sub};
+
+/// A float the helpers work on: IEEE arithmetic and a `libm` square root.
+pub trait Real: Copy + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> {
+    /// The square root, through `libm` (`sqrtf` or `sqrt`).
+    fn sqrt(self) -> Self;
+}
+
+impl Real for f32 {
+    #[inline]
+    fn sqrt(self) -> f32 {
+        libm::sqrtf(self)
+    }
+}
+
+impl Real for f64 {
+    #[inline]
+    fn sqrt(self) -> f64 {
+        libm::sqrt(self)
+    }
+}
 
 /// `a + b`.
 #[inline]
-pub fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] + b[i])
+pub fn add<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
 /// `a - b`.
 #[inline]
-pub fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] - b[i])
+pub fn sub<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
-/// Euclidean length: `sqrtf(x·x + y·y + z·z)`, summed left to right.
+/// `a s`.
 #[inline]
-pub fn norm(a: [f32; 3]) -> f32 {
-    libm::sqrtf(dot(a, a))
+pub fn scale<T: Real>(a: [T; 3], s: T) -> [T; 3] {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+/// Euclidean length: `sqrt(x·x + y·y + z·z)`, summed left to right.
+#[inline]
+pub fn norm<T: Real>(a: [T; 3]) -> T {
+    dot(a, a).sqrt()
 }
 
 /// `a · b`, summed left to right.
 #[inline]
-pub fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub fn dot<T: Real>(a: [T; 3], b: [T; 3]) -> T {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// `a × b`.
 #[inline]
-pub fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub fn cross<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
     [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 }
 

@@ -115,29 +115,7 @@ pub fn face_averaged_normals(positions: &[[f32; 3]], indices: &[u32]) -> Vec<[f3
 
 pub(crate) type V3 = [f64; 3];
 
-pub(crate) fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-pub(crate) fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn scale(a: V3, s: f64) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-pub(crate) fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(crate) fn cross(a: V3, b: V3) -> V3 {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-}
-
-pub(crate) fn norm(a: V3) -> f64 {
-    libm::sqrt(dot(a, a))
-}
+pub(crate) use crate::vec3::{add, cross, dot, norm, scale, sub};
 
 pub(crate) fn normalize(a: V3) -> Option<V3> {
     let n = norm(a);
