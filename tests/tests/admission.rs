@@ -114,7 +114,17 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     let admission = AdmissionConfig { max_clients: 2, ..AdmissionConfig::default() };
     let server = start_server(admission, Duration::from_secs(1)).await;
     let mut idle = connect_from(&server, "127.0.0.1:0").await.unwrap();
-    let _other = connect_from(&server, "127.0.0.1:0").await.unwrap();
+    let mut walker = connect_from(&server, "127.0.0.1:0").await.unwrap();
+    // The other client walks (a viewpoint every 200 ms), so only the idle one holds a slot without streaming.
+    let walking = tokio::spawn(async move {
+        for i in 0..60 {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            if walker.set_viewpoint(Viewpoint::at(0, [i as f32, 0.0], 60.0)).await.is_err() {
+                return false;
+            }
+        }
+        true
+    });
     let closed = tokio::time::timeout(Duration::from_secs(10), async {
         loop {
             if let Err(e) = idle.next_event().await {
@@ -126,6 +136,7 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     .expect("closed within 10 s");
     assert!(matches!(closed, ClientError::Closed { code: Some(CloseCode::Full), .. }), "{closed}");
     assert!(closed.to_string().contains("no viewpoint"), "{closed}");
+    assert!(walking.await.unwrap(), "the walking client was kept");
     // Well below capacity, the same idleness is kept.
     let roomy = AdmissionConfig { max_clients: 100, ..AdmissionConfig::default() };
     let server2 = start_server(roomy, Duration::from_secs(1)).await;
