@@ -368,11 +368,15 @@ fn junction(
     let ring = l.ring + 1;
 
     if !opts.refine {
+        // Each child's base contour stands half the parent's radius up its own axis (at most half its length): a
+        // continuation's contour at its origin would be the parent's contour `l` itself, or a copy turned about
+        // the axis, and the band between them would have no area.
         let loops: Vec<Loop> = children
             .iter()
             .map(|c| {
-                let r0 = radius_of(c, 0.0).max(1e-9);
-                b.contour(&circle(c.origin, c.dir, c.side, r0, res), r0, ctag(c), ring)
+                let t = (0.5 * r).min(0.5 * c.length);
+                let r0 = radius_of(c, t).max(1e-9);
+                b.contour(&circle(add(c.origin, scale(c.dir, t)), c.dir, c.side, r0, res), r0, ctag(c), ring)
             })
             .collect();
         let all: Vec<Vec<u32>> = loops.iter().map(|x| x.ids.clone()).collect();
@@ -394,7 +398,10 @@ fn junction(
         let cos = dot(c.dir, a);
         let t = h / cos;
         let centre = add(c.origin, scale(c.dir, t));
-        let major = normalize(sub(c.dir, scale(a, cos))).unwrap_or(x_axis);
+        // A child along the parent's axis cuts the plane in a circle: its major direction is any (rounding would
+        // otherwise make one up along the axis).
+        let lean = sub(c.dir, scale(a, cos));
+        let major = normalize(lean).filter(|_| norm(lean) > 1e-6).unwrap_or(x_axis);
         let rr = radius_of(c, t).max(1e-9);
         (centre, major, rr / cos, rr, t)
     };
