@@ -5,15 +5,22 @@
 //!
 //! The bound is checked, not trusted: after each simplification every vertex of the full mesh is measured against
 //! the decimated surface (point-to-triangle distance over a uniform grid), and a level that strays beyond its
-//! bound is simplified again with a tighter target (halved up to eight times, then the level keeps the previous
-//! one's triangles). So [`LodLevel::error`] ≤ [`LodLevel::bound`] always holds.
+//! bound is simplified again with a tighter target (halved, then the level keeps the previous one's triangles). So
+//! [`LodLevel::error`] ≤ [`LodLevel::bound`] always holds.
+//!
+//! The topology is checked too ([`crate::nearfield::topology`], vertices welded at bit-identical positions): the
+//! simplifier may collapse two nearby sheets of the surface onto one edge (thin branches side by side, a crotch),
+//! pinching it. A level whose topology differs from the full mesh's (bodies, open, non-manifold or misoriented
+//! edges, Euler characteristic, degenerate triangles) is simplified again with the vertices at the defects and
+//! their neighbours in the previous level locked, so every level is as closed and manifold as the full mesh.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use meshopt::{SimplifyOptions, VertexDataAdapter, simplify_with_locks, typed_to_bytes};
 
 use crate::mesh::Mesh;
 use crate::nearfield::continuous::ContinuousMesh;
+use crate::nearfield::topology::{Topology, Weld, check, defects, weld};
 use crate::nearfield::{NearFieldError, V3, add, dot, scale, sub};
 
 /// How the chain is built.
@@ -69,6 +76,9 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
     let adapter = VertexDataAdapter::new(bytes, 12, 0).map_err(|_| NearFieldError::Empty)?;
     let originals: Vec<V3> = m.positions.iter().map(|p| p.map(f64::from)).collect();
     let mut current = m.indices.clone();
+    // Every level keeps the full mesh's topology as a welding tool sees it (one closed body stays one).
+    let full = check(&m.positions, &m.indices, Weld::Exact);
+    let welded = weld(&m.positions, Weld::Exact);
     // The measured error of `current` (unknown for the full mesh until a first level needs it).
     let mut current_err: Option<f64> = None;
     let mut out = Vec::new();
@@ -79,10 +89,10 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
             radii[((radii.len() - 1) as u64 * u64::from(k) / u64::from(opts.levels)) as usize]
         };
         let bound = opts.error * k as f32 / opts.levels as f32;
-        let locks: Vec<bool> = cm.radius.iter().map(|&r| r > max_radius).collect();
+        let mut locks: Vec<bool> = cm.radius.iter().map(|&r| r > max_radius).collect();
         let mut target = bound;
         let mut chosen: Option<(Vec<u32>, f64)> = None;
-        for _ in 0..8 {
+        for _ in 0..MAX_ATTEMPTS {
             let simplified = simplify_with_locks(
                 &current,
                 &adapter,
@@ -93,11 +103,23 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
                 None,
             );
             let err = hausdorff(&originals, &m.positions, &simplified, f64::from(bound));
-            if err <= f64::from(bound) {
+            if err > f64::from(bound) {
+                target *= 0.5;
+                continue;
+            }
+            // The simplifier may pinch two parts of the surface together (an edge in four triangles after
+            // welding) or open it: lock where it did, with the vertices around them in the previous level, and
+            // simplify again.
+            let (topology, bad) = defects(&m.positions, &simplified, Weld::Exact);
+            if same_topology(&topology, &full) {
                 chosen = Some((simplified, err));
                 break;
             }
-            target *= 0.5;
+            if bad.is_empty() {
+                target *= 0.5;
+                continue;
+            }
+            lock_around(&mut locks, &welded, &bad, &current);
         }
         // Keeping the previous level: its error, measured under a smaller bound, is exact here too (`hausdorff` is
         // exact up to its bound, and the bounds grow with the level).
@@ -114,6 +136,35 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
         out.push(LodLevel { mesh: compact(m, &current), max_radius, bound, error: err as f32 });
     }
     Ok(out)
+}
+
+/// Simplifications tried per level (each halving the target error, or locking more vertices around defects)
+/// before the level keeps the previous one's triangles.
+const MAX_ATTEMPTS: usize = 16;
+
+/// Whether a level has the topology of the full mesh: the same bodies, open, non-manifold and misoriented edges
+/// and Euler characteristic, and no degenerate triangles.
+fn same_topology(level: &Topology, full: &Topology) -> bool {
+    level.degenerate == 0
+        && (level.bodies, level.boundary_edges, level.non_manifold_edges, level.misoriented_edges, level.euler)
+            == (full.bodies, full.boundary_edges, full.non_manifold_edges, full.misoriented_edges, full.euler)
+}
+
+/// Lock every vertex welded to one of `bad` (welded ids) and every vertex of a triangle of `current` that has one.
+fn lock_around(locks: &mut [bool], welded: &[u32], bad: &[u32], current: &[u32]) {
+    let bad: BTreeSet<u32> = bad.iter().copied().collect();
+    for (v, w) in welded.iter().enumerate() {
+        if bad.contains(w) {
+            locks[v] = true;
+        }
+    }
+    for t in current.chunks_exact(3) {
+        if t.iter().any(|&v| bad.contains(&welded[v as usize])) {
+            for &v in t {
+                locks[v as usize] = true;
+            }
+        }
+    }
 }
 
 /// The mesh with only the vertices `indices` use, renumbered in first-use order.

@@ -103,7 +103,18 @@ pub fn weld(positions: &[[f32; 3]], how: Weld) -> Vec<u32> {
 /// Weld `positions` as `how` says and read the topology of the triangles `indices` (three per triangle; an index
 /// out of range counts the triangle as degenerate).
 pub fn check(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> Topology {
+    analyse(positions, indices, how).0
+}
+
+/// [`check`], and the welded ids (see [`weld`]) of the vertices where the surface is not closed and manifold: the
+/// ends of boundary, non-manifold and misoriented edges and the corners of degenerate triangles, sorted.
+pub fn defects(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec<u32>) {
+    analyse(positions, indices, how)
+}
+
+fn analyse(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec<u32>) {
     let map = weld(positions, how);
+    let mut bad: BTreeMap<u32, ()> = BTreeMap::new();
     let mut used: BTreeMap<u32, ()> = BTreeMap::new();
     let mut used_original: BTreeMap<u32, ()> = BTreeMap::new();
     let mut faces: Vec<[u32; 3]> = Vec::new();
@@ -122,6 +133,9 @@ pub fn check(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> Topology {
         let area = norm(cross(sub(b, a), sub(c, a)));
         if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] || area.is_nan() || area == 0.0 {
             degenerate += 1;
+            for &i in &w {
+                bad.insert(i, ());
+            }
             continue;
         }
         for &i in &w {
@@ -146,15 +160,25 @@ pub fn check(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> Topology {
         x
     }
     let (mut boundary_edges, mut non_manifold_edges, mut misoriented_edges) = (0, 0, 0);
-    for users in edges.values() {
-        match users.len() {
-            1 => boundary_edges += 1,
-            2 => {
-                if users[0].1 == users[1].1 {
-                    misoriented_edges += 1;
-                }
+    for (&(a, b), users) in &edges {
+        let ok = match users.len() {
+            1 => {
+                boundary_edges += 1;
+                false
             }
-            _ => non_manifold_edges += 1,
+            2 if users[0].1 == users[1].1 => {
+                misoriented_edges += 1;
+                false
+            }
+            2 => true,
+            _ => {
+                non_manifold_edges += 1;
+                false
+            }
+        };
+        if !ok {
+            bad.insert(a, ());
+            bad.insert(b, ());
         }
         for w in users.windows(2) {
             let (x, y) = (find(&mut parent, w[0].0), find(&mut parent, w[1].0));
@@ -164,7 +188,7 @@ pub fn check(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> Topology {
         }
     }
     let bodies = (0..faces.len()).filter(|&f| find(&mut parent, f) == f).count();
-    Topology {
+    let topology = Topology {
         vertices: used.len(),
         welded: used_original.len() - used_original.keys().filter(|&&i| map[i as usize] == i).count(),
         triangles,
@@ -175,7 +199,8 @@ pub fn check(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> Topology {
         non_manifold_edges,
         misoriented_edges,
         euler: used.len() as i64 - edges.len() as i64 + faces.len() as i64,
-    }
+    };
+    (topology, bad.into_keys().collect())
 }
 
 /// [`check`] on a [`crate::mesh::Mesh`].
@@ -228,6 +253,7 @@ mod tests {
         let t = check(&p, &i, Weld::Exact);
         assert_eq!(t.non_manifold_edges, 1, "{t}");
         assert_eq!(t.boundary_edges, 6);
+        assert_eq!(defects(&p, &i, Weld::Exact).1, vec![0, 1, 2, 3, 4], "every vertex is on an open edge");
         assert_eq!(t.bodies, 1);
         assert!(!t.is_watertight());
     }
@@ -256,6 +282,7 @@ mod tests {
         i.truncate(30); // drop the last face
         let t = check(&p, &i, Weld::Exact);
         assert_eq!(t.boundary_edges, 4, "{t}");
+        assert_eq!(defects(&p, &i, Weld::Exact).1, vec![1, 3, 5, 7], "the open face's corners");
         assert_eq!(t.bodies, 1);
         assert!(!t.is_watertight());
     }
