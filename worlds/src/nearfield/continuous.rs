@@ -99,6 +99,25 @@ pub struct ContinuousMesh {
     pub tags: Vec<TriangleTag>,
     /// Everything else in the stream (leaves, spheres, boxes), meshed as usual.
     pub foliage: Mesh,
+    /// Roots of the skeleton: branch systems that touch no other, each a frustum (or trunk base) whose base is
+    /// neither on an earlier one's top nor on its axis. [`ContinuousMesh::mesh`] is one closed body per root, so
+    /// a species that draws pieces apart (needle tufts along a twig nothing draws) cannot be one body.
+    pub roots: usize,
+}
+
+impl ContinuousMesh {
+    /// Why the branches are not one body, in words, or `None` when they are (one root of the skeleton).
+    pub fn why_not_one_body(&self) -> Option<String> {
+        match self.roots {
+            1 => None,
+            0 => Some("the stream has no cones, cylinders or trunk bases to mesh as branches".to_string()),
+            n => Some(format!(
+                "the species draws {n} branch systems that touch no other (a cone, cylinder or trunk base whose base \
+                 is neither on another's top nor on its axis, such as needles or leaves drawn as cones apart from any \
+                 branch), so the continuous mesh is {n} closed bodies"
+            )),
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -312,6 +331,7 @@ pub fn continuous_mesh(stream: &PrimitiveStream, opts: &ContinuousOptions) -> Re
         order: b.order,
         tags: b.tags,
         foliage: mesh(&foliage_stream, &MeshOptions::default()),
+        roots: sk.roots.len(),
     })
 }
 
