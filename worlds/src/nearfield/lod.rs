@@ -190,12 +190,23 @@ pub fn hausdorff(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: 
     if indices.is_empty() {
         return f64::INFINITY;
     }
-    let cell = bound.max(1e-9);
+    let tris: Vec<[V3; 3]> =
+        indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| positions[t[k] as usize].map(f64::from))).collect();
+    // Cells at least as large as the bound (so every triangle within it of a point is in the point's cell or a
+    // neighbour) and as the median triangle (so a triangle is listed in a few cells, not thousands). The result
+    // does not depend on the cell size: it is the distance to the nearest triangle either way.
+    let mut extents: Vec<f64> = tris
+        .iter()
+        .map(|t| {
+            (0..3).map(|k| t[0][k].max(t[1][k]).max(t[2][k]) - t[0][k].min(t[1][k]).min(t[2][k])).fold(0.0, f64::max)
+        })
+        .collect();
+    extents.sort_by(f64::total_cmp);
+    let median = extents.get(extents.len() / 2).copied().filter(|e| e.is_finite()).unwrap_or(0.0);
+    let cell = bound.max(median).max(1e-9);
     let key = |p: V3| p.map(|x| libm::floor(x / cell) as i64);
     let mut grid: BTreeMap<[i64; 3], Vec<usize>> = BTreeMap::new();
     let mut big = Vec::new();
-    let tris: Vec<[V3; 3]> =
-        indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| positions[t[k] as usize].map(f64::from))).collect();
     for (i, t) in tris.iter().enumerate() {
         let lo = key([0, 1, 2].map(|k| t[0][k].min(t[1][k]).min(t[2][k])));
         let hi = key([0, 1, 2].map(|k| t[0][k].max(t[1][k]).max(t[2][k])));

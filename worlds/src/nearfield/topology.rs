@@ -9,10 +9,8 @@
 //! **Welding** is explicit ([`Weld`]): [`Weld::Exact`] merges vertices whose `f32` positions are bit-identical
 //! (after `-0.0` is read as `0.0`); [`Weld::Quantised`] merges vertices whose positions round to the same point of
 //! a grid of the given step (`round(x / step)` per coordinate), which catches near-coincident vertices the exact
-//! weld misses (two points either side of a grid plane can still stay apart). Everything is in ordered containers
-//! and the report is deterministic.
-
-use std::collections::BTreeMap;
+//! weld misses (two points either side of a grid plane can still stay apart). The report is deterministic (sorted
+//! vectors, no hashing).
 
 use crate::nearfield::{V3, cross, norm, sub};
 
@@ -85,19 +83,23 @@ impl core::fmt::Display for Topology {
 
 /// The welded id of every vertex: the smallest original index at the same (welded) position.
 pub fn weld(positions: &[[f32; 3]], how: Weld) -> Vec<u32> {
-    let mut first: BTreeMap<[i64; 3], u32> = BTreeMap::new();
-    positions
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let key = match how {
-                // `+ 0.0` turns -0.0 into 0.0; bits of other values are unchanged. NaN bits stay as they are.
-                Weld::Exact => p.map(|x| i64::from((x + 0.0).to_bits())),
-                Weld::Quantised(step) => p.map(|x| libm::round(f64::from(x) / f64::from(step)) as i64),
-            };
-            *first.entry(key).or_insert(i as u32)
-        })
-        .collect()
+    let key = |p: &[f32; 3]| match how {
+        // `+ 0.0` turns -0.0 into 0.0; bits of other values are unchanged.
+        Weld::Exact => p.map(|x| i64::from((x + 0.0).to_bits())),
+        Weld::Quantised(step) => p.map(|x| libm::round(f64::from(x) / f64::from(step)) as i64),
+    };
+    // Sorted by (position key, index): each run of one key maps to its first, smallest index.
+    let mut order: Vec<([i64; 3], u32)> = positions.iter().enumerate().map(|(i, p)| (key(p), i as u32)).collect();
+    order.sort_unstable();
+    let mut map = vec![0u32; positions.len()];
+    let mut run_start = 0;
+    for k in 0..order.len() {
+        if order[k].0 != order[run_start].0 {
+            run_start = k;
+        }
+        map[order[k].1 as usize] = order[run_start].1;
+    }
+    map
 }
 
 /// Weld `positions` as `how` says and read the topology of the triangles `indices` (three per triangle; an index
@@ -114,9 +116,9 @@ pub fn defects(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology,
 
 fn analyse(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec<u32>) {
     let map = weld(positions, how);
-    let mut bad: BTreeMap<u32, ()> = BTreeMap::new();
-    let mut used: BTreeMap<u32, ()> = BTreeMap::new();
-    let mut used_original: BTreeMap<u32, ()> = BTreeMap::new();
+    let mut bad: Vec<u32> = Vec::new();
+    let mut used = vec![false; positions.len()];
+    let mut used_original = vec![false; positions.len()];
     let mut faces: Vec<[u32; 3]> = Vec::new();
     let mut degenerate = 0;
     let triangles = indices.len() / 3;
@@ -126,30 +128,30 @@ fn analyse(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec
             continue;
         }
         for &i in t {
-            used_original.insert(i, ());
+            used_original[i as usize] = true;
         }
         let w = [map[t[0] as usize], map[t[1] as usize], map[t[2] as usize]];
         let [a, b, c]: [V3; 3] = w.map(|i| positions[i as usize].map(f64::from));
         let area = norm(cross(sub(b, a), sub(c, a)));
         if w[0] == w[1] || w[1] == w[2] || w[0] == w[2] || area.is_nan() || area == 0.0 {
             degenerate += 1;
-            for &i in &w {
-                bad.insert(i, ());
-            }
+            bad.extend(w);
             continue;
         }
         for &i in &w {
-            used.insert(i, ());
+            used[i as usize] = true;
         }
         faces.push(w);
     }
-    // Every directed edge and the faces that use it.
-    let mut edges: BTreeMap<(u32, u32), Vec<(usize, bool)>> = BTreeMap::new();
+    // Every undirected edge with the face that uses it and whether it runs from the smaller id, sorted so that
+    // the uses of one edge are adjacent.
+    let mut edges: Vec<(u32, u32, u32, bool)> = Vec::with_capacity(3 * faces.len());
     for (f, t) in faces.iter().enumerate() {
         for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
-            edges.entry((a.min(b), a.max(b))).or_default().push((f, a < b));
+            edges.push((a.min(b), a.max(b), f as u32, a < b));
         }
     }
+    edges.sort_unstable();
     // Bodies: union-find over faces joined by an edge.
     let mut parent: Vec<usize> = (0..faces.len()).collect();
     fn find(p: &mut [usize], mut x: usize) -> usize {
@@ -159,14 +161,22 @@ fn analyse(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec
         }
         x
     }
-    let (mut boundary_edges, mut non_manifold_edges, mut misoriented_edges) = (0, 0, 0);
-    for (&(a, b), users) in &edges {
+    let (mut edge_count, mut boundary_edges, mut non_manifold_edges, mut misoriented_edges) = (0, 0, 0, 0);
+    let mut start = 0;
+    while start < edges.len() {
+        let (a, b) = (edges[start].0, edges[start].1);
+        let mut end = start + 1;
+        while end < edges.len() && (edges[end].0, edges[end].1) == (a, b) {
+            end += 1;
+        }
+        let users = &edges[start..end];
+        edge_count += 1;
         let ok = match users.len() {
             1 => {
                 boundary_edges += 1;
                 false
             }
-            2 if users[0].1 == users[1].1 => {
+            2 if users[0].3 == users[1].3 => {
                 misoriented_edges += 1;
                 false
             }
@@ -177,30 +187,33 @@ fn analyse(positions: &[[f32; 3]], indices: &[u32], how: Weld) -> (Topology, Vec
             }
         };
         if !ok {
-            bad.insert(a, ());
-            bad.insert(b, ());
+            bad.extend([a, b]);
         }
         for w in users.windows(2) {
-            let (x, y) = (find(&mut parent, w[0].0), find(&mut parent, w[1].0));
+            let (x, y) = (find(&mut parent, w[0].2 as usize), find(&mut parent, w[1].2 as usize));
             if x != y {
                 parent[x.max(y)] = x.min(y);
             }
         }
+        start = end;
     }
     let bodies = (0..faces.len()).filter(|&f| find(&mut parent, f) == f).count();
+    let vertices = used.iter().filter(|&&u| u).count();
     let topology = Topology {
-        vertices: used.len(),
-        welded: used_original.len() - used_original.keys().filter(|&&i| map[i as usize] == i).count(),
+        vertices,
+        welded: (0..positions.len()).filter(|&i| used_original[i] && map[i] as usize != i).count(),
         triangles,
         degenerate,
         bodies,
-        edges: edges.len(),
+        edges: edge_count,
         boundary_edges,
         non_manifold_edges,
         misoriented_edges,
-        euler: used.len() as i64 - edges.len() as i64 + faces.len() as i64,
+        euler: vertices as i64 - edge_count as i64 + faces.len() as i64,
     };
-    (topology, bad.into_keys().collect())
+    bad.sort_unstable();
+    bad.dedup();
+    (topology, bad)
 }
 
 /// [`check`] on a [`crate::mesh::Mesh`].
