@@ -74,7 +74,14 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
     radii.sort_by(f32::total_cmp);
     let bytes = typed_to_bytes(&m.positions);
     let adapter = VertexDataAdapter::new(bytes, 12, 0).map_err(|_| NearFieldError::Empty)?;
-    let originals: Vec<V3> = m.positions.iter().map(|p| p.map(f64::from)).collect();
+    // The full mesh's vertices that its triangles use: every level is measured against them.
+    let used_ids: Vec<u32> = {
+        let mut v = m.indices.clone();
+        v.sort_unstable();
+        v.dedup();
+        v
+    };
+    let used: Vec<V3> = used_ids.iter().map(|&i| m.positions[i as usize].map(f64::from)).collect();
     let mut current = m.indices.clone();
     // Every level keeps the full mesh's topology as a welding tool sees it (one closed body stays one).
     let full = check(&m.positions, &m.indices, Weld::Exact);
@@ -102,9 +109,23 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
                 SimplifyOptions::ErrorAbsolute | SimplifyOptions::LockBorder,
                 None,
             );
-            let err = hausdorff(&originals, &m.positions, &simplified, f64::from(bound));
+            let distances = nearest(&used, &m.positions, &simplified, f64::from(bound));
+            let err = distances.iter().fold(0.0f64, |a, &d| a.max(d));
             if err > f64::from(bound) {
-                target *= 0.5;
+                // Vertices the simplifier took away at no cost by its measure (slivers weigh nothing in its
+                // quadrics) can still stray from the surface: keep them and their neighbours; a level that strays
+                // without such a vertex tries a tighter target.
+                let far: Vec<u32> = distances
+                    .iter()
+                    .zip(&used_ids)
+                    .filter(|(d, _)| **d > f64::from(bound))
+                    .map(|(_, &v)| welded[v as usize])
+                    .collect();
+                if far.iter().all(|&v| locks[v as usize]) {
+                    target *= 0.5;
+                } else {
+                    lock_around(&mut locks, &welded, &far, &current);
+                }
                 continue;
             }
             // The simplifier may pinch two parts of the surface together (an edge in four triangles after
@@ -126,8 +147,7 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
         let (indices, err) = match chosen {
             Some(c) => c,
             None => {
-                let err =
-                    current_err.unwrap_or_else(|| hausdorff(&originals, &m.positions, &current, f64::from(bound)));
+                let err = current_err.unwrap_or_else(|| hausdorff(&used, &m.positions, &current, f64::from(bound)));
                 (current.clone(), err)
             }
         };
@@ -187,8 +207,14 @@ fn compact(m: &Mesh, indices: &[u32]) -> Mesh {
 /// The largest distance from a point of `points` to the triangles `indices` over `positions`, exact up to
 /// `bound` (a point farther than `bound` from every triangle counts as `f64::INFINITY`).
 pub fn hausdorff(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f64) -> f64 {
+    nearest(points, positions, indices, bound).into_iter().fold(0.0, f64::max)
+}
+
+/// The distance from each point of `points` to the nearest of the triangles `indices` over `positions`, exact up
+/// to `bound` (`f64::INFINITY` beyond it).
+pub fn nearest(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f64) -> Vec<f64> {
     if indices.is_empty() {
-        return f64::INFINITY;
+        return vec![f64::INFINITY; points.len()];
     }
     let tris: Vec<[V3; 3]> =
         indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| positions[t[k] as usize].map(f64::from))).collect();
@@ -223,7 +249,7 @@ pub fn hausdorff(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: 
             }
         }
     }
-    let mut worst = 0.0f64;
+    let mut out = Vec::with_capacity(points.len());
     for &p in points {
         let c = key(p);
         let mut best = f64::INFINITY;
@@ -241,12 +267,9 @@ pub fn hausdorff(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: 
                 }
             }
         }
-        if best > bound {
-            return f64::INFINITY;
-        }
-        worst = worst.max(best);
+        out.push(if best > bound { f64::INFINITY } else { best });
     }
-    worst
+    out
 }
 
 /// Distance from `p` to the triangle `t` (closest point by regions, after Ericson's Real-Time Collision
