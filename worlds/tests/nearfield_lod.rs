@@ -1,7 +1,7 @@
 //! The near-field LOD chain (seed 004 §4–5; needs the `meshopt` feature, which `cargo test --workspace` turns
 //! on through the `canopy` client; `required-features` in `worlds/Cargo.toml`, so without it this target is not
 //! built rather than built empty): decimation keeps its error bound, thin branches go first, the trunk last, and
-//! every level of every library species is one closed manifold body after welding.
+//! every level of every library species (and the fig) is one closed manifold body after welding.
 
 use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::SourceFile;
@@ -79,8 +79,10 @@ fn point_to_triangle_distance() {
 #[test]
 fn every_level_of_every_library_species_is_one_closed_body() {
     let mut levels_checked = 0;
-    for entry in canopy_worlds::library::SPECIES {
-        let name = entry.name();
+    let library = canopy_worlds::library::SPECIES.iter().map(|e| (e.name(), e.load().unwrap()));
+    let (fig, d) = parse_source(&SourceFile::new("fig.species", include_str!("../species/fig.species")));
+    assert!(d.is_empty(), "{d:?}");
+    for (name, g) in library.chain([("fig", fig.unwrap())]) {
         // As in `nearfield_topology.rs`: terrain draws no branches, the conifer is one body from detail 1 (its
         // needle tufts at detail 0 are bodies apart); the large trees at a coarser detail, so the chains (each
         // level measured against the full mesh) stay quick in a debug build.
@@ -90,7 +92,6 @@ fn every_level_of_every_library_species_is_one_closed_body() {
             "conifer" | "bush" | "stochastic_weed" => 1,
             _ => 0,
         };
-        let g = entry.load().unwrap();
         let mut decimated = 0;
         for seed in 1..=5u64 {
             let s = amplify(&g, &Instance::new(seed).with_detail(detail), &Budget::default()).unwrap();
