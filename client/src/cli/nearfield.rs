@@ -157,10 +157,20 @@ impl NearFieldArgs {
     }
 }
 
-/// The named meshes of one instance under a plan: the branches (or all primitives), the outer bark, the foliage
-/// and the LOD levels, in that order; empty ones are left out.
-pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> anyhow::Result<Vec<(String, Mesh)>> {
+/// The meshes of one instance under a plan.
+pub struct InstanceMeshes {
+    /// The named meshes: the branches (or all primitives), the outer bark, the LOD levels and the foliage, in that
+    /// order; empty ones are left out.
+    pub parts: Vec<(String, Mesh)>,
+    /// Why the continuous mesh of the branches is not one closed body, when it is not (the species draws pieces
+    /// apart, or no branches at all).
+    pub not_one_body: Option<String>,
+}
+
+/// The named meshes of one instance under a plan (see [`InstanceMeshes`]).
+pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> anyhow::Result<InstanceMeshes> {
     let mut out = Vec::new();
+    let mut not_one_body = None;
     let bark_of = |cm: &ContinuousMesh, b: &BarkOptions| -> anyhow::Result<Mesh> {
         let place = trunk_places(&cm.tags);
         Ok(outer_bark(&cm.mesh, &place, b)?)
@@ -169,6 +179,7 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
         Mode::Continuous(mesh) => {
             let opts = NearFieldOptions { continuous: true, mesh, bark: plan.bark };
             let NearParts { continuous: cm, bark } = species_near_parts(stream, &opts)?;
+            not_one_body = cm.why_not_one_body();
             let lods = match &plan.lod {
                 Some(l) => lod_chain(&cm, l)?,
                 None => Vec::new(),
@@ -209,7 +220,7 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
         }
     }
     out.retain(|(_, m)| !m.is_empty());
-    Ok(out)
+    Ok(InstanceMeshes { parts: out, not_one_body })
 }
 
 /// `canopy species nearfield`: seed 004's Table 1 (triangles of the continuous mesh at contour resolutions 5, 9,
@@ -294,7 +305,7 @@ pub fn render_png(
     angles: (f64, f64, f64),
 ) -> anyhow::Result<ExitCode> {
     let stream = amplify(graph, instance, budget)?;
-    let parts = instance_meshes(&Plan { lod: None, ..*plan }, &stream, instance.detail)?;
+    let parts = instance_meshes(&Plan { lod: None, ..*plan }, &stream, instance.detail)?.parts;
     let meshes: Vec<&Mesh> = parts.iter().map(|(_, m)| m).collect();
     let all = parts.iter().fold(Mesh::default(), |mut acc, (_, m)| {
         acc.append(m, [0.0; 3]);
@@ -428,10 +439,22 @@ mod tests {
         let (g, inst) = (fig(), Instance::new(1));
         let stream = amplify(&g, &inst, &Budget::default()).unwrap();
         let plan = args(&["--lod", "2"]).plan(&g, &inst).unwrap();
-        let names: Vec<String> = instance_meshes(&plan, &stream, 0).unwrap().into_iter().map(|(n, _)| n).collect();
+        let names: Vec<String> =
+            instance_meshes(&plan, &stream, 0).unwrap().parts.into_iter().map(|(n, _)| n).collect();
         assert_eq!(names, ["branches", "bark", "lod1", "lod2", "foliage"]);
         let plan = args(&["--junctions"]).plan(&g, &inst).unwrap();
-        let names: Vec<String> = instance_meshes(&plan, &stream, 0).unwrap().into_iter().map(|(n, _)| n).collect();
+        let names: Vec<String> =
+            instance_meshes(&plan, &stream, 0).unwrap().parts.into_iter().map(|(n, _)| n).collect();
         assert_eq!(names, ["branches", "bark"]);
+        assert_eq!(instance_meshes(&plan, &stream, 0).unwrap().not_one_body, None, "no continuous mesh asked for");
+        // The fig is one body; conifer needle tufts (detail 0) are drawn apart from any branch, and the export
+        // says so.
+        let plan = args(&[]).plan(&g, &inst).unwrap();
+        assert_eq!(instance_meshes(&plan, &stream, 0).unwrap().not_one_body, None);
+        let conifer = canopy_worlds::library::find("conifer").unwrap().load().unwrap();
+        let stream = amplify(&conifer, &inst, &Budget::default()).unwrap();
+        let plan = args(&["--continuous", "--contour", "3"]).plan(&conifer, &inst).unwrap();
+        let why = instance_meshes(&plan, &stream, 0).unwrap().not_one_body.expect("needle tufts apart");
+        assert!(why.contains("branch systems that touch no other"), "{why}");
     }
 }

@@ -369,7 +369,11 @@ fn export(
             continue;
         }
         // Near-field parts; LOD levels stand beside the tree along +X, coarser further out.
-        let parts = nearfield::instance_meshes(&plan, &stream, inst.detail)?;
+        let nearfield::InstanceMeshes { parts, not_one_body } =
+            nearfield::instance_meshes(&plan, &stream, inst.detail)?;
+        if let Some(why) = not_one_body {
+            eprintln!("note: {}-{}: not one body: {why}", cfg.graph.name, inst.seed);
+        }
         let width = parts.first().map(|(_, m)| m.bounds()).map_or(1.0, |(lo, hi)| (hi[0] - lo[0]).max(1.0));
         for (part, m) in parts {
             let level = part.strip_prefix("lod").and_then(|k| k.parse::<f32>().ok()).unwrap_or(0.0);

@@ -99,6 +99,25 @@ pub struct ContinuousMesh {
     pub tags: Vec<TriangleTag>,
     /// Everything else in the stream (leaves, spheres, boxes), meshed as usual.
     pub foliage: Mesh,
+    /// Roots of the skeleton: branch systems that touch no other, each a frustum (or trunk base) whose base is
+    /// neither on an earlier one's top nor on its axis. [`ContinuousMesh::mesh`] is one closed body per root, so
+    /// a species that draws pieces apart (needle tufts along a twig nothing draws) cannot be one body.
+    pub roots: usize,
+}
+
+impl ContinuousMesh {
+    /// Why the branches are not one body, in words, or `None` when they are (one root of the skeleton).
+    pub fn why_not_one_body(&self) -> Option<String> {
+        match self.roots {
+            1 => None,
+            0 => Some("the stream has no cones, cylinders or trunk bases to mesh as branches".to_string()),
+            n => Some(format!(
+                "the species draws {n} branch systems that touch no other (a cone, cylinder or trunk base whose base \
+                 is neither on another's top nor on its axis, such as needles or leaves drawn as cones apart from any \
+                 branch), so the continuous mesh is {n} closed bodies"
+            )),
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -312,6 +331,7 @@ pub fn continuous_mesh(stream: &PrimitiveStream, opts: &ContinuousOptions) -> Re
         order: b.order,
         tags: b.tags,
         foliage: mesh(&foliage_stream, &MeshOptions::default()),
+        roots: sk.roots.len(),
     })
 }
 
@@ -368,11 +388,15 @@ fn junction(
     let ring = l.ring + 1;
 
     if !opts.refine {
+        // Each child's base contour stands half the parent's radius up its own axis (at most half its length): a
+        // continuation's contour at its origin would be the parent's contour `l` itself, or a copy turned about
+        // the axis, and the band between them would have no area.
         let loops: Vec<Loop> = children
             .iter()
             .map(|c| {
-                let r0 = radius_of(c, 0.0).max(1e-9);
-                b.contour(&circle(c.origin, c.dir, c.side, r0, res), r0, ctag(c), ring)
+                let t = (0.5 * r).min(0.5 * c.length);
+                let r0 = radius_of(c, t).max(1e-9);
+                b.contour(&circle(add(c.origin, scale(c.dir, t)), c.dir, c.side, r0, res), r0, ctag(c), ring)
             })
             .collect();
         let all: Vec<Vec<u32>> = loops.iter().map(|x| x.ids.clone()).collect();
@@ -394,7 +418,10 @@ fn junction(
         let cos = dot(c.dir, a);
         let t = h / cos;
         let centre = add(c.origin, scale(c.dir, t));
-        let major = normalize(sub(c.dir, scale(a, cos))).unwrap_or(x_axis);
+        // A child along the parent's axis cuts the plane in a circle: its major direction is any (rounding would
+        // otherwise make one up along the axis).
+        let lean = sub(c.dir, scale(a, cos));
+        let major = normalize(lean).filter(|_| norm(lean) > 1e-6).unwrap_or(x_axis);
         let rr = radius_of(c, t).max(1e-9);
         (centre, major, rr / cos, rr, t)
     };

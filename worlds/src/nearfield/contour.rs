@@ -19,9 +19,13 @@ pub fn circle(centre: V3, axis: V3, side: V3, radius: f64, n: usize) -> Vec<V3> 
 }
 
 /// `n` points of the ellipse about `centre` in the plane across the unit `axis`, with semi-axis `major` along
-/// `side` (projected into the plane) and `minor` across it, counter-clockwise seen from the tip of the axis.
+/// `side` (projected into the plane; any direction in it when `side` is along the axis) and `minor` across it,
+/// counter-clockwise seen from the tip of the axis.
 pub fn ellipse(centre: V3, axis: V3, side: V3, major: f64, minor: f64, n: usize) -> Vec<V3> {
-    let u = normalize(sub(side, scale(axis, dot(side, axis)))).unwrap_or_else(|| perpendicular(axis));
+    // A `side` (nearly) along the axis has no direction in the plane: rounding would make one up along the axis,
+    // and the ellipse would collapse onto a line.
+    let across = sub(side, scale(axis, dot(side, axis)));
+    let u = normalize(across).filter(|_| norm(across) > 1e-6 * norm(side)).unwrap_or_else(|| perpendicular(axis));
     let v = cross(axis, u);
     (0..n)
         .map(|j| {

@@ -18,6 +18,7 @@
 //! - [`bark`]: the double bark's chiselled outer layer.
 //! - [`raster`]: a small software rasteriser for close-up renders.
 //! - [`options`]: the species-level options (`nearfield(...)` in species files).
+//! - [`topology`]: welding coincident vertices and counting bodies, boundary and non-manifold edges.
 
 pub mod bark;
 pub mod continuous;
@@ -29,6 +30,7 @@ pub mod lod;
 pub mod options;
 pub mod raster;
 pub mod skeleton;
+pub mod topology;
 pub mod trunkbase;
 
 pub use options::NearFieldOptions;
