@@ -160,3 +160,19 @@ fn demo_streams_the_default_world_to_bots_and_checks_them() {
     assert!(out.contains("checked against the world: 3 of 3 exact"), "{out}");
     assert!(out.contains("species: ") && out.contains(", 0 received twice"), "{out}");
 }
+
+#[test]
+fn an_l_system_too_deep_is_reported_in_its_own_terms_by_every_command() {
+    let deep = temp("deep.lsys");
+    std::fs::write(&deep, "lsystem Deep\nderive 2000\nangle 30\naxiom: A\nA -> F [ + A ]\n").unwrap();
+    let path = deep.to_str().unwrap();
+    for cmd in
+        [&["species", "amplify", path, "--out", "-"][..], &["species", "stats", path], &["species", "check", path]]
+    {
+        let o = canopy(cmd);
+        assert!(!o.status.success(), "{cmd:?}");
+        let t = text(&o);
+        assert!(t.contains("derivation depth 2000") && t.contains("maxdepth"), "{cmd:?}: {t}");
+        assert!(!t.contains("separators nested"), "{cmd:?}: {t}");
+    }
+}

@@ -48,11 +48,6 @@ fn sample_stream() -> PrimitiveStream {
     s
 }
 
-fn temp_path(tag: &str) -> PathBuf {
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
-    std::env::temp_dir().join(format!("canopy-gltf-{tag}-{}-{nanos}.glb", std::process::id()))
-}
-
 fn validator_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("gltf")
 }
@@ -77,10 +72,12 @@ fn validate(test: &str, files: &[(&str, Vec<u8>)]) {
         panic!("{test}: the glTF validator is not installed (tests/gltf/node_modules is missing); {INSTALL}");
     }
 
+    // The files live in a temporary directory removed when the check ends, passed or not.
+    let tmp = tempfile::tempdir().expect("temp dir");
     let mut paths = Vec::new();
     for (tag, bytes) in files {
         parse_glb_header(bytes).unwrap_or_else(|e| panic!("{tag}: {e}"));
-        let path = temp_path(tag);
+        let path = tmp.path().join(format!("{tag}.glb"));
         std::fs::write(&path, bytes).expect("write temp .glb");
         paths.push(path);
     }
@@ -88,9 +85,6 @@ fn validate(test: &str, files: &[(&str, Vec<u8>)]) {
     let output = Command::new("node").arg(dir.join("validate.mjs")).args(&paths).output().expect("run node");
     let stdout = String::from_utf8_lossy(&output.stdout);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    for p in &paths {
-        let _ = std::fs::remove_file(p);
-    }
     // The summary lines (`FILE: N errors, N warnings, … (validator VERSION; …)`), written to the real stderr so
     // they show in the log of a passing run too (the harness captures only `print!`/`eprint!`).
     let summaries: String =

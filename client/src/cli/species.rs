@@ -9,9 +9,11 @@ use anyhow::{Context, bail};
 use canopy_harness::numbers::{group, median};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
+use canopy_worlds::diag::SourceFile;
 use canopy_worlds::gltf::{GlbError, MAX_GLB_BYTES, glb, glb_within, mesh_bin_bytes};
 use canopy_worlds::library;
-use canopy_worlds::load::{CHECK_SEED, check_file, load};
+use canopy_worlds::load::{CHECK_SEED, check_file, load, read_source};
+use canopy_worlds::lsystem::LSystem;
 use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
 use clap::{Args, Subcommand};
@@ -146,6 +148,30 @@ pub(super) struct InstanceConfig {
     pub(super) graph: SpeciesGraph,
     pub(super) instance: Instance,
     pub(super) budget: Budget,
+    /// The L-system the graph was compiled from, when it was one: its errors are reported in its own terms.
+    lsystem: Option<LSystem>,
+}
+
+impl InstanceConfig {
+    /// Amplify `instance` of the species under the budget; an L-system that derives too deep says so with its
+    /// derivation depth and production.
+    pub(super) fn amplify(&self, instance: &Instance) -> anyhow::Result<PrimitiveStream> {
+        Ok(match &self.lsystem {
+            Some(l) => l.amplify(instance, &self.budget)?,
+            None => amplify(&self.graph, instance, &self.budget)?,
+        })
+    }
+}
+
+/// The L-system a species argument names (a `.lsys` file, or a library entry written as one), if it does.
+fn lsystem_of(name_or_path: &str) -> Option<LSystem> {
+    let src = if Path::new(name_or_path).is_file() {
+        read_source(Path::new(name_or_path)).ok()?
+    } else {
+        let entry = library::find(name_or_path)?;
+        SourceFile::new(entry.file, entry.text)
+    };
+    src.name.ends_with(".lsys").then(|| LSystem::parse(&src).0).flatten()
 }
 
 impl InstanceArgs {
@@ -153,7 +179,13 @@ impl InstanceArgs {
         let graph = load(&self.species).map_err(|d| anyhow::anyhow!("{d}"))?;
         let params = resolve_params(&graph, &self.params).map_err(anyhow::Error::msg)?;
         let budget = Budget { max_primitives: self.max_primitives, max_steps: self.max_steps, ..Budget::default() };
-        Ok(InstanceConfig { graph, instance: Instance { seed: self.seed, params, detail: self.detail }, budget })
+        let lsystem = lsystem_of(&self.species);
+        Ok(InstanceConfig {
+            graph,
+            instance: Instance { seed: self.seed, params, detail: self.detail },
+            budget,
+            lsystem,
+        })
     }
 }
 
@@ -254,7 +286,7 @@ fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
     let mut stream = PrimitiveStream::default();
     for _ in 0..repeat {
         let t = Instant::now();
-        stream = amplify(g, &cfg.instance, &cfg.budget)?;
+        stream = cfg.amplify(&cfg.instance)?;
         times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let ms = median(times);
@@ -299,7 +331,7 @@ fn ratio(r: f64) -> String {
 }
 
 fn amplify_cmd(cfg: &InstanceConfig, out: Option<PathBuf>) -> anyhow::Result<ExitCode> {
-    let stream = amplify(&cfg.graph, &cfg.instance, &cfg.budget)?;
+    let stream = cfg.amplify(&cfg.instance)?;
     let m = mesh(&stream, &MeshOptions::for_detail(cfg.instance.detail));
     println!("species     {}", cfg.graph.name);
     println!("primitives  {}  ({})", group(stream.primitives.len() as u64), counts_line(&stream));
@@ -361,7 +393,7 @@ fn export(
             return Err(too_large(out, err, &format!("the first {i} of {grove} instances")));
         }
         let inst = Instance { seed: cfg.instance.seed.wrapping_add(u64::from(i)), ..cfg.instance.clone() };
-        let stream = amplify(&cfg.graph, &inst, &cfg.budget)?;
+        let stream = cfg.amplify(&inst)?;
         let at = [(i % side) as f32 * spacing, 0.0, (i / side) as f32 * spacing];
         let plan = near.plan(&cfg.graph, &inst)?;
         if matches!(plan.mode, nearfield::Mode::Primitives) && plan.bark.is_none() {
