@@ -235,7 +235,6 @@ async fn accept_loop(
     mut shutdown: watch::Receiver<bool>,
 ) {
     let admission = Arc::new(std::sync::Mutex::new(Admission::new(cfg.admission.clone())));
-    let admit = |f: &mut dyn FnMut(&mut Admission)| f(&mut admission.lock().unwrap_or_else(|e| e.into_inner()));
     let cfg = Arc::new(cfg);
     loop {
         let incoming = tokio::select! {
@@ -243,8 +242,8 @@ async fn accept_loop(
             _ = shutdown.changed() => break,
         };
         let peer = incoming.remote_address();
-        let mut verdict = Verdict::Accept;
-        admit(&mut |a| verdict = a.incoming(peer.ip(), incoming.remote_address_validated()));
+        let validated = incoming.remote_address_validated();
+        let verdict = admission.lock().unwrap_or_else(|e| e.into_inner()).incoming(peer.ip(), validated);
         match verdict {
             Verdict::Accept => {}
             Verdict::Retry if incoming.may_retry() => {
