@@ -35,11 +35,25 @@ impl Default for AdmissionConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Refusal {
     /// Every client slot is taken.
-    Full,
+    Full = 0,
     /// Too many handshakes are in flight.
-    Busy,
+    Busy = 1,
     /// The source address already holds its share.
-    PerSource,
+    PerSource = 2,
+}
+
+impl Refusal {
+    /// Every reason, in index order (`ALL[r as usize] == r`).
+    pub const ALL: [Refusal; 3] = [Refusal::Full, Refusal::Busy, Refusal::PerSource];
+
+    /// A snake_case label, for metrics.
+    pub fn label(self) -> &'static str {
+        match self {
+            Refusal::Full => "full",
+            Refusal::Busy => "busy",
+            Refusal::PerSource => "per_source",
+        }
+    }
 }
 
 /// What to do with an incoming connection.

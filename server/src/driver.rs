@@ -244,22 +244,21 @@ async fn accept_loop(
         let peer = incoming.remote_address();
         let validated = incoming.remote_address_validated();
         let verdict = admission.lock().unwrap_or_else(|e| e.into_inner()).incoming(peer.ip(), validated);
-        match verdict {
-            Verdict::Accept => {}
+        let refusal = match verdict {
+            Verdict::Accept => None,
             Verdict::Retry if incoming.may_retry() => {
                 metrics.retries.fetch_add(1, Relaxed);
                 let _ = incoming.retry();
                 continue;
             }
-            Verdict::Retry | Verdict::Refuse(_) => {
-                let reason = match verdict {
-                    Verdict::Refuse(r) => r,
-                    _ => Refusal::Busy,
-                };
-                metrics.refused(reason);
-                incoming.refuse();
-                continue;
-            }
+            // A Retry was asked for but this Initial already carries one: the server is busy.
+            Verdict::Retry => Some(Refusal::Busy),
+            Verdict::Refuse(r) => Some(r),
+        };
+        if let Some(r) = refusal {
+            metrics.refused(r);
+            incoming.refuse();
+            continue;
         }
         metrics.connections.fetch_add(1, Relaxed);
         metrics.handshakes.fetch_add(1, Relaxed);

@@ -22,7 +22,7 @@ pub struct Metrics {
     /// Incoming connections answered with a QUIC Retry (address validation).
     pub retries: AtomicU64,
     /// Incoming connections refused: server full, too many handshakes, the source's share taken.
-    pub refused: [AtomicU64; 3],
+    pub refused: [AtomicU64; Refusal::ALL.len()],
     /// Connections accepted since start.
     pub connections: AtomicU64,
     /// Sessions that reached the streaming phase.
@@ -78,15 +78,7 @@ impl Metrics {
 
     /// Count one refused incoming connection.
     pub fn refused(&self, why: Refusal) {
-        self.refused[Self::refusal_slot(why)].fetch_add(1, Relaxed);
-    }
-
-    fn refusal_slot(why: Refusal) -> usize {
-        match why {
-            Refusal::Full => 0,
-            Refusal::Busy => 1,
-            Refusal::PerSource => 2,
-        }
+        self.refused[why as usize].fetch_add(1, Relaxed);
     }
 
     /// Count one transmitted message.
@@ -127,16 +119,9 @@ impl Metrics {
         metric("canopy_clients", "gauge", "Clients connected now.", &one(&self.clients));
         metric("canopy_handshakes", "gauge", "QUIC handshakes in flight now.", &one(&self.handshakes));
         metric("canopy_retries_total", "counter", "Incoming connections sent a QUIC Retry.", &one(&self.retries));
-        let refused: Vec<(String, u64)> = [Refusal::Full, Refusal::Busy, Refusal::PerSource]
+        let refused: Vec<(String, u64)> = Refusal::ALL
             .into_iter()
-            .map(|r| {
-                let label = match r {
-                    Refusal::Full => "full",
-                    Refusal::Busy => "busy",
-                    Refusal::PerSource => "per_source",
-                };
-                (format!("{{reason=\"{label}\"}}"), self.refused[Self::refusal_slot(r)].load(Relaxed))
-            })
+            .map(|r| (format!("{{reason=\"{}\"}}", r.label()), self.refused[r as usize].load(Relaxed)))
             .collect();
         metric("canopy_refused_total", "counter", "Incoming connections refused, by reason.", &refused);
         metric("canopy_connections_total", "counter", "Connections accepted.", &one(&self.connections));

@@ -12,6 +12,7 @@ use canopy_client::net::endpoint;
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_protocol::CloseCode;
 use canopy_protocol::aoi::Viewpoint;
+use canopy_server::admission::Refusal;
 use canopy_server::{AdmissionConfig, GridStore, Server, ServerConfig, SessionConfig, WorldStore};
 use canopy_worlds::world::World;
 
@@ -90,7 +91,7 @@ async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
     assert_eq!(m.clients.load(Relaxed), 4);
     // Every client slot taken: the next one is refused, however it asks.
     assert!(connect_from(&server, "127.0.0.6:0").await.is_err());
-    assert!(m.refused[0].load(Relaxed) >= 1, "refused as full");
+    assert!(m.refused[Refusal::Full as usize].load(Relaxed) >= 1, "refused as full");
     drop(flood);
     server.shutdown(Duration::from_secs(1)).await;
 }
@@ -102,7 +103,7 @@ async fn one_source_gets_its_share_and_no_more() {
     let a = connect_from(&server, "127.0.0.7:0").await.unwrap();
     let b = connect_from(&server, "127.0.0.7:0").await.unwrap();
     assert!(connect_from(&server, "127.0.0.7:0").await.is_err(), "a third connection from one source");
-    assert!(server.metrics().refused[2].load(Relaxed) >= 1, "refused for the source's share");
+    assert!(server.metrics().refused[Refusal::PerSource as usize].load(Relaxed) >= 1, "refused for the source's share");
     let c = connect_from(&server, "127.0.0.8:0").await.expect("another source is admitted");
     drop((a, b, c));
     server.shutdown(Duration::from_secs(1)).await;

@@ -176,10 +176,14 @@ fn lsystem_of(name_or_path: &str) -> Option<LSystem> {
 
 impl InstanceArgs {
     pub(super) fn config(&self) -> anyhow::Result<InstanceConfig> {
-        let graph = load(&self.species).map_err(|d| anyhow::anyhow!("{d}"))?;
+        // An L-system is parsed once and its graph taken from it; `load` reports what does not parse.
+        let lsystem = lsystem_of(&self.species);
+        let graph = match &lsystem {
+            Some(l) => l.graph.clone(),
+            None => load(&self.species).map_err(|d| anyhow::anyhow!("{d}"))?,
+        };
         let params = resolve_params(&graph, &self.params).map_err(anyhow::Error::msg)?;
         let budget = Budget { max_primitives: self.max_primitives, max_steps: self.max_steps, ..Budget::default() };
-        let lsystem = lsystem_of(&self.species);
         Ok(InstanceConfig {
             graph,
             instance: Instance { seed: self.seed, params, detail: self.detail },
