@@ -361,6 +361,14 @@ impl World {
         }
     }
 
+    /// The placements of one cell, in the order of their index in the cell (an instance is identified by its
+    /// cell and that index): a pure function of the manifest and the cell, the same whichever cells were asked for
+    /// before. Empty for a cell out of bounds.
+    pub fn expand_cell(&self, c: CellKey) -> Vec<Placement> {
+        let r = self.cell_instances(c);
+        self.instances[r.start as usize..r.end as usize].to_vec()
+    }
+
     /// The edge of one position step, `cell_size / POSITION_STEPS` metres.
     pub fn position_step(&self) -> f32 {
         canopy_protocol::record::position_step(self.cell_size)
