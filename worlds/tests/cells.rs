@@ -42,7 +42,8 @@ fn any_order_any_thread_alone_or_in_blocks_gives_the_same_cells() {
     let cells: Vec<CellKey> = w.cells().collect();
     let cells = &cells;
     // Alone, in a scrambled order, on two threads.
-    let mut order: Vec<usize> = (0..cells.len()).step_by(7).collect();
+    let landmarks = [key(0, 0), key(-15, 14), key(-14, 13)].map(|c| cells.iter().position(|&k| k == c).unwrap());
+    let mut order: Vec<usize> = (0..cells.len()).step_by(7).chain(landmarks).collect();
     let mut state = 0x9e37_79b9_7f4a_7c15u64;
     for i in (1..order.len()).rev() {
         state ^= state << 13;
@@ -63,9 +64,17 @@ fn any_order_any_thread_alone_or_in_blocks_gives_the_same_cells() {
             });
         }
     });
-    // In blocks that straddle the world's materialisation bands, and past the world's edge.
+    // In blocks that straddle the world's materialisation bands, past the world's edge, around the cells that
+    // hold explicit instances (the landmarks), and the whole world as one block.
     let first = w.first_cell();
-    for (c0, c1) in [(key(first.x + 3, first.z + 13), key(first.x + 7, first.z + 18)), (key(12, 12), key(17, 16))] {
+    let blocks = [
+        (key(first.x + 3, first.z + 13), key(first.x + 7, first.z + 18)),
+        (key(12, 12), key(17, 16)),
+        (key(-16, 12), key(-13, 15)),
+        (key(-1, -1), key(2, 1)),
+        (first, key(first.x + 31, first.z + 31)),
+    ];
+    for (c0, c1) in blocks {
         for (c, list) in w.expand_cells(c0, c1) {
             assert_eq!(list, stored(w, c), "cell {c:?} in block {c0:?}..{c1:?}");
         }

@@ -1,5 +1,6 @@
 //! Golden determinism vectors: hashes of the primitive stream and mesh of every library species for fixed seeds
-//! and detail levels, committed in `tests/golden/amplify.txt`. The same test binary runs natively, under qemu for
+//! and detail levels, committed in `tests/golden/amplify.txt`, and of the cells of 12 blocks of 4 × 4 cells of both
+//! embedded worlds (`tests/golden/cells.txt`: cell expansion is held to the same rule as amplification). The same test binary runs natively, under qemu for
 //! aarch64 and under node's WASI for wasm32 in CI (`.ci/cross-determinism`), so a change in any platform's
 //! floating point, libm or RNG path shows up as a mismatch here.
 //!
@@ -64,4 +65,62 @@ fn thread_count_does_not_change_results() {
     for p in parallel {
         assert_eq!(p, serial);
     }
+}
+
+/// Blocks of 4 × 4 cells whose expansion is golden: the default world's corners and centre, and the large world's
+/// far corners, centre, tree line, meadow edge and valley floor.
+const CELL_BLOCKS: [(&str, i32, i32); 12] = [
+    ("forest", -16, -16),
+    ("forest", 12, 12),
+    ("forest", -2, -2),
+    ("forest", -16, 12),
+    ("highlands", -800, -800),
+    ("highlands", 796, 796),
+    ("highlands", -800, 796),
+    ("highlands", 796, -800),
+    ("highlands", -2, -2),
+    ("highlands", -247, 563),
+    ("highlands", -358, 290),
+    ("highlands", -543, -165),
+];
+
+/// One line per cell: `world x z count hash` over species, position bits and parameters.
+fn cell_vectors() -> Vec<String> {
+    use canopy_worlds::primitive::Fnv;
+    use canopy_worlds::world::{CellKey, World};
+    let worlds = [World::embedded("forest").unwrap(), World::embedded("highlands").unwrap()];
+    let mut lines = Vec::new();
+    for (name, x, z) in CELL_BLOCKS {
+        let w = worlds.iter().find(|w| w.name == name).unwrap();
+        for (c, list) in w.expand_cells(CellKey { x, z }, CellKey { x: x + 3, z: z + 3 }) {
+            let mut h = Fnv::new();
+            for p in &list {
+                h.u32(u32::from(p.species));
+                h.f32s(&[p.x, p.z]);
+                for &(slot, v) in &p.params {
+                    h.u32(u32::from(slot));
+                    h.f32s(&[v]);
+                }
+            }
+            lines.push(format!("{name} {} {} {} {:016x}", c.x, c.z, list.len(), h.finish()));
+        }
+    }
+    lines
+}
+
+#[test]
+fn cell_expansion_matches_golden_vectors() {
+    const CELLS: &str = include_str!("golden/cells.txt");
+    let got = cell_vectors().join("\n") + "\n";
+    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
+        std::fs::write(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/golden/cells.txt"), &got).unwrap();
+        return;
+    }
+    let want: Vec<&str> = CELLS.lines().filter(|l| !l.starts_with('#')).collect();
+    let got: Vec<&str> = got.lines().collect();
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!(g, w, "cell expansion differs from the golden vector (world x z count hash)");
+    }
+    assert_eq!(got.len(), want.len(), "number of golden cells");
+    assert!(want.iter().filter(|l| !l.contains(" 0 ")).count() > 100, "the golden cells hold instances");
 }

@@ -779,7 +779,7 @@ fn default_world_meets_its_targets() {
 
 /// Golden: the default world's placements, bit for bit. Re-bless (after an intended change to the world, the
 /// expansion or the RNG) by replacing the constant with the printed value and reviewing why it moved.
-const FOREST_PLACEMENTS: (usize, u64) = (194_398, 0x2496_75fa_2bff_0339);
+const FOREST_PLACEMENTS: (usize, u64) = (194_353, 0x4354_7cd3_af0e_c42e);
 
 #[test]
 fn default_world_placements_are_golden() {

@@ -1,10 +1,13 @@
 //! `canopy world stats [MANIFEST]`: load a world manifest — or the embedded default world, `worlds/forest` — and
-//! print its content summary and how long loading took (parsing, terrain and population expansion).
+//! print its content summary and how long loading took. A world too large to expand whole is estimated from a
+//! sample of its cells; `--cells X0,Z0,X1,Z1` expands a rectangle of cells exactly.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
+use canopy_harness::numbers::percentile;
+use canopy_worlds::world::{CellKey, World};
 use clap::Subcommand;
 
 #[derive(Subcommand, Debug)]
@@ -16,17 +19,43 @@ pub enum WorldCommand {
         /// Loads to time; the fastest is reported with the median.
         #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100))]
         repeat: u32,
+        /// Cells to sample for the estimate of a world expanded on demand.
+        #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65_536))]
+        samples: u32,
+        /// Expand the cells X0,Z0 ..= X1,Z1 exactly and print what they hold (cell coordinates, inclusive).
+        #[arg(long, value_parser = parse_cells, allow_hyphen_values = true)]
+        cells: Option<[i32; 4]>,
     },
 }
 
 /// Run a `canopy world` command.
 pub fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
     match cmd {
-        WorldCommand::Stats { manifest, repeat } => Ok(stats(manifest, repeat)),
+        WorldCommand::Stats { manifest, repeat, samples, cells } => Ok(stats(manifest, repeat, samples, cells)),
     }
 }
 
-fn stats(manifest: Option<PathBuf>, repeat: u32) -> ExitCode {
+/// Most cells `--cells` expands.
+const MAX_REGION_CELLS: u64 = 1 << 20;
+
+/// `X0,Z0,X1,Z1` with X0 ≤ X1 and Z0 ≤ Z1, at most [`MAX_REGION_CELLS`] cells.
+fn parse_cells(s: &str) -> Result<[i32; 4], String> {
+    let v: Vec<i32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<i32>().map_err(|e| format!("`{p}`: {e}")))
+        .collect::<Result<_, _>>()?;
+    let [x0, z0, x1, z1] = v[..] else { return Err(format!("expected X0,Z0,X1,Z1, got {} numbers", v.len())) };
+    if x0 > x1 || z0 > z1 {
+        return Err("expected X0 ≤ X1 and Z0 ≤ Z1".into());
+    }
+    let n = (i64::from(x1) - i64::from(x0) + 1) as u64 * (i64::from(z1) - i64::from(z0) + 1) as u64;
+    if n > MAX_REGION_CELLS {
+        return Err(format!("{n} cells, more than {MAX_REGION_CELLS}"));
+    }
+    Ok([x0, z0, x1, z1])
+}
+
+fn stats(manifest: Option<PathBuf>, repeat: u32, samples: u32, cells: Option<[i32; 4]>) -> ExitCode {
     let load = || super::load_world(manifest.as_deref());
     let mut times: Vec<Duration> = Vec::new();
     let mut world = None;
@@ -62,5 +91,60 @@ fn stats(manifest: Option<PathBuf>, repeat: u32) -> ExitCode {
             ms(times[times.len() / 2])
         );
     }
+    if !world.is_materialised() {
+        sample(&world, samples);
+    }
+    if let Some([x0, z0, x1, z1]) = cells {
+        region(&world, CellKey { x: x0, z: z0 }, CellKey { x: x1, z: z1 });
+    }
     ExitCode::SUCCESS
+}
+
+/// Estimate a world expanded on demand from `n` sampled cells, and time their expansion.
+fn sample(world: &World, n: u32) {
+    let start = Instant::now();
+    let mut times = Vec::new();
+    let mut lists = Vec::new();
+    for c in world.sample_cells(n) {
+        let t = Instant::now();
+        lists.push(world.expand_cell(c));
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    print!("{}", world.estimate(&lists).describe(world));
+    let total = start.elapsed().as_secs_f64();
+    times.sort_by(f64::total_cmp);
+    println!(
+        "sampled {} cells in {total:.2} s: expansion p50 {:.1} ms, p99 {:.1} ms per cell alone (one thread)",
+        lists.len(),
+        percentile(&times, 0.5).unwrap_or(0.0),
+        percentile(&times, 0.99).unwrap_or(0.0),
+    );
+}
+
+/// Expand a rectangle of cells exactly and print its instances per species.
+fn region(world: &World, c0: CellKey, c1: CellKey) {
+    let start = Instant::now();
+    let cells = world.expand_cells(c0, c1);
+    let elapsed = start.elapsed().as_secs_f64();
+    let mut counts = vec![0u64; world.species.len()];
+    for (_, list) in &cells {
+        for p in list {
+            counts[usize::from(p.species)] += 1;
+        }
+    }
+    let total: u64 = counts.iter().sum();
+    let most = cells.iter().map(|(_, l)| l.len()).max().unwrap_or(0);
+    println!(
+        "cells {},{} ..= {},{}: {} cells, {total} instances (max {most} in a cell), expanded in {:.1} ms ({:.2} ms per cell)",
+        c0.x,
+        c0.z,
+        c1.x,
+        c1.z,
+        cells.len(),
+        elapsed * 1e3,
+        elapsed * 1e3 / cells.len().max(1) as f64,
+    );
+    for (sp, n) in world.species.iter().zip(&counts) {
+        println!("  {:12} {n:>10}", sp.name);
+    }
 }

@@ -20,7 +20,7 @@ pub const MAX_CELL_WORK: f64 = 16_777_216.0;
 /// Most instances in one cell: an index in a cell fits 16 bits.
 pub const MAX_CELL_INSTANCES: usize = 65_535;
 /// Cells per side of the blocks a large region is expanded in (bounds the memory of one expansion).
-pub const REGION_BLOCK: i32 = 16;
+pub const REGION_BLOCK: i32 = 32;
 
 /// Positions an empty background cell tries per round before it gives up proposing in that round.
 pub const ATTEMPTS: u32 = 7;
@@ -30,6 +30,7 @@ pub const ATTEMPTS: u32 = 7;
 /// draw is word 32 and its parameters words 33, 34, ….
 const WORDS_PER_ROUND: u64 = 8;
 const ROUND_WORDS: usize = (WORDS_PER_ROUND * ROUNDS as u64) as usize;
+const _: () = assert!(ROUND_WORDS == 24, "rounds 0 and 1 read block 0, round 2 block 1");
 const WORD_KEEP: u64 = ROUND_WORDS as u64;
 const WORD_PARAMS: u64 = WORD_KEEP + 1;
 
@@ -44,11 +45,12 @@ pub struct Populations {
 }
 
 impl Populations {
-    /// Explicit instances in the cells `c0 ..= c1` (row by row), as `(order, placement)`.
+    /// Explicit instances in the cells `c0 ..= c1`, as `(order, placement)` (keys order by x, then z).
     fn explicit_in(&self, c0: CellKey, c1: CellKey) -> impl Iterator<Item = &(u32, Placement)> {
-        (c0.z..=c1.z).flat_map(move |z| {
-            self.explicit.range(CellKey { x: c0.x, z }..=CellKey { x: c1.x, z }).flat_map(|(_, v)| v.iter())
-        })
+        self.explicit
+            .range(c0..=c1)
+            .filter(move |(k, _)| (c0.z..=c1.z).contains(&k.z))
+            .flat_map(|(_, v)| v.iter())
     }
 }
 
@@ -286,17 +288,34 @@ fn scatter(
     {
         return Vec::new();
     }
-    // Blocks 0 and 1 of every background cell's stream: all its rounds' positions and priorities.
+    // Block 0 of every background cell's stream (rounds 0 and 1); block 1 (round 2) only for the cells still
+    // empty when it begins.
     let mut words = vec![[0u32; ROUND_WORDS]; n];
     for j in lo[1]..=hi[1] {
         for i in lo[0]..=hi[0] {
             let stream = cell_stream(rule, i, j);
-            words[field.at(i, j)] = std::array::from_fn(|w| rng.word(stream, w as u64));
+            let block = &mut words[field.at(i, j)];
+            for (w, v) in block[..16].iter_mut().enumerate() {
+                *v = rng.word(stream, w as u64);
+            }
         }
     }
     let mut proposals = vec![EMPTY; n];
     let mut priority = vec![0u32; n];
     for round in 0..ROUNDS as usize {
+        if round * WORDS_PER_ROUND as usize == 16 {
+            for j in lo[1]..=hi[1] {
+                for i in lo[0]..=hi[0] {
+                    let k = field.at(i, j);
+                    if placed[k][0].is_nan() {
+                        let stream = cell_stream(rule, i, j);
+                        for (w, v) in words[k][16..].iter_mut().enumerate() {
+                            *v = rng.word(stream, 16 + w as u64);
+                        }
+                    }
+                }
+            }
+        }
         // Proposals: every empty background cell tries up to ATTEMPTS positions and proposes the first that keeps
         // `spacing` from the placed darts and the `avoid` distances.
         for j in lo[1]..=hi[1] {

@@ -103,9 +103,9 @@ mod manifest;
 mod par;
 mod populate;
 mod source;
+mod summary;
 mod terrain;
 
-use std::fmt::Write as _;
 use std::ops::Range;
 use std::path::Path;
 
@@ -117,6 +117,7 @@ use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule};
+pub use summary::Estimate;
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
 
 /// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
@@ -237,6 +238,10 @@ pub struct World {
 
 /// The embedded default world's manifest.
 pub const DEFAULT_WORLD: &str = include_str!("../../forest/forest.world");
+/// The embedded large world's manifest (102.4 km × 102.4 km, expanded cell by cell).
+pub const HIGHLANDS_WORLD: &str = include_str!("../../highlands/highlands.world");
+/// The worlds compiled in, by name: `(name, manifest)`; the first is the default.
+pub const EMBEDDED_WORLDS: [(&str, &str); 2] = [("forest", DEFAULT_WORLD), ("highlands", HIGHLANDS_WORLD)];
 
 impl World {
     /// Load a manifest file; species paths are relative to its directory.
@@ -256,9 +261,17 @@ impl World {
 
     /// The embedded default world, `worlds/forest/` (compiled in: touches no filesystem).
     pub fn default_world() -> World {
-        let src = SourceFile::new("worlds/forest/forest.world", DEFAULT_WORLD);
-        World::parse_with(&src, &source::Embedded { dir: "forest" })
-            .unwrap_or_else(|d| panic!("the embedded default world is tested to load:\n{d}"))
+        World::embedded("forest").expect("the embedded default world is tested to load")
+    }
+
+    /// An embedded world by name ([`EMBEDDED_WORLDS`]: `worlds/NAME/NAME.world`, compiled in with its species);
+    /// `None` for a name that is not embedded.
+    pub fn embedded(name: &str) -> Option<World> {
+        let (dir, text) = EMBEDDED_WORLDS.iter().find(|(n, _)| *n == name)?;
+        let src = SourceFile::new(format!("worlds/{dir}/{dir}.world"), *text);
+        let world = World::parse_with(&src, &source::Embedded { dir })
+            .unwrap_or_else(|d| panic!("the embedded world `{name}` is tested to load:\n{d}"));
+        Some(world)
     }
 
     fn parse_with(src: &SourceFile, files: &dyn source::Resolver) -> Result<World, Diagnostics> {
@@ -319,18 +332,21 @@ impl World {
         }
     }
 
-    /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (bands of
-    /// [`REGION_BLOCK`] rows on the available cores: the result does not depend on the bands or the threads).
+    /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (a band of rows
+    /// per core: the result does not depend on the bands or the threads).
     fn materialise(mut self) -> World {
         if self.cell_count() > EAGER_CELLS {
             return self;
         }
         let (min, [w, d]) = (self.cell_min, self.cell_dims.map(|v| v as i32));
+        // One band of rows per core (each a block of at most REGION_BLOCK × REGION_BLOCK cells at a time).
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()) as i32;
+        let rows = (d + threads - 1) / threads.max(1);
         let bands: Vec<(CellKey, CellKey)> = (0..d)
-            .step_by(REGION_BLOCK as usize)
+            .step_by(rows.max(1) as usize)
             .map(|z| {
                 let c0 = CellKey { x: min.x, z: min.z + z };
-                (c0, CellKey { x: min.x + w - 1, z: (c0.z + REGION_BLOCK - 1).min(min.z + d - 1) })
+                (c0, CellKey { x: min.x + w - 1, z: (c0.z + rows - 1).min(min.z + d - 1) })
             })
             .collect();
         let expanded = par::map(&bands, || (), |_, &(c0, c1)| cells::expand(&self, c0, c1));
@@ -505,83 +521,6 @@ impl World {
         let mut values: Vec<f32> = bits.into_iter().map(f32::from_bits).collect();
         values.sort_by(f32::total_cmp);
         values
-    }
-
-    /// A human summary: area, cells, terrain, species and instance counts per species.
-    pub fn content_summary(&self) -> String {
-        let mut s = String::new();
-        let [w, d] = self.bounds.size();
-        let area_km2 = self.bounds.area() / 1e6;
-        let n = self.instances.len();
-        let _ = writeln!(s, "world {}: {w} m × {d} m = {area_km2:.2} km², seed {}", self.name, self.seed);
-        let per_cell = (0..self.cell_count()).map(|i| self.cell_starts[i + 1] - self.cell_starts[i]);
-        let max_cell = per_cell.clone().max().unwrap_or(0);
-        let empty = per_cell.filter(|&c| c == 0).count();
-        let _ = writeln!(
-            s,
-            "cells: {} × {} = {} of {} m; instances per cell: mean {:.1}, max {max_cell}, {empty} empty",
-            self.cell_dims[0],
-            self.cell_dims[1],
-            self.cell_count(),
-            self.cell_size,
-            n as f64 / self.cell_count() as f64,
-        );
-        let t = &self.terrain;
-        let (lo, hi) = t.height_range();
-        match &t.species {
-            Some(g) => {
-                let _ = writeln!(
-                    s,
-                    "terrain: {} ({}), {} × {} tiles of {} m at depth {}: {} triangles, {} m grid, heights {lo:.1} to {hi:.1} m",
-                    g.name,
-                    t.source,
-                    t.tiles[0],
-                    t.tiles[1],
-                    t.tile_size,
-                    t.depth,
-                    t.triangle_count(),
-                    t.spacing(),
-                );
-            }
-            None => {
-                let _ = writeln!(s, "terrain: flat at 0 m");
-            }
-        }
-        let counts = self.species_counts();
-        let with_params = self.instances.iter().filter(|p| !p.params.is_empty()).count();
-        let values: usize = self.instances.iter().map(|p| p.params.len()).sum();
-        let _ = writeln!(
-            s,
-            "instances: {n} ({:.0} per km²; {} explicit, {} from {} scatter rules); {with_params} carry {values} parameter values",
-            n as f64 / area_km2.max(f64::MIN_POSITIVE),
-            self.explicit_instances,
-            n - self.explicit_instances as usize,
-            self.rules.len(),
-        );
-        let width = self.species.iter().map(|sp| sp.name.len()).max().unwrap_or(0);
-        let _ = writeln!(s, "species: {}", self.species.len());
-        for (id, (sp, count)) in self.species.iter().zip(&counts).enumerate() {
-            // Which parameters the instances carry, and how many distinct values each takes.
-            let mut slots: Vec<u16> = Vec::new();
-            for p in self.instances.iter().filter(|p| usize::from(p.species) == id) {
-                for &(slot, _) in &p.params {
-                    if !slots.contains(&slot) {
-                        slots.push(slot);
-                    }
-                }
-            }
-            slots.sort_unstable();
-            let params: Vec<String> = slots
-                .iter()
-                .map(|&slot| {
-                    let name = sp.graph.params.get(usize::from(slot)).map_or("?", |p| p.name.as_str());
-                    format!("{name}: {} values", self.param_values(id as u16, slot).len())
-                })
-                .collect();
-            let params = if params.is_empty() { String::new() } else { format!("; {}", params.join(", ")) };
-            let _ = writeln!(s, "  {id:>3} {:width$}  {count:>9} instances  ({}{params})", sp.name, sp.source);
-        }
-        s
     }
 }
 

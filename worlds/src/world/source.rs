@@ -42,7 +42,8 @@ pub(crate) struct Embedded {
 }
 
 /// Files of `worlds/` compiled in besides the species library, by path under `worlds/`.
-const EMBEDDED_FILES: &[(&str, &str)] = &[("forest/forest.world", super::DEFAULT_WORLD)];
+const EMBEDDED_FILES: &[(&str, &str)] =
+    &[("forest/forest.world", super::DEFAULT_WORLD), ("highlands/highlands.world", super::HIGHLANDS_WORLD)];
 
 impl Resolver for Embedded {
     fn read(&self, rel: &str) -> Result<(String, String), String> {
