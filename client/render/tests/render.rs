@@ -14,7 +14,7 @@ use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInsta
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
-use canopy_worlds::world::{Terrain, World};
+use canopy_worlds::world::{InstanceId, Terrain, World};
 use glam::Vec3;
 
 fn reference(name: &str) -> PathBuf {
@@ -158,7 +158,13 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
     let scene = Scene {
         species: vec![Some(Arc::new(graph))],
         volumes: vec![Some(SceneVolume { tree: Arc::new(tree), origin: [0.0; 3], units: 1.0 })],
-        instances: vec![SceneInstance { id: 0, species: 0, position: [0.0; 3], seed: 1, params: Vec::new() }],
+        instances: vec![SceneInstance {
+            id: InstanceId(0),
+            species: 0,
+            position: [0.0; 3],
+            seed: 1,
+            params: Vec::new(),
+        }],
         terrain: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)),
         generation: 1,
     };
