@@ -274,7 +274,7 @@ pub struct Welcome {
 pub struct WorldInfo {
     /// The world's name.
     pub name: String,
-    /// The world seed; instance seeds derive from it and the instance id.
+    /// The world seed; instance seeds derive from it and the [`InstanceId`] (cell, index in the cell).
     pub seed: u64,
     /// The cell grid.
     pub grid: Grid,
