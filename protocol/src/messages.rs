@@ -21,11 +21,11 @@ use sha2::{Digest, Sha256};
 
 use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, ViewpointError};
 use crate::frame::PREFIX;
-use crate::record::{BatchError, CellBatch, CellCoord, POSITION_STEPS};
+use crate::record::{BatchError, CellBatch, CellCoord, InstanceId, POSITION_STEPS};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 1;
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";
@@ -274,7 +274,7 @@ pub struct Welcome {
 pub struct WorldInfo {
     /// The world's name.
     pub name: String,
-    /// The world seed; instance seeds derive from it and the instance id.
+    /// The world seed; instance seeds derive from it and the [`InstanceId`] (cell, index in the cell).
     pub seed: u64,
     /// The cell grid.
     pub grid: Grid,
@@ -383,12 +383,14 @@ pub struct SpeciesData {
 /// What an explicit-geometry blob is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum GeometryKind {
-    /// One instance's own amplified mesh (`id`: the instance id), quantised and meshopt-compressed.
+    /// One instance's own amplified mesh (`id`: the [`InstanceId`]), quantised and meshopt-compressed.
     InstanceMesh,
-    /// One mesh per species (`id`: the species id), quantised and meshopt-compressed, for instancing.
+    /// One mesh per species (`id`: the species id, below [`netlimits::MAX_SPECIES`]), quantised and
+    /// meshopt-compressed, for instancing.
     SpeciesMesh,
-    /// Per-instance transforms of a cell batch (`id`: the first instance id), as glTF `EXT_mesh_gpu_instancing`
-    /// carries them (translation, rotation, scale), meshopt-compressed.
+    /// Per-instance transforms of a cell batch (`id`: the [`InstanceId`] of the batch's first record, i.e. its cell
+    /// and `start`), as glTF `EXT_mesh_gpu_instancing` carries them (translation, rotation, scale),
+    /// meshopt-compressed.
     Transforms,
 }
 
@@ -397,14 +399,26 @@ pub enum GeometryKind {
 pub struct GeometryChunk {
     /// What the blob is.
     pub kind: GeometryKind,
-    /// Which instance, species or batch it belongs to (see [`GeometryKind`]).
-    pub id: u32,
+    /// Which instance, species or batch it belongs to (see [`GeometryKind`]): an [`InstanceId`]'s bits or a
+    /// species id.
+    pub id: u64,
     /// Where the chunk starts in the blob.
     pub offset: u32,
     /// The blob's size (at most [`netlimits::MAX_GEOMETRY_BYTES`]).
     pub total: u32,
     /// The chunk (at most [`netlimits::MAX_GEOMETRY_CHUNK`] bytes).
     pub bytes: Vec<u8>,
+}
+
+impl GeometryChunk {
+    /// The instance (an instance mesh) or the batch's first instance (transforms) the chunk belongs to; `None` for
+    /// a species mesh.
+    pub fn instance(&self) -> Option<InstanceId> {
+        match self.kind {
+            GeometryKind::InstanceMesh | GeometryKind::Transforms => Some(InstanceId(self.id)),
+            GeometryKind::SpeciesMesh => None,
+        }
+    }
 }
 
 /// A grant of a cell is over: the client forgets its records.
@@ -639,6 +653,14 @@ impl ServerMsg {
                         what: "geometry chunk end",
                         len: end as usize,
                         max: g.total as usize,
+                    });
+                }
+                // Every u64 names some (cell, index); a species id must fit the table.
+                if g.kind == GeometryKind::SpeciesMesh && g.id >= netlimits::MAX_SPECIES as u64 {
+                    return Err(MessageError::Count {
+                        what: "geometry species id",
+                        len: usize::try_from(g.id).unwrap_or(usize::MAX),
+                        max: netlimits::MAX_SPECIES - 1,
                     });
                 }
                 Ok(())

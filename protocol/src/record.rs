@@ -2,9 +2,11 @@
 //! batches that carry them.
 //!
 //! A record is 4 bytes on the wire: the species id and the instance's position within its cell, 12 bits per axis on
-//! the [`POSITION_STEPS`] grid. Everything else is implicit or derived: the instance id is the batch's first id plus
-//! the record's index, the seed is derived from the world seed and that id, the height comes from the terrain, and
-//! parameters travel only where they differ from the species defaults, as [`ParamOverride`]s after the records.
+//! the [`POSITION_STEPS`] grid. Everything else is implicit or derived: an instance is identified by its cell and
+//! its index within the cell ([`InstanceId`]: the batch's cell, its `start` plus the record's index), the seed is
+//! derived from the world seed and that id, the height comes from the terrain, and parameters travel only where they
+//! differ from the species defaults, as [`ParamOverride`]s after the records. No number is global to the world, so
+//! a world can be expanded cell by cell.
 
 use serde::{Deserialize, Serialize};
 
@@ -27,6 +29,61 @@ impl CellCoord {
     /// The cell at column `x`, row `z`.
     pub const fn new(x: i32, z: i32) -> CellCoord {
         CellCoord { x, z }
+    }
+}
+
+/// An instance's identity: its cell and its index within the cell, packed into 64 bits. There is no global
+/// numbering, so an unbounded world expanded lazily per cell names every instance without knowing the others.
+///
+/// Bit layout, most significant first:
+///
+/// | bits    | field                                                                   |
+/// | ------- | ----------------------------------------------------------------------- |
+/// | 63..40  | cell `x` + 2²³ (24 bits, offset binary: `x` in `CELL_MIN..=CELL_MAX`)   |
+/// | 39..16  | cell `z` + 2²³ (24 bits, the same)                                       |
+/// | 15..0   | index within the cell (16 bits; a cell holds at most 65,535 records)    |
+///
+/// Cells from −2²³ to 2²³ − 1 per axis can be named (more than ±2²⁰ cells, ±8.6 × 10⁹ m at 1 km cells). The offset
+/// makes the numeric order of ids the order of `(cell, index)` ([`CellCoord`]'s order: x, then z). Every `u64` is
+/// the id of some (cell, index). The instance seed is `child_key(world seed, id.0)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+pub struct InstanceId(pub u64);
+
+impl InstanceId {
+    /// Lowest cell coordinate an id can name, per axis: −2²³.
+    pub const CELL_MIN: i32 = -(1 << 23);
+    /// Highest cell coordinate an id can name, per axis: 2²³ − 1.
+    pub const CELL_MAX: i32 = (1 << 23) - 1;
+    const AXIS_MASK: u64 = (1 << 24) - 1;
+
+    /// The id of record `index` of `cell`; `None` for a cell outside `CELL_MIN..=CELL_MAX` on an axis.
+    pub const fn new(cell: CellCoord, index: u16) -> Option<InstanceId> {
+        if !InstanceId::names(cell) {
+            return None;
+        }
+        let x = (cell.x as i64 - InstanceId::CELL_MIN as i64) as u64;
+        let z = (cell.z as i64 - InstanceId::CELL_MIN as i64) as u64;
+        Some(InstanceId((x << 40) | (z << 16) | index as u64))
+    }
+
+    /// Whether ids can name the instances of `cell` (both coordinates within `CELL_MIN..=CELL_MAX`).
+    pub const fn names(cell: CellCoord) -> bool {
+        cell.x >= InstanceId::CELL_MIN
+            && cell.x <= InstanceId::CELL_MAX
+            && cell.z >= InstanceId::CELL_MIN
+            && cell.z <= InstanceId::CELL_MAX
+    }
+
+    /// The instance's cell.
+    pub const fn cell(self) -> CellCoord {
+        let x = ((self.0 >> 40) & InstanceId::AXIS_MASK) as i32 + InstanceId::CELL_MIN;
+        let z = ((self.0 >> 16) & InstanceId::AXIS_MASK) as i32 + InstanceId::CELL_MIN;
+        CellCoord { x, z }
+    }
+
+    /// The instance's index within its cell.
+    pub const fn index(self) -> u16 {
+        self.0 as u16
     }
 }
 
@@ -130,8 +187,6 @@ pub struct CellBatch {
     /// Which grant of the cell this batch belongs to: the server numbers grants per session, increasing, so a
     /// client that holds an older grant of the cell knows the older one was released.
     pub grant: u32,
-    /// Instance id of the cell's record 0 (instance ids are consecutive within a cell).
-    pub first_id: u32,
     /// How many records the whole cell has; 0 for an empty cell (a batch with no records says so).
     pub total: u16,
     /// Index within the cell of `records[0]`.
@@ -151,7 +206,7 @@ pub enum BatchError {
     /// More parameter values or columns than [`netlimits::MAX_BATCH_OVERRIDES`].
     #[error("batch of {0} parameter values (allowed {max})", max = netlimits::MAX_BATCH_OVERRIDES)]
     TooManyOverrides(usize),
-    /// The records run past the cell's total, or ids past `u32::MAX`.
+    /// The records run past the cell's total.
     #[error("records {start}..{end} outside the cell's {total}")]
     Range {
         /// First index.
@@ -161,6 +216,9 @@ pub enum BatchError {
         /// The cell's record count.
         total: u16,
     },
+    /// The cell lies outside the cells an [`InstanceId`] can name.
+    #[error("cell {0:?} outside the cells instance ids can name")]
+    Cell(CellCoord),
     /// An empty batch of a non-empty cell, which carries nothing.
     #[error("empty batch of a cell with {0} records")]
     Empty(u16),
@@ -172,11 +230,9 @@ pub enum BatchError {
 
 impl CellBatch {
     /// A batch carrying `overrides` (`record` = index within this batch, sorted by `(record, slot)`) as columns.
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
         cell: CellCoord,
         grant: u32,
-        first_id: u32,
         total: u16,
         start: u16,
         records: Vec<InstanceRecord>,
@@ -198,7 +254,7 @@ impl CellBatch {
                 ParamColumn { slot, present, values }
             })
             .collect();
-        CellBatch { cell, grant, first_id, total, start, records, params }
+        CellBatch { cell, grant, total, start, records, params }
     }
 
     /// Check counts, ranges and the parameter columns (decoders call this).
@@ -213,8 +269,11 @@ impl CellBatch {
         }
         let start = u32::from(self.start);
         let end = start + n as u32;
-        if end > u32::from(self.total) || self.first_id.checked_add(u32::from(self.total)).is_none() {
+        if end > u32::from(self.total) {
             return Err(BatchError::Range { start, end, total: self.total });
+        }
+        if !InstanceId::names(self.cell) {
+            return Err(BatchError::Cell(self.cell));
         }
         if n == 0 && self.total != 0 {
             return Err(BatchError::Empty(self.total));
@@ -231,9 +290,11 @@ impl CellBatch {
         Ok(())
     }
 
-    /// The instance id of `records[i]`.
-    pub fn id(&self, i: usize) -> u32 {
-        self.first_id + u32::from(self.start) + i as u32
+    /// The instance id of `records[i]`: `(cell, start + i)`. The batch must be valid ([`CellBatch::validate`]: its
+    /// cell can be named, `start + i` is below `total`); panics otherwise.
+    pub fn id(&self, i: usize) -> InstanceId {
+        let index = u16::try_from(usize::from(self.start) + i).expect("a record index within the cell");
+        InstanceId::new(self.cell, index).expect("a validated batch's cell can be named")
     }
 
     /// The parameter overrides as `(record within the batch, slot, value)`, sorted by `(record, slot)`.

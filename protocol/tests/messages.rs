@@ -10,8 +10,8 @@ use canopy_protocol::messages::{
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{
-    CellBatch, CellCoord, ClientMsg, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase, ServerMsg,
-    SpeciesHash, netlimits,
+    CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase,
+    ServerMsg, SpeciesHash, netlimits,
 };
 
 fn hex(b: &[u8]) -> String {
@@ -39,7 +39,6 @@ fn batch() -> CellBatch {
     CellBatch::new(
         CellCoord::new(-3, 5),
         9,
-        1000,
         130,
         128,
         vec![InstanceRecord::new(2, 0x123, 0xabc), InstanceRecord::new(0, 4095, 0)],
@@ -79,7 +78,7 @@ fn welcome() -> Welcome {
 
 #[test]
 fn hello_is_pinned() {
-    check_client(&ClientMsg::hello("bot-1"), "00000105626f742d31");
+    check_client(&ClientMsg::hello("bot-1"), "00000205626f742d31");
 }
 
 #[test]
@@ -99,7 +98,7 @@ fn viewpoint_is_pinned() {
 fn welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
-        "00000106666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c4000000440101\
+        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c4000000440101\
          07040000803f0000004000004040000080400104cdcc0c4001abababababababababababababababababababababababababababababab\
          ababd20900000044000000420000004000000043",
     );
@@ -115,11 +114,12 @@ fn species_is_pinned() {
 
 #[test]
 fn cells_is_pinned() {
-    // A 10-byte header, two records of 4 bytes each, one parameter column of 7 bytes: the column count, the slot,
-    // the bitmap with its length, the value count and 12.5 in 2 bytes.
+    // An 8-byte header (cell, grant, total, start, record count: no instance id, the identity is the cell and the
+    // index), two records of 4 bytes each, one parameter column of 7 bytes: the column count, the slot, the bitmap
+    // with its length, the value count and 12.5 in 2 bytes.
     check_server(
         &ServerMsg::Streaming(ServerStreaming::Cells(batch())),
-        "0101050a09e80782018001020223c1ab00ff0f0001030102018225",
+        "0101050a0982018001020223c1ab00ff0f0001030102018225",
     );
 }
 
@@ -140,7 +140,7 @@ fn parameter_columns_round_trip_and_short_values_are_short() {
         ParamOverride { record: 12, slot: 1, value: f32::MAX },
     ];
     let records = vec![InstanceRecord::new(0, 0, 0); 13];
-    let b = CellBatch::new(CellCoord::new(0, 0), 1, 0, 13, 0, records, &overrides);
+    let b = CellBatch::new(CellCoord::new(0, 0), 1, 13, 0, records, &overrides);
     assert_eq!(b.params.len(), 2);
     assert_eq!(b.params[0].present, vec![0b0000_0001, 0b0001_0010]);
     assert_eq!(b.overrides(), overrides);
@@ -168,6 +168,56 @@ fn records_are_four_bytes_and_positions_round_trip() {
         assert_eq!(quantize(f32::NAN, 0.0, cell_size), 0);
         assert_eq!(quantize(1e9, 0.0, cell_size), 4095);
     }
+}
+
+#[test]
+fn instance_ids_pack_cell_and_index_at_the_extremes() {
+    let far = 1 << 20;
+    let cells = [
+        CellCoord::new(0, 0),
+        CellCoord::new(-3, 5),
+        CellCoord::new(far, -far),
+        CellCoord::new(-far, far),
+        CellCoord::new(far, far),
+        CellCoord::new(-far, -far),
+        CellCoord::new(InstanceId::CELL_MIN, InstanceId::CELL_MAX),
+        CellCoord::new(InstanceId::CELL_MAX, InstanceId::CELL_MIN),
+    ];
+    let mut ids = vec![];
+    for cell in cells {
+        for index in [0u16, 1, 65534, 65535] {
+            let id = InstanceId::new(cell, index).expect("a nameable cell");
+            assert_eq!((id.cell(), id.index()), (cell, index), "{id:?}");
+            ids.push(((cell, index), id));
+        }
+    }
+    // The numeric order of ids is the order of (cell, index), and distinct pairs get distinct ids.
+    ids.sort_by_key(|&(key, _)| key);
+    assert!(ids.windows(2).all(|w| w[0].1 < w[1].1));
+    // The layout is pinned: x + 2^23 in bits 63..40, z + 2^23 in bits 39..16, the index in bits 15..0.
+    assert_eq!(InstanceId::new(CellCoord::new(0, 0), 0), Some(InstanceId(0x8000_0080_0000_0000)));
+    assert_eq!(InstanceId::new(CellCoord::new(-1, 1), 7), Some(InstanceId(0x7fff_ff80_0001_0007)));
+    assert_eq!(InstanceId::new(CellCoord::new(InstanceId::CELL_MIN, InstanceId::CELL_MIN), 0), Some(InstanceId(0)));
+    assert_eq!(
+        InstanceId::new(CellCoord::new(InstanceId::CELL_MAX, InstanceId::CELL_MAX), u16::MAX),
+        Some(InstanceId(u64::MAX))
+    );
+    // Cells outside 24 bits per axis have no ids; every u64 is an id of some (cell, index).
+    for cell in [
+        CellCoord::new(InstanceId::CELL_MAX + 1, 0),
+        CellCoord::new(0, InstanceId::CELL_MIN - 1),
+        CellCoord::new(i32::MIN, i32::MAX),
+    ] {
+        assert_eq!(InstanceId::new(cell, 0), None, "{cell:?}");
+    }
+    let mut rng = XorShift64::new(7);
+    for _ in 0..1000 {
+        let id = InstanceId(rng.next());
+        assert_eq!(InstanceId::new(id.cell(), id.index()), Some(id));
+    }
+    // A batch names its records (cell, start + i).
+    let b = batch();
+    assert_eq!(b.id(1), InstanceId::new(CellCoord::new(-3, 5), 129).unwrap());
 }
 
 #[test]
@@ -269,9 +319,11 @@ fn invalid_values_are_rejected_after_decoding() {
     b.total = u16::MAX;
     b.start = 0;
     assert!(matches!(sdec(cells(b)), Err(MessageError::Batch(BatchError::TooManyRecords(_)))));
-    let mut b = batch();
-    b.first_id = u32::MAX - 10;
-    assert!(matches!(sdec(cells(b)), Err(MessageError::Batch(BatchError::Range { .. }))));
+    for cell in [CellCoord::new(InstanceId::CELL_MAX + 1, 0), CellCoord::new(0, InstanceId::CELL_MIN - 1)] {
+        let mut b = batch();
+        b.cell = cell;
+        assert_eq!(sdec(cells(b)), Err(MessageError::Batch(BatchError::Cell(cell))), "ids cannot name the cell");
+    }
 
     let welcome = |w: Welcome| ServerMsg::Handshake(ServerHandshake::Welcome(w));
     let mut w = welcome_fixture();
@@ -404,8 +456,20 @@ fn geometry_is_pinned_and_bounded() {
         chunk(GeometryKind::SpeciesMesh, 10, 12, vec![0; 3]),
         chunk(GeometryKind::InstanceMesh, 0, netlimits::MAX_GEOMETRY_BYTES as u32 + 1, vec![0; 4]),
         chunk(GeometryKind::InstanceMesh, u32::MAX, 4, vec![0; 4]),
+        // Species ids fit the species table (instance ids are any u64).
+        chunk(GeometryKind::SpeciesMesh, 0, 4, vec![0; 4]),
     ] {
         assert!(matches!(ServerMsg::decode(&bad.encode()), Err(MessageError::Count { .. })), "{bad:?}");
     }
     assert!(ServerMsg::decode(&chunk(GeometryKind::InstanceMesh, 4, 8, vec![0; 4]).encode()).is_ok());
+    let id = InstanceId::new(CellCoord::new(-(1 << 20), 1 << 20), 65535).unwrap();
+    for kind in [GeometryKind::InstanceMesh, GeometryKind::Transforms] {
+        let g = GeometryChunk { kind, id: id.0, offset: 0, total: 1, bytes: vec![1] };
+        assert_eq!(g.instance(), Some(id));
+        let msg = ServerMsg::Streaming(ServerStreaming::Geometry(g));
+        assert_eq!(ServerMsg::decode(&msg.encode()), Ok(msg));
+    }
+    let g = GeometryChunk { kind: GeometryKind::SpeciesMesh, id: 255, offset: 0, total: 1, bytes: vec![1] };
+    assert_eq!(g.instance(), None);
+    assert!(ServerMsg::decode(&ServerMsg::Streaming(ServerStreaming::Geometry(g)).encode()).is_ok());
 }

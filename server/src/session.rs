@@ -32,7 +32,9 @@ use canopy_protocol::messages::{
     ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
 };
 use canopy_protocol::record::ParamOverride;
-use canopy_protocol::{CellBatch, CellCoord, ClientMsg, CloseCode, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
+use canopy_protocol::{
+    CellBatch, CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits,
+};
 
 use crate::pacing::TokenBucket;
 use crate::store::WorldStore;
@@ -71,11 +73,11 @@ impl PayloadMode {
 /// implementation should cache; it must be deterministic.
 pub trait GeometrySource: Send + Sync {
     /// Instance `id`'s own mesh.
-    fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>>;
+    fn instance_mesh(&self, id: InstanceId) -> Arc<Vec<u8>>;
     /// Species `id`'s one shared mesh.
     fn species_mesh(&self, species: u8) -> Arc<Vec<u8>>;
-    /// The transforms of instances `ids` (one cell batch).
-    fn transforms(&self, ids: Range<u32>) -> Vec<u8>;
+    /// The transforms of the instances of `cell` with indices `records` (one cell batch).
+    fn transforms(&self, cell: CellCoord, records: Range<u16>) -> Vec<u8>;
 }
 
 /// The payload mode and, for the explicit modes, the geometry it sends. An explicit mode without a source sends
@@ -620,7 +622,7 @@ impl Session {
     }
 
     /// Stage `blob` as geometry chunks for `cell` on `lane` (before whatever is staged after them).
-    fn stage_geometry(&mut self, cell: CellCoord, lane: u8, kind: GeometryKind, id: u32, blob: &[u8]) {
+    fn stage_geometry(&mut self, cell: CellCoord, lane: u8, kind: GeometryKind, id: u64, blob: &[u8]) {
         if blob.len() > netlimits::MAX_GEOMETRY_BYTES {
             self.stats.oversize += 1;
             return;
@@ -675,7 +677,7 @@ impl Session {
             match (mode, &geometry) {
                 (PayloadMode::Instanced, Some(g)) => {
                     let blob = g.species_mesh(id);
-                    self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u32::from(id), &blob);
+                    self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u64::from(id), &blob);
                 }
                 _ => {
                     let bytes = store.species_frame(id).expect("records name species of the table");
@@ -685,17 +687,18 @@ impl Session {
             }
             return;
         }
-        let ids = view.first_id + start as u32..view.first_id + end as u32;
+        // Record `i` of the cell is the instance `(cell, i)`.
+        let id = |i: usize| InstanceId::new(cell, i as u16).expect("a store's grid lies within the ids' cells");
         match (mode, &geometry) {
             (PayloadMode::UniqueMesh, Some(g)) => {
-                for id in ids {
+                for id in (start..end).map(id) {
                     let blob = g.instance_mesh(id);
-                    self.stage_geometry(cell, h.lane, GeometryKind::InstanceMesh, id, &blob);
+                    self.stage_geometry(cell, h.lane, GeometryKind::InstanceMesh, id.0, &blob);
                 }
             }
             (PayloadMode::Instanced, Some(g)) if !records.is_empty() => {
-                let blob = g.transforms(ids.clone());
-                self.stage_geometry(cell, h.lane, GeometryKind::Transforms, ids.start, &blob);
+                let blob = g.transforms(cell, start as u16..end as u16);
+                self.stage_geometry(cell, h.lane, GeometryKind::Transforms, id(start).0, &blob);
             }
             _ => {}
         }
@@ -703,7 +706,7 @@ impl Session {
         let hi = view.overrides.partition_point(|o| usize::from(o.record) < end);
         let overrides: Vec<ParamOverride> =
             view.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
-        let batch = CellBatch::new(cell, h.grant, view.first_id, total, start as u16, records.to_vec(), &overrides);
+        let batch = CellBatch::new(cell, h.grant, total, start as u16, records.to_vec(), &overrides);
         if let Some(held) = self.held.get_mut(&cell) {
             held.sent = end as u16;
         }

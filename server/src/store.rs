@@ -10,15 +10,15 @@ use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
 use canopy_protocol::record::{ParamOverride, quantize};
-use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits};
+use canopy_protocol::{
+    CellCoord, InstanceId, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
+};
 use canopy_worlds::world::{CellKey, World};
 
-/// One cell's records as a store holds them: consecutive instance ids from `first_id`.
+/// One cell's records as a store holds them: record `i` is the instance `(cell, i)` ([`InstanceId`]).
 #[derive(Clone, Copy, Debug)]
 pub struct CellView<'a> {
-    /// Instance id of `records[0]`.
-    pub first_id: u32,
-    /// The cell's records.
+    /// The cell's records, by index in the cell.
     pub records: &'a [InstanceRecord],
     /// Parameter overrides, `record` = index within the cell, sorted by `(record, slot)`.
     pub overrides: &'a [ParamOverride],
@@ -38,7 +38,8 @@ pub trait WorldStore: Send + Sync + 'static {
     fn welcome_head(&self) -> &WelcomeHead;
     /// A cell's records; `None` for a cell outside the grid. A cell inside the grid without instances is empty.
     fn cell(&self, c: CellCoord) -> Option<CellView<'_>>;
-    /// The cell grid.
+    /// The cell grid; it lies within the cells an [`InstanceId`] can name, so record `i` of a cell is the instance
+    /// `(cell, i)`.
     fn grid(&self) -> &Grid {
         &self.world().grid
     }
@@ -54,17 +55,18 @@ pub enum StoreError {
     #[error("cell {0:?} holds {1} instances (allowed 65535)")]
     CellFull(CellCoord, usize),
     /// An instance names a species the table does not have.
-    #[error("instance {id} names species {species}, which is not in the table")]
+    #[error("instance {id:?} names species {species}, which is not in the table")]
     UnknownSpecies {
-        /// The instance id.
-        id: u32,
+        /// The instance.
+        id: InstanceId,
         /// The species id.
         species: u16,
     },
-    /// A cell was added twice, lies outside the grid, or its ids do not follow the previous cell's.
-    #[error("cell {0:?} is outside the grid, repeated, or out of id order")]
+    /// A cell was added twice or out of row-major order, lies outside the grid, or would take the store past
+    /// `u32::MAX` records.
+    #[error("cell {0:?} is outside the grid, repeated, out of order, or past the store's record count")]
     Cell(CellCoord),
-    /// The grid's numbers are not acceptable.
+    /// The grid's numbers are not acceptable, or it reaches past the cells an [`InstanceId`] can name.
     #[error("grid: {0}")]
     Grid(#[from] canopy_protocol::aoi::GridError),
     /// The world's description (terrain, name) would not pass a client's check of the welcome.
@@ -74,12 +76,12 @@ pub enum StoreError {
     #[error("species {0}: {1}")]
     Graph(usize, canopy_protocol::ValidateError),
     /// A parameter override is not finite or its slot repeats.
-    #[error("instance {0} has a non-finite or repeated parameter")]
-    Param(u32),
+    #[error("instance {0:?} has a non-finite or repeated parameter")]
+    Param(InstanceId),
 }
 
-/// The embedded default store: every instance's record in id order, cells in row-major order (z, then x) as
-/// ranges of it.
+/// The embedded default store: every instance's record, cells in row-major order (z, then x) as ranges of them,
+/// each cell's records by index in the cell.
 #[derive(Debug)]
 pub struct GridStore {
     world: WorldInfo,
@@ -91,8 +93,7 @@ pub struct GridStore {
 }
 
 /// Records and parameter overrides of a grid's cells, row-major: cell `i` holds records
-/// `starts[i][0]..starts[i + 1][0]` (its first instance id is `starts[i][0]`) and overrides
-/// `starts[i][1]..starts[i + 1][1]`.
+/// `starts[i][0]..starts[i + 1][0]` (by index in the cell) and overrides `starts[i][1]..starts[i + 1][1]`.
 #[derive(Debug)]
 struct Cells {
     records: Vec<InstanceRecord>,
@@ -139,8 +140,8 @@ pub struct PlacedInstance {
     pub params: Vec<(u16, f32)>,
 }
 
-/// Builds a [`GridStore`] cell by cell, in row-major order (z, then x) and instance id order; cells not added are
-/// empty.
+/// Builds a [`GridStore`] cell by cell, in row-major order (z, then x), each cell's instances by index in the cell;
+/// cells not added are empty.
 #[derive(Debug)]
 pub struct StoreBuilder {
     world: WorldInfo,
@@ -189,11 +190,14 @@ impl StoreBuilder {
             MessageError::Grid(e) => StoreError::Grid(e),
             e => StoreError::World(e),
         })?;
+        if !InstanceId::names(grid.min) || !InstanceId::names(grid.max) {
+            return Err(StoreError::Grid(canopy_protocol::aoi::GridError::Range { min: grid.min, max: grid.max }));
+        }
         let cells = Cells { records: vec![], overrides: vec![], starts: vec![[0, 0]] };
         Ok(StoreBuilder { world, species: entries, species_frames, cells })
     }
 
-    /// Add one cell's instances; their ids continue from the previous cell's. Positions are quantised to the
+    /// Add one cell's instances, by index in the cell (instance `i` is `(cell, i)`). Positions are quantised to the
     /// cell's [`POSITION_STEPS`] grid.
     pub fn add_cell(&mut self, cell: CellCoord, instances: &[PlacedInstance]) -> Result<(), StoreError> {
         let grid = self.world.grid;
@@ -220,12 +224,11 @@ impl StoreBuilder {
         if n > usize::from(u16::MAX) {
             return Err(StoreError::CellFull(cell, n));
         }
-        let first_id = self.next_id();
-        first_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
+        self.record_count().checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
         self.cells.pad_to(index);
         let cells = &mut self.cells;
         let (records, overrides) = (cells.records.len(), cells.overrides.len());
-        let added = Self::push_instances(cells, self.species.len(), first_id, instances);
+        let added = Self::push_instances(cells, self.species.len(), cell, instances);
         if added.is_err() {
             // Leave the builder as it was: the cell was not added.
             cells.records.truncate(records);
@@ -239,14 +242,15 @@ impl StoreBuilder {
     fn push_instances<'p>(
         cells: &mut Cells,
         species_count: usize,
-        first_id: u32,
+        cell: CellCoord,
         instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
     ) -> Result<(), StoreError> {
         cells.records.reserve(instances.len());
         for (i, (species, q, params)) in instances.enumerate() {
-            let id = first_id + i as u32;
+            // The grid lies within the cells ids can name (`StoreBuilder::new`) and the cell holds at most 65,535.
+            let id = || InstanceId::new(cell, i as u16).expect("a nameable cell");
             if usize::from(species) >= species_count {
-                return Err(StoreError::UnknownSpecies { id, species });
+                return Err(StoreError::UnknownSpecies { id: id(), species });
             }
             cells.records.push(InstanceRecord::new(species as u8, q[0], q[1]));
             let sorted;
@@ -260,7 +264,7 @@ impl StoreBuilder {
                 &sorted[..]
             };
             if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
-                return Err(StoreError::Param(id));
+                return Err(StoreError::Param(id()));
             }
             let record = i as u16;
             cells.overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
@@ -268,14 +272,14 @@ impl StoreBuilder {
         Ok(())
     }
 
-    /// The id the next instance gets.
-    fn next_id(&self) -> u32 {
+    /// How many instances the cells added so far hold.
+    fn record_count(&self) -> u32 {
         self.cells.records.len() as u32
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.world.instances = self.next_id();
+        self.world.instances = self.record_count();
         self.cells.pad_to(Cells::count(&self.world.grid));
         let welcome = WelcomeHead::new(&self.world, &self.species);
         GridStore {
@@ -289,8 +293,9 @@ impl StoreBuilder {
 }
 
 impl GridStore {
-    /// The store of a loaded world: its species table, its cells with their instances in id order, quantised
-    /// positions exactly as [`World::quantize`] gives them, and its terrain description for the welcome.
+    /// The store of a loaded world: its species table, its cells with their instances by index in the cell
+    /// ([`World::cell_instances`]), quantised positions exactly as [`World::quantize`] gives them, and its terrain
+    /// description for the welcome.
     pub fn from_world(world: &World) -> Result<GridStore, StoreError> {
         let first = world.first_cell();
         let dims = world.cell_dims();
@@ -304,14 +309,11 @@ impl GridStore {
         let graphs = world.species.iter().map(|s| &s.graph);
         let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?;
         for c in world.cells() {
-            let ids = world.cell_instances(c);
+            let range = world.cell_instances(c);
             let cell = CellCoord::new(c.x, c.z);
-            if ids.start != b.next_id() {
-                return Err(StoreError::Cell(cell));
-            }
             // The cell is known: quantise within it (what `World::quantize` does after finding the cell).
             let origin = grid.cell_origin(cell);
-            let instances = world.instances[ids.start as usize..ids.end as usize].iter().map(|p| {
+            let instances = world.instances[range.start as usize..range.end as usize].iter().map(|p| {
                 let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
                 (p.species, q, p.params.as_slice())
             });
@@ -357,7 +359,6 @@ impl WorldStore for GridStore {
         let i = Cells::index(&self.world.grid, c)?;
         let ([r0, o0], [r1, o1]) = (self.cells.starts[i], self.cells.starts[i + 1]);
         Some(CellView {
-            first_id: r0,
             records: &self.cells.records[r0 as usize..r1 as usize],
             overrides: &self.cells.overrides[o0 as usize..o1 as usize],
         })

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
 use canopy_protocol::messages::{ClientHandshake, Hello, ServerHandshake, ServerStreaming};
-use canopy_protocol::{CellCoord, ClientMsg, CloseCode, Phase, ServerMsg, SpeciesGraph};
+use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, SpeciesGraph};
 use canopy_server::session::{MsgClass, Session, SessionConfig, SessionError, StreamId, Transmit};
 use canopy_server::store::{PlacedInstance, StoreBuilder, WorldStore};
 
@@ -106,14 +106,13 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
     let cells = cells_of(&msgs);
     assert_eq!(cells.len(), inner.len());
     assert_eq!(cells.iter().copied().collect::<HashSet<_>>(), inner);
-    let mut got: HashMap<CellCoord, Vec<u32>> = HashMap::new();
+    let mut got: HashMap<CellCoord, Vec<InstanceId>> = HashMap::new();
     let mut species_sent = vec![];
     for (lane, m) in &msgs {
         assert!(matches!(lane, StreamId::Lane(_)));
         match m {
             ServerMsg::Streaming(ServerStreaming::Cells(b)) => {
                 let view = store.cell(b.cell).unwrap();
-                assert_eq!(b.first_id, view.first_id);
                 assert_eq!(usize::from(b.total), view.records.len());
                 for (i, r) in b.records.iter().enumerate() {
                     assert!(species_sent.contains(&r.species), "species {} sent after its first instance", r.species);
@@ -139,7 +138,9 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
     }
     for (c, ids) in &got {
         let v = store.cell(*c).unwrap();
-        assert_eq!(*ids, (v.first_id..v.first_id + v.records.len() as u32).collect::<Vec<_>>());
+        // Every record of the cell once, named (cell, index in the cell).
+        let expected: Vec<InstanceId> = (0..v.records.len()).map(|i| InstanceId::new(*c, i as u16).unwrap()).collect();
+        assert_eq!(*ids, expected);
     }
     // Nearest first: distances from the viewpoint never decrease by more than a cell's diagonal among in-view
     // cells (a cell out of view counts double).
@@ -364,7 +365,7 @@ fn messages_out_of_order_or_invalid_end_the_session_with_a_code() {
     let old = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 0, client: "old".into() }));
     let e = error_of(vec![old]);
     assert_eq!(e.close_code(), CloseCode::Version);
-    assert_eq!(e.to_string(), "client speaks protocol version 0, server speaks 1");
+    assert_eq!(e.to_string(), format!("client speaks protocol version 0, server speaks {PROTOCOL_VERSION}"));
     let bad = Viewpoint::at(0, [f32::NAN, 0.0], 50.0);
     let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::ready(vec![], bad)]);
     assert_eq!(e.close_code(), CloseCode::Invalid, "{e}");
@@ -418,20 +419,18 @@ fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
 struct FakeGeometry;
 
 impl canopy_server::session::GeometrySource for FakeGeometry {
-    fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>> {
-        // Large enough to need several chunks for every third instance.
-        let n = if id.is_multiple_of(3) {
-            2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5
-        } else {
-            100 + id as usize
-        };
-        Arc::new(vec![id as u8; n])
+    fn instance_mesh(&self, id: InstanceId) -> Arc<Vec<u8>> {
+        // Large enough to need several chunks for every third instance of a cell.
+        let index = usize::from(id.index());
+        let n =
+            if index.is_multiple_of(3) { 2 * canopy_protocol::netlimits::MAX_GEOMETRY_CHUNK + 5 } else { 100 + index };
+        Arc::new(vec![id.0 as u8; n])
     }
     fn species_mesh(&self, species: u8) -> Arc<Vec<u8>> {
         Arc::new(vec![species; 1000])
     }
-    fn transforms(&self, ids: std::ops::Range<u32>) -> Vec<u8> {
-        vec![7; 32 * ids.len()]
+    fn transforms(&self, _cell: CellCoord, records: std::ops::Range<u16>) -> Vec<u8> {
+        vec![7; 32 * records.len()]
     }
 }
 
@@ -460,7 +459,7 @@ fn explicit_payloads_go_through_the_same_area_of_interest() {
             "{mode:?}: the same cells"
         );
         // Per blob: the chunks arrive in order and add up to its size, before the batch that needs it.
-        let mut blobs: HashMap<(u8, u32), (u32, u32)> = HashMap::new();
+        let mut blobs: HashMap<(u8, u64), (u32, u32)> = HashMap::new();
         let mut species_meshes = HashSet::new();
         for (_, m) in &msgs {
             match m {
@@ -474,18 +473,20 @@ fn explicit_payloads_go_through_the_same_area_of_interest() {
                     }
                 }
                 ServerMsg::Streaming(ServerStreaming::Cells(b)) => {
-                    let ids = b.first_id + u32::from(b.start)..b.first_id + u32::from(b.start) + b.records.len() as u32;
+                    // Geometry names the batch's first instance: its cell and `start`.
+                    let (first, n) = (b.id(0), b.records.len() as u32);
+                    assert_eq!((first.cell(), first.index()), (b.cell, b.start));
                     match mode {
                         PayloadMode::UniqueMesh => {
-                            assert_eq!(b.records.len(), 1, "one instance per unit");
-                            let (got, total) = blobs[&(GeometryKind::InstanceMesh as u8, ids.start)];
+                            assert_eq!(n, 1, "one instance per unit");
+                            let (got, total) = blobs[&(GeometryKind::InstanceMesh as u8, first.0)];
                             assert_eq!(got, total, "the mesh is through before its record");
                         }
                         _ => {
-                            let (got, total) = blobs[&(GeometryKind::Transforms as u8, ids.start)];
-                            assert_eq!((got, total), (32 * ids.len() as u32, 32 * ids.len() as u32));
+                            let (got, total) = blobs[&(GeometryKind::Transforms as u8, first.0)];
+                            assert_eq!((got, total), (32 * n, 32 * n));
                             for r in &b.records {
-                                assert!(species_meshes.contains(&u32::from(r.species)), "species mesh first");
+                                assert!(species_meshes.contains(&u64::from(r.species)), "species mesh first");
                             }
                         }
                     }
@@ -559,6 +560,19 @@ fn a_world_a_client_would_refuse_is_refused_by_the_store() {
     let bad_grid = Grid { cell_size: -1.0, ..grid };
     let e = StoreBuilder::new("test", 1, bad_grid, terrain(), &[]).unwrap_err();
     assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
+    // A grid reaching past the cells instance ids can name.
+    let far = CellCoord::new(InstanceId::CELL_MAX - 1, 0);
+    let beyond = Grid { min: far, max: CellCoord::new(far.x + 2, 1), ..grid };
+    let e = StoreBuilder::new("test", 1, beyond, terrain(), &[]).unwrap_err();
+    assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
+    let edge = Grid { min: far, max: CellCoord::new(far.x + 1, 1), ..grid };
+    assert!(StoreBuilder::new("test", 1, edge, terrain(), &[]).is_ok());
+    // An instance that names a species the table lacks is reported by its (cell, index).
+    let mut b = StoreBuilder::new("test", 1, grid, terrain(), &[]).unwrap();
+    let p = PlacedInstance { species: 0, x: 1.0, z: 1.0, params: vec![] };
+    let e = b.add_cell(CellCoord::new(1, 0), &[p]).unwrap_err();
+    let id = InstanceId::new(CellCoord::new(1, 0), 0).unwrap();
+    assert_eq!(e, canopy_server::store::StoreError::UnknownSpecies { id, species: 0 });
 }
 
 #[test]

@@ -3,7 +3,7 @@
 //! and at every rest both sides agree — the client holds exactly the cells of its area of interest, in full, as the
 //! store has them, each species once.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
@@ -11,10 +11,10 @@ use canopy_client::state::ClientState;
 use canopy_harness::bots::verify;
 use canopy_protocol::aoi::{Aoi, Viewpoint};
 use canopy_protocol::xorshift::XorShift64;
-use canopy_protocol::{CellCoord, ServerMsg};
+use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
 use canopy_server::session::{Session, SessionConfig, StreamId};
 use canopy_server::{GridStore, WorldStore};
-use canopy_worlds::world::World;
+use canopy_worlds::world::{CellKey, World, instance_seed};
 
 fn world() -> Arc<World> {
     static WORLD: OnceLock<Arc<World>> = OnceLock::new();
@@ -133,4 +133,31 @@ fn client_and_server_agree_under_lane_reordering_through_walks_and_teleports() {
         assert!(pair.client.stats().dropped > 0 || pair.client.stats().evicted > 0, "reordering was exercised");
         assert_eq!(pair.client.stats().species_duplicates, 0);
     }
+}
+
+#[test]
+fn a_clients_instances_have_the_worlds_seeds_for_the_same_cell_and_index() {
+    let world = world();
+    let store = GridStore::from_world(&world).unwrap().shared();
+    // Somewhere off the origin, so cells of negative and positive coordinates are held.
+    let mut pair = Pair::new(store, SessionConfig::default(), Viewpoint::at(0, [-300.0, 200.0], 150.0), 5);
+    pair.settle();
+    assert!(pair.client.is_complete());
+    let mut cells = HashSet::new();
+    let mut n = 0;
+    for inst in pair.client.instances(&|_, _| 0.0) {
+        let (cell, index) = (inst.id.cell(), inst.id.index());
+        // The world's instance at the same (cell, index in the cell).
+        let range = world.cell_instances(CellKey { x: cell.x, z: cell.z });
+        let world_index = range.start + u32::from(index);
+        assert!(range.contains(&world_index), "{:?}", inst.id);
+        assert_eq!(world.instance_id(world_index), inst.id);
+        assert_eq!(world.index_of(inst.id), Some(world_index));
+        let expected = world.instance(world_index, 0).seed;
+        assert_eq!(inst.seed, expected, "{:?}", inst.id);
+        assert_eq!(inst.seed, instance_seed(world.seed, InstanceId::new(cell, index).unwrap()));
+        cells.insert(cell);
+        n += 1;
+    }
+    assert!(n > 100 && cells.iter().any(|c| c.x < 0) && cells.iter().any(|c| c.z > 0), "{n} instances");
 }

@@ -544,11 +544,19 @@ fn parameters_are_stored_only_where_they_differ_from_the_defaults() {
 #[test]
 fn instances_amplify_with_their_seed_and_parameters() {
     let w = forest();
-    for id in [0u32, 1, 777, w.instances.len() as u32 - 1] {
-        let i = w.instance(id, 2);
-        assert_eq!(i.seed, child_key(w.seed, u64::from(id)));
+    for index in [0u32, 1, 777, w.instances.len() as u32 - 1] {
+        let i = w.instance(index, 2);
+        // The seed is keyed by the identity (cell, index in the cell), not by the position in `instances`.
+        let id = w.instance_id(index);
+        let p = &w.instances[index as usize];
+        let cell = w.cell_of(p.x, p.z);
+        assert_eq!((id.cell().x, id.cell().z), (cell.x, cell.z));
+        assert_eq!(u32::from(id.index()), index - w.cell_instances(cell).start);
+        assert_eq!(w.index_of(id), Some(index));
+        assert_eq!(i.seed, child_key(w.seed, id.0));
         assert_eq!(i.seed, w.instance_seed(id));
-        assert_eq!((i.params.as_slice(), i.detail), (w.instances[id as usize].params.as_slice(), 2));
+        assert_eq!(i.seed, canopy_worlds::world::instance_seed(w.seed, id));
+        assert_eq!((i.params.as_slice(), i.detail), (w.instances[index as usize].params.as_slice(), 2));
     }
     // Every species amplifies a coarse instance of itself within the default budget.
     for (s, sp) in w.species.iter().enumerate() {
@@ -556,8 +564,34 @@ fn instances_amplify_with_their_seed_and_parameters() {
         let stream = amplify(&sp.graph, &w.instance(id, 3), &Budget::default()).expect("amplifies");
         assert!(!stream.primitives.is_empty(), "{}", sp.name);
     }
-    let seeds: std::collections::HashSet<u64> = (0..10_000).map(|id| w.instance_seed(id)).collect();
+    let seeds: std::collections::HashSet<u64> = (0..10_000).map(|i| w.instance_seed(w.instance_id(i))).collect();
     assert_eq!(seeds.len(), 10_000, "distinct seeds");
+}
+
+#[test]
+fn instance_ids_name_every_instance_once() {
+    let w = forest();
+    let mut seen = std::collections::HashSet::new();
+    for c in w.cells() {
+        let range = w.cell_instances(c);
+        for index in range.clone() {
+            let id = w.instance_id(index);
+            assert_eq!((id.cell().x, id.cell().z, u32::from(id.index())), (c.x, c.z, index - range.start));
+            assert_eq!(w.index_of(id), Some(index));
+            assert!(seen.insert(id));
+        }
+        // One past the cell's last instance names nothing.
+        let past = canopy_worlds::world::InstanceId::new(
+            canopy_protocol::CellCoord::new(c.x, c.z),
+            (range.end - range.start) as u16,
+        )
+        .unwrap();
+        assert_eq!(w.index_of(past), None);
+    }
+    assert_eq!(seen.len(), w.instances.len());
+    // A cell outside the bounds holds nothing.
+    let outside = canopy_worlds::world::InstanceId::new(canopy_protocol::CellCoord::new(1 << 20, 0), 0).unwrap();
+    assert_eq!(w.index_of(outside), None);
 }
 
 // ---- cells and positions ----

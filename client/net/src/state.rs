@@ -16,19 +16,20 @@ use std::time::Duration;
 use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
 use canopy_protocol::messages::{PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome};
 use canopy_protocol::record::{ParamOverride, dequantize};
-use canopy_protocol::{CellBatch, CellCoord, ClientMsg, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash};
+use canopy_protocol::{
+    CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash,
+};
 use canopy_protocol::{DecodeError, PROTOCOL_VERSION};
 
-/// A cell the client holds: one grant's records, complete when `records.len() == total`.
+/// A cell the client holds: one grant's records, complete when `records.len() == total`. Record `i` is the
+/// instance `(cell, i)` ([`InstanceId`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct HeldCell {
     /// The grant the records belong to.
     pub grant: u32,
-    /// Instance id of `records[0]`.
-    pub first_id: u32,
     /// How many records the cell has.
     pub total: u16,
-    /// The records received so far, in id order.
+    /// The records received so far, by index in the cell.
     pub records: Vec<InstanceRecord>,
     /// Parameter overrides; `record` is the index within the cell.
     pub overrides: Vec<ParamOverride>,
@@ -44,13 +45,13 @@ impl HeldCell {
 /// One instance as the client exposes it to the application and the renderer.
 #[derive(Clone, Debug, PartialEq)]
 pub struct InstanceView {
-    /// The instance id.
-    pub id: u32,
+    /// The instance: its cell and index in the cell.
+    pub id: InstanceId,
     /// The species id (index into the welcome's table).
     pub species: u8,
     /// World position: x, terrain height (0 without a terrain), z.
     pub position: [f32; 3],
-    /// The instance seed, derived from the world seed and the id.
+    /// The instance seed, [`instance_seed`]`(world seed, id)`.
     pub seed: u64,
     /// Parameters that differ from the species defaults, `(slot, value)`.
     pub params: Vec<(u16, f32)>,
@@ -85,8 +86,10 @@ pub enum Event {
     Geometry {
         /// What it is.
         kind: canopy_protocol::messages::GeometryKind,
-        /// Its instance, species or first instance id.
-        id: u32,
+        /// Its instance's id bits, species id or first instance's id bits ([`GeometryKind`]).
+        ///
+        /// [`GeometryKind`]: canopy_protocol::messages::GeometryKind
+        id: u64,
         /// Where the chunk starts in its blob.
         offset: u32,
         /// The blob's size.
@@ -349,7 +352,8 @@ impl ClientState {
         self.stats.batches += 1;
         let w = Arc::clone(self.welcome.as_ref().expect("streaming implies welcomed"));
         let order = |expected: u16| StateError::Order { cell: b.cell, grant: b.grant, start: b.start, expected };
-        if !w.world.grid.contains(b.cell) {
+        // A cell outside the grid, or one instance ids cannot name (decoded batches never are).
+        if !w.world.grid.contains(b.cell) || !InstanceId::names(b.cell) {
             return Err(order(0));
         }
         if let Some(r) = b.records.iter().find(|r| usize::from(r.species) >= w.species.len()) {
@@ -367,7 +371,7 @@ impl ClientState {
             }
             Some(h) if h.grant == b.grant => {
                 // Records received again (the protocol promises none) or a gap: the batch is an error.
-                if b.start != h.records.len() as u16 || b.total != h.total || b.first_id != h.first_id {
+                if b.start != h.records.len() as u16 || b.total != h.total {
                     return Err(order(h.records.len() as u16));
                 }
             }
@@ -387,7 +391,6 @@ impl ClientState {
                 }
                 let cell = HeldCell {
                     grant: b.grant,
-                    first_id: b.first_id,
                     total: b.total,
                     records: Vec::with_capacity(usize::from(b.total)),
                     overrides: Vec::new(),
@@ -428,7 +431,7 @@ impl ClientState {
         }
     }
 
-    /// Every instance held, cell by cell in id order. `height` gives the terrain height at (x, z).
+    /// Every instance held, cell by cell, each cell's by index. `height` gives the terrain height at (x, z).
     pub fn instances<'a>(&'a self, height: &'a dyn Fn(f32, f32) -> f32) -> impl Iterator<Item = InstanceView> + 'a {
         let w = self.welcome.as_ref();
         self.cells.iter().flat_map(move |(c, h)| {
@@ -439,7 +442,8 @@ impl ClientState {
             h.records.iter().enumerate().map(move |(i, r)| {
                 let x = dequantize(r.qx(), origin[0], grid.cell_size);
                 let z = dequantize(r.qz(), origin[1], grid.cell_size);
-                let id = h.first_id + i as u32;
+                // Batches are validated (their cell can be named) and a cell holds at most 65,535 records.
+                let id = InstanceId::new(*c, i as u16).expect("a held cell can be named");
                 let lo = h.overrides.partition_point(|o| usize::from(o.record) < i);
                 let hi = h.overrides.partition_point(|o| usize::from(o.record) <= i);
                 InstanceView {
@@ -513,7 +517,6 @@ mod tests {
         ServerMsg::Streaming(ServerStreaming::Cells(CellBatch {
             cell,
             grant,
-            first_id: 10,
             total,
             start,
             records: (0..n).map(|i| InstanceRecord::new(0, i, i)).collect(),
@@ -561,9 +564,10 @@ mod tests {
         assert!(!s.is_complete());
         assert_eq!(s.handle(batch(c, 1, 2, 2, 4)), Ok(Event::Records { cell: c, count: 2, complete: true }));
         assert!(s.is_complete());
-        let ids: Vec<u32> = s.instances(&|_, _| 0.0).map(|i| i.id).collect();
-        assert_eq!(ids, vec![10, 11, 12, 13]);
-        assert_eq!(s.instances(&|_, _| 0.0).next().unwrap().seed, instance_seed(1, 10));
+        let ids: Vec<(CellCoord, u16)> = s.instances(&|_, _| 0.0).map(|i| (i.id.cell(), i.id.index())).collect();
+        assert_eq!(ids, vec![(c, 0), (c, 1), (c, 2), (c, 3)]);
+        let first = InstanceId::new(c, 0).unwrap();
+        assert_eq!(s.instances(&|_, _| 0.0).next().unwrap().seed, instance_seed(1, first));
         assert!(matches!(s.handle(batch(CellCoord::new(0, 99), 2, 0, 1, 1)), Err(StateError::Order { .. })));
     }
 

@@ -6,13 +6,14 @@ use std::sync::Arc;
 
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::hypertree::Hypertree;
-use canopy_worlds::world::{Terrain, World};
+use canopy_worlds::world::{InstanceId, Terrain, World};
 
 /// One tree (or bush, or weed) to draw.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneInstance {
-    /// Instance id (stable while the instance is held; the key of its level-of-detail state).
-    pub id: u32,
+    /// Instance id: its cell and index in the cell (stable while the instance is held; the key of its
+    /// level-of-detail state).
+    pub id: InstanceId,
     /// Species id: index into [`Scene::species`].
     pub species: u16,
     /// World position of the species origin (x, terrain height, z).
@@ -51,20 +52,23 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Every instance of a loaded world.
+    /// Every instance of a loaded world, sorted by id.
     pub fn from_world(world: &World) -> Scene {
-        let instances = (0..world.instances.len() as u32)
-            .map(|id| {
-                let p = &world.instances[id as usize];
+        let mut instances: Vec<SceneInstance> = (0..world.instances.len() as u32)
+            .map(|index| {
+                let p = &world.instances[index as usize];
+                let id = world.instance_id(index);
                 SceneInstance {
                     id,
                     species: p.species,
-                    position: world.position(id),
+                    position: world.position(index),
                     seed: world.instance_seed(id),
                     params: p.params.clone(),
                 }
             })
             .collect();
+        // The world's order is row-major by cell (z, then x); ids order by (x, z, index).
+        instances.sort_by_key(|i| i.id);
         Scene {
             species: world.species.iter().map(|s| Some(Arc::new(s.graph.clone()))).collect(),
             volumes: vec![None; world.species.len()],

@@ -8,6 +8,7 @@ use std::collections::HashSet;
 use std::ops::Range;
 
 use bytemuck::{Pod, Zeroable};
+use canopy_worlds::world::InstanceId;
 use glam::Vec3;
 
 use super::cache::GeometryCache;
@@ -152,16 +153,23 @@ pub enum VolState {
 }
 
 /// One instance's selection state, carried across frames.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct InstState {
     /// The instance id.
-    pub id: u32,
+    pub id: InstanceId,
     /// What it draws while levels change.
     pub lod: InstanceLod,
     /// The level chosen last (with hysteresis), whether or not it can be drawn.
     pub target: Option<Level>,
     /// The instance scale, once the species' volume gave its reference height.
     pub scale: Option<f32>,
+}
+
+impl InstState {
+    /// The state of an instance seen for the first time: nothing chosen or drawn yet.
+    pub fn new(id: InstanceId) -> InstState {
+        InstState { id, lod: InstanceLod::default(), target: None, scale: None }
+    }
 }
 
 /// What is resident, as the selection sees it.
@@ -276,7 +284,7 @@ impl LodState {
             }
             self.inst.push(match old.get(j) {
                 Some(s) if s.id == i.id => *s,
-                _ => InstState { id: i.id, ..InstState::default() },
+                _ => InstState::new(i.id),
             });
         }
         old.clear();
@@ -577,7 +585,7 @@ mod tests {
     }
 
     fn instance(id: u32, seed: u64, position: [f32; 3]) -> SceneInstance {
-        SceneInstance { id, species: 0, position, seed, params: Vec::new() }
+        SceneInstance { id: InstanceId(u64::from(id)), species: 0, position, seed, params: Vec::new() }
     }
 
     fn scene(instances: Vec<SceneInstance>) -> Scene {
@@ -868,10 +876,10 @@ mod tests {
         let ids = |v: &[u32]| v.iter().map(|&id| instance(id, 0, [0.0; 3])).collect::<Vec<_>>();
         st.sync(1, &ids(&[1, 3, 5]));
         for s in &mut st.inst {
-            s.target = Some(Level::Detail(s.id as u8));
+            s.target = Some(Level::Detail(s.id.0 as u8));
         }
         st.sync(2, &ids(&[0, 3, 4, 5, 9]));
-        let got: Vec<_> = st.inst.iter().map(|s| (s.id, s.target)).collect();
+        let got: Vec<_> = st.inst.iter().map(|s| (s.id.0, s.target)).collect();
         use Level::Detail;
         assert_eq!(got, vec![(0, None), (3, Some(Detail(3))), (4, None), (5, Some(Detail(5))), (9, None)]);
         // The same generation keeps everything.

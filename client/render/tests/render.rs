@@ -14,7 +14,7 @@ use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInsta
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
-use canopy_worlds::world::{Terrain, World};
+use canopy_worlds::world::{InstanceId, Terrain, World};
 use glam::Vec3;
 
 fn reference(name: &str) -> PathBuf {
@@ -97,10 +97,11 @@ fn grove_with_all_three_bands_matches_its_reference() {
     assert!(stats.far >= 20, "hypertree volumes in the distance: {stats:?}");
     assert_eq!(stats.waiting, 0);
     assert!(stats.primitives > 1000 && stats.terrain_triangles > 100, "{stats:?}");
-    // Sky at the top, ground at the bottom.
-    let top = img.pixel(W / 2, 2);
+    // Sky along the top (between the crowns), ground at the bottom.
+    let sky = |p: [u8; 4]| p[2] > p[1] && p[2] > 150;
+    let top: Vec<[u8; 4]> = (0..W).map(|x| img.pixel(x, 2)).collect();
     let bottom = img.pixel(W / 2, H - 2);
-    assert!(top[2] > top[1] && top[2] > 150, "sky {top:?}");
+    assert!(top.iter().filter(|&&p| sky(p)).count() >= W as usize / 10, "sky {top:?}");
     assert!(bottom[1] >= bottom[2], "ground {bottom:?}");
     check_reference(&img, &reference("grove.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
 }
@@ -158,7 +159,13 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
     let scene = Scene {
         species: vec![Some(Arc::new(graph))],
         volumes: vec![Some(SceneVolume { tree: Arc::new(tree), origin: [0.0; 3], units: 1.0 })],
-        instances: vec![SceneInstance { id: 0, species: 0, position: [0.0; 3], seed: 1, params: Vec::new() }],
+        instances: vec![SceneInstance {
+            id: InstanceId(0),
+            species: 0,
+            position: [0.0; 3],
+            seed: 1,
+            params: Vec::new(),
+        }],
         terrain: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)),
         generation: 1,
     };

@@ -55,7 +55,8 @@
 //! the whole world, no global numbering, the same bits on every machine whatever cells were expanded before, in
 //! what order, on which thread, alone or in a block ([`World::expand_cells`]). Worlds of at most [`EAGER_CELLS`]
 //! cells are also expanded whole at load into [`World::instances`] (by the same function); larger ones only on
-//! demand. An instance is identified by its cell and its index in the cell.
+//! demand. An instance is identified by its cell and its index in the cell ([`InstanceId`]), and its seed derives
+//! from that identity ([`World::instance_seed`]).
 //!
 //! Within a cell, placements come in file order of their statements: `instance` lines (indexed by cell at load),
 //! then each `scatter` rule's darts in row-major order of their background cells.
@@ -124,6 +125,8 @@ pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
 pub use canopy_protocol::netlimits::MAX_SPECIES;
 /// Deepest terrain recursion: the protocol's limit for the terrain it describes.
 pub use canopy_protocol::netlimits::MAX_TERRAIN_DEPTH;
+/// An instance's identity: its cell and its index within the cell (no global numbering).
+pub use canopy_protocol::record::InstanceId;
 /// Positions are snapped to `cell_size / POSITION_STEPS` per axis within their cell: a position is its cell and
 /// two integers below `POSITION_STEPS` (12 bits each), as the protocol's instance records carry them.
 pub use canopy_protocol::record::POSITION_STEPS;
@@ -461,16 +464,42 @@ impl World {
         [d(q[0], ox), d(q[1], oz)]
     }
 
-    /// The instance seed of id `id`: `rng::child_key(world seed, id)` =
-    /// `mix64(seed ^ mix64(id + 0x9e37_79b9_7f4a_7c15))` with SplitMix64's finaliser `mix64`
-    /// ([`crate::rng::mix64`]).
-    pub fn instance_seed(&self, id: u32) -> u64 {
+    /// The instance seed of the instance `id` names: [`instance_seed`]`(world seed, id)`.
+    pub fn instance_seed(&self, id: InstanceId) -> u64 {
         instance_seed(self.seed, id)
     }
 
-    /// The instance `id` at a detail level: its seed and stored parameter values.
-    pub fn instance(&self, id: u32, detail: u8) -> Instance {
-        Instance { seed: self.instance_seed(id), params: self.instances[id as usize].params.clone(), detail }
+    /// The identity of [`World::instances`]`[index]`: its cell and its index in the cell (from
+    /// [`World::cell_instances`]).
+    ///
+    /// # Panics
+    ///
+    /// If `index` is not below `instances.len()`, or the instance is not among the first 65,536 of its cell (the
+    /// protocol's limit on a cell).
+    pub fn instance_id(&self, index: u32) -> InstanceId {
+        let p = &self.instances[index as usize];
+        let c = self.cell_of(p.x, p.z);
+        let range = self.cell_instances(c);
+        debug_assert!(range.contains(&index), "instance {index} is not in its cell's range {range:?}");
+        let in_cell = u16::try_from(index - range.start).expect("a cell holds at most 65,536 instances");
+        // A world's cells lie within ±POSITION_STEPS cells of the origin, well inside what ids can name.
+        InstanceId::new(canopy_protocol::CellCoord::new(c.x, c.z), in_cell).expect("a world's cells can be named")
+    }
+
+    /// The index in [`World::instances`] of the instance `id` names; `None` if its cell has no such instance.
+    /// The inverse of [`World::instance_id`].
+    pub fn index_of(&self, id: InstanceId) -> Option<u32> {
+        let c = id.cell();
+        let range = self.cell_instances(CellKey { x: c.x, z: c.z });
+        let index = range.start.checked_add(u32::from(id.index()))?;
+        range.contains(&index).then_some(index)
+    }
+
+    /// [`World::instances`]`[index]` at a detail level: the seed of its [`World::instance_id`] and its stored
+    /// parameter values.
+    pub fn instance(&self, index: u32, detail: u8) -> Instance {
+        let params = self.instances[index as usize].params.clone();
+        Instance { seed: self.instance_seed(self.instance_id(index)), params, detail }
     }
 
     /// Terrain height at (x, z): the height of the terrain species' triangle surface (see [`Terrain::height`]).
@@ -524,8 +553,11 @@ impl World {
     }
 }
 
-/// The seed of instance `id` in a world of seed `world_seed`: [`World::instance_seed`], for a client that holds the
-/// world's seed (from the welcome) but not the world.
-pub fn instance_seed(world_seed: u64, id: u32) -> u64 {
-    crate::rng::child_key(world_seed, u64::from(id))
+/// The seed of the instance `id` names in a world of seed `world_seed`: `rng::child_key(world seed, id.0)` =
+/// `mix64(seed ^ mix64(id.0 + 0x9e37_79b9_7f4a_7c15))` with SplitMix64's finaliser `mix64` ([`crate::rng::mix64`]),
+/// `id.0` packing the cell and the index in the cell ([`InstanceId`]). A pure function of the world seed and the
+/// (cell, index), so a client that holds the world's seed (from the welcome) but not the world, and a server or
+/// world that expands cells lazily, derive the same seed without any global numbering.
+pub fn instance_seed(world_seed: u64, id: InstanceId) -> u64 {
+    crate::rng::child_key(world_seed, id.0)
 }

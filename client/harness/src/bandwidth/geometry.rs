@@ -11,6 +11,7 @@ use std::collections::{BTreeMap, VecDeque};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 
+use canopy_protocol::{CellCoord, InstanceId};
 use canopy_server::session::GeometrySource;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::mesh::{Mesh, MeshOptions, mesh};
@@ -115,11 +116,12 @@ pub fn encode_mesh(m: &Mesh) -> Result<(Vec<u8>, EncodedSize), EncodeError> {
     Ok((out, size))
 }
 
-/// Amplify and mesh one instance at full detail (default tessellation), as the client would draw it near.
-pub fn instance_mesh(world: &World, id: u32) -> Mesh {
-    let species = usize::from(world.instances[id as usize].species);
+/// Amplify and mesh one instance (`world.instances[index]`) at full detail (default tessellation), as the client
+/// would draw it near.
+pub fn instance_mesh(world: &World, index: u32) -> Mesh {
+    let species = usize::from(world.instances[index as usize].species);
     let graph = &world.species[species].graph;
-    match amplify(graph, &world.instance(id, 0), &Budget::default()) {
+    match amplify(graph, &world.instance(index, 0), &Budget::default()) {
         Ok(stream) => mesh(&stream, &MeshOptions::default()),
         // A budget overrun yields no geometry; the world's species are tested to amplify within the default budget.
         Err(_) => Mesh::new(),
@@ -139,13 +141,15 @@ pub fn species_mesh(world: &World, species: u8) -> Mesh {
 /// scale 3 × f32 (`EXT_mesh_gpu_instancing`'s accessor types).
 pub const TRANSFORM_BYTES: usize = 12 + 8 + 12;
 
-/// The transforms of instances `ids`: translation = the instance's position (terrain height included), rotation
-/// = a yaw drawn from its seed, scale 1 (the instance's parameters are not expressible as a transform; they are
-/// lost in this baseline); each attribute stream through meshoptimizer's vertex codec, the whole deflated.
-pub fn encode_transforms(world: &World, ids: Range<u32>) -> Vec<u8> {
-    let ids: Vec<u32> = ids.filter(|&id| (id as usize) < world.instances.len()).collect();
-    let translation: Vec<[f32; 3]> = ids.iter().map(|&id| world.position(id)).collect();
-    let rotation: Vec<[i16; 4]> = ids
+/// The transforms of the instances of `cell` with indices `records` (those the world has): translation = the
+/// instance's position (terrain height included), rotation = a yaw drawn from its seed, scale 1 (the instance's
+/// parameters are not expressible as a transform; they are lost in this baseline); each attribute stream through
+/// meshoptimizer's vertex codec, the whole deflated.
+pub fn encode_transforms(world: &World, cell: CellCoord, records: Range<u16>) -> Vec<u8> {
+    let ids: Vec<InstanceId> = records.filter_map(|i| InstanceId::new(cell, i)).collect();
+    let indices: Vec<u32> = ids.iter().map_while(|&id| world.index_of(id)).collect();
+    let translation: Vec<[f32; 3]> = indices.iter().map(|&index| world.position(index)).collect();
+    let rotation: Vec<[i16; 4]> = ids[..indices.len()]
         .iter()
         .map(|&id| {
             let yaw = (world.instance_seed(id) >> 40) as f32 / (1u64 << 24) as f32 * std::f32::consts::TAU;
@@ -153,10 +157,10 @@ pub fn encode_transforms(world: &World, ids: Range<u32>) -> Vec<u8> {
             [0, (s * 32767.0).round() as i16, 0, (c * 32767.0).round() as i16]
         })
         .collect();
-    let scale: Vec<[f32; 3]> = vec![[1.0; 3]; ids.len()];
+    let scale: Vec<[f32; 3]> = vec![[1.0; 3]; indices.len()];
     let mut blob = Vec::new();
     blob.extend_from_slice(b"CINS");
-    blob.extend_from_slice(&(ids.len() as u32).to_le_bytes());
+    blob.extend_from_slice(&(indices.len() as u32).to_le_bytes());
     for stream in [
         meshopt::encode_vertex_buffer(&translation),
         meshopt::encode_vertex_buffer(&rotation),
@@ -168,11 +172,11 @@ pub fn encode_transforms(world: &World, ids: Range<u32>) -> Vec<u8> {
     deflate(&blob)
 }
 
-/// A byte-bounded cache of encoded blobs, evicting the oldest first.
+/// A byte-bounded cache of encoded blobs by instance, evicting the oldest first.
 #[derive(Debug, Default)]
 pub struct BlobCache {
-    map: BTreeMap<u32, Arc<Vec<u8>>>,
-    order: VecDeque<u32>,
+    map: BTreeMap<InstanceId, Arc<Vec<u8>>>,
+    order: VecDeque<InstanceId>,
     bytes: usize,
     limit: usize,
 }
@@ -184,12 +188,12 @@ impl BlobCache {
     }
 
     /// The blob for `key`, if cached.
-    pub fn get(&self, key: u32) -> Option<Arc<Vec<u8>>> {
+    pub fn get(&self, key: InstanceId) -> Option<Arc<Vec<u8>>> {
         self.map.get(&key).cloned()
     }
 
     /// Keep `blob` for `key`, evicting the oldest entries to stay within the limit.
-    pub fn insert(&mut self, key: u32, blob: Arc<Vec<u8>>) {
+    pub fn insert(&mut self, key: InstanceId, blob: Arc<Vec<u8>>) {
         if blob.len() > self.limit || self.map.contains_key(&key) {
             return;
         }
@@ -271,16 +275,14 @@ impl MeshSource {
 }
 
 impl GeometrySource for MeshSource {
-    fn instance_mesh(&self, id: u32) -> Arc<Vec<u8>> {
+    fn instance_mesh(&self, id: InstanceId) -> Arc<Vec<u8>> {
         if let Some(b) = lock(&self.instances).get(id) {
             lock(&self.stats).hits += 1;
             return b;
         }
-        if id as usize >= self.world.instances.len() {
-            return Arc::new(Vec::new());
-        }
+        let Some(index) = self.world.index_of(id) else { return Arc::new(Vec::new()) };
         let t = std::time::Instant::now();
-        let m = instance_mesh(&self.world, id);
+        let m = instance_mesh(&self.world, index);
         let blob = Arc::new(encode_mesh(&m).map(|(b, _)| b).unwrap_or_default());
         {
             let mut s = lock(&self.stats);
@@ -302,8 +304,8 @@ impl GeometrySource for MeshSource {
         blob
     }
 
-    fn transforms(&self, ids: Range<u32>) -> Vec<u8> {
-        encode_transforms(&self.world, ids)
+    fn transforms(&self, cell: CellCoord, records: Range<u16>) -> Vec<u8> {
+        encode_transforms(&self.world, cell, records)
     }
 }
 
@@ -333,14 +335,15 @@ mod tests {
     #[test]
     fn cache_stays_within_its_bound() {
         let mut c = BlobCache::new(10);
-        c.insert(1, Arc::new(vec![0; 4]));
-        c.insert(2, Arc::new(vec![0; 4]));
+        let k = |i: u16| InstanceId::new(CellCoord::new(-1, 2), i).unwrap();
+        c.insert(k(1), Arc::new(vec![0; 4]));
+        c.insert(k(2), Arc::new(vec![0; 4]));
         assert_eq!((c.len(), c.bytes()), (2, 8));
-        c.insert(3, Arc::new(vec![0; 4]));
+        c.insert(k(3), Arc::new(vec![0; 4]));
         assert_eq!((c.len(), c.bytes()), (2, 8));
-        assert!(c.get(1).is_none() && c.get(2).is_some() && c.get(3).is_some());
-        c.insert(4, Arc::new(vec![0; 11]));
-        assert!(c.get(4).is_none());
+        assert!(c.get(k(1)).is_none() && c.get(k(2)).is_some() && c.get(k(3)).is_some());
+        c.insert(k(4), Arc::new(vec![0; 11]));
+        assert!(c.get(k(4)).is_none());
         assert!(c.bytes() <= 10);
     }
 }

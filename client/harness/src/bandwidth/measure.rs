@@ -5,9 +5,9 @@
 use std::ops::Range;
 use std::sync::Arc;
 
-use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::messages::ByKind;
+use canopy_protocol::{CellCoord, InstanceId};
 use canopy_worlds::world::{CellKey, World};
 
 use canopy_client::state::ClientState;
@@ -102,52 +102,55 @@ impl GroundTruth {
         self.world.instances.is_empty()
     }
 
-    /// Call `f` with each cell within `distance` of `p` and the ids of its instances within `distance` of `p` (on
-    /// the ground plane; the boundary counts), cells in row-major order, ids in increasing order.
-    fn each_cell(&self, p: [f32; 2], distance: f32, mut f: impl FnMut(CellCoord, &mut dyn Iterator<Item = u32>)) {
+    /// Call `f` with each cell within `distance` of `p` and the indices in the cell of its instances within
+    /// `distance` of `p` (on the ground plane; the boundary counts), cells in row-major order, indices increasing.
+    fn each_cell(&self, p: [f32; 2], distance: f32, mut f: impl FnMut(CellCoord, &mut dyn Iterator<Item = u16>)) {
         let d2 = distance * distance;
         let mut cells = Vec::new();
         self.grid.cells_within(p, distance, &mut cells);
         for c in cells {
-            let ids = self.world.cell_instances(CellKey { x: c.x, z: c.z });
-            let instances = &self.world.instances;
-            let mut near = ids.filter(|&id| {
-                let q = &instances[id as usize];
+            let range = self.world.cell_instances(CellKey { x: c.x, z: c.z });
+            let cell = &self.world.instances[range.start as usize..range.end as usize];
+            // A cell the protocol can stream holds at most 65,535 instances (`GridStore` refuses more).
+            let mut near = cell.iter().take(usize::from(u16::MAX)).enumerate().filter_map(|(i, q)| {
                 let (dx, dz) = (q.x - p[0], q.z - p[1]);
-                dx * dx + dz * dz <= d2
+                (dx * dx + dz * dz <= d2).then_some(i as u16)
             });
             f(c, &mut near);
         }
     }
 
-    /// Ids of the instances within `distance` of `p` (on the ground plane), in increasing order.
-    pub fn visible(&self, p: [f32; 2], distance: f32) -> Vec<u32> {
+    /// The instances within `distance` of `p` (on the ground plane): cells in row-major order, each cell's by index.
+    pub fn visible(&self, p: [f32; 2], distance: f32) -> Vec<InstanceId> {
         let mut out = Vec::new();
-        self.each_cell(p, distance, |_, ids| out.extend(ids));
+        self.each_cell(p, distance, |c, indices| {
+            out.extend(indices.map(|i| InstanceId::new(c, i).expect("a world's cells can be named")));
+        });
         out
     }
 }
 
-/// The ids a client holds in cell `c`: its cell's records that have arrived (empty if the cell is not held).
-pub fn held_ids(state: &ClientState, c: CellCoord) -> Range<u32> {
-    state.cells().get(&c).map_or(0..0, |h| h.first_id..h.first_id + h.records.len() as u32)
+/// The indices in cell `c` of the instances a client holds (their ids are `(c, index)`): the cell's records that
+/// have arrived (empty if the cell is not held).
+pub fn held_indices(state: &ClientState, c: CellCoord) -> Range<u16> {
+    state.cells().get(&c).map_or(0..0, |h| 0..h.records.len() as u16)
 }
 
 /// Visible completeness: of the instances within `distance` of `p`, how many the client holds, where `held(c)`
-/// gives the ids it holds in cell `c` (as [`held_ids`] reads them from a client's state; asked once per cell).
-/// Returns `(visible, held)`.
+/// gives the indices it holds in cell `c` (as [`held_indices`] reads them from a client's state; asked once per
+/// cell). Returns `(visible, held)`.
 pub fn completeness(
     truth: &GroundTruth,
     p: [f32; 2],
     distance: f32,
-    held: impl Fn(CellCoord) -> Range<u32>,
+    held: impl Fn(CellCoord) -> Range<u16>,
 ) -> (usize, usize) {
     let (mut visible, mut n) = (0, 0);
-    truth.each_cell(p, distance, |c, ids| {
+    truth.each_cell(p, distance, |c, indices| {
         let have = held(c);
-        for id in ids {
+        for i in indices {
             visible += 1;
-            n += usize::from(have.contains(&id));
+            n += usize::from(have.contains(&i));
         }
     });
     (visible, n)
@@ -295,27 +298,33 @@ mod tests {
     fn ground_truth_finds_cells_and_visible_instances() {
         let t = truth();
         assert_eq!(t.len(), 5);
-        assert_eq!(t.visible([0.0, 0.0], 2.0), vec![1]);
-        assert_eq!(t.visible([0.0, 5.0], 6.0), vec![0, 1, 2]);
+        // By the world's index: the ids are (cell, index in the cell).
+        let ids = |v: &[u32]| v.iter().map(|&i| t.world.instance_id(i)).collect::<Vec<_>>();
+        assert_eq!(ids(&[0, 1, 2]), [(-1, 0, 0), (-1, 0, 1), (0, 0, 0)].map(|(x, z, i)| id(x, z, i)));
+        assert_eq!(t.visible([0.0, 0.0], 2.0), ids(&[1]));
+        assert_eq!(t.visible([0.0, 5.0], 6.0), ids(&[0, 1, 2]));
         // (1, 11) is √37 > 6 away; from a little higher up it is in.
-        assert_eq!(t.visible([0.0, 6.0], 6.0), vec![0, 1, 2, 3]);
-        assert_eq!(t.visible([0.0, 0.0], 100.0), vec![0, 1, 2, 3, 4]);
+        assert_eq!(t.visible([0.0, 6.0], 6.0), ids(&[0, 1, 2, 3]));
+        assert_eq!(t.visible([0.0, 0.0], 100.0), ids(&[0, 1, 2, 3, 4]));
         assert!(t.visible([500.0, 500.0], 10.0).is_empty());
         // The boundary counts as visible.
-        assert_eq!(t.visible([5.0, 0.0], 5.0), vec![2]);
+        assert_eq!(t.visible([5.0, 0.0], 5.0), ids(&[2]));
+    }
+
+    fn id(x: i32, z: i32, index: u16) -> InstanceId {
+        InstanceId::new(CellCoord::new(x, z), index).unwrap()
     }
 
     #[test]
     fn completeness_counts_what_is_held_of_what_is_visible() {
         let t = truth();
-        // Of the visible 0..4: the even ids (the first of cell (-1, 0), cell (0, 0)'s only one).
+        // Of the visible 0..4: the even ones (the first of cell (-1, 0), cell (0, 0)'s only one).
         let even = |c: CellCoord| match (c.x, c.z) {
-            (-1, 0) => 0..1,
-            (0, 0) => 2..3,
+            (-1, 0) | (0, 0) => 0..1,
             _ => 0..0,
         };
         assert_eq!(completeness(&t, [0.0, 6.0], 6.0, even), (4, 2));
-        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| 0..u32::MAX), (4, 4));
+        assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| 0..u16::MAX), (4, 4));
         assert_eq!(completeness(&t, [0.0, 6.0], 6.0, |_| 0..0), (4, 0));
         assert_eq!(fraction(4, 2), 0.5);
         assert_eq!(fraction(0, 0), 1.0);
@@ -336,13 +345,13 @@ mod tests {
     }
 
     #[test]
-    fn held_ids_read_the_client_state() {
+    fn held_indices_read_the_client_state() {
         use canopy_protocol::aoi::{AoiParams, Viewpoint};
         use canopy_protocol::messages::SpeciesEntry;
         use canopy_protocol::messages::{ServerHandshake, ServerStreaming, TerrainDesc, Welcome, WorldInfo};
         use canopy_protocol::{CellBatch, InstanceRecord, POSITION_STEPS, PROTOCOL_VERSION, ServerMsg, SpeciesHash};
         let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap().encode();
-        // Cell (-1, 0) holds ids 0..10, cell (0, 0) ids 10..14.
+        // Cell (-1, 0) holds 10 instances, cell (0, 0) 4.
         let at: Vec<[f32; 2]> = [[-5.0, 5.0]; 10].into_iter().chain([[5.0, 5.0]; 4]).collect();
         let t = GroundTruth::new(world("-8 0 8 8", &at));
         let grid = Grid { origin: [0.0, 0.0], cell_size: 8.0, min: CellCoord::new(-1, 0), max: CellCoord::new(0, 0) };
@@ -367,13 +376,12 @@ mod tests {
         // Radius 3 at the centre of cell (0, 0): the area of interest is that cell alone.
         state.ready(Viewpoint::at(0, [4.0, 4.0], 3.0)).unwrap();
         let cells = [CellCoord::new(-1, 0), CellCoord::new(0, 0)];
-        assert!(cells.iter().all(|&c| held_ids(&state, c).is_empty()));
+        assert!(cells.iter().all(|&c| held_indices(&state, c).is_empty()));
         let records: Vec<InstanceRecord> = (0..2).map(|i| InstanceRecord::new(0, i, i)).collect();
-        let batch = CellBatch::new(CellCoord::new(0, 0), 1, 10, 4, 0, records, &[]);
+        let batch = CellBatch::new(CellCoord::new(0, 0), 1, 4, 0, records, &[]);
         state.handle(ServerMsg::Streaming(ServerStreaming::Cells(batch))).unwrap();
-        let held: Vec<u32> = cells.iter().flat_map(|&c| held_ids(&state, c)).collect();
-        assert_eq!(held, vec![10, 11]);
+        assert_eq!(cells.map(|c| held_indices(&state, c)), [0..0, 0..2]);
         // Everything visible from the cell's centre within 8 m is in that cell: 2 of 4 held.
-        assert_eq!(completeness(&t, [4.0, 4.0], 8.0, |c| held_ids(&state, c)), (4, 2));
+        assert_eq!(completeness(&t, [4.0, 4.0], 8.0, |c| held_indices(&state, c)), (4, 2));
     }
 }

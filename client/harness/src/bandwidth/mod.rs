@@ -363,9 +363,9 @@ impl MeshSample {
         let mut by: Vec<(String, usize, u64)> = world.species.iter().map(|s| (s.name.clone(), 0, 0)).collect();
         let mut bytes = 0u64;
         for i in 0..k {
-            let id = ((2 * i + 1) * n / (2 * k)) as u32;
-            let b = source.instance_mesh(id).len() as u64;
-            let s = &mut by[usize::from(world.instances[id as usize].species)];
+            let index = ((2 * i + 1) * n / (2 * k)) as u32;
+            let b = source.instance_mesh(world.instance_id(index)).len() as u64;
+            let s = &mut by[usize::from(world.instances[index as usize].species)];
             s.1 += 1;
             s.2 += b;
             bytes += b;
@@ -442,7 +442,8 @@ struct Measure<'a> {
 impl Measure<'_> {
     fn take(&mut self, conn: &Connection, phase: SamplePhase, pos: [f32; 2]) {
         let truth = &*self.p.truth;
-        let (visible, held) = measure::completeness(truth, pos, self.p.view, |c| measure::held_ids(conn.state(), c));
+        let (visible, held) =
+            measure::completeness(truth, pos, self.p.view, |c| measure::held_indices(conn.state(), c));
         self.r.samples.push(Sample {
             t: self.p.t0.elapsed().as_secs_f64(),
             phase,
