@@ -8,6 +8,8 @@
 //! connection with a [`canopy_protocol::CloseCode`] and a reason, and the server carries on.
 
 pub mod admission;
+pub mod batch;
+pub mod cells;
 pub mod driver;
 pub mod metrics;
 pub mod pacing;
@@ -18,6 +20,7 @@ pub mod tls;
 
 pub use admission::AdmissionConfig;
 pub use canopy_worlds as worlds;
+pub use cells::{CellCache, CellCacheConfig};
 pub use driver::{Server, ServerConfig, StartError};
 pub use session::{Session, SessionConfig, SessionError, Transmit};
 pub use store::{GridStore, WorldStore};

@@ -1,8 +1,9 @@
 //! The world store: species and instance records arranged spatially (seed 001 §4: "the server stores the data for
 //! a very large virtual environment, composed of objects that are arranged spatially"), behind a trait so a
-//! session does not care where they live. The embedded default is [`GridStore`], an in-memory grid of cells.
+//! session does not care where they live or whether they exist yet: [`GridStore`] quantises every cell up front,
+//! [`crate::cells::CellCache`] expands cells on demand. Both hold a cell as a [`CellData`], quantised the same way.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::Grid;
@@ -10,18 +11,154 @@ use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
 use canopy_protocol::record::{ParamOverride, quantize};
-use canopy_protocol::{CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits};
-use canopy_worlds::world::{CellKey, World};
+use canopy_protocol::{
+    CellBatch, CellCoord, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
+};
+use canopy_worlds::world::{CellKey, Placement, World};
 
-/// One cell's records as a store holds them: consecutive instance ids from `first_id`.
-#[derive(Clone, Copy, Debug)]
-pub struct CellView<'a> {
+use crate::batch::BatchBody;
+
+/// One cell's records as a store holds them, quantised: consecutive instance ids from `first_id`. Shared by `Arc`
+/// between the store and the sessions sending it (a cell being sent stays alive while a cache evicts it).
+#[derive(Debug)]
+pub struct CellData {
+    /// The cell.
+    pub cell: CellCoord,
     /// Instance id of `records[0]`.
     pub first_id: u32,
     /// The cell's records.
-    pub records: &'a [InstanceRecord],
+    pub records: Vec<InstanceRecord>,
     /// Parameter overrides, `record` = index within the cell, sorted by `(record, slot)`.
-    pub overrides: &'a [ParamOverride],
+    pub overrides: Vec<ParamOverride>,
+    /// The batches' shared bodies for one batch size (the first asked for: a server runs one).
+    bodies: OnceLock<(usize, Vec<BatchBody>)>,
+}
+
+impl CellData {
+    /// A cell of instances already quantised (`(species, [qx, qz], params)`, each step below [`POSITION_STEPS`]),
+    /// checked: species in a table of `species_count`, at most 65,535 instances, finite parameters, no slot twice.
+    pub fn from_quantised<'p>(
+        cell: CellCoord,
+        first_id: u32,
+        species_count: usize,
+        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
+    ) -> Result<CellData, StoreError> {
+        let n = instances.len();
+        if n > usize::from(u16::MAX) {
+            return Err(StoreError::CellFull(cell, n));
+        }
+        first_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
+        let mut records = Vec::with_capacity(n);
+        let mut overrides = Vec::new();
+        for (i, (species, q, params)) in instances.enumerate() {
+            let id = first_id + i as u32;
+            if usize::from(species) >= species_count {
+                return Err(StoreError::UnknownSpecies { id, species });
+            }
+            records.push(InstanceRecord::new(species as u8, q[0], q[1]));
+            let sorted;
+            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
+                params
+            } else {
+                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
+                let mut copy = params.to_vec();
+                copy.sort_by_key(|&(s, _)| s);
+                sorted = copy;
+                &sorted[..]
+            };
+            if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
+                return Err(StoreError::Param(id));
+            }
+            let record = i as u16;
+            overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
+        }
+        records.shrink_to_fit();
+        overrides.shrink_to_fit();
+        Ok(CellData { cell, first_id, records, overrides, bodies: OnceLock::new() })
+    }
+
+    /// A cell of a world's placements (`World::expand_cell`), quantised within the cell exactly as
+    /// [`World::quantize`] does after finding the cell.
+    pub fn from_placements(
+        grid: &Grid,
+        cell: CellCoord,
+        first_id: u32,
+        species_count: usize,
+        placements: &[Placement],
+    ) -> Result<CellData, StoreError> {
+        let origin = grid.cell_origin(cell);
+        let instances = placements.iter().map(|p| {
+            let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
+            (p.species, q, p.params.as_slice())
+        });
+        CellData::from_quantised(cell, first_id, species_count, instances)
+    }
+
+    /// Records `start..end` as a batch of `grant`, overrides renumbered from the batch's first record.
+    pub fn batch(&self, grant: u32, start: usize, end: usize) -> CellBatch {
+        let lo = self.overrides.partition_point(|o| usize::from(o.record) < start);
+        let hi = self.overrides.partition_point(|o| usize::from(o.record) < end);
+        let overrides: Vec<ParamOverride> =
+            self.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
+        let total = self.records.len() as u16;
+        CellBatch::new(
+            self.cell,
+            grant,
+            self.first_id,
+            total,
+            start as u16,
+            self.records[start..end].to_vec(),
+            &overrides,
+        )
+    }
+
+    /// The shared bodies of the cell's batches of `batch_records` records (one empty batch for an empty cell),
+    /// encoded at the first call and kept; `None` for another batch size than the one kept (encode per session).
+    pub fn bodies(&self, batch_records: usize) -> Option<&[BatchBody]> {
+        let batch_records = batch_records.max(1);
+        let (size, bodies) = self.bodies.get_or_init(|| {
+            let n = self.records.len();
+            let starts = (0..n.max(1)).step_by(batch_records);
+            (batch_records, starts.map(|s| BatchBody::of(&self.batch(0, s, (s + batch_records).min(n)))).collect())
+        });
+        (*size == batch_records).then_some(bodies.as_slice())
+    }
+
+    /// Bytes it holds (records, overrides and the bodies encoded so far).
+    pub fn heap_bytes(&self) -> usize {
+        let bodies = self.bodies.get().map_or(0, |(_, b)| b.iter().map(BatchBody::heap_bytes).sum());
+        std::mem::size_of::<CellData>()
+            + self.records.capacity() * std::mem::size_of::<InstanceRecord>()
+            + self.overrides.capacity() * std::mem::size_of::<ParamOverride>()
+            + bodies
+    }
+}
+
+/// A cell as a store answers for it.
+#[derive(Clone, Debug)]
+pub enum CellState {
+    /// Its records, ready to send.
+    Ready(Arc<CellData>),
+    /// Being expanded: the waker passed along is woken when it is ready (ask again then).
+    Pending,
+    /// Outside the grid.
+    Outside,
+}
+
+impl CellState {
+    /// The records, if ready.
+    pub fn ready(self) -> Option<Arc<CellData>> {
+        match self {
+            CellState::Ready(d) => Some(d),
+            _ => None,
+        }
+    }
+}
+
+/// Told when cells a session asked for became ready (the driver's wake-up; the session itself never waits).
+pub trait CellWaker: Send + Sync {
+    /// A cell this waker was registered for is ready.
+    fn wake(&self);
 }
 
 /// Where a session reads the world from.
@@ -36,11 +173,17 @@ pub trait WorldStore: Send + Sync + 'static {
     fn species_frame(&self, id: u8) -> Option<Bytes>;
     /// The welcome's part that is the same for every client, encoded once.
     fn welcome_head(&self) -> &WelcomeHead;
-    /// A cell's records; `None` for a cell outside the grid. A cell inside the grid without instances is empty.
-    fn cell(&self, c: CellCoord) -> Option<CellView<'_>>;
+    /// A cell's records, never waiting: ready, pending (its expansion is queued, once however many ask, and
+    /// `waker`, if any, is woken when it is ready), or outside the grid. A cell inside the grid without instances is
+    /// ready and empty.
+    fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState;
     /// The cell grid.
     fn grid(&self) -> &Grid {
         &self.world().grid
+    }
+    /// The cell cache's counters, for a store that expands cells on demand.
+    fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
+        None
     }
 }
 
@@ -78,52 +221,77 @@ pub enum StoreError {
     Param(u32),
 }
 
-/// The embedded default store: every instance's record in id order, cells in row-major order (z, then x) as
-/// ranges of it.
+/// What every store tells every client the same way: the world's description, the species table and frames, the
+/// welcome's shared part.
 #[derive(Debug)]
-pub struct GridStore {
+pub struct StoreHead {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
     species_frames: Vec<Bytes>,
     welcome: WelcomeHead,
-    cells: Cells,
 }
 
-/// Records and parameter overrides of a grid's cells, row-major: cell `i` holds records
-/// `starts[i][0]..starts[i + 1][0]` (its first instance id is `starts[i][0]`) and overrides
-/// `starts[i][1]..starts[i + 1][1]`.
+impl StoreHead {
+    /// The head of a world with `instances` instances, from a builder's description.
+    fn new(mut b: StoreBuilder, instances: u32) -> StoreHead {
+        b.world.instances = instances;
+        let welcome = WelcomeHead::new(&b.world, &b.species);
+        StoreHead { world: b.world, species: b.species, species_frames: b.species_frames, welcome }
+    }
+
+    /// The head of a loaded world: its name, seed, cell grid, terrain and species, and its instance count.
+    pub fn of_world(world: &World) -> Result<StoreHead, StoreError> {
+        let b = StoreBuilder::of_world(world)?;
+        let instances = world.cells().last().map_or(0, |c| first_id(world, c) + world.cell_instances(c).len() as u32);
+        Ok(StoreHead::new(b, instances))
+    }
+
+    /// The description sent in the welcome.
+    pub fn world(&self) -> &WorldInfo {
+        &self.world
+    }
+
+    /// The species table.
+    pub fn species(&self) -> &[SpeciesEntry] {
+        &self.species
+    }
+
+    /// The encoded graph of species `id`.
+    pub fn species_graph(&self, id: u8) -> Option<&[u8]> {
+        let frame = self.species_frames.get(usize::from(id))?;
+        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+    }
+
+    /// The framed species message of species `id`.
+    pub fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.species_frames.get(usize::from(id)).cloned()
+    }
+
+    /// The welcome's shared part.
+    pub fn welcome_head(&self) -> &WelcomeHead {
+        &self.welcome
+    }
+}
+
+/// The id of a world cell's first instance (ids run on from cell to cell in row-major order).
+pub(crate) fn first_id(world: &World, c: CellKey) -> u32 {
+    world.cell_instances(c).start
+}
+
+/// The row-major index of a cell of the grid.
+pub(crate) fn cell_index(grid: &Grid, c: CellCoord) -> Option<usize> {
+    let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
+    let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
+    grid.contains(c).then(|| (dz * width + dx) as usize)
+}
+
+/// The eager store: every cell quantised up front, row-major (z, then x). Tests and small worlds use it; a server
+/// of a large world uses [`crate::cells::CellCache`], which quantises cells the same way ([`CellData`]) on demand.
 #[derive(Debug)]
-struct Cells {
-    records: Vec<InstanceRecord>,
-    /// Overrides, `record` = index within the cell.
-    overrides: Vec<ParamOverride>,
-    starts: Vec<[u32; 2]>,
-}
-
-impl Cells {
-    /// The row-major index of a cell of the grid.
-    fn index(grid: &Grid, c: CellCoord) -> Option<usize> {
-        let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
-        let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
-        grid.contains(c).then(|| (dz * width + dx) as usize)
-    }
-
-    /// How many cells the grid has.
-    fn count(grid: &Grid) -> usize {
-        Cells::index(grid, grid.max).map_or(0, |i| i + 1)
-    }
-
-    /// Cells begun so far (added or skipped).
-    fn len(&self) -> usize {
-        self.starts.len() - 1
-    }
-
-    /// Close every cell before `index` not begun yet: they are empty.
-    fn pad_to(&mut self, index: usize) {
-        let last = *self.starts.last().expect("starts has its first entry");
-        self.starts.resize(self.starts.len().max(index + 1), last);
-    }
+pub struct GridStore {
+    head: StoreHead,
+    cells: Vec<Arc<CellData>>,
 }
 
 /// One instance as a store builder takes it: world position and parameters that differ from the defaults.
@@ -146,7 +314,8 @@ pub struct StoreBuilder {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     species_frames: Vec<Bytes>,
-    cells: Cells,
+    cells: Vec<Arc<CellData>>,
+    next_id: u32,
 }
 
 impl StoreBuilder {
@@ -189,8 +358,22 @@ impl StoreBuilder {
             MessageError::Grid(e) => StoreError::Grid(e),
             e => StoreError::World(e),
         })?;
-        let cells = Cells { records: vec![], overrides: vec![], starts: vec![[0, 0]] };
-        Ok(StoreBuilder { world, species: entries, species_frames, cells })
+        Ok(StoreBuilder { world, species: entries, species_frames, cells: vec![], next_id: 0 })
+    }
+
+    /// A builder for a loaded world's description (no cells added yet).
+    fn of_world(world: &World) -> Result<StoreBuilder, StoreError> {
+        let first = world.first_cell();
+        let dims = world.cell_dims();
+        let grid = Grid {
+            origin: world.cell_origin(CellKey { x: 0, z: 0 }),
+            cell_size: world.cell_size,
+            min: CellCoord::new(first.x, first.z),
+            max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
+        };
+        let terrain = crate::terrain::describe(&world.terrain);
+        let graphs = world.species.iter().map(|s| &s.graph);
+        StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)
     }
 
     /// Add one cell's instances; their ids continue from the previous cell's. Positions are quantised to the
@@ -202,127 +385,71 @@ impl StoreBuilder {
             let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
             (p.species, q, p.params.as_slice())
         });
-        self.add_quantised(cell, quantised)
-    }
-
-    /// Add one cell's instances already quantised (`(species, [qx, qz], params)`, each step below
-    /// [`POSITION_STEPS`]).
-    fn add_quantised<'p>(
-        &mut self,
-        cell: CellCoord,
-        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
-    ) -> Result<(), StoreError> {
-        let index = match Cells::index(&self.world.grid, cell) {
-            Some(i) if i >= self.cells.len() => i,
-            _ => return Err(StoreError::Cell(cell)),
-        };
-        let n = instances.len();
-        if n > usize::from(u16::MAX) {
-            return Err(StoreError::CellFull(cell, n));
-        }
-        let first_id = self.next_id();
-        first_id.checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
-        self.cells.pad_to(index);
-        let cells = &mut self.cells;
-        let (records, overrides) = (cells.records.len(), cells.overrides.len());
-        let added = Self::push_instances(cells, self.species.len(), first_id, instances);
-        if added.is_err() {
-            // Leave the builder as it was: the cell was not added.
-            cells.records.truncate(records);
-            cells.overrides.truncate(overrides);
-            return added;
-        }
-        cells.starts.push([cells.records.len() as u32, cells.overrides.len() as u32]);
+        let index = self.next_index(cell)?;
+        let data = CellData::from_quantised(cell, self.next_id, self.species.len(), quantised)?;
+        self.push(index, data);
         Ok(())
     }
 
-    fn push_instances<'p>(
-        cells: &mut Cells,
-        species_count: usize,
-        first_id: u32,
-        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
-    ) -> Result<(), StoreError> {
-        cells.records.reserve(instances.len());
-        for (i, (species, q, params)) in instances.enumerate() {
-            let id = first_id + i as u32;
-            if usize::from(species) >= species_count {
-                return Err(StoreError::UnknownSpecies { id, species });
-            }
-            cells.records.push(InstanceRecord::new(species as u8, q[0], q[1]));
-            let sorted;
-            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
-                params
-            } else {
-                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
-                let mut copy = params.to_vec();
-                copy.sort_by_key(|&(s, _)| s);
-                sorted = copy;
-                &sorted[..]
-            };
-            if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
-                return Err(StoreError::Param(id));
-            }
-            let record = i as u16;
-            cells.overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
+    /// The index of `cell` if it may be added next (inside the grid, after every cell added so far).
+    fn next_index(&self, cell: CellCoord) -> Result<usize, StoreError> {
+        match cell_index(&self.world.grid, cell) {
+            Some(i) if i >= self.cells.len() => Ok(i),
+            _ => Err(StoreError::Cell(cell)),
         }
-        Ok(())
     }
 
-    /// The id the next instance gets.
-    fn next_id(&self) -> u32 {
-        self.cells.records.len() as u32
+    /// Add a quantised cell at `index`, the cells before it not added empty.
+    fn push(&mut self, index: usize, data: CellData) {
+        self.pad_to(index);
+        self.next_id += data.records.len() as u32;
+        self.cells.push(Arc::new(data));
+    }
+
+    /// Add empty cells up to (not including) `index`.
+    fn pad_to(&mut self, index: usize) {
+        let grid = self.world.grid;
+        let width = (i64::from(grid.max.x) - i64::from(grid.min.x) + 1) as usize;
+        while self.cells.len() < index {
+            let i = self.cells.len();
+            let cell = CellCoord::new(grid.min.x + (i % width) as i32, grid.min.z + (i / width) as i32);
+            let empty = CellData::from_quantised(cell, self.next_id, 0, std::iter::empty()).expect("an empty cell");
+            self.cells.push(Arc::new(empty));
+        }
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.world.instances = self.next_id();
-        self.cells.pad_to(Cells::count(&self.world.grid));
-        let welcome = WelcomeHead::new(&self.world, &self.species);
-        GridStore {
-            world: self.world,
-            species: self.species,
-            species_frames: self.species_frames,
-            welcome,
-            cells: self.cells,
-        }
+        let count = cell_index(&self.world.grid, self.world.grid.max).map_or(0, |i| i + 1);
+        self.pad_to(count);
+        let cells = std::mem::take(&mut self.cells);
+        let instances = self.next_id;
+        GridStore { head: StoreHead::new(self, instances), cells }
     }
 }
 
 impl GridStore {
-    /// The store of a loaded world: its species table, its cells with their instances in id order, quantised
-    /// positions exactly as [`World::quantize`] gives them, and its terrain description for the welcome.
+    /// The store of a loaded world: its species table, its cells expanded ([`World::expand_cell`]) with their
+    /// instances in id order, quantised positions exactly as [`World::quantize`] gives them, and its terrain
+    /// description for the welcome.
     pub fn from_world(world: &World) -> Result<GridStore, StoreError> {
-        let first = world.first_cell();
-        let dims = world.cell_dims();
-        let grid = Grid {
-            origin: world.cell_origin(CellKey { x: 0, z: 0 }),
-            cell_size: world.cell_size,
-            min: CellCoord::new(first.x, first.z),
-            max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
-        };
-        let terrain = crate::terrain::describe(&world.terrain);
-        let graphs = world.species.iter().map(|s| &s.graph);
-        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?;
+        let mut b = StoreBuilder::of_world(world)?;
+        let grid = b.world.grid;
         for c in world.cells() {
-            let ids = world.cell_instances(c);
             let cell = CellCoord::new(c.x, c.z);
-            if ids.start != b.next_id() {
+            if first_id(world, c) != b.next_id {
                 return Err(StoreError::Cell(cell));
             }
-            // The cell is known: quantise within it (what `World::quantize` does after finding the cell).
-            let origin = grid.cell_origin(cell);
-            let instances = world.instances[ids.start as usize..ids.end as usize].iter().map(|p| {
-                let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
-                (p.species, q, p.params.as_slice())
-            });
-            b.add_quantised(cell, instances)?;
+            let index = b.next_index(cell)?;
+            let data = CellData::from_placements(&grid, cell, b.next_id, b.species.len(), &world.expand_cell(c))?;
+            b.push(index, data);
         }
         Ok(b.finish())
     }
 
     /// How many cells hold at least one instance.
     pub fn occupied_cells(&self) -> usize {
-        self.cells.starts.windows(2).filter(|w| w[1][0] > w[0][0]).count()
+        self.cells.iter().filter(|c| !c.records.is_empty()).count()
     }
 
     /// Share it between sessions.
@@ -333,33 +460,29 @@ impl GridStore {
 
 impl WorldStore for GridStore {
     fn world(&self) -> &WorldInfo {
-        &self.world
+        self.head.world()
     }
 
     fn species(&self) -> &[SpeciesEntry] {
-        &self.species
+        self.head.species()
     }
 
     fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        let frame = self.species_frames.get(usize::from(id))?;
-        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+        self.head.species_graph(id)
     }
 
     fn species_frame(&self, id: u8) -> Option<Bytes> {
-        self.species_frames.get(usize::from(id)).cloned()
+        self.head.species_frame(id)
     }
 
     fn welcome_head(&self) -> &WelcomeHead {
-        &self.welcome
+        self.head.welcome_head()
     }
 
-    fn cell(&self, c: CellCoord) -> Option<CellView<'_>> {
-        let i = Cells::index(&self.world.grid, c)?;
-        let ([r0, o0], [r1, o1]) = (self.cells.starts[i], self.cells.starts[i + 1]);
-        Some(CellView {
-            first_id: r0,
-            records: &self.cells.records[r0 as usize..r1 as usize],
-            overrides: &self.cells.overrides[o0 as usize..o1 as usize],
-        })
+    fn cell(&self, c: CellCoord, _waker: Option<&Arc<dyn CellWaker>>) -> CellState {
+        match cell_index(self.grid(), c) {
+            Some(i) => CellState::Ready(Arc::clone(&self.cells[i])),
+            None => CellState::Outside,
+        }
     }
 }
