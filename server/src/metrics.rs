@@ -50,12 +50,12 @@ pub struct Metrics {
     cells: OnceLock<Arc<CellMetrics>>,
 }
 
-/// Upper bounds of the expansion-time histogram's buckets, microseconds: 16 µs, 32 µs, … 8.4 s (then +Inf).
-const BUCKETS_US: [u64; 20] = {
-    let mut b = [0u64; 20];
+/// Upper bounds of the expansion-time histogram's buckets, microseconds: 1 µs, 2 µs, 4 µs, … 8.4 s (then +Inf).
+const BUCKETS_US: [u64; 24] = {
+    let mut b = [0u64; 24];
     let mut i = 0;
-    while i < 20 {
-        b[i] = 16 << i;
+    while i < 24 {
+        b[i] = 1 << i;
         i += 1;
     }
     b
@@ -315,5 +315,42 @@ mod tests {
         assert!(text.contains("canopy_records_sent_total 20"), "{text}");
         assert!(text.contains("canopy_closed_total{reason=\"malformed\"} 1"), "{text}");
         assert!(text.contains("# TYPE canopy_clients gauge"), "{text}");
+        assert!(!text.contains("canopy_cell_"), "no cache, no cache families");
+    }
+
+    #[test]
+    fn the_cell_cache_families_and_expansion_percentiles() {
+        let m = Metrics::new();
+        let cells = Arc::new(CellMetrics::default());
+        m.attach_cells(Arc::clone(&cells));
+        // 98 fast expansions (≤ 64 µs), 2 slow ones (≤ 8 ms).
+        for _ in 0..98 {
+            cells.expansion_time.record(Duration::from_micros(40));
+        }
+        for _ in 0..2 {
+            cells.expansion_time.record(Duration::from_micros(5_000));
+        }
+        cells.expansions.store(100, Relaxed);
+        cells.hits.store(7, Relaxed);
+        assert_eq!(cells.expansion_time.quantile(0.5), Some(Duration::from_micros(64)));
+        assert_eq!(cells.expansion_time.quantile(0.98), Some(Duration::from_micros(64)));
+        assert_eq!(cells.expansion_time.quantile(0.99), Some(Duration::from_micros(8192)));
+        assert_eq!(Histogram::default().quantile(0.5), None);
+        let t0 = Instant::now();
+        m.tick(t0 + Duration::from_secs(2));
+        let text = m.render();
+        assert!(text.contains("canopy_cell_expansions_total 100"), "{text}");
+        assert!(text.contains("canopy_cell_cache_hits_total 7"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_p50_microseconds 64"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_p99_microseconds 8192"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_seconds_bucket{le=\"+Inf\"} 100"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_seconds_count 100"), "{text}");
+        assert!(text.contains("# TYPE canopy_cell_expansion_seconds histogram"), "{text}");
+        let rate: u64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("canopy_cell_expansions_per_second "))
+            .and_then(|v| v.parse().ok())
+            .expect("the rate gauge");
+        assert!(rate > 0 && rate <= 100, "{rate}");
     }
 }
