@@ -13,7 +13,8 @@
 //! Cells pinned by sessions mid-send are bounded per session by its area of interest.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::sync::atomic::Ordering::Relaxed;
+use std::sync::atomic::AtomicU64;
+use std::sync::atomic::Ordering::{Acquire, Relaxed, Release};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Instant;
@@ -82,6 +83,8 @@ struct Shared {
     state: Mutex<State>,
     work: Condvar,
     metrics: Arc<CellMetrics>,
+    /// Bumped (under the lock, after caching) each time a cell becomes ready: [`WorldStore::generation`].
+    generation: AtomicU64,
 }
 
 /// The shared cell cache (see the module docs).
@@ -147,6 +150,7 @@ impl Shared {
             self.metrics.bytes.store(st.bytes as u64, Relaxed);
             self.metrics.cells.store(st.cached.len() as u64, Relaxed);
             self.metrics.expansions.fetch_add(1, Relaxed);
+            self.generation.fetch_add(1, Release);
             st.pending.remove(&c).unwrap_or_default()
         };
         for w in wakers {
@@ -188,6 +192,7 @@ impl CellCache {
             state: Mutex::new(State::default()),
             work: Condvar::new(),
             metrics,
+            generation: AtomicU64::new(0),
         });
         let workers = (0..cfg.workers)
             .map(|i| {
@@ -313,6 +318,10 @@ impl WorldStore for CellCache {
             self.shared.work.notify_one();
         }
         CellState::Pending
+    }
+
+    fn generation(&self) -> u64 {
+        self.shared.generation.load(Acquire)
     }
 
     fn cache_metrics(&self) -> Option<Arc<CellMetrics>> {

@@ -21,7 +21,7 @@
 //! or one mesh per species plus per-instance transforms ([`PayloadMode::Instanced`]). The records still go out in
 //! the explicit modes (a few bytes each), so the client's bookkeeping of what it holds stays the same.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -346,6 +346,8 @@ pub struct Session {
     pinned: HashMap<CellCoord, Arc<CellData>>,
     /// Woken by the store when a cell this session found pending is ready.
     waker: Option<Arc<dyn CellWaker>>,
+    /// Cells found pending at store generation `waiting.0`: not asked again until the generation changes.
+    waiting: (u64, HashSet<CellCoord>),
     /// Cells to send (or finish), least important first, so the next is at the end.
     queue: Vec<(f32, CellCoord)>,
     urgent: VecDeque<Transmit>,
@@ -403,6 +405,7 @@ impl Session {
             held: HashMap::new(),
             pinned: HashMap::new(),
             waker: None,
+            waiting: (0, HashSet::new()),
             queue: Vec::new(),
             urgent: VecDeque::new(),
             staged: VecDeque::new(),
@@ -694,13 +697,24 @@ impl Session {
     /// skipped (their expansion queued, the waker registered); `false` when no queued cell is ready.
     fn stage_next_unit(&mut self) -> bool {
         let store = Arc::clone(&self.store);
+        // Read before asking: a cell that becomes ready after it was found pending changes the generation.
+        let generation = store.generation();
+        if generation != self.waiting.0 {
+            self.waiting = (generation, HashSet::new());
+        }
         for i in (0..self.queue.len()).rev() {
             let (key, cell) = self.queue[i];
+            if self.waiting.1.contains(&cell) {
+                continue;
+            }
             let data = match self.pinned.get(&cell) {
                 Some(d) => Arc::clone(d),
                 None => match store.cell(cell, self.waker.as_ref()) {
                     CellState::Ready(d) => d,
-                    CellState::Pending => continue,
+                    CellState::Pending => {
+                        self.waiting.1.insert(cell);
+                        continue;
+                    }
                     CellState::Outside => unreachable!("queued cells are in the grid"),
                 },
             };
