@@ -8,8 +8,8 @@
 //! session in the middle of sending it keeps it alive by its `Arc`, and asking again expands it again to the same
 //! bytes (expansion is a pure function of the manifest and the cell).
 //!
-//! Memory bound: the cached cells' bytes ([`CellData::heap_bytes`]: records, overrides, encoded bodies) stay at or
-//! below the limit, except that a single cell larger than the whole limit is still kept, alone, so it can be sent.
+//! Memory bound: the cached cells' bytes ([`CellData::heap_bytes`]: records, overrides, encoded bodies, plus an
+//! estimate of the index's cost per cell) stay at or below the limit, except that a single cell larger than the whole limit is still kept, alone, so it can be sent.
 //! Cells pinned by sessions mid-send are bounded per session by its area of interest.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -50,6 +50,10 @@ impl Default for CellCacheConfig {
         }
     }
 }
+
+/// Bytes a cached cell costs beyond its [`CellData::heap_bytes`]: its entry, its LRU slot and their share of the
+/// maps' tables (an estimate, counted against the bound).
+const ENTRY_OVERHEAD: usize = std::mem::size_of::<Entry>() + std::mem::size_of::<(u64, CellCoord)>() + 64;
 
 /// A cached cell and when it was last used.
 struct Entry {
@@ -129,7 +133,7 @@ impl Shared {
         };
         self.metrics.expansion_time.record(started.elapsed());
         let data = Arc::new(data);
-        let bytes = data.heap_bytes();
+        let bytes = data.heap_bytes() + ENTRY_OVERHEAD;
         let wakers = {
             let mut st = self.lock();
             if bytes > self.cfg.limit_bytes {
