@@ -1,11 +1,12 @@
 //! Criterion benchmarks of world loading: the embedded default world (parse, terrain amplification, population
-//! expansion, cell index), and terrain height lookups.
+//! expansion, cell index), terrain height lookups, and the large world's cells as a function (load, one cell
+//! alone, a 4 × 4 block, fractal heights).
 //!
 //! `cargo bench -p canopy-worlds --bench world` — load time is a measurement here, never a test assertion.
 
 use std::hint::black_box;
 
-use canopy_worlds::world::World;
+use canopy_worlds::world::{CellKey, World};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
 fn bench_world(c: &mut Criterion) {
@@ -25,6 +26,28 @@ fn bench_world(c: &mut Criterion) {
     });
     group.bench_function("height_and_slope", |b| {
         b.iter(|| points.iter().map(|&(x, z)| w.terrain.height_and_slope(black_box(x), black_box(z)).1).sum::<f32>())
+    });
+    group.finish();
+
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("highlands/highlands.world");
+    let h = World::load(&path).unwrap_or_else(|d| panic!("{d}"));
+    let mut group = c.benchmark_group("highlands");
+    group.sample_size(10);
+    group.bench_function("load", |b| b.iter(|| black_box(World::load(&path).is_ok())));
+    // A conifer slope with weeds under the trees (the densest rules), and a valley of broadleaf.
+    for (name, cell) in [("cell_conifer", CellKey { x: -319, z: 383 }), ("cell_valley", CellKey { x: -541, z: -163 })] {
+        group.throughput(Throughput::Elements(1));
+        group.bench_function(name, |b| b.iter(|| black_box(h.expand_cell(black_box(cell))).len()));
+    }
+    group.throughput(Throughput::Elements(16));
+    group.bench_function("block_4x4_conifer", |b| {
+        b.iter(|| h.expand_cells(CellKey { x: -320, z: 382 }, CellKey { x: -317, z: 385 }).len())
+    });
+    let points: Vec<(f32, f32)> =
+        (0..4096u32).map(|k| (-50000.0 + (k % 64) as f32 * 1531.7, -50000.0 + (k / 64) as f32 * 1529.9)).collect();
+    group.throughput(Throughput::Elements(points.len() as u64));
+    group.bench_function("fractal_height", |b| {
+        b.iter(|| points.iter().map(|&(x, z)| h.height(black_box(x), black_box(z))).sum::<f32>())
     });
     group.finish();
 }

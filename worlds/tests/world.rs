@@ -254,7 +254,7 @@ fn blocks_recover_and_report_what_is_missing() {
         &[
             (1, 8, "min < max"),
             (3, 6, "the tile size must be positive"),
-            (4, 7, "a depth 99 is more than 10"),
+            (4, 7, "a depth 99 is more than 20"),
             (5, 8, "expected corner heights, found end of line"),
             (7, 9, "expected a species name, found `{`"),
             (10, 1, "needs a `spacing`"),
@@ -322,9 +322,16 @@ fn sizes_and_counts_are_bounded() {
         "seed 1\nbounds 0.001 0 10 10\ncell 64\nspecies a worm\n",
         &[(2, 8, "multiples of the position step")],
     );
-    check_errors("seed 1\nbounds 0 0 4096 4096\ncell 1\nspecies a worm\n", &[(2, 8, "cells, more than 1048576")]);
-    // A spacing that needs too many sampling cells over its region.
-    check_errors(&format!("{HEAD}species a worm\nscatter a {{\n  spacing 0.05\n}}\n"), &[(6, 11, "more than 8388608")]);
+    // A spacing that could put more instances in one cell than its index can name.
+    check_errors(
+        &format!("{HEAD}species a worm\nscatter a {{\n  spacing 0.25\n}}\n"),
+        &[(5, 1, "instances in one 64 m cell, more than 65535")],
+    );
+    // An `avoid` chain that makes one cell's expansion need too much of its neighbourhood.
+    check_errors(
+        &format!("seed 7\nbounds -4096 -4096 4096 4096\ncell 64\nspecies a worm\nspecies b worm\nscatter a {{\n  spacing 1\n}}\nscatter b {{\n  spacing 1\n  avoid a 1000\n}}\n"),
+        &[(6, 1, "sampling cells (spacings, halos and avoid chains), more than 16777216")],
+    );
     // A terrain grid with too many vertices.
     check_errors(
         "seed 1\nbounds 0 0 4096 4096\ncell 64\nterrain terrain {\n  tile 256\n  depth 8\n}\nspecies a worm\n",
@@ -412,10 +419,11 @@ fn poisson_spacing_and_avoid_distances_hold() {
             }
         }
     }
-    // The packing is close to maximal: about 0.7 darts per spacing² on flat ground.
+    // The packing is dense: about 0.63 darts per spacing² on flat ground (dart throwing to saturation reaches 0.69).
     let flat = world(&format!("{HEAD}species a worm\nscatter a {{\n  spacing 4\n}}\n"));
     let per_area = flat.instances.len() as f64 * 16.0 / flat.bounds.area();
-    assert!((0.62..0.78).contains(&per_area), "{per_area} darts per spacing²");
+    println!("{per_area} darts per spacing²");
+    assert!((0.58..0.72).contains(&per_area), "{per_area} darts per spacing²");
     assert!(min_distance(&positions_of(&flat, 0), &positions_of(&flat, 0)) >= 4.0);
 }
 
@@ -464,7 +472,7 @@ fn altitude_and_slope_rules_hold() {
     let mut outside = 0;
     for p in &w.instances {
         let rule = w.rules.iter().find(|r| r.species == p.species).expect("one rule per species");
-        if rule.density_at(&w.terrain, p.x, p.z) <= 0.0 {
+        if rule.density_at(&w, p.x, p.z) <= 0.0 {
             outside += 1;
         }
     }
@@ -771,7 +779,7 @@ fn default_world_meets_its_targets() {
 
 /// Golden: the default world's placements, bit for bit. Re-bless (after an intended change to the world, the
 /// expansion or the RNG) by replacing the constant with the printed value and reviewing why it moved.
-const FOREST_PLACEMENTS: (usize, u64) = (213_042, 0xbff7_1c9b_2298_9db9);
+const FOREST_PLACEMENTS: (usize, u64) = (194_398, 0x2496_75fa_2bff_0339);
 
 #[test]
 fn default_world_placements_are_golden() {

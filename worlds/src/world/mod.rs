@@ -49,30 +49,56 @@
 //! crack-free grid of triangles; the world sets them for every tile. Species and terrain paths are relative to the
 //! manifest; a manifest parsed without a directory may use library names only.
 //!
-//! # Expansion
+//! # Expansion: cells as a function
 //!
-//! Every `instance` and `scatter` is expanded in file order. A `scatter` rule throws darts on a background grid of
-//! `spacing / √2` cells, up to [`SCATTER_ATTEMPTS`] per cell, accepting a dart that keeps `spacing` from the
-//! rule's other darts and each `avoid` distance from the instances placed before the rule (grid-accelerated dart
-//! throwing: a Poisson-disk set, at most one dart per cell). Every dart is then kept with probability
-//! `density · altitude(height) · slope(slope)` — a thinned-out dart still spaced its neighbours, so the density
-//! is the fraction of a full packing kept. Cells where the terrain's bounds make that 0 throw no darts.
+//! A cell's placements are a pure function of the manifest and the cell ([`World::expand_cell`]): no pass over
+//! the whole world, no global numbering, the same bits on every machine whatever cells were expanded before, in
+//! what order, on which thread, alone or in a block ([`World::expand_cells`]). Worlds of at most [`EAGER_CELLS`]
+//! cells are also expanded whole at load into [`World::instances`] (by the same function); larger ones only on
+//! demand. An instance is identified by its cell and its index in the cell.
 //!
-//! Randomness is ChaCha8 keyed by the world seed ([`crate::rng::InstanceRng`]), read by address so that no draw
-//! depends on the order work is done in: rule key `R = child_key(fnv1a64(species name), n)` for the `n`-th rule
-//! of that species (editing a rule moves no other rule's instances, except through `avoid`); attempt `a` in
-//! background cell `c` reads word `c · SCATTER_ATTEMPTS + a` of stream `child_key(R, 0)`; the keep draw and the
-//! parameter values of the dart in cell `c` read stream `child_key(R, c + 1)`. Floats come from words by
-//! [`crate::eval::unit_f32`].
-//! Darts are thrown in row-major order of the background cells; thinning and the terrain's tiles run on as many
-//! threads as there are cores, with results that never depend on the thread count (`populate::scatter`).
-//! Positions are drawn directly on the [`POSITION_STEPS`] grid of their cell, so every check holds for the
-//! stored positions. Parameter values equal to a constant species default are not stored.
+//! Within a cell, placements come in file order of their statements: `instance` lines (indexed by cell at load),
+//! then each `scatter` rule's darts in row-major order of their background cells.
 //!
-//! Instances are then sorted by cell (z, then x) and, within a cell, by expansion order; an instance's id is its
-//! index, its seed [`World::instance_seed`]. Every count, size and extent read from the file is bounded (the
-//! `MAX_` constants below).
+//! A `scatter` rule is a Poisson-disk process on a background grid of cells of `g = spacing / √2` anchored at the
+//! world's origin (so every expansion sees the same grid), run in [`ROUNDS`] rounds of proposals and priorities —
+//! a local rule, so a bounded neighbourhood decides every dart:
+//! - in each round, every background cell without a dart tries up to [`ATTEMPTS`] positions on the position grid
+//!   inside it and proposes the first that keeps `spacing` from every placed dart and each `avoid` distance from
+//!   the instances of earlier statements;
+//! - a proposal is placed if it outranks every other proposal closer than `spacing` (by a 32-bit priority, then
+//!   by background cell in row-major order), so two placed darts are never closer than `spacing`.
+//!
+//! Every dart is then kept with probability `density · altitude(height) · slope(slope)` — a thinned-out dart still
+//! spaced its neighbours, so the density is the fraction of a full packing kept (about 0.63 darts per spacing² on
+//! open ground). A rule whose density is 0 over all the ground it could reach places nothing.
+//!
+//! The decision at a dart depends on proposals within `spacing` in the first round and on darts placed within
+//! `2 · spacing` in every later one, so expanding a rectangle computes each rule over the rectangle grown by its
+//! halo `(2 · ROUNDS − 1) · spacing + 2 · g`, and every rule an `avoid` names over the area grown again by that
+//! distance (the chain is followed back through the file). One cell's work is bounded at load
+//! ([`MAX_CELL_WORK`] background cells), and so is the number of instances a cell can hold
+//! ([`MAX_CELL_INSTANCES`]).
+//!
+//! Randomness is ChaCha8 keyed by the world seed ([`crate::rng::InstanceRng`]) and read by address: rule key
+//! `R = child_key(fnv1a64(species name), n)` for the `n`-th rule of that species (editing a rule moves no other
+//! rule's instances, except through `avoid`); background cell `(i, j)` reads stream
+//! `child_key(child_key(R, 0), (i as u32) << 32 | (j as u32))`: round `r`'s positions are words `8r .. 8r + 7`
+//! (low and high 16 bits pick one of the `n` grid positions per axis: `(bits · n) >> 16`), its priority word
+//! `8r + 7`; a placed dart's keep draw is word 24 and its `n`-th parameter rule word `25 + n`. Floats come from
+//! words by [`crate::eval::unit_f32`]. Parameter values equal to a constant species default are not stored.
+//!
+//! # Terrain
+//!
+//! `terrain NAME { … }` names a terrain species, amplified tile by tile into a height grid at load (bounded by
+//! [`MAX_TERRAIN_VERTICES`]). `terrain fractal { … }` is the terrain as a function ([`Fractal`]): `tile` is the
+//! control lattice's spacing, `depth` its levels of subdivision (up to [`MAX_FRACTAL_DEPTH`]), `corners` rows the
+//! control heights (from min z, min x to max x; the edge values extend beyond them), `seed`, and `param
+//! dimension = …` and `param relief = …`; heights anywhere are computed on demand, by client and server alike.
+//! Every count, size and extent read from the file is bounded (the `MAX_` constants below).
 
+mod cells;
+mod fractal;
 mod manifest;
 mod par;
 mod populate;
@@ -88,7 +114,9 @@ use canopy_protocol::SpeciesGraph;
 use crate::amplify::Instance;
 use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
-pub use populate::{ParamValue, Ramp, ScatterRule};
+pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
+pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
+pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule};
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
 
 /// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
@@ -99,17 +127,13 @@ pub use canopy_protocol::netlimits::MAX_TERRAIN_DEPTH;
 /// two integers below `POSITION_STEPS` (12 bits each), as the protocol's instance records carry them.
 pub use canopy_protocol::record::POSITION_STEPS;
 
-/// Dart attempts per background cell of a `scatter` rule.
-pub const SCATTER_ATTEMPTS: u32 = 10;
-
-/// Most cells in a world's bounds.
-pub const MAX_CELLS: u64 = 1 << 20;
-/// Most instances in a world, explicit and expanded together.
-pub const MAX_INSTANCES: usize = 4_000_000;
+/// Most cells in a world's bounds: 2^21 per axis (±2^20 around the origin).
+pub const MAX_CELLS: u64 = 1 << 42;
+/// Worlds of at most this many cells are expanded whole at load ([`World::instances`]); larger ones only cell by
+/// cell, on demand ([`World::expand_cell`]).
+pub const EAGER_CELLS: usize = 4096;
 /// Most `scatter` rules.
 pub const MAX_RULES: usize = 1024;
-/// Most background cells a `scatter` rule may sample (bounds its time and memory: spacing over region).
-pub const MAX_RULE_CELLS: u64 = 1 << 23;
 /// Most vertices in the terrain's height grid.
 pub const MAX_TERRAIN_VERTICES: u64 = 1 << 22;
 /// Smallest and largest cell size, metres.
@@ -190,10 +214,15 @@ pub struct World {
     pub cell_size: f32,
     /// The species table; the index is the species id.
     pub species: Vec<WorldSpecies>,
-    /// Every instance, sorted by (cell.z, cell.x, then expansion order); the index is the instance id.
+    /// Every instance of a world of at most [`EAGER_CELLS`] cells, sorted by (cell.z, cell.x, then index in the
+    /// cell); empty for a larger world, which is expanded cell by cell ([`World::expand_cell`]).
     pub instances: Vec<Placement>,
-    /// The fractal terrain.
+    /// The terrain species' height grid (flat for a world whose terrain is a [`Fractal`]).
     pub terrain: Terrain,
+    /// The terrain as a function, for `terrain fractal { … }`.
+    pub fractal: Option<Fractal>,
+    /// The populations indexed for expansion cell by cell.
+    pub populations: Populations,
     /// The `scatter` rules, in file order.
     pub rules: Vec<ScatterRule>,
     /// Number of `instance` statements.
@@ -252,7 +281,7 @@ impl World {
         }
     }
 
-    /// Assemble a world from its parts: sorts the instances by cell (stably) and builds the cell index.
+    /// Assemble a world from its parts, expanding nothing yet.
     #[allow(clippy::too_many_arguments)]
     fn assemble(
         name: String,
@@ -260,9 +289,10 @@ impl World {
         bounds: Bounds,
         cell_size: f32,
         species: Vec<WorldSpecies>,
-        instances: Vec<Placement>,
         terrain: Terrain,
+        fractal: Option<Fractal>,
         rules: Vec<ScatterRule>,
+        populations: Populations,
         explicit_instances: u32,
     ) -> World {
         let cell = |v: f32| (v / cell_size).floor() as i32;
@@ -271,7 +301,7 @@ impl World {
         let step = cell_size / POSITION_STEPS as f32;
         let cell_max = CellKey { x: cell(bounds.max[0] - step), z: cell(bounds.max[1] - step) };
         let cell_dims = [(cell_max.x - cell_min.x + 1) as u32, (cell_max.z - cell_min.z + 1) as u32];
-        let mut w = World {
+        World {
             name,
             seed,
             bounds,
@@ -279,34 +309,45 @@ impl World {
             species,
             instances: Vec::new(),
             terrain,
+            fractal,
+            populations,
             rules,
             explicit_instances,
             cell_min,
             cell_dims,
             cell_starts: Vec::new(),
-        };
-        // A counting sort by cell: stable, so expansion order is kept within a cell.
-        let cells: Vec<u32> = instances
-            .iter()
-            .map(|p| w.cell_index(w.cell_of(p.x, p.z)).expect("placements are in bounds") as u32)
+        }
+    }
+
+    /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (bands of
+    /// [`REGION_BLOCK`] rows on the available cores: the result does not depend on the bands or the threads).
+    fn materialise(mut self) -> World {
+        if self.cell_count() > EAGER_CELLS {
+            return self;
+        }
+        let (min, [w, d]) = (self.cell_min, self.cell_dims.map(|v| v as i32));
+        let bands: Vec<(CellKey, CellKey)> = (0..d)
+            .step_by(REGION_BLOCK as usize)
+            .map(|z| {
+                let c0 = CellKey { x: min.x, z: min.z + z };
+                (c0, CellKey { x: min.x + w - 1, z: (c0.z + REGION_BLOCK - 1).min(min.z + d - 1) })
+            })
             .collect();
-        let mut starts = vec![0u32; w.cell_count() + 1];
-        for &c in &cells {
-            starts[c as usize + 1] += 1;
+        let expanded = par::map(&bands, || (), |_, &(c0, c1)| cells::expand(&self, c0, c1));
+        let mut starts = vec![0u32];
+        let mut instances = Vec::new();
+        for (_, list) in expanded.into_iter().flatten() {
+            instances.extend(list);
+            starts.push(instances.len() as u32);
         }
-        for i in 1..starts.len() {
-            starts[i] += starts[i - 1];
-        }
-        let mut next = starts.clone();
-        let mut order = vec![0u32; instances.len()];
-        for (k, &c) in cells.iter().enumerate() {
-            order[next[c as usize] as usize] = k as u32;
-            next[c as usize] += 1;
-        }
-        let mut slots: Vec<Option<Placement>> = instances.into_iter().map(Some).collect();
-        w.instances = order.iter().map(|&k| slots[k as usize].take().expect("each instance once")).collect();
-        w.cell_starts = starts;
-        w
+        self.instances = instances;
+        self.cell_starts = starts;
+        self
+    }
+
+    /// Whether every instance is in [`World::instances`] (a world of at most [`EAGER_CELLS`] cells).
+    pub fn is_materialised(&self) -> bool {
+        !self.cell_starts.is_empty()
     }
 
     /// Number of cells in bounds.
@@ -355,7 +396,7 @@ impl World {
 
     /// The ids of the instances in a cell (contiguous; empty for a cell out of bounds).
     pub fn cell_instances(&self, c: CellKey) -> Range<u32> {
-        match self.cell_index(c) {
+        match self.cell_index(c).filter(|_| self.is_materialised()) {
             Some(i) => self.cell_starts[i]..self.cell_starts[i + 1],
             None => 0..0,
         }
@@ -365,8 +406,20 @@ impl World {
     /// cell and that index): a pure function of the manifest and the cell, the same whichever cells were asked for
     /// before. Empty for a cell out of bounds.
     pub fn expand_cell(&self, c: CellKey) -> Vec<Placement> {
-        let r = self.cell_instances(c);
-        self.instances[r.start as usize..r.end as usize].to_vec()
+        if self.is_materialised() {
+            let r = self.cell_instances(c);
+            return self.instances[r.start as usize..r.end as usize].to_vec();
+        }
+        self.expand_cells(c, c).pop().map(|(_, v)| v).unwrap_or_default()
+    }
+
+    /// The placements of every cell in `c0 ..= c1` (row-major), computed from the manifest — whether or not the
+    /// world is materialised, so this is the function itself; cells out of bounds are empty.
+    pub fn expand_cells(&self, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Placement>)> {
+        if c0.x > c1.x || c0.z > c1.z {
+            return Vec::new();
+        }
+        cells::expand(self, c0, c1)
     }
 
     /// The edge of one position step, `cell_size / POSITION_STEPS` metres.
@@ -406,7 +459,18 @@ impl World {
 
     /// Terrain height at (x, z): the height of the terrain species' triangle surface (see [`Terrain::height`]).
     pub fn height(&self, x: f32, z: f32) -> f32 {
-        self.terrain.height(x, z)
+        match &self.fractal {
+            Some(f) => f.height(f64::from(x), f64::from(z)),
+            None => self.terrain.height(x, z),
+        }
+    }
+
+    /// Terrain height and slope (degrees) at (x, z).
+    pub fn height_and_slope(&self, x: f32, z: f32) -> (f32, f32) {
+        match &self.fractal {
+            Some(f) => f.height_and_slope(f64::from(x), f64::from(z)),
+            None => self.terrain.height_and_slope(x, z),
+        }
     }
 
     /// An instance's position: x, the terrain height there, z.

@@ -6,20 +6,29 @@ use canopy_protocol::SpeciesGraph;
 
 use super::manifest::{Manifest, Population, SourceRef, Span};
 use super::source::Resolver;
-use super::terrain::{Summary, TILE_PARAMS, Terrain};
+use super::cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations};
+use super::fractal::Fractal;
+use super::terrain::{TILE_PARAMS, Terrain};
 use super::{
-    Bounds, MAX_CELLS, MAX_INSTANCES, MAX_RULE_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
-    Placement, SCATTER_ATTEMPTS, World, WorldSpecies,
+    Bounds, CellKey, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS, Placement, World,
+    WorldSpecies,
 };
 use crate::amplify::unknown_param;
 use crate::diag::{Diagnostic, SourceFile};
 use crate::eval::unit_f32;
 use crate::load::parse_source;
 use crate::primitive::Fnv;
-use crate::rng::{InstanceRng, child_key, mix64};
+use crate::rng::{child_key, mix64};
 
 /// Salt of the default terrain seed: `mix64(world seed ^ TERRAIN_SALT)`.
 pub const TERRAIN_SALT: u64 = 0x7465_7272_6169_6e00;
+
+/// The library name of the built-in fractal terrain function ([`Fractal`]): `terrain fractal { … }`.
+pub const FRACTAL: &str = "fractal";
+/// A fractal terrain's default depth, dimension and relief.
+pub const DEFAULT_FRACTAL_DEPTH: u32 = 10;
+const DEFAULT_DIMENSION: f32 = 2.2;
+const DEFAULT_RELIEF: f32 = 100.0;
 
 /// The default terrain depth (the terrain species' own default at full detail).
 pub const DEFAULT_TERRAIN_DEPTH: u32 = 7;
@@ -131,8 +140,8 @@ pub struct ScatterRule {
 
 impl ScatterRule {
     /// The probability that a dart at (x, z) is kept: `density · altitude(height) · slope(slope)`.
-    pub fn density_at(&self, terrain: &Terrain, x: f32, z: f32) -> f32 {
-        let (height, slope) = terrain.height_and_slope(x, z);
+    pub fn density_at(&self, world: &World, x: f32, z: f32) -> f32 {
+        let (height, slope) = world.height_and_slope(x, z);
         self.density * self.altitude.at(height) * self.slope.at(slope)
     }
 }
@@ -184,241 +193,22 @@ fn load_species(
     graph.map(|g| (g, shown))
 }
 
-/// Placed instances to keep away from, each with its distance, in buckets of a uniform grid.
-struct Buckets {
-    origin: [f64; 2],
-    size: f64,
-    dims: [usize; 2],
-    starts: Vec<u32>,
-    /// x, z and the distance to keep.
-    points: Vec<[f32; 3]>,
-}
-
-impl Buckets {
-    fn new(bounds: &Bounds, points: Vec<[f32; 3]>) -> Buckets {
-        let [w, d] = bounds.size().map(f64::from);
-        let distance = points.iter().map(|p| f64::from(p[2])).fold(0.0, f64::max);
-        // Buckets at least the largest distance wide (so a query reads 3 × 3), and at most about 1024 per axis.
-        let size = distance.max(w.max(d) / 1024.0);
-        let dims = [(w / size).ceil() as usize + 1, (d / size).ceil() as usize + 1];
-        let origin = bounds.min.map(f64::from);
-        let bucket = |p: &[f32; 3]| {
-            let i = ((f64::from(p[0]) - origin[0]) / size) as usize;
-            let j = ((f64::from(p[1]) - origin[1]) / size) as usize;
-            j.min(dims[1] - 1) * dims[0] + i.min(dims[0] - 1)
-        };
-        let mut starts = vec![0u32; dims[0] * dims[1] + 1];
-        for p in &points {
-            starts[bucket(p) + 1] += 1;
-        }
-        for i in 1..starts.len() {
-            starts[i] += starts[i - 1];
-        }
-        let mut fill = starts.clone();
-        let mut sorted = vec![[0.0f32; 3]; points.len()];
-        for p in points {
-            let b = bucket(&p);
-            sorted[fill[b] as usize] = p;
-            fill[b] += 1;
-        }
-        Buckets { origin, size, dims, starts, points: sorted }
-    }
-
-    /// Whether (x, z) is closer to any point than that point's distance.
-    fn near(&self, x: f32, z: f32) -> bool {
-        let (x, z) = (f64::from(x), f64::from(z));
-        let i = ((x - self.origin[0]) / self.size) as i64;
-        let j = ((z - self.origin[1]) / self.size) as i64;
-        for bj in (j - 1).max(0)..=(j + 1).min(self.dims[1] as i64 - 1) {
-            let row = bj as usize * self.dims[0];
-            let (b0, b1) = ((i - 1).max(0) as usize, (i + 1).min(self.dims[0] as i64 - 1) as usize);
-            // The buckets of a row are contiguous.
-            for p in &self.points[self.starts[row + b0] as usize..self.starts[row + b1 + 1] as usize] {
-                let (dx, dz, d) = (f64::from(p[0]) - x, f64::from(p[1]) - z, f64::from(p[2]));
-                if dx * dx + dz * dz < d * d {
-                    return true;
-                }
-            }
-        }
-        false
-    }
-}
-
-/// The background grid of one rule: cells of `spacing / √2` over its region.
-struct DartGrid<'a> {
-    rule: &'a ScatterRule,
-    nx: usize,
-    nz: usize,
-    r2: f64,
-    step: f64,
-    /// Per column: the grid positions `(first k, count)` and the terrain blocks under them.
-    columns: Vec<((i64, i64), (usize, usize))>,
-    /// Per row: the same.
-    rows: Vec<((i64, i64), (usize, usize))>,
-    summary: Option<&'a Summary>,
-    avoid: Option<&'a Buckets>,
-    stream: u64,
-}
-
-impl DartGrid<'_> {
-    /// Throw the darts of every cell in row-major order into `grid` (one slot per cell, NaN where there is no
-    /// dart). Returns `(cell index, dart)` in that order.
-    fn throw(&self, rng: &mut InstanceRng, grid: &mut [[f32; 2]]) -> Vec<(u32, [f32; 2])> {
-        let nx = self.nx;
-        let mut darts = Vec::new();
-        for j in 0..self.nz {
-            let ((kz0, cz), row_blocks) = self.rows[j];
-            for (i, &((kx0, cx), column_blocks)) in self.columns.iter().enumerate() {
-                if cx < 1 || cz < 1 {
-                    continue;
-                }
-                if let Some(s) = self.summary {
-                    let (height, slope) = s.bounds(column_blocks, row_blocks);
-                    let rule = self.rule;
-                    if rule.density * rule.altitude.max_over(height) * rule.slope.max_over(slope) <= 0.0 {
-                        continue;
-                    }
-                }
-                // Darts closer than `spacing` lie at most two cells away (the corner cells are included as a
-                // margin for rounding); only earlier cells hold darts yet: the two rows above, two cells left.
-                let mut near = [[0.0f64; 2]; 12];
-                let mut n = 0;
-                for cj in j.saturating_sub(2)..=j {
-                    let columns = if cj < j { i.saturating_sub(2)..(i + 3).min(nx) } else { i.saturating_sub(2)..i };
-                    for q in &grid[cj * nx + columns.start..cj * nx + columns.end] {
-                        if !q[0].is_nan() {
-                            near[n] = [f64::from(q[0]), f64::from(q[1])];
-                            n += 1;
-                        }
-                    }
-                }
-                let near = &near[..n];
-                let cell = (j * nx + i) as u64;
-                for a in 0..u64::from(SCATTER_ATTEMPTS) {
-                    let w = rng.word(self.stream, cell * u64::from(SCATTER_ATTEMPTS) + a);
-                    let px = (kx0 + ((i64::from(w & 0xffff) * cx) >> 16)) as f64 * self.step;
-                    let pz = (kz0 + ((i64::from(w >> 16) * cz) >> 16)) as f64 * self.step;
-                    let clear = near.iter().all(|q| {
-                        let (dx, dz) = (q[0] - px, q[1] - pz);
-                        dx * dx + dz * dz >= self.r2
-                    });
-                    let (sx, sz) = (px as f32, pz as f32);
-                    if !clear || self.avoid.is_some_and(|b| b.near(sx, sz)) {
-                        continue;
-                    }
-                    grid[j * nx + i] = [sx, sz];
-                    darts.push((cell as u32, [sx, sz]));
-                    break;
-                }
-            }
-        }
-        darts
-    }
-}
-
-/// Expand one `scatter` rule: grid-accelerated dart throwing (Poisson-disk darts, at most one per background
-/// cell of `spacing / √2`, so at most [`MAX_RULE_CELLS`]), then thinning by density. Returns the kept instances
-/// in row-major order of their background cells.
-///
-/// Background cell `c` (row-major index) tries up to [`SCATTER_ATTEMPTS`] darts on the position grid inside
-/// it: attempt `a` reads word `c · SCATTER_ATTEMPTS + a` of stream `child_key(R, 0)`, whose low and high 16 bits
-/// pick one of the `n` grid positions per axis (`(bits · n) >> 16`); a dart is accepted if it keeps `spacing` from
-/// every dart already placed and the `avoid` distances. Cells where the terrain's height and slope bounds make the
-/// density 0 throw nothing (their darts could only be thinned out); words are addressed by cell, so skipping
-/// changes no other cell's draws. Cells are visited in row-major order over the whole region.
-///
-/// The dart of cell `c` is kept if `unit_f32(word 0 of stream child_key(R, c + 1))` is below
-/// [`ScatterRule::density_at`]; the kept instance's `n`-th parameter rule draws word `n + 1` of that stream. Thinning
-/// runs on as many threads as there are cores, with the same result.
-fn scatter(
-    rule: &ScatterRule,
-    cell_size: f32,
-    seed: u64,
-    terrain: &Terrain,
-    graph: &SpeciesGraph,
-    avoid: Option<&Buckets>,
-    summary: Option<&Summary>,
-) -> Vec<Placement> {
-    let (x0, z0) = (f64::from(rule.region.min[0]), f64::from(rule.region.min[1]));
-    let (x1, z1) = (f64::from(rule.region.max[0]), f64::from(rule.region.max[1]));
-    let g = f64::from(rule.spacing) / std::f64::consts::SQRT_2;
-    let (nx, nz) = rule_cells(rule);
-    let (step, inv_step) = position_step(cell_size);
-    // Background cell `i` spans `[o + i·g, o + (i + 1)·g)`: grid positions `k · step` for `k` in `lo..hi`, as
-    // `(lo, hi - lo)`, and the terrain blocks under them.
-    let positions = |axis: usize, o: f64, end: f64, i: usize| {
-        let edge = |i: usize| (o + i as f64 * g).min(end);
-        let lo = (edge(i) * inv_step).ceil() as i64;
-        let n = (edge(i + 1) * inv_step).ceil() as i64 - lo;
-        let at = |k: i64| k as f64 * step;
-        (lo, n, summary.map_or((0, 0), |s| s.blocks(axis, at(lo), at(lo + n - 1))))
-    };
-    let columns = (0..nx).map(|i| positions(0, x0, x1, i)).map(|(lo, n, b)| ((lo, n), b)).collect();
-    let rows = (0..nz).map(|j| positions(1, z0, z1, j)).map(|(lo, n, b)| ((lo, n), b)).collect();
-    let darts = DartGrid {
-        rule,
-        nx,
-        nz,
-        r2: f64::from(rule.spacing) * f64::from(rule.spacing),
-        step,
-        columns,
-        rows,
-        summary,
-        avoid,
-        stream: child_key(rule.key, 0),
-    };
-    // Dart throwing is sequential (row-major over the whole region: splitting it into independently filled bands
-    // packs their first rows denser and leaves stripes); thinning is independent per dart and runs in parallel.
-    let mut grid = vec![[f32::NAN; 2]; nx * nz];
-    let placed = darts.throw(&mut InstanceRng::new(seed), &mut grid);
-    drop(grid);
-    let chunks: Vec<&[(u32, [f32; 2])]> = placed.chunks(THINNING_CHUNK).collect();
-    let kept = super::par::map(
-        &chunks,
-        || InstanceRng::new(seed),
-        |rng, chunk| {
-            chunk
-                .iter()
-                .filter_map(|&(cell, [x, z])| {
-                    let stream = child_key(rule.key, u64::from(cell) + 1);
-                    if unit_f32(rng.word(stream, 0)) >= rule.density_at(terrain, x, z) {
-                        return None;
-                    }
-                    let mut params = Vec::new();
-                    for (n, &(slot, value)) in rule.params.iter().enumerate() {
-                        let v = value.value(rng.word(stream, n as u64 + 1));
-                        if !is_default(graph, slot, v) {
-                            params.push((slot, v));
-                        }
-                    }
-                    Some(Placement { species: rule.species, x, z, params })
-                })
-                .collect::<Vec<_>>()
-        },
-    );
-    kept.concat()
-}
-
-/// Darts per thinning job.
-const THINNING_CHUNK: usize = 8192;
-
 /// The position step `cell_size / POSITION_STEPS` and its inverse, both powers of two (so exact).
-fn position_step(cell_size: f32) -> (f64, f64) {
+pub(crate) fn position_step(cell_size: f32) -> (f64, f64) {
     let step = f64::from(cell_size) / f64::from(POSITION_STEPS);
     (step, 1.0 / step)
 }
 
-/// Background cells of a rule's dart grid per axis, in f64: a tiny spacing must not overflow the count before
-/// [`MAX_RULE_CELLS`] refuses it.
-fn rule_grid(rule: &ScatterRule) -> [f64; 2] {
-    let g = f64::from(rule.spacing) / std::f64::consts::SQRT_2;
-    rule.region.size().map(|s| (f64::from(s) / g).ceil().max(1.0))
-}
-
-/// Background cells of a rule's dart grid per axis.
-fn rule_cells(rule: &ScatterRule) -> (usize, usize) {
-    let [w, d] = rule_grid(rule);
-    (w as usize, d as usize)
+/// The most instances the rules can put in one cell: one dart per background cell of `spacing / √2`, and at most
+/// `(cell / g + 2)²` background cells touch a cell.
+fn darts_per_cell(rules: &[ScatterRule], cell_size: f32) -> f64 {
+    rules
+        .iter()
+        .map(|r| {
+            let g = f64::from(r.spacing) / std::f64::consts::SQRT_2;
+            (f64::from(cell_size) / g + 2.0).powi(2)
+        })
+        .sum()
 }
 
 /// Resolve `name = value` settings against a species: sorted by slot, values equal to a constant default
@@ -445,14 +235,14 @@ fn resolve_settings(
 }
 
 /// Whether `v` is bit for bit the species' constant default for `slot`.
-fn is_default(graph: &SpeciesGraph, slot: u16, v: f32) -> bool {
+pub(crate) fn is_default(graph: &SpeciesGraph, slot: u16, v: f32) -> bool {
     graph.params[slot as usize].default.as_constant().is_some_and(|d| d.to_bits() == v.to_bits())
 }
 
 /// A population resolved against the species table, ready to expand.
 enum Resolved {
     Instance(Placement),
-    Scatter(usize, Span),
+    Scatter(Span),
 }
 
 /// Build the world, appending every problem to `diags`; `None` if there were any.
@@ -522,7 +312,38 @@ pub(crate) fn build(
 
     // The terrain.
     let mut terrain = None;
-    if let Some(t) = &m.terrain {
+    let mut fractal = None;
+    let is_fractal = |t: &super::manifest::TerrainDecl| matches!(&t.source, SourceRef::Library(n) if n == FRACTAL);
+    if let Some(t) = m.terrain.as_ref().filter(|t| is_fractal(t)) {
+        if let Some((bounds, _)) = geometry {
+            let [w, d] = bounds.size();
+            let mut numbers = [(DEFAULT_DIMENSION, "dimension"), (DEFAULT_RELIEF, "relief")];
+            let mut ok = true;
+            for s in &t.params {
+                match numbers.iter_mut().find(|(_, n)| *n == s.name) {
+                    Some((v, _)) => *v = s.value,
+                    None => {
+                        let msg = format!("unknown fractal terrain parameter `{}` (dimension, relief)", s.name);
+                        diags.push(src.diag(s.span.clone(), msg));
+                        ok = false;
+                    }
+                }
+            }
+            let rows: Vec<Vec<f32>> = t.corners.iter().map(|(r, _)| r.clone()).collect();
+            let tile = t.tile.as_ref().map_or(f64::from(w.max(d)), |t| f64::from(t.0));
+            let depth = t.depth.as_ref().map_or(DEFAULT_FRACTAL_DEPTH, |d| d.0);
+            let tseed = t.seed.as_ref().map_or(mix64(seed ^ TERRAIN_SALT), |s| s.0);
+            let origin = bounds.min.map(f64::from);
+            match Fractal::new(tseed, origin, tile, depth, numbers[0].0, numbers[1].0, &rows) {
+                Ok(f) if ok => {
+                    fractal = Some(f);
+                    terrain = Some(Terrain::flat(bounds.min, w.max(d)));
+                }
+                Ok(_) => {}
+                Err(e) => diags.push(src.diag(t.span.clone(), e.to_string())),
+            }
+        }
+    } else if let Some(t) = &m.terrain {
         let loaded = load_species(src, &t.source, &t.source_span, files, diags);
         let mut ok = true;
         let mut params = Vec::new();
@@ -685,17 +506,12 @@ pub(crate) fn build(
                     key: child_key(h.finish(), ordinals[id as usize]),
                 };
                 ordinals[id as usize] += 1;
-                let [w, d] = rule_grid(&rule);
-                let cells = w * d;
-                if cells > MAX_RULE_CELLS as f64 {
-                    let msg = format!(
-                        "spacing {spacing} m over this region needs {cells} sampling cells, more than {MAX_RULE_CELLS}"
-                    );
-                    diags.push(src.diag(spacing_span, msg));
+                if !(f64::from(spacing) >= position_step(geometry.map_or(1.0, |g| g.1)).0) {
+                    diags.push(src.diag(spacing_span.clone(), "the spacing must be at least one position step"));
                     ok = false;
                 }
                 if ok {
-                    resolved.push(Resolved::Scatter(rules.len(), r.span.clone()));
+                    resolved.push(Resolved::Scatter(r.span.clone()));
                     rules.push(rule);
                 }
             }
@@ -711,52 +527,50 @@ pub(crate) fn build(
         .map(|e| Some(WorldSpecies { name: e.name, graph: e.graph?, source: e.source }))
         .collect::<Option<_>>()?;
 
-    // Expand, in file order.
-    let mut placed: Vec<Placement> = Vec::new();
-    let mut summary: Option<Summary> = None;
-    let explicit = resolved.iter().filter(|r| matches!(r, Resolved::Instance(_))).count();
-    if explicit > MAX_INSTANCES {
-        diags.push(src.diag(end, format!("{explicit} `instance` statements, more than {MAX_INSTANCES}")));
-        return None;
-    }
-    let explicit = explicit as u32;
-    for item in resolved {
+
+    // Index the populations for expansion cell by cell: explicit instances by cell, every population's place in
+    // file order.
+    let mut populations = Populations::default();
+    let mut explicit = 0u32;
+    let mut spans = Vec::new();
+    for (order, item) in resolved.into_iter().enumerate() {
         match item {
-            Resolved::Instance(p) => placed.push(p),
-            Resolved::Scatter(index, span) => {
-                let rule = &rules[index];
-                let avoid = (!rule.avoid.is_empty()).then(|| {
-                    let distance = |s: u16| rule.avoid.iter().filter(|a| a.0 == s).map(|a| a.1).reduce(f32::max);
-                    let points = placed.iter().filter_map(|p| distance(p.species).map(|d| [p.x, p.z, d])).collect();
-                    Buckets::new(&bounds, points)
-                });
-                let trivial = rule.altitude == Ramp::ALL && rule.slope == Ramp::ALL;
-                if !trivial && summary.is_none() {
-                    summary = Some(terrain.summary());
-                }
-                let graph = &species[rule.species as usize].graph;
-                let kept = scatter(
-                    rule,
-                    cell_size,
-                    seed,
-                    &terrain,
-                    graph,
-                    avoid.as_ref(),
-                    summary.as_ref().filter(|_| !trivial),
-                );
-                if placed.len() + kept.len() > MAX_INSTANCES {
-                    let msg = format!("the world would have more than {MAX_INSTANCES} instances");
-                    diags.push(src.diag(span.clone(), msg));
-                    return None;
-                }
-                placed.extend(kept);
+            Resolved::Instance(p) => {
+                let key = CellKey { x: (p.x / cell_size).floor() as i32, z: (p.z / cell_size).floor() as i32 };
+                populations.explicit.entry(key).or_default().push((order as u32, p));
+                explicit += 1;
+            }
+            Resolved::Scatter(span) => {
+                populations.rule_order.push(order as u32);
+                spans.push(span);
             }
         }
     }
-
+    let most_explicit = populations.explicit.values().map(Vec::len).max().unwrap_or(0);
+    let per_cell = darts_per_cell(&rules, cell_size) + most_explicit as f64;
+    if per_cell > MAX_CELL_INSTANCES as f64 {
+        let msg = format!(
+            "the rules could put {per_cell:.0} instances in one {cell_size} m cell, more than {MAX_CELL_INSTANCES}: use larger spacings or smaller cells"
+        );
+        diags.push(src.diag(spans.first().cloned().unwrap_or(end), msg));
+        return None;
+    }
     let name = match &m.name {
         Some((n, _)) => n.clone(),
         None => crate::species_text::file_stem(&src.name),
     };
-    Some(World::assemble(name, seed, bounds, cell_size, species, placed, terrain, rules, explicit))
+    let world = World::assemble(name, seed, bounds, cell_size, species, terrain, fractal, rules, populations, explicit);
+    // One cell's expansion is bounded: its rules, their halos and `avoid` chains.
+    let s = f64::from(cell_size);
+    let c = world.cell_of(0.0, 0.0);
+    let (cx, cz) = (f64::from(c.x) * s, f64::from(c.z) * s);
+    let work = super::cells::work(&world, [cx, cz, cx + s, cz + s]);
+    if work > MAX_CELL_WORK {
+        let msg = format!(
+            "expanding one cell needs {work:.0} sampling cells (spacings, halos and avoid chains), more than {MAX_CELL_WORK}"
+        );
+        diags.push(src.diag(spans.first().cloned().unwrap_or(0..0), msg));
+        return None;
+    }
+    Some(world.materialise())
 }

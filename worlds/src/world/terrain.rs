@@ -475,87 +475,9 @@ impl Terrain {
         let (gx, gz) = (g[0] / s, g[1] / s);
         gx * gx + gz * gz
     }
-
-    /// Bounds of height and slope over blocks of `BLOCK` × `BLOCK` grid squares, for skipping ground where a
-    /// rule's density is 0 everywhere.
-    pub(crate) fn summary(&self) -> Summary {
-        let dims = self.squares.map(|n| n.div_ceil(Summary::BLOCK) as usize);
-        let mut blocks = vec![Bounds4::EMPTY; dims[0] * dims[1]];
-        for j in 0..self.squares[1] {
-            for i in 0..self.squares[0] {
-                let b = &mut blocks[(j / Summary::BLOCK) as usize * dims[0] + (i / Summary::BLOCK) as usize];
-                for (di, dj) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                    let h = self.vertex_height(i + di, j + dj);
-                    b.height = [b.height[0].min(h), b.height[1].max(h)];
-                }
-                // Both triangles of the square, whichever its diagonal, through the same arithmetic as `slope`.
-                let [x, z] = self.vertex_position(i, j);
-                let step = self.spacing;
-                for (u, v) in [(0.25f32, 0.5f32), (0.75, 0.5)] {
-                    let (_, _, g) = self.triangle(x + u * step, z + v * step);
-                    let g2 = self.gradient_squared(g);
-                    b.gradient2 = [b.gradient2[0].min(g2), b.gradient2[1].max(g2)];
-                }
-            }
-        }
-        // Slopes in degrees, widened by a margin for the rounding of `atan`.
-        let slopes = blocks
-            .iter()
-            .map(|b| [slope_degrees(b.gradient2[0]) - 1e-3, slope_degrees(b.gradient2[1]) + 1e-3])
-            .collect();
-        Summary { origin: self.origin, spacing: self.spacing, squares: self.squares, dims, blocks, slopes }
-    }
 }
 
 /// A slope in degrees from `|∇h|²`.
 fn slope_degrees(gradient2: f64) -> f32 {
     (libm::atan(gradient2.sqrt()) * (180.0 / std::f64::consts::PI)) as f32
-}
-
-#[derive(Clone, Copy, Debug)]
-struct Bounds4 {
-    height: [f32; 2],
-    gradient2: [f64; 2],
-}
-
-impl Bounds4 {
-    const EMPTY: Bounds4 = Bounds4 { height: [f32::INFINITY, f32::NEG_INFINITY], gradient2: [f64::INFINITY, 0.0] };
-}
-
-/// Height and slope bounds of the terrain by blocks of grid squares (see [`Terrain::summary`]).
-pub(crate) struct Summary {
-    origin: [f32; 2],
-    spacing: f32,
-    squares: [u32; 2],
-    dims: [usize; 2],
-    blocks: Vec<Bounds4>,
-    slopes: Vec<[f32; 2]>,
-}
-
-impl Summary {
-    /// Grid squares per block edge.
-    const BLOCK: u32 = 4;
-
-    /// The blocks along `axis` (0: x, 1: z) that hold the points from `lo` to `hi`, as a range of block indices.
-    pub(crate) fn blocks(&self, axis: usize, lo: f64, hi: f64) -> (usize, usize) {
-        let square = |v: f64| {
-            let f = ((v - f64::from(self.origin[axis])) / f64::from(self.spacing)).floor();
-            (f.clamp(0.0, f64::from(self.squares[axis] - 1)) as u32 / Summary::BLOCK) as usize
-        };
-        (square(lo), square(hi))
-    }
-
-    /// Lowest and highest height, and least and greatest slope in degrees, over the blocks `x.0..=x.1` by
-    /// `z.0..=z.1` (see [`Summary::blocks`]); slopes are widened by a margin for the rounding of `atan`.
-    pub(crate) fn bounds(&self, x: (usize, usize), z: (usize, usize)) -> ([f32; 2], [f32; 2]) {
-        let (mut height, mut slope) = ([f32::INFINITY, f32::NEG_INFINITY], [f32::INFINITY, f32::NEG_INFINITY]);
-        for bj in z.0..=z.1 {
-            for k in bj * self.dims[0] + x.0..=bj * self.dims[0] + x.1 {
-                let (h, s) = (self.blocks[k].height, self.slopes[k]);
-                height = [height[0].min(h[0]), height[1].max(h[1])];
-                slope = [slope[0].min(s[0]), slope[1].max(s[1])];
-            }
-        }
-        (height, slope)
-    }
 }
