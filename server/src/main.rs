@@ -101,7 +101,18 @@ fn main() -> anyhow::Result<()> {
         Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
         None => World::default_world(),
     };
-    let summary = world.content_summary();
+    // A world too large to materialise is summarised from its manifest alone: its instances exist only cell by cell.
+    let summary = if world.is_materialised() {
+        world.content_summary()
+    } else {
+        let [w, d] = world.cell_dims();
+        format!(
+            "world {}: {} species, {w} × {d} cells of {} m, expanded on demand\n",
+            world.name,
+            world.species.len(),
+            world.cell_size
+        )
+    };
     let session = SessionConfig {
         aoi: AoiParams {
             max_radius: args.max_radius,
