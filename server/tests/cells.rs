@@ -1,7 +1,7 @@
 //! The lazy cell cache on virtual time over the default world: its memory bound while a session walks across the
 //! world, the same bytes after an eviction, one expansion however many sessions ask, sessions that never wait for
 //! a pending cell, batch bodies shared between sessions and decoding to the batches the eager store gives, and
-//! real worker threads waking a session. Workers run deterministically in most tests (`workers: 0` and
+//! real worker threads waking a session, and a world that exists only cell by cell (highlands). Workers run deterministically in most tests (`workers: 0` and
 //! [`CellCache::run_queued`]); the worker test waits on its waker's condition variable, never on a sleep.
 
 use std::collections::{HashMap, HashSet};
@@ -329,4 +329,53 @@ fn worker_threads_expand_and_wake_the_session_until_it_is_complete() {
     assert!(batches > 100, "{batches} batches");
     assert!(waker.count() > 0);
     assert!(cache.peak_bytes() <= 4 * MIB);
+}
+
+#[test]
+fn a_world_expanded_only_on_demand_streams_from_the_cache() {
+    // The highlands world (102.4 km square) is never materialised: `World::instances` is empty and every cell
+    // exists only when expanded.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../worlds/highlands/highlands.world");
+    let world = World::load(&path).unwrap();
+    assert!(world.instances.is_empty() && !world.is_materialised());
+    let cfg =
+        CellCacheConfig { limit_bytes: 4 * MIB, workers: 0, batch_records: SessionConfig::default().batch_records };
+    let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
+    let t0 = Instant::now();
+    let vp = Viewpoint::at(1, [12_345.0, -6_789.0], 160.0);
+    let mut s = session(as_store(&cache), vp, t0);
+    let mut batches: Vec<CellBatch> = vec![];
+    loop {
+        batches.extend(drain(&mut s, t0).iter().filter_map(batch_of));
+        if s.is_complete() {
+            break;
+        }
+        assert!(cache.run_queued() > 0);
+    }
+    let grid = *cache.grid();
+    let area: HashSet<CellCoord> =
+        Aoi::new(&vp, &SessionConfig::default().aoi).inner_cells(&grid).into_iter().collect();
+    let mut records: HashMap<CellCoord, Vec<(u8, [f32; 2])>> = HashMap::new();
+    for b in &batches {
+        for r in &b.records {
+            let o = grid.cell_origin(b.cell);
+            let q = |v: u16, o: f32| canopy_protocol::record::dequantize(v, o, grid.cell_size);
+            records.entry(b.cell).or_default().push((r.species, [q(r.qx(), o[0]), q(r.qz(), o[1])]));
+        }
+    }
+    assert_eq!(batches.iter().map(|b| b.cell).collect::<HashSet<_>>(), area);
+    let mut total = 0;
+    for c in &area {
+        // Each record is its placement in the world's own expansion of the cell, to within one position step.
+        let placements = world.expand_cell(canopy_worlds::world::CellKey { x: c.x, z: c.z });
+        let got = records.remove(c).unwrap_or_default();
+        assert_eq!(got.len(), placements.len(), "cell {c:?}");
+        for ((species, [x, z]), p) in got.iter().zip(&placements) {
+            assert_eq!(u16::from(*species), p.species);
+            assert!((x - p.x).abs() <= world.position_step() && (z - p.z).abs() <= world.position_step());
+        }
+        total += placements.len();
+    }
+    assert!(total > 1_000, "{total} instances around the viewpoint");
+    assert!(cache.bytes() <= 4 * MIB);
 }
