@@ -1,8 +1,9 @@
 //! The lazy cell cache on virtual time over the default world: its memory bound while a session walks across the
 //! world, the same bytes after an eviction, one expansion however many sessions ask, sessions that never wait for
 //! a pending cell, batch bodies shared between sessions and decoding to the batches the eager store gives, and
-//! real worker threads waking a session, and a world that exists only cell by cell (highlands). Workers run deterministically in most tests (`workers: 0` and
-//! [`CellCache::run_queued`]); the worker test waits on its waker's condition variable, never on a sleep.
+//! real worker threads waking a session, and a world that exists only cell by cell (highlands). Workers run
+//! deterministically in most tests (`workers: 0` and [`CellCache::run_queued`]); the worker test waits on its
+//! waker's condition variable, never on a sleep.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Condvar, Mutex, OnceLock};
