@@ -9,7 +9,8 @@
 //! bytes (expansion is a pure function of the manifest and the cell).
 //!
 //! Memory bound: the cached cells' bytes ([`CellData::heap_bytes`]: records, overrides, encoded bodies, plus an
-//! estimate of the index's cost per cell) stay at or below the limit, except that a single cell larger than the whole limit is still kept, alone, so it can be sent.
+//! estimate of the index's cost per cell) stay at or below the limit, except that a single cell larger than the
+//! whole limit is still kept, alone, so it can be sent.
 //! Cells pinned by sessions mid-send are bounded per session by its area of interest.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
