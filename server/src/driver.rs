@@ -23,7 +23,7 @@ use tracing::{debug, info, warn};
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::metrics::Metrics;
 use crate::session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
-use crate::store::WorldStore;
+use crate::store::{CellWaker, WorldStore};
 use crate::tls::{Identity, IdentityError};
 
 /// UDP socket buffer size: 1,000 concurrent handshakes on loopback overflow the default buffers.
@@ -161,6 +161,9 @@ impl Server {
             Endpoint::new(quinn::EndpointConfig::default(), Some(server_config), socket, runtime).map_err(bind)?;
         let local_addr = endpoint.local_addr().map_err(bind)?;
         let metrics = Arc::new(Metrics::new());
+        if let Some(cells) = store.cache_metrics() {
+            metrics.attach_cells(cells);
+        }
         let (shutdown, shutdown_rx) = watch::channel(false);
         let metrics_addr = match cfg.metrics {
             Some(addr) => {
@@ -355,6 +358,10 @@ async fn run_session(
     let mut last_viewpoint = started;
     let mut idle_check = tokio::time::Instant::from_std(started + cfg.idle_slot);
     let mut session = Session::new(store, cfg.session.clone(), started);
+    // The store wakes this loop when a cell the session found pending is ready (a permit is kept if it is not
+    // waiting at that moment, so no wake-up is lost).
+    let cells_ready = Arc::new(NotifyWaker(tokio::sync::Notify::new()));
+    session.set_cell_waker(Arc::clone(&cells_ready) as Arc<dyn CellWaker>);
     let deadline = tokio::time::Instant::from_std(started + cfg.session.handshake_timeout);
     let (ctl_send, mut ctl_recv) = match tokio::time::timeout_at(deadline, conn.accept_bi()).await {
         Ok(Ok(s)) => s,
@@ -369,7 +376,7 @@ async fn run_session(
     let result = loop {
         let now = Instant::now();
         while let Some(t) = session.poll_transmit(now) {
-            metrics.sent(t.class, t.bytes.len(), t.records);
+            metrics.sent(t.class, t.len(), t.records);
             if tx.send(t).is_err() {
                 break;
             }
@@ -411,6 +418,7 @@ async fn run_session(
                 }
                 session.on_flushed(n);
             }
+            _ = cells_ready.0.notified() => {}
             _ = sleep_until(wake) => {
                 if let Err(e) = session.handle_timeout(Instant::now()) {
                     break Err(Closing::new(e.close_code(), e));
@@ -436,6 +444,15 @@ async fn run_session(
     };
     writer.abort();
     result
+}
+
+/// A session's [`CellWaker`]: wakes its connection's loop.
+struct NotifyWaker(tokio::sync::Notify);
+
+impl CellWaker for NotifyWaker {
+    fn wake(&self) {
+        self.0.notify_one();
+    }
 }
 
 async fn sleep_until(at: Option<tokio::time::Instant>) {
@@ -484,8 +501,13 @@ async fn write_loop(
                 slot.as_mut().expect("opened above")
             }
         };
-        let len = t.bytes.len();
-        stream.write_chunk(t.bytes).await.map_err(write_err)?;
+        let len = t.len();
+        if t.body.is_empty() {
+            stream.write_chunk(t.bytes).await.map_err(write_err)?;
+        } else {
+            // The session's head, then the body shared with every other session sending the cell.
+            stream.write_all_chunks(&mut [t.bytes, t.body]).await.map_err(write_err)?;
+        }
         let _ = flushed.send(len);
     }
     Ok(())

@@ -11,7 +11,7 @@ use anyhow::Context;
 use canopy_protocol::aoi::AoiParams;
 use canopy_server::metrics::resident_bytes;
 use canopy_server::worlds::world::World;
-use canopy_server::{AdmissionConfig, GridStore, Server, ServerConfig, SessionConfig};
+use canopy_server::{AdmissionConfig, CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig};
 use clap::Parser;
 use tracing::info;
 
@@ -53,6 +53,13 @@ struct Args {
     /// Send data queued for clients across all sessions, MiB, beyond which sessions pause instead of queueing more.
     #[arg(long, default_value_t = 256)]
     send_budget_mib: usize,
+    /// Memory for expanded cells (quantised records and their encoded batches), MiB: cells are expanded on demand
+    /// and the least recently used evicted beyond it.
+    #[arg(long, default_value_t = 256)]
+    cell_cache_mib: usize,
+    /// Threads expanding cells (default: the available cores).
+    #[arg(long)]
+    cell_workers: Option<usize>,
     /// Most clients at once (a client takes a slot when its handshake completes).
     #[arg(long, default_value_t = AdmissionConfig::default().max_clients)]
     max_clients: usize,
@@ -94,10 +101,18 @@ fn main() -> anyhow::Result<()> {
         Some(path) => World::load(path).map_err(|d| anyhow::anyhow!("{d}"))?,
         None => World::default_world(),
     };
-    let store = GridStore::from_world(&world).context("building the world store")?;
-    // The store holds what the server needs; keep only the world's summary, not the world.
-    let summary = world.content_summary();
-    drop(world);
+    // A world too large to materialise is summarised from its manifest alone: its instances exist only cell by cell.
+    let summary = if world.is_materialised() {
+        world.content_summary()
+    } else {
+        let [w, d] = world.cell_dims();
+        format!(
+            "world {}: {} species, {w} × {d} cells of {} m, expanded on demand\n",
+            world.name,
+            world.species.len(),
+            world.cell_size
+        )
+    };
     let session = SessionConfig {
         aoi: AoiParams {
             max_radius: args.max_radius,
@@ -110,6 +125,13 @@ fn main() -> anyhow::Result<()> {
         ..SessionConfig::default()
     };
     session.aoi.validate().context("area-of-interest options")?;
+    let cache_cfg = CellCacheConfig {
+        limit_bytes: args.cell_cache_mib.saturating_mul(1 << 20),
+        workers: args.cell_workers.unwrap_or(CellCacheConfig::default().workers).max(1),
+        batch_records: session.batch_records,
+    };
+    // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
+    let store = CellCache::new(world, cache_cfg).context("building the world store")?;
     let cfg = ServerConfig {
         listen: args.listen,
         metrics: (!args.no_metrics).then_some(args.metrics),
@@ -127,11 +149,10 @@ fn main() -> anyhow::Result<()> {
     };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
-        let occupied = store.occupied_cells();
         let rss_before = resident_bytes();
         let server = Server::start(store.shared(), cfg).await?;
         print!("{summary}");
-        println!("occupied cells: {occupied}");
+        println!("cells expanded on demand by {} workers, cached up to {} MiB", cache_cfg.workers, args.cell_cache_mib);
         println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
         if let Some(m) = server.metrics_addr() {
             println!("metrics on http://{m}/metrics");
@@ -157,8 +178,12 @@ fn main() -> anyhow::Result<()> {
                     (Some(b), c) if c > 0 => format!("{:.1} KiB", rss.saturating_sub(b) as f64 / 1024.0 / c as f64),
                     _ => "-".into(),
                 };
+                let (cache_kib, expansions) =
+                    metrics.cells().map_or((0, 0), |c| (c.bytes.load(Relaxed) / 1024, c.expansions.load(Relaxed)));
                 info!(
                     clients,
+                    cache_kib,
+                    expansions,
                     records_per_s = metrics.records_per_second.load(Relaxed),
                     records = metrics.records.load(Relaxed),
                     rss_mib = rss / (1 << 20),

@@ -1,9 +1,11 @@
 //! Server-wide counters and their Prometheus text exposition (format 0.0.4): clients, bytes and messages by
-//! message class, records sent and records per second, sessions closed by reason, process memory.
+//! message class, records sent and records per second, sessions closed by reason, process memory, and the cell
+//! cache's hits, misses, expansions (count, rate, time percentiles), bytes and cells.
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::time::Instant;
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
 
 use canopy_protocol::CloseCode;
 use canopy_protocol::messages::ByKind;
@@ -41,7 +43,102 @@ pub struct Metrics {
     pub closed: [AtomicU64; TRANSPORT + 1],
     /// Records per second over the last completed second (updated by [`Metrics::tick`]).
     pub records_per_second: AtomicU64,
-    last_tick: std::sync::Mutex<(Instant, u64)>,
+    /// Cell expansions per second over the last completed second (updated by [`Metrics::tick`]).
+    pub expansions_per_second: AtomicU64,
+    last_tick: std::sync::Mutex<(Instant, u64, u64)>,
+    /// The cell cache's counters, when the store has a cache.
+    cells: OnceLock<Arc<CellMetrics>>,
+}
+
+/// Upper bounds of the expansion-time histogram's buckets, microseconds: 1 µs, 2 µs, 4 µs, … 8.4 s (then +Inf).
+const BUCKETS_US: [u64; 24] = {
+    let mut b = [0u64; 24];
+    let mut i = 0;
+    while i < 24 {
+        b[i] = 1 << i;
+        i += 1;
+    }
+    b
+};
+
+/// A histogram of durations in fixed power-of-two buckets, lock-free.
+#[derive(Debug, Default)]
+pub struct Histogram {
+    /// Counts per bucket of [`BUCKETS_US`], and one for longer.
+    counts: [AtomicU64; BUCKETS_US.len() + 1],
+    sum_us: AtomicU64,
+}
+
+impl Histogram {
+    /// Count one duration.
+    pub fn record(&self, d: Duration) {
+        let us = d.as_micros().min(u128::from(u64::MAX)) as u64;
+        let i = BUCKETS_US.iter().position(|&b| us <= b).unwrap_or(BUCKETS_US.len());
+        self.counts[i].fetch_add(1, Relaxed);
+        self.sum_us.fetch_add(us, Relaxed);
+    }
+
+    /// How many durations were counted.
+    pub fn count(&self) -> u64 {
+        self.counts.iter().map(|c| c.load(Relaxed)).sum()
+    }
+
+    /// The `q`-quantile (0..=1) as the upper bound of the bucket it falls in (`None`: nothing counted; the
+    /// overflow bucket answers with the largest bound).
+    pub fn quantile(&self, q: f64) -> Option<Duration> {
+        let counts: Vec<u64> = self.counts.iter().map(|c| c.load(Relaxed)).collect();
+        let total: u64 = counts.iter().sum();
+        if total == 0 {
+            return None;
+        }
+        let rank = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
+        let mut seen = 0;
+        for (i, c) in counts.iter().enumerate() {
+            seen += c;
+            if seen >= rank {
+                return Some(Duration::from_micros(BUCKETS_US[i.min(BUCKETS_US.len() - 1)]));
+            }
+        }
+        Some(Duration::from_micros(BUCKETS_US[BUCKETS_US.len() - 1]))
+    }
+
+    /// Prometheus histogram lines for `name` (`_bucket` by `le` in seconds, `_sum`, `_count`).
+    fn render(&self, s: &mut String, name: &str, help: &str) {
+        let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} histogram");
+        let mut cumulative = 0;
+        for (i, c) in self.counts.iter().enumerate() {
+            cumulative += c.load(Relaxed);
+            let le = BUCKETS_US.get(i).map_or("+Inf".to_owned(), |&us| format!("{}", us as f64 / 1e6));
+            let _ = writeln!(s, "{name}_bucket{{le=\"{le}\"}} {cumulative}");
+        }
+        let _ = writeln!(s, "{name}_sum {}", self.sum_us.load(Relaxed) as f64 / 1e6);
+        let _ = writeln!(s, "{name}_count {cumulative}");
+    }
+}
+
+/// The cell cache's counters: updated by the cache ([`crate::cells::CellCache`]), read by the metrics endpoint.
+#[derive(Debug, Default)]
+pub struct CellMetrics {
+    /// Lookups that found the cell ready.
+    pub hits: AtomicU64,
+    /// Lookups that found it neither ready nor queued, and queued its expansion.
+    pub misses: AtomicU64,
+    /// Expansions finished (a cell evicted and asked for again is expanded again).
+    pub expansions: AtomicU64,
+    /// Cells evicted to keep the cache within its bound.
+    pub evictions: AtomicU64,
+    /// Expansions that failed (the cell went out empty; a bug in the world, logged).
+    pub failures: AtomicU64,
+    /// Bytes the cached cells hold now.
+    pub bytes: AtomicU64,
+    /// Cells cached now.
+    pub cells: AtomicU64,
+    /// The cache's bound, bytes.
+    pub limit: AtomicU64,
+    /// Cells queued for expansion now.
+    pub queued: AtomicU64,
+    /// How long expansions took (expanding, quantising and encoding a cell).
+    pub expansion_time: Histogram,
 }
 
 impl Default for Metrics {
@@ -72,8 +169,20 @@ impl Metrics {
             viewpoints: AtomicU64::new(0),
             closed: Default::default(),
             records_per_second: AtomicU64::new(0),
-            last_tick: std::sync::Mutex::new((now, 0)),
+            expansions_per_second: AtomicU64::new(0),
+            last_tick: std::sync::Mutex::new((now, 0, 0)),
+            cells: OnceLock::new(),
         }
+    }
+
+    /// Report the cell cache's counters too (once; later calls are ignored).
+    pub fn attach_cells(&self, cells: Arc<CellMetrics>) {
+        let _ = self.cells.set(cells);
+    }
+
+    /// The cell cache's counters, if attached.
+    pub fn cells(&self) -> Option<&Arc<CellMetrics>> {
+        self.cells.get()
     }
 
     /// Count one refused incoming connection.
@@ -94,15 +203,17 @@ impl Metrics {
         self.closed[i].fetch_add(1, Relaxed);
     }
 
-    /// Update the records-per-second gauge; call about once a second.
+    /// Update the records- and expansions-per-second gauges; call about once a second.
     pub fn tick(&self, now: Instant) {
         let records = self.records.load(Relaxed);
+        let expansions = self.cells.get().map_or(0, |c| c.expansions.load(Relaxed));
         let mut last = self.last_tick.lock().unwrap_or_else(|e| e.into_inner());
         let dt = now.saturating_duration_since(last.0).as_secs_f64();
         if dt > 0.0 {
-            let rate = (records.saturating_sub(last.1)) as f64 / dt;
-            self.records_per_second.store(rate.round() as u64, Relaxed);
-            *last = (now, records);
+            let rate = |n: u64, before: u64| (n.saturating_sub(before) as f64 / dt).round() as u64;
+            self.records_per_second.store(rate(records, last.1), Relaxed);
+            self.expansions_per_second.store(rate(expansions, last.2), Relaxed);
+            *last = (now, records, expansions);
         }
     }
 
@@ -150,8 +261,31 @@ impl Metrics {
             "Seconds since the server started.",
             &[(String::new(), self.started.elapsed().as_secs())],
         );
+        if let Some(c) = self.cells.get() {
+            metric("canopy_cell_cache_hits_total", "counter", "Cell lookups that found the cell ready.", &one(&c.hits));
+            let help = "Cell lookups that queued an expansion (neither ready nor queued already).";
+            metric("canopy_cell_cache_misses_total", "counter", help, &one(&c.misses));
+            metric("canopy_cell_expansions_total", "counter", "Cell expansions finished.", &one(&c.expansions));
+            let help = "Cell expansions per second, over the last second.";
+            metric("canopy_cell_expansions_per_second", "gauge", help, &one(&self.expansions_per_second));
+            metric("canopy_cell_evictions_total", "counter", "Cells evicted from the cache.", &one(&c.evictions));
+            metric("canopy_cell_expansion_failures_total", "counter", "Cell expansions failed.", &one(&c.failures));
+            metric("canopy_cell_cache_bytes", "gauge", "Bytes the cached cells hold.", &one(&c.bytes));
+            metric("canopy_cell_cache_limit_bytes", "gauge", "The cell cache's bound.", &one(&c.limit));
+            metric("canopy_cell_cache_cells", "gauge", "Cells cached.", &one(&c.cells));
+            metric("canopy_cell_expansions_queued", "gauge", "Cells waiting for a worker.", &one(&c.queued));
+            for (q, label) in [(0.5, "p50"), (0.99, "p99")] {
+                let us = c.expansion_time.quantile(q).map_or(0, |d| d.as_micros() as u64);
+                let help = format!("Cell expansion time, {label}, microseconds (its histogram bucket's upper bound).");
+                metric(&format!("canopy_cell_expansion_{label}_microseconds"), "gauge", &help, &[(String::new(), us)]);
+            }
+        }
         if let Some(rss) = resident_bytes() {
             metric("canopy_resident_bytes", "gauge", "Resident memory of the server process.", &[(String::new(), rss)]);
+        }
+        if let Some(c) = self.cells.get() {
+            let help = "Time to expand, quantise and encode one cell.";
+            c.expansion_time.render(&mut s, "canopy_cell_expansion_seconds", help);
         }
         s
     }
@@ -181,5 +315,42 @@ mod tests {
         assert!(text.contains("canopy_records_sent_total 20"), "{text}");
         assert!(text.contains("canopy_closed_total{reason=\"malformed\"} 1"), "{text}");
         assert!(text.contains("# TYPE canopy_clients gauge"), "{text}");
+        assert!(!text.contains("canopy_cell_"), "no cache, no cache families");
+    }
+
+    #[test]
+    fn the_cell_cache_families_and_expansion_percentiles() {
+        let m = Metrics::new();
+        let cells = Arc::new(CellMetrics::default());
+        m.attach_cells(Arc::clone(&cells));
+        // 98 fast expansions (≤ 64 µs), 2 slow ones (≤ 8 ms).
+        for _ in 0..98 {
+            cells.expansion_time.record(Duration::from_micros(40));
+        }
+        for _ in 0..2 {
+            cells.expansion_time.record(Duration::from_micros(5_000));
+        }
+        cells.expansions.store(100, Relaxed);
+        cells.hits.store(7, Relaxed);
+        assert_eq!(cells.expansion_time.quantile(0.5), Some(Duration::from_micros(64)));
+        assert_eq!(cells.expansion_time.quantile(0.98), Some(Duration::from_micros(64)));
+        assert_eq!(cells.expansion_time.quantile(0.99), Some(Duration::from_micros(8192)));
+        assert_eq!(Histogram::default().quantile(0.5), None);
+        let t0 = Instant::now();
+        m.tick(t0 + Duration::from_secs(2));
+        let text = m.render();
+        assert!(text.contains("canopy_cell_expansions_total 100"), "{text}");
+        assert!(text.contains("canopy_cell_cache_hits_total 7"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_p50_microseconds 64"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_p99_microseconds 8192"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_seconds_bucket{le=\"+Inf\"} 100"), "{text}");
+        assert!(text.contains("canopy_cell_expansion_seconds_count 100"), "{text}");
+        assert!(text.contains("# TYPE canopy_cell_expansion_seconds histogram"), "{text}");
+        let rate: u64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("canopy_cell_expansions_per_second "))
+            .and_then(|v| v.parse().ok())
+            .expect("the rate gauge");
+        assert!(rate > 0 && rate <= 100, "{rate}");
     }
 }

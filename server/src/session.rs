@@ -21,7 +21,7 @@
 //! or one mesh per species plus per-instance transforms ([`PayloadMode::Instanced`]). The records still go out in
 //! the explicit modes (a few bytes each), so the client's bookkeeping of what it holds stays the same.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -31,13 +31,10 @@ use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
 use canopy_protocol::messages::{
     ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
 };
-use canopy_protocol::record::ParamOverride;
-use canopy_protocol::{
-    CellBatch, CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits,
-};
+use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
 use crate::pacing::TokenBucket;
-use crate::store::WorldStore;
+use crate::store::{CellData, CellState, CellWaker, WorldStore};
 
 /// A cell out of view is scheduled as if it were this many times farther away.
 pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
@@ -216,17 +213,44 @@ use canopy_protocol::messages::ByKind;
 /// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
 pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
 
-/// One framed message to write.
+/// One framed message to write: `bytes`, then `body`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Transmit {
     /// Where it goes.
     pub stream: StreamId,
-    /// The framed bytes (shared, not copied, where every session sends the same: the species).
+    /// The framed bytes (shared, not copied, where every session sends the same: the species), or for a cell batch
+    /// sent procedurally the frame's head of this session (length, tags, cell, grant).
     pub bytes: Bytes,
+    /// The rest of the frame after `bytes`: a cell batch's body, encoded once per cell and shared by every
+    /// session that sends it ([`crate::batch`]); empty otherwise.
+    pub body: Bytes,
     /// What it is.
     pub class: MsgClass,
     /// Instance records it carries.
     pub records: u32,
+}
+
+impl Transmit {
+    /// The frame's length, bytes.
+    pub fn len(&self) -> usize {
+        self.bytes.len() + self.body.len()
+    }
+
+    /// Whether it carries no bytes (never, for a framed message).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The whole frame in one buffer (a copy when it has a body).
+    pub fn frame(&self) -> Bytes {
+        if self.body.is_empty() {
+            return self.bytes.clone();
+        }
+        let mut v = Vec::with_capacity(self.len());
+        v.extend_from_slice(&self.bytes);
+        v.extend_from_slice(&self.body);
+        Bytes::from(v)
+    }
 }
 
 /// Why a session must end. Each maps to a [`CloseCode`] and a reason for the client.
@@ -317,6 +341,13 @@ pub struct Session {
     aoi: Option<Aoi>,
     dirty: bool,
     held: HashMap<CellCoord, Held>,
+    /// Cells begun and not finished: kept alive here whatever the store evicts, so every batch of a grant comes
+    /// from the same records.
+    pinned: HashMap<CellCoord, Arc<CellData>>,
+    /// Woken by the store when a cell this session found pending is ready.
+    waker: Option<Arc<dyn CellWaker>>,
+    /// Cells found pending at store generation `waiting.0`: not asked again until the generation changes.
+    waiting: (u64, HashSet<CellCoord>),
     /// Cells to send (or finish), least important first, so the next is at the end.
     queue: Vec<(f32, CellCoord)>,
     urgent: VecDeque<Transmit>,
@@ -372,6 +403,9 @@ impl Session {
             aoi: None,
             dirty: false,
             held: HashMap::new(),
+            pinned: HashMap::new(),
+            waker: None,
+            waiting: (0, HashSet::new()),
             queue: Vec::new(),
             urgent: VecDeque::new(),
             staged: VecDeque::new(),
@@ -382,6 +416,12 @@ impl Session {
             paused: None,
             stats: SessionStats::default(),
         }
+    }
+
+    /// Have `waker` woken when a cell this session asked for and found pending is ready (then poll again). A
+    /// session never waits for a cell: it sends the next ready one meanwhile.
+    pub fn set_cell_waker(&mut self, waker: Arc<dyn CellWaker>) {
+        self.waker = Some(waker);
     }
 
     /// The phase the session is in.
@@ -446,7 +486,13 @@ impl Session {
                 // The hello moves to `next` (Hello), the welcome sent at once on to the phase after it.
                 self.phase = MsgClass::Welcome.next_phase(next)?;
                 let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
-                let t = Transmit { stream: StreamId::Control, bytes, class: MsgClass::Welcome, records: 0 };
+                let t = Transmit {
+                    stream: StreamId::Control,
+                    bytes,
+                    body: Bytes::new(),
+                    class: MsgClass::Welcome,
+                    records: 0,
+                };
                 self.urgent.push_back(t);
             }
             ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
@@ -490,6 +536,7 @@ impl Session {
         gone.sort_unstable_by_key(|(c, _)| *c);
         for (cell, h) in gone {
             self.held.remove(&cell);
+            self.pinned.remove(&cell);
             self.staged.retain(|(c, _)| *c != cell);
             let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
             let t = Self::transmit(StreamId::Lane(h.lane), &msg);
@@ -558,29 +605,32 @@ impl Session {
         {
             return None;
         }
-        if self.staged.is_empty() {
-            self.stage_next_unit();
+        // Nothing staged and no queued cell ready: the store wakes the session's waker when one is.
+        if self.staged.is_empty() && !self.stage_next_unit() {
+            return None;
         }
         let (_, t) = self.staged.pop_front()?;
         Some(self.account(now, t))
     }
 
     fn account(&mut self, now: Instant, t: Transmit) -> Transmit {
-        self.stats.bytes[t.class] += t.bytes.len() as u64;
+        let len = t.len();
+        self.stats.bytes[t.class] += len as u64;
         self.stats.messages[t.class] += 1;
         self.stats.records += u64::from(t.records);
-        self.unflushed += t.bytes.len();
+        self.unflushed += len;
         if let Some(b) = &self.cfg.send_budget {
-            b.add(t.bytes.len());
+            b.add(len);
         }
         if let Some(b) = &mut self.bucket {
-            b.take(now, t.bytes.len());
+            b.take(now, len);
         }
         t
     }
 
     fn transmit(stream: StreamId, msg: &ServerMsg) -> Transmit {
-        Transmit { stream, bytes: Bytes::from(msg.encode_framed()), class: msg.kind(), records: msg.records() }
+        let bytes = Bytes::from(msg.encode_framed());
+        Transmit { stream, bytes, body: Bytes::new(), class: msg.kind(), records: msg.records() }
     }
 
     /// Rebuild the send queue for the latest viewpoint: what the area of interest needs, in priority order.
@@ -642,13 +692,42 @@ impl Session {
         }
     }
 
-    /// Stage the next unit of the most important queued cell: a species (its program, or its mesh when
-    /// instanced), or a batch with, in the explicit modes, its geometry before it. The queue is not empty.
-    fn stage_next_unit(&mut self) {
-        let (key, cell) = *self.queue.last().expect("queue is not empty");
+    /// Stage the next unit of the most important queued cell that is ready: a species (its program, or its mesh
+    /// when instanced), or a batch with, in the explicit modes, its geometry before it. Cells found pending are
+    /// skipped (their expansion queued, the waker registered); `false` when no queued cell is ready.
+    fn stage_next_unit(&mut self) -> bool {
         let store = Arc::clone(&self.store);
-        let view = store.cell(cell).expect("queued cells are in the grid");
-        let total = view.records.len() as u16;
+        // Read before asking: a cell that becomes ready after it was found pending changes the generation.
+        let generation = store.generation();
+        if generation != self.waiting.0 {
+            self.waiting = (generation, HashSet::new());
+        }
+        for i in (0..self.queue.len()).rev() {
+            let (key, cell) = self.queue[i];
+            if self.waiting.1.contains(&cell) {
+                continue;
+            }
+            let data = match self.pinned.get(&cell) {
+                Some(d) => Arc::clone(d),
+                None => match store.cell(cell, self.waker.as_ref()) {
+                    CellState::Ready(d) => d,
+                    CellState::Pending => {
+                        self.waiting.1.insert(cell);
+                        continue;
+                    }
+                    CellState::Outside => unreachable!("queued cells are in the grid"),
+                },
+            };
+            self.stage_cell(i, key, &data);
+            return true;
+        }
+        false
+    }
+
+    /// Stage the next unit of queued cell `i` (see [`Session::stage_next_unit`]), its records `data`.
+    fn stage_cell(&mut self, i: usize, key: f32, data: &Arc<CellData>) {
+        let (store, cell) = (Arc::clone(&self.store), data.cell);
+        let total = data.records.len() as u16;
         let h = match self.held.get(&cell) {
             Some(h) => *h,
             None => {
@@ -665,7 +744,7 @@ impl Session {
         let per_unit = if mode == PayloadMode::UniqueMesh { 1 } else { self.cfg.batch_records };
         let start = usize::from(h.sent);
         let end = (start + per_unit).min(usize::from(total));
-        let records = &view.records[start..end];
+        let records = &data.records[start..end];
         let lane = StreamId::Lane(h.lane);
         // A species goes out just before the first batch that needs it, on the same lane: its program, or its mesh
         // when instanced; unique meshes need none.
@@ -681,14 +760,15 @@ impl Session {
                 }
                 _ => {
                     let bytes = store.species_frame(id).expect("records name species of the table");
-                    let t = Transmit { stream: lane, bytes, class: MsgClass::Species, records: 0 };
+                    let t = Transmit { stream: lane, bytes, body: Bytes::new(), class: MsgClass::Species, records: 0 };
                     self.staged.push_back((cell, t));
                 }
             }
+            self.pinned.insert(cell, Arc::clone(data));
             return;
         }
         // Record `i` of the cell is the instance `(cell, i)`.
-        let id = |i: usize| InstanceId::new(cell, i as u16).expect("a store's grid lies within the ids' cells");
+        let id = |i: usize| InstanceId::new(cell, i as u16).expect("a store's cells can be named");
         match (mode, &geometry) {
             (PayloadMode::UniqueMesh, Some(g)) => {
                 for id in (start..end).map(id) {
@@ -702,19 +782,33 @@ impl Session {
             }
             _ => {}
         }
-        let lo = view.overrides.partition_point(|o| usize::from(o.record) < start);
-        let hi = view.overrides.partition_point(|o| usize::from(o.record) < end);
-        let overrides: Vec<ParamOverride> =
-            view.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
-        let batch = CellBatch::new(cell, h.grant, total, start as u16, records.to_vec(), &overrides);
         if let Some(held) = self.held.get_mut(&cell) {
             held.sent = end as u16;
         }
         if end >= usize::from(total) {
-            self.queue.pop();
+            self.queue.remove(i);
+            self.pinned.remove(&cell);
+        } else {
+            self.pinned.insert(cell, Arc::clone(data));
         }
-        let msg = ServerMsg::Streaming(ServerStreaming::Cells(batch));
-        let t = Self::transmit(lane, &msg);
+        // Procedurally, the batch's body is the cell's, encoded once and shared; this session adds its head.
+        let shared = (mode == PayloadMode::Procedural)
+            .then(|| data.bodies(self.cfg.batch_records))
+            .flatten()
+            .and_then(|b| b.get(start / per_unit))
+            .filter(|b| usize::from(b.start) == start && usize::from(b.end) == end);
+        let t = match shared {
+            Some(b) => Transmit {
+                stream: lane,
+                bytes: b.head(cell, h.grant),
+                body: b.body.clone(),
+                class: MsgClass::Cells,
+                records: (end - start) as u32,
+            },
+            None => {
+                Self::transmit(lane, &ServerMsg::Streaming(ServerStreaming::Cells(data.batch(h.grant, start, end))))
+            }
+        };
         self.staged.push_back((cell, t));
     }
 }

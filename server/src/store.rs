@@ -1,8 +1,9 @@
 //! The world store: species and instance records arranged spatially (seed 001 §4: "the server stores the data for
 //! a very large virtual environment, composed of objects that are arranged spatially"), behind a trait so a
-//! session does not care where they live. The embedded default is [`GridStore`], an in-memory grid of cells.
+//! session does not care where they live or whether they exist yet: [`GridStore`] quantises every cell up front,
+//! [`crate::cells::CellCache`] expands cells on demand. Both hold a cell as a [`CellData`], quantised the same way.
 
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::Grid;
@@ -11,17 +12,145 @@ use canopy_protocol::messages::{
 };
 use canopy_protocol::record::{ParamOverride, quantize};
 use canopy_protocol::{
-    CellCoord, InstanceId, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
+    CellBatch, CellCoord, InstanceId, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
 };
-use canopy_worlds::world::{CellKey, World};
+use canopy_worlds::world::{CellKey, Placement, World};
 
-/// One cell's records as a store holds them: record `i` is the instance `(cell, i)` ([`InstanceId`]).
-#[derive(Clone, Copy, Debug)]
-pub struct CellView<'a> {
+use crate::batch::BatchBody;
+
+/// One cell's records as a store holds them, quantised: record `i` is the instance `(cell, i)` ([`InstanceId`]).
+/// Shared by `Arc` between the store and the sessions sending it (a cell being sent stays alive while a cache
+/// evicts it).
+#[derive(Debug)]
+pub struct CellData {
+    /// The cell.
+    pub cell: CellCoord,
     /// The cell's records, by index in the cell.
-    pub records: &'a [InstanceRecord],
+    pub records: Vec<InstanceRecord>,
     /// Parameter overrides, `record` = index within the cell, sorted by `(record, slot)`.
-    pub overrides: &'a [ParamOverride],
+    pub overrides: Vec<ParamOverride>,
+    /// The batches' shared bodies for one batch size (the first asked for: a server runs one).
+    bodies: OnceLock<(usize, Vec<BatchBody>)>,
+}
+
+impl CellData {
+    /// A cell of instances already quantised (`(species, [qx, qz], params)`, each step below [`POSITION_STEPS`]),
+    /// checked: species in a table of `species_count`, at most 65,535 instances, finite parameters, no slot twice.
+    pub fn from_quantised<'p>(
+        cell: CellCoord,
+        species_count: usize,
+        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
+    ) -> Result<CellData, StoreError> {
+        let n = instances.len();
+        if n > usize::from(u16::MAX) {
+            return Err(StoreError::CellFull(cell, n));
+        }
+        if !InstanceId::names(cell) {
+            return Err(StoreError::Cell(cell));
+        }
+        let mut records = Vec::with_capacity(n);
+        let mut overrides = Vec::new();
+        for (i, (species, q, params)) in instances.enumerate() {
+            // The cell can be named and holds at most 65,535 instances.
+            let id = InstanceId::new(cell, i as u16).expect("a nameable cell");
+            if usize::from(species) >= species_count {
+                return Err(StoreError::UnknownSpecies { id, species });
+            }
+            records.push(InstanceRecord::new(species as u8, q[0], q[1]));
+            let sorted;
+            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
+                params
+            } else {
+                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
+                let mut copy = params.to_vec();
+                copy.sort_by_key(|&(s, _)| s);
+                sorted = copy;
+                &sorted[..]
+            };
+            if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
+                return Err(StoreError::Param(id));
+            }
+            let record = i as u16;
+            overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
+        }
+        records.shrink_to_fit();
+        overrides.shrink_to_fit();
+        Ok(CellData { cell, records, overrides, bodies: OnceLock::new() })
+    }
+
+    /// A cell of a world's placements (`World::expand_cell`), quantised within the cell exactly as
+    /// [`World::quantize`] does after finding the cell.
+    pub fn from_placements(
+        grid: &Grid,
+        cell: CellCoord,
+        species_count: usize,
+        placements: &[Placement],
+    ) -> Result<CellData, StoreError> {
+        let origin = grid.cell_origin(cell);
+        let instances = placements.iter().map(|p| {
+            let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
+            (p.species, q, p.params.as_slice())
+        });
+        CellData::from_quantised(cell, species_count, instances)
+    }
+
+    /// Records `start..end` as a batch of `grant`, overrides renumbered from the batch's first record.
+    pub fn batch(&self, grant: u32, start: usize, end: usize) -> CellBatch {
+        let lo = self.overrides.partition_point(|o| usize::from(o.record) < start);
+        let hi = self.overrides.partition_point(|o| usize::from(o.record) < end);
+        let overrides: Vec<ParamOverride> =
+            self.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
+        let total = self.records.len() as u16;
+        CellBatch::new(self.cell, grant, total, start as u16, self.records[start..end].to_vec(), &overrides)
+    }
+
+    /// The shared bodies of the cell's batches of `batch_records` records (one empty batch for an empty cell),
+    /// encoded at the first call and kept; `None` for another batch size than the one kept (encode per session).
+    pub fn bodies(&self, batch_records: usize) -> Option<&[BatchBody]> {
+        let batch_records = batch_records.max(1);
+        let (size, bodies) = self.bodies.get_or_init(|| {
+            let n = self.records.len();
+            let starts = (0..n.max(1)).step_by(batch_records);
+            (batch_records, starts.map(|s| BatchBody::of(&self.batch(0, s, (s + batch_records).min(n)))).collect())
+        });
+        (*size == batch_records).then_some(bodies.as_slice())
+    }
+
+    /// Bytes it holds (records, overrides and the bodies encoded so far).
+    pub fn heap_bytes(&self) -> usize {
+        let bodies = self.bodies.get().map_or(0, |(_, b)| b.iter().map(BatchBody::heap_bytes).sum());
+        std::mem::size_of::<CellData>()
+            + self.records.capacity() * std::mem::size_of::<InstanceRecord>()
+            + self.overrides.capacity() * std::mem::size_of::<ParamOverride>()
+            + bodies
+    }
+}
+
+/// A cell as a store answers for it.
+#[derive(Clone, Debug)]
+pub enum CellState {
+    /// Its records, ready to send.
+    Ready(Arc<CellData>),
+    /// Being expanded: the waker passed along is woken when it is ready (ask again then).
+    Pending,
+    /// Outside the grid.
+    Outside,
+}
+
+impl CellState {
+    /// The records, if ready.
+    pub fn ready(self) -> Option<Arc<CellData>> {
+        match self {
+            CellState::Ready(d) => Some(d),
+            _ => None,
+        }
+    }
+}
+
+/// Told when cells a session asked for became ready (the driver's wake-up; the session itself never waits).
+pub trait CellWaker: Send + Sync {
+    /// A cell this waker was registered for is ready.
+    fn wake(&self);
 }
 
 /// Where a session reads the world from.
@@ -36,12 +165,22 @@ pub trait WorldStore: Send + Sync + 'static {
     fn species_frame(&self, id: u8) -> Option<Bytes>;
     /// The welcome's part that is the same for every client, encoded once.
     fn welcome_head(&self) -> &WelcomeHead;
-    /// A cell's records; `None` for a cell outside the grid. A cell inside the grid without instances is empty.
-    fn cell(&self, c: CellCoord) -> Option<CellView<'_>>;
-    /// The cell grid; it lies within the cells an [`InstanceId`] can name, so record `i` of a cell is the instance
-    /// `(cell, i)`.
+    /// A cell's records, never waiting: ready, pending (its expansion is queued, once however many ask, and
+    /// `waker`, if any, is woken when it is ready), or outside the grid. A cell inside the grid without instances is
+    /// ready and empty.
+    fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState;
+    /// A number that changes whenever a pending cell becomes ready: while it is unchanged, a cell found pending
+    /// is still pending, so a session need not ask again (a store whose cells are always ready keeps it at 0).
+    fn generation(&self) -> u64 {
+        0
+    }
+    /// The cell grid.
     fn grid(&self) -> &Grid {
         &self.world().grid
+    }
+    /// The cell cache's counters, for a store that expands cells on demand.
+    fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
+        None
     }
 }
 
@@ -62,11 +201,10 @@ pub enum StoreError {
         /// The species id.
         species: u16,
     },
-    /// A cell was added twice or out of row-major order, lies outside the grid, or would take the store past
-    /// `u32::MAX` records.
-    #[error("cell {0:?} is outside the grid, repeated, out of order, or past the store's record count")]
+    /// A cell was added twice or out of order, lies outside the grid, or outside the cells ids can name.
+    #[error("cell {0:?} is outside the grid or the cells ids can name, repeated, or out of order")]
     Cell(CellCoord),
-    /// The grid's numbers are not acceptable, or it reaches past the cells an [`InstanceId`] can name.
+    /// The grid's numbers are not acceptable.
     #[error("grid: {0}")]
     Grid(#[from] canopy_protocol::aoi::GridError),
     /// The world's description (terrain, name) would not pass a client's check of the welcome.
@@ -80,51 +218,72 @@ pub enum StoreError {
     Param(InstanceId),
 }
 
-/// The embedded default store: every instance's record, cells in row-major order (z, then x) as ranges of them,
-/// each cell's records by index in the cell.
+/// What every store tells every client the same way: the world's description, the species table and frames, the
+/// welcome's shared part.
 #[derive(Debug)]
-pub struct GridStore {
+pub struct StoreHead {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
     species_frames: Vec<Bytes>,
     welcome: WelcomeHead,
-    cells: Cells,
 }
 
-/// Records and parameter overrides of a grid's cells, row-major: cell `i` holds records
-/// `starts[i][0]..starts[i + 1][0]` (by index in the cell) and overrides `starts[i][1]..starts[i + 1][1]`.
+impl StoreHead {
+    /// The head of a world with `instances` instances, from a builder's description.
+    fn new(mut b: StoreBuilder, instances: u32) -> StoreHead {
+        b.world.instances = instances;
+        let welcome = WelcomeHead::new(&b.world, &b.species);
+        StoreHead { world: b.world, species: b.species, species_frames: b.species_frames, welcome }
+    }
+
+    /// The head of a loaded world: its name, seed, cell grid, terrain and species, and its instance count (0 for
+    /// a world expanded on demand, which has no count).
+    pub fn of_world(world: &World) -> Result<StoreHead, StoreError> {
+        let b = StoreBuilder::of_world(world)?;
+        Ok(StoreHead::new(b, world.instances.len() as u32))
+    }
+
+    /// The description sent in the welcome.
+    pub fn world(&self) -> &WorldInfo {
+        &self.world
+    }
+
+    /// The species table.
+    pub fn species(&self) -> &[SpeciesEntry] {
+        &self.species
+    }
+
+    /// The encoded graph of species `id`.
+    pub fn species_graph(&self, id: u8) -> Option<&[u8]> {
+        let frame = self.species_frames.get(usize::from(id))?;
+        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+    }
+
+    /// The framed species message of species `id`.
+    pub fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.species_frames.get(usize::from(id)).cloned()
+    }
+
+    /// The welcome's shared part.
+    pub fn welcome_head(&self) -> &WelcomeHead {
+        &self.welcome
+    }
+}
+
+/// The row-major index of a cell of the grid.
+pub(crate) fn cell_index(grid: &Grid, c: CellCoord) -> Option<usize> {
+    let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
+    let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
+    grid.contains(c).then(|| (dz * width + dx) as usize)
+}
+
+/// The eager store: every cell quantised up front, row-major (z, then x). Tests and small worlds use it; a server
+/// of a large world uses [`crate::cells::CellCache`], which quantises cells the same way ([`CellData`]) on demand.
 #[derive(Debug)]
-struct Cells {
-    records: Vec<InstanceRecord>,
-    /// Overrides, `record` = index within the cell.
-    overrides: Vec<ParamOverride>,
-    starts: Vec<[u32; 2]>,
-}
-
-impl Cells {
-    /// The row-major index of a cell of the grid.
-    fn index(grid: &Grid, c: CellCoord) -> Option<usize> {
-        let width = i64::from(grid.max.x) - i64::from(grid.min.x) + 1;
-        let (dx, dz) = (i64::from(c.x) - i64::from(grid.min.x), i64::from(c.z) - i64::from(grid.min.z));
-        grid.contains(c).then(|| (dz * width + dx) as usize)
-    }
-
-    /// How many cells the grid has.
-    fn count(grid: &Grid) -> usize {
-        Cells::index(grid, grid.max).map_or(0, |i| i + 1)
-    }
-
-    /// Cells begun so far (added or skipped).
-    fn len(&self) -> usize {
-        self.starts.len() - 1
-    }
-
-    /// Close every cell before `index` not begun yet: they are empty.
-    fn pad_to(&mut self, index: usize) {
-        let last = *self.starts.last().expect("starts has its first entry");
-        self.starts.resize(self.starts.len().max(index + 1), last);
-    }
+pub struct GridStore {
+    head: StoreHead,
+    cells: Vec<Arc<CellData>>,
 }
 
 /// One instance as a store builder takes it: world position and parameters that differ from the defaults.
@@ -147,7 +306,9 @@ pub struct StoreBuilder {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     species_frames: Vec<Bytes>,
-    cells: Cells,
+    cells: Vec<Arc<CellData>>,
+    /// Instances added so far.
+    count: u32,
 }
 
 impl StoreBuilder {
@@ -193,8 +354,22 @@ impl StoreBuilder {
         if !InstanceId::names(grid.min) || !InstanceId::names(grid.max) {
             return Err(StoreError::Grid(canopy_protocol::aoi::GridError::Range { min: grid.min, max: grid.max }));
         }
-        let cells = Cells { records: vec![], overrides: vec![], starts: vec![[0, 0]] };
-        Ok(StoreBuilder { world, species: entries, species_frames, cells })
+        Ok(StoreBuilder { world, species: entries, species_frames, cells: vec![], count: 0 })
+    }
+
+    /// A builder for a loaded world's description (no cells added yet).
+    fn of_world(world: &World) -> Result<StoreBuilder, StoreError> {
+        let first = world.first_cell();
+        let dims = world.cell_dims();
+        let grid = Grid {
+            origin: world.cell_origin(CellKey { x: 0, z: 0 }),
+            cell_size: world.cell_size,
+            min: CellCoord::new(first.x, first.z),
+            max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
+        };
+        let terrain = crate::terrain::describe(&world.terrain);
+        let graphs = world.species.iter().map(|s| &s.graph);
+        StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)
     }
 
     /// Add one cell's instances, by index in the cell (instance `i` is `(cell, i)`). Positions are quantised to the
@@ -206,125 +381,68 @@ impl StoreBuilder {
             let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
             (p.species, q, p.params.as_slice())
         });
-        self.add_quantised(cell, quantised)
-    }
-
-    /// Add one cell's instances already quantised (`(species, [qx, qz], params)`, each step below
-    /// [`POSITION_STEPS`]).
-    fn add_quantised<'p>(
-        &mut self,
-        cell: CellCoord,
-        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
-    ) -> Result<(), StoreError> {
-        let index = match Cells::index(&self.world.grid, cell) {
-            Some(i) if i >= self.cells.len() => i,
-            _ => return Err(StoreError::Cell(cell)),
-        };
-        let n = instances.len();
-        if n > usize::from(u16::MAX) {
-            return Err(StoreError::CellFull(cell, n));
-        }
-        self.record_count().checked_add(n as u32).ok_or(StoreError::Cell(cell))?;
-        self.cells.pad_to(index);
-        let cells = &mut self.cells;
-        let (records, overrides) = (cells.records.len(), cells.overrides.len());
-        let added = Self::push_instances(cells, self.species.len(), cell, instances);
-        if added.is_err() {
-            // Leave the builder as it was: the cell was not added.
-            cells.records.truncate(records);
-            cells.overrides.truncate(overrides);
-            return added;
-        }
-        cells.starts.push([cells.records.len() as u32, cells.overrides.len() as u32]);
+        let index = self.next_index(cell)?;
+        let data = CellData::from_quantised(cell, self.species.len(), quantised)?;
+        self.push(index, data);
         Ok(())
     }
 
-    fn push_instances<'p>(
-        cells: &mut Cells,
-        species_count: usize,
-        cell: CellCoord,
-        instances: impl ExactSizeIterator<Item = (u16, [u16; 2], &'p [(u16, f32)])>,
-    ) -> Result<(), StoreError> {
-        cells.records.reserve(instances.len());
-        for (i, (species, q, params)) in instances.enumerate() {
-            // The grid lies within the cells ids can name (`StoreBuilder::new`) and the cell holds at most 65,535.
-            let id = || InstanceId::new(cell, i as u16).expect("a nameable cell");
-            if usize::from(species) >= species_count {
-                return Err(StoreError::UnknownSpecies { id: id(), species });
-            }
-            cells.records.push(InstanceRecord::new(species as u8, q[0], q[1]));
-            let sorted;
-            let params = if params.is_sorted_by(|a, b| a.0 < b.0) {
-                params
-            } else {
-                // Out of order (worlds keep them sorted): sort a copy; a repeated slot stays next to itself.
-                let mut copy = params.to_vec();
-                copy.sort_by_key(|&(s, _)| s);
-                sorted = copy;
-                &sorted[..]
-            };
-            if params.windows(2).any(|w| w[0].0 == w[1].0) || params.iter().any(|(_, v)| !v.is_finite()) {
-                return Err(StoreError::Param(id()));
-            }
-            let record = i as u16;
-            cells.overrides.extend(params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
+    /// The index of `cell` if it may be added next (inside the grid, after every cell added so far).
+    fn next_index(&self, cell: CellCoord) -> Result<usize, StoreError> {
+        match cell_index(&self.world.grid, cell) {
+            Some(i) if i >= self.cells.len() => Ok(i),
+            _ => Err(StoreError::Cell(cell)),
         }
-        Ok(())
     }
 
-    /// How many instances the cells added so far hold.
-    fn record_count(&self) -> u32 {
-        self.cells.records.len() as u32
+    /// Add a quantised cell at `index`, the cells before it not added empty.
+    fn push(&mut self, index: usize, data: CellData) {
+        self.pad_to(index);
+        self.count = self.count.saturating_add(data.records.len() as u32);
+        self.cells.push(Arc::new(data));
+    }
+
+    /// Add empty cells up to (not including) `index`.
+    fn pad_to(&mut self, index: usize) {
+        let grid = self.world.grid;
+        let width = (i64::from(grid.max.x) - i64::from(grid.min.x) + 1) as usize;
+        while self.cells.len() < index {
+            let i = self.cells.len();
+            let cell = CellCoord::new(grid.min.x + (i % width) as i32, grid.min.z + (i / width) as i32);
+            let empty = CellData::from_quantised(cell, 0, std::iter::empty()).expect("an empty cell");
+            self.cells.push(Arc::new(empty));
+        }
     }
 
     /// Finish: cells of the grid that were not added are empty.
     pub fn finish(mut self) -> GridStore {
-        self.world.instances = self.record_count();
-        self.cells.pad_to(Cells::count(&self.world.grid));
-        let welcome = WelcomeHead::new(&self.world, &self.species);
-        GridStore {
-            world: self.world,
-            species: self.species,
-            species_frames: self.species_frames,
-            welcome,
-            cells: self.cells,
-        }
+        let count = cell_index(&self.world.grid, self.world.grid.max).map_or(0, |i| i + 1);
+        self.pad_to(count);
+        let cells = std::mem::take(&mut self.cells);
+        let instances = self.count;
+        GridStore { head: StoreHead::new(self, instances), cells }
     }
 }
 
 impl GridStore {
-    /// The store of a loaded world: its species table, its cells with their instances by index in the cell
-    /// ([`World::cell_instances`]), quantised positions exactly as [`World::quantize`] gives them, and its terrain
+    /// The store of a loaded world: its species table, its cells expanded ([`World::expand_cell`]) with their
+    /// instances by index in the cell, quantised positions exactly as [`World::quantize`] gives them, and its terrain
     /// description for the welcome.
     pub fn from_world(world: &World) -> Result<GridStore, StoreError> {
-        let first = world.first_cell();
-        let dims = world.cell_dims();
-        let grid = Grid {
-            origin: world.cell_origin(CellKey { x: 0, z: 0 }),
-            cell_size: world.cell_size,
-            min: CellCoord::new(first.x, first.z),
-            max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
-        };
-        let terrain = crate::terrain::describe(&world.terrain);
-        let graphs = world.species.iter().map(|s| &s.graph);
-        let mut b = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?;
+        let mut b = StoreBuilder::of_world(world)?;
+        let grid = b.world.grid;
         for c in world.cells() {
-            let range = world.cell_instances(c);
             let cell = CellCoord::new(c.x, c.z);
-            // The cell is known: quantise within it (what `World::quantize` does after finding the cell).
-            let origin = grid.cell_origin(cell);
-            let instances = world.instances[range.start as usize..range.end as usize].iter().map(|p| {
-                let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
-                (p.species, q, p.params.as_slice())
-            });
-            b.add_quantised(cell, instances)?;
+            let index = b.next_index(cell)?;
+            let data = CellData::from_placements(&grid, cell, b.species.len(), &world.expand_cell(c))?;
+            b.push(index, data);
         }
         Ok(b.finish())
     }
 
     /// How many cells hold at least one instance.
     pub fn occupied_cells(&self) -> usize {
-        self.cells.starts.windows(2).filter(|w| w[1][0] > w[0][0]).count()
+        self.cells.iter().filter(|c| !c.records.is_empty()).count()
     }
 
     /// Share it between sessions.
@@ -335,32 +453,29 @@ impl GridStore {
 
 impl WorldStore for GridStore {
     fn world(&self) -> &WorldInfo {
-        &self.world
+        self.head.world()
     }
 
     fn species(&self) -> &[SpeciesEntry] {
-        &self.species
+        self.head.species()
     }
 
     fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        let frame = self.species_frames.get(usize::from(id))?;
-        Some(&frame[frame.len() - self.species[usize::from(id)].size as usize..])
+        self.head.species_graph(id)
     }
 
     fn species_frame(&self, id: u8) -> Option<Bytes> {
-        self.species_frames.get(usize::from(id)).cloned()
+        self.head.species_frame(id)
     }
 
     fn welcome_head(&self) -> &WelcomeHead {
-        &self.welcome
+        self.head.welcome_head()
     }
 
-    fn cell(&self, c: CellCoord) -> Option<CellView<'_>> {
-        let i = Cells::index(&self.world.grid, c)?;
-        let ([r0, o0], [r1, o1]) = (self.cells.starts[i], self.cells.starts[i + 1]);
-        Some(CellView {
-            records: &self.cells.records[r0 as usize..r1 as usize],
-            overrides: &self.cells.overrides[o0 as usize..o1 as usize],
-        })
+    fn cell(&self, c: CellCoord, _waker: Option<&Arc<dyn CellWaker>>) -> CellState {
+        match cell_index(self.grid(), c) {
+            Some(i) => CellState::Ready(Arc::clone(&self.cells[i])),
+            None => CellState::Outside,
+        }
     }
 }

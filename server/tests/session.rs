@@ -51,8 +51,9 @@ fn config() -> SessionConfig {
 }
 
 fn decode(t: &Transmit) -> ServerMsg {
-    assert_eq!(u32::from_le_bytes(t.bytes[..4].try_into().unwrap()) as usize, t.bytes.len() - 4);
-    ServerMsg::decode(&t.bytes[4..]).unwrap()
+    let frame = t.frame();
+    assert_eq!(u32::from_le_bytes(frame[..4].try_into().unwrap()) as usize, frame.len() - 4);
+    ServerMsg::decode(&frame[4..]).unwrap()
 }
 
 /// A session driven to the streaming phase at `vp`, with its welcome drained.
@@ -62,7 +63,7 @@ fn streaming(store: &Arc<dyn WorldStore>, cfg: SessionConfig, vp: Viewpoint, hav
     let w = s.poll_transmit(t0).unwrap();
     assert_eq!(w.stream, StreamId::Control);
     assert!(matches!(decode(&w), ServerMsg::Handshake(ServerHandshake::Welcome(_))));
-    s.on_flushed(w.bytes.len());
+    s.on_flushed(w.len());
     assert_eq!(s.phase(), Phase::Welcomed);
     s.handle(t0, ClientMsg::ready(have, vp)).unwrap();
     assert_eq!(s.phase(), Phase::Streaming);
@@ -73,7 +74,7 @@ fn streaming(store: &Arc<dyn WorldStore>, cfg: SessionConfig, vp: Viewpoint, hav
 fn drain(s: &mut Session, now: Instant) -> Vec<(StreamId, ServerMsg)> {
     let mut out = vec![];
     while let Some(t) = s.poll_transmit(now) {
-        s.on_flushed(t.bytes.len());
+        s.on_flushed(t.len());
         out.push((t.stream, decode(&t)));
     }
     out
@@ -112,7 +113,7 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
         assert!(matches!(lane, StreamId::Lane(_)));
         match m {
             ServerMsg::Streaming(ServerStreaming::Cells(b)) => {
-                let view = store.cell(b.cell).unwrap();
+                let view = store.cell(b.cell, None).ready().unwrap();
                 assert_eq!(usize::from(b.total), view.records.len());
                 for (i, r) in b.records.iter().enumerate() {
                     assert!(species_sent.contains(&r.species), "species {} sent after its first instance", r.species);
@@ -137,7 +138,7 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
         }
     }
     for (c, ids) in &got {
-        let v = store.cell(*c).unwrap();
+        let v = store.cell(*c, None).ready().unwrap();
         // Every record of the cell once, named (cell, index in the cell).
         let expected: Vec<InstanceId> = (0..v.records.len()).map(|i| InstanceId::new(*c, i as u16).unwrap()).collect();
         assert_eq!(*ids, expected);
@@ -298,8 +299,8 @@ fn a_bandwidth_cap_paces_and_keeps_the_nearest_first() {
     while !s.is_complete() && now < t0 + Duration::from_secs(39) {
         match s.poll_transmit(now) {
             Some(t) => {
-                s.on_flushed(t.bytes.len());
-                sent_by_second[now.duration_since(t0).as_secs() as usize] += t.bytes.len();
+                s.on_flushed(t.len());
+                sent_by_second[now.duration_since(t0).as_secs() as usize] += t.len();
                 let cell = cells_of(&[(t.stream, decode(&t))]);
                 if order.last() != cell.first() {
                     order.extend(cell);
@@ -328,7 +329,7 @@ fn the_window_holds_back_until_bytes_are_flushed() {
     let mut s = streaming(&store, cfg, Viewpoint::at(0, [0.0, 0.0], 200.0), vec![0, 1, 2], t0);
     let mut held = 0;
     while let Some(t) = s.poll_transmit(t0) {
-        held += t.bytes.len();
+        held += t.len();
     }
     assert!((300..300 + 200).contains(&held), "{held}");
     assert!(!s.is_complete());
@@ -407,7 +408,7 @@ fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
         // Send a little, not all: partially sent cells must be bounded too.
         for _ in 0..(x % 20) {
             if let Some(t) = s.poll_transmit(now) {
-                s.on_flushed(t.bytes.len());
+                s.on_flushed(t.len());
             }
         }
         let aoi = canopy_protocol::aoi::Aoi::new(&vp, &cfg.aoi);
@@ -514,7 +515,7 @@ fn a_release_takes_back_staged_geometry() {
         streaming(&store, payload_config(PayloadMode::UniqueMesh), Viewpoint::at(0, [10.0, 10.0], 100.0), vec![], t0);
     // Start one unit, then jump far away before it is through: its cell is released, the rest never goes.
     let first = s.poll_transmit(t0).unwrap();
-    s.on_flushed(first.bytes.len());
+    s.on_flushed(first.len());
     let far = Viewpoint::at(1, [-200.0, -200.0], 30.0);
     s.handle(t0, ClientMsg::viewpoint(far)).unwrap();
     let msgs = drain(&mut s, t0);
@@ -623,7 +624,7 @@ fn a_session_never_flushed_stays_within_its_window_through_teleports() {
         }
         while let Some(t) = s.poll_transmit(now) {
             if t.class != MsgClass::Release {
-                largest = largest.max(t.bytes.len());
+                largest = largest.max(t.len());
             }
         }
         most = most.max(s.unflushed());
@@ -647,7 +648,7 @@ fn the_shared_send_budget_pauses_sessions_until_bytes_are_flushed() {
     // Neither flushes: together they stop at the shared budget, far below their windows.
     let mut a_sent = vec![];
     while let Some(t) = a.poll_transmit(t0) {
-        a_sent.push(t.bytes.len());
+        a_sent.push(t.len());
     }
     while b.poll_transmit(t0).is_some() {}
     assert!(budget.spent());

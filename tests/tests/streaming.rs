@@ -16,7 +16,7 @@ use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{ClientHandshake, Hello, ServerMsgKind};
 use canopy_protocol::{ClientMsg, CloseCode};
-use canopy_server::{GridStore, Server, ServerConfig, SessionConfig, WorldStore};
+use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig, WorldStore};
 use canopy_worlds::world::World;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -25,11 +25,14 @@ fn world() -> Arc<World> {
     Arc::clone(WORLD.get_or_init(|| Arc::new(World::default_world())))
 }
 
+/// The server's store as `canopy-server` runs it: cells expanded on demand by worker threads, here into a cache
+/// (2 MiB) smaller than the world, so bots walking and teleporting also exercise eviction and re-expansion.
 fn store() -> Arc<dyn WorldStore> {
     static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
-    Arc::clone(
-        STORE.get_or_init(|| GridStore::from_world(&world()).expect("the default world builds a store").shared()),
-    )
+    Arc::clone(STORE.get_or_init(|| {
+        let cfg = CellCacheConfig { limit_bytes: 2 << 20, workers: 2, ..CellCacheConfig::default() };
+        CellCache::new((*world()).clone(), cfg).expect("the default world builds a store").shared()
+    }))
 }
 
 async fn start_server() -> Server {
@@ -229,6 +232,19 @@ async fn the_metrics_endpoint_serves_prometheus_text() {
     assert!(body.contains(&format!("canopy_records_sent_total {records}")), "{body}");
     assert!(body.contains("canopy_sent_bytes_total{class=\"cells\"}"));
     assert!(body.contains("canopy_records_per_second"));
+    // The cell cache's families: the client's cells were expanded by the workers (or found cached).
+    let value = |name: &str| -> u64 {
+        let line =
+            body.lines().find(|l| l.starts_with(&format!("{name} "))).unwrap_or_else(|| panic!("{name}: {body}"));
+        line[name.len() + 1..].parse().unwrap()
+    };
+    assert!(value("canopy_cell_expansions_total") > 0, "{body}");
+    assert!(value("canopy_cell_cache_hits_total") > 0, "{body}");
+    assert!(value("canopy_cell_cache_bytes") <= value("canopy_cell_cache_limit_bytes"), "{body}");
+    assert!(value("canopy_cell_cache_cells") > 0, "{body}");
+    assert!(value("canopy_cell_expansion_p99_microseconds") >= value("canopy_cell_expansion_p50_microseconds"));
+    assert!(body.contains("canopy_cell_expansion_seconds_bucket{le=\"+Inf\"}"), "{body}");
+    assert!(body.contains("canopy_cell_expansions_per_second"), "{body}");
     c.close();
     server.shutdown(Duration::from_secs(1)).await;
 }

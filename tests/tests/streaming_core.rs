@@ -53,8 +53,8 @@ impl Pair {
     fn step(&mut self, n: usize, m: usize) {
         for _ in 0..n {
             let Some(t) = self.server.poll_transmit(self.now) else { break };
-            self.server.on_flushed(t.bytes.len());
-            self.lanes.entry(t.stream).or_default().push_back(t.bytes.to_vec());
+            self.server.on_flushed(t.len());
+            self.lanes.entry(t.stream).or_default().push_back(t.frame().to_vec());
         }
         for _ in 0..m {
             let busy: Vec<StreamId> = self.lanes.iter().filter(|(_, q)| !q.is_empty()).map(|(k, _)| *k).collect();

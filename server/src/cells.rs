@@ -1,0 +1,338 @@
+//! The shared cell cache: a [`WorldStore`] that expands cells on demand ([`World::expand_cell`]) on a pool of
+//! worker threads and keeps them, quantised ([`CellData`], exactly as [`crate::store::GridStore`] holds them) with
+//! their batches encoded once ([`CellData::bodies`]), in an LRU bounded by bytes.
+//!
+//! A session never waits: asking for a cell that is not cached queues its expansion (once, however many sessions
+//! ask while it is queued or running) and answers [`CellState::Pending`]; the session sends other cells meanwhile
+//! and the waker it passed is woken when the cell is ready. Evicting a cell only drops the cache's reference: a
+//! session in the middle of sending it keeps it alive by its `Arc`, and asking again expands it again to the same
+//! bytes (expansion is a pure function of the manifest and the cell).
+//!
+//! Memory bound: the cached cells' bytes ([`CellData::heap_bytes`]: records, overrides, encoded bodies, plus an
+//! estimate of the index's cost per cell) stay at or below the limit, except that a single cell larger than the
+//! whole limit is still kept, alone, so it can be sent.
+//! Cells pinned by sessions mid-send are bounded per session by its area of interest.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::atomic::AtomicU64;
+use std::sync::atomic::Ordering::{Acquire, Relaxed, Release};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use bytes::Bytes;
+use canopy_protocol::CellCoord;
+use canopy_protocol::aoi::Grid;
+use canopy_protocol::messages::{SpeciesEntry, WelcomeHead, WorldInfo};
+use canopy_worlds::world::{CellKey, World};
+use tracing::{error, warn};
+
+use crate::metrics::CellMetrics;
+use crate::store::{CellData, CellState, CellWaker, StoreError, StoreHead, WorldStore};
+
+/// How a cell cache runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CellCacheConfig {
+    /// Most bytes of cached cells.
+    pub limit_bytes: usize,
+    /// Worker threads expanding cells; 0: none, cells queued are expanded only by [`CellCache::run_queued`]
+    /// (deterministic tests).
+    pub workers: usize,
+    /// The batch size whose bodies are encoded with each cell (the sessions' [`crate::SessionConfig::batch_records`]).
+    pub batch_records: usize,
+}
+
+impl Default for CellCacheConfig {
+    fn default() -> Self {
+        CellCacheConfig {
+            limit_bytes: 256 << 20,
+            workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            batch_records: crate::SessionConfig::default().batch_records,
+        }
+    }
+}
+
+/// Bytes a cached cell costs beyond its [`CellData::heap_bytes`]: its entry, its LRU slot and their share of the
+/// maps' tables (an estimate, counted against the bound).
+const ENTRY_OVERHEAD: usize = std::mem::size_of::<Entry>() + std::mem::size_of::<(u64, CellCoord)>() + 64;
+
+/// A cached cell and when it was last used.
+struct Entry {
+    data: Arc<CellData>,
+    bytes: usize,
+    used: u64,
+}
+
+/// What the lock guards.
+#[derive(Default)]
+struct State {
+    cached: HashMap<CellCoord, Entry>,
+    /// Cached cells by last use, oldest first.
+    lru: BTreeMap<u64, CellCoord>,
+    bytes: usize,
+    /// The most bytes ever cached at once.
+    peak: usize,
+    clock: u64,
+    /// Cells queued or being expanded, with the wakers to wake when each is ready.
+    pending: HashMap<CellCoord, Vec<Arc<dyn CellWaker>>>,
+    queue: VecDeque<CellCoord>,
+    stop: bool,
+}
+
+/// What the cache and its workers share.
+struct Shared {
+    world: World,
+    grid: Grid,
+    species_count: usize,
+    cfg: CellCacheConfig,
+    state: Mutex<State>,
+    work: Condvar,
+    metrics: Arc<CellMetrics>,
+    /// Bumped (under the lock, after caching) each time a cell becomes ready: [`WorldStore::generation`].
+    generation: AtomicU64,
+}
+
+/// The shared cell cache (see the module docs).
+pub struct CellCache {
+    head: StoreHead,
+    shared: Arc<Shared>,
+    workers: Vec<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for CellCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CellCache").field("cfg", &self.shared.cfg).field("workers", &self.workers.len()).finish()
+    }
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Expand, quantise and encode one cell (no lock held). One cell at a time, never a block through
+    /// [`World::expand_cells`] (which shares the neighbourhood's work: 2–4× less per cell on the highlands world):
+    /// on the default world today, a cell near explicit instances comes out differently depending on the block it is
+    /// expanded in, so a re-expansion would not give the same bytes.
+    fn expand(&self, c: CellCoord) -> Result<CellData, StoreError> {
+        let key = CellKey { x: c.x, z: c.z };
+        let placements = self.world.expand_cell(key);
+        let data =
+            CellData::from_placements(&self.grid, c, self.species_count, &placements)?;
+        data.bodies(self.cfg.batch_records);
+        Ok(data)
+    }
+
+    /// Expand `c` and cache it, then wake whoever waits for it.
+    fn complete(&self, c: CellCoord) {
+        let started = Instant::now();
+        let data = match self.expand(c) {
+            Ok(data) => data,
+            Err(e) => {
+                // Worlds are checked when loaded, so this is a bug; the cell goes out empty rather than never.
+                error!(cell = ?c, "cell expansion failed: {e}");
+                self.metrics.failures.fetch_add(1, Relaxed);
+                CellData::from_quantised(c, 0, std::iter::empty()).expect("an empty cell")
+            }
+        };
+        self.metrics.expansion_time.record(started.elapsed());
+        let data = Arc::new(data);
+        let bytes = data.heap_bytes() + ENTRY_OVERHEAD;
+        let wakers = {
+            let mut st = self.lock();
+            if bytes > self.cfg.limit_bytes {
+                warn!(cell = ?c, bytes, limit = self.cfg.limit_bytes, "one cell is larger than the cell cache");
+            }
+            while st.bytes + bytes > self.cfg.limit_bytes {
+                let Some((_, old)) = st.lru.pop_first() else { break };
+                let e = st.cached.remove(&old).expect("the LRU names cached cells");
+                st.bytes -= e.bytes;
+                self.metrics.evictions.fetch_add(1, Relaxed);
+            }
+            st.clock += 1;
+            let used = st.clock;
+            st.lru.insert(used, c);
+            st.cached.insert(c, Entry { data, bytes, used });
+            st.bytes += bytes;
+            st.peak = st.peak.max(st.bytes);
+            self.metrics.bytes.store(st.bytes as u64, Relaxed);
+            self.metrics.cells.store(st.cached.len() as u64, Relaxed);
+            self.metrics.expansions.fetch_add(1, Relaxed);
+            self.generation.fetch_add(1, Release);
+            st.pending.remove(&c).unwrap_or_default()
+        };
+        for w in wakers {
+            w.wake();
+        }
+    }
+
+    /// Take the next queued cell, waiting for one unless `wait` is false; `None` when stopped or (not waiting)
+    /// when the queue is empty.
+    fn next(&self, wait: bool) -> Option<CellCoord> {
+        let mut st = self.lock();
+        loop {
+            if st.stop {
+                return None;
+            }
+            if let Some(c) = st.queue.pop_front() {
+                self.metrics.queued.store(st.queue.len() as u64, Relaxed);
+                return Some(c);
+            }
+            if !wait {
+                return None;
+            }
+            st = self.work.wait(st).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
+impl CellCache {
+    /// A cache of `world`'s cells; starts `cfg.workers` worker threads.
+    pub fn new(world: World, cfg: CellCacheConfig) -> Result<CellCache, StoreError> {
+        let head = StoreHead::of_world(&world)?;
+        let metrics = Arc::new(CellMetrics::default());
+        metrics.limit.store(cfg.limit_bytes as u64, Relaxed);
+        let shared = Arc::new(Shared {
+            grid: head.world().grid,
+            species_count: head.species().len(),
+            world,
+            cfg,
+            state: Mutex::new(State::default()),
+            work: Condvar::new(),
+            metrics,
+            generation: AtomicU64::new(0),
+        });
+        let workers = (0..cfg.workers)
+            .map(|i| {
+                let shared = Arc::clone(&shared);
+                std::thread::Builder::new()
+                    .name(format!("canopy-cells-{i}"))
+                    .spawn(move || {
+                        while let Some(c) = shared.next(true) {
+                            shared.complete(c);
+                        }
+                    })
+                    .expect("spawning a cell worker")
+            })
+            .collect();
+        Ok(CellCache { head, shared, workers })
+    }
+
+    /// Share it between sessions.
+    pub fn shared(self) -> Arc<dyn WorldStore> {
+        Arc::new(self)
+    }
+
+    /// Expand every queued cell on this thread, cells queued meanwhile included; how many. With no workers this
+    /// is the only way cells get expanded (tests run the pool deterministically with it).
+    pub fn run_queued(&self) -> usize {
+        let mut n = 0;
+        while let Some(c) = self.shared.next(false) {
+            self.shared.complete(c);
+            n += 1;
+        }
+        n
+    }
+
+    /// The counters.
+    pub fn metrics(&self) -> &Arc<CellMetrics> {
+        &self.shared.metrics
+    }
+
+    /// Bytes cached now.
+    pub fn bytes(&self) -> usize {
+        self.shared.lock().bytes
+    }
+
+    /// The most bytes cached at any one time so far.
+    pub fn peak_bytes(&self) -> usize {
+        self.shared.lock().peak
+    }
+
+    /// Whether a cell is cached now.
+    pub fn is_cached(&self, c: CellCoord) -> bool {
+        self.shared.lock().cached.contains_key(&c)
+    }
+
+    /// Cells queued or being expanded now.
+    pub fn pending(&self) -> usize {
+        self.shared.lock().pending.len()
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &CellCacheConfig {
+        &self.shared.cfg
+    }
+}
+
+impl Drop for CellCache {
+    fn drop(&mut self) {
+        self.shared.lock().stop = true;
+        self.shared.work.notify_all();
+        for w in self.workers.drain(..) {
+            let _ = w.join();
+        }
+    }
+}
+
+impl WorldStore for CellCache {
+    fn world(&self) -> &WorldInfo {
+        self.head.world()
+    }
+
+    fn species(&self) -> &[SpeciesEntry] {
+        self.head.species()
+    }
+
+    fn species_graph(&self, id: u8) -> Option<&[u8]> {
+        self.head.species_graph(id)
+    }
+
+    fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.head.species_frame(id)
+    }
+
+    fn welcome_head(&self) -> &WelcomeHead {
+        self.head.welcome_head()
+    }
+
+    fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState {
+        if !self.shared.grid.contains(c) {
+            return CellState::Outside;
+        }
+        let m = &self.shared.metrics;
+        let mut st = self.shared.lock();
+        st.clock += 1;
+        let now = st.clock;
+        if let Some(e) = st.cached.get_mut(&c) {
+            let (data, before) = (Arc::clone(&e.data), std::mem::replace(&mut e.used, now));
+            st.lru.remove(&before);
+            st.lru.insert(now, c);
+            m.hits.fetch_add(1, Relaxed);
+            return CellState::Ready(data);
+        }
+        let queued = st.pending.contains_key(&c);
+        let wakers = st.pending.entry(c).or_default();
+        if let Some(w) = waker
+            && !wakers.iter().any(|x| std::ptr::addr_eq(Arc::as_ptr(x), Arc::as_ptr(w)))
+        {
+            wakers.push(Arc::clone(w));
+        }
+        if !queued {
+            m.misses.fetch_add(1, Relaxed);
+            st.queue.push_back(c);
+            m.queued.store(st.queue.len() as u64, Relaxed);
+            drop(st);
+            self.shared.work.notify_one();
+        }
+        CellState::Pending
+    }
+
+    fn generation(&self) -> u64 {
+        self.shared.generation.load(Acquire)
+    }
+
+    fn cache_metrics(&self) -> Option<Arc<CellMetrics>> {
+        Some(Arc::clone(&self.shared.metrics))
+    }
+}
