@@ -380,3 +380,64 @@ fn a_world_expanded_only_on_demand_streams_from_the_cache() {
     assert!(total > 1_000, "{total} instances around the viewpoint");
     assert!(cache.bytes() <= 4 * MIB);
 }
+
+#[test]
+fn a_session_teleporting_over_a_world_of_a_million_metres_square_stays_within_the_bound() {
+    // 10^6 m × 10^6 m (1,000,000 km²) on a fractal terrain: 7,813 × 7,813 cells of 128 m, none expanded at load.
+    let text = "world vast\nseed 77\nbounds -500000 -500000 500000 500000\ncell 128\nterrain fractal {\n  tile 131072\n  \
+                depth 12\n  param relief = 400\n}\nspecies tree monopodial\nspecies weed worm\n\
+                scatter tree {\n  spacing 9\n  density 0.7\n  altitude -300 -100 .. 300 500\n  param height = 10 .. 20 step 1\n}\n\
+                scatter weed {\n  spacing 6\n  density 0.5\n  avoid tree 2\n}\n";
+    let world = World::parse(&canopy_worlds::diag::SourceFile::new("vast.world", text), None).unwrap();
+    assert!(!world.is_materialised() && world.cell_count() > 60_000_000);
+    let limit = MIB;
+    let cfg = CellCacheConfig { limit_bytes: limit, workers: 0, batch_records: SessionConfig::default().batch_records };
+    let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
+    let t0 = Instant::now();
+    let mut s = session(as_store(&cache), Viewpoint::at(1, [0.0, 0.0], 300.0), t0);
+    // Teleports across the whole world (virtual time, a second apart), the first place visited again at the end.
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut places: Vec<[f32; 2]> = (0..24)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            let v = |bits: u64| ((bits % 980_000) as f32) - 490_000.0;
+            [v(state), v(state >> 32)]
+        })
+        .collect();
+    places.push(places[0]);
+    let mut first_visit: HashMap<CellCoord, CellBatch> = HashMap::new();
+    let mut records = 0usize;
+    let aoi_cells = Aoi::new(&Viewpoint::at(1, [0.0, 0.0], 300.0), &SessionConfig::default().aoi)
+        .inner_cells(cache.grid())
+        .len();
+    for (i, p) in places.iter().enumerate() {
+        let now = t0 + Duration::from_secs(i as u64 + 1);
+        s.handle(now, ClientMsg::viewpoint(Viewpoint::at(i as u32 + 2, *p, 300.0))).unwrap();
+        loop {
+            for t in drain(&mut s, now) {
+                if let Some(b) = batch_of(&t) {
+                    records += b.records.len();
+                    // A cell seen again after its eviction comes back with the same records.
+                    match first_visit.get(&b.cell) {
+                        Some(old) if old.start == b.start => assert_eq!(old.records, b.records, "cell {:?}", b.cell),
+                        _ => {
+                            first_visit.insert(b.cell, b);
+                        }
+                    }
+                }
+            }
+            if s.is_complete() {
+                break;
+            }
+            assert!(cache.run_queued() > 0);
+        }
+        assert!(cache.bytes() <= limit, "teleport {i}: {} B cached", cache.bytes());
+        assert!(s.held_cells().count() <= 2 * aoi_cells, "the session holds its area of interest, not the world");
+    }
+    assert!(cache.peak_bytes() <= limit, "peak {} B", cache.peak_bytes());
+    assert!(records > 5_000, "{records} records");
+    use std::sync::atomic::Ordering::Relaxed;
+    assert!(cache.metrics().evictions.load(Relaxed) > 0);
+}
