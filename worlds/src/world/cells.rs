@@ -26,8 +26,8 @@ pub const REGION_BLOCK: i32 = 32;
 pub const ATTEMPTS: u32 = 7;
 
 /// Words of a background cell's stream: round `r` reads words `8r .. 8r + ATTEMPTS` for its positions and word
-/// `8r + 7` for its priority (the whole process reads two ChaCha blocks per background cell); a placed dart's keep
-/// draw is word 32 and its parameters words 33, 34, ….
+/// `8r + 7` for its priority (block 0 is read for every background cell, block 1 only for those still empty in the
+/// last round); a placed dart's keep draw is word 24 and its parameters words 25, 26, ….
 const WORDS_PER_ROUND: u64 = 8;
 const ROUND_WORDS: usize = (WORDS_PER_ROUND * ROUNDS as u64) as usize;
 const _: () = assert!(ROUND_WORDS == 24, "rounds 0 and 1 read block 0, round 2 block 1");
@@ -47,10 +47,7 @@ pub struct Populations {
 impl Populations {
     /// Explicit instances in the cells `c0 ..= c1`, as `(order, placement)` (keys order by x, then z).
     fn explicit_in(&self, c0: CellKey, c1: CellKey) -> impl Iterator<Item = &(u32, Placement)> {
-        self.explicit
-            .range(c0..=c1)
-            .filter(move |(k, _)| (c0.z..=c1.z).contains(&k.z))
-            .flat_map(|(_, v)| v.iter())
+        self.explicit.range(c0..=c1).filter(move |(k, _)| (c0.z..=c1.z).contains(&k.z)).flat_map(|(_, v)| v.iter())
     }
 }
 
@@ -67,7 +64,10 @@ impl Rect {
     }
 
     fn union(self, o: Rect) -> Rect {
-        Rect { lo: [self.lo[0].min(o.lo[0]), self.lo[1].min(o.lo[1])], hi: [self.hi[0].max(o.hi[0]), self.hi[1].max(o.hi[1])] }
+        Rect {
+            lo: [self.lo[0].min(o.lo[0]), self.lo[1].min(o.lo[1])],
+            hi: [self.hi[0].max(o.hi[0]), self.hi[1].max(o.hi[1])],
+        }
     }
 
     fn clip(self, b: &Bounds) -> Rect {
@@ -98,31 +98,42 @@ fn halo(rule: &ScatterRule) -> f64 {
 }
 
 /// The rectangle each rule must be exact over for `target` to be: its own output, grown by the halo and `avoid`
-/// distance of every later rule that avoids its species. `None` where a rule contributes nothing.
+/// distance of every later rule that avoids its species, clipped to the rule's region. `None` where a rule
+/// contributes nothing.
 fn plan(world: &World, target: Rect) -> Vec<Option<Rect>> {
+    let need = plan_unclipped(world, target);
+    need.into_iter()
+        .zip(&world.rules)
+        .map(|(r, rule)| r.clip(&rule.region))
+        .map(|r| (!r.is_empty()).then_some(r))
+        .collect()
+}
+
+/// [`plan`] before clipping: the same for every cell of a world, so it bounds every cell's work.
+fn plan_unclipped(world: &World, target: Rect) -> Vec<Rect> {
     let rules = &world.rules;
-    let mut need: Vec<Option<Rect>> = vec![Some(target); rules.len()];
+    let mut need: Vec<Rect> = vec![target; rules.len()];
     for n in (0..rules.len()).rev() {
-        let Some(out) = need[n] else { continue };
+        let out = need[n];
         for &(species, d) in &rules[n].avoid {
             for m in 0..n {
                 if rules[m].species == species {
-                    let grown = out.grow(halo(&rules[n]) + f64::from(d) + 1.0);
-                    need[m] = Some(need[m].map_or(grown, |r| r.union(grown)));
+                    need[m] = need[m].union(out.grow(halo(&rules[n]) + f64::from(d) + 1.0));
                 }
             }
         }
     }
-    need.into_iter().zip(rules).map(|(r, rule)| r.map(|r| r.clip(&rule.region)).filter(|r| !r.is_empty())).collect()
+    need
 }
 
-/// Background cells and rounds `target` costs to expand (the load-time bound on one cell's work).
-pub(crate) fn work(world: &World, target: [f64; 4]) -> f64 {
-    let target = Rect { lo: [target[0], target[1]], hi: [target[2], target[3]] };
-    plan(world, target)
+/// Background cells and rounds one cell's expansion costs at most, wherever the cell lies (the load-time bound).
+pub(crate) fn cell_work(world: &World) -> f64 {
+    let s = f64::from(world.cell_size);
+    let target = Rect { lo: [0.0, 0.0], hi: [s, s] };
+    plan_unclipped(world, target)
         .iter()
         .zip(&world.rules)
-        .filter_map(|(r, rule)| r.map(|r| (r.grow(halo(rule)), background(rule))))
+        .map(|(r, rule)| (r.grow(halo(rule)), background(rule)))
         .map(|(r, g)| ((r.hi[0] - r.lo[0]) / g + 2.0) * ((r.hi[1] - r.lo[1]) / g + 2.0) * f64::from(ROUNDS))
         .sum()
 }

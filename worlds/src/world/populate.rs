@@ -4,10 +4,10 @@
 
 use canopy_protocol::SpeciesGraph;
 
-use super::manifest::{Manifest, Population, SourceRef, Span};
-use super::source::Resolver;
 use super::cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations};
 use super::fractal::Fractal;
+use super::manifest::{Manifest, Population, SourceRef, Span};
+use super::source::Resolver;
 use super::terrain::{TILE_PARAMS, Terrain};
 use super::{
     Bounds, CellKey, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS, Placement, World,
@@ -527,7 +527,6 @@ pub(crate) fn build(
         .map(|e| Some(WorldSpecies { name: e.name, graph: e.graph?, source: e.source }))
         .collect::<Option<_>>()?;
 
-
     // Index the populations for expansion cell by cell: explicit instances by cell, every population's place in
     // file order.
     let mut populations = Populations::default();
@@ -561,10 +560,7 @@ pub(crate) fn build(
     };
     let world = World::assemble(name, seed, bounds, cell_size, species, terrain, fractal, rules, populations, explicit);
     // One cell's expansion is bounded: its rules, their halos and `avoid` chains.
-    let s = f64::from(cell_size);
-    let c = world.cell_of(0.0, 0.0);
-    let (cx, cz) = (f64::from(c.x) * s, f64::from(c.z) * s);
-    let work = super::cells::work(&world, [cx, cz, cx + s, cz + s]);
+    let work = super::cells::cell_work(&world);
     if work > MAX_CELL_WORK {
         let msg = format!(
             "expanding one cell needs {work:.0} sampling cells (spacings, halos and avoid chains), more than {MAX_CELL_WORK}"
