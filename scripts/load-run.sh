@@ -8,9 +8,11 @@
 #   scripts/load-run.sh                      # 1,000 bots, random walks at 5 m/s for 30 s
 #   COUNT=10000 DURATION=60 scripts/load-run.sh
 #   COUNT=20 DURATION=10 scripts/load-run.sh # the CI-sized version
+#   WORLD=worlds/highlands/highlands.world COUNT=1000 scripts/load-run.sh   # bots spread over the large world
 #
-# Environment: COUNT, DURATION (s), PATH_KIND (line|circle|random|teleport), SPEED (m/s), RADIUS (m),
-# CONNECT_RATE (bots/s), TICK_MS (how often a bot moves), PORT, METRICS_PORT, CARGO_TARGET_DIR.
+# Environment: COUNT, DURATION (s), PATH_KIND (line|circle|random|teleport|…), SPEED (m/s), RADIUS (m),
+# CONNECT_RATE (bots/s), TICK_MS (how often a bot moves), WORLD (a manifest; default: the embedded default world),
+# CELL_CACHE_MIB, PORT, METRICS_PORT, CARGO_TARGET_DIR; EXTRA_BOTS_ARGS is passed to `canopy bots` as is.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,13 +26,19 @@ TICK_MS=${TICK_MS:-100}
 PORT=${PORT:-4433}
 METRICS_PORT=${METRICS_PORT:-9433}
 TARGET=${CARGO_TARGET_DIR:-target}
+WORLD=${WORLD:-}
+CELL_CACHE_MIB=${CELL_CACHE_MIB:-256}
+WORLD_ARGS=()
+[ -n "$WORLD" ] && WORLD_ARGS=(--world "$WORLD")
+# shellcheck disable=SC2206
+EXTRA=(${EXTRA_BOTS_ARGS:-})
 
 cargo build --release -q -p canopy-server -p canopy-app
 WORK=$(mktemp -d)
 SERVER_LOG="$WORK/server.log"
 
 "$TARGET/release/canopy-server" --listen "127.0.0.1:$PORT" --metrics "127.0.0.1:$METRICS_PORT" \
-    --data-dir "$WORK/data" --stats-every 5 >"$SERVER_LOG" 2>&1 &
+    --data-dir "$WORK/data" --stats-every 5 --cell-cache-mib "$CELL_CACHE_MIB" "${WORLD_ARGS[@]}" >"$SERVER_LOG" 2>&1 &
 SERVER=$!
 trap 'kill "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true' EXIT
 
@@ -65,7 +73,7 @@ START=$(date +%s.%N)
 set +e
 "$TARGET/release/canopy" bots --count "$COUNT" --path "$PATH_KIND" --speed "$SPEED" --duration "$DURATION" \
     --radius "$RADIUS" --connect-rate "$CONNECT_RATE" --tick-ms "$TICK_MS" --server "127.0.0.1:$PORT" \
-    --cert-fingerprint "$FINGERPRINT" --quiet
+    --cert-fingerprint "$FINGERPRINT" --quiet "${WORLD_ARGS[@]}" "${EXTRA[@]}"
 BOTS_STATUS=$?
 set -e
 END=$(date +%s.%N)
@@ -88,6 +96,7 @@ awk -v c="$CELLS" -v s="$SPECIES" -v rl="$RELEASES" -v w="$WELCOME" -v r="$RECOR
 awk -v r0="$RSS0" -v r1="$PEAK_RSS" -v c="$PEAK_CLIENTS" 'BEGIN {
     printf "server memory: VmRSS %.1f MiB before clients, %.1f MiB with %d clients: %.1f KiB per client\n", r0 / 1024, r1 / 1024, c, (r1 - r0) / (c > 0 ? c : 1);
 }'
+echo "cell cache: hits $(metric canopy_cell_cache_hits_total), misses $(metric canopy_cell_cache_misses_total), expansions $(metric canopy_cell_expansions_total) (p50 $(metric canopy_cell_expansion_p50_microseconds) µs, p99 $(metric canopy_cell_expansion_p99_microseconds) µs), $(metric canopy_cell_cache_cells) cells in $(metric canopy_cell_cache_bytes) bytes, $(metric canopy_cell_evictions_total) evicted"
 awk -v a="$START" -v b="$END" 'BEGIN { printf "bots process wall time %.1f s\n", b - a }'
 grep -E "stats" "$SERVER_LOG" | tail -n 3 || true
 exit "$BOTS_STATUS"
