@@ -1,5 +1,5 @@
 //! Golden determinism vectors: hashes of the primitive stream and mesh of every library species for fixed seeds
-//! and detail levels, committed in `tests/golden/amplify.txt`, and of the cells of 12 blocks of 4 × 4 cells of both
+//! and detail levels, committed in `tests/golden/amplify.txt`, and of the cells of 16 blocks of 4 × 4 cells of both
 //! embedded worlds (`tests/golden/cells.txt`: cell expansion is held to the same rule as amplification). The same test binary runs natively, under qemu for
 //! aarch64 and under node's WASI for wasm32 in CI (`.ci/cross-determinism`), so a change in any platform's
 //! floating point, libm or RNG path shows up as a mismatch here.
@@ -68,8 +68,8 @@ fn thread_count_does_not_change_results() {
 }
 
 /// Blocks of 4 × 4 cells whose expansion is golden: the default world's corners and centre, and the large world's
-/// far corners, centre, tree line, meadow edge and valley floor.
-const CELL_BLOCKS: [(&str, i32, i32); 12] = [
+/// far corners, centre, tree line, meadow edge, valley floor and four blocks between the control heights.
+const CELL_BLOCKS: [(&str, i32, i32); 16] = [
     ("forest", -16, -16),
     ("forest", 12, 12),
     ("forest", -2, -2),
@@ -82,6 +82,10 @@ const CELL_BLOCKS: [(&str, i32, i32); 12] = [
     ("highlands", -247, 563),
     ("highlands", -358, 290),
     ("highlands", -543, -165),
+    ("highlands", -2, -602),
+    ("highlands", 398, 198),
+    ("highlands", -602, 398),
+    ("highlands", 598, -402),
 ];
 
 /// One line per cell: `world x z count hash` over species, position bits and parameters.
