@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 
 use super::fractal::Patch;
-use super::{Bounds, CellKey, Placement, Ramp, ScatterRule, World};
+use super::{Bounds, CellKey, Placement, Ramp, ScatterRule, World, par};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
 
@@ -253,6 +253,43 @@ impl Field {
     }
 }
 
+/// Windows of at least this many background cells are worked on in bands of rows on the available cores.
+const PARALLEL_CELLS: usize = 1 << 16;
+
+/// Bands of a field's rows for [`par::each`]: one band for a small window.
+struct Bands {
+    /// Per band: its first and last row (background cell coordinates) and its first padded row.
+    rows: Vec<(i64, i64, usize)>,
+    /// Padded row width.
+    width: usize,
+}
+
+impl Bands {
+    fn new(field: &Field, lo: i64, hi: i64) -> Bands {
+        let count = if field.len() >= PARALLEL_CELLS { 8 } else { 1 };
+        let per = ((hi - lo + count) / count).max(1);
+        let rows = (0..count)
+            .map(|b| (lo + b * per, (lo + (b + 1) * per - 1).min(hi)))
+            .filter(|(a, b)| a <= b)
+            .map(|(a, b)| (a, b, (a - lo + 2) as usize))
+            .collect();
+        Bands { rows, width: field.dims[0] as usize }
+    }
+
+    /// The jobs of one phase writing `out`: per band, its rows of `out`, the index of their first slot and the
+    /// band's first and last row.
+    fn jobs<'a, T>(&self, out: &'a mut [T]) -> Vec<(&'a mut [T], usize, (i64, i64))> {
+        let first = self.rows.first().map_or(0, |r| r.2 * self.width);
+        let mut lengths = vec![first];
+        lengths.extend(self.rows.iter().map(|&(a, b, _)| (b - a + 1) as usize * self.width));
+        let mut runs = par::split_runs(out, &lengths).into_iter().skip(1);
+        self.rows
+            .iter()
+            .map(|&(a, b, start)| (runs.next().expect("one run per band"), start * self.width, (a, b)))
+            .collect()
+    }
+}
+
 /// No dart: x is NaN.
 const EMPTY: [f64; 2] = [f64::NAN, f64::NAN];
 
@@ -299,78 +336,90 @@ fn scatter(
     {
         return Vec::new();
     }
+    // Every phase below is independent per background cell: it writes the cell's own slot and reads only what the
+    // phase before wrote. A large window runs in bands of rows on the available cores, with the same result.
+    let bands = Bands::new(&field, lo[1], hi[1]);
+    let seed = world.seed;
     // Block 0 of every background cell's stream (rounds 0 and 1); block 1 (round 2) only for the cells still
     // empty when it begins.
     let mut words = vec![[0u32; ROUND_WORDS]; n];
-    for j in lo[1]..=hi[1] {
-        for i in lo[0]..=hi[0] {
-            let stream = cell_stream(rule, i, j);
-            let block = &mut words[field.at(i, j)];
-            for (w, v) in block[..16].iter_mut().enumerate() {
-                *v = rng.word(stream, w as u64);
+    let fill = |words: &mut [[u32; ROUND_WORDS]], offset: usize, rows: (i64, i64), placed: &[[f64; 2]], part: usize| {
+        let mut rng = InstanceRng::new(seed);
+        for j in rows.0..=rows.1 {
+            for i in lo[0]..=hi[0] {
+                let k = field.at(i, j);
+                if part == 1 && !placed[k][0].is_nan() {
+                    continue;
+                }
+                let stream = cell_stream(rule, i, j);
+                let range = if part == 0 { 0..16 } else { 16..ROUND_WORDS };
+                for w in range {
+                    words[k - offset][w] = rng.word(stream, w as u64);
+                }
             }
         }
-    }
+    };
+    par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 0));
     let mut proposals = vec![EMPTY; n];
     let mut priority = vec![0u32; n];
     for round in 0..ROUNDS as usize {
         if round * WORDS_PER_ROUND as usize == 16 {
-            for j in lo[1]..=hi[1] {
-                for i in lo[0]..=hi[0] {
-                    let k = field.at(i, j);
-                    if placed[k][0].is_nan() {
-                        let stream = cell_stream(rule, i, j);
-                        for (w, v) in words[k][16..].iter_mut().enumerate() {
-                            *v = rng.word(stream, 16 + w as u64);
-                        }
-                    }
-                }
-            }
+            par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 1));
         }
         // Proposals: every empty background cell tries up to ATTEMPTS positions and proposes the first that keeps
         // `spacing` from the placed darts and the `avoid` distances.
-        for j in lo[1]..=hi[1] {
-            let (kz, cz) = positions(j);
-            for i in lo[0]..=hi[0] {
-                let k = field.at(i, j);
-                proposals[k] = EMPTY;
-                let (kx, cx) = positions(i);
-                if !placed[k][0].is_nan() || cx < 1 || cz < 1 {
-                    continue;
-                }
-                let block = &words[k];
-                let base = round * WORDS_PER_ROUND as usize;
-                let proposal = block[base..base + ATTEMPTS as usize].iter().find_map(|&w| {
-                    let x = (kx + ((i64::from(w & 0xffff) * cx) >> 16)) as f64 * step;
-                    let z = (kz + ((i64::from(w >> 16) * cz) >> 16)) as f64 * step;
-                    let inside = region.contains(x, z) && area.contains(x, z);
-                    let clear = inside && !field.neighbours(k).any(|q| closer(placed[q], x, z, r2));
-                    (clear && !avoid.is_some_and(|b| b.near(x, z))).then_some([x, z])
-                });
-                if let Some(p) = proposal {
-                    proposals[k] = p;
-                    priority[k] = block[base + WORDS_PER_ROUND as usize - 1];
+        let base = round * WORDS_PER_ROUND as usize;
+        let propose = |out: &mut [([f64; 2], u32)], offset: usize, rows: (i64, i64)| {
+            for j in rows.0..=rows.1 {
+                let (kz, cz) = positions(j);
+                for i in lo[0]..=hi[0] {
+                    let k = field.at(i, j);
+                    out[k - offset] = (EMPTY, 0);
+                    let (kx, cx) = positions(i);
+                    if !placed[k][0].is_nan() || cx < 1 || cz < 1 {
+                        continue;
+                    }
+                    let block = &words[k];
+                    let proposal = block[base..base + ATTEMPTS as usize].iter().find_map(|&w| {
+                        let x = (kx + ((i64::from(w & 0xffff) * cx) >> 16)) as f64 * step;
+                        let z = (kz + ((i64::from(w >> 16) * cz) >> 16)) as f64 * step;
+                        let inside = region.contains(x, z) && area.contains(x, z);
+                        let clear = inside && !field.neighbours(k).any(|q| closer(placed[q], x, z, r2));
+                        (clear && !avoid.is_some_and(|b| b.near(x, z))).then_some([x, z])
+                    });
+                    if let Some(p) = proposal {
+                        out[k - offset] = (p, block[base + WORDS_PER_ROUND as usize - 1]);
+                    }
                 }
             }
+        };
+        let mut fresh = vec![(EMPTY, 0u32); n];
+        par::each(bands.jobs(&mut fresh), |(slice, offset, rows)| propose(slice, offset, rows));
+        for (k, (p, prio)) in fresh.into_iter().enumerate() {
+            proposals[k] = p;
+            priority[k] = prio;
         }
         // Acceptance: a proposal is placed if it outranks every proposal within `spacing` (priority, then the
         // background cell in row-major order: a strict order, so two darts closer than `spacing` are never both
         // placed).
-        for j in lo[1]..=hi[1] {
-            for i in lo[0]..=hi[0] {
-                let k = field.at(i, j);
-                let d = proposals[k];
-                if d[0].is_nan() {
-                    continue;
-                }
-                let wins = field
-                    .neighbours(k)
-                    .all(|q| !closer(proposals[q], d[0], d[1], r2) || (priority[k], k) > (priority[q], q));
-                if wins {
-                    placed[k] = d;
+        let accept = |out: &mut [[f64; 2]], offset: usize, rows: (i64, i64)| {
+            for j in rows.0..=rows.1 {
+                for i in lo[0]..=hi[0] {
+                    let k = field.at(i, j);
+                    let d = proposals[k];
+                    if d[0].is_nan() {
+                        continue;
+                    }
+                    let wins = field
+                        .neighbours(k)
+                        .all(|q| !closer(proposals[q], d[0], d[1], r2) || (priority[k], k) > (priority[q], q));
+                    if wins {
+                        out[k - offset] = d;
+                    }
                 }
             }
-        }
+        };
+        par::each(bands.jobs(&mut placed), |(slice, offset, rows)| accept(slice, offset, rows));
     }
     // Thinning and parameters, inside the exact rectangle only.
     let mut kept = Vec::new();

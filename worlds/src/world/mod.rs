@@ -335,27 +335,17 @@ impl World {
         }
     }
 
-    /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (a band of rows
-    /// per core: the result does not depend on the bands or the threads).
+    /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (in blocks of
+    /// [`REGION_BLOCK`] cells, each worked on by the available cores: the result does not depend on either).
     fn materialise(mut self) -> World {
         if self.cell_count() > EAGER_CELLS {
             return self;
         }
         let (min, [w, d]) = (self.cell_min, self.cell_dims.map(|v| v as i32));
-        // One band of rows per core (each a block of at most REGION_BLOCK × REGION_BLOCK cells at a time).
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get()) as i32;
-        let rows = (d + threads - 1) / threads.max(1);
-        let bands: Vec<(CellKey, CellKey)> = (0..d)
-            .step_by(rows.max(1) as usize)
-            .map(|z| {
-                let c0 = CellKey { x: min.x, z: min.z + z };
-                (c0, CellKey { x: min.x + w - 1, z: (c0.z + rows - 1).min(min.z + d - 1) })
-            })
-            .collect();
-        let expanded = par::map(&bands, || (), |_, &(c0, c1)| cells::expand(&self, c0, c1));
+        let expanded = cells::expand(&self, min, CellKey { x: min.x + w - 1, z: min.z + d - 1 });
         let mut starts = vec![0u32];
         let mut instances = Vec::new();
-        for (_, list) in expanded.into_iter().flatten() {
+        for (_, list) in expanded {
             instances.extend(list);
             starts.push(instances.len() as u32);
         }
