@@ -20,10 +20,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
-use bytes::Bytes;
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
-use canopy_protocol::messages::{SpeciesEntry, WelcomeHead, WorldInfo};
 use canopy_worlds::world::{CellKey, World};
 use tracing::{error, warn};
 
@@ -276,24 +274,8 @@ impl Drop for CellCache {
 }
 
 impl WorldStore for CellCache {
-    fn world(&self) -> &WorldInfo {
-        self.head.world()
-    }
-
-    fn species(&self) -> &[SpeciesEntry] {
-        self.head.species()
-    }
-
-    fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        self.head.species_graph(id)
-    }
-
-    fn species_frame(&self, id: u8) -> Option<Bytes> {
-        self.head.species_frame(id)
-    }
-
-    fn welcome_head(&self) -> &WelcomeHead {
-        self.head.welcome_head()
+    fn head(&self) -> &StoreHead {
+        &self.head
     }
 
     fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState {

@@ -155,16 +155,28 @@ pub trait CellWaker: Send + Sync {
 
 /// Where a session reads the world from.
 pub trait WorldStore: Send + Sync + 'static {
+    /// What every client is told the same way: the world's description, species and welcome.
+    fn head(&self) -> &StoreHead;
     /// What a client needs to know about the world (sent in the welcome).
-    fn world(&self) -> &WorldInfo;
+    fn world(&self) -> &WorldInfo {
+        self.head().world()
+    }
     /// The species table; index = species id.
-    fn species(&self) -> &[SpeciesEntry];
+    fn species(&self) -> &[SpeciesEntry] {
+        self.head().species()
+    }
     /// The encoded graph of species `id`.
-    fn species_graph(&self, id: u8) -> Option<&[u8]>;
+    fn species_graph(&self, id: u8) -> Option<&[u8]> {
+        self.head().species_graph(id)
+    }
     /// The framed species message of species `id` (its graph), encoded once and shared by every session.
-    fn species_frame(&self, id: u8) -> Option<Bytes>;
+    fn species_frame(&self, id: u8) -> Option<Bytes> {
+        self.head().species_frame(id)
+    }
     /// The welcome's part that is the same for every client, encoded once.
-    fn welcome_head(&self) -> &WelcomeHead;
+    fn welcome_head(&self) -> &WelcomeHead {
+        self.head().welcome_head()
+    }
     /// A cell's records, never waiting: ready, pending (its expansion is queued, once however many ask, and
     /// `waker`, if any, is woken when it is ready), or outside the grid. A cell inside the grid without instances is
     /// ready and empty.
@@ -452,24 +464,8 @@ impl GridStore {
 }
 
 impl WorldStore for GridStore {
-    fn world(&self) -> &WorldInfo {
-        self.head.world()
-    }
-
-    fn species(&self) -> &[SpeciesEntry] {
-        self.head.species()
-    }
-
-    fn species_graph(&self, id: u8) -> Option<&[u8]> {
-        self.head.species_graph(id)
-    }
-
-    fn species_frame(&self, id: u8) -> Option<Bytes> {
-        self.head.species_frame(id)
-    }
-
-    fn welcome_head(&self) -> &WelcomeHead {
-        self.head.welcome_head()
+    fn head(&self) -> &StoreHead {
+        &self.head
     }
 
     fn cell(&self, c: CellCoord, _waker: Option<&Arc<dyn CellWaker>>) -> CellState {
