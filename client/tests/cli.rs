@@ -176,3 +176,31 @@ fn an_l_system_too_deep_is_reported_in_its_own_terms_by_every_command() {
         assert!(!t.contains("separators nested"), "{cmd:?}: {t}");
     }
 }
+
+/// `canopy world stats` on the large world estimates it from sampled cells without expanding it, and `--cells`
+/// expands a rectangle exactly; a malformed rectangle is refused with the reason.
+#[test]
+fn world_stats_samples_a_large_world_and_expands_a_rectangle_exactly() {
+    let manifest = concat!(env!("CARGO_MANIFEST_DIR"), "/../worlds/highlands/highlands.world");
+    let o = canopy(&["world", "stats", manifest, "--samples", "16", "--cells", "-320,382,-319,383"]);
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    assert!(out.contains("10485.76 km²") && out.contains("expanded on demand"), "{out}");
+    assert!(out.contains("terrain: fractal"), "{out}");
+    assert!(out.contains("instances (estimated from 16 of 2560000 cells)"), "{out}");
+    assert!(out.contains("cells -320,382 ..= -319,383: 4 cells"), "{out}");
+    // The rectangle's count is the world function's, whatever else was expanded first.
+    let world = canopy_worlds::world::World::load(std::path::Path::new(manifest)).unwrap();
+    let exact: usize = world
+        .expand_cells(
+            canopy_worlds::world::CellKey { x: -320, z: 382 },
+            canopy_worlds::world::CellKey { x: -319, z: 383 },
+        )
+        .iter()
+        .map(|(_, l)| l.len())
+        .sum();
+    assert!(out.contains(&format!("4 cells, {exact} instances")), "{exact} in\n{out}");
+    let bad = canopy(&["world", "stats", manifest, "--cells", "5,5,1,1"]);
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(text(&bad).contains("expected X0 ≤ X1 and Z0 ≤ Z1"), "{}", text(&bad));
+}
