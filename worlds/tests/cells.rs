@@ -148,11 +148,13 @@ fn spacing_and_avoid_distances_hold_across_every_border_of_a_4x4_block() {
 #[test]
 fn density_follows_the_manifest_over_a_large_sample() {
     let full = parse("seed 3\nbounds 0 0 1024 1024\ncell 64\nspecies a worm\nscatter a {\n  spacing 4\n}\n");
-    let half = parse("seed 3\nbounds 0 0 1024 1024\ncell 64\nspecies a worm\nscatter a {\n  spacing 4\n  density 0.5\n}\n");
+    let half =
+        parse("seed 3\nbounds 0 0 1024 1024\ncell 64\nspecies a worm\nscatter a {\n  spacing 4\n  density 0.5\n}\n");
     let (n, k) = (full.instances.len() as f64, half.instances.len() as f64);
     // The same darts, thinned: each kept with probability 0.5 (about 46,000 darts: a standard deviation of 0.23 %).
     assert!((k / n - 0.5).abs() < 0.015, "{k} of {n}");
-    let kept: std::collections::HashSet<(u32, u32)> = full.instances.iter().map(|p| (p.x.to_bits(), p.z.to_bits())).collect();
+    let kept: std::collections::HashSet<(u32, u32)> =
+        full.instances.iter().map(|p| (p.x.to_bits(), p.z.to_bits())).collect();
     assert!(half.instances.iter().all(|p| kept.contains(&(p.x.to_bits(), p.z.to_bits()))));
     // A full packing: about 0.63 darts per spacing² (dart throwing to saturation reaches 0.69).
     let per = n * 16.0 / full.bounds.area();

@@ -329,7 +329,9 @@ fn sizes_and_counts_are_bounded() {
     );
     // An `avoid` chain that makes one cell's expansion need too much of its neighbourhood.
     check_errors(
-        &format!("seed 7\nbounds -4096 -4096 4096 4096\ncell 64\nspecies a worm\nspecies b worm\nscatter a {{\n  spacing 1\n}}\nscatter b {{\n  spacing 1\n  avoid a 1000\n}}\n"),
+        &format!(
+            "seed 7\nbounds -4096 -4096 4096 4096\ncell 64\nspecies a worm\nspecies b worm\nscatter a {{\n  spacing 1\n}}\nscatter b {{\n  spacing 1\n  avoid a 1000\n}}\n"
+        ),
         &[(6, 1, "sampling cells (spacings, halos and avoid chains), more than 16777216")],
     );
     // A terrain grid with too many vertices.

@@ -40,10 +40,8 @@ const MAX_REGION_CELLS: u64 = 1 << 20;
 
 /// `X0,Z0,X1,Z1` with X0 ≤ X1 and Z0 ≤ Z1, at most [`MAX_REGION_CELLS`] cells.
 fn parse_cells(s: &str) -> Result<[i32; 4], String> {
-    let v: Vec<i32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<i32>().map_err(|e| format!("`{p}`: {e}")))
-        .collect::<Result<_, _>>()?;
+    let v: Vec<i32> =
+        s.split(',').map(|p| p.trim().parse::<i32>().map_err(|e| format!("`{p}`: {e}"))).collect::<Result<_, _>>()?;
     let [x0, z0, x1, z1] = v[..] else { return Err(format!("expected X0,Z0,X1,Z1, got {} numbers", v.len())) };
     if x0 > x1 || z0 > z1 {
         return Err("expected X0 ≤ X1 and Z0 ≤ Z1".into());

@@ -47,10 +47,7 @@ pub struct Populations {
 impl Populations {
     /// Explicit instances in the cells `c0 ..= c1`, as `(order, placement)` (keys order by x, then z).
     fn explicit_in(&self, c0: CellKey, c1: CellKey) -> impl Iterator<Item = &(u32, Placement)> {
-        self.explicit
-            .range(c0..=c1)
-            .filter(move |(k, _)| (c0.z..=c1.z).contains(&k.z))
-            .flat_map(|(_, v)| v.iter())
+        self.explicit.range(c0..=c1).filter(move |(k, _)| (c0.z..=c1.z).contains(&k.z)).flat_map(|(_, v)| v.iter())
     }
 }
 
@@ -67,7 +64,10 @@ impl Rect {
     }
 
     fn union(self, o: Rect) -> Rect {
-        Rect { lo: [self.lo[0].min(o.lo[0]), self.lo[1].min(o.lo[1])], hi: [self.hi[0].max(o.hi[0]), self.hi[1].max(o.hi[1])] }
+        Rect {
+            lo: [self.lo[0].min(o.lo[0]), self.lo[1].min(o.lo[1])],
+            hi: [self.hi[0].max(o.hi[0]), self.hi[1].max(o.hi[1])],
+        }
     }
 
     fn clip(self, b: &Bounds) -> Rect {

@@ -479,7 +479,8 @@ impl Parser<'_> {
                 once(&mut t.tile, v, s, "tile", src)
             }
             "depth" => {
-                let (v, s) = self.integer("a depth", u64::from(MAX_TERRAIN_DEPTH.max(super::fractal::MAX_FRACTAL_DEPTH)))?;
+                let (v, s) =
+                    self.integer("a depth", u64::from(MAX_TERRAIN_DEPTH.max(super::fractal::MAX_FRACTAL_DEPTH)))?;
                 once(&mut t.depth, v as u32, s, "depth", src)
             }
             "seed" => {

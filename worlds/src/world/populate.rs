@@ -4,10 +4,10 @@
 
 use canopy_protocol::SpeciesGraph;
 
-use super::manifest::{Manifest, Population, SourceRef, Span};
-use super::source::Resolver;
 use super::cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations};
 use super::fractal::Fractal;
+use super::manifest::{Manifest, Population, SourceRef, Span};
+use super::source::Resolver;
 use super::terrain::{TILE_PARAMS, Terrain};
 use super::{
     Bounds, CellKey, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS, Placement, World,
@@ -526,7 +526,6 @@ pub(crate) fn build(
         .into_iter()
         .map(|e| Some(WorldSpecies { name: e.name, graph: e.graph?, source: e.source }))
         .collect::<Option<_>>()?;
-
 
     // Index the populations for expansion cell by cell: explicit instances by cell, every population's place in
     // file order.
