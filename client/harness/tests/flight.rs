@@ -117,5 +117,7 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
     assert!(summary.ok(), "{summary}");
     assert_eq!(summary.checked, 2, "{summary}");
     assert!(reports.iter().all(|r| r.viewpoints >= 10), "they moved: {summary}");
+    assert!(summary.moving.samples >= 8, "sampled while flying: {summary}");
+    eprintln!("{summary}");
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -52,6 +52,9 @@ pub struct DemoArgs {
     /// The in-process server's largest area-of-interest radius, metres (what a flight asks for is capped to it).
     #[arg(long, default_value_t = canopy_protocol::aoi::AoiParams::default().max_radius)]
     max_radius: f32,
+    /// The in-process server's cap on each client's bytes a second (default: the server's default).
+    #[arg(long)]
+    bandwidth: Option<u64>,
     /// The in-process server's cell cache, MiB.
     #[arg(long, default_value_t = 256)]
     cell_cache_mib: usize,
@@ -154,6 +157,9 @@ fn demo(
         println!("world loaded in {:.1} s", loaded.elapsed().as_secs_f64());
         let mut cfg = ServerConfig { listen: args.listen, metrics: Some(args.metrics), ..ServerConfig::default() };
         cfg.session.aoi.max_radius = args.max_radius;
+        if let Some(b) = args.bandwidth {
+            cfg.session.bandwidth = Some(b);
+        }
         cfg.session.aoi.validate().context("--max-radius")?;
         let server_aoi = cfg.session.aoi;
         let server = Server::start(store.shared(), cfg).await?;

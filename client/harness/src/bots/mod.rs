@@ -135,6 +135,46 @@ pub struct BotReport {
     pub viewpoints: u32,
     /// The check against the world (`None`: not checked).
     pub verify: Option<Result<VerifySummary, String>>,
+    /// The area of interest sampled while walking (every [`SAMPLE_EVERY`]).
+    pub moving: AoiSamples,
+}
+
+/// How often a bot samples its area of interest while walking.
+pub const SAMPLE_EVERY: Duration = Duration::from_millis(250);
+
+/// Samples of a moving bot's area of interest: how much of it was held in full.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AoiSamples {
+    /// Samples taken.
+    pub samples: u64,
+    /// Sum over the samples of the fraction of the area of interest's cells held in full.
+    pub held_sum: f64,
+    /// Samples with the whole area of interest held in full.
+    pub complete: u64,
+    /// Samples with the cell under the walker held in full.
+    pub below: u64,
+}
+
+impl AoiSamples {
+    /// Sample a connection's state with the walker at `position`.
+    pub fn take(&mut self, conn: &Connection, position: [f32; 2]) {
+        let state = conn.state();
+        let full = |c: &canopy_protocol::CellCoord| state.cells().get(c).is_some_and(|h| h.is_complete());
+        let inner = state.inner_cells();
+        let held = inner.iter().filter(|c| full(c)).count();
+        self.samples += 1;
+        self.held_sum += if inner.is_empty() { 1.0 } else { held as f64 / inner.len() as f64 };
+        self.complete += u64::from(held == inner.len());
+        self.below += u64::from(full(&conn.welcome().world.grid.cell_of(position[0], position[1])));
+    }
+
+    /// Add another bot's samples.
+    pub fn add(&mut self, o: &AoiSamples) {
+        self.samples += o.samples;
+        self.held_sum += o.held_sum;
+        self.complete += o.complete;
+        self.below += o.below;
+    }
 }
 
 /// Run one bot to the end (see the module docs).
@@ -378,6 +418,12 @@ impl DriveHooks for BotHooks<'_> {
             None => {}
         }
     }
+
+    fn sample(&mut self, conn: &Connection, walker: &Walker, settling: bool) {
+        if !settling {
+            self.report.moving.take(conn, walker.position());
+        }
+    }
 }
 
 async fn bot_session(
@@ -399,7 +445,7 @@ async fn bot_session(
         tick: cfg.tick,
         walk_until: Instant::now() + cfg.duration,
         settle: cfg.settle,
-        sample: None,
+        sample: Some(SAMPLE_EVERY),
         stop: cfg.stop.clone(),
     };
     let mut hooks = BotHooks { report: &mut *report, progress, completion: Completion::new(started) };
@@ -459,6 +505,8 @@ pub struct BotsSummary {
     pub species_received: u64,
     /// Species received twice by one bot.
     pub species_duplicates: u64,
+    /// Every bot's area of interest sampled while walking.
+    pub moving: AoiSamples,
     /// Wall time of the whole run.
     pub wall: Duration,
 }
@@ -502,6 +550,10 @@ impl BotsSummary {
             udp_bytes_per_record: per(udp),
             species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
             species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
+            moving: reports.iter().fold(AoiSamples::default(), |mut a, r| {
+                a.add(&r.moving);
+                a
+            }),
             wall,
         }
     }
@@ -546,6 +598,19 @@ impl std::fmt::Display for BotsSummary {
             self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
         )?;
         writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        let m = &self.moving;
+        if m.samples > 0 {
+            let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;
+            writeln!(
+                f,
+                "while moving ({} samples): AOI cells held in full {:.1}% on average, whole AOI in {:.1}% of samples, \
+                 the cell below in {:.1}%",
+                m.samples,
+                100.0 * m.held_sum / m.samples as f64,
+                pc(m.complete),
+                pc(m.below)
+            )?;
+        }
         for e in &self.errors {
             writeln!(f, "  {e}")?;
         }
