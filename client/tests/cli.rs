@@ -161,6 +161,25 @@ fn demo_streams_the_default_world_to_bots_and_checks_them() {
     assert!(out.contains("species: ") && out.contains(", 0 received twice"), "{out}");
 }
 
+/// Bots that fly over a world that exists only cell by cell: the in-process server on the embedded highlands,
+/// two flights at 250 m/s and 1500 m (the radius they ask for capped by `--max-radius`), checked at the end against
+/// the world's function.
+#[test]
+fn demo_flies_bots_over_the_highlands_and_checks_them_against_the_function() {
+    let o = Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["demo", "--world", "highlands", "--path", "flight", "--speed", "250", "--altitude", "1500"])
+        .args(["--max-radius", "160", "--bots", "2", "--duration", "3", "--no-window"])
+        .output()
+        .expect("canopy runs");
+    let out = text(&o);
+    assert!(o.status.success(), "{out}");
+    assert!(out.contains("world highlands"), "{out}");
+    assert!(out.contains("2 bots flying (flight, 250 m/s, 1500 m above the terrain, AOI radius 160 m)"), "{out}");
+    assert!(out.contains("checked against the world: 2 of 2 exact"), "{out}");
+    let bad = canopy(&["demo", "--world", "atlantis", "--no-window"]);
+    assert!(!bad.status.success() && text(&bad).contains("no embedded world of that name (forest, highlands)"));
+}
+
 #[test]
 fn an_l_system_too_deep_is_reported_in_its_own_terms_by_every_command() {
     let deep = temp("deep.lsys");

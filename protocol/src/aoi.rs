@@ -132,6 +132,31 @@ impl Default for AoiParams {
     }
 }
 
+/// Ground a flying client wants per metre of altitude: out to where its line of sight dips about 27° below the
+/// horizon (`atan(1/2)`); farther out the trees are the far field's business, not the instance stream's.
+pub const FLIGHT_GROUND_PER_ALTITUDE: f32 = 2.0;
+
+/// The least radius a flying client asks for, metres (low flight still wants the cells around it).
+pub const FLIGHT_MIN_RADIUS: f32 = 128.0;
+
+impl AoiParams {
+    /// The radius a client flying `altitude` metres above the terrain at `speed` metres per second asks for (the
+    /// viewpoint carries no height: altitude enters the area of interest only through this rule):
+    ///
+    /// `min(max_radius, max(FLIGHT_MIN_RADIUS, FLIGHT_GROUND_PER_ALTITUDE · altitude) + max(0, speed ·
+    /// lookahead_s − max_lookahead))`
+    ///
+    /// — the ground of interest below and around, plus the part of the velocity look-ahead that the cap on the
+    /// look-ahead point cuts off, so the cells the aircraft reaches within `lookahead_s` are asked for even when
+    /// the look-ahead point ([`Aoi::ahead`]) stops short of them. The server caps every radius at `max_radius`, so
+    /// asking for more would change nothing. Not-a-number inputs count as 0.
+    pub fn flight_radius(&self, altitude: f32, speed: f32) -> f32 {
+        let ground = (altitude.max(0.0) * FLIGHT_GROUND_PER_ALTITUDE).max(FLIGHT_MIN_RADIUS);
+        let cut = (speed.abs() * self.lookahead_s - self.max_lookahead).max(0.0);
+        (ground + cut).min(self.max_radius)
+    }
+}
+
 /// Why area-of-interest rules are not acceptable.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum AoiParamsError {
@@ -258,5 +283,33 @@ impl Aoi {
             out.sort_unstable();
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_flight_radius_grows_with_altitude_and_the_cut_look_ahead_and_stops_at_the_cap() {
+        let p = AoiParams { max_radius: 4096.0, hysteresis: 32.0, lookahead_s: 2.0, max_lookahead: 128.0 };
+        assert_eq!(p.flight_radius(0.0, 0.0), FLIGHT_MIN_RADIUS, "on the ground, at rest");
+        assert_eq!(p.flight_radius(40.0, 60.0), FLIGHT_MIN_RADIUS, "low and slow: the look-ahead point covers it");
+        assert_eq!(p.flight_radius(1500.0, 0.0), 3000.0, "twice the altitude");
+        // 250 m/s × 2 s = 500 m of look-ahead, 128 of them led by the look-ahead point: 372 m more radius.
+        assert_eq!(p.flight_radius(1500.0, 250.0), 3372.0);
+        assert_eq!(p.flight_radius(1500.0, -250.0), 3372.0, "speed, not velocity");
+        assert_eq!(p.flight_radius(1e6, 250.0), 4096.0, "capped at max_radius");
+        assert_eq!(AoiParams::default().flight_radius(1500.0, 250.0), AoiParams::default().max_radius);
+        assert_eq!(p.flight_radius(f32::NAN, f32::NAN), FLIGHT_MIN_RADIUS);
+        // The cells 2 s ahead at 250 m/s are inside the area of interest: within the radius of the position.
+        let grid = Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(0, 0), max: CellCoord::new(99, 99) };
+        let low = AoiParams { max_radius: 512.0, ..p };
+        let r = low.flight_radius(100.0, 250.0);
+        assert_eq!(r, 200.0 + 372.0_f32.min(512.0 - 200.0));
+        let vp = Viewpoint { seq: 1, position: [1000.0, 1000.0], yaw: 0.0, velocity: [0.0, 250.0], radius: r };
+        let aoi = Aoi::new(&vp, &low);
+        assert_eq!(aoi.ahead, [1000.0, 1128.0]);
+        assert!(aoi.is_inner(&grid, grid.cell_of(1000.0, 1000.0 + 250.0 * 2.0)));
     }
 }

@@ -115,8 +115,7 @@ impl Shared {
     fn expand(&self, c: CellCoord) -> Result<CellData, StoreError> {
         let key = CellKey { x: c.x, z: c.z };
         let placements = self.world.expand_cell(key);
-        let data =
-            CellData::from_placements(&self.grid, c, self.species_count, &placements)?;
+        let data = CellData::from_placements(&self.grid, c, self.species_count, &placements)?;
         data.bodies(self.cfg.batch_records);
         Ok(data)
     }

@@ -24,9 +24,13 @@ pub struct BotsArgs {
     /// Their path.
     #[arg(long, value_parser = super::named(&PathKind::NAMES), default_value_t = PathKind::Line)]
     path: PathKind,
-    /// Walking speed, metres per second.
+    /// Walking (or flying) speed, metres per second.
     #[arg(long, default_value_t = 5.0)]
     speed: f32,
+    /// `--path flight`: height above the terrain, metres (the area-of-interest radius then follows from altitude
+    /// and speed under the server's rules, instead of `--radius`).
+    #[arg(long, default_value_t = 1500.0)]
+    altitude: f32,
     /// How long they walk, seconds.
     #[arg(long, default_value_t = 20.0)]
     duration: f64,
@@ -39,7 +43,7 @@ pub struct BotsArgs {
     /// Accept any server certificate (local use only).
     #[arg(long)]
     insecure: bool,
-    /// Area-of-interest radius, metres.
+    /// Area-of-interest radius, metres (walkers; a flight's follows from `--altitude` and `--speed`).
     #[arg(long, default_value_t = 160.0)]
     radius: f32,
     /// New connections per second while ramping up.
@@ -57,9 +61,10 @@ pub struct BotsArgs {
     /// Seed of the paths.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Check each bot's final state against this world manifest (default: the embedded default world).
+    /// Check each bot's final state against this world: a manifest path or an embedded world's name (`forest`,
+    /// `highlands`); it must be the world the server serves (default: the embedded default world).
     #[arg(long)]
-    world: Option<PathBuf>,
+    world: Option<String>,
     /// Do not check the final state against the world.
     #[arg(long)]
     no_verify: bool,
@@ -79,15 +84,16 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
         || !(args.speed.is_finite() && args.speed >= 0.0)
         || !(args.duration >= 0.0)
         || !(args.settle >= 0.0)
+        || !(args.altitude.is_finite() && args.altitude >= 0.0)
     {
-        bail!("--count must be positive, --speed, --duration and --settle not negative");
+        bail!("--count must be positive, --speed, --duration, --settle and --altitude not negative");
     }
     let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
     let verify = if args.no_verify {
         None
     } else {
         let world = match &args.world {
-            Some(p) => World::load(p).map_err(|d| anyhow::anyhow!("{d}"))?,
+            Some(w) => super::world_arg(w)?,
             None => World::default_world(),
         };
         Some(Arc::new(world))
@@ -95,6 +101,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     let mut cfg = BotsConfig::new(args.count, ConnectConfig::new(args.server, trust));
     cfg.path = args.path;
     cfg.speed = args.speed;
+    cfg.altitude = args.altitude;
     cfg.duration = Duration::from_secs_f64(args.duration);
     cfg.radius = args.radius;
     cfg.connect_rate = args.connect_rate;

@@ -1,4 +1,5 @@
-//! `canopy demo`: the streaming demo. Starts `canopy-server` in-process on the embedded default world, runs a few
+//! `canopy demo`: the streaming demo. Starts `canopy-server` in-process on the embedded default world (or any world:
+//! `--world highlands`, a manifest path; its cells expanded on demand into the server's cell cache), runs a few
 //! bots against it over real QUIC on loopback (certificate pinned), and prints a live summary — clients, records
 //! per second, bytes by message class, area-of-interest completeness — until `--duration` passes or Ctrl-C; then
 //! the bots stop, settle, and are checked against the world.
@@ -19,7 +20,7 @@ use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_harness::numbers::kib;
 use canopy_server::metrics::Metrics;
 use canopy_server::session::MsgClass;
-use canopy_server::{GridStore, Server, ServerConfig};
+use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig};
 use canopy_worlds::world::World;
 use clap::Args;
 
@@ -35,12 +36,28 @@ pub struct DemoArgs {
     /// Their path.
     #[arg(long, value_parser = super::named(&PathKind::NAMES), default_value_t = PathKind::Random)]
     path: PathKind,
-    /// Walking speed, metres per second.
+    /// Walking (or flying) speed, metres per second.
     #[arg(long, default_value_t = 8.0)]
     speed: f32,
-    /// Area-of-interest radius, metres.
+    /// `--path flight`: height above the terrain, metres (the radius then follows from altitude and speed).
+    #[arg(long, default_value_t = 1500.0)]
+    altitude: f32,
+    /// Area-of-interest radius, metres (walkers).
     #[arg(long, default_value_t = 200.0)]
     radius: f32,
+    /// The world to serve: an embedded world's name (`forest`, `highlands`) or a manifest path (default: the
+    /// embedded default world).
+    #[arg(long)]
+    world: Option<String>,
+    /// The in-process server's largest area-of-interest radius, metres (what a flight asks for is capped to it).
+    #[arg(long, default_value_t = canopy_protocol::aoi::AoiParams::default().max_radius)]
+    max_radius: f32,
+    /// The in-process server's cap on each client's bytes a second (default: the server's default).
+    #[arg(long)]
+    bandwidth: Option<u64>,
+    /// The in-process server's cell cache, MiB.
+    #[arg(long, default_value_t = 256)]
+    cell_cache_mib: usize,
     /// UDP address of the in-process server.
     #[arg(long, default_value = "127.0.0.1:0")]
     listen: SocketAddr,
@@ -129,11 +146,22 @@ fn demo(
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let loaded = Instant::now();
-        let world = Arc::new(World::default_world());
-        let store = GridStore::from_world(&world).context("building the world store")?;
+        let world = Arc::new(match &args.world {
+            Some(w) => super::world_arg(w)?,
+            None => World::default_world(),
+        });
+        // As `canopy-server` serves it: cells expanded on demand into a byte-bounded cache.
+        let cache = CellCacheConfig { limit_bytes: args.cell_cache_mib.saturating_mul(1 << 20), ..CellCacheConfig::default() };
+        let store = CellCache::new((*world).clone(), cache).context("building the world store")?;
         print!("{}", world.content_summary());
         println!("world loaded in {:.1} s", loaded.elapsed().as_secs_f64());
-        let cfg = ServerConfig { listen: args.listen, metrics: Some(args.metrics), ..ServerConfig::default() };
+        let mut cfg = ServerConfig { listen: args.listen, metrics: Some(args.metrics), ..ServerConfig::default() };
+        cfg.session.aoi.max_radius = args.max_radius;
+        if let Some(b) = args.bandwidth {
+            cfg.session.bandwidth = Some(b);
+        }
+        cfg.session.aoi.validate().context("--max-radius")?;
+        let server_aoi = cfg.session.aoi;
         let server = Server::start(store.shared(), cfg).await?;
         println!("canopy-server (in-process) on {} — fingerprint {}", server.local_addr(), server.fingerprint());
         if let Some(m) = server.metrics_addr() {
@@ -149,18 +177,22 @@ fn demo(
         let mut cfg = BotsConfig::new(args.bots, ConnectConfig::new(server.local_addr(), trust));
         cfg.path = args.path;
         cfg.speed = args.speed;
+        cfg.altitude = args.altitude;
         cfg.radius = args.radius;
         cfg.duration = if args.duration > 0.0 && !windowed { Duration::from_secs_f64(args.duration) } else { Duration::from_secs(u64::MAX / 4) };
         cfg.connect_rate = 50.0;
         cfg.verify = Some(Arc::clone(&world));
         cfg.stop = bots_stop;
         let forever = args.duration <= 0.0 || windowed;
+        let walk = bots::Walk { path: args.path, speed: args.speed, radius: args.radius, altitude: args.altitude, seed: 0 };
+        let height = if args.path == PathKind::Flight { format!(", {} m above the terrain", args.altitude) } else { String::new() };
         println!(
-            "{} bots walking ({:?}, {} m/s, AOI radius {} m) {}",
+            "{} bots {} ({}, {} m/s{height}, AOI radius {} m) {}",
             args.bots,
+            if args.path == PathKind::Flight { "flying" } else { "walking" },
             args.path,
             args.speed,
-            args.radius,
+            walk.radius(&server_aoi),
             if windowed {
                 "until the window closes".to_string()
             } else if forever { "until Ctrl-C".to_string() } else { format!("for {} s (Ctrl-C stops early)", args.duration) }

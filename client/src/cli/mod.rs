@@ -40,7 +40,7 @@ enum Command {
     Bandwidth(bandwidth::BandwidthArgs),
     /// Headless walkthrough bots against a running canopy-server, with progress and a summary.
     Bots(bots::BotsArgs),
-    /// The streaming demo: canopy-server on the default world in-process, a few bots, a live summary.
+    /// The streaming demo: canopy-server on the default world (or `--world`) in-process, a few bots, a live summary.
     Demo(demo::DemoArgs),
     /// Render a world offscreen to a PNG (works without a GPU on Mesa lavapipe), with frame times.
     Render(render::RenderArgs),
@@ -78,6 +78,18 @@ fn load_world(manifest: Option<&Path>) -> Result<World, Diagnostics> {
         Some(path) => World::load(path),
         None => Ok(World::default_world()),
     }
+}
+
+/// A world named on the command line: a manifest file if one is at that path, else an embedded world by name
+/// (`forest`, `highlands`).
+fn world_arg(arg: &str) -> anyhow::Result<World> {
+    if Path::new(arg).is_file() {
+        return World::load(Path::new(arg)).map_err(|d| anyhow::anyhow!("{d}"));
+    }
+    World::embedded(arg).ok_or_else(|| {
+        let names: Vec<&str> = canopy_worlds::world::EMBEDDED_WORLDS.iter().map(|(n, _)| *n).collect();
+        anyhow::anyhow!("no world manifest `{arg}`, and no embedded world of that name ({})", names.join(", "))
+    })
 }
 
 /// Write a file, creating its parent directory first.

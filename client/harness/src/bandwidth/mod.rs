@@ -525,8 +525,8 @@ async fn bot_session(
     connect.client_name = format!("bandwidth-{}", r.bot.id);
     let started = Instant::now();
     let seed = p.seed.wrapping_add(r.bot.id as u64);
-    let (mut conn, mut walker) =
-        bots::connect_walking(endpoint, &connect, None, (PathKind::Line, p.speed, p.radius, seed)).await?;
+    let walk = bots::Walk { path: PathKind::Line, speed: p.speed, radius: p.radius, altitude: 0.0, seed };
+    let (mut conn, mut walker) = bots::connect_walking(endpoint, &connect, None, walk).await?;
     if conn.welcome().world.instances as usize != p.truth.len() {
         let server = conn.welcome().world.instances;
         conn.close();

@@ -1,64 +1,36 @@
-//! Headless walkthrough clients: bots that connect, walk scripted paths (line, circle, random walk, teleports) at a
-//! given speed, keep their area of interest streamed, and at the end stop, wait for a complete area of interest and
-//! check what they hold against the world itself.
+//! Headless walkthrough clients: bots that connect, walk scripted paths (line, circle, random walk, teleports) or
+//! fly (straight legs and turns at an altitude: [`walker`]) at a given speed, keep their area of interest streamed,
+//! and at the end stop, wait for a complete area of interest and check what they hold against the world itself
+//! ([`verify`]: against the world's cells as a function, so on worlds never materialised too).
+//!
+//! A flight asks for the radius [`AoiParams::flight_radius`] gives for its altitude and speed under the server's
+//! rules (the welcome's), instead of `radius`.
 //!
 //! Each bot measures its "area of interest change → complete" latencies: from the first viewpoint that left its
 //! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
 
-use std::collections::HashSet;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
-use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
+use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::messages::{ByKind, ServerMsgKind};
-use canopy_protocol::{CellCoord, SpeciesHash};
-use canopy_worlds::world::{CellKey, World};
+use canopy_worlds::world::World;
 use quinn::Endpoint;
 
 use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::net::{ClientError, ConnectConfig, Connection};
-use canopy_client::state::{ClientState, Event, viewpoint_due};
+use canopy_client::state::{Event, viewpoint_due};
 
 use crate::numbers::percentile;
 
-/// The scripted path a bot walks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum PathKind {
-    /// Straight lines, turning back at the world's edge.
-    Line,
-    /// A circle of 50–250 m radius.
-    Circle,
-    /// A random walk: a new heading every few seconds.
-    Random,
-    /// Stand still, then jump to a random place, again and again.
-    Teleport,
-}
+mod verify;
+pub mod walker;
 
-impl PathKind {
-    /// The paths with their names (the values of `--path`).
-    pub const NAMES: [(&'static str, PathKind); 4] = [
-        ("line", PathKind::Line),
-        ("circle", PathKind::Circle),
-        ("random", PathKind::Random),
-        ("teleport", PathKind::Teleport),
-    ];
-}
-
-impl std::fmt::Display for PathKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let name = PathKind::NAMES.iter().find(|(_, k)| k == self).map_or("?", |(n, _)| n);
-        f.write_str(name)
-    }
-}
-
-impl std::str::FromStr for PathKind {
-    type Err = String;
-    fn from_str(s: &str) -> Result<PathKind, String> {
-        PathKind::NAMES.iter().find(|(n, _)| *n == s).map(|(_, k)| *k).ok_or_else(|| format!("no path `{s}`"))
-    }
-}
+pub use verify::{VerifySummary, expected_cells, verify};
+pub(crate) use walker::Rng;
+pub use walker::{PathKind, Walker, grid_rect};
 
 /// How a group of bots runs.
 #[derive(Clone, Debug)]
@@ -71,8 +43,10 @@ pub struct BotsConfig {
     pub speed: f32,
     /// How long they walk.
     pub duration: Duration,
-    /// The area-of-interest radius they ask for, metres.
+    /// The area-of-interest radius they ask for, metres (a flight asks for [`AoiParams::flight_radius`] instead).
     pub radius: f32,
+    /// How high a flight flies above the terrain, metres (walkers walk on the ground).
+    pub altitude: f32,
     /// Where to connect and how to trust the server.
     pub connect: ConnectConfig,
     /// Seeds the paths (bot `i` uses `seed + i`).
@@ -103,6 +77,7 @@ impl BotsConfig {
             speed: 5.0,
             duration: Duration::from_secs(20),
             radius: 160.0,
+            altitude: 1500.0,
             connect,
             seed: 1,
             connect_rate: 200.0,
@@ -160,216 +135,46 @@ pub struct BotReport {
     pub viewpoints: u32,
     /// The check against the world (`None`: not checked).
     pub verify: Option<Result<VerifySummary, String>>,
+    /// The area of interest sampled while walking (every [`SAMPLE_EVERY`]).
+    pub moving: AoiSamples,
 }
 
-/// A small deterministic generator for paths and link losses (SplitMix64).
-#[derive(Clone, Debug)]
-pub(crate) struct Rng(pub(crate) u64);
+/// How often a bot samples its area of interest while walking.
+pub const SAMPLE_EVERY: Duration = Duration::from_millis(250);
 
-impl Rng {
-    pub(crate) fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        canopy_worlds::rng::mix64(self.0)
-    }
-
-    /// Uniform in `0..1` with 53 bits.
-    pub(crate) fn unit_f64(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.unit()
-    }
+/// Samples of a moving bot's area of interest: how much of it was held in full.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct AoiSamples {
+    /// Samples taken.
+    pub samples: u64,
+    /// Sum over the samples of the fraction of the area of interest's cells held in full.
+    pub held_sum: f64,
+    /// Samples with the whole area of interest held in full.
+    pub complete: u64,
+    /// Samples with the cell under the walker held in full.
+    pub below: u64,
 }
 
-/// A bot's walk: position, velocity and heading over time.
-#[derive(Clone, Debug)]
-pub struct Walker {
-    kind: PathKind,
-    speed: f32,
-    lo: [f32; 2],
-    hi: [f32; 2],
-    rng: Rng,
-    pos: [f32; 2],
-    dir: [f32; 2],
-    centre: [f32; 2],
-    ring: f32,
-    angle: f32,
-    timer: f32,
-}
-
-impl Walker {
-    /// A walker of `kind` at `speed` inside the rectangle `lo..hi`, seeded by `seed`.
-    pub fn new(kind: PathKind, speed: f32, lo: [f32; 2], hi: [f32; 2], seed: u64) -> Walker {
-        let mut rng = Rng(seed);
-        let pos = [rng.range(lo[0], hi[0]), rng.range(lo[1], hi[1])];
-        let a = rng.range(0.0, std::f32::consts::TAU);
-        let ring = rng.range(50.0, 250.0).min((hi[0] - lo[0]).min(hi[1] - lo[1]) * 0.4);
-        let centre = [pos[0].clamp(lo[0] + ring, hi[0] - ring), pos[1].clamp(lo[1] + ring, hi[1] - ring)];
-        let mut w =
-            Walker { kind, speed, lo, hi, rng, pos, dir: [a.sin(), a.cos()], centre, ring, angle: a, timer: 0.0 };
-        if kind == PathKind::Circle {
-            w.pos = [centre[0] + ring * a.cos(), centre[1] + ring * a.sin()];
-        }
-        w
+impl AoiSamples {
+    /// Sample a connection's state with the walker at `position`.
+    pub fn take(&mut self, conn: &Connection, position: [f32; 2]) {
+        let state = conn.state();
+        let full = |c: &canopy_protocol::CellCoord| state.cells().get(c).is_some_and(|h| h.is_complete());
+        let inner = state.inner_cells();
+        let held = inner.iter().filter(|c| full(c)).count();
+        self.samples += 1;
+        self.held_sum += if inner.is_empty() { 1.0 } else { held as f64 / inner.len() as f64 };
+        self.complete += u64::from(held == inner.len());
+        self.below += u64::from(full(&conn.welcome().world.grid.cell_of(position[0], position[1])));
     }
 
-    /// Where the walker is.
-    pub fn position(&self) -> [f32; 2] {
-        self.pos
+    /// Add another bot's samples.
+    pub fn add(&mut self, o: &AoiSamples) {
+        self.samples += o.samples;
+        self.held_sum += o.held_sum;
+        self.complete += o.complete;
+        self.below += o.below;
     }
-
-    /// The viewpoint of a client at the walker, asking for `radius` metres (`seq` is set when it is sent).
-    pub fn viewpoint(&self, radius: f32) -> Viewpoint {
-        Viewpoint { seq: 0, position: self.position(), yaw: self.yaw(), velocity: self.velocity(), radius }
-    }
-
-    /// Jump to another walk of the same kind and speed in the same rectangle: a new start and heading, seeded
-    /// from this walk's generator (deterministic for a given seed).
-    pub fn jump(&mut self) {
-        let seed = self.rng.next();
-        *self = Walker::new(self.kind, self.speed, self.lo, self.hi, seed);
-    }
-
-    /// Advance by `dt` seconds; returns whether it teleported.
-    pub fn step(&mut self, dt: f32) -> bool {
-        let mut teleported = false;
-        match self.kind {
-            PathKind::Line | PathKind::Random => {
-                if self.kind == PathKind::Random {
-                    self.timer -= dt;
-                    if self.timer <= 0.0 {
-                        self.timer = self.rng.range(3.0, 8.0);
-                        let a = self.rng.range(0.0, std::f32::consts::TAU);
-                        self.dir = [a.sin(), a.cos()];
-                    }
-                }
-                for axis in 0..2 {
-                    let mut p = self.pos[axis] + self.dir[axis] * self.speed * dt;
-                    if p < self.lo[axis] || p > self.hi[axis] {
-                        self.dir[axis] = -self.dir[axis];
-                        p = p.clamp(self.lo[axis], self.hi[axis]);
-                    }
-                    self.pos[axis] = p;
-                }
-            }
-            PathKind::Circle => {
-                self.angle += self.speed / self.ring.max(1.0) * dt;
-                let (s, c) = self.angle.sin_cos();
-                self.pos = [self.centre[0] + self.ring * c, self.centre[1] + self.ring * s];
-                self.dir = [-s, c];
-            }
-            PathKind::Teleport => {
-                self.timer += dt;
-                if self.timer >= 8.0 {
-                    self.timer = 0.0;
-                    self.pos = [self.rng.range(self.lo[0], self.hi[0]), self.rng.range(self.lo[1], self.hi[1])];
-                    teleported = true;
-                }
-            }
-        }
-        teleported
-    }
-
-    /// The velocity, metres per second (zero for a teleporter).
-    pub fn velocity(&self) -> [f32; 2] {
-        match self.kind {
-            PathKind::Teleport => [0.0, 0.0],
-            _ => [self.dir[0] * self.speed, self.dir[1] * self.speed],
-        }
-    }
-
-    /// The heading (yaw, radians; direction `(sin yaw, cos yaw)`).
-    pub fn yaw(&self) -> f32 {
-        self.dir[0].atan2(self.dir[1])
-    }
-}
-
-/// The rectangle of a grid's cells, inset by `margin` metres.
-pub fn grid_rect(grid: &Grid, margin: f32) -> ([f32; 2], [f32; 2]) {
-    let lo = grid.cell_origin(grid.min);
-    let hi = grid.cell_origin(CellCoord::new(grid.max.x + 1, grid.max.z + 1));
-    let m = margin.min((hi[0] - lo[0]) * 0.25).min((hi[1] - lo[1]) * 0.25);
-    ([lo[0] + m, lo[1] + m], [hi[0] - m, hi[1] - m])
-}
-
-/// What the check against the world found.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct VerifySummary {
-    /// Cells held.
-    pub cells: usize,
-    /// Instances held.
-    pub instances: usize,
-    /// Species held.
-    pub species: usize,
-}
-
-/// Check a client's final state against the world: it holds every cell of its area of interest and nothing
-/// beyond radius + hysteresis, every held cell in full, each instance exactly once and exactly as the world has it
-/// (species, position on the grid, seed, parameters; the height follows from the position and the terrain, which
-/// client and world share), and each species it needs once.
-pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, String> {
-    let w = state.welcome().ok_or("no welcome")?;
-    if w.world.name != world.name || w.world.seed != world.seed || w.world.instances as usize != world.instances.len() {
-        return Err(format!("the server's world `{}` is not the world checked against", w.world.name));
-    }
-    if w.species.len() != world.species.len()
-        || w.species.iter().zip(&world.species).any(|(e, s)| e.hash != SpeciesHash::of(&s.graph.encode()))
-    {
-        return Err("the species table differs from the world's".into());
-    }
-    if !state.is_complete() {
-        return Err(format!("area of interest incomplete: {} cells missing", state.missing()));
-    }
-    let vp = state.viewpoint().ok_or("no viewpoint")?;
-    let grid = &w.world.grid;
-    let aoi = Aoi::new(vp, &w.aoi);
-    let inner = aoi.inner_cells(grid);
-    if let Some(c) = inner.iter().find(|c| !state.cells().contains_key(c)) {
-        return Err(format!("cell {c:?} of the area of interest is not held"));
-    }
-    let mut ids = HashSet::new();
-    for (c, h) in state.cells() {
-        if !aoi.is_kept(grid, *c) {
-            return Err(format!("cell {c:?} is held beyond radius + hysteresis"));
-        }
-        let range = world.cell_instances(CellKey { x: c.x, z: c.z });
-        if !h.is_complete() || usize::from(h.total) != range.len() {
-            return Err(format!("cell {c:?}: holds {} of {}, the world has {}", h.records.len(), h.total, range.len()));
-        }
-        for r in &h.records {
-            if state.species(r.species).is_none() {
-                return Err(format!("cell {c:?} needs species {}, which is not held", r.species));
-            }
-        }
-    }
-    let no_height = |_: f32, _: f32| 0.0;
-    for inst in state.instances(&no_height) {
-        if !ids.insert(inst.id) {
-            return Err(format!("instance {:?} held twice", inst.id));
-        }
-        // The same (cell, index in the cell) in the world.
-        let index = world.index_of(inst.id).ok_or_else(|| format!("instance {:?} is not in the world", inst.id))?;
-        let p = &world.instances[index as usize];
-        let [x, _, z] = inst.position;
-        // `Placement::params` is sorted by slot, as the records' overrides are.
-        if u16::from(inst.species) != p.species
-            || x.to_bits() != p.x.to_bits()
-            || z.to_bits() != p.z.to_bits()
-            || inst.params[..] != p.params[..]
-            || inst.seed != world.instance_seed(inst.id)
-        {
-            return Err(format!("instance {:?} differs from the world: {inst:?} vs {p:?}", inst.id));
-        }
-    }
-    if state.stats().species_duplicates != 0 {
-        return Err(format!("{} species received twice", state.stats().species_duplicates));
-    }
-    Ok(VerifySummary { cells: state.cells().len(), instances: ids.len(), species: state.species_held() })
 }
 
 /// Run one bot to the end (see the module docs).
@@ -409,18 +214,44 @@ impl BotReport {
     }
 }
 
-/// Connect as a walker: the walk of `path` at `speed` is placed inside the welcome's grid (inset by half the
-/// `radius`), seeded by `seed`, and its first viewpoint goes with the ready.
+/// What one bot walks (or flies).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Walk {
+    /// The path.
+    pub path: PathKind,
+    /// Metres per second.
+    pub speed: f32,
+    /// The area-of-interest radius a walker asks for, metres.
+    pub radius: f32,
+    /// A flight's height above the terrain, metres.
+    pub altitude: f32,
+    /// Seeds the path.
+    pub seed: u64,
+}
+
+impl Walk {
+    /// The radius asked for under the server's rules `aoi`: `radius` walking, [`AoiParams::flight_radius`] flying.
+    pub fn radius(&self, aoi: &AoiParams) -> f32 {
+        match self.path {
+            PathKind::Flight => aoi.flight_radius(self.altitude, self.speed),
+            _ => self.radius,
+        }
+    }
+}
+
+/// Connect as a walker: the walk is placed inside the welcome's grid (inset by half the radius it asks for,
+/// [`Walk::radius`]), and its first viewpoint goes with the ready.
 pub async fn connect_walking(
     endpoint: &Endpoint,
     connect: &ConnectConfig,
     cache: Option<Arc<SpeciesCache>>,
-    (path, speed, radius, seed): (PathKind, f32, f32, u64),
+    walk: Walk,
 ) -> Result<(Connection, Walker), ClientError> {
     let mut walker = None;
     let place = |w: &canopy_protocol::messages::Welcome| {
+        let radius = walk.radius(&w.aoi);
         let (lo, hi) = grid_rect(&w.world.grid, radius * 0.5);
-        let wk = Walker::new(path, speed, lo, hi, seed);
+        let wk = Walker::new(walk.path, walk.speed, lo, hi, walk.seed).with_altitude(walk.altitude);
         let vp = wk.viewpoint(radius);
         walker = Some(wk);
         vp
@@ -587,6 +418,12 @@ impl DriveHooks for BotHooks<'_> {
             None => {}
         }
     }
+
+    fn sample(&mut self, conn: &Connection, walker: &Walker, settling: bool) {
+        if !settling {
+            self.report.moving.take(conn, walker.position());
+        }
+    }
 }
 
 async fn bot_session(
@@ -600,15 +437,15 @@ async fn bot_session(
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
     let seed = cfg.seed.wrapping_add(report.id as u64);
-    let (mut conn, mut walker) =
-        connect_walking(endpoint, &connect, cache, (cfg.path, cfg.speed, cfg.radius, seed)).await?;
+    let walk = Walk { path: cfg.path, speed: cfg.speed, radius: cfg.radius, altitude: cfg.altitude, seed };
+    let (mut conn, mut walker) = connect_walking(endpoint, &connect, cache, walk).await?;
     progress.connected.fetch_add(1, Relaxed);
     let plan = DrivePlan {
-        radius: cfg.radius,
+        radius: walk.radius(&conn.welcome().aoi),
         tick: cfg.tick,
         walk_until: Instant::now() + cfg.duration,
         settle: cfg.settle,
-        sample: None,
+        sample: Some(SAMPLE_EVERY),
         stop: cfg.stop.clone(),
     };
     let mut hooks = BotHooks { report: &mut *report, progress, completion: Completion::new(started) };
@@ -668,6 +505,8 @@ pub struct BotsSummary {
     pub species_received: u64,
     /// Species received twice by one bot.
     pub species_duplicates: u64,
+    /// Every bot's area of interest sampled while walking.
+    pub moving: AoiSamples,
     /// Wall time of the whole run.
     pub wall: Duration,
 }
@@ -711,6 +550,10 @@ impl BotsSummary {
             udp_bytes_per_record: per(udp),
             species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
             species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
+            moving: reports.iter().fold(AoiSamples::default(), |mut a, r| {
+                a.add(&r.moving);
+                a
+            }),
             wall,
         }
     }
@@ -755,6 +598,19 @@ impl std::fmt::Display for BotsSummary {
             self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
         )?;
         writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        let m = &self.moving;
+        if m.samples > 0 {
+            let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;
+            writeln!(
+                f,
+                "while moving ({} samples): AOI cells held in full {:.1}% on average, whole AOI in {:.1}% of samples, \
+                 the cell below in {:.1}%",
+                m.samples,
+                100.0 * m.held_sum / m.samples as f64,
+                pc(m.complete),
+                pc(m.below)
+            )?;
+        }
         for e in &self.errors {
             writeln!(f, "  {e}")?;
         }
