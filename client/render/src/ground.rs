@@ -71,7 +71,8 @@ impl FractalWindow {
         let centre = |axis: usize, lo: i64| self.fractal.origin[axis] + (lo as f64 + f64::from(self.squares) / 2.0) * s;
         // The snapped corner leaves the viewer up to ALIGN squares off centre, so the slack is at least that.
         let slack = (f64::from(self.squares) / 8.0).max(ALIGN as f64) * s;
-        let off = (f64::from(eye.x) - centre(0, self.lo[0])).abs().max((f64::from(eye.z) - centre(1, self.lo[1])).abs());
+        let off =
+            (f64::from(eye.x) - centre(0, self.lo[0])).abs().max((f64::from(eye.z) - centre(1, self.lo[1])).abs());
         let lo = corner_for(&self.fractal, self.squares, depth, eye);
         if depth == self.depth && (off <= slack || lo == self.lo) {
             return false;

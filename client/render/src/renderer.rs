@@ -17,13 +17,13 @@ use super::RenderConfig;
 use super::cache::{GeometryCache, INDEX_BYTES, Placement};
 use super::camera::Camera;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
+use super::ground::FractalWindow;
 use super::pipelines::{ATLAS_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
 use super::select::{
     DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, SpeciesVol,
     View, VolState,
 };
-use super::ground::FractalWindow;
 use super::terrain::TerrainMesh;
 use super::volume::FarVolume;
 use super::workers::{Job, JobResult, Workers};

@@ -214,8 +214,7 @@ impl Terrain {
     pub fn from_heights(origin: [f32; 2], spacing: f32, squares: [u32; 2], heights: Vec<f32>) -> Option<Terrain> {
         let count = (u64::from(squares[0]) + 1) * (u64::from(squares[1]) + 1);
         let numbers = spacing.is_finite() && spacing > 0.0 && origin.iter().all(|v| v.is_finite());
-        if squares.contains(&0) || count != heights.len() as u64 || !numbers || !heights.iter().all(|h| h.is_finite())
-        {
+        if squares.contains(&0) || count != heights.len() as u64 || !numbers || !heights.iter().all(|h| h.is_finite()) {
             return None;
         }
         let lo = heights.iter().copied().fold(f32::INFINITY, f32::min);
