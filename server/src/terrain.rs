@@ -38,3 +38,23 @@ pub fn describe_fractal(f: &Fractal) -> FractalDesc {
         heights: f.corners.clone(),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_fractal_world_is_described_by_its_numbers_and_a_grid_world_by_its_species() {
+        let world = World::embedded("highlands").expect("embedded");
+        let desc = describe(&world);
+        desc.validate().expect("a valid description");
+        let f = desc.fractal.as_ref().expect("the highlands' fractal");
+        let rows: Vec<Vec<f32>> = f.heights.chunks(f.dims[0] as usize).map(<[f32]>::to_vec).collect();
+        let rebuilt = Fractal::new(f.seed, f.origin, f.tile, f.depth, f.dimension, f.relief, &rows).expect("valid");
+        assert_eq!(Some(&rebuilt), world.fractal.as_ref());
+        let forest = World::default_world();
+        let desc = describe(&forest);
+        assert!(desc.fractal.is_none());
+        assert!(desc.graph.is_some());
+    }
+}

@@ -3,10 +3,11 @@
 //! same surface with fewer levels, its lattice heights equal to the finer ones'), turned into a height grid
 //! ([`Terrain::from_heights`]) that the terrain mesh and its chunked levels of detail draw as they draw any grid.
 //!
-//! The window is re-centred when the viewer moves more than an eighth of it (at least [`ALIGN`] squares) from its centre, and its corner snaps to
-//! a multiple of [`ALIGN`] lattice squares, so the chunks and their coarser steps sample the same lattice points
-//! before and after: only the squares entering and leaving the window change. Every rebuild is a new `Arc`, which
-//! the renderer notices (`Arc::ptr_eq`) and uploads.
+//! The window is re-centred when the viewer moves more than an eighth of it (at least [`ALIGN`] squares) from its
+//! centre, and its corner snaps to a multiple of [`ALIGN`] lattice squares, so the chunks and their coarser steps
+//! sample the same lattice points before and after: only the squares entering and leaving the window change. Every rebuild is a new `Arc`, which
+//! the renderer notices (`Arc::ptr_eq`) and uploads. The rebuild runs on the renderer's thread: a 256² window is
+//! about 88,000 lattice heights over all levels and a 66,049-vertex mesh.
 
 use std::sync::Arc;
 
