@@ -535,15 +535,19 @@ struct LocalServer {
 fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let world = super::load_world(world.map(PathBuf::as_path)).map_err(|d| anyhow::anyhow!("{d}"))?;
-    let store = canopy_server::GridStore::from_world(&world).context("building the world store")?;
+    let (name, eager) = (world.name.clone(), world.instances.len());
+    // A world expanded at load is served whole; a large one (the highlands) cell by cell on demand, as
+    // canopy-server serves it.
+    let store = if world.cell_count() > canopy_worlds::world::EAGER_CELLS {
+        canopy_server::CellCache::new(world, canopy_server::CellCacheConfig::default())
+            .context("building the world store")?
+            .shared()
+    } else {
+        canopy_server::GridStore::from_world(&world).context("building the world store")?.shared()
+    };
     let cfg = canopy_server::ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() };
-    let server = runtime.block_on(canopy_server::Server::start(store.shared(), cfg))?;
-    println!(
-        "canopy-server (in-process) on {} serving {}: {} instances",
-        server.local_addr(),
-        world.name,
-        world.instances.len()
-    );
+    let server = runtime.block_on(canopy_server::Server::start(store, cfg))?;
+    println!("canopy-server (in-process) on {} serving {name}: {eager} instances at load", server.local_addr());
     Ok(LocalServer { runtime, server })
 }
 
