@@ -319,6 +319,62 @@ pub struct TerrainDesc {
     pub corners: Vec<f32>,
     /// Other parameter values of the terrain species, sorted by slot.
     pub params: Vec<(u16, f32)>,
+    /// The terrain as a function (`terrain fractal { … }`): when present it is the ground, computed by the client
+    /// from these numbers bit for bit as the server, and the fields above describe only a flat placeholder.
+    pub fractal: Option<FractalDesc>,
+}
+
+/// A fractal terrain's numbers (`canopy_worlds::world::Fractal`): no height grid, only what computes one.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FractalDesc {
+    /// Noise seed.
+    pub seed: u64,
+    /// World (x, z) of lattice point (0, 0) at every level.
+    pub origin: [f64; 2],
+    /// Level-0 lattice spacing, metres.
+    pub tile: f64,
+    /// Levels of subdivision at full detail (at most [`netlimits::MAX_FRACTAL_DEPTH`]).
+    pub depth: u32,
+    /// Fractal dimension in [`netlimits::FRACTAL_DIMENSION`].
+    pub dimension: f32,
+    /// Displacement amplitude of level 1, metres.
+    pub relief: f32,
+    /// Control grid points per axis (x, z); `[0, 0]` without control heights.
+    pub dims: [u32; 2],
+    /// Control heights, `dims[0] × dims[1]` (at most [`netlimits::MAX_CONTROL_HEIGHTS`]), rows of increasing z.
+    pub heights: Vec<f32>,
+}
+
+impl FractalDesc {
+    /// Check counts and numbers: the depth and finest spacing, the dimension's range, finite numbers, a control
+    /// grid that matches its dimensions.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        let bad = |what| Err(MessageError::World(what));
+        if self.depth > netlimits::MAX_FRACTAL_DEPTH {
+            return bad("fractal depth out of range");
+        }
+        let spacing = self.tile / f64::from(1u32 << self.depth);
+        if !(self.tile.is_finite() && spacing >= netlimits::MIN_FRACTAL_SPACING) {
+            return bad("fractal tile out of range");
+        }
+        let (lo, hi) = netlimits::FRACTAL_DIMENSION;
+        let numbers = (lo..hi).contains(&self.dimension)
+            && self.relief.is_finite()
+            && self.relief >= 0.0
+            && self.origin.iter().all(|v| v.is_finite());
+        if !numbers {
+            return bad("fractal numbers out of range");
+        }
+        let expected = u64::from(self.dims[0]) * u64::from(self.dims[1]);
+        if self.heights.len() > netlimits::MAX_CONTROL_HEIGHTS
+            || expected != self.heights.len() as u64
+            || (self.dims[0] == 0) != (self.dims[1] == 0)
+            || !self.heights.iter().all(|h| h.is_finite())
+        {
+            return bad("fractal control heights do not match their grid");
+        }
+        Ok(())
+    }
 }
 
 impl TerrainDesc {
@@ -333,6 +389,7 @@ impl TerrainDesc {
             depth: 0,
             corners: vec![0.0; 4],
             params: Vec::new(),
+            fractal: None,
         }
     }
 
@@ -358,7 +415,7 @@ impl TerrainDesc {
         if !(self.tile_size.is_finite() && self.tile_size > 0.0 && self.origin.iter().all(|v| v.is_finite())) {
             return bad("terrain tile size or origin out of range");
         }
-        Ok(())
+        self.fractal.as_ref().map_or(Ok(()), FractalDesc::validate)
     }
 }
 
@@ -764,6 +821,7 @@ mod tests {
             depth: 3,
             corners: vec![0.5; 6],
             params: vec![(1, 2.5)],
+            fractal: None,
         };
         let grid = Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-2, -2), max: CellCoord::new(1, 1) };
         let world =

@@ -19,6 +19,14 @@ pub const MAX_WORLD_NAME: usize = 128;
 pub const MAX_TERRAIN_TILES: u32 = 64;
 /// Deepest terrain tile recursion (`2^depth` grid squares per tile edge).
 pub const MAX_TERRAIN_DEPTH: u32 = 10;
+/// Deepest subdivision of a fractal terrain (`canopy_worlds::world::MAX_FRACTAL_DEPTH`).
+pub const MAX_FRACTAL_DEPTH: u32 = 20;
+/// Smallest fractal lattice spacing at full depth, metres (`tile / 2^depth`).
+pub const MIN_FRACTAL_SPACING: f64 = 0.25;
+/// Most control heights of a fractal terrain (4 bytes each on the wire).
+pub const MAX_CONTROL_HEIGHTS: usize = 1 << 16;
+/// The fractal dimension's range, `[2, 3)`.
+pub const FRACTAL_DIMENSION: (f32, f32) = (2.0, 3.0);
 /// Largest area-of-interest radius a server may offer, in metres.
 pub const MAX_AOI_RADIUS: f32 = 4096.0;
 /// Largest coordinate magnitude accepted in a viewpoint, in metres.

@@ -4,8 +4,8 @@
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{
-    ClientHandshake, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome,
-    WorldInfo,
+    ClientHandshake, FractalDesc, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry,
+    TerrainDesc, Welcome, WorldInfo,
 };
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
 use canopy_protocol::xorshift::XorShift64;
@@ -69,6 +69,7 @@ fn welcome() -> Welcome {
                 depth: 7,
                 corners: vec![1.0, 2.0, 3.0, 4.0],
                 params: vec![(4, 2.2)],
+                fractal: None,
             },
         },
         species: vec![SpeciesEntry { hash: SpeciesHash([0xab; 32]), size: 1234 }],
@@ -98,9 +99,88 @@ fn viewpoint_is_pinned() {
 fn welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
-        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c4000000440101\
-         07040000803f0000004000004040000080400104cdcc0c4001abababababababababababababababababababababababababababababab\
-         ababd20900000044000000420000004000000043",
+        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
+         0107040000803f0000004000004040000080400104cdcc0c400001abababababababababababababababababababababababababababab\
+         ababababd20900000044000000420000004000000043",
+    );
+}
+
+/// A welcome whose ground is a fractal: its numbers, no height grid.
+fn fractal_welcome() -> Welcome {
+    let mut w = welcome();
+    w.world.terrain = TerrainDesc {
+        fractal: Some(FractalDesc {
+            seed: 0x4849_4748,
+            origin: [-51200.0, -51200.0],
+            tile: 12800.0,
+            depth: 11,
+            dimension: 2.25,
+            relief: 260.0,
+            dims: [2, 2],
+            heights: vec![300.0, 600.0, 200.0, 450.0],
+        }),
+        ..TerrainDesc::flat([-51200.0, -51200.0], 102400.0)
+    };
+    w
+}
+
+#[test]
+fn fractal_welcome_is_pinned() {
+    check_server(
+        &ServerMsg::Handshake(ServerHandshake::Welcome(fractal_welcome())),
+        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
+         0000000000000000000000000000000001c88ea5c204000000000000e9c0000000000000e9c0000000000000c9400b0000104000008243\
+         0202040000964300001644000048430000e14301ababababababababababababababababababababababababababababababababd20900\
+         000044000000420000004000000043",
+    );
+}
+
+#[test]
+fn fractal_numbers_out_of_range_are_refused() {
+    let sdec = |w: Welcome| ServerMsg::decode(&ServerMsg::Handshake(ServerHandshake::Welcome(w)).encode());
+    let change = |f: &dyn Fn(&mut FractalDesc)| {
+        let mut w = fractal_welcome();
+        f(w.world.terrain.fractal.as_mut().expect("fractal"));
+        sdec(w)
+    };
+    assert!(change(&|_| {}).is_ok());
+    assert!(change(&|f| f.dims = [0, 0]).is_err());
+    assert!(
+        change(&|f| {
+            f.dims = [0, 0];
+            f.heights.clear();
+        })
+        .is_ok()
+    );
+    let refused: [&dyn Fn(&mut FractalDesc); 14] = [
+        &|f| f.depth = netlimits::MAX_FRACTAL_DEPTH + 1,
+        &|f| f.depth = 40,
+        &|f| f.tile = 1.0,
+        &|f| f.tile = f64::NAN,
+        &|f| f.tile = f64::INFINITY,
+        &|f| f.dimension = 3.0,
+        &|f| f.dimension = 1.99,
+        &|f| f.dimension = f32::NAN,
+        &|f| f.relief = -1.0,
+        &|f| f.relief = f32::INFINITY,
+        &|f| f.origin[1] = f64::NAN,
+        &|f| f.heights[2] = f32::NAN,
+        &|f| f.heights.pop().map_or((), drop),
+        &|f| {
+            f.dims = [256, 257];
+            f.heights = vec![0.0; 256 * 257];
+        },
+    ];
+    for (k, f) in refused.iter().enumerate() {
+        assert!(matches!(change(*f), Err(MessageError::World(_)) | Err(MessageError::TooLarge { .. })), "case {k}");
+    }
+    // The largest control grid is accepted.
+    assert!(
+        change(&|f| {
+            f.dims = [256, 256];
+            f.heights = vec![1.0; netlimits::MAX_CONTROL_HEIGHTS];
+        })
+        .is_ok()
     );
 }
 
@@ -382,6 +462,7 @@ fn oversized_truncated_and_trailing_bytes_are_rejected() {
 fn server_messages() -> Vec<ServerMsg> {
     vec![
         ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
+        ServerMsg::Handshake(ServerHandshake::Welcome(fractal_welcome())),
         ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 1, graph: vec![1, 2, 3, 4] })),
         ServerMsg::Streaming(ServerStreaming::Cells(batch())),
         ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(1, 2), grant: 3 })),

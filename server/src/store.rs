@@ -379,7 +379,7 @@ impl StoreBuilder {
             min: CellCoord::new(first.x, first.z),
             max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
         };
-        let terrain = crate::terrain::describe(&world.terrain);
+        let terrain = crate::terrain::describe(world);
         let graphs = world.species.iter().map(|s| &s.graph);
         StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)
     }

@@ -24,6 +24,7 @@ pub mod camera;
 pub mod compare;
 pub mod geometry;
 pub mod gpu;
+pub mod ground;
 pub mod lod;
 pub mod offscreen;
 mod pipelines;
@@ -165,6 +166,8 @@ pub struct RenderConfig {
     /// Vertical field of view is the camera's; this is the near clip plane, metres (there is no far plane: the
     /// projection is reversed-Z to infinity).
     pub near_clip: f32,
+    /// Lattice squares per edge of the window drawn of a fractal ground ([`ground::FractalWindow`]).
+    pub ground_window: u32,
 }
 
 impl Default for RenderConfig {
@@ -187,6 +190,7 @@ impl Default for RenderConfig {
             },
             volume_resolution: 64,
             near_clip: 0.25,
+            ground_window: ground::WINDOW_SQUARES,
         }
     }
 }

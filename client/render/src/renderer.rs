@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use bytemuck::{Pod, Zeroable};
 use canopy_worlds::amplify::Instance;
-use canopy_worlds::world::Terrain;
+use canopy_worlds::world::{Ground, Terrain};
 use glam::{Mat4, Vec3};
 use wgpu::util::DeviceExt;
 
@@ -17,6 +17,7 @@ use super::RenderConfig;
 use super::cache::{GeometryCache, INDEX_BYTES, Placement};
 use super::camera::Camera;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
+use super::ground::FractalWindow;
 use super::pipelines::{ATLAS_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
 use super::select::{
@@ -186,6 +187,8 @@ pub struct Renderer {
     geometry: GeometryGpu,
     far: FarField,
     terrain: Option<TerrainGpu>,
+    /// The window drawn of a fractal ground.
+    window: Option<FractalWindow>,
     /// Which geometry is resident, pending, failed or waiting for upload.
     cache: GeometryCache,
     workers: Workers,
@@ -303,6 +306,7 @@ impl Renderer {
             geometry,
             far,
             terrain: None,
+            window: None,
             cache: GeometryCache::new(prim_units, vert_units, index_units),
             workers,
             received: VecDeque::new(),
@@ -343,7 +347,7 @@ impl Renderer {
         let started = Instant::now();
         self.frame += 1;
         let mut stats = FrameStats::default();
-        self.sync_scene(scene);
+        self.sync_scene(scene, camera);
         self.collect();
         self.cache.expire_deferred(self.frame);
         let (gpu, geometry) = (&self.gpu, &self.geometry);
@@ -364,13 +368,37 @@ impl Renderer {
         stats
     }
 
-    fn sync_scene(&mut self, scene: &Scene) {
+    /// The height grid to draw: the scene's grid, or the window of its fractal around the camera (re-centred and
+    /// re-leveled as the camera moves: a new `Arc` then).
+    fn ground_grid(&mut self, scene: &Scene, camera: &Camera) -> Arc<Terrain> {
+        match &scene.ground {
+            Ground::Grid(t) => {
+                self.window = None;
+                Arc::clone(t)
+            }
+            Ground::Fractal(f) => match &mut self.window {
+                Some(w) if Arc::ptr_eq(w.fractal(), f) => {
+                    w.update(camera.position);
+                    Arc::clone(w.terrain())
+                }
+                _ => {
+                    let w = FractalWindow::new(Arc::clone(f), self.cfg.ground_window, camera.position);
+                    let t = Arc::clone(w.terrain());
+                    self.window = Some(w);
+                    t
+                }
+            },
+        }
+    }
+
+    fn sync_scene(&mut self, scene: &Scene, camera: &Camera) {
+        let grid = self.ground_grid(scene, camera);
         let terrain_changed = match &self.terrain {
-            Some(t) => !Arc::ptr_eq(&t.source, &scene.terrain),
+            Some(t) => !Arc::ptr_eq(&t.source, &grid),
             None => true,
         };
         if terrain_changed {
-            let mesh = TerrainMesh::build(&scene.terrain);
+            let mesh = TerrainMesh::build(&grid);
             let vertices = self.gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("terrain vertices"),
                 contents: bytemuck::cast_slice(&mesh.vertices),
@@ -381,7 +409,7 @@ impl Renderer {
                 contents: bytemuck::cast_slice(&mesh.indices),
                 usage: wgpu::BufferUsages::INDEX,
             });
-            self.terrain = Some(TerrainGpu { source: Arc::clone(&scene.terrain), mesh, vertices, indices });
+            self.terrain = Some(TerrainGpu { source: grid, mesh, vertices, indices });
         }
         self.lod.sync(scene.generation, &scene.instances);
         let vols = &mut self.far.vols;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::hypertree::Hypertree;
-use canopy_worlds::world::{InstanceId, Terrain, World};
+use canopy_worlds::world::{Ground, InstanceId, World};
 
 /// One tree (or bush, or weed) to draw.
 #[derive(Clone, Debug, PartialEq)]
@@ -45,8 +45,8 @@ pub struct Scene {
     /// The instances, sorted by id (the renderer carries their level-of-detail state across generations by
     /// merging on id; an instance out of order starts afresh).
     pub instances: Vec<SceneInstance>,
-    /// The terrain.
-    pub terrain: Arc<Terrain>,
+    /// The ground: a height grid, or a fractal the renderer draws in a window around the viewer.
+    pub ground: Ground,
     /// Changes whenever species or instances change (the renderer rebuilds its per-instance state then).
     pub generation: u64,
 }
@@ -73,14 +73,14 @@ impl Scene {
             species: world.species.iter().map(|s| Some(Arc::new(s.graph.clone()))).collect(),
             volumes: vec![None; world.species.len()],
             instances,
-            terrain: Arc::new(world.terrain.clone()),
+            ground: Ground::of_world(world),
             generation: 1,
         }
     }
 
-    /// An empty scene on a terrain.
-    pub fn empty(terrain: Arc<Terrain>) -> Scene {
-        Scene { species: Vec::new(), volumes: Vec::new(), instances: Vec::new(), terrain, generation: 0 }
+    /// An empty scene on a ground (a height grid `Arc<Terrain>` or a fractal `Arc<Fractal>`).
+    pub fn empty(ground: impl Into<Ground>) -> Scene {
+        Scene { species: Vec::new(), volumes: Vec::new(), instances: Vec::new(), ground: ground.into(), generation: 0 }
     }
 
     /// The graph of a species id, if held.

@@ -594,7 +594,7 @@ mod tests {
             species: vec![Some(Arc::new(graph))],
             volumes: vec![None],
             instances,
-            terrain: Arc::new(Terrain::flat([0.0, 0.0], 1.0)),
+            ground: Arc::new(Terrain::flat([0.0, 0.0], 1.0)).into(),
             generation: 1,
         }
     }

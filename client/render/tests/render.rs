@@ -166,7 +166,7 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
             seed: 1,
             params: Vec::new(),
         }],
-        terrain: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)),
+        ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),
         generation: 1,
     };
     let mut cfg = RenderConfig {

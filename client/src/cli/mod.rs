@@ -72,10 +72,14 @@ where
     clap::builder::PossibleValuesParser::new(names.iter().map(|(n, _)| *n)).try_map(|s| s.parse::<T>())
 }
 
-/// A world manifest, or the embedded default world without one.
+/// A world manifest, an embedded world by name, or the embedded default world without one.
 fn load_world(manifest: Option<&Path>) -> Result<World, Diagnostics> {
     match manifest {
-        Some(path) => World::load(path),
+        // A name that is no file but an embedded world's (`--world highlands`) is that world.
+        Some(path) => match path.to_str().filter(|_| !path.exists()).and_then(World::embedded) {
+            Some(world) => Ok(world),
+            None => World::load(path),
+        },
         None => Ok(World::default_world()),
     }
 }

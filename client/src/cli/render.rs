@@ -81,7 +81,7 @@ impl RendererArgs {
 /// Options of `canopy render`.
 #[derive(Args, Debug)]
 pub struct RenderArgs {
-    /// World manifest (default: the embedded default world).
+    /// World manifest, or an embedded world by name (`highlands`; default: the embedded default world).
     #[arg(long)]
     world: Option<PathBuf>,
     /// Camera file, or camera statements inline separated by `;` (default: the default view,

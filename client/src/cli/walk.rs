@@ -25,7 +25,7 @@ use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
-use canopy_worlds::world::Terrain;
+use canopy_worlds::world::Ground;
 use clap::Args;
 use glam::Vec3;
 use winit::application::ApplicationHandler;
@@ -122,11 +122,11 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-fn snapshot(conn: &Connection, terrain: &Arc<Terrain>, generation: u64) -> Scene {
+fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
     let state = conn.state();
     let welcome = conn.welcome();
     let species = (0..welcome.species.len()).map(|id| state.species(id as u8).cloned()).collect::<Vec<_>>();
-    let height = |x: f32, z: f32| terrain.height(x, z);
+    let height = |x: f32, z: f32| ground.height(x, z);
     let mut instances: Vec<SceneInstance> = state
         .instances(&height)
         .map(|v| SceneInstance {
@@ -138,7 +138,7 @@ fn snapshot(conn: &Connection, terrain: &Arc<Terrain>, generation: u64) -> Scene
         })
         .collect();
     instances.sort_by_key(|i| i.id);
-    Scene { volumes: vec![None; species.len()], species, instances, terrain: Arc::clone(terrain), generation }
+    Scene { volumes: vec![None; species.len()], species, instances, ground: ground.clone(), generation }
 }
 
 async fn net_session(
@@ -160,7 +160,7 @@ async fn net_session(
     .await
     .with_context(|| format!("connecting to {}", cfg.server))?;
     let welcome = Arc::clone(conn.welcome());
-    let terrain = canopy_client::world::terrain(&welcome.world.terrain).context("rebuilding the terrain")?;
+    let ground = canopy_client::world::ground(&welcome.world.terrain).context("rebuilding the terrain")?;
     {
         let mut s = lock(&shared.status);
         s.connected = true;
@@ -168,7 +168,7 @@ async fn net_session(
         s.species_total = welcome.species.len();
     }
     let mut generation = 1u64;
-    *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &terrain, generation)));
+    *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut dirty = false;
     let mut last_publish = Instant::now();
@@ -198,7 +198,7 @@ async fn net_session(
         }
         if dirty && last_publish.elapsed() > Duration::from_millis(250) {
             generation += 1;
-            *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &terrain, generation)));
+            *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
             dirty = false;
             last_publish = Instant::now();
         }
@@ -337,7 +337,7 @@ impl App {
         let v = v.normalize_or_zero() * speed;
         self.camera.position += v * dt;
         if let Some(scene) = &self.scene {
-            let ground = scene.terrain.height(self.camera.position.x, self.camera.position.z);
+            let ground = scene.ground.height(self.camera.position.x, self.camera.position.z);
             if self.walking {
                 self.camera.position.y = ground + 1.7;
             } else {
@@ -389,8 +389,8 @@ impl App {
             self.scene = Some(s);
         }
         if let (false, Some(scene)) = (self.camera_placed, &self.scene) {
-            let t = Arc::clone(&scene.terrain);
-            self.camera = self.spec.resolve(&|x, z| t.height(x, z));
+            let g = scene.ground.clone();
+            self.camera = self.spec.resolve(&|x, z| g.height(x, z));
             self.camera_placed = true;
         }
         self.move_camera(dt);
@@ -535,15 +535,19 @@ struct LocalServer {
 fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let world = super::load_world(world.map(PathBuf::as_path)).map_err(|d| anyhow::anyhow!("{d}"))?;
-    let store = canopy_server::GridStore::from_world(&world).context("building the world store")?;
+    let (name, eager) = (world.name.clone(), world.instances.len());
+    // A world expanded at load is served whole; a large one (the highlands) cell by cell on demand, as
+    // canopy-server serves it.
+    let store = if world.cell_count() > canopy_worlds::world::EAGER_CELLS {
+        canopy_server::CellCache::new(world, canopy_server::CellCacheConfig::default())
+            .context("building the world store")?
+            .shared()
+    } else {
+        canopy_server::GridStore::from_world(&world).context("building the world store")?.shared()
+    };
     let cfg = canopy_server::ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() };
-    let server = runtime.block_on(canopy_server::Server::start(store.shared(), cfg))?;
-    println!(
-        "canopy-server (in-process) on {} serving {}: {} instances",
-        server.local_addr(),
-        world.name,
-        world.instances.len()
-    );
+    let server = runtime.block_on(canopy_server::Server::start(store, cfg))?;
+    println!("canopy-server (in-process) on {} serving {name}: {eager} instances at load", server.local_addr());
     Ok(LocalServer { runtime, server })
 }
 

@@ -100,6 +100,7 @@
 
 mod cells;
 mod fractal;
+mod ground;
 mod manifest;
 mod par;
 mod populate;
@@ -117,6 +118,7 @@ use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
 pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
+pub use ground::Ground;
 pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule};
 pub use summary::Estimate;
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};

@@ -206,6 +206,38 @@ impl Terrain {
         }
     }
 
+    /// A height grid from its vertex heights: `squares[0] × squares[1]` squares of edge `spacing` with vertex
+    /// (0, 0) at `origin`, `heights` by rows of increasing z (`(squares[0] + 1) × (squares[1] + 1)` of them), every
+    /// square split along its `(0, 0)–(1, 1)` diagonal (the split [`super::Fractal`] uses). No species: it reads as
+    /// one tile of depth 0 per square whose corners are the heights. `None` when the counts do not match, a square
+    /// count is 0, or a number is not finite (or the spacing not positive).
+    pub fn from_heights(origin: [f32; 2], spacing: f32, squares: [u32; 2], heights: Vec<f32>) -> Option<Terrain> {
+        let count = (u64::from(squares[0]) + 1) * (u64::from(squares[1]) + 1);
+        let numbers = spacing.is_finite() && spacing > 0.0 && origin.iter().all(|v| v.is_finite());
+        if squares.contains(&0) || count != heights.len() as u64 || !numbers || !heights.iter().all(|h| h.is_finite()) {
+            return None;
+        }
+        let lo = heights.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = heights.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        Some(Terrain {
+            species: None,
+            source: String::from("heights"),
+            seed: 0,
+            origin,
+            tile_size: spacing,
+            tiles: squares,
+            depth: 0,
+            corners: heights.clone(),
+            params: Vec::new(),
+            slots: None,
+            spacing,
+            squares,
+            heights,
+            anti_diagonal: vec![false; squares[0] as usize * squares[1] as usize],
+            range: (lo, hi),
+        })
+    }
+
     /// Amplify every tile of `graph` and read the height grid off its triangles.
     #[allow(clippy::too_many_arguments)]
     pub fn build(
