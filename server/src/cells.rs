@@ -108,10 +108,10 @@ impl Shared {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Expand, quantise and encode one cell (no lock held). One cell at a time, never a block through
-    /// [`World::expand_cells`] (which shares the neighbourhood's work: 2–4× less per cell on the highlands world):
-    /// on the default world today, a cell near explicit instances comes out differently depending on the block it is
-    /// expanded in, so a re-expansion would not give the same bytes.
+    /// Expand, quantise and encode one cell (no lock held). One cell at a time: a block through
+    /// [`World::expand_cells`] gives the same bytes and shares the neighbourhood's work (about 3× less per cell on
+    /// the highlands world), but makes the cell a session asked for wait for its neighbours; expanding the block
+    /// around a cell when its neighbours are queued too is the next step.
     fn expand(&self, c: CellCoord) -> Result<CellData, StoreError> {
         let key = CellKey { x: c.x, z: c.z };
         let placements = self.world.expand_cell(key);
