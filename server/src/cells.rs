@@ -3,7 +3,8 @@
 //! their batches encoded once ([`CellData::bodies`]), in an LRU bounded by bytes.
 //!
 //! A session never waits: asking for a cell that is not cached queues its expansion (once, however many sessions
-//! ask while it is queued or running) and answers [`CellState::Pending`]; the session sends other cells meanwhile
+//! ask while it is queued or running; a worker takes the queued cells of one aligned block of [`BLOCK`] × [`BLOCK`]
+//! together, sharing their neighbourhood's work) and answers [`CellState::Pending`]; the session sends other cells meanwhile
 //! and the waker it passed is woken when the cell is ready. Evicting a cell only drops the cache's reference: a
 //! session in the middle of sending it keeps it alive by its `Arc`, and asking again expands it again to the same
 //! bytes (expansion is a pure function of the manifest and the cell).
@@ -27,6 +28,9 @@ use tracing::{error, warn};
 
 use crate::metrics::CellMetrics;
 use crate::store::{CellData, CellState, CellWaker, StoreError, StoreHead, WorldStore};
+
+/// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
+pub const BLOCK: i32 = 4;
 
 /// How a cell cache runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -108,31 +112,52 @@ impl Shared {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Expand, quantise and encode one cell (no lock held). One cell at a time: a block through
-    /// [`World::expand_cells`] gives the same bytes and shares the neighbourhood's work (about 3× less per cell on
-    /// the highlands world), but makes the cell a session asked for wait for its neighbours; expanding the block
-    /// around a cell when its neighbours are queued too is the next step.
-    fn expand(&self, c: CellCoord) -> Result<CellData, StoreError> {
-        let key = CellKey { x: c.x, z: c.z };
-        let placements = self.world.expand_cell(key);
-        let data = CellData::from_placements(&self.grid, c, self.species_count, &placements)?;
-        data.bodies(self.cfg.batch_records);
-        Ok(data)
+    /// Expand, quantise and encode `cells` (no lock held): queued cells of one aligned block of [`BLOCK`] ×
+    /// [`BLOCK`] cells, expanded together through [`World::expand_cells`] — the same bytes as one at a time, with
+    /// the neighbourhood's work shared (about 3× less per cell on the highlands world when the block is full).
+    fn expand(&self, cells: &[CellCoord]) -> Vec<(CellCoord, Result<CellData, StoreError>)> {
+        let (mut lo, mut hi) = (cells[0], cells[0]);
+        for c in cells {
+            (lo.x, lo.z, hi.x, hi.z) = (lo.x.min(c.x), lo.z.min(c.z), hi.x.max(c.x), hi.z.max(c.z));
+        }
+        let expanded = self.world.expand_cells(CellKey { x: lo.x, z: lo.z }, CellKey { x: hi.x, z: hi.z });
+        expanded
+            .into_iter()
+            .map(|(k, placements)| (CellCoord::new(k.x, k.z), placements))
+            .filter(|(c, _)| cells.contains(c))
+            .map(|(c, placements)| {
+                let data = CellData::from_placements(&self.grid, c, self.species_count, &placements);
+                if let Ok(d) = &data {
+                    d.bodies(self.cfg.batch_records);
+                }
+                (c, data)
+            })
+            .collect()
     }
 
-    /// Expand `c` and cache it, then wake whoever waits for it.
-    fn complete(&self, c: CellCoord) {
+    /// Expand `cells` (see [`Shared::expand`]) and cache them, then wake whoever waits for each. The expansion
+    /// time is recorded per cell, the block's shared by its cells.
+    fn complete(&self, cells: &[CellCoord]) {
         let started = Instant::now();
-        let data = match self.expand(c) {
-            Ok(data) => data,
-            Err(e) => {
-                // Worlds are checked when loaded, so this is a bug; the cell goes out empty rather than never.
-                error!(cell = ?c, "cell expansion failed: {e}");
-                self.metrics.failures.fetch_add(1, Relaxed);
-                CellData::from_quantised(c, 0, std::iter::empty()).expect("an empty cell")
-            }
-        };
-        self.metrics.expansion_time.record(started.elapsed());
+        let expanded = self.expand(cells);
+        let per_cell = started.elapsed() / cells.len().max(1) as u32;
+        for (c, data) in expanded {
+            let data = match data {
+                Ok(data) => data,
+                Err(e) => {
+                    // Worlds are checked when loaded, so this is a bug; the cell goes out empty rather than never.
+                    error!(cell = ?c, "cell expansion failed: {e}");
+                    self.metrics.failures.fetch_add(1, Relaxed);
+                    CellData::from_quantised(c, 0, std::iter::empty()).expect("an empty cell")
+                }
+            };
+            self.metrics.expansion_time.record(per_cell);
+            self.cache(c, data);
+        }
+    }
+
+    /// Cache an expanded cell, evicting the least recently used ones past the bound, and wake its waiters.
+    fn cache(&self, c: CellCoord, data: CellData) {
         let data = Arc::new(data);
         let bytes = data.heap_bytes() + ENTRY_OVERHEAD;
         let wakers = {
@@ -163,17 +188,27 @@ impl Shared {
         }
     }
 
-    /// Take the next queued cell, waiting for one unless `wait` is false; `None` when stopped or (not waiting)
-    /// when the queue is empty.
-    fn next(&self, wait: bool) -> Option<CellCoord> {
+    /// Take the next queued cell and every other queued cell of its aligned block of [`BLOCK`] × [`BLOCK`] cells
+    /// (expanded together), waiting for one unless `wait` is false; `None` when stopped or (not waiting) when the
+    /// queue is empty.
+    fn next(&self, wait: bool) -> Option<Vec<CellCoord>> {
         let mut st = self.lock();
         loop {
             if st.stop {
                 return None;
             }
             if let Some(c) = st.queue.pop_front() {
+                let block = |c: CellCoord| (c.x.div_euclid(BLOCK), c.z.div_euclid(BLOCK));
+                let mut cells = vec![c];
+                st.queue.retain(|&q| {
+                    let same = block(q) == block(c);
+                    if same {
+                        cells.push(q);
+                    }
+                    !same
+                });
                 self.metrics.queued.store(st.queue.len() as u64, Relaxed);
-                return Some(c);
+                return Some(cells);
             }
             if !wait {
                 return None;
@@ -205,8 +240,8 @@ impl CellCache {
                 std::thread::Builder::new()
                     .name(format!("canopy-cells-{i}"))
                     .spawn(move || {
-                        while let Some(c) = shared.next(true) {
-                            shared.complete(c);
+                        while let Some(cells) = shared.next(true) {
+                            shared.complete(&cells);
                         }
                     })
                     .expect("spawning a cell worker")
@@ -224,9 +259,9 @@ impl CellCache {
     /// is the only way cells get expanded (tests run the pool deterministically with it).
     pub fn run_queued(&self) -> usize {
         let mut n = 0;
-        while let Some(c) = self.shared.next(false) {
-            self.shared.complete(c);
-            n += 1;
+        while let Some(cells) = self.shared.next(false) {
+            self.shared.complete(&cells);
+            n += cells.len();
         }
         n
     }
