@@ -80,17 +80,7 @@ mod tests {
     /// The welcome's description of a world's fractal, as `canopy_server::terrain::describe` writes it, sent through
     /// the wire's encoder and decoder.
     fn over_the_wire(world: &World) -> TerrainDesc {
-        let f = world.fractal.as_ref().expect("a fractal world");
-        let fractal = FractalDesc {
-            seed: f.seed,
-            origin: f.origin,
-            tile: f.tile,
-            depth: f.depth,
-            dimension: f.dimension,
-            relief: f.relief,
-            dims: f.dims,
-            heights: f.corners.clone(),
-        };
+        let fractal = world.fractal.as_ref().expect("a fractal world").describe();
         let desc = TerrainDesc { fractal: Some(fractal), ..TerrainDesc::flat([0.0, 0.0], 1.0) };
         let grid = canopy_protocol::aoi::Grid {
             origin: [0.0, 0.0],

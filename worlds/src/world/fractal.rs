@@ -26,6 +26,8 @@
 //! draws exactly the surface instances stand on. A coarser depth is the same surface with fewer levels
 //! (recursion-depth LOD): lattice heights shared by both depths are equal.
 
+use canopy_protocol::messages::FractalDesc;
+
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
 
@@ -127,6 +129,20 @@ impl Fractal {
             dims: [width as u32, rows.len() as u32],
             ratio: libm::pow(2.0, -hurst),
         })
+    }
+
+    /// The numbers a welcome carries ([`FractalDesc`]): everything a client needs to compute the same heights.
+    pub fn describe(&self) -> FractalDesc {
+        FractalDesc {
+            seed: self.seed,
+            origin: self.origin,
+            tile: self.tile,
+            depth: self.depth,
+            dimension: self.dimension,
+            relief: self.relief,
+            dims: self.dims,
+            heights: self.corners.clone(),
+        }
     }
 
     /// The lattice spacing at depth `depth`.
