@@ -360,8 +360,8 @@ fn scatter(
         }
     };
     par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 0));
-    let mut proposals = vec![EMPTY; n];
-    let mut priority = vec![0u32; n];
+    // Per background cell: this round's proposal (NaN for none) and its priority.
+    let mut proposals = vec![(EMPTY, 0u32); n];
     for round in 0..ROUNDS as usize {
         if round * WORDS_PER_ROUND as usize == 16 {
             par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 1));
@@ -393,12 +393,7 @@ fn scatter(
                 }
             }
         };
-        let mut fresh = vec![(EMPTY, 0u32); n];
-        par::each(bands.jobs(&mut fresh), |(slice, offset, rows)| propose(slice, offset, rows));
-        for (k, (p, prio)) in fresh.into_iter().enumerate() {
-            proposals[k] = p;
-            priority[k] = prio;
-        }
+        par::each(bands.jobs(&mut proposals), |(slice, offset, rows)| propose(slice, offset, rows));
         // Acceptance: a proposal is placed if it outranks every proposal within `spacing` (priority, then the
         // background cell in row-major order: a strict order, so two darts closer than `spacing` are never both
         // placed).
@@ -406,13 +401,14 @@ fn scatter(
             for j in rows.0..=rows.1 {
                 for i in lo[0]..=hi[0] {
                     let k = field.at(i, j);
-                    let d = proposals[k];
+                    let (d, priority) = proposals[k];
                     if d[0].is_nan() {
                         continue;
                     }
-                    let wins = field
-                        .neighbours(k)
-                        .all(|q| !closer(proposals[q], d[0], d[1], r2) || (priority[k], k) > (priority[q], q));
+                    let wins = field.neighbours(k).all(|q| {
+                        let (o, other) = proposals[q];
+                        !closer(o, d[0], d[1], r2) || (priority, k) > (other, q)
+                    });
                     if wins {
                         out[k - offset] = d;
                     }
