@@ -5,6 +5,7 @@
 //! [`species::SpeciesGraph::decode`] returns only graphs that pass [`species::SpeciesGraph::validate`].
 
 pub mod aoi;
+pub mod edit;
 pub mod expr;
 pub mod frame;
 pub mod hypertree;

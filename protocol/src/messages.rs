@@ -20,12 +20,13 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, ViewpointError};
+use crate::edit::{CellDelta, Edit, EditResult, Resume};
 use crate::frame::PREFIX;
 use crate::record::{BatchError, CellBatch, CellCoord, InstanceId, POSITION_STEPS};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";
@@ -111,6 +112,8 @@ pub enum ClientHandshake {
     Hello(Hello),
     /// The answer to the welcome: what the client holds, where it looks from.
     Ready(Ready),
+    /// Before `ready`, from a client that reconnects: cells it still holds and their versions.
+    Resume(Resume),
 }
 
 /// The client's streaming messages.
@@ -118,6 +121,10 @@ pub enum ClientHandshake {
 pub enum ClientStreaming {
     /// The viewpoint moved: the area of interest follows it.
     Viewpoint(Viewpoint),
+    /// Change the world (an editor's session).
+    Edit(Edit),
+    /// Send this held cell again, whole, at its current version (the client missed a version).
+    Refresh(CellCoord),
 }
 
 /// The first message of a session. `version` comes first so that any future version still decodes it.
@@ -127,6 +134,8 @@ pub struct Hello {
     pub version: u16,
     /// A label for logs (at most [`netlimits::MAX_CLIENT_NAME`] bytes).
     pub client: String,
+    /// An editor token (at most [`netlimits::MAX_TOKEN_BYTES`] bytes): a session without one is read-only.
+    pub token: Option<Vec<u8>>,
 }
 
 /// The client is ready to stream.
@@ -169,6 +178,10 @@ pub enum ServerStreaming {
     /// Explicit geometry (the bandwidth baselines of `canopy bandwidth`: a server in an explicit payload mode sends
     /// meshes instead of species programs). One chunk of one encoded blob.
     Geometry(GeometryChunk),
+    /// The answer to an edit (on the control stream).
+    EditResult(EditResult),
+    /// What changed in a held cell (on its grant's lane).
+    Delta(CellDelta),
 }
 
 /// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
@@ -184,16 +197,22 @@ pub enum ServerMsgKind {
     Release = 3,
     /// Explicit geometry (bandwidth baselines only).
     Geometry = 4,
+    /// The answer to an edit.
+    EditResult = 5,
+    /// A change to a held cell.
+    Delta = 6,
 }
 
 impl ServerMsgKind {
     /// Every kind, in index order.
-    pub const ALL: [ServerMsgKind; 5] = [
+    pub const ALL: [ServerMsgKind; 7] = [
         ServerMsgKind::Welcome,
         ServerMsgKind::Species,
         ServerMsgKind::Cells,
         ServerMsgKind::Release,
         ServerMsgKind::Geometry,
+        ServerMsgKind::EditResult,
+        ServerMsgKind::Delta,
     ];
 
     /// The kind's name, for logs, errors and metrics.
@@ -204,6 +223,8 @@ impl ServerMsgKind {
             ServerMsgKind::Cells => "cells",
             ServerMsgKind::Release => "release",
             ServerMsgKind::Geometry => "geometry",
+            ServerMsgKind::EditResult => "edit_result",
+            ServerMsgKind::Delta => "delta",
         }
     }
 
@@ -587,6 +608,9 @@ pub enum MessageError {
     /// A cell batch is not acceptable.
     #[error(transparent)]
     Batch(#[from] BatchError),
+    /// An edit, delta or resume is not acceptable.
+    #[error("edit: {0}")]
+    Edit(&'static str),
 }
 
 impl MessageError {
@@ -632,8 +656,10 @@ impl ClientMsg {
     pub fn validate(&self) -> Result<(), MessageError> {
         match self {
             ClientMsg::Handshake(ClientHandshake::Hello(h)) => {
+                count("editor token", h.token.as_ref().map_or(0, Vec::len), netlimits::MAX_TOKEN_BYTES)?;
                 count("client name", h.client.len(), netlimits::MAX_CLIENT_NAME)
             }
+            ClientMsg::Handshake(ClientHandshake::Resume(r)) => r.validate(),
             ClientMsg::Handshake(ClientHandshake::Ready(r)) => {
                 count("have-list", r.have.len(), netlimits::MAX_SPECIES)?;
                 if r.have.windows(2).any(|w| w[0] >= w[1]) {
@@ -642,6 +668,14 @@ impl ClientMsg {
                 Ok(r.viewpoint.validate()?)
             }
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => Ok(v.validate()?),
+            ClientMsg::Streaming(ClientStreaming::Edit(e)) => e.op.validate(),
+            ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
+                if InstanceId::names(*c) {
+                    Ok(())
+                } else {
+                    Err(MessageError::Edit("refresh of a cell ids cannot name"))
+                }
+            }
         }
     }
 
@@ -650,7 +684,10 @@ impl ClientMsg {
         match self {
             ClientMsg::Handshake(ClientHandshake::Hello(_)) => "hello",
             ClientMsg::Handshake(ClientHandshake::Ready(_)) => "ready",
+            ClientMsg::Handshake(ClientHandshake::Resume(_)) => "resume",
             ClientMsg::Streaming(ClientStreaming::Viewpoint(_)) => "viewpoint",
+            ClientMsg::Streaming(ClientStreaming::Edit(_)) => "edit",
+            ClientMsg::Streaming(ClientStreaming::Refresh(_)) => "refresh",
         }
     }
 
@@ -659,6 +696,7 @@ impl ClientMsg {
         match (self, phase) {
             (ClientMsg::Handshake(ClientHandshake::Hello(_)), Phase::Start) => Ok(Phase::Hello),
             (ClientMsg::Handshake(ClientHandshake::Ready(_)), Phase::Welcomed) => Ok(Phase::Streaming),
+            (ClientMsg::Handshake(ClientHandshake::Resume(_)), Phase::Welcomed) => Ok(Phase::Welcomed),
             (ClientMsg::Streaming(_), Phase::Streaming) => Ok(Phase::Streaming),
             _ => Err(PhaseError { phase, message: self.name() }),
         }
@@ -701,6 +739,13 @@ impl ServerMsg {
             }
             ServerMsg::Streaming(ServerStreaming::Cells(b)) => Ok(b.validate()?),
             ServerMsg::Streaming(ServerStreaming::Release(_)) => Ok(()),
+            ServerMsg::Streaming(ServerStreaming::EditResult(r)) => match &r.outcome {
+                crate::edit::EditOutcome::Denied(why) | crate::edit::EditOutcome::Invalid(why) => {
+                    count("edit reason", why.len(), netlimits::MAX_EDIT_REASON)
+                }
+                _ => Ok(()),
+            },
+            ServerMsg::Streaming(ServerStreaming::Delta(d)) => d.validate(),
             ServerMsg::Streaming(ServerStreaming::Geometry(g)) => {
                 count("geometry chunk", g.bytes.len(), netlimits::MAX_GEOMETRY_CHUNK)?;
                 count("geometry blob", g.total as usize, netlimits::MAX_GEOMETRY_BYTES)?;
@@ -733,6 +778,8 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::Cells(_)) => ServerMsgKind::Cells,
             ServerMsg::Streaming(ServerStreaming::Release(_)) => ServerMsgKind::Release,
             ServerMsg::Streaming(ServerStreaming::Geometry(_)) => ServerMsgKind::Geometry,
+            ServerMsg::Streaming(ServerStreaming::EditResult(_)) => ServerMsgKind::EditResult,
+            ServerMsg::Streaming(ServerStreaming::Delta(_)) => ServerMsgKind::Delta,
         }
     }
 
@@ -792,7 +839,11 @@ impl WelcomeHead {
 impl ClientMsg {
     /// `ClientMsg::Handshake(ClientHandshake::Hello(..))` at this protocol version.
     pub fn hello(client: impl Into<String>) -> ClientMsg {
-        ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: PROTOCOL_VERSION, client: client.into() }))
+        ClientMsg::Handshake(ClientHandshake::Hello(Hello {
+            version: PROTOCOL_VERSION,
+            client: client.into(),
+            token: None,
+        }))
     }
 
     /// `ClientMsg::Handshake(ClientHandshake::Ready(..))`.

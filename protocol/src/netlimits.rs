@@ -39,3 +39,15 @@ pub const MAX_CELLS_PER_AXIS: i32 = 1 << 16;
 pub const MAX_GEOMETRY_CHUNK: usize = 64 * 1024;
 /// Largest explicit-geometry blob (one mesh or one batch's transforms), bytes.
 pub const MAX_GEOMETRY_BYTES: usize = 64 * 1024 * 1024;
+/// Most `(slot, value)` pairs in one edit (a plant's parameters, a set's).
+pub const MAX_EDIT_PARAMS: usize = 32;
+/// Most entries (plants, removals, updates) in one cell delta; a larger change is sent as the whole cell.
+pub const MAX_DELTA_ENTRIES: usize = 1024;
+/// Most cells named in one resume message (a client frame is at most [`MAX_CLIENT_FRAME`] bytes).
+pub const MAX_RESUME_PER_MESSAGE: usize = 64;
+/// Most cells a reconnecting client may name in all its resume messages.
+pub const MAX_RESUME_CELLS: usize = 4096;
+/// Longest editor token in a hello, bytes.
+pub const MAX_TOKEN_BYTES: usize = 64;
+/// Longest reason in an edit result, bytes.
+pub const MAX_EDIT_REASON: usize = 256;

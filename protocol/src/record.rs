@@ -195,6 +195,12 @@ pub struct CellBatch {
     pub records: Vec<InstanceRecord>,
     /// Parameters that differ from the species defaults, one column per slot, slots increasing.
     pub params: Vec<ParamColumn>,
+    /// The cell's version these records belong to (0: the world function alone; every edit adds one,
+    /// [`crate::edit`]). Every batch of a grant carries the same.
+    pub version: u32,
+    /// Records felled by edits: a bitmap over the batch's records like a parameter column's, or empty when none
+    /// is. A felled record still takes its index (and 4 bytes); the client skips it.
+    pub felled: Vec<u8>,
 }
 
 /// Why a cell batch is not acceptable.
@@ -226,6 +232,9 @@ pub enum BatchError {
     /// not match the bitmap, or a value is not finite.
     #[error("parameter column {0} is malformed")]
     Column(usize),
+    /// The felled bitmap does not fit the records.
+    #[error("felled bitmap does not fit the batch")]
+    Felled,
 }
 
 impl CellBatch {
@@ -254,7 +263,28 @@ impl CellBatch {
                 ParamColumn { slot, present, values }
             })
             .collect();
-        CellBatch { cell, grant, total, start, records, params }
+        CellBatch { cell, grant, total, start, records, params, version: 0, felled: Vec::new() }
+    }
+
+    /// The batch at cell version `version`, with the records at these indices (within the batch, increasing)
+    /// felled.
+    pub fn at_version(mut self, version: u32, felled: impl IntoIterator<Item = u16>) -> CellBatch {
+        self.version = version;
+        let mut bits = vec![0u8; self.records.len().div_ceil(8)];
+        let mut any = false;
+        for i in felled {
+            if let Some(b) = bits.get_mut(usize::from(i) / 8) {
+                *b |= 1 << (i % 8);
+                any = true;
+            }
+        }
+        self.felled = if any { bits } else { Vec::new() };
+        self
+    }
+
+    /// Whether `records[i]` was felled.
+    pub fn is_felled(&self, i: usize) -> bool {
+        self.felled.get(i / 8).is_some_and(|b| b & (1 << (i % 8)) != 0)
     }
 
     /// Check counts, ranges and the parameter columns (decoders call this).
@@ -278,10 +308,15 @@ impl CellBatch {
         if n == 0 && self.total != 0 {
             return Err(BatchError::Empty(self.total));
         }
+        let fits = |bits: &[u8]| {
+            bits.len() == n.div_ceil(8) && (n.is_multiple_of(8) || bits.last().is_none_or(|&b| b >> (n % 8) == 0))
+        };
+        if !self.felled.is_empty() && !fits(&self.felled) {
+            return Err(BatchError::Felled);
+        }
         for (i, c) in self.params.iter().enumerate() {
             let ordered = i == 0 || self.params[i - 1].slot < c.slot;
-            let fits = c.present.len() == n.div_ceil(8)
-                && (n.is_multiple_of(8) || c.present.last().is_none_or(|&b| b >> (n % 8) == 0));
+            let fits = fits(&c.present);
             let count: usize = c.present.iter().map(|b| b.count_ones() as usize).sum();
             if !ordered || !fits || count != c.values.len() || count == 0 || !c.values.iter().all(|v| v.0.is_finite()) {
                 return Err(BatchError::Column(i));

@@ -79,7 +79,7 @@ fn welcome() -> Welcome {
 
 #[test]
 fn hello_is_pinned() {
-    check_client(&ClientMsg::hello("bot-1"), "00000205626f742d31");
+    check_client(&ClientMsg::hello("bot-1"), "00000305626f742d3100");
 }
 
 #[test]
@@ -99,7 +99,7 @@ fn viewpoint_is_pinned() {
 fn welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
-        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
+        "00000306666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
          0107040000803f0000004000004040000080400104cdcc0c400001abababababababababababababababababababababababababababab\
          ababababd20900000044000000420000004000000043",
     );
@@ -128,7 +128,7 @@ fn fractal_welcome() -> Welcome {
 fn fractal_welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(fractal_welcome())),
-        "00000206666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
+        "00000306666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
          0000000000000000000000000000000001c88ea5c204000000000000e9c0000000000000e9c0000000000000c9400b0000104000008243\
          0202040000964300001644000048430000e14301ababababababababababababababababababababababababababababababababd20900\
          000044000000420000004000000043",
@@ -196,10 +196,10 @@ fn species_is_pinned() {
 fn cells_is_pinned() {
     // An 8-byte header (cell, grant, total, start, record count: no instance id, the identity is the cell and the
     // index), two records of 4 bytes each, one parameter column of 7 bytes: the column count, the slot, the bitmap
-    // with its length, the value count and 12.5 in 2 bytes.
+    // with its length, the value count and 12.5 in 2 bytes; then the cell version (0) and an empty felled bitmap.
     check_server(
         &ServerMsg::Streaming(ServerStreaming::Cells(batch())),
-        "0101050a0982018001020223c1ab00ff0f0001030102018225",
+        "0101050a0982018001020223c1ab00ff0f00010301020182250000",
     );
 }
 
@@ -365,7 +365,7 @@ fn invalid_values_are_rejected_after_decoding() {
     assert!(matches!(dec(&ClientMsg::viewpoint(v)), Err(MessageError::Viewpoint(_))));
     assert!(matches!(dec(&ClientMsg::ready(vec![3, 1], viewpoint())), Err(MessageError::Count { .. })));
     assert!(matches!(dec(&ClientMsg::ready(vec![1, 1], viewpoint())), Err(MessageError::Count { .. })));
-    let long = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 1, client: "x".repeat(65) }));
+    let long = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 1, client: "x".repeat(65), token: None }));
     assert!(matches!(dec(&long), Err(MessageError::Count { what: "client name", .. })));
 
     let sdec = |m: ServerMsg| ServerMsg::decode(&m.encode());

@@ -21,10 +21,12 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
+use crate::editing::{CellChange, EditJob, EditService};
 use crate::metrics::Metrics;
 use crate::session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
 use crate::store::{CellWaker, WorldStore};
 use crate::tls::{Identity, IdentityError};
+use canopy_protocol::edit::EditOutcome;
 
 /// UDP socket buffer size: 1,000 concurrent handshakes on loopback overflow the default buffers.
 pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
@@ -55,6 +57,8 @@ pub struct ServerConfig {
     /// A session that sent no viewpoint for this long is closed while the server is near capacity (it holds a
     /// client slot without streaming: keep-alive PINGs alone do not keep a slot).
     pub idle_slot: Duration,
+    /// The edit pipeline (`None`: the world cannot change; every edit is denied).
+    pub edits: Option<Arc<EditService>>,
 }
 
 impl Default for ServerConfig {
@@ -69,6 +73,7 @@ impl Default for ServerConfig {
             socket_buffer: SOCKET_BUFFER,
             idle_timeout: Duration::from_secs(30),
             idle_slot: Duration::from_secs(120),
+            edits: None,
         }
     }
 }
@@ -373,8 +378,23 @@ async fn run_session(
     let mut writer = tokio::spawn(write_loop(conn.clone(), ctl_send, rx, flushed_tx));
     let mut decoder = FrameDecoder::new(netlimits::MAX_CLIENT_FRAME);
     let mut streaming = false;
+    // Edits go to the writer; its answers come back here. Changed cells are announced to every session.
+    let (edit_tx, mut edit_rx) = mpsc::unbounded_channel::<(u32, EditOutcome)>();
+    let mut changes = cfg.edits.as_ref().map(|e| e.hub().subscribe());
     let result = loop {
         let now = Instant::now();
+        while let Some((request, op, editor)) = session.poll_edit() {
+            match &cfg.edits {
+                Some(service) => {
+                    let tx = edit_tx.clone();
+                    let reply = Box::new(move |outcome| {
+                        let _ = tx.send((request, outcome));
+                    });
+                    service.submit(EditJob { op, editor, reply });
+                }
+                None => session.on_edit_result(request, EditOutcome::Denied("this server takes no edits".into())),
+            }
+        }
         while let Some(t) = session.poll_transmit(now) {
             metrics.sent(t.class, t.len(), t.records);
             if tx.send(t).is_err() {
@@ -419,6 +439,16 @@ async fn run_session(
                 session.on_flushed(n);
             }
             _ = cells_ready.0.notified() => {}
+            answer = edit_rx.recv() => {
+                if let Some((request, outcome)) = answer {
+                    session.on_edit_result(request, outcome);
+                }
+            }
+            change = next_change(&mut changes) => match change {
+                Ok(c) => session.on_cell_changed(c.cell),
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => session.on_changes_missed(),
+                Err(tokio::sync::broadcast::error::RecvError::Closed) => changes = None,
+            },
             _ = sleep_until(wake) => {
                 if let Err(e) = session.handle_timeout(Instant::now()) {
                     break Err(Closing::new(e.close_code(), e));
@@ -452,6 +482,16 @@ struct NotifyWaker(tokio::sync::Notify);
 impl CellWaker for NotifyWaker {
     fn wake(&self) {
         self.0.notify_one();
+    }
+}
+
+/// The next cell change announced, or never (a server without edits).
+async fn next_change(
+    rx: &mut Option<tokio::sync::broadcast::Receiver<CellChange>>,
+) -> Result<CellChange, tokio::sync::broadcast::error::RecvError> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
     }
 }
 

@@ -9,10 +9,14 @@ use std::time::Duration;
 
 use anyhow::Context;
 use canopy_protocol::aoi::AoiParams;
+use canopy_server::edits::{EditStore, SqliteEditStore};
 use canopy_server::metrics::resident_bytes;
 use canopy_server::worlds::world::World;
-use canopy_server::{AdmissionConfig, CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig};
+use canopy_server::{
+    AdmissionConfig, CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig,
+};
 use clap::Parser;
+use std::sync::Arc;
 use tracing::info;
 
 /// Serve a Canopy world: species once per client, instance records by area of interest, over QUIC.
@@ -31,9 +35,25 @@ struct Args {
     /// Run without the metrics endpoint.
     #[arg(long)]
     no_metrics: bool,
-    /// Where the certificate is kept (generated at first start).
-    #[arg(long, default_value = "canopy-data")]
+    /// Where the certificate and the edits (`edits.sqlite`) are kept (the certificate is generated at first start).
+    #[arg(long, alias = "data", default_value = "canopy-data")]
     data_dir: PathBuf,
+    /// The editors file: who may plant, fell and set (without one, every session is read-only).
+    #[arg(long)]
+    editors: Option<PathBuf>,
+    /// Add an editor of this name to the `--editors` file (created if missing) and print its token once, then
+    /// exit.
+    #[arg(long, value_name = "NAME", requires = "editors")]
+    add_editor: Option<String>,
+    /// With `--add-editor`: the world rectangle `X0,Z0,X1,Z1` the editor may change.
+    #[arg(long, value_parser = parse_region, allow_hyphen_values = true)]
+    region: Option<[f32; 4]>,
+    /// With `--add-editor`: edits a second the editor may make.
+    #[arg(long)]
+    rate: Option<u32>,
+    /// Memory for cells' edit overlays (and edited cells' records), MiB.
+    #[arg(long, default_value_t = 64)]
+    overlay_cache_mib: usize,
     /// Largest area-of-interest radius a client may ask for, metres.
     #[arg(long, default_value_t = AoiParams::default().max_radius)]
     max_radius: f32,
@@ -83,6 +103,40 @@ struct Args {
     print_fingerprint: bool,
 }
 
+fn parse_region(s: &str) -> Result<[f32; 4], String> {
+    let v: Vec<f32> =
+        s.split(',').map(|x| x.trim().parse::<f32>().map_err(|e| format!("{x:?}: {e}"))).collect::<Result<_, _>>()?;
+    match v[..] {
+        [x0, z0, x1, z1] if x0 <= x1 && z0 <= z1 && v.iter().all(|x| x.is_finite()) => Ok([x0, z0, x1, z1]),
+        _ => Err("expected X0,Z0,X1,Z1 with X0 ≤ X1 and Z0 ≤ Z1".into()),
+    }
+}
+
+/// Append an editor with a new token to the editors file (created with mode 600 if missing) and print the token.
+fn add_editor(file: &std::path::Path, name: &str, region: Option<[f32; 4]>, rate: Option<u32>) -> anyhow::Result<()> {
+    use std::io::Write;
+    if name.is_empty() || name.chars().any(|c| c.is_whitespace() || c == '#') {
+        anyhow::bail!("an editor's name is one word without '#'");
+    }
+    // Check the file parses before adding to it, so a broken file is not made worse.
+    if file.exists() {
+        Editors::load(file)?;
+    }
+    let token = canopy_server::editors::new_token()?;
+    let line = canopy_server::editors::editor_line(name, &token, region, rate);
+    let mut options = std::fs::OpenOptions::new();
+    options.create(true).append(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    let mut f = options.open(file).with_context(|| format!("opening {}", file.display()))?;
+    writeln!(f, "{line}")?;
+    f.sync_all()?;
+    Editors::load(file)?;
+    eprintln!("added editor {name} to {} (the file keeps only the token's hash)", file.display());
+    println!("{}", canopy_server::editors::hex(&token));
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -92,6 +146,13 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let args = Args::parse();
+    if let (Some(name), Some(file)) = (&args.add_editor, &args.editors) {
+        return add_editor(file, name, args.region, args.rate);
+    }
+    let editors = match &args.editors {
+        Some(path) => Editors::load(path)?,
+        None => Editors::none(),
+    };
     if args.print_fingerprint {
         let id = canopy_server::tls::Identity::load_or_generate(&args.data_dir)?;
         println!("{}", id.fingerprint());
@@ -113,6 +174,7 @@ fn main() -> anyhow::Result<()> {
             world.cell_size
         )
     };
+    let session_editors = editors.len();
     let session = SessionConfig {
         aoi: AoiParams {
             max_radius: args.max_radius,
@@ -122,6 +184,7 @@ fn main() -> anyhow::Result<()> {
         },
         bandwidth: (args.bandwidth > 0).then_some(args.bandwidth),
         viewpoint_rate: (args.viewpoint_rate.max(1), args.viewpoint_rate.max(1).saturating_mul(2)),
+        editors: Some(Arc::new(editors)),
         ..SessionConfig::default()
     };
     session.aoi.validate().context("area-of-interest options")?;
@@ -131,7 +194,13 @@ fn main() -> anyhow::Result<()> {
         batch_records: session.batch_records,
     };
     // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
-    let store = CellCache::new(world, cache_cfg).context("building the world store")?;
+    let base = CellCache::new(world, cache_cfg).context("building the world store")?;
+    // Edits are kept in the data directory and read cell by cell when a cell is first needed: nothing at start.
+    let edit_store = SqliteEditStore::open(&args.data_dir)?;
+    let edit_count = edit_store.count()?;
+    let live =
+        Arc::new(LiveStore::new(base.shared(), Arc::new(edit_store), args.overlay_cache_mib.saturating_mul(1 << 20)));
+    let edits = EditService::start(Arc::clone(&live));
     let cfg = ServerConfig {
         listen: args.listen,
         metrics: (!args.no_metrics).then_some(args.metrics),
@@ -145,12 +214,13 @@ fn main() -> anyhow::Result<()> {
         },
         idle_slot: Duration::from_secs(args.idle_slot),
         send_budget: Some(args.send_budget_mib.saturating_mul(1 << 20)),
+        edits: Some(Arc::clone(&edits)),
         ..ServerConfig::default()
     };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let rss_before = resident_bytes();
-        let server = Server::start(store.shared(), cfg).await?;
+        let server = Server::start(live, cfg).await?;
         print!("{summary}");
         println!("cells expanded on demand by {} workers, cached up to {} MiB", cache_cfg.workers, args.cell_cache_mib);
         println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
@@ -159,6 +229,8 @@ fn main() -> anyhow::Result<()> {
         }
         let how = if server.identity_generated() { "generated" } else { "loaded" };
         println!("certificate {how} in {}", args.data_dir.display());
+        let editors_n = session_editors;
+        println!("{edit_count} edits stored in {}; {editors_n} editors", args.data_dir.join("edits.sqlite").display());
         println!("fingerprint {}", server.fingerprint());
         let (r, s) = server.socket_buffers();
         println!("socket buffers: receive {r} B, send {s} B");
@@ -196,6 +268,7 @@ fn main() -> anyhow::Result<()> {
         println!("shutting down");
         stats.abort();
         server.shutdown(Duration::from_secs(2)).await;
+        edits.stop();
         anyhow::Ok(())
     })
 }

@@ -21,20 +21,25 @@
 //! or one mesh per species plus per-instance transforms ([`PayloadMode::Instanced`]). The records still go out in
 //! the explicit modes (a few bytes each), so the client's bookkeeping of what it holds stays the same.
 
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
 use std::ops::Range;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
+use canopy_protocol::edit::{EditOp, EditOutcome, EditResult, ResumeCell};
 use canopy_protocol::messages::{
     ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
 };
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
+use crate::editors::{Editor, Editors};
 use crate::pacing::TokenBucket;
-use crate::store::{CellData, CellState, CellWaker, WorldStore};
+use crate::store::{CellData, CellState, CellWaker, Changes, WorldStore};
+
+/// Most edits of one session handed to the writer and not yet answered; more are denied until answers come.
+pub const MAX_EDITS_IN_FLIGHT: usize = 256;
 
 /// A cell out of view is scheduled as if it were this many times farther away.
 pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
@@ -141,6 +146,8 @@ pub struct SessionConfig {
     pub viewpoint_rate: (u32, u32),
     /// The budget of unflushed bytes shared by every session of a server (`None`: only each session's window).
     pub send_budget: Option<Arc<SendBudget>>,
+    /// Who may edit (`None`: every session is read-only).
+    pub editors: Option<Arc<Editors>>,
 }
 
 /// Bytes handed to the transport and not yet flushed, summed over every session of a server, against a limit:
@@ -196,6 +203,7 @@ impl Default for SessionConfig {
             payload: Payload::default(),
             viewpoint_rate: (50, 100),
             send_budget: None,
+            editors: None,
         }
     }
 }
@@ -287,6 +295,9 @@ pub enum SessionError {
     /// Viewpoints arrive faster than the session's rate allows.
     #[error("viewpoints faster than {0} a second")]
     ViewpointFlood(u32),
+    /// The resume messages name more cells than allowed, or not in increasing order.
+    #[error("resume names more than {0} cells or repeats one")]
+    Resume(usize),
 }
 
 impl SessionError {
@@ -298,7 +309,7 @@ impl SessionError {
             SessionError::Version { .. } => CloseCode::Version,
             SessionError::UnknownSpecies(_) => CloseCode::Invalid,
             SessionError::HandshakeTimeout(_) => CloseCode::Timeout,
-            SessionError::ViewpointFlood(_) => CloseCode::Invalid,
+            SessionError::ViewpointFlood(_) | SessionError::Resume(_) => CloseCode::Invalid,
         }
     }
 }
@@ -318,6 +329,10 @@ pub struct SessionStats {
     pub viewpoints: u64,
     /// Grants opened.
     pub grants: u64,
+    /// Edits received.
+    pub edits: u64,
+    /// Deltas sent.
+    pub deltas: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -326,6 +341,8 @@ struct Held {
     lane: u8,
     sent: u16,
     total: u16,
+    /// The cell's version the client holds (or is being sent).
+    version: u32,
 }
 
 /// One client's session (see the module docs).
@@ -362,6 +379,17 @@ pub struct Session {
     /// When the shared send budget last paused this session.
     paused: Option<Instant>,
     stats: SessionStats,
+    /// The editor the hello's token names (`None`: read-only).
+    editor: Option<Arc<Editor>>,
+    /// Edits to hand to the writer: `(request, op)`.
+    edits_out: VecDeque<(u32, EditOp)>,
+    /// Edits handed out and not answered yet.
+    edits_in_flight: usize,
+    /// Held cells that may have changed since the version the client holds, and the store generation they were
+    /// last looked at (a cell still expanding is looked at again when it moves).
+    changed: (BTreeSet<CellCoord>, Option<u64>),
+    /// Cells a reconnecting client said it holds (between the welcome and `ready`).
+    resume: Vec<ResumeCell>,
 }
 
 impl Drop for Session {
@@ -415,6 +443,118 @@ impl Session {
             unflushed: 0,
             paused: None,
             stats: SessionStats::default(),
+            editor: None,
+            edits_out: VecDeque::new(),
+            edits_in_flight: 0,
+            changed: (BTreeSet::new(), None),
+            resume: Vec::new(),
+        }
+    }
+
+    /// The editor this session edits as (`None`: read-only).
+    pub fn editor(&self) -> Option<&Arc<Editor>> {
+        self.editor.as_ref()
+    }
+
+    /// The next edit to hand to the writer, with the editor it is made as; answer it with
+    /// [`Session::on_edit_result`].
+    pub fn poll_edit(&mut self) -> Option<(u32, EditOp, Arc<Editor>)> {
+        let editor = Arc::clone(self.editor.as_ref()?);
+        let (request, op) = self.edits_out.pop_front()?;
+        Some((request, op, editor))
+    }
+
+    /// The writer answered edit `request`: tell the client.
+    pub fn on_edit_result(&mut self, request: u32, outcome: EditOutcome) {
+        self.edits_in_flight = self.edits_in_flight.saturating_sub(1);
+        self.answer(request, outcome);
+    }
+
+    fn answer(&mut self, request: u32, outcome: EditOutcome) {
+        let msg = ServerMsg::Streaming(ServerStreaming::EditResult(EditResult { request, outcome }));
+        self.urgent.push_back(Self::transmit(StreamId::Control, &msg));
+    }
+
+    /// Cell `c` changed (it is at a newer version now): if the client holds it, it gets what changed once the
+    /// cell's batches are out.
+    pub fn on_cell_changed(&mut self, c: CellCoord) {
+        if self.held.contains_key(&c) {
+            self.changed.0.insert(c);
+            self.changed.1 = None;
+        }
+    }
+
+    /// Changes were missed (the announcements overflowed): look at every held cell.
+    pub fn on_changes_missed(&mut self) {
+        self.changed.0.extend(self.held.keys().copied());
+        self.changed.1 = None;
+    }
+
+    /// Release a held grant now (its release goes out on its lane) and forget it.
+    fn release(&mut self, cell: CellCoord) {
+        let Some(h) = self.held.remove(&cell) else { return };
+        self.pinned.remove(&cell);
+        self.staged.retain(|(c, _)| *c != cell);
+        self.changed.0.remove(&cell);
+        let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
+        self.urgent.push_back(Self::transmit(StreamId::Lane(h.lane), &msg));
+    }
+
+    /// Send what changed in held cells whose batches are all out: a delta from the client's version, or the
+    /// whole cell again under a new grant when no delta can be made.
+    fn send_changes(&mut self) {
+        let store = Arc::clone(&self.store);
+        let generation = store.generation();
+        if self.changed.0.is_empty() || self.changed.1 == Some(generation) {
+            return;
+        }
+        self.changed.1 = Some(generation);
+        let cells: Vec<CellCoord> = self.changed.0.iter().copied().collect();
+        for cell in cells {
+            let Some(h) = self.held.get(&cell).copied() else {
+                self.changed.0.remove(&cell);
+                continue;
+            };
+            // The grant's batches first: its delta follows them on its lane.
+            if h.sent < h.total || self.staged.iter().any(|(c, _)| *c == cell) {
+                continue;
+            }
+            match store.changes(cell, h.version, self.waker.as_ref()) {
+                Changes::Pending => continue,
+                Changes::Current { total } => {
+                    let held = self.held.get_mut(&cell).expect("held");
+                    (held.sent, held.total) = (total, total);
+                }
+                Changes::Delta(mut d) => {
+                    d.grant = h.grant;
+                    // Species of planted instances go first, on the same lane, if the client lacks them.
+                    for species in d.adds.iter().map(|a| a.record.species).collect::<BTreeSet<u8>>() {
+                        if !self.has_species(species)
+                            && let Some(bytes) = store.species_frame(species)
+                        {
+                            self.set_species(species);
+                            let t = Transmit {
+                                stream: StreamId::Lane(h.lane),
+                                bytes,
+                                body: Bytes::new(),
+                                class: MsgClass::Species,
+                                records: 0,
+                            };
+                            self.urgent.push_back(t);
+                        }
+                    }
+                    let held = self.held.get_mut(&cell).expect("held");
+                    (held.sent, held.total, held.version) = (d.total, d.total, d.to_version);
+                    self.stats.deltas += 1;
+                    let msg = ServerMsg::Streaming(ServerStreaming::Delta(d));
+                    self.urgent.push_back(Self::transmit(StreamId::Lane(h.lane), &msg));
+                }
+                Changes::Whole => {
+                    self.release(cell);
+                    self.dirty = true;
+                }
+            }
+            self.changed.0.remove(&cell);
         }
     }
 
@@ -483,6 +623,10 @@ impl Session {
                     return Err(SessionError::Version { client: h.version, server: PROTOCOL_VERSION });
                 }
                 self.client = h.client;
+                self.editor = match (&h.token, &self.cfg.editors) {
+                    (Some(token), Some(editors)) => editors.find(token),
+                    _ => None,
+                };
                 // The hello moves to `next` (Hello), the welcome sent at once on to the phase after it.
                 self.phase = MsgClass::Welcome.next_phase(next)?;
                 let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
@@ -504,7 +648,58 @@ impl Session {
                     self.set_species(id);
                 }
                 self.phase = next;
+                // Resumed cells take grants 1, 2, … in the order named; what changed since their version is sent
+                // once the store knows (those the viewpoint does not keep are released at once).
+                let grid = *self.store.grid();
+                for rc in std::mem::take(&mut self.resume) {
+                    let grant = self.next_grant;
+                    self.next_grant += 1;
+                    if grid.contains(rc.cell) {
+                        let h = Held { grant, lane: 0, sent: 0, total: 0, version: rc.version };
+                        self.held.insert(rc.cell, h);
+                        self.changed.0.insert(rc.cell);
+                    } else {
+                        let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell: rc.cell, grant }));
+                        self.urgent.push_back(Self::transmit(StreamId::Lane(0), &msg));
+                    }
+                }
                 self.set_viewpoint(r.viewpoint);
+            }
+            ClientMsg::Handshake(ClientHandshake::Resume(r)) => {
+                let ordered = match (self.resume.last(), r.cells.first()) {
+                    (Some(a), Some(b)) => a.cell < b.cell,
+                    _ => true,
+                };
+                if !ordered || self.resume.len() + r.cells.len() > netlimits::MAX_RESUME_CELLS {
+                    return Err(SessionError::Resume(netlimits::MAX_RESUME_CELLS));
+                }
+                self.resume.extend(r.cells);
+                self.phase = next;
+            }
+            ClientMsg::Streaming(ClientStreaming::Edit(e)) => {
+                self.stats.edits += 1;
+                let Some(editor) = &self.editor else {
+                    self.answer(
+                        e.request,
+                        EditOutcome::Denied("read-only session: connect with an editor token".into()),
+                    );
+                    return Ok(());
+                };
+                if self.edits_in_flight >= MAX_EDITS_IN_FLIGHT {
+                    self.answer(e.request, EditOutcome::Denied("too many edits waiting for an answer".into()));
+                } else if !editor.take(now) {
+                    let why = format!("over {}'s rate of {} edits a second", editor.name, editor.rate);
+                    self.answer(e.request, EditOutcome::Denied(why));
+                } else {
+                    self.edits_in_flight += 1;
+                    self.edits_out.push_back((e.request, e.op));
+                }
+            }
+            ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
+                if self.held.contains_key(&c) {
+                    self.release(c);
+                    self.dirty = true;
+                }
             }
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => {
                 let last = self.viewpoint.map_or(0, |v| v.seq);
@@ -534,13 +729,8 @@ impl Session {
         let mut gone: Vec<(CellCoord, Held)> =
             self.held.iter().filter(|(c, _)| !aoi.is_kept(grid, **c)).map(|(c, h)| (*c, *h)).collect();
         gone.sort_unstable_by_key(|(c, _)| *c);
-        for (cell, h) in gone {
-            self.held.remove(&cell);
-            self.pinned.remove(&cell);
-            self.staged.retain(|(c, _)| *c != cell);
-            let msg = ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant: h.grant }));
-            let t = Self::transmit(StreamId::Lane(h.lane), &msg);
-            self.urgent.push_back(t);
+        for (cell, _) in gone {
+            self.release(cell);
         }
         self.aoi = Some(aoi);
         self.dirty = true;
@@ -588,6 +778,7 @@ impl Session {
         if self.dirty {
             self.update_aoi();
         }
+        self.send_changes();
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
         }
@@ -609,7 +800,11 @@ impl Session {
         if self.staged.is_empty() && !self.stage_next_unit() {
             return None;
         }
-        let (_, t) = self.staged.pop_front()?;
+        let (cell, t) = self.staged.pop_front()?;
+        if self.changed.0.contains(&cell) {
+            // Its changes wait for its batches: look again once this one is out.
+            self.changed.1 = None;
+        }
         Some(self.account(now, t))
     }
 
@@ -731,7 +926,8 @@ impl Session {
         let h = match self.held.get(&cell) {
             Some(h) => *h,
             None => {
-                let h = Held { grant: self.next_grant, lane: self.lane_for(key), sent: 0, total };
+                let h =
+                    Held { grant: self.next_grant, lane: self.lane_for(key), sent: 0, total, version: data.version };
                 self.next_grant = self.next_grant.wrapping_add(1).max(1);
                 self.stats.grants += 1;
                 self.held.insert(cell, h);

@@ -29,6 +29,10 @@ pub struct CellData {
     pub records: Vec<InstanceRecord>,
     /// Parameter overrides, `record` = index within the cell, sorted by `(record, slot)`.
     pub overrides: Vec<ParamOverride>,
+    /// The cell's version: 0 for the world function's records, one more for every edit (`canopy_edits`).
+    pub version: u32,
+    /// Indices of records felled by edits, increasing (they keep their index and are marked in batches).
+    pub felled: Vec<u16>,
     /// The batches' shared bodies for one batch size (the first asked for: a server runs one).
     bodies: OnceLock<(usize, Vec<BatchBody>)>,
 }
@@ -75,7 +79,19 @@ impl CellData {
         }
         records.shrink_to_fit();
         overrides.shrink_to_fit();
-        Ok(CellData { cell, records, overrides, bodies: OnceLock::new() })
+        Ok(CellData { cell, records, overrides, version: 0, felled: Vec::new(), bodies: OnceLock::new() })
+    }
+
+    /// The cell at an edit overlay's version: these records (the world function's, then the planted), overrides
+    /// and felled indices.
+    pub fn edited(
+        cell: CellCoord,
+        version: u32,
+        records: Vec<InstanceRecord>,
+        overrides: Vec<ParamOverride>,
+        felled: Vec<u16>,
+    ) -> CellData {
+        CellData { cell, records, overrides, version, felled, bodies: OnceLock::new() }
     }
 
     /// A cell of a world's placements (`World::expand_cell`), quantised within the cell exactly as
@@ -101,7 +117,11 @@ impl CellData {
         let overrides: Vec<ParamOverride> =
             self.overrides[lo..hi].iter().map(|o| ParamOverride { record: o.record - start as u16, ..*o }).collect();
         let total = self.records.len() as u16;
+        let lo = self.felled.partition_point(|&i| usize::from(i) < start);
+        let hi = self.felled.partition_point(|&i| usize::from(i) < end);
+        let felled = self.felled[lo..hi].iter().map(|&i| i - start as u16);
         CellBatch::new(self.cell, grant, total, start as u16, self.records[start..end].to_vec(), &overrides)
+            .at_version(self.version, felled)
     }
 
     /// The shared bodies of the cell's batches of `batch_records` records (one empty batch for an empty cell),
@@ -122,6 +142,7 @@ impl CellData {
         std::mem::size_of::<CellData>()
             + self.records.capacity() * std::mem::size_of::<InstanceRecord>()
             + self.overrides.capacity() * std::mem::size_of::<ParamOverride>()
+            + self.felled.capacity() * 2
             + bodies
     }
 }
@@ -194,6 +215,32 @@ pub trait WorldStore: Send + Sync + 'static {
     fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
         None
     }
+    /// What changed in cell `c` since version `from`, for a session that holds it at `from` (never waiting, like
+    /// [`WorldStore::cell`]). A store without edits is always at version 0, so this default only tells whether the
+    /// session is current; [`crate::live::LiveStore`] composes deltas.
+    fn changes(&self, c: CellCoord, from: u32, waker: Option<&Arc<dyn CellWaker>>) -> Changes {
+        match self.cell(c, waker) {
+            CellState::Ready(d) if d.version == from => Changes::Current { total: d.records.len() as u16 },
+            CellState::Ready(_) | CellState::Outside => Changes::Whole,
+            CellState::Pending => Changes::Pending,
+        }
+    }
+}
+
+/// What changed in a cell since a version a session holds ([`WorldStore::changes`]).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Changes {
+    /// Nothing: the cell is at that version, and has `total` records (felled ones included).
+    Current {
+        /// The cell's record count at that version.
+        total: u16,
+    },
+    /// What changed, for grant 0 (the session sets its own).
+    Delta(canopy_protocol::edit::CellDelta),
+    /// It cannot be said from that version (too old, unknown, too large a change): send the whole cell again.
+    Whole,
+    /// Not known yet: the cell is being expanded (ask again when the waker fires).
+    Pending,
 }
 
 /// Why a world could not be turned into a store.

@@ -363,7 +363,7 @@ fn messages_out_of_order_or_invalid_end_the_session_with_a_code() {
     assert!(matches!(e, SessionError::Stale { seq: 0, last: 0 }), "{e}");
     let e = error_of(vec![ClientMsg::hello("a"), ClientMsg::ready(vec![9], vp)]);
     assert_eq!(e, SessionError::UnknownSpecies(9));
-    let old = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 0, client: "old".into() }));
+    let old = ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 0, client: "old".into(), token: None }));
     let e = error_of(vec![old]);
     assert_eq!(e.close_code(), CloseCode::Version);
     assert_eq!(e.to_string(), format!("client speaks protocol version 0, server speaks {PROTOCOL_VERSION}"));

@@ -9,20 +9,23 @@
 //! ([`canopy_protocol::aoi`]): it never keeps a cell beyond radius + hysteresis, even before the server's release
 //! arrives, and drops the rest of such a grant until that release.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
-use canopy_protocol::messages::{PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome};
+use canopy_protocol::edit::{CellDelta, Edit, EditOp, EditResult, Resume, ResumeCell};
+use canopy_protocol::messages::{
+    ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome, WorldInfo,
+};
 use canopy_protocol::record::{ParamOverride, dequantize};
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash,
 };
 use canopy_protocol::{DecodeError, PROTOCOL_VERSION};
 
-/// A cell the client holds: one grant's records, complete when `records.len() == total`. Record `i` is the
-/// instance `(cell, i)` ([`InstanceId`]).
+/// A cell the client holds: one grant's records at one version of the cell, complete when `records.len() ==
+/// total`. Record `i` is the instance `(cell, i)` ([`InstanceId`]); felled records keep their index.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HeldCell {
     /// The grant the records belong to.
@@ -33,6 +36,10 @@ pub struct HeldCell {
     pub records: Vec<InstanceRecord>,
     /// Parameter overrides; `record` is the index within the cell.
     pub overrides: Vec<ParamOverride>,
+    /// The cell's version the records are at (0: the world function alone; one more per edit).
+    pub version: u32,
+    /// Indices felled by edits (skipped by [`ClientState::instances`]).
+    pub felled: BTreeSet<u16>,
 }
 
 impl HeldCell {
@@ -82,6 +89,17 @@ pub enum Event {
     Released(CellCoord),
     /// The message was stale (an older grant) or for a cell already evicted, and was dropped.
     Dropped,
+    /// A held cell changed (a delta was applied): it is at `version` now.
+    Changed {
+        /// The cell.
+        cell: CellCoord,
+        /// Its version now.
+        version: u32,
+    },
+    /// A delta did not start at the version held: the cell must be sent again ([`ClientState::refresh`]).
+    Gap(CellCoord),
+    /// The server answered an edit.
+    EditResult(EditResult),
     /// A chunk of explicit geometry arrived (bandwidth baselines; counted and discarded).
     Geometry {
         /// What it is.
@@ -129,6 +147,9 @@ pub enum StateError {
         /// Where it should start.
         expected: u16,
     },
+    /// A batch's version differs from its grant's, or a delta does not fit the cell it changes.
+    #[error("cell {0:?}: {1}")]
+    Edit(CellCoord, &'static str),
 }
 
 /// Counters of what the client received.
@@ -151,6 +172,19 @@ pub struct ClientStats {
     /// Explicit-geometry payload bytes received (bandwidth baselines), by kind: instance meshes, species meshes,
     /// transforms (the frames that carried them are the connection's geometry class).
     pub geometry_bytes: [u64; 3],
+    /// Deltas applied.
+    pub deltas: u64,
+    /// Deltas that did not start at the version held (each asks for the cell again).
+    pub gaps: u64,
+}
+
+/// What a resuming session keeps of an earlier one: its world, species table and graphs, and complete cells.
+#[derive(Debug)]
+struct Resumable {
+    world: WorldInfo,
+    table: Vec<canopy_protocol::messages::SpeciesEntry>,
+    species: Vec<Option<Arc<SpeciesGraph>>>,
+    cells: HashMap<CellCoord, HeldCell>,
 }
 
 /// The client's view of its session (see the module docs).
@@ -166,6 +200,11 @@ pub struct ClientState {
     inner: HashSet<CellCoord>,
     missing: usize,
     stats: ClientStats,
+    /// The next edit's request number.
+    next_request: u32,
+    /// Cells kept from an earlier session of the same world, to name in resume messages (between the welcome and
+    /// `ready`), and that world.
+    resumable: Option<Resumable>,
 }
 
 impl Default for ClientState {
@@ -188,7 +227,73 @@ impl ClientState {
             inner: HashSet::new(),
             missing: 0,
             stats: ClientStats::default(),
+            next_request: 1,
+            resumable: None,
         }
+    }
+
+    /// A session that resumes `previous` (an earlier session of a server of the same world, say one that went
+    /// away): if the welcome describes the same world, the cells it held in full are named in resume messages
+    /// ([`ClientState::resume`]) and kept, and the server sends only what changed since their versions.
+    pub fn resuming(previous: ClientState) -> ClientState {
+        let mut s = ClientState::new();
+        if let Some(w) = &previous.welcome {
+            let cells = previous.cells.into_iter().filter(|(_, h)| h.is_complete()).collect();
+            let (world, table, species) = (w.world.clone(), w.species.clone(), previous.species);
+            s.resumable = Some(Resumable { world, table, species, cells });
+        }
+        s
+    }
+
+    /// The resume messages to send after the welcome and before [`ClientState::ready`] (none for a fresh
+    /// session, or when the world differs). The cells named take grants 1, 2, … in cell order, as the server
+    /// numbers them.
+    pub fn resume(&mut self) -> Result<Vec<ClientMsg>, StateError> {
+        let Some(Resumable { world, table, species, mut cells }) = self.resumable.take() else { return Ok(Vec::new()) };
+        let Some(w) = self.welcome.clone() else { return Ok(Vec::new()) };
+        if world != w.world {
+            return Ok(Vec::new());
+        }
+        if table == w.species {
+            // The same species table: the graphs held are the ones it names.
+            for (id, g) in species.into_iter().enumerate() {
+                if let Some(g) = g {
+                    self.preload_species(id as u8, g);
+                }
+            }
+        }
+        let mut order: Vec<CellCoord> = cells.keys().copied().filter(|c| w.world.grid.contains(*c)).collect();
+        order.sort_unstable();
+        order.truncate(canopy_protocol::netlimits::MAX_RESUME_CELLS);
+        let mut msgs = Vec::new();
+        for chunk in order.chunks(canopy_protocol::netlimits::MAX_RESUME_PER_MESSAGE) {
+            let named = chunk.iter().map(|c| ResumeCell { cell: *c, version: cells[c].version }).collect();
+            let msg = ClientMsg::Handshake(canopy_protocol::messages::ClientHandshake::Resume(Resume { cells: named }));
+            self.phase = msg.next_phase(self.phase)?;
+            msgs.push(msg);
+        }
+        for (i, c) in order.iter().enumerate() {
+            let mut h = cells.remove(c).expect("named above");
+            h.grant = i as u32 + 1;
+            self.cells.insert(*c, h);
+        }
+        Ok(msgs)
+    }
+
+    /// The message asking for an edit, and the request number its [`EditResult`] will carry.
+    pub fn edit(&mut self, op: EditOp) -> Result<(u32, ClientMsg), StateError> {
+        let request = self.next_request;
+        self.next_request = self.next_request.wrapping_add(1);
+        let msg = ClientMsg::Streaming(ClientStreaming::Edit(Edit { request, op }));
+        msg.next_phase(self.phase)?;
+        Ok((request, msg))
+    }
+
+    /// The message asking for held cell `c` again, whole (after a [`Event::Gap`]).
+    pub fn refresh(&mut self, c: CellCoord) -> Result<ClientMsg, StateError> {
+        let msg = ClientMsg::Streaming(ClientStreaming::Refresh(c));
+        msg.next_phase(self.phase)?;
+        Ok(msg)
     }
 
     /// The session phase.
@@ -242,15 +347,24 @@ impl ClientState {
         self.phase == Phase::Streaming && self.missing == 0
     }
 
-    /// Instance records held.
+    /// Instance records held (felled ones not counted).
     pub fn record_count(&self) -> usize {
-        self.cells.values().map(|c| c.records.len()).sum()
+        self.cells.values().map(|c| c.records.len() - c.felled.len()).sum()
     }
 
     /// The first message: hello.
     pub fn hello(&mut self, client: &str) -> Result<ClientMsg, StateError> {
+        self.hello_as(client, None)
+    }
+
+    /// The first message, carrying an editor token (at most [`canopy_protocol::netlimits::MAX_TOKEN_BYTES`]
+    /// bytes): the session may edit if the server knows it.
+    pub fn hello_as(&mut self, client: &str, token: Option<Vec<u8>>) -> Result<ClientMsg, StateError> {
         let name: String = client.chars().take(canopy_protocol::netlimits::MAX_CLIENT_NAME / 4).collect();
-        let msg = ClientMsg::hello(name);
+        let mut msg = ClientMsg::hello(name);
+        if let ClientMsg::Handshake(canopy_protocol::messages::ClientHandshake::Hello(h)) = &mut msg {
+            h.token = token;
+        }
         self.phase = msg.next_phase(self.phase)?;
         Ok(msg)
     }
@@ -322,6 +436,8 @@ impl ClientState {
             ServerStreaming::Species(s) => self.on_species(s),
             ServerStreaming::Cells(b) => self.on_batch(b),
             ServerStreaming::Release(r) => Ok(self.on_release(r)),
+            ServerStreaming::Delta(d) => self.on_delta(d),
+            ServerStreaming::EditResult(r) => Ok(Event::EditResult(r)),
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
                 // the session's bookkeeping tracks.
@@ -394,12 +510,18 @@ impl ClientState {
                     total: b.total,
                     records: Vec::with_capacity(usize::from(b.total)),
                     overrides: Vec::new(),
+                    version: b.version,
+                    felled: BTreeSet::new(),
                 };
                 self.cells.insert(b.cell, cell);
             }
         }
         let h = self.cells.get_mut(&b.cell).expect("inserted or present");
+        if h.version != b.version {
+            return Err(StateError::Edit(b.cell, "a batch's version differs from its grant's"));
+        }
         let base = h.records.len() as u16;
+        h.felled.extend((0..b.records.len()).filter(|&i| b.is_felled(i)).map(|i| base + i as u16));
         h.overrides.extend(b.overrides().into_iter().map(|o| ParamOverride { record: o.record + base, ..o }));
         h.records.extend_from_slice(&b.records);
         let complete = h.is_complete();
@@ -413,6 +535,52 @@ impl ClientState {
     fn missing_at(&self, c: CellCoord) -> usize {
         let complete = self.cells.get(&c).map(HeldCell::is_complete);
         usize::from(if self.inner.contains(&c) { complete != Some(true) } else { complete == Some(false) })
+    }
+
+    fn on_delta(&mut self, d: CellDelta) -> Result<Event, StateError> {
+        let bad = |what| Err(StateError::Edit(d.cell, what));
+        let Some(h) = self.cells.get_mut(&d.cell) else {
+            self.stats.dropped += 1;
+            return Ok(Event::Dropped);
+        };
+        if h.grant != d.grant {
+            // A delta of an older grant (a newer one carries its changes), or of a newer one whose batches have
+            // not come: a newer grant's delta follows its batches on its lane, so that cannot be.
+            if h.grant > d.grant {
+                self.stats.dropped += 1;
+                return Ok(Event::Dropped);
+            }
+            return bad("delta of a grant not held");
+        }
+        if !h.is_complete() {
+            return bad("delta before the grant's batches");
+        }
+        if h.version != d.from_version {
+            self.stats.gaps += 1;
+            return Ok(Event::Gap(d.cell));
+        }
+        if usize::from(d.total) != h.records.len() + d.adds.len() {
+            return bad("delta's total does not follow the cell's");
+        }
+        if let Some(a) = d.adds.iter().find(|a| usize::from(a.record.species) >= self.species.len()) {
+            return Err(StateError::UnknownSpecies(a.record.species));
+        }
+        let first = h.records.len() as u16;
+        for (i, a) in d.adds.iter().enumerate() {
+            let record = first + i as u16;
+            h.records.push(a.record);
+            h.overrides.extend(a.params.iter().map(|&(slot, v)| ParamOverride { record, slot, value: v.0 }));
+        }
+        h.felled.extend(d.removes.iter().copied());
+        for (index, params) in &d.updates {
+            h.overrides.retain(|o| o.record != *index || params.iter().all(|p| p.0 != o.slot));
+            h.overrides.extend(params.iter().map(|&(slot, v)| ParamOverride { record: *index, slot, value: v.0 }));
+        }
+        h.overrides.sort_by_key(|o| (o.record, o.slot));
+        h.total = d.total;
+        h.version = d.to_version;
+        self.stats.deltas += 1;
+        Ok(Event::Changed { cell: d.cell, version: d.to_version })
     }
 
     fn on_release(&mut self, r: Release) -> Event {
@@ -439,7 +607,7 @@ impl ClientState {
             let grid = &w.world.grid;
             let origin = grid.cell_origin(*c);
             let seed = w.world.seed;
-            h.records.iter().enumerate().map(move |(i, r)| {
+            h.records.iter().enumerate().filter(|(i, _)| !h.felled.contains(&(*i as u16))).map(move |(i, r)| {
                 let x = dequantize(r.qx(), origin[0], grid.cell_size);
                 let z = dequantize(r.qz(), origin[1], grid.cell_size);
                 // Batches are validated (their cell can be named) and a cell holds at most 65,535 records.
@@ -521,6 +689,8 @@ mod tests {
             start,
             records: (0..n).map(|i| InstanceRecord::new(0, i, i)).collect(),
             params: vec![],
+            version: 0,
+            felled: vec![],
         }))
     }
 

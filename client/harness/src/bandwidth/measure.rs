@@ -33,10 +33,12 @@ pub struct Bytes {
 }
 
 impl Bytes {
-    /// Split a client's counters: frame bytes received by class (welcome, species, cells, release, geometry),
-    /// frame bytes it sent, and its connection's UDP totals.
+    /// Split a client's counters: frame bytes received by class (welcome, species, cells, release, geometry, edit
+    /// results, deltas: the last two count as control and records), frame bytes it sent, and its connection's UDP
+    /// totals.
     pub fn split(frames_rx: ByKind<u64>, frames_tx: u64, udp_rx: u64, udp_tx: u64) -> Bytes {
-        let ByKind([welcome, species, records, release, geometry]) = frames_rx;
+        let ByKind([welcome, species, cells, release, geometry, edit_results, deltas]) = frames_rx;
+        let (records, welcome) = (cells + deltas, welcome + edit_results);
         let rx = frames_rx.total();
         Bytes {
             species,
@@ -261,13 +263,13 @@ mod tests {
 
     #[test]
     fn byte_classes_add_up_to_the_wire() {
-        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7]), 400, 14_000, 1_000);
+        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7, 0, 0]), 400, 14_000, 1_000);
         assert_eq!(b.class_sum(), b.total());
         assert_eq!(b.total(), 15_000);
         assert_eq!((b.species, b.records, b.geometry, b.control), (2_000, 10_000, 7, 300 + 50 + 400));
         assert_eq!(b.overhead, (14_000 - 12_357) + (1_000 - 400));
         // Counters read a moment apart can see frames before their datagrams: the totals never fall below them.
-        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0]), 10, 400, 5);
+        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0, 0, 0]), 10, 400, 5);
         assert_eq!(odd.class_sum(), odd.total());
         let mut sum = b;
         sum.add(&odd);

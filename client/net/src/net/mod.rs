@@ -39,6 +39,8 @@ pub struct ConnectConfig {
     pub client_name: String,
     /// How long connecting and the handshake may take.
     pub timeout: Duration,
+    /// An editor token for the hello (`None`: a read-only session).
+    pub token: Option<Vec<u8>>,
     /// The QUIC client configuration built for `trust`, shared by this configuration's clones.
     quic: Arc<OnceLock<(Trust, quinn::ClientConfig)>>,
 }
@@ -52,6 +54,7 @@ impl ConnectConfig {
             trust,
             client_name: "canopy".into(),
             timeout: Duration::from_secs(20),
+            token: None,
             quic: Arc::default(),
         }
     }
@@ -194,6 +197,8 @@ pub struct Connection {
     state: ClientState,
     cache: Option<Arc<SpeciesCache>>,
     seq: u32,
+    /// Cells to ask for again (after a [`Event::Gap`]), sent before the next wait.
+    refresh: Vec<canopy_protocol::CellCoord>,
     bytes_out: u64,
     frame_bytes: ByKind<u64>,
     _tasks: AbortOnDrop,
@@ -236,6 +241,18 @@ impl Connection {
         cache: Option<Arc<SpeciesCache>>,
         viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
+        Connection::connect_resuming(endpoint, cfg, cache, ClientState::new(), viewpoint).await
+    }
+
+    /// [`Connection::connect`] resuming an earlier session's state ([`ClientState::resuming`]): cells it held in
+    /// full are kept, and the server sends only what changed in them since.
+    pub async fn connect_resuming(
+        endpoint: &Endpoint,
+        cfg: &ConnectConfig,
+        cache: Option<Arc<SpeciesCache>>,
+        state: ClientState,
+        viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
+    ) -> Result<Connection, ClientError> {
         let client_cfg = cfg.client_config()?;
         let connecting = endpoint.connect_with(client_cfg, cfg.server, &cfg.server_name)?;
         let deadline = tokio::time::Instant::now() + cfg.timeout;
@@ -244,7 +261,8 @@ impl Connection {
             Ok(Err(e)) => return Err(ClientError::from_connection(e)),
             Err(_) => return Err(ClientError::Timeout("connecting")),
         };
-        match tokio::time::timeout_at(deadline, Connection::handshake(conn.clone(), cfg, cache, viewpoint)).await {
+        match tokio::time::timeout_at(deadline, Connection::handshake(conn.clone(), cfg, cache, state, viewpoint)).await
+        {
             Ok(Ok(c)) => Ok(c),
             Ok(Err(e)) => {
                 if let Some(code) = e.close_code() {
@@ -263,11 +281,11 @@ impl Connection {
         conn: quinn::Connection,
         cfg: &ConnectConfig,
         cache: Option<Arc<SpeciesCache>>,
+        mut state: ClientState,
         viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
         let (mut control, mut recv) = conn.open_bi().await.map_err(ClientError::from_connection)?;
-        let mut state = ClientState::new();
-        let hello = frame(&state.hello(&cfg.client_name)?.encode());
+        let hello = frame(&state.hello_as(&cfg.client_name, cfg.token.clone())?.encode());
         control.write_all(&hello).await.map_err(ClientError::from_write)?;
         let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
         let (msg, welcome_len) =
@@ -281,20 +299,33 @@ impl Connection {
             }
         }
         let viewpoint = viewpoint(&welcome);
-        let ready = frame(&state.ready(viewpoint)?.encode());
+        let mut ready = Vec::new();
+        for msg in state.resume()? {
+            ready.extend_from_slice(&frame(&msg.encode()));
+        }
+        ready.extend_from_slice(&frame(&state.ready(viewpoint)?.encode()));
         control.write_all(&ready).await.map_err(ClientError::from_write)?;
         let (tx, inbox) = mpsc::channel(256);
         let mut tasks = Vec::new();
-        // The control stream carries nothing after the welcome: anything more is out of order.
+        // After the welcome the control stream carries only the answers to edits: anything else is out of order.
         let ctl_tx = tx.clone();
         tasks.push(tokio::spawn(async move {
-            let failed = match read_frame(&mut recv, &mut decoder).await {
-                Ok(None) => return,
-                Ok(Some((m, _))) => ClientError::State(StateError::Phase(canopy_protocol::messages::PhaseError {
-                    phase: canopy_protocol::Phase::Streaming,
-                    message: m.name(),
-                })),
-                Err(e) => e,
+            let failed = loop {
+                match read_frame(&mut recv, &mut decoder).await {
+                    Ok(None) => return,
+                    Ok(Some((m @ ServerMsg::Streaming(ServerStreaming::EditResult(_)), len))) => {
+                        if ctl_tx.send(Inbound::Msg(m, len)).await.is_err() {
+                            return;
+                        }
+                    }
+                    Ok(Some((m, _))) => {
+                        break ClientError::State(StateError::Phase(canopy_protocol::messages::PhaseError {
+                            phase: canopy_protocol::Phase::Streaming,
+                            message: m.name(),
+                        }));
+                    }
+                    Err(e) => break e,
+                }
             };
             let _ = ctl_tx.send(Inbound::Failed(failed)).await;
         }));
@@ -336,6 +367,7 @@ impl Connection {
             state,
             cache,
             seq: viewpoint.seq,
+            refresh: Vec::new(),
             bytes_out: (hello.len() + ready.len()) as u64,
             frame_bytes: {
                 let mut b = ByKind::default();
@@ -386,6 +418,28 @@ impl Connection {
         self.control.write_all(&bytes).await.map_err(ClientError::from_write)
     }
 
+    /// Ask for an edit; its answer arrives as an [`Event::EditResult`] with the request number returned here.
+    pub async fn edit(&mut self, op: canopy_protocol::edit::EditOp) -> Result<u32, ClientError> {
+        let (request, msg) = self.state.edit(op)?;
+        self.write(&msg).await?;
+        Ok(request)
+    }
+
+    async fn write(&mut self, msg: &canopy_protocol::ClientMsg) -> Result<(), ClientError> {
+        let bytes = frame(&msg.encode());
+        self.bytes_out += bytes.len() as u64;
+        self.control.write_all(&bytes).await.map_err(ClientError::from_write)
+    }
+
+    /// Ask again for the cells whose deltas did not follow the version held.
+    async fn send_refreshes(&mut self) -> Result<(), ClientError> {
+        for c in std::mem::take(&mut self.refresh) {
+            let msg = self.state.refresh(c)?;
+            self.write(&msg).await?;
+        }
+        Ok(())
+    }
+
     fn apply(&mut self, inbound: Inbound) -> Result<Event, ClientError> {
         let result = match inbound {
             Inbound::Failed(e) => Err(e),
@@ -397,6 +451,9 @@ impl Connection {
                     _ => None,
                 };
                 let ev = self.state.handle(m).map_err(ClientError::from);
+                if let Ok(Event::Gap(c)) = &ev {
+                    self.refresh.push(*c);
+                }
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
                     && let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g))
@@ -416,6 +473,7 @@ impl Connection {
 
     /// Wait for the next message from the server and apply it.
     pub async fn next_event(&mut self) -> Result<Event, ClientError> {
+        self.send_refreshes().await?;
         match self.inbox.recv().await {
             Some(i) => self.apply(i),
             None => Err(self.closed_error()),

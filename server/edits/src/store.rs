@@ -1,0 +1,96 @@
+//! The durable edit store's trait, its errors, and the in-memory store tests use.
+
+use std::collections::BTreeMap;
+use std::sync::Mutex;
+
+use canopy_protocol::CellCoord;
+
+use crate::log::StoredEdit;
+
+/// Why a store could not do what it was asked.
+#[derive(Debug, thiserror::Error)]
+pub enum EditStoreError {
+    /// A `(cell, version)` of the group is already stored (another writer got there first): nothing of the group
+    /// was stored.
+    #[error("cell {cell:?} already has version {version}")]
+    Conflict {
+        /// The cell.
+        cell: CellCoord,
+        /// The version already taken.
+        version: u32,
+    },
+    /// A stored edit does not decode or the log of a cell has a gap: the store is damaged.
+    #[error("edit store damaged: {0}")]
+    Corrupt(String),
+    /// The store's file or database failed (disk full, permissions, not a regular file…).
+    #[error("edit store: {0}")]
+    Io(String),
+}
+
+/// Where edits are kept durably. Implementations are shared between threads; every call may block (on a disk or a
+/// network), so an async caller runs them off its reactor.
+pub trait EditStore: Send + Sync + 'static {
+    /// Store a group of edits in one transaction, all or none, and return only once they are durable (they
+    /// survive a crash of the process, or of the machine where the store syncs to disk). A `(cell, version)` that
+    /// is already stored refuses the whole group with [`EditStoreError::Conflict`]. A group may hold several
+    /// consecutive versions of one cell.
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError>;
+    /// A cell's edits in version order (empty for a cell never edited).
+    fn load(&self, cell: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError>;
+    /// Every edited cell and its latest version, in cell order.
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError>;
+    /// How many edits are stored.
+    fn count(&self) -> Result<u64, EditStoreError>;
+}
+
+/// An edit store in memory (tests, and a server that keeps no edits across restarts).
+#[derive(Debug, Default)]
+pub struct MemoryEditStore {
+    log: Mutex<BTreeMap<(CellCoord, u32), StoredEdit>>,
+}
+
+impl MemoryEditStore {
+    /// An empty store.
+    pub fn new() -> MemoryEditStore {
+        MemoryEditStore::default()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<(CellCoord, u32), StoredEdit>> {
+        self.log.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+impl EditStore for MemoryEditStore {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
+        let mut log = self.lock();
+        let mut seen = std::collections::BTreeSet::new();
+        for e in edits {
+            if log.contains_key(&(e.cell, e.version)) || !seen.insert((e.cell, e.version)) {
+                return Err(EditStoreError::Conflict { cell: e.cell, version: e.version });
+            }
+        }
+        for e in edits {
+            log.insert((e.cell, e.version), e.clone());
+        }
+        Ok(())
+    }
+
+    fn load(&self, cell: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
+        Ok(self.lock().range((cell, 0)..=(cell, u32::MAX)).map(|(_, e)| e.clone()).collect())
+    }
+
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
+        let mut out: Vec<(CellCoord, u32)> = Vec::new();
+        for &(cell, version) in self.lock().keys() {
+            match out.last_mut() {
+                Some(last) if last.0 == cell => last.1 = last.1.max(version),
+                _ => out.push((cell, version)),
+            }
+        }
+        Ok(out)
+    }
+
+    fn count(&self) -> Result<u64, EditStoreError> {
+        Ok(self.lock().len() as u64)
+    }
+}

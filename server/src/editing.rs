@@ -1,0 +1,397 @@
+//! The edit pipeline of one server: editors' requests are checked against the world and the cell they change, given
+//! the cell's next version, written durably in groups (group commit: one transaction, one sync for every request
+//! that arrived meanwhile), and only then published to the [`LiveStore`], announced to the sessions
+//! ([`EditHub`]) and acknowledged.
+//!
+//! One writer thread owns the versions: it applies a group's edits to working copies of their cells' overlays, so
+//! several edits of one cell in one group take consecutive versions, and a refused group (a conflict with another
+//! writer of the same store, or a failed disk) leaves nothing published.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::mpsc;
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use canopy_edits::{CellEdit, EditStoreError, Overlay, StoredEdit};
+use canopy_protocol::edit::{EditOp, EditOutcome};
+use canopy_protocol::record::quantize;
+use canopy_protocol::{CellCoord, InstanceId, InstanceRecord, SpeciesGraph};
+use tracing::{info, warn};
+
+use crate::editors::Editor;
+use crate::live::LiveStore;
+use crate::metrics::Histogram;
+use crate::store::{CellData, CellState, CellWaker, WorldStore};
+
+/// Most requests written in one group.
+pub const MAX_GROUP: usize = 4096;
+/// Most requests waiting for the writer; beyond, new ones are denied at once.
+pub const MAX_QUEUED: usize = 65_536;
+/// Largest magnitude of a parameter value an edit may set (species declare no ranges; this keeps values sane).
+pub const MAX_PARAM_VALUE: f32 = 1.0e4;
+/// How long the writer waits for a cell's expansion before it gives up on an edit of it.
+const CELL_WAIT: Duration = Duration::from_secs(30);
+
+/// A cell changed: it is at `version` now.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CellChange {
+    /// The cell.
+    pub cell: CellCoord,
+    /// Its version.
+    pub version: u32,
+}
+
+/// Tells every session of a server which cells changed (each keeps those it holds).
+#[derive(Debug)]
+pub struct EditHub {
+    tx: tokio::sync::broadcast::Sender<CellChange>,
+}
+
+impl EditHub {
+    /// A hub keeping up to `capacity` changes for a slow listener (past it, the listener is told it lagged).
+    pub fn new(capacity: usize) -> Arc<EditHub> {
+        Arc::new(EditHub { tx: tokio::sync::broadcast::channel(capacity.max(16)).0 })
+    }
+
+    /// Listen to every change from now on.
+    pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<CellChange> {
+        self.tx.subscribe()
+    }
+
+    fn announce(&self, change: CellChange) {
+        // Nobody listening is fine.
+        let _ = self.tx.send(change);
+    }
+}
+
+/// Counters of the edit pipeline.
+#[derive(Debug, Default)]
+pub struct EditMetrics {
+    /// Edits answered, by outcome: ok, denied, invalid, conflict.
+    pub outcomes: [AtomicU64; 4],
+    /// Groups written.
+    pub groups: AtomicU64,
+    /// Time from a group's first request to its durable commit.
+    pub commit_time: Histogram,
+}
+
+impl EditMetrics {
+    /// Count an outcome.
+    pub fn count(&self, o: &EditOutcome) {
+        let i = match o {
+            EditOutcome::Ok { .. } => 0,
+            EditOutcome::Denied(_) => 1,
+            EditOutcome::Invalid(_) => 2,
+            EditOutcome::Conflict => 3,
+        };
+        self.outcomes[i].fetch_add(1, Relaxed);
+    }
+}
+
+/// One request for the writer.
+pub struct EditJob {
+    /// What to do.
+    pub op: EditOp,
+    /// Who asks.
+    pub editor: Arc<Editor>,
+    /// Called once with the outcome (after the edit is durable, for `Ok`).
+    pub reply: Box<dyn FnOnce(EditOutcome) + Send>,
+}
+
+/// The edit pipeline (see the module docs).
+pub struct EditService {
+    tx: Mutex<Option<mpsc::SyncSender<(EditJob, Instant)>>>,
+    thread: Mutex<Option<JoinHandle<()>>>,
+    hub: Arc<EditHub>,
+    metrics: Arc<EditMetrics>,
+}
+
+impl std::fmt::Debug for EditService {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("EditService").finish()
+    }
+}
+
+/// What the writer needs to check and apply edits.
+struct Writer {
+    live: Arc<LiveStore>,
+    hub: Arc<EditHub>,
+    metrics: Arc<EditMetrics>,
+    /// Parameters each species declares.
+    params: Vec<usize>,
+}
+
+impl EditService {
+    /// Start the writer thread over `live`.
+    pub fn start(live: Arc<LiveStore>) -> Arc<EditService> {
+        let head = live.head();
+        let params = (0..head.species().len())
+            .map(|i| {
+                head.species_graph(i as u8).and_then(|g| SpeciesGraph::decode(g).ok()).map_or(0, |g| g.params.len())
+            })
+            .collect();
+        let hub = EditHub::new(1 << 14);
+        let metrics = Arc::new(EditMetrics::default());
+        let (tx, rx) = mpsc::sync_channel(MAX_QUEUED);
+        let writer = Writer { live, hub: Arc::clone(&hub), metrics: Arc::clone(&metrics), params };
+        let thread = std::thread::Builder::new()
+            .name("canopy-edits".into())
+            .spawn(move || writer.run(rx))
+            .expect("spawning the edit writer");
+        Arc::new(EditService { tx: Mutex::new(Some(tx)), thread: Mutex::new(Some(thread)), hub, metrics })
+    }
+
+    /// The hub sessions listen on.
+    pub fn hub(&self) -> &Arc<EditHub> {
+        &self.hub
+    }
+
+    /// The pipeline's counters.
+    pub fn metrics(&self) -> &Arc<EditMetrics> {
+        &self.metrics
+    }
+
+    /// Hand a request to the writer; its reply comes through `job.reply` (at once when the queue is full or the
+    /// service stopped).
+    pub fn submit(&self, job: EditJob) {
+        let tx = self.tx.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let Some(tx) = tx else {
+            (job.reply)(EditOutcome::Denied("the server is shutting down".into()));
+            return;
+        };
+        if let Err(e) = tx.try_send((job, Instant::now())) {
+            let (job, why) = match e {
+                mpsc::TrySendError::Full((j, _)) => (j, "too many edits waiting; try again"),
+                mpsc::TrySendError::Disconnected((j, _)) => (j, "the edit writer stopped"),
+            };
+            let outcome = EditOutcome::Denied(why.into());
+            self.metrics.count(&outcome);
+            (job.reply)(outcome);
+        }
+    }
+
+    /// Stop taking requests, write what is queued, and wait for the writer.
+    pub fn stop(&self) {
+        self.tx.lock().unwrap_or_else(|e| e.into_inner()).take();
+        if let Some(t) = self.thread.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for EditService {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// A waker the writer blocks on while a cell it needs is expanded.
+#[derive(Default)]
+struct BlockingWaker {
+    woken: Mutex<bool>,
+    cv: Condvar,
+}
+
+impl CellWaker for BlockingWaker {
+    fn wake(&self) {
+        *self.woken.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        self.cv.notify_all();
+    }
+}
+
+/// A cell's state in the group being written: its world-function records and its overlay with the group's edits.
+struct Working {
+    base: Arc<CellData>,
+    overlay: Overlay,
+}
+
+/// One accepted request of a group.
+struct Accepted {
+    reply: Box<dyn FnOnce(EditOutcome) + Send>,
+    id: InstanceId,
+    version: u32,
+}
+
+impl Writer {
+    fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
+        while let Ok(first) = rx.recv() {
+            let started = first.1;
+            let mut jobs = vec![first.0];
+            while jobs.len() < MAX_GROUP {
+                match rx.try_recv() {
+                    Ok((j, _)) => jobs.push(j),
+                    Err(_) => break,
+                }
+            }
+            self.write_group(jobs, started);
+        }
+    }
+
+    fn reply(&self, reply: Box<dyn FnOnce(EditOutcome) + Send>, outcome: EditOutcome) {
+        self.metrics.count(&outcome);
+        reply(outcome);
+    }
+
+    fn write_group(&self, jobs: Vec<EditJob>, started: Instant) {
+        let mut working: BTreeMap<CellCoord, Working> = BTreeMap::new();
+        let mut edits = Vec::with_capacity(jobs.len());
+        let mut accepted = Vec::with_capacity(jobs.len());
+        for job in jobs {
+            match self.prepare(&job.op, &job.editor, &mut working) {
+                Ok((edit, id)) => {
+                    accepted.push(Accepted { reply: job.reply, id, version: edit.version });
+                    edits.push(edit);
+                }
+                Err(outcome) => self.reply(job.reply, outcome),
+            }
+        }
+        if edits.is_empty() {
+            return;
+        }
+        match self.live.edit_store().append(&edits) {
+            Ok(()) => {
+                self.metrics.groups.fetch_add(1, Relaxed);
+                self.metrics.commit_time.record(started.elapsed());
+                for (cell, w) in working {
+                    let version = w.overlay.version();
+                    if edits.iter().any(|e| e.cell == cell) {
+                        self.live.publish(cell, w.overlay);
+                        self.hub.announce(CellChange { cell, version });
+                    }
+                }
+                for a in accepted {
+                    self.reply(a.reply, EditOutcome::Ok { id: a.id, version: a.version });
+                }
+            }
+            Err(EditStoreError::Conflict { cell, version }) => {
+                info!(?cell, version, "another writer changed the cell: the group is refused");
+                for c in working.keys() {
+                    self.live.forget(*c);
+                }
+                for a in accepted {
+                    self.reply(a.reply, EditOutcome::Conflict);
+                }
+            }
+            Err(e) => {
+                warn!("writing {} edits: {e}", edits.len());
+                for a in accepted {
+                    self.reply(a.reply, EditOutcome::Denied(format!("the edit could not be stored: {e}")));
+                }
+            }
+        }
+    }
+
+    /// The cell's working state, read on first need (waiting for its expansion if it is not ready).
+    fn working<'w>(
+        &self,
+        c: CellCoord,
+        working: &'w mut BTreeMap<CellCoord, Working>,
+    ) -> Result<&'w mut Working, EditOutcome> {
+        if !working.contains_key(&c) {
+            let waker = Arc::new(BlockingWaker::default());
+            let as_waker: Arc<dyn CellWaker> = waker.clone();
+            let deadline = Instant::now() + CELL_WAIT;
+            let (base, overlay) = loop {
+                match self.live.base_and_overlay(c, Some(&as_waker)) {
+                    Ok(Some(found)) => break found,
+                    Ok(None) => {}
+                    Err(e) => return Err(EditOutcome::Denied(format!("the cell's edits could not be read: {e}"))),
+                }
+                if !matches!(self.live.base().cell(c, None), CellState::Pending) {
+                    return Err(EditOutcome::Invalid("the cell is outside the world".into()));
+                }
+                let now = Instant::now();
+                if now >= deadline {
+                    return Err(EditOutcome::Denied("the cell is not ready; try again".into()));
+                }
+                let woken = waker.woken.lock().unwrap_or_else(|e| e.into_inner());
+                let (mut woken, _) = waker
+                    .cv
+                    .wait_timeout_while(woken, (deadline - now).min(Duration::from_millis(100)), |w| !*w)
+                    .unwrap_or_else(|e| e.into_inner());
+                *woken = false;
+            };
+            working.insert(c, Working { base, overlay: (*overlay).clone() });
+        }
+        Ok(working.get_mut(&c).expect("inserted above"))
+    }
+
+    /// Check one request against the world and its cell, and apply it to the cell's working overlay.
+    fn prepare(
+        &self,
+        op: &EditOp,
+        editor: &Editor,
+        working: &mut BTreeMap<CellCoord, Working>,
+    ) -> Result<(StoredEdit, InstanceId), EditOutcome> {
+        let invalid = |why: String| Err(EditOutcome::Invalid(why));
+        let grid = *self.live.grid();
+        let check_params = |species: u8, params: &[(u16, f32)]| -> Result<(), EditOutcome> {
+            let declared = self.params.get(usize::from(species)).copied().unwrap_or(0);
+            if let Some((slot, _)) = params.iter().find(|(s, _)| usize::from(*s) >= declared) {
+                return Err(EditOutcome::Invalid(format!("species {species} declares no parameter slot {slot}")));
+            }
+            if let Some((slot, v)) = params.iter().find(|(_, v)| v.abs() > MAX_PARAM_VALUE) {
+                return Err(EditOutcome::Invalid(format!("parameter {slot} = {v} is beyond ±{MAX_PARAM_VALUE}")));
+            }
+            Ok(())
+        };
+        let (cell, cell_op) = match op {
+            EditOp::Plant { species, x, z, params } => {
+                let cell = grid.cell_of(*x, *z);
+                if !grid.contains(cell) {
+                    return invalid(format!("({x}, {z}) is outside the world"));
+                }
+                if usize::from(*species) >= self.params.len() {
+                    return invalid(format!("species {species} is not in the world's table"));
+                }
+                if !editor.may_edit_at(*x, *z) {
+                    return Err(EditOutcome::Denied(format!("({x}, {z}) is outside {}'s region", editor.name)));
+                }
+                check_params(*species, params)?;
+                let origin = grid.cell_origin(cell);
+                let q = [quantize(*x, origin[0], grid.cell_size), quantize(*z, origin[1], grid.cell_size)];
+                let record = InstanceRecord::new(*species, q[0], q[1]);
+                (cell, CellEdit::Plant { index: 0, record, params: params.clone() })
+            }
+            EditOp::Fell { id } | EditOp::Set { id, .. } => {
+                let cell = id.cell();
+                if !grid.contains(cell) {
+                    return invalid(format!("instance {} is outside the world", id.0));
+                }
+                let index = id.index();
+                let op = match op {
+                    EditOp::Set { params, .. } => CellEdit::Set { index, params: params.clone() },
+                    _ => CellEdit::Fell { index },
+                };
+                (cell, op)
+            }
+        };
+        let w = self.working(cell, working)?;
+        let mut cell_op = cell_op;
+        if let CellEdit::Plant { index, .. } = &mut cell_op {
+            *index = w.overlay.total();
+        }
+        w.overlay.check(&cell_op).map_err(|e| EditOutcome::Invalid(e.to_string()))?;
+        if let CellEdit::Fell { index } | CellEdit::Set { index, .. } = cell_op {
+            let record = match index.checked_sub(w.overlay.base_total()) {
+                None => w.base.records[usize::from(index)],
+                Some(p) => w.overlay.planted(p).expect("checked: the index exists"),
+            };
+            let origin = grid.cell_origin(cell);
+            let step = canopy_protocol::record::position_step(grid.cell_size);
+            let (x, z) = (origin[0] + f32::from(record.qx()) * step, origin[1] + f32::from(record.qz()) * step);
+            if !editor.may_edit_at(x, z) {
+                return Err(EditOutcome::Denied(format!("instance at ({x}, {z}) is outside {}'s region", editor.name)));
+            }
+            if let CellEdit::Set { params, .. } = &cell_op {
+                check_params(record.species, params)?;
+            }
+        }
+        let edit = StoredEdit { cell, version: w.overlay.version() + 1, op: cell_op };
+        w.overlay.apply(&edit).map_err(|e| EditOutcome::Invalid(e.to_string()))?;
+        let id = InstanceId::new(cell, edit.op.index()).expect("a grid cell can be named");
+        Ok((edit, id))
+    }
+}

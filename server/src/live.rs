@@ -1,0 +1,238 @@
+//! The live world: a [`WorldStore`] that lays each cell's edits ([`canopy_edits::Overlay`]) over the world
+//! function's records of another store, reading a cell's edit log from the [`EditStore`] when the cell is first
+//! needed and keeping overlays in an LRU bounded by bytes. Nothing is loaded at start.
+//!
+//! A cell never edited costs one look-up in the edit store and a small entry; an edited cell also keeps its records
+//! at the current version ([`CellData`] with its batches encoded once, shared by every session like any cell).
+//! [`crate::editing`] publishes an overlay here after its edit is durable, then tells the sessions; an overlay only
+//! ever moves forward (the newer version wins), so a log read racing a publish cannot take a cell back.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use canopy_edits::{EditStore, EditStoreError, Overlay};
+use canopy_protocol::CellCoord;
+use tracing::error;
+
+use crate::store::{CellData, CellState, CellWaker, Changes, StoreHead, WorldStore};
+
+/// Bytes an overlay entry costs beyond the overlay and the records it keeps (map, LRU slot).
+const ENTRY_OVERHEAD: usize = 96;
+
+struct Entry {
+    overlay: Arc<Overlay>,
+    /// The cell's records at the overlay's version (edited cells only), built on first need.
+    applied: Option<Arc<CellData>>,
+    bytes: usize,
+    used: u64,
+}
+
+#[derive(Default)]
+struct Overlays {
+    map: HashMap<CellCoord, Entry>,
+    lru: BTreeMap<u64, CellCoord>,
+    clock: u64,
+    bytes: usize,
+}
+
+impl Overlays {
+    fn touch(&mut self, c: CellCoord) {
+        self.clock += 1;
+        let clock = self.clock;
+        if let Some(e) = self.map.get_mut(&c) {
+            self.lru.remove(&e.used);
+            e.used = clock;
+            self.lru.insert(clock, c);
+        }
+    }
+
+    fn remove(&mut self, c: CellCoord) {
+        if let Some(e) = self.map.remove(&c) {
+            self.lru.remove(&e.used);
+            self.bytes -= e.bytes;
+        }
+    }
+
+    /// Put `overlay` for `c` unless a newer one is there; then evict beyond `limit`.
+    fn put(&mut self, c: CellCoord, overlay: Arc<Overlay>, limit: usize) -> Arc<Overlay> {
+        if let Some(e) = self.map.get(&c)
+            && e.overlay.version() >= overlay.version()
+        {
+            let kept = Arc::clone(&e.overlay);
+            self.touch(c);
+            return kept;
+        }
+        self.remove(c);
+        self.clock += 1;
+        let bytes = overlay.heap_bytes() + ENTRY_OVERHEAD;
+        self.map.insert(c, Entry { overlay: Arc::clone(&overlay), applied: None, bytes, used: self.clock });
+        self.lru.insert(self.clock, c);
+        self.bytes += bytes;
+        self.evict(limit, c);
+        overlay
+    }
+
+    /// Evict the least recently used entries beyond `limit`, never `keep`.
+    fn evict(&mut self, limit: usize, keep: CellCoord) {
+        while self.bytes > limit {
+            let Some((&used, &c)) = self.lru.iter().find(|(_, c)| **c != keep) else { return };
+            self.lru.remove(&used);
+            if let Some(e) = self.map.remove(&c) {
+                self.bytes -= e.bytes;
+            }
+        }
+    }
+}
+
+/// The live world (see the module docs).
+pub struct LiveStore {
+    base: Arc<dyn WorldStore>,
+    edits: Arc<dyn EditStore>,
+    overlays: Mutex<Overlays>,
+    limit_bytes: usize,
+}
+
+impl std::fmt::Debug for LiveStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LiveStore").field("limit_bytes", &self.limit_bytes).finish()
+    }
+}
+
+impl LiveStore {
+    /// The world of `base` with the edits of `edits`, overlays cached up to `limit_bytes`.
+    pub fn new(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>, limit_bytes: usize) -> LiveStore {
+        LiveStore { base, edits, overlays: Mutex::new(Overlays::default()), limit_bytes }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Overlays> {
+        self.overlays.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The store of the world function's records.
+    pub fn base(&self) -> &Arc<dyn WorldStore> {
+        &self.base
+    }
+
+    /// The durable edit store.
+    pub fn edit_store(&self) -> &Arc<dyn EditStore> {
+        &self.edits
+    }
+
+    /// Bytes the overlays hold now.
+    pub fn overlay_bytes(&self) -> usize {
+        self.lock().bytes
+    }
+
+    /// The overlay of cell `c`, whose world-function records are `base`: cached, or read from the edit store.
+    pub fn overlay(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
+        {
+            let mut o = self.lock();
+            if let Some(e) = o.map.get(&c) {
+                let overlay = Arc::clone(&e.overlay);
+                o.touch(c);
+                return Ok(overlay);
+            }
+        }
+        let log = self.edits.load(c)?;
+        let overlay = Overlay::from_log(base.records.len() as u16, &log)
+            .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
+        Ok(self.lock().put(c, Arc::new(overlay), self.limit_bytes))
+    }
+
+    /// Make `overlay` cell `c`'s (after its edits are durable). A newer overlay already there is kept.
+    pub fn publish(&self, c: CellCoord, overlay: Overlay) {
+        self.lock().put(c, Arc::new(overlay), self.limit_bytes);
+    }
+
+    /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
+    pub fn forget(&self, c: CellCoord) {
+        self.lock().remove(c);
+    }
+
+    /// The cell's records at `overlay`'s version over `base`, built once per version and kept with the overlay.
+    fn applied(&self, c: CellCoord, base: &Arc<CellData>, overlay: &Arc<Overlay>) -> Arc<CellData> {
+        if overlay.version() == 0 {
+            return Arc::clone(base);
+        }
+        if let Some(e) = self.lock().map.get(&c)
+            && Arc::ptr_eq(&e.overlay, overlay)
+            && let Some(a) = &e.applied
+        {
+            return Arc::clone(a);
+        }
+        let a = overlay.apply_to(&base.records, &base.overrides);
+        let data = Arc::new(CellData::edited(c, overlay.version(), a.records, a.overrides, a.felled));
+        let mut o = self.lock();
+        let limit = self.limit_bytes;
+        if let Some(e) = o.map.get_mut(&c)
+            && Arc::ptr_eq(&e.overlay, overlay)
+            && e.applied.is_none()
+        {
+            let extra = data.heap_bytes();
+            e.applied = Some(Arc::clone(&data));
+            e.bytes += extra;
+            o.bytes += extra;
+            o.evict(limit, c);
+        }
+        data
+    }
+
+    /// The cell's world-function records and overlay, never waiting (`Ok(None)`: pending or outside the grid).
+    pub fn base_and_overlay(
+        &self,
+        c: CellCoord,
+        waker: Option<&Arc<dyn CellWaker>>,
+    ) -> Result<Option<(Arc<CellData>, Arc<Overlay>)>, EditStoreError> {
+        match self.base.cell(c, waker) {
+            CellState::Ready(base) => {
+                let overlay = self.overlay(c, &base)?;
+                Ok(Some((base, overlay)))
+            }
+            _ => Ok(None),
+        }
+    }
+}
+
+impl WorldStore for LiveStore {
+    fn head(&self) -> &StoreHead {
+        self.base.head()
+    }
+
+    fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState {
+        match self.base.cell(c, waker) {
+            CellState::Ready(base) => match self.overlay(c, &base) {
+                Ok(overlay) => CellState::Ready(self.applied(c, &base, &overlay)),
+                Err(e) => {
+                    // The edits are still stored; the world function's records are what can be sent meanwhile.
+                    error!(?c, "reading the cell's edits: {e}");
+                    CellState::Ready(base)
+                }
+            },
+            other => other,
+        }
+    }
+
+    fn generation(&self) -> u64 {
+        self.base.generation()
+    }
+
+    fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
+        self.base.cache_metrics()
+    }
+
+    fn changes(&self, c: CellCoord, from: u32, waker: Option<&Arc<dyn CellWaker>>) -> Changes {
+        let base = match self.base.cell(c, waker) {
+            CellState::Ready(base) => base,
+            CellState::Pending => return Changes::Pending,
+            CellState::Outside => return Changes::Whole,
+        };
+        match self.overlay(c, &base) {
+            Ok(overlay) if from == overlay.version() => Changes::Current { total: overlay.total() },
+            Ok(overlay) => overlay.delta(from).map_or(Changes::Whole, Changes::Delta),
+            Err(e) => {
+                error!(?c, "reading the cell's edits: {e}");
+                Changes::Whole
+            }
+        }
+    }
+}
