@@ -125,6 +125,8 @@ pub enum ClientStreaming {
     Edit(Edit),
     /// Send this held cell again, whole, at its current version (the client missed a version).
     Refresh(CellCoord),
+    /// Send this species' program if it has not been sent (an editor about to plant it, a tool naming species).
+    Fetch(u8),
 }
 
 /// The first message of a session. `version` comes first so that any future version still decodes it.
@@ -669,6 +671,7 @@ impl ClientMsg {
             }
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => Ok(v.validate()?),
             ClientMsg::Streaming(ClientStreaming::Edit(e)) => e.op.validate(),
+            ClientMsg::Streaming(ClientStreaming::Fetch(_)) => Ok(()),
             ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
                 if InstanceId::names(*c) {
                     Ok(())
@@ -688,6 +691,7 @@ impl ClientMsg {
             ClientMsg::Streaming(ClientStreaming::Viewpoint(_)) => "viewpoint",
             ClientMsg::Streaming(ClientStreaming::Edit(_)) => "edit",
             ClientMsg::Streaming(ClientStreaming::Refresh(_)) => "refresh",
+            ClientMsg::Streaming(ClientStreaming::Fetch(_)) => "fetch",
         }
     }
 

@@ -51,6 +51,7 @@ fn edits_are_pinned() {
     check_client(&edit(EditOp::Fell { id }), "0101ac02018780948080b0ffff7f");
     check_client(&edit(EditOp::Set { id, params: vec![(1, 2.0)] }), "0101ac02028780948080b0ffff7f010100000040");
     check_client(&ClientMsg::Streaming(ClientStreaming::Refresh(CellCoord::new(-3, 5))), "0102050a");
+    check_client(&ClientMsg::Streaming(ClientStreaming::Fetch(7)), "010307");
 }
 
 #[test]

@@ -695,6 +695,25 @@ impl Session {
                     self.edits_out.push_back((e.request, e.op));
                 }
             }
+            ClientMsg::Streaming(ClientStreaming::Fetch(id)) => {
+                if usize::from(id) >= self.store.species().len() {
+                    return Err(SessionError::UnknownSpecies(id));
+                }
+                // Each species goes to a client once, however often it asks.
+                if !self.has_species(id)
+                    && let Some(bytes) = self.store.species_frame(id)
+                {
+                    self.set_species(id);
+                    let t = Transmit {
+                        stream: StreamId::Lane(0),
+                        bytes,
+                        body: Bytes::new(),
+                        class: MsgClass::Species,
+                        records: 0,
+                    };
+                    self.urgent.push_back(t);
+                }
+            }
             ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
                 if self.held.contains_key(&c) {
                     self.release(c);

@@ -289,6 +289,14 @@ impl ClientState {
         Ok((request, msg))
     }
 
+    /// The message asking for species `id`'s program (sent at most once a session; it arrives as an
+    /// [`Event::Species`]).
+    pub fn fetch(&mut self, id: u8) -> Result<ClientMsg, StateError> {
+        let msg = ClientMsg::Streaming(ClientStreaming::Fetch(id));
+        msg.next_phase(self.phase)?;
+        Ok(msg)
+    }
+
     /// The message asking for held cell `c` again, whole (after a [`Event::Gap`]).
     pub fn refresh(&mut self, c: CellCoord) -> Result<ClientMsg, StateError> {
         let msg = ClientMsg::Streaming(ClientStreaming::Refresh(c));

@@ -3,6 +3,7 @@
 mod bandwidth;
 mod bots;
 mod demo;
+mod edit;
 mod hypertree;
 mod render;
 mod species;

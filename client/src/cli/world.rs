@@ -1,6 +1,7 @@
 //! `canopy world stats [MANIFEST]`: load a world manifest — or the embedded default world, `worlds/forest` — and
 //! print its content summary and how long loading took. A world too large to expand whole is estimated from a
-//! sample of its cells; `--cells X0,Z0,X1,Z1` expands a rectangle of cells exactly.
+//! sample of its cells; `--cells X0,Z0,X1,Z1` expands a rectangle of cells exactly. `canopy world plant|fell|set|
+//! cell` edit and read a running server's world ([`super::edit`]).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -26,12 +27,62 @@ pub enum WorldCommand {
         #[arg(long, value_parser = parse_cells, allow_hyphen_values = true)]
         cells: Option<[i32; 4]>,
     },
+    /// Plant an instance of SPECIES (a name or number) at world X Z on a running server (an editor token needed).
+    Plant {
+        /// The species: its name, or its number in the world's table.
+        species: String,
+        /// World X and Z, metres.
+        #[arg(long, num_args = 2, value_names = ["X", "Z"], allow_hyphen_values = true, required = true)]
+        at: Vec<f32>,
+        /// A parameter value that differs from the species' default (`NAME=VALUE`; repeat for more).
+        #[arg(long = "param", value_parser = super::edit::parse_param)]
+        params: Vec<(String, f32)>,
+        #[command(flatten)]
+        server: super::edit::ServerArgs,
+    },
+    /// Fell (remove) instance ID (the number printed, or X:Z:INDEX) on a running server.
+    Fell {
+        /// The instance.
+        #[arg(value_parser = super::edit::parse_id, allow_hyphen_values = true)]
+        id: canopy_protocol::InstanceId,
+        #[command(flatten)]
+        server: super::edit::ServerArgs,
+    },
+    /// Give instance ID new parameter values (`NAME=VALUE …`) on a running server.
+    Set {
+        /// The instance.
+        #[arg(value_parser = super::edit::parse_id, allow_hyphen_values = true)]
+        id: canopy_protocol::InstanceId,
+        /// `NAME=VALUE` pairs.
+        #[arg(value_parser = super::edit::parse_param, required = true)]
+        params: Vec<(String, f32)>,
+        #[command(flatten)]
+        server: super::edit::ServerArgs,
+    },
+    /// Print the instances of the cell at world X Z as a client receives them (id, species, position,
+    /// parameters) and the cell's version.
+    Cell {
+        /// World X, metres.
+        #[arg(allow_hyphen_values = true)]
+        x: f32,
+        /// World Z, metres.
+        #[arg(allow_hyphen_values = true)]
+        z: f32,
+        #[command(flatten)]
+        server: super::edit::ServerArgs,
+    },
 }
 
 /// Run a `canopy world` command.
 pub fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         WorldCommand::Stats { manifest, repeat, samples, cells } => Ok(stats(manifest, repeat, samples, cells)),
+        WorldCommand::Plant { species, at, params, server } => {
+            super::edit::plant(&server, &species, [at[0], at[1]], &params)
+        }
+        WorldCommand::Fell { id, server } => super::edit::fell(&server, id),
+        WorldCommand::Set { id, params, server } => super::edit::set(&server, id, &params),
+        WorldCommand::Cell { x, z, server } => super::edit::cell(&server, [x, z]),
     }
 }
 

@@ -425,6 +425,28 @@ impl Connection {
         Ok(request)
     }
 
+    /// Every species of the world's table, fetched where the client does not hold it yet (waiting at most
+    /// `timeout`); the graphs are then in [`Connection::state`].
+    pub async fn fetch_all_species(&mut self, timeout: Duration) -> Result<(), ClientError> {
+        let n = self.welcome().species.len();
+        for id in 0..n {
+            if self.state.species(id as u8).is_none() {
+                let msg = self.state.fetch(id as u8)?;
+                self.write(&msg).await?;
+            }
+        }
+        let deadline = tokio::time::Instant::now() + timeout;
+        while self.state.species_held() < n {
+            match tokio::time::timeout_at(deadline, self.next_event()).await {
+                Ok(r) => {
+                    r?;
+                }
+                Err(_) => return Err(ClientError::Timeout("fetching the species")),
+            }
+        }
+        Ok(())
+    }
+
     async fn write(&mut self, msg: &canopy_protocol::ClientMsg) -> Result<(), ClientError> {
         let bytes = frame(&msg.encode());
         self.bytes_out += bytes.len() as u64;

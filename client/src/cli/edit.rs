@@ -1,0 +1,242 @@
+//! `canopy world plant|fell|set|cell`: change a running server's world as an editor, or look at one cell as a
+//! client receives it. Each connects like any client (the area of interest is the cell concerned), fetches the
+//! species table's programs to resolve species and parameter names, and prints what the server answered: the
+//! instance's id and the cell's new version.
+
+use std::net::SocketAddr;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use canopy_client::state::Event;
+use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::edit::{EditOp, EditOutcome};
+use canopy_protocol::{CellCoord, InstanceId, SpeciesGraph};
+use clap::Args;
+
+/// How to reach the server, and as whom.
+#[derive(Args, Debug, Clone)]
+pub struct ServerArgs {
+    /// The server's UDP address.
+    #[arg(long, default_value = "127.0.0.1:4433")]
+    server: SocketAddr,
+    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
+    #[arg(long, conflicts_with = "insecure")]
+    cert_fingerprint: Option<String>,
+    /// Accept any server certificate (local use only).
+    #[arg(long)]
+    insecure: bool,
+    /// The editor token (64 hexadecimal digits, as `canopy-server --add-editor` printed it); also read from
+    /// `CANOPY_TOKEN`.
+    #[arg(long, env = "CANOPY_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// How long to wait for the server, seconds.
+    #[arg(long, default_value_t = 20.0)]
+    timeout: f64,
+}
+
+/// An instance id: the number `canopy` prints, or `X:Z:INDEX` (cell and index in the cell).
+pub fn parse_id(s: &str) -> Result<InstanceId, String> {
+    if let Ok(n) = s.parse::<u64>() {
+        return Ok(InstanceId(n));
+    }
+    let parts: Vec<&str> = s.split(':').collect();
+    let [x, z, i] = parts[..] else { return Err(format!("`{s}`: expected an id number or X:Z:INDEX")) };
+    let num = |p: &str| p.trim().parse::<i64>().map_err(|e| format!("`{p}`: {e}"));
+    let (x, z, i) = (num(x)?, num(z)?, num(i)?);
+    let cell = CellCoord::new(
+        i32::try_from(x).map_err(|_| format!("{x} is out of range"))?,
+        i32::try_from(z).map_err(|_| format!("{z} is out of range"))?,
+    );
+    let index = u16::try_from(i).map_err(|_| format!("index {i} is out of range"))?;
+    InstanceId::new(cell, index).ok_or_else(|| format!("cell ({x}, {z}) is beyond the cells ids can name"))
+}
+
+/// `NAME=VALUE` (a parameter name or slot number, and a finite number).
+pub fn parse_param(s: &str) -> Result<(String, f32), String> {
+    let (k, v) = s.split_once('=').ok_or_else(|| format!("`{s}`: expected NAME=VALUE"))?;
+    let v: f32 = v.trim().parse().map_err(|e| format!("`{v}`: {e}"))?;
+    if !v.is_finite() || k.trim().is_empty() {
+        return Err(format!("`{s}`: expected NAME=VALUE with a finite value"));
+    }
+    Ok((k.trim().to_owned(), v))
+}
+
+/// How an instance id reads: `X:Z:INDEX (N)`.
+pub fn show_id(id: InstanceId) -> String {
+    let c = id.cell();
+    format!("{}:{}:{} ({})", c.x, c.z, id.index(), id.0)
+}
+
+/// A connected client for one command, its area of interest around `at`.
+struct Client {
+    rt: tokio::runtime::Runtime,
+    conn: Connection,
+    timeout: Duration,
+}
+
+impl Client {
+    fn connect(
+        args: &ServerArgs,
+        at: impl FnOnce(&canopy_protocol::messages::Welcome) -> [f32; 2],
+    ) -> anyhow::Result<Client> {
+        let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
+        let mut cfg = ConnectConfig::new(args.server, trust);
+        cfg.client_name = "canopy-world".into();
+        let timeout = Duration::from_secs_f64(args.timeout.clamp(0.1, 3600.0));
+        cfg.timeout = timeout;
+        cfg.token = match &args.token {
+            Some(t) => Some(canopy_server::editors::unhex(t.trim()).context("--token: expected hexadecimal digits")?),
+            None => None,
+        };
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+        let conn = rt.block_on(async {
+            let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(args.server))?;
+            let mut conn = Connection::connect(&endpoint, &cfg, None, |w| {
+                // A radius of a metre: the cell under the point, and what the server's rules add.
+                Viewpoint::at(1, at(w), 1.0)
+            })
+            .await?;
+            conn.fetch_all_species(timeout).await?;
+            conn.wait_complete(timeout).await?;
+            Ok::<_, ClientError>(conn)
+        })?;
+        Ok(Client { rt, conn, timeout })
+    }
+
+    fn species(&self, id: u8) -> &SpeciesGraph {
+        self.conn.state().species(id).expect("every species fetched")
+    }
+
+    /// A species by name or number.
+    fn species_id(&self, name: &str) -> anyhow::Result<u8> {
+        let n = self.conn.welcome().species.len();
+        if let Ok(i) = name.parse::<u8>()
+            && usize::from(i) < n
+        {
+            return Ok(i);
+        }
+        let names: Vec<&str> = (0..n).map(|i| self.species(i as u8).name.as_str()).collect();
+        match names.iter().position(|s| *s == name) {
+            Some(i) => Ok(i as u8),
+            None => bail!("the world has no species `{name}`; it has {}", names.join(", ")),
+        }
+    }
+
+    /// Parameters by name or slot number, sorted by slot.
+    fn params(&self, species: u8, params: &[(String, f32)]) -> anyhow::Result<Vec<(u16, f32)>> {
+        let g = self.species(species);
+        let mut out = Vec::new();
+        for (k, v) in params {
+            let slot = match g.param_slot(k) {
+                Some(s) => s,
+                None => match k.parse::<u16>() {
+                    Ok(s) if usize::from(s) < g.params.len() => s,
+                    _ => {
+                        let names: Vec<&str> = g.params.iter().map(|p| p.name.as_str()).collect();
+                        bail!("species {} has no parameter `{k}`; it has {}", g.name, names.join(", "))
+                    }
+                },
+            };
+            out.retain(|(s, _)| *s != slot);
+            out.push((slot, *v));
+        }
+        out.sort_by_key(|p| p.0);
+        Ok(out)
+    }
+
+    /// Send the edit and wait for its answer (and for the cell to show it).
+    fn edit(&mut self, op: EditOp) -> anyhow::Result<ExitCode> {
+        let timeout = self.timeout;
+        let conn = &mut self.conn;
+        let outcome = self.rt.block_on(async {
+            let request = conn.edit(op).await?;
+            let deadline = tokio::time::Instant::now() + timeout;
+            loop {
+                match tokio::time::timeout_at(deadline, conn.next_event()).await {
+                    Ok(Ok(Event::EditResult(r))) if r.request == request => return Ok::<_, anyhow::Error>(r.outcome),
+                    Ok(Ok(_)) => {}
+                    Ok(Err(e)) => return Err(e.into()),
+                    Err(_) => bail!("no answer from the server within {timeout:?}"),
+                }
+            }
+        })?;
+        match outcome {
+            EditOutcome::Ok { id, version } => {
+                println!("instance {}", show_id(id));
+                println!("cell {}:{} version {version}", id.cell().x, id.cell().z);
+                Ok(ExitCode::SUCCESS)
+            }
+            EditOutcome::Denied(why) => {
+                eprintln!("denied: {why}");
+                Ok(ExitCode::FAILURE)
+            }
+            EditOutcome::Invalid(why) => {
+                eprintln!("invalid: {why}");
+                Ok(ExitCode::FAILURE)
+            }
+            EditOutcome::Conflict => {
+                eprintln!("conflict: the cell changed under the edit; try again");
+                Ok(ExitCode::FAILURE)
+            }
+        }
+    }
+}
+
+/// The centre of `id`'s cell, in world (x, z).
+fn cell_centre(w: &canopy_protocol::messages::Welcome, c: CellCoord) -> [f32; 2] {
+    let o = w.world.grid.cell_origin(c);
+    let h = w.world.grid.cell_size / 2.0;
+    [o[0] + h, o[1] + h]
+}
+
+/// `canopy world plant SPECIES --at X Z [--param NAME=VALUE …]`.
+pub fn plant(server: &ServerArgs, species: &str, at: [f32; 2], params: &[(String, f32)]) -> anyhow::Result<ExitCode> {
+    let mut c = Client::connect(server, |_| at)?;
+    let id = c.species_id(species)?;
+    let params = c.params(id, params)?;
+    c.edit(EditOp::Plant { species: id, x: at[0], z: at[1], params })
+}
+
+/// `canopy world fell ID`.
+pub fn fell(server: &ServerArgs, id: InstanceId) -> anyhow::Result<ExitCode> {
+    let mut c = Client::connect(server, |w| cell_centre(w, id.cell()))?;
+    c.edit(EditOp::Fell { id })
+}
+
+/// `canopy world set ID NAME=VALUE …`.
+pub fn set(server: &ServerArgs, id: InstanceId, params: &[(String, f32)]) -> anyhow::Result<ExitCode> {
+    let mut c = Client::connect(server, |w| cell_centre(w, id.cell()))?;
+    let held = c.conn.state().cells().get(&id.cell()).context("the server did not send the instance's cell")?;
+    let record = held.records.get(usize::from(id.index())).filter(|_| !held.felled.contains(&id.index()));
+    let Some(record) = record else { bail!("no instance {} in its cell", show_id(id)) };
+    let params = c.params(record.species, params)?;
+    c.edit(EditOp::Set { id, params })
+}
+
+/// `canopy world cell X Z`: the instances of the cell at world (x, z) as a client receives them.
+pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
+    let c = Client::connect(server, |_| at)?;
+    let w = c.conn.welcome();
+    let cell = w.world.grid.cell_of(at[0], at[1]);
+    let Some(held) = c.conn.state().cells().get(&cell) else { bail!("({}, {}) is outside the world", at[0], at[1]) };
+    let height =
+        canopy_client::world::ground(&w.world.terrain).map_err(|e| anyhow::anyhow!("the world's ground: {e}"))?;
+    let live = held.records.len() - held.felled.len();
+    println!("cell {}:{} version {}: {live} instances ({} felled)", cell.x, cell.z, held.version, held.felled.len());
+    let mut instances: Vec<_> =
+        c.conn.state().instances(&|x, z| height.height(x, z)).filter(|i| i.id.cell() == cell).collect();
+    instances.sort_by_key(|i| i.id);
+    for i in instances {
+        let g = c.species(i.species);
+        let params: Vec<String> = i
+            .params
+            .iter()
+            .map(|(s, v)| format!("{}={v}", g.params.get(usize::from(*s)).map_or("?", |p| p.name.as_str())))
+            .collect();
+        let [x, y, z] = i.position;
+        println!("{}  {}  {x:.2} {y:.2} {z:.2}  {}", show_id(i.id), g.name, params.join(" "));
+    }
+    Ok(ExitCode::SUCCESS)
+}
