@@ -169,6 +169,9 @@ impl Server {
         if let Some(cells) = store.cache_metrics() {
             metrics.attach_cells(cells);
         }
+        if let Some(edits) = &cfg.edits {
+            metrics.attach_edits(Arc::clone(edits.metrics()));
+        }
         let (shutdown, shutdown_rx) = watch::channel(false);
         let metrics_addr = match cfg.metrics {
             Some(addr) => {

@@ -17,6 +17,7 @@ pub mod editors;
 pub mod live;
 pub mod metrics;
 pub mod pacing;
+pub mod payload;
 pub mod session;
 pub mod store;
 pub mod terrain;

@@ -1,6 +1,7 @@
 //! Server-wide counters and their Prometheus text exposition (format 0.0.4): clients, bytes and messages by
 //! message class, records sent and records per second, sessions closed by reason, process memory, and the cell
-//! cache's hits, misses, expansions (count, rate, time percentiles), bytes and cells.
+//! cache's hits, misses, expansions (count, rate, time percentiles), bytes and cells, and the edit pipeline's
+//! outcomes, groups and commit times.
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -48,6 +49,8 @@ pub struct Metrics {
     last_tick: std::sync::Mutex<(Instant, u64, u64)>,
     /// The cell cache's counters, when the store has a cache.
     cells: OnceLock<Arc<CellMetrics>>,
+    /// The edit pipeline's counters, when the server takes edits.
+    edits: OnceLock<Arc<crate::editing::EditMetrics>>,
 }
 
 /// Upper bounds of the expansion-time histogram's buckets, microseconds: 1 µs, 2 µs, 4 µs, … 8.4 s (then +Inf).
@@ -172,12 +175,18 @@ impl Metrics {
             expansions_per_second: AtomicU64::new(0),
             last_tick: std::sync::Mutex::new((now, 0, 0)),
             cells: OnceLock::new(),
+            edits: OnceLock::new(),
         }
     }
 
     /// Report the cell cache's counters too (once; later calls are ignored).
     pub fn attach_cells(&self, cells: Arc<CellMetrics>) {
         let _ = self.cells.set(cells);
+    }
+
+    /// Report the edit pipeline's counters too (once; later calls are ignored).
+    pub fn attach_edits(&self, edits: Arc<crate::editing::EditMetrics>) {
+        let _ = self.edits.set(edits);
     }
 
     /// The cell cache's counters, if attached.
@@ -280,12 +289,26 @@ impl Metrics {
                 metric(&format!("canopy_cell_expansion_{label}_microseconds"), "gauge", &help, &[(String::new(), us)]);
             }
         }
+        if let Some(e) = self.edits.get() {
+            let outcomes: Vec<(String, u64)> = ["ok", "denied", "invalid", "conflict"]
+                .iter()
+                .zip(&e.outcomes)
+                .map(|(l, n)| (format!("{{outcome=\"{l}\"}}"), n.load(Relaxed)))
+                .collect();
+            metric("canopy_edits_total", "counter", "Edits answered, by outcome.", &outcomes);
+            let help = "Groups of edits written durably (one transaction each: group commit).";
+            metric("canopy_edit_groups_total", "counter", help, &one(&e.groups));
+        }
         if let Some(rss) = resident_bytes() {
             metric("canopy_resident_bytes", "gauge", "Resident memory of the server process.", &[(String::new(), rss)]);
         }
         if let Some(c) = self.cells.get() {
             let help = "Time to expand, quantise and encode one cell.";
             c.expansion_time.render(&mut s, "canopy_cell_expansion_seconds", help);
+        }
+        if let Some(e) = self.edits.get() {
+            let help = "Time from a group's first edit to its durable commit.";
+            e.commit_time.render(&mut s, "canopy_edit_commit_seconds", help);
         }
         s
     }
