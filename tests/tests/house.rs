@@ -16,6 +16,10 @@ fn root() -> PathBuf {
 const FORBIDDEN: &[(&str, &[&str])] = &[
     ("canopy-protocol", &["tokio", "quinn", "wgpu", "winit", "clap", "anyhow", "canopy-worlds", "canopy-server"]),
     ("canopy-worlds", &["tokio", "quinn", "wgpu", "winit", "clap", "anyhow", "indicatif", "canopy-server"]),
+    (
+        "canopy-edits",
+        &["tokio", "quinn", "wgpu", "winit", "clap", "anyhow", "canopy-worlds", "canopy-server", "canopy-client"],
+    ),
     ("canopy-server", &["wgpu", "winit", "indicatif", "canopy-client", "canopy-render", "canopy-harness"]),
     (
         "canopy-client",
