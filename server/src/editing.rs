@@ -276,6 +276,10 @@ impl Writer {
             }
             Err(e) => {
                 warn!("writing {} edits: {e}", edits.len());
+                // A failed commit may still have left some of the group on disk: read those cells again.
+                for c in working.keys() {
+                    self.live.forget(*c);
+                }
                 for a in accepted {
                     self.reply(a.reply, EditOutcome::Denied(format!("the edit could not be stored: {e}")));
                 }
