@@ -240,3 +240,157 @@ pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
     }
     Ok(ExitCode::SUCCESS)
 }
+
+/// `canopy world bake [MANIFEST] --data DIR -o OUT`: the world with the edits stored in `DIR` folded into a new
+/// manifest — the source manifest (species paths made absolute, or library names for an embedded world), then one
+/// line per edited instance: `fell` and `set` for the world function's instances, `instance` for planted ones. The
+/// baked world is a new world: planted instances become explicit ones, so ids in edited cells may differ.
+pub fn bake(
+    manifest: Option<&std::path::Path>,
+    data: &std::path::Path,
+    out: &std::path::Path,
+) -> anyhow::Result<ExitCode> {
+    use canopy_protocol::record::{dequantize, quantize};
+    use canopy_server::edits::{EditStore, Overlay, SqliteEditStore};
+    use canopy_worlds::world::{CellKey, EMBEDDED_WORLDS};
+
+    let world = super::load_world(manifest).map_err(|d| anyhow::anyhow!("{d}"))?;
+    // The manifest's text and where its relative paths lead.
+    let (text, base) = match manifest {
+        Some(path) if path.exists() => {
+            let text = canopy_worlds::fsread::read_text(path, 16 << 20).with_context(|| path.display().to_string())?;
+            let dir = path.parent().unwrap_or(std::path::Path::new(".")).canonicalize()?;
+            (text, Base::Dir(dir))
+        }
+        other => {
+            let name = other.and_then(|p| p.to_str()).unwrap_or("forest");
+            let (_, text) = EMBEDDED_WORLDS.iter().find(|(n, _)| *n == name).context("no such embedded world")?;
+            (text.to_string(), Base::Embedded)
+        }
+    };
+    let db = data.join(canopy_server::edits::sqlite::FILE_NAME);
+    if !db.is_file() {
+        bail!("{}: no edits stored there", db.display());
+    }
+    let store = SqliteEditStore::open(data)?;
+    let mut lines = Vec::new();
+    let (mut fells, mut sets, mut plants) = (0usize, 0usize, 0usize);
+    let name = |species: u8| world.species[usize::from(species)].name.as_str();
+    let params = |species: u8, params: &[(u16, f32)]| -> String {
+        let g = &world.species[usize::from(species)].graph;
+        params.iter().map(|&(s, v)| format!(" {}={v}", g.params[usize::from(s)].name)).collect()
+    };
+    for (cell, version) in store.cells()? {
+        let key = CellKey { x: cell.x, z: cell.z };
+        if !world.contains_cell(key) {
+            eprintln!("warning: cell {}:{} has edits but lies outside the world; left out", cell.x, cell.z);
+            continue;
+        }
+        // The cell as the server holds it: the world function's placements, quantised in the cell.
+        let placements = world.expand_cell(key);
+        let origin = world.cell_origin(key);
+        let s = world.cell_size;
+        let records: Vec<canopy_protocol::InstanceRecord> = placements
+            .iter()
+            .map(|p| {
+                let q = [quantize(p.x, origin[0], s), quantize(p.z, origin[1], s)];
+                canopy_protocol::InstanceRecord::new(p.species as u8, q[0], q[1])
+            })
+            .collect();
+        let overrides: Vec<canopy_protocol::record::ParamOverride> = placements
+            .iter()
+            .enumerate()
+            .flat_map(|(i, p)| {
+                p.params.iter().map(move |&(slot, value)| canopy_protocol::record::ParamOverride {
+                    record: i as u16,
+                    slot,
+                    value,
+                })
+            })
+            .collect();
+        let overlay = Overlay::from_log(records.len() as u16, &store.load(cell)?)
+            .map_err(|e| anyhow::anyhow!("cell {}:{}: {e}", cell.x, cell.z))?;
+        let applied = overlay.apply_to(&records, &overrides);
+        lines.push(format!("# cell {}:{} at version {version}", cell.x, cell.z));
+        let own = |i: usize| -> Vec<(u16, f32)> {
+            applied.overrides.iter().filter(|o| usize::from(o.record) == i).map(|o| (o.slot, o.value)).collect()
+        };
+        for (i, r) in applied.records.iter().enumerate() {
+            let felled = applied.felled.binary_search(&(i as u16)).is_ok();
+            if i < placements.len() {
+                let p = &placements[i];
+                if felled {
+                    lines.push(format!("fell {} at {} {}", name(r.species), p.x, p.z));
+                    fells += 1;
+                } else if own(i) != p.params {
+                    lines.push(format!("set {} at {} {}{}", name(r.species), p.x, p.z, params(r.species, &own(i))));
+                    sets += 1;
+                }
+            } else if !felled {
+                let (x, z) = (dequantize(r.qx(), origin[0], s), dequantize(r.qz(), origin[1], s));
+                lines.push(format!("instance {} at {x} {z}{}", name(r.species), params(r.species, &own(i))));
+                plants += 1;
+            }
+        }
+    }
+    let mut baked = rebase(&text, &base)?;
+    baked.push_str(&format!(
+        "\n# Edits baked from {} ({} edits stored): {fells} felled, {sets} set, {plants} planted.\n",
+        db.display(),
+        store.count()?
+    ));
+    for l in lines {
+        baked.push_str(&l);
+        baked.push('\n');
+    }
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(out, &baked).with_context(|| out.display().to_string())?;
+    // The baked manifest must load.
+    canopy_worlds::world::World::load(out).map_err(|d| anyhow::anyhow!("the baked manifest does not load:\n{d}"))?;
+    println!("{}: {fells} felled, {sets} set, {plants} planted", out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Where a manifest's relative paths lead.
+enum Base {
+    /// A directory on disk.
+    Dir(std::path::PathBuf),
+    /// An embedded world (its species are the library's).
+    Embedded,
+}
+
+/// The manifest text with each quoted `species` or `terrain` path made to load from anywhere: an absolute path, or
+/// for an embedded world, the library name of the species file it names.
+fn rebase(text: &str, base: &Base) -> anyhow::Result<String> {
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines() {
+        let code = line.split('#').next().unwrap_or("");
+        let first = code.split_whitespace().next();
+        let quoted = code.find('"').and_then(|a| code[a + 1..].find('"').map(|b| (a, a + 1 + b)));
+        match (first, quoted) {
+            (Some("species" | "terrain"), Some((a, b))) => {
+                let rel = &code[a + 1..b];
+                let new = match base {
+                    Base::Dir(dir) => {
+                        let p = dir.join(rel).canonicalize().with_context(|| format!("{rel}: in the manifest"))?;
+                        format!("\"{}\"", p.display())
+                    }
+                    Base::Embedded => {
+                        let file = rel.rsplit(['/', '\\']).next().unwrap_or(rel);
+                        let entry = canopy_worlds::library::find(file)
+                            .with_context(|| format!("{rel}: not a library species, cannot bake it"))?;
+                        entry.name().to_string()
+                    }
+                };
+                out.push_str(&line[..a]);
+                out.push_str(&new);
+                out.push_str(&line[b + 1..]);
+            }
+            _ => out.push_str(line),
+        }
+        out.push('\n');
+    }
+    Ok(out)
+}

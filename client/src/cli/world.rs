@@ -59,6 +59,18 @@ pub enum WorldCommand {
         #[command(flatten)]
         server: super::edit::ServerArgs,
     },
+    /// Write the world with the edits a server stored in DIR folded into a new manifest (`fell`, `set` and
+    /// `instance` lines after the source manifest).
+    Bake {
+        /// The world's manifest (`.world`) or an embedded world's name; without one, the embedded default world.
+        manifest: Option<PathBuf>,
+        /// The server's data directory (its `edits.sqlite`).
+        #[arg(long)]
+        data: PathBuf,
+        /// The manifest to write.
+        #[arg(short, long)]
+        out: PathBuf,
+    },
     /// Print the instances of the cell at world X Z as a client receives them (id, species, position,
     /// parameters) and the cell's version.
     Cell {
@@ -83,6 +95,7 @@ pub fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
         WorldCommand::Fell { id, server } => super::edit::fell(&server, id),
         WorldCommand::Set { id, params, server } => super::edit::set(&server, id, &params),
         WorldCommand::Cell { x, z, server } => super::edit::cell(&server, [x, z]),
+        WorldCommand::Bake { manifest, data, out } => super::edit::bake(manifest.as_deref(), &data, &out),
     }
 }
 

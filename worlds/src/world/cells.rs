@@ -42,6 +42,11 @@ pub struct Populations {
     pub(crate) explicit: BTreeMap<CellKey, Vec<(u32, Placement)>>,
     /// Per rule, its statement's position among the populations.
     pub(crate) rule_order: Vec<u32>,
+    /// Baked edits by cell, in file order: `(true, p)` fells the instance of `p.species` at exactly `p`'s position,
+    /// `(false, p)` gives it `p.params` (each slot replaced or added). They apply after every statement placed the
+    /// cell's instances (a felled instance still spaced its neighbours), to the first such instance; one that finds
+    /// none changes nothing.
+    pub(crate) edits: BTreeMap<CellKey, Vec<(bool, Placement)>>,
 }
 
 impl Populations {
@@ -530,6 +535,23 @@ fn expand_block(world: &World, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Pl
                 && target.contains(f64::from(p.x), f64::from(p.z))
             {
                 per_cell[k].push(p.clone());
+            }
+        }
+        for (key, edits) in pops.edits.range(c0..=c1).filter(|(k, _)| (c0.z..=c1.z).contains(&k.z)) {
+            let Some(k) = cells.index(*key) else { continue };
+            for (fell, e) in edits {
+                let list = &mut per_cell[k];
+                let Some(i) = list.iter().position(|p| p.species == e.species && p.x == e.x && p.z == e.z) else {
+                    continue;
+                };
+                if *fell {
+                    list.remove(i);
+                } else {
+                    let params = &mut list[i].params;
+                    params.retain(|(slot, _)| e.params.iter().all(|(s, _)| s != slot));
+                    params.extend_from_slice(&e.params);
+                    params.sort_by_key(|&(slot, _)| slot);
+                }
             }
         }
     }

@@ -100,6 +100,11 @@ pub(crate) enum Population {
     Instance(InstanceDecl),
     /// A distribution rule.
     Scatter(ScatterDecl),
+    /// `fell NAME at X Z`: the instance of that species at exactly that position, placed by an earlier statement,
+    /// is removed (a baked edit).
+    Fell(InstanceDecl),
+    /// `set NAME at X Z name=value …`: that instance takes these parameter values (a baked edit).
+    Set(InstanceDecl),
 }
 
 /// The parsed manifest.
@@ -395,7 +400,7 @@ impl Parser<'_> {
                 self.m.species.push(SpeciesDecl { name, name_span, source, source_span });
                 Ok(())
             }
-            "instance" => {
+            "instance" | "fell" | "set" => {
                 let (species, species_span) = self.ident("a species name")?;
                 if !self.cur.eat_keyword("at") {
                     return Err(self.cur.unexpected("`at`"));
@@ -407,13 +412,19 @@ impl Parser<'_> {
                     params.push(self.setting()?);
                 }
                 let at = [x, z];
-                self.m.populations.push(Population::Instance(InstanceDecl {
-                    species,
-                    species_span,
-                    at,
-                    at_span: xs.start..zs.end,
-                    params,
-                }));
+                let decl = InstanceDecl { species, species_span, at, at_span: xs.start..zs.end, params };
+                let population = match word.as_str() {
+                    "fell" if !decl.params.is_empty() => {
+                        return Err(ParseError::new(decl.params[0].span.clone(), "`fell` takes no parameters"));
+                    }
+                    "fell" => Population::Fell(decl),
+                    "set" if decl.params.is_empty() => {
+                        return Err(ParseError::new(decl.at_span, "`set` needs at least one name=value"));
+                    }
+                    "set" => Population::Set(decl),
+                    _ => Population::Instance(decl),
+                };
+                self.m.populations.push(population);
                 Ok(())
             }
             "terrain" => {
@@ -462,7 +473,7 @@ impl Parser<'_> {
             _ => Err(ParseError::new(
                 span,
                 format!(
-                    "unknown statement `{word}` (expected world, seed, bounds, cell, terrain, species, instance or scatter)"
+                    "unknown statement `{word}` (expected world, seed, bounds, cell, terrain, species, instance, scatter, fell or set)"
                 ),
             )),
         }

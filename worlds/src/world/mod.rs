@@ -39,6 +39,16 @@
 //! }
 //! ```
 //!
+//! Edits baked into a manifest (`canopy world bake`) change what the statements placed, after all of them:
+//!
+//! ```text
+//! fell conifer at 31.390625 4.21875     # remove the conifer at exactly this position (on the position grid)
+//! set conifer at 12 40 height=30        # give it these parameter values (others keep theirs)
+//! ```
+//!
+//! Each applies to the first instance of that species at exactly that position in its cell; one that finds none
+//! changes nothing. A felled instance still spaced its neighbours (the statements placed it before it was felled).
+//!
 //! A ramp `A B .. C D` is 0 below A, rises linearly to 1 at B, stays 1 to C and falls to 0 at D; one number on a
 //! side is a hard edge (`A .. D`), none an open end (`.. 200`).
 //!

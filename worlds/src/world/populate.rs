@@ -243,6 +243,8 @@ pub(crate) fn is_default(graph: &SpeciesGraph, slot: u16, v: f32) -> bool {
 enum Resolved {
     Instance(Placement),
     Scatter(Span),
+    /// A baked edit: `true` fells, `false` sets the placement's parameters.
+    Edit(bool, Placement),
 }
 
 /// Build the world, appending every problem to `diags`; `None` if there were any.
@@ -442,6 +444,20 @@ pub(crate) fn build(
                     resolved.push(Resolved::Instance(Placement { species: id, x, z, params }));
                 }
             }
+            Population::Fell(inst) | Population::Set(inst) => {
+                let Some((id, graph)) = lookup(&inst.species, &inst.species_span, diags) else { continue };
+                let params = graph.map(|g| resolve_settings(src, g, &inst.params, diags));
+                let Some((bounds, cell_size)) = geometry else { continue };
+                let [x, z] = snap(cell_size, f64::from(inst.at[0]), f64::from(inst.at[1]));
+                if !bounds.contains(x, z) {
+                    diags.push(src.diag(inst.at_span.clone(), "the position lies outside the world's bounds"));
+                    continue;
+                }
+                if let Some(params) = params {
+                    let fell = matches!(pop, Population::Fell(_));
+                    resolved.push(Resolved::Edit(fell, Placement { species: id, x, z, params }));
+                }
+            }
             Population::Scatter(r) => {
                 if rules.len() == MAX_RULES {
                     diags.push(src.diag(r.span.clone(), format!("more than {MAX_RULES} scatter rules")));
@@ -542,6 +558,10 @@ pub(crate) fn build(
             Resolved::Scatter(span) => {
                 populations.rule_order.push(order as u32);
                 spans.push(span);
+            }
+            Resolved::Edit(fell, p) => {
+                let key = CellKey { x: (p.x / cell_size).floor() as i32, z: (p.z / cell_size).floor() as i32 };
+                populations.edits.entry(key).or_default().push((fell, p));
             }
         }
     }
