@@ -265,25 +265,51 @@ impl Writer {
                     self.reply(a.reply, EditOutcome::Ok { id: a.id, version: a.version });
                 }
             }
-            Err(EditStoreError::Conflict { cell, version }) => {
-                info!(?cell, version, "another writer changed the cell: the group is refused");
-                for c in working.keys() {
-                    self.live.forget(*c);
-                }
-                for a in accepted {
-                    self.reply(a.reply, EditOutcome::Conflict);
-                }
-            }
             Err(e) => {
-                warn!("writing {} edits: {e}", edits.len());
-                // A failed commit may still have left some of the group on disk: read those cells again.
-                for c in working.keys() {
-                    self.live.forget(*c);
+                match &e {
+                    EditStoreError::Conflict { cell, version } => {
+                        info!(?cell, version, "another writer changed the cell: the group is refused")
+                    }
+                    e => warn!("writing {} edits: {e}", edits.len()),
                 }
-                for a in accepted {
-                    self.reply(a.reply, EditOutcome::Denied(format!("the edit could not be stored: {e}")));
-                }
+                self.settle_failed(&working, &edits, accepted, &e);
             }
+        }
+    }
+
+    /// After a failed append, answer each edit by what the store holds: a store that is not transactional (or a
+    /// commit that failed after its data reached the disk) may have kept some of the group. Each cell's log is read
+    /// again: an edit found at its version is acknowledged (it is durable), the others are refused; the cells'
+    /// overlays are published from what was read.
+    fn settle_failed(
+        &self,
+        working: &BTreeMap<CellCoord, Working>,
+        edits: &[StoredEdit],
+        accepted: Vec<Accepted>,
+        error: &EditStoreError,
+    ) {
+        let mut logs: BTreeMap<CellCoord, Option<Vec<StoredEdit>>> = BTreeMap::new();
+        for (c, w) in working {
+            self.live.forget(*c);
+            let log = self.live.edit_store().load(*c).ok();
+            if let Some(log) = &log
+                && let Ok(overlay) = Overlay::from_log(w.base.records.len() as u16, log)
+                && overlay.version() > 0
+            {
+                let version = overlay.version();
+                self.live.publish(*c, overlay);
+                self.hub.announce(CellChange { cell: *c, version });
+            }
+            logs.insert(*c, log);
+        }
+        for (a, e) in accepted.into_iter().zip(edits) {
+            let stored = logs.get(&e.cell).and_then(Option::as_ref).is_some_and(|log| log.contains(e));
+            let outcome = match error {
+                _ if stored => EditOutcome::Ok { id: a.id, version: a.version },
+                EditStoreError::Conflict { .. } => EditOutcome::Conflict,
+                e => EditOutcome::Denied(format!("the edit could not be stored: {e}")),
+            };
+            self.reply(a.reply, outcome);
         }
     }
 

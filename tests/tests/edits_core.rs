@@ -61,8 +61,41 @@ struct World {
 }
 
 fn world() -> World {
-    let edits = Arc::new(MemoryEditStore::new());
-    let live = Arc::new(LiveStore::new(base(), Arc::clone(&edits) as Arc<dyn EditStore>, 1 << 20));
+    world_over(Arc::new(MemoryEditStore::new()), None)
+}
+
+/// A store that, when `fail` is set, keeps only the first edit of a group and then fails (a commit that failed
+/// after part of it reached the disk, or a store without multi-key transactions).
+struct Flaky {
+    inner: Arc<MemoryEditStore>,
+    fail: std::sync::atomic::AtomicBool,
+}
+
+impl EditStore for Flaky {
+    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+        if self.fail.load(std::sync::atomic::Ordering::SeqCst) {
+            self.inner.append(&edits[..1])?;
+            return Err(canopy_server::edits::EditStoreError::Io("the disk failed".into()));
+        }
+        self.inner.append(edits)
+    }
+    fn load(
+        &self,
+        c: CellCoord,
+    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+        self.inner.load(c)
+    }
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
+        self.inner.cells()
+    }
+    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
+        self.inner.count()
+    }
+}
+
+fn world_over(edits: Arc<MemoryEditStore>, store: Option<Arc<dyn EditStore>>) -> World {
+    let store = store.unwrap_or_else(|| Arc::clone(&edits) as Arc<dyn EditStore>);
+    let live = Arc::new(LiveStore::new(base(), store, 1 << 20));
     let service = EditService::start(Arc::clone(&live));
     let text = [
         editor_line("alice", &ALICE, None, Some(1000)),
@@ -389,4 +422,43 @@ fn a_client_that_reconnects_gets_exactly_the_missing_deltas() {
     assert_eq!(again.client.cells()[&CellCoord::new(0, 0)].version, 2);
     assert_eq!(again.client.cells()[&CellCoord::new(-2, -2)].version, 2);
     assert_eq!(sorted(again.client.instances(&|_, _| 0.0).collect()), expected(&w));
+}
+
+#[test]
+fn a_failed_write_acknowledges_exactly_what_the_store_kept() {
+    let inner = Arc::new(MemoryEditStore::new());
+    let flaky = Arc::new(Flaky { inner: Arc::clone(&inner), fail: std::sync::atomic::AtomicBool::new(false) });
+    let w = world_over(Arc::clone(&inner), Some(Arc::clone(&flaky) as Arc<dyn EditStore>));
+    let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 14);
+    let mut watcher = Pair::connect(&w, ClientState::new(), None, 15);
+    settle(&w, &mut [&mut a, &mut watcher]);
+    flaky.fail.store(true, std::sync::atomic::Ordering::SeqCst);
+    // Edits of one cell asked at once: each group the writer takes, the store keeps only its first of.
+    let asked: Vec<u32> =
+        (0..4).map(|i| a.edit(EditOp::Plant { species: 0, x: 3.0 + i as f32, z: 3.0, params: vec![] })).collect();
+    settle(&w, &mut [&mut a, &mut watcher]);
+    let mut oks: Vec<u32> = asked
+        .iter()
+        .filter_map(|r| match &a.results[r] {
+            EditOutcome::Ok { version, .. } => Some(*version),
+            EditOutcome::Denied(_) => None,
+            other => panic!("{other:?}"),
+        })
+        .collect();
+    oks.sort_unstable();
+    // Exactly what the store kept is acknowledged, at consecutive versions; the rest is refused.
+    assert!(!oks.is_empty() && oks.len() < asked.len(), "{:?}", a.results);
+    assert_eq!(inner.count().unwrap(), oks.len() as u64);
+    assert_eq!(oks, (1..=oks.len() as u32).collect::<Vec<_>>());
+    assert_eq!(version(&w, CellCoord::new(0, 0)), oks.len() as u32);
+    // Every client sees the edit that was kept, and only it.
+    let want = expected(&w);
+    for p in [&a, &watcher] {
+        assert_eq!(sorted(p.client.instances(&|_, _| 0.0).collect()), want);
+    }
+    // The store works again: the next edit takes the next version.
+    flaky.fail.store(false, std::sync::atomic::Ordering::SeqCst);
+    let next = a.edit(EditOp::Fell { id: id(0, 0, 0) });
+    settle(&w, &mut [&mut a, &mut watcher]);
+    assert!(matches!(a.results[&next], EditOutcome::Ok { version, .. } if version == oks.len() as u32 + 1));
 }

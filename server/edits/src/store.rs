@@ -30,10 +30,12 @@ pub enum EditStoreError {
 /// Where edits are kept durably. Implementations are shared between threads; every call may block (on a disk or a
 /// network), so an async caller runs them off its reactor.
 pub trait EditStore: Send + Sync + 'static {
-    /// Store a group of edits in one transaction, all or none, and return only once they are durable (they
-    /// survive a crash of the process, or of the machine where the store syncs to disk). A `(cell, version)` that
-    /// is already stored refuses the whole group with [`EditStoreError::Conflict`]. A group may hold several
-    /// consecutive versions of one cell.
+    /// Store a group of edits and return only once they are durable (they survive a crash of the process, or of
+    /// the machine where the store syncs to disk). A `(cell, version)` that is already stored is refused with
+    /// [`EditStoreError::Conflict`]. A group may hold several consecutive versions of one cell. A transactional
+    /// store (SQLite) stores all or none; after an error a caller must not assume none was stored, but read the
+    /// cells again (a store without multi-key transactions, or a commit that failed after its data reached the
+    /// disk, may have kept a prefix of a cell's versions).
     fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError>;
     /// A cell's edits in version order (empty for a cell never edited).
     fn load(&self, cell: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError>;
