@@ -69,10 +69,13 @@ fn world() -> World {
 struct Flaky {
     inner: Arc<MemoryEditStore>,
     fail: std::sync::atomic::AtomicBool,
+    /// Held by the test to keep the writer in its first append while more edits queue (one group after it).
+    hold: std::sync::Mutex<()>,
 }
 
 impl EditStore for Flaky {
     fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+        let _held = self.hold.lock().unwrap();
         if self.fail.load(std::sync::atomic::Ordering::SeqCst) {
             self.inner.append(&edits[..1])?;
             return Err(canopy_server::edits::EditStoreError::Io("the disk failed".into()));
@@ -427,15 +430,24 @@ fn a_client_that_reconnects_gets_exactly_the_missing_deltas() {
 #[test]
 fn a_failed_write_acknowledges_exactly_what_the_store_kept() {
     let inner = Arc::new(MemoryEditStore::new());
-    let flaky = Arc::new(Flaky { inner: Arc::clone(&inner), fail: std::sync::atomic::AtomicBool::new(false) });
+    let flaky = Arc::new(Flaky {
+        inner: Arc::clone(&inner),
+        fail: std::sync::atomic::AtomicBool::new(false),
+        hold: std::sync::Mutex::new(()),
+    });
     let w = world_over(Arc::clone(&inner), Some(Arc::clone(&flaky) as Arc<dyn EditStore>));
     let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 14);
     let mut watcher = Pair::connect(&w, ClientState::new(), None, 15);
     settle(&w, &mut [&mut a, &mut watcher]);
     flaky.fail.store(true, std::sync::atomic::Ordering::SeqCst);
-    // Edits of one cell asked at once: each group the writer takes, the store keeps only its first of.
+    // Edits of one cell asked at once: each group the writer takes, the store keeps only its first of. The writer
+    // is held in its first append while the rest queue, so they form at most two groups.
+    let gate = flaky.hold.lock().unwrap();
     let asked: Vec<u32> =
         (0..4).map(|i| a.edit(EditOp::Plant { species: 0, x: 3.0 + i as f32, z: 3.0, params: vec![] })).collect();
+    a.step(&w);
+    std::thread::sleep(Duration::from_millis(50));
+    drop(gate);
     settle(&w, &mut [&mut a, &mut watcher]);
     let mut oks: Vec<u32> = asked
         .iter()
