@@ -278,7 +278,7 @@ mod tests {
     }
 
     fn key(seed: u64) -> TreeKey {
-        TreeKey { species: 0, seed, detail: 0 }
+        TreeKey { species: 0, seed, detail: 0, params: 0 }
     }
 
     #[test]

@@ -161,8 +161,9 @@ pub struct InstState {
     pub lod: InstanceLod,
     /// The level chosen last (with hysteresis), whether or not it can be drawn.
     pub target: Option<Level>,
-    /// The instance scale, once the species' volume gave its reference height.
-    pub scale: Option<f32>,
+    /// The instance scale, once the species' volume gave its reference height, with the hash of the parameters it
+    /// was computed from (an edit that sets them computes it again).
+    pub scale: Option<(u64, f32)>,
 }
 
 impl InstState {
@@ -367,10 +368,11 @@ impl FramePlan {
         for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
             let Some(graph) = scene.graph(si.species) else { continue };
             let vs = res.volume(si.species);
+            let params = TreeKey::params_hash(&si.params);
             let scale = match (st.scale, vs) {
-                (Some(s), _) => s,
-                (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
-                (None, None) => 1.0,
+                (Some((h, s)), _) if h == params => s,
+                (_, Some(v)) => st.scale.insert((params, instance_scale(graph, v.height, si.seed, &si.params))).1,
+                (_, None) => 1.0,
             };
             let (c_off, radius) = match vs {
                 Some(v) => (v.center * scale, v.radius * scale),
@@ -386,7 +388,7 @@ impl FramePlan {
                 continue;
             }
             stats.in_view += 1;
-            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d };
+            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
             let mut wanted = lod.select(st.target, size);
             st.target = Some(wanted);
             if let Level::Detail(d) = wanted
@@ -600,7 +602,7 @@ mod tests {
     }
 
     fn key(seed: u64, detail: u8) -> TreeKey {
-        TreeKey { species: 0, seed, detail }
+        TreeKey { species: 0, seed, detail, params: 0 }
     }
 
     /// Geometry with `shapes[k]` primitives of unit shape `k` and `indices` mesh indices.
@@ -687,6 +689,23 @@ mod tests {
         assert!(f.plan.geo_draws.iter().all(|g| g.mask == 1.0));
         let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
         assert_eq!(far, vec![(at_size(10.0)[2], 11), (at_size(30.0)[2], 10)]);
+    }
+
+    #[test]
+    fn an_instance_whose_parameters_an_edit_set_is_amplified_again() {
+        let cache = all_resident(0..=0);
+        let vols = ready_volume();
+        let mut f = Frame::new();
+        let mut s = scene(vec![instance(0, 0, at_size(300.0))]);
+        f.run(&s, &cache, &vols, &view(0.0, true), 100);
+        assert!(f.plan.jobs.is_empty(), "resident with its default parameters");
+        // The same instance (id, seed) with a parameter set: new geometry is asked for, not the old shape drawn.
+        s.instances[0].params = vec![(0, 30.0)];
+        s.generation += 1;
+        f.run(&s, &cache, &vols, &view(0.0, true), 100);
+        let want = TreeKey { params: TreeKey::params_hash(&[(0, 30.0)]), ..key(0, 1) };
+        assert_ne!(want.params, 0);
+        assert_eq!(f.plan.jobs.iter().map(|j| j.key).collect::<Vec<_>>(), vec![want]);
     }
 
     #[test]

@@ -25,6 +25,25 @@ pub struct TreeKey {
     pub seed: u64,
     /// Detail level.
     pub detail: u8,
+    /// A hash of the instance's parameter values ([`TreeKey::params_hash`]): an instance whose parameters an
+    /// edit changed is amplified again, not drawn from the old geometry.
+    pub params: u64,
+}
+
+impl TreeKey {
+    /// FNV-1a over `(slot, value bits)` pairs; 0 for none.
+    pub fn params_hash(params: &[(u16, f32)]) -> u64 {
+        if params.is_empty() {
+            return 0;
+        }
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        for (slot, v) in params {
+            for b in slot.to_le_bytes().into_iter().chain(v.to_bits().to_le_bytes()) {
+                h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+            }
+        }
+        h
+    }
 }
 
 /// Work for a worker.
@@ -246,7 +265,7 @@ mod tests {
     fn workers_amplify_by_priority_and_report_errors() {
         let g = Arc::new(library::find("conifer").unwrap().load().unwrap());
         let mut w = Workers::new(2).unwrap();
-        let key = |seed| TreeKey { species: 0, seed, detail: 2 };
+        let key = |seed| TreeKey { species: 0, seed, detail: 2, params: 0 };
         let job = |seed, budget| Job::Tree {
             key: key(seed),
             graph: Arc::clone(&g),

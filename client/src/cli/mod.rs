@@ -8,6 +8,7 @@ mod hypertree;
 mod render;
 mod species;
 mod walk;
+mod walk_edit;
 mod world;
 
 use std::path::Path;

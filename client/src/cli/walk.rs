@@ -4,11 +4,15 @@
 //! waiting. The title shows fps, bytes received, instances held, species cached and counts per LOD band.
 //!
 //! Without `--server` it starts canopy-server in this process on the embedded default world (or `--world FILE`)
-//! and connects to it, so `canopy walk` alone opens a walkthrough of the default world.
+//! and connects to it, so `canopy walk` alone opens a walkthrough of the default world. That server takes edits
+//! (kept in memory, or in `--data DIR`) from the walker alone, through a random token made for the session.
 //!
 //! Keys: W/A/S/D move, Space/C (or E/Q) up and down in fly mode, Shift ×4, mouse wheel or +/− change speed,
 //! Tab switches fly/walk, a click captures the mouse for looking around (arrow keys look too), Esc releases it
-//! and quits when it is free.
+//! and quits when it is free. As an editor (`--token`, or the in-process server): P plants the selected species
+//! where the crosshair (the screen centre) meets the ground, F fells the instance nearest that point within a
+//! few metres, `[`/`]` select the species (`walk_edit.rs`). Every change to a held cell, the walker's or another
+//! editor's, republishes the scene at once, so edits show without moving.
 
 use std::collections::HashSet;
 use std::net::SocketAddr;
@@ -20,7 +24,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
-use canopy_client::state::viewpoint_due;
+use canopy_client::state::{Event, viewpoint_due};
 use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_render::camera::{Camera, CameraSpec};
@@ -35,6 +39,8 @@ use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{CursorGrabMode, Window, WindowId};
 
 use super::render::{RendererArgs, camera_spec};
+
+use super::walk_edit::{EditKeys, EditLink};
 
 /// Options of `canopy walk`.
 #[derive(Args, Debug)]
@@ -52,6 +58,14 @@ pub struct WalkArgs {
     /// Accept any server certificate (local use only).
     #[arg(long)]
     insecure: bool,
+    /// With `--server`: the editor token (64 hexadecimal digits, as `canopy-server --add-editor` printed it), which
+    /// turns on the editing keys; also read from `CANOPY_TOKEN`. The in-process server needs none: it makes the
+    /// walker an editor itself.
+    #[arg(long, env = "CANOPY_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Keep the in-process server's edits in DIR/edits.sqlite (default: in memory, gone when the window closes).
+    #[arg(long, alias = "data", value_name = "DIR", conflicts_with = "server")]
+    data_dir: Option<PathBuf>,
     /// Area-of-interest radius to ask for, metres (the server caps it).
     #[arg(long, default_value_t = 600.0)]
     radius: f32,
@@ -108,6 +122,8 @@ struct NetStatus {
     species_total: usize,
     complete: bool,
     error: Option<String>,
+    /// The last edit sent or answered (or why a key did nothing).
+    edit: Option<String>,
 }
 
 #[derive(Default)]
@@ -146,6 +162,7 @@ async fn net_session(
     radius: f32,
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
+    mut edits: Option<EditLink>,
 ) -> anyhow::Result<()> {
     let bind: SocketAddr = if cfg.server.is_ipv6() { "[::]:0".parse()? } else { "0.0.0.0:0".parse()? };
     let endpoint = canopy_client::net::endpoint(bind)?;
@@ -159,6 +176,10 @@ async fn net_session(
     })
     .await
     .with_context(|| format!("connecting to {}", cfg.server))?;
+    if edits.is_some() {
+        // An editor picks from the whole species table, not only the species of the trees around it.
+        conn.fetch_all_species(cfg.timeout).await.context("fetching the species table")?;
+    }
     let welcome = Arc::clone(conn.welcome());
     let ground = canopy_client::world::ground(&welcome.world.terrain).context("rebuilding the terrain")?;
     {
@@ -171,20 +192,35 @@ async fn net_session(
     *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
     let mut tick = tokio::time::interval(Duration::from_millis(100));
     let mut dirty = false;
+    // A delta to a held cell (an edit, ours or another editor's) is shown at once; batches and releases at most
+    // every 250 ms.
+    let mut changed = false;
     let mut last_publish = Instant::now();
     let grid = conn.welcome().world.grid;
     let mut sent_at = Instant::now();
     while !shared.stop.load(Ordering::Relaxed) {
         tokio::select! {
             ev = conn.next_event() => {
-                ev?;
-                dirty = true;
+                let mut seen = |e: Event| {
+                    changed |= matches!(e, Event::Changed { .. });
+                    if let Some(line) = edits.as_mut().and_then(|l| l.answer(&e)) {
+                        println!("{line}");
+                        lock(&shared.status).edit = Some(line);
+                    }
+                };
+                seen(ev?);
                 // Drain what has already arrived before looking at the clock again.
                 for _ in 0..256 {
                     match conn.try_next_event() {
-                        Some(r) => { r?; }
+                        Some(r) => seen(r?),
                         None => break,
                     }
+                }
+                dirty = true;
+            }
+            req = EditLink::next(&mut edits) => {
+                if let Some(link) = edits.as_mut() {
+                    link.send(&mut conn, req).await?;
                 }
             }
             _ = tick.tick() => {
@@ -196,10 +232,10 @@ async fn net_session(
                 }
             }
         }
-        if dirty && last_publish.elapsed() > Duration::from_millis(250) {
+        if dirty && (changed || last_publish.elapsed() > Duration::from_millis(250)) {
             generation += 1;
             *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
-            dirty = false;
+            (dirty, changed) = (false, false);
             last_publish = Instant::now();
         }
         let mut s = lock(&shared.status);
@@ -218,6 +254,7 @@ fn net_thread(
     radius: f32,
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
+    edits: Option<EditLink>,
 ) -> std::thread::JoinHandle<()> {
     std::thread::spawn(move || {
         let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
@@ -227,7 +264,7 @@ fn net_thread(
                 return;
             }
         };
-        if let Err(e) = rt.block_on(net_session(cfg, radius, cache, Arc::clone(&shared))) {
+        if let Err(e) = rt.block_on(net_session(cfg, radius, cache, Arc::clone(&shared), edits)) {
             lock(&shared.status).error = Some(format!("{e:#}"));
         }
     })
@@ -263,6 +300,8 @@ struct App {
     last_title: Instant,
     last_print: Instant,
     stats: FrameStats,
+    /// The editing keys, for an editor.
+    edit: Option<EditKeys>,
 }
 
 impl App {
@@ -367,8 +406,15 @@ impl App {
                 s.species_total,
             ),
         };
+        let edit = match &self.edit {
+            Some(keys) => {
+                let last = s.edit.as_deref().map(|l| format!(" | {l}")).unwrap_or_default();
+                format!(" | {}{last}", keys.hud(&self.camera, self.scene.as_deref()))
+            }
+            None => String::new(),
+        };
         format!(
-            "Canopy — {:.0} fps | {net} | near {} mid {} far {} (in view {}) | {:.0} m/s {}",
+            "Canopy — {:.0} fps | {net} | near {} mid {} far {} (in view {}) | {:.0} m/s {}{edit}",
             self.fps,
             st.near,
             st.mid,
@@ -377,6 +423,16 @@ impl App {
             self.speed,
             if self.walking { "walk" } else { "fly" },
         )
+    }
+
+    fn edit_key(&mut self, code: KeyCode) {
+        let Some(keys) = self.edit.as_mut() else { return };
+        if let Some(line) = keys.key(code, &self.camera, self.scene.as_deref()) {
+            println!("{line}");
+            lock(&self.shared.status).edit = Some(line);
+            // Show it now rather than at the next title update.
+            self.last_title = self.last_title.checked_sub(Duration::from_secs(1)).unwrap_or(self.last_title);
+        }
     }
 
     fn frame(&mut self, event_loop: &ActiveEventLoop) {
@@ -478,7 +534,7 @@ impl ApplicationHandler for App {
                     gfx.renderer.resize(gfx.config.width, gfx.config.height);
                 }
             }
-            WindowEvent::KeyboardInput { event, .. } => {
+            WindowEvent::KeyboardInput { event, is_synthetic, .. } => {
                 let PhysicalKey::Code(code) = event.physical_key else { return };
                 match event.state {
                     ElementState::Pressed => {
@@ -486,9 +542,12 @@ impl ApplicationHandler for App {
                         match code {
                             KeyCode::Escape if self.grabbed => self.set_grab(false),
                             KeyCode::Escape => event_loop.exit(),
-                            KeyCode::Tab if !event.repeat => self.walking = !self.walking,
+                            // A focused window gets presses of the keys held meanwhile (`is_synthetic`): they move,
+                            // but do not toggle or edit again.
+                            KeyCode::Tab if !event.repeat && !is_synthetic => self.walking = !self.walking,
                             KeyCode::Equal | KeyCode::NumpadAdd => self.speed = (self.speed * 1.25).min(2000.0),
                             KeyCode::Minus | KeyCode::NumpadSubtract => self.speed = (self.speed / 1.25).max(0.5),
+                            k if EditKeys::handles(k) && !event.repeat && !is_synthetic => self.edit_key(k),
                             _ => {}
                         }
                     }
@@ -526,13 +585,18 @@ impl ApplicationHandler for App {
     }
 }
 
-/// A canopy-server in this process, for `canopy walk` without `--server`.
+/// A canopy-server in this process, for `canopy walk` without `--server`: it takes edits from the walker alone.
 struct LocalServer {
     runtime: tokio::runtime::Runtime,
     server: canopy_server::Server,
+    edits: Arc<canopy_server::EditService>,
+    /// The walker's editor token, made for this session.
+    token: Vec<u8>,
 }
 
-fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
+fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
+    use canopy_server::edits::{EditStore, MemoryEditStore, SqliteEditStore};
+    use canopy_server::{EditService, Editors, LiveStore, editors};
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let world = super::load_world(world.map(PathBuf::as_path)).map_err(|d| anyhow::anyhow!("{d}"))?;
     let (name, eager) = (world.name.clone(), world.instances.len());
@@ -545,10 +609,28 @@ fn local_server(world: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
     } else {
         canopy_server::GridStore::from_world(&world).context("building the world store")?.shared()
     };
-    let cfg = canopy_server::ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() };
-    let server = runtime.block_on(canopy_server::Server::start(store, cfg))?;
-    println!("canopy-server (in-process) on {} serving {name}: {eager} instances at load", server.local_addr());
-    Ok(LocalServer { runtime, server })
+    // Edits as canopy-server keeps them (`--data DIR`: the same `edits.sqlite`), or in memory for this session.
+    let (edit_store, kept): (Arc<dyn EditStore>, String) = match data_dir {
+        Some(dir) => {
+            let s = SqliteEditStore::open(dir).with_context(|| format!("the edit store in {}", dir.display()))?;
+            let kept = format!("edits kept in {} ({} stored)", s.path().display(), s.count()?);
+            (Arc::new(s), kept)
+        }
+        None => (Arc::new(MemoryEditStore::new()), "edits kept in memory".into()),
+    };
+    let live = Arc::new(LiveStore::new(store, edit_store, 64 << 20));
+    let edits = EditService::start(Arc::clone(&live));
+    let token = editors::new_token().context("making the walker's editor token")?.to_vec();
+    let walker = Editors::parse("canopy walk", &editors::editor_line("walker", &token, None, None))?;
+    let mut cfg = canopy_server::ServerConfig {
+        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        edits: Some(Arc::clone(&edits)),
+        ..Default::default()
+    };
+    cfg.session.editors = Some(Arc::new(walker));
+    let server = runtime.block_on(canopy_server::Server::start(live, cfg))?;
+    println!("canopy-server (in-process) on {} serving {name}: {eager} instances at load; {kept}", server.local_addr());
+    Ok(LocalServer { runtime, server, edits, token })
 }
 
 /// Run `canopy walk`.
@@ -557,7 +639,16 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let spec = camera_spec(args.camera.as_deref())?;
     let local = match args.server {
         Some(_) => None,
-        None => Some(local_server(args.world.as_ref())?),
+        None => Some(local_server(args.world.as_ref(), args.data_dir.as_ref())?),
+    };
+    let token = match (&local, &args.token) {
+        (Some(l), _) => Some(l.token.clone()),
+        (None, Some(t)) => Some(
+            canopy_server::editors::unhex(t.trim())
+                .filter(|t| !t.is_empty())
+                .context("--token: expected hexadecimal digits")?,
+        ),
+        (None, None) => None,
     };
     let (server, trust) = match (&local, args.server, &args.cert_fingerprint, args.insecure) {
         (Some(l), _, _, _) => (
@@ -586,7 +677,16 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         Pose { position: [camera.position.x, camera.position.z], yaw: camera.yaw, velocity: [0.0; 2] };
     let mut connect = ConnectConfig::new(server, trust);
     connect.client_name = "canopy walk".into();
-    let net = net_thread(connect, args.radius, cache, Arc::clone(&shared));
+    // An editor's keys send their edits through the network thread, which sends them on the connection.
+    let (edit_keys, edit_link) = match &token {
+        Some(_) => {
+            let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+            (Some(EditKeys::new(tx)), Some(EditLink::new(rx)))
+        }
+        None => (None, None),
+    };
+    connect.token = token;
+    let net = net_thread(connect, args.radius, cache, Arc::clone(&shared), edit_link);
     let event_loop = EventLoop::new().context("opening the display (is DISPLAY or WAYLAND_DISPLAY set?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let now = Instant::now();
@@ -612,6 +712,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         last_title: now,
         last_print: now,
         stats: FrameStats::default(),
+        edit: edit_keys,
     };
     let ran = event_loop.run_app(&mut app);
     shared.stop.store(true, Ordering::Relaxed);
@@ -632,6 +733,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let _ = net.join();
     if let Some(l) = local {
         l.runtime.block_on(l.server.shutdown(Duration::from_secs(1)));
+        l.edits.stop();
     }
     ran.context("the window's event loop")?;
     if let Some(e) = app.error {
