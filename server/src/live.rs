@@ -1,14 +1,19 @@
 //! The live world: a [`WorldStore`] that lays each cell's edits ([`canopy_edits::Overlay`]) over the world
 //! function's records of another store, reading a cell's edit log from the [`EditStore`] when the cell is first
-//! needed and keeping overlays in an LRU bounded by bytes. Nothing is loaded at start.
+//! needed and keeping overlays in an LRU bounded by bytes. Nothing is loaded at start, and a session never waits
+//! for a log: a cell whose overlay is not cached is [`CellState::Pending`] while loader threads read it (an edit
+//! store may be a network away), and the session's waker is woken when it is.
 //!
 //! A cell never edited costs one look-up in the edit store and a small entry; an edited cell also keeps its records
 //! at the current version ([`CellData`] with its batches encoded once, shared by every session like any cell).
 //! [`crate::editing`] publishes an overlay here after its edit is durable, then tells the sessions; an overlay only
 //! ever moves forward (the newer version wins), so a log read racing a publish cannot take a cell back.
 
-use std::collections::{BTreeMap, HashMap};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::thread::JoinHandle;
+use std::time::Duration;
 
 use canopy_edits::{EditStore, EditStoreError, Overlay};
 use canopy_protocol::CellCoord;
@@ -84,28 +89,139 @@ impl Overlays {
     }
 }
 
-/// The live world (see the module docs).
-pub struct LiveStore {
-    base: Arc<dyn WorldStore>,
+/// Threads reading cells' edit logs.
+pub const LOADERS: usize = 2;
+
+/// Cells whose logs are queued or being read, with the wakers to wake and the cell's world-function record count.
+#[derive(Default)]
+struct Loads {
+    queue: VecDeque<(CellCoord, u16)>,
+    waiting: HashMap<CellCoord, Vec<Arc<dyn CellWaker>>>,
+    stop: bool,
+}
+
+/// What the store and its loader threads share.
+struct Shared {
     edits: Arc<dyn EditStore>,
     overlays: Mutex<Overlays>,
     limit_bytes: usize,
+    loads: Mutex<Loads>,
+    work: Condvar,
+    /// Bumped whenever a load finishes (or fails): [`WorldStore::generation`] adds it to the base's.
+    loaded: AtomicU64,
+}
+
+/// The live world (see the module docs).
+pub struct LiveStore {
+    base: Arc<dyn WorldStore>,
+    shared: Arc<Shared>,
+    loaders: Vec<JoinHandle<()>>,
+}
+
+impl Drop for LiveStore {
+    fn drop(&mut self) {
+        self.shared.loads.lock().unwrap_or_else(|e| e.into_inner()).stop = true;
+        self.shared.work.notify_all();
+        for t in self.loaders.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Shared {
+    fn lock(&self) -> MutexGuard<'_, Overlays> {
+        self.overlays.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Read a cell's log and cache its overlay (`base_total`: its world-function record count).
+    fn load(&self, c: CellCoord, base_total: u16) -> Result<Arc<Overlay>, EditStoreError> {
+        if let Some(e) = self.lock().map.get(&c) {
+            return Ok(Arc::clone(&e.overlay));
+        }
+        let log = self.edits.load(c)?;
+        let overlay =
+            Overlay::from_log(base_total, &log).map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
+        Ok(self.lock().put(c, Arc::new(overlay), self.limit_bytes))
+    }
+
+    /// A loader thread: read queued cells' logs, wake who waits for them.
+    fn run_loader(&self) {
+        loop {
+            let (c, base_total) = {
+                let mut l = self.loads.lock().unwrap_or_else(|e| e.into_inner());
+                loop {
+                    if l.stop {
+                        return;
+                    }
+                    if let Some(next) = l.queue.pop_front() {
+                        break next;
+                    }
+                    l = self.work.wait(l).unwrap_or_else(|e| e.into_inner());
+                }
+            };
+            if let Err(e) = self.load(c, base_total) {
+                // Asked again, it is read again; not at once, so a store that is down is not hammered.
+                error!(?c, "reading the cell's edits: {e}");
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            let wakers = self.loads.lock().unwrap_or_else(|e| e.into_inner()).waiting.remove(&c).unwrap_or_default();
+            self.loaded.fetch_add(1, Relaxed);
+            for w in wakers {
+                w.wake();
+            }
+        }
+    }
+
+    /// Queue cell `c`'s log (once however many ask) and have `waker` woken when it is read.
+    fn queue(&self, c: CellCoord, base_total: u16, waker: Option<&Arc<dyn CellWaker>>) {
+        let mut l = self.loads.lock().unwrap_or_else(|e| e.into_inner());
+        let fresh = !l.waiting.contains_key(&c);
+        let wakers = l.waiting.entry(c).or_default();
+        if let Some(w) = waker
+            && !wakers.iter().any(|x| Arc::ptr_eq(x, w))
+        {
+            wakers.push(Arc::clone(w));
+        }
+        if fresh {
+            l.queue.push_back((c, base_total));
+            drop(l);
+            self.work.notify_one();
+        }
+    }
 }
 
 impl std::fmt::Debug for LiveStore {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LiveStore").field("limit_bytes", &self.limit_bytes).finish()
+        f.debug_struct("LiveStore").field("limit_bytes", &self.shared.limit_bytes).finish()
     }
 }
 
 impl LiveStore {
-    /// The world of `base` with the edits of `edits`, overlays cached up to `limit_bytes`.
+    /// The world of `base` with the edits of `edits`, overlays cached up to `limit_bytes`, logs read by
+    /// [`LOADERS`] threads.
     pub fn new(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>, limit_bytes: usize) -> LiveStore {
-        LiveStore { base, edits, overlays: Mutex::new(Overlays::default()), limit_bytes }
+        let shared = Arc::new(Shared {
+            edits,
+            overlays: Mutex::new(Overlays::default()),
+            limit_bytes,
+            loads: Mutex::new(Loads::default()),
+            work: Condvar::new(),
+            loaded: AtomicU64::new(0),
+        });
+        let loaders = (0..LOADERS)
+            .map(|i| {
+                let shared = Arc::clone(&shared);
+                std::thread::Builder::new()
+                    .name(format!("canopy-overlay-{i}"))
+                    .spawn(move || shared.run_loader())
+                    .expect("spawning an overlay loader")
+            })
+            .collect();
+        LiveStore { base, shared, loaders }
     }
 
     fn lock(&self) -> MutexGuard<'_, Overlays> {
-        self.overlays.lock().unwrap_or_else(|e| e.into_inner())
+        self.shared.lock()
     }
 
     /// The store of the world function's records.
@@ -115,7 +231,7 @@ impl LiveStore {
 
     /// The durable edit store.
     pub fn edit_store(&self) -> &Arc<dyn EditStore> {
-        &self.edits
+        &self.shared.edits
     }
 
     /// Bytes the overlays hold now.
@@ -123,25 +239,35 @@ impl LiveStore {
         self.lock().bytes
     }
 
-    /// The overlay of cell `c`, whose world-function records are `base`: cached, or read from the edit store.
+    /// The overlay of cell `c`, whose world-function records are `base`: cached, or read from the edit store now
+    /// (blocking: the edit writer's path; sessions go through [`WorldStore::cell`], which never waits).
     pub fn overlay(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
+        self.shared.load(c, base.records.len() as u16)
+    }
+
+    /// The overlay of cell `c` if it is cached (touched as used); else its log is queued for the loaders and
+    /// `waker` woken when it is read.
+    fn cached_or_queue(
+        &self,
+        c: CellCoord,
+        base: &CellData,
+        waker: Option<&Arc<dyn CellWaker>>,
+    ) -> Option<Arc<Overlay>> {
         {
             let mut o = self.lock();
             if let Some(e) = o.map.get(&c) {
                 let overlay = Arc::clone(&e.overlay);
                 o.touch(c);
-                return Ok(overlay);
+                return Some(overlay);
             }
         }
-        let log = self.edits.load(c)?;
-        let overlay = Overlay::from_log(base.records.len() as u16, &log)
-            .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
-        Ok(self.lock().put(c, Arc::new(overlay), self.limit_bytes))
+        self.shared.queue(c, base.records.len() as u16, waker);
+        None
     }
 
     /// Make `overlay` cell `c`'s (after its edits are durable). A newer overlay already there is kept.
     pub fn publish(&self, c: CellCoord, overlay: Overlay) {
-        self.lock().put(c, Arc::new(overlay), self.limit_bytes);
+        self.lock().put(c, Arc::new(overlay), self.shared.limit_bytes);
     }
 
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
@@ -163,7 +289,7 @@ impl LiveStore {
         let a = overlay.apply_to(&base.records, &base.overrides);
         let data = Arc::new(CellData::edited(c, overlay.version(), a.records, a.overrides, a.felled));
         let mut o = self.lock();
-        let limit = self.limit_bytes;
+        let limit = self.shared.limit_bytes;
         if let Some(e) = o.map.get_mut(&c)
             && Arc::ptr_eq(&e.overlay, overlay)
             && e.applied.is_none()
@@ -200,20 +326,16 @@ impl WorldStore for LiveStore {
 
     fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState {
         match self.base.cell(c, waker) {
-            CellState::Ready(base) => match self.overlay(c, &base) {
-                Ok(overlay) => CellState::Ready(self.applied(c, &base, &overlay)),
-                Err(e) => {
-                    // The edits are still stored; the world function's records are what can be sent meanwhile.
-                    error!(?c, "reading the cell's edits: {e}");
-                    CellState::Ready(base)
-                }
+            CellState::Ready(base) => match self.cached_or_queue(c, &base, waker) {
+                Some(overlay) => CellState::Ready(self.applied(c, &base, &overlay)),
+                None => CellState::Pending,
             },
             other => other,
         }
     }
 
     fn generation(&self) -> u64 {
-        self.base.generation()
+        self.base.generation().wrapping_add(self.shared.loaded.load(Relaxed))
     }
 
     fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
@@ -226,13 +348,10 @@ impl WorldStore for LiveStore {
             CellState::Pending => return Changes::Pending,
             CellState::Outside => return Changes::Whole,
         };
-        match self.overlay(c, &base) {
-            Ok(overlay) if from == overlay.version() => Changes::Current { total: overlay.total() },
-            Ok(overlay) => overlay.delta(from).map_or(Changes::Whole, Changes::Delta),
-            Err(e) => {
-                error!(?c, "reading the cell's edits: {e}");
-                Changes::Whole
-            }
+        match self.cached_or_queue(c, &base, waker) {
+            Some(overlay) if from == overlay.version() => Changes::Current { total: overlay.total() },
+            Some(overlay) => overlay.delta(from).map_or(Changes::Whole, Changes::Delta),
+            None => Changes::Pending,
         }
     }
 }

@@ -474,3 +474,48 @@ fn a_failed_write_acknowledges_exactly_what_the_store_kept() {
     settle(&w, &mut [&mut a, &mut watcher]);
     assert!(matches!(a.results[&next], EditOutcome::Ok { version, .. } if version == oks.len() as u32 + 1));
 }
+
+/// A store whose reads take long (an edit store a network away).
+struct Slow(Arc<MemoryEditStore>);
+
+impl EditStore for Slow {
+    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+        self.0.append(edits)
+    }
+    fn load(
+        &self,
+        c: CellCoord,
+    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+        if c == CellCoord::new(0, 0) {
+            std::thread::sleep(Duration::from_millis(1000));
+        }
+        self.0.load(c)
+    }
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
+        self.0.cells()
+    }
+    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
+        self.0.count()
+    }
+}
+
+#[test]
+fn a_slow_edit_store_never_blocks_a_session() {
+    let inner = Arc::new(MemoryEditStore::new());
+    let w = world_over(Arc::clone(&inner), Some(Arc::new(Slow(Arc::clone(&inner))) as Arc<dyn EditStore>));
+    let mut p = Pair::connect(&w, ClientState::new(), None, 16);
+    // Cell (0, 0)'s log takes a second to read: the session sends the other cells meanwhile, never waiting.
+    let started = Instant::now();
+    let mut slowest = Duration::ZERO;
+    while !p.client.is_complete() {
+        assert!(started.elapsed() < Duration::from_secs(20), "never completed");
+        let t = Instant::now();
+        if !p.step(&w) {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        slowest = slowest.max(t.elapsed());
+    }
+    assert!(started.elapsed() >= Duration::from_millis(1000), "the read really was slow");
+    assert!(slowest < Duration::from_millis(500), "a step waited {slowest:?} for a read");
+    assert_eq!(sorted(p.client.instances(&|_, _| 0.0).collect()), expected(&w));
+}
