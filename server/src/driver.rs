@@ -34,6 +34,11 @@ pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
 /// Bytes of unacknowledged send data quinn keeps per connection (224 KiB: ~36 Mbit/s at 50 ms round trip).
 pub const SEND_WINDOW: u64 = 224 * 1024;
 
+/// Bytes past its window a session may owe its client before the driver stops reading the client's requests. With
+/// reads of at most [`netlimits::MAX_CLIENT_FRAME`] bytes, the answers to one read (an edit request of 9 bytes
+/// denied in about 60) add at most a few KiB more.
+pub const OWED_SLACK: usize = 16 * 1024;
+
 /// How a server runs.
 #[derive(Clone, Debug)]
 pub struct ServerConfig {
@@ -409,8 +414,12 @@ async fn run_session(
             metrics.sessions.fetch_add(1, Relaxed);
         }
         let wake = session.poll_timeout().map(tokio::time::Instant::from_std);
+        // Answers (edit results, releases) go out past the session's window: while it owes the client more than
+        // the window and `OWED_SLACK`, read no more requests, so a client that never reads or acknowledges them
+        // cannot make it queue more (quinn then grants it no more credit).
+        let reading = session.unflushed() < cfg.session.window + OWED_SLACK;
         tokio::select! {
-            chunk = ctl_recv.read_chunk(64 * 1024, true) => match chunk {
+            chunk = ctl_recv.read_chunk(netlimits::MAX_CLIENT_FRAME, true), if reading => match chunk {
                 Ok(Some(chunk)) => {
                     metrics.bytes_in.fetch_add(chunk.bytes.len() as u64, Relaxed);
                     decoder.push(&chunk.bytes);

@@ -60,7 +60,8 @@ impl EditHub {
         self.tx.subscribe()
     }
 
-    fn announce(&self, change: CellChange) {
+    /// Tell every session that a cell changed.
+    pub fn announce(&self, change: CellChange) {
         // Nobody listening is fine.
         let _ = self.tx.send(change);
     }
@@ -133,6 +134,8 @@ impl EditService {
             })
             .collect();
         let hub = EditHub::new(1 << 14);
+        // Other writers' edits (a shared store) reach the sessions through the same hub.
+        live.set_hub(Arc::clone(&hub));
         let metrics = Arc::new(EditMetrics::default());
         let (tx, rx) = mpsc::sync_channel(MAX_QUEUED);
         let writer = Writer { live, hub: Arc::clone(&hub), metrics: Arc::clone(&metrics), params };
@@ -207,12 +210,16 @@ struct Working {
     overlay: Overlay,
 }
 
-/// One accepted request of a group.
+/// One accepted request of a group (kept whole: a conflict sends it round again).
 struct Accepted {
-    reply: Box<dyn FnOnce(EditOutcome) + Send>,
+    job: EditJob,
     id: InstanceId,
     version: u32,
 }
+
+/// How often a request that met a conflict (another writer took the cell's version) is checked and written again
+/// before it is answered `conflict`.
+pub const CONFLICT_RETRIES: usize = 3;
 
 impl Writer {
     fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
@@ -235,20 +242,31 @@ impl Writer {
     }
 
     fn write_group(&self, jobs: Vec<EditJob>, started: Instant) {
+        let mut jobs = jobs;
+        for attempt in 0..=CONFLICT_RETRIES {
+            jobs = self.try_group(jobs, started, attempt < CONFLICT_RETRIES);
+            if jobs.is_empty() {
+                return;
+            }
+        }
+    }
+
+    /// Check, write and answer a group; the requests that met a conflict come back when `retry`.
+    fn try_group(&self, jobs: Vec<EditJob>, started: Instant, retry: bool) -> Vec<EditJob> {
         let mut working: BTreeMap<CellCoord, Working> = BTreeMap::new();
         let mut edits = Vec::with_capacity(jobs.len());
         let mut accepted = Vec::with_capacity(jobs.len());
         for job in jobs {
             match self.prepare(&job.op, &job.editor, &mut working) {
                 Ok((edit, id)) => {
-                    accepted.push(Accepted { reply: job.reply, id, version: edit.version });
+                    accepted.push(Accepted { job, id, version: edit.version });
                     edits.push(edit);
                 }
                 Err(outcome) => self.reply(job.reply, outcome),
             }
         }
         if edits.is_empty() {
-            return;
+            return Vec::new();
         }
         match self.live.edit_store().append(&edits) {
             Ok(()) => {
@@ -262,17 +280,18 @@ impl Writer {
                     }
                 }
                 for a in accepted {
-                    self.reply(a.reply, EditOutcome::Ok { id: a.id, version: a.version });
+                    self.reply(a.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
                 }
+                Vec::new()
             }
             Err(e) => {
                 match &e {
                     EditStoreError::Conflict { cell, version } => {
-                        info!(?cell, version, "another writer changed the cell: the group is refused")
+                        info!(?cell, version, "another writer changed the cell first: checking its edits again")
                     }
                     e => warn!("writing {} edits: {e}", edits.len()),
                 }
-                self.settle_failed(&working, &edits, accepted, &e);
+                self.settle_failed(&working, &edits, accepted, &e, retry)
             }
         }
     }
@@ -287,7 +306,8 @@ impl Writer {
         edits: &[StoredEdit],
         accepted: Vec<Accepted>,
         error: &EditStoreError,
-    ) {
+        retry: bool,
+    ) -> Vec<EditJob> {
         let mut logs: BTreeMap<CellCoord, Option<Vec<StoredEdit>>> = BTreeMap::new();
         for (c, w) in working {
             self.live.forget(*c);
@@ -302,15 +322,21 @@ impl Writer {
             }
             logs.insert(*c, log);
         }
+        let mut again = Vec::new();
         for (a, e) in accepted.into_iter().zip(edits) {
             let stored = logs.get(&e.cell).and_then(Option::as_ref).is_some_and(|log| log.contains(e));
             let outcome = match error {
                 _ if stored => EditOutcome::Ok { id: a.id, version: a.version },
+                EditStoreError::Conflict { .. } if retry => {
+                    again.push(a.job);
+                    continue;
+                }
                 EditStoreError::Conflict { .. } => EditOutcome::Conflict,
                 e => EditOutcome::Denied(format!("the edit could not be stored: {e}")),
             };
-            self.reply(a.reply, outcome);
+            self.reply(a.job.reply, outcome);
         }
+        again
     }
 
     /// The cell's working state, read on first need (waiting for its expansion if it is not ready).
@@ -319,7 +345,7 @@ impl Writer {
         c: CellCoord,
         working: &'w mut BTreeMap<CellCoord, Working>,
     ) -> Result<&'w mut Working, EditOutcome> {
-        if !working.contains_key(&c) {
+        if let std::collections::btree_map::Entry::Vacant(slot) = working.entry(c) {
             let waker = Arc::new(BlockingWaker::default());
             let as_waker: Arc<dyn CellWaker> = waker.clone();
             let deadline = Instant::now() + CELL_WAIT;
@@ -329,12 +355,15 @@ impl Writer {
                     Ok(None) => {}
                     Err(e) => return Err(EditOutcome::Denied(format!("the cell's edits could not be read: {e}"))),
                 }
-                if !matches!(self.live.base().cell(c, None), CellState::Pending) {
-                    return Err(EditOutcome::Invalid("the cell is outside the world".into()));
-                }
                 let now = Instant::now();
                 if now >= deadline {
                     return Err(EditOutcome::Denied("the cell is not ready; try again".into()));
+                }
+                match self.live.base().cell(c, None) {
+                    CellState::Pending => {}
+                    // Expanded since the look above: look again.
+                    CellState::Ready(_) => continue,
+                    CellState::Outside => return Err(EditOutcome::Invalid("the cell is outside the world".into())),
                 }
                 let woken = waker.woken.lock().unwrap_or_else(|e| e.into_inner());
                 let (mut woken, _) = waker
@@ -343,7 +372,7 @@ impl Writer {
                     .unwrap_or_else(|e| e.into_inner());
                 *woken = false;
             };
-            working.insert(c, Working { base, overlay: (*overlay).clone() });
+            slot.insert(Working { base, overlay: (*overlay).clone() });
         }
         Ok(working.get_mut(&c).expect("inserted above"))
     }

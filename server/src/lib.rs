@@ -16,6 +16,7 @@ pub mod editing;
 pub mod editors;
 pub mod live;
 pub mod metrics;
+pub mod nats;
 pub mod pacing;
 pub mod payload;
 pub mod session;

@@ -38,6 +38,8 @@ struct Overlays {
     lru: BTreeMap<u64, CellCoord>,
     clock: u64,
     bytes: usize,
+    /// Cells whose overlays left the cache since the last look (their watches end).
+    dropped: Vec<CellCoord>,
 }
 
 impl Overlays {
@@ -55,6 +57,7 @@ impl Overlays {
         if let Some(e) = self.map.remove(&c) {
             self.lru.remove(&e.used);
             self.bytes -= e.bytes;
+            self.dropped.push(c);
         }
     }
 
@@ -68,6 +71,7 @@ impl Overlays {
             return kept;
         }
         self.remove(c);
+        self.dropped.retain(|d| *d != c);
         self.clock += 1;
         let bytes = overlay.heap_bytes() + ENTRY_OVERHEAD;
         self.map.insert(c, Entry { overlay: Arc::clone(&overlay), applied: None, bytes, used: self.clock });
@@ -84,6 +88,7 @@ impl Overlays {
             self.lru.remove(&used);
             if let Some(e) = self.map.remove(&c) {
                 self.bytes -= e.bytes;
+                self.dropped.push(c);
             }
         }
     }
@@ -109,7 +114,12 @@ struct Shared {
     work: Condvar,
     /// Bumped whenever a load finishes (or fails): [`WorldStore::generation`] adds it to the base's.
     loaded: AtomicU64,
+    /// Where changes other writers made are announced (set by the edit service).
+    hub: std::sync::OnceLock<Arc<crate::editing::EditHub>>,
 }
+
+/// A cell's world-function records and its overlay.
+pub type BaseAndOverlay = (Arc<CellData>, Arc<Overlay>);
 
 /// The live world (see the module docs).
 pub struct LiveStore {
@@ -133,19 +143,40 @@ impl Shared {
         self.overlays.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Read a cell's log and cache its overlay (`base_total`: its world-function record count).
-    fn load(&self, c: CellCoord, base_total: u16) -> Result<Arc<Overlay>, EditStoreError> {
+    /// Do `f` with the overlays, then stop watching the cells it dropped from the cache (outside the lock).
+    fn with<T>(&self, f: impl FnOnce(&mut Overlays) -> T) -> T {
+        let (out, dropped) = {
+            let mut o = self.lock();
+            let out = f(&mut o);
+            (out, std::mem::take(&mut o.dropped))
+        };
+        for c in dropped {
+            self.edits.unwatch(c);
+        }
+        out
+    }
+
+    /// Read a cell's log, cache its overlay and watch the cell (`base_total`: its world-function record count).
+    fn load(self: &Arc<Self>, c: CellCoord, base_total: u16) -> Result<Arc<Overlay>, EditStoreError> {
         if let Some(e) = self.lock().map.get(&c) {
             return Ok(Arc::clone(&e.overlay));
         }
         let log = self.edits.load(c)?;
         let overlay =
             Overlay::from_log(base_total, &log).map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
-        Ok(self.lock().put(c, Arc::new(overlay), self.limit_bytes))
+        let kept = self.with(|o| o.put(c, Arc::new(overlay), self.limit_bytes));
+        self.edits.watch(c, Arc::clone(self) as Arc<dyn canopy_edits::EditWatcher>);
+        Ok(kept)
+    }
+
+    fn announce(&self, cell: CellCoord, version: u32) {
+        if let Some(hub) = self.hub.get() {
+            hub.announce(crate::editing::CellChange { cell, version });
+        }
     }
 
     /// A loader thread: read queued cells' logs, wake who waits for them.
-    fn run_loader(&self) {
+    fn run_loader(self: &Arc<Self>) {
         loop {
             let (c, base_total) = {
                 let mut l = self.loads.lock().unwrap_or_else(|e| e.into_inner());
@@ -207,6 +238,7 @@ impl LiveStore {
             loads: Mutex::new(Loads::default()),
             work: Condvar::new(),
             loaded: AtomicU64::new(0),
+            hub: std::sync::OnceLock::new(),
         });
         let loaders = (0..LOADERS)
             .map(|i| {
@@ -267,12 +299,18 @@ impl LiveStore {
 
     /// Make `overlay` cell `c`'s (after its edits are durable). A newer overlay already there is kept.
     pub fn publish(&self, c: CellCoord, overlay: Overlay) {
-        self.lock().put(c, Arc::new(overlay), self.shared.limit_bytes);
+        let limit = self.shared.limit_bytes;
+        self.shared.with(|o| o.put(c, Arc::new(overlay), limit));
+    }
+
+    /// Announce other writers' changes on `hub` (the edit service's).
+    pub fn set_hub(&self, hub: Arc<crate::editing::EditHub>) {
+        let _ = self.shared.hub.set(hub);
     }
 
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
     pub fn forget(&self, c: CellCoord) {
-        self.lock().remove(c);
+        self.shared.with(|o| o.remove(c));
     }
 
     /// The cell's records at `overlay`'s version over `base`, built once per version and kept with the overlay.
@@ -288,18 +326,19 @@ impl LiveStore {
         }
         let a = overlay.apply_to(&base.records, &base.overrides);
         let data = Arc::new(CellData::edited(c, overlay.version(), a.records, a.overrides, a.felled));
-        let mut o = self.lock();
         let limit = self.shared.limit_bytes;
-        if let Some(e) = o.map.get_mut(&c)
-            && Arc::ptr_eq(&e.overlay, overlay)
-            && e.applied.is_none()
-        {
-            let extra = data.heap_bytes();
-            e.applied = Some(Arc::clone(&data));
-            e.bytes += extra;
-            o.bytes += extra;
-            o.evict(limit, c);
-        }
+        self.shared.with(|o| {
+            if let Some(e) = o.map.get_mut(&c)
+                && Arc::ptr_eq(&e.overlay, overlay)
+                && e.applied.is_none()
+            {
+                let extra = data.heap_bytes();
+                e.applied = Some(Arc::clone(&data));
+                e.bytes += extra;
+                o.bytes += extra;
+                o.evict(limit, c);
+            }
+        });
         data
     }
 
@@ -308,13 +347,40 @@ impl LiveStore {
         &self,
         c: CellCoord,
         waker: Option<&Arc<dyn CellWaker>>,
-    ) -> Result<Option<(Arc<CellData>, Arc<Overlay>)>, EditStoreError> {
+    ) -> Result<Option<BaseAndOverlay>, EditStoreError> {
         match self.base.cell(c, waker) {
             CellState::Ready(base) => {
                 let overlay = self.overlay(c, &base)?;
                 Ok(Some((base, overlay)))
             }
             _ => Ok(None),
+        }
+    }
+}
+
+/// Edits other writers of a shared store made (and this server's own, coming back): a cached overlay one version
+/// behind takes the edit, one further behind is dropped (read again on next need); sessions are told either way.
+impl canopy_edits::EditWatcher for Shared {
+    fn edited(&self, e: canopy_edits::StoredEdit) {
+        let cell = e.cell;
+        let version = e.version;
+        let limit = self.limit_bytes;
+        let changed = self.with(|o| {
+            let Some(entry) = o.map.get(&cell) else { return false };
+            let current = entry.overlay.version();
+            if version <= current {
+                return false;
+            }
+            let mut next = (*entry.overlay).clone();
+            if version == current + 1 && next.apply(&e).is_ok() {
+                o.put(cell, Arc::new(next), limit);
+            } else {
+                o.remove(cell);
+            }
+            true
+        });
+        if changed {
+            self.announce(cell, version);
         }
     }
 }

@@ -9,8 +9,10 @@ use std::time::Duration;
 
 use anyhow::Context;
 use canopy_protocol::aoi::AoiParams;
+use canopy_server::WorldStore;
 use canopy_server::edits::{EditStore, SqliteEditStore};
 use canopy_server::metrics::resident_bytes;
+use canopy_server::nats::{NatsConfig, NatsEditStore};
 use canopy_server::worlds::world::World;
 use canopy_server::{
     AdmissionConfig, CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig,
@@ -51,6 +53,14 @@ struct Args {
     /// With `--add-editor`: edits a second the editor may make.
     #[arg(long)]
     rate: Option<u32>,
+    /// Keep the edits in NATS JetStream instead of `DATA/edits.sqlite`: the cluster's servers, comma-separated
+    /// (`nats://127.0.0.1:4222,nats://127.0.0.1:4223`). Every edge of one world names the same cluster; edges then
+    /// hold nothing that is lost when they die.
+    #[arg(long, value_name = "nats://HOST:PORT[,…]")]
+    edits: Option<String>,
+    /// With `--edits`: replicas of the world's edit stream (3 on a three-node cluster).
+    #[arg(long, default_value_t = 3)]
+    edit_replicas: usize,
     /// Memory for cells' edit overlays (and edited cells' records), MiB.
     #[arg(long, default_value_t = 64)]
     overlay_cache_mib: usize,
@@ -196,10 +206,23 @@ fn main() -> anyhow::Result<()> {
     // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
     let base = CellCache::new(world, cache_cfg).context("building the world store")?;
     // Edits are kept in the data directory and read cell by cell when a cell is first needed: nothing at start.
-    let edit_store = SqliteEditStore::open(&args.data_dir)?;
+    let (edit_store, edits_at): (Arc<dyn EditStore>, String) = match &args.edits {
+        Some(servers) => {
+            let cfg = NatsConfig {
+                servers: servers.split(',').map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect(),
+                world: base.head().world().name.clone(),
+                replicas: args.edit_replicas,
+            };
+            let at = format!("NATS JetStream stream {} ({} replicas) at {servers}", cfg.stream(), cfg.replicas);
+            (Arc::new(NatsEditStore::connect(cfg)?), at)
+        }
+        None => {
+            let store = SqliteEditStore::open(&args.data_dir)?;
+            (Arc::new(store), args.data_dir.join("edits.sqlite").display().to_string())
+        }
+    };
     let edit_count = edit_store.count()?;
-    let live =
-        Arc::new(LiveStore::new(base.shared(), Arc::new(edit_store), args.overlay_cache_mib.saturating_mul(1 << 20)));
+    let live = Arc::new(LiveStore::new(base.shared(), edit_store, args.overlay_cache_mib.saturating_mul(1 << 20)));
     let edits = EditService::start(Arc::clone(&live));
     let cfg = ServerConfig {
         listen: args.listen,
@@ -230,7 +253,7 @@ fn main() -> anyhow::Result<()> {
         let how = if server.identity_generated() { "generated" } else { "loaded" };
         println!("certificate {how} in {}", args.data_dir.display());
         let editors_n = session_editors;
-        println!("{edit_count} edits stored in {}; {editors_n} editors", args.data_dir.join("edits.sqlite").display());
+        println!("{edit_count} edits stored in {edits_at}; {editors_n} editors");
         println!("fingerprint {}", server.fingerprint());
         let (r, s) = server.socket_buffers();
         println!("socket buffers: receive {r} B, send {s} B");

@@ -19,4 +19,4 @@ pub mod store;
 pub use log::{CellEdit, LogError, StoredEdit};
 pub use overlay::{Overlay, OverlayError};
 pub use sqlite::SqliteEditStore;
-pub use store::{EditStore, EditStoreError, MemoryEditStore};
+pub use store::{EditStore, EditStoreError, EditWatcher, MemoryEditStore};

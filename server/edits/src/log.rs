@@ -94,6 +94,29 @@ impl CellEdit {
     }
 }
 
+impl StoredEdit {
+    /// The compact encoding of the whole edit, cell and version included (postcard): what a store that keeps
+    /// whole records (a message log) holds.
+    pub fn encode(&self) -> Vec<u8> {
+        postcard::to_allocvec(self).expect("encoding into a Vec cannot fail")
+    }
+
+    /// Decode stored bytes, bounded and checked like [`CellEdit::decode`].
+    pub fn decode(bytes: &[u8]) -> Result<StoredEdit, LogError> {
+        if bytes.len() > MAX_STORED_EDIT {
+            return Err(LogError::TooLarge(bytes.len()));
+        }
+        let (e, rest): (StoredEdit, &[u8]) =
+            postcard::take_from_bytes(bytes).map_err(|e| LogError::Decode(e.to_string()))?;
+        if !rest.is_empty() {
+            return Err(LogError::Decode(format!("{} trailing bytes", rest.len())));
+        }
+        // The op's own checks.
+        CellEdit::decode(&e.op.encode())?;
+        Ok(e)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -43,6 +43,19 @@ pub trait EditStore: Send + Sync + 'static {
     fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError>;
     /// How many edits are stored.
     fn count(&self) -> Result<u64, EditStoreError>;
+    /// Tell `watcher` of every edit stored for `cell` after the last [`EditStore::load`] of it, by any writer (a
+    /// store several servers share; call it after the load, nothing between the two is missed). A store only one
+    /// server writes has nothing to tell.
+    fn watch(&self, _cell: CellCoord, _watcher: std::sync::Arc<dyn EditWatcher>) {}
+    /// Stop telling of `cell`'s edits.
+    fn unwatch(&self, _cell: CellCoord) {}
+}
+
+/// Told of edits stored by any writer of a shared store ([`EditStore::watch`]): its own included, and perhaps
+/// again or out of order after a reconnection, so it checks the version.
+pub trait EditWatcher: Send + Sync + 'static {
+    /// `edit` was stored.
+    fn edited(&self, edit: StoredEdit);
 }
 
 /// An edit store in memory (tests, and a server that keeps no edits across restarts).

@@ -1,0 +1,376 @@
+//! The edit log on NATS JetStream (issue 17): many stateless edges share one world's edits through a replicated
+//! stream, one subject a cell (`canopy.edits.WORLD.X.Z`), each message one [`StoredEdit`].
+//!
+//! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append names the
+//!   subject sequence of the cell's last edit it knows (`Nats-Expected-Last-Subject-Sequence`): the engine refuses
+//!   it if another edge got there first (compare-and-set), so no version is taken twice; the writer then reads the
+//!   cell again and answers `conflict`. `Nats-Msg-Id` (`X.Z.VERSION`) makes a retried publish a duplicate, not a
+//!   second edit.
+//! - **Durable means replicated.** An append returns once JetStream acknowledged every message, which for a stream
+//!   of `replicas` > 1 is after its Raft group committed it on a quorum.
+//! - **Group commit.** A group's cells are published concurrently; one cell's versions go one after the other
+//!   (each names the previous one's sequence).
+//! - **Watching.** An edge watches the cells whose overlays it keeps ([`EditStore::watch`]): an ordered consumer
+//!   of the cell's subject from just after the last edit its read of the log saw (so nothing between the read and
+//!   the watch is missed, and only what the stream stored is told: a publish the engine refused is not), dropped
+//!   when the overlay is evicted; other edges' edits reach the [`EditWatcher`].
+//!
+//! The store's calls are synchronous (the [`EditStore`] trait); they run on a runtime of the store's own, on its
+//! own thread, so they may be called from any thread (the edit writer, overlay loaders).
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use async_nats::jetstream::{self, context::PublishErrorKind, stream};
+use canopy_edits::{EditStore, EditStoreError, EditWatcher, StoredEdit};
+use canopy_protocol::CellCoord;
+use futures_util::{StreamExt, TryStreamExt};
+use tracing::{debug, warn};
+
+/// How long a call may take before it fails (a cluster that lost its quorum).
+const CALL_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Where and how the edit log lives.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NatsConfig {
+    /// NATS servers, `nats://HOST:PORT` (any of a cluster's).
+    pub servers: Vec<String>,
+    /// The world's name: the stream and subjects are named after it.
+    pub world: String,
+    /// Replicas of the stream (3 for a three-node cluster).
+    pub replicas: usize,
+}
+
+impl NatsConfig {
+    /// The world's name as a subject token and stream-name part: ASCII letters, digits, `-` and `_`.
+    fn token(&self) -> String {
+        let t: String =
+            self.world.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' }).collect();
+        if t.is_empty() { "world".into() } else { t }
+    }
+
+    /// The stream's name.
+    pub fn stream(&self) -> String {
+        format!("CANOPY_EDITS_{}", self.token())
+    }
+
+    /// The subject of cell `c`.
+    pub fn subject(&self, c: CellCoord) -> String {
+        format!("canopy.edits.{}.{}.{}", self.token(), c.x, c.z)
+    }
+
+    /// Every cell's subjects.
+    fn wildcard(&self) -> String {
+        format!("canopy.edits.{}.>", self.token())
+    }
+
+    /// The cell a subject names.
+    fn cell_of(&self, subject: &str) -> Option<CellCoord> {
+        let rest = subject.strip_prefix(&format!("canopy.edits.{}.", self.token()))?;
+        let (x, z) = rest.split_once('.')?;
+        Some(CellCoord::new(x.parse().ok()?, z.parse().ok()?))
+    }
+}
+
+/// What the store's thread holds.
+struct Inner {
+    cfg: NatsConfig,
+    js: jetstream::Context,
+    stream: stream::Stream,
+    /// Per cell, the subject sequence of its last edit this store knows (0: none).
+    last: Mutex<HashMap<CellCoord, u64>>,
+    /// Watched cells and the tasks forwarding their subjects.
+    watches: Mutex<HashMap<CellCoord, tokio::task::JoinHandle<()>>>,
+}
+
+/// The edit log on NATS JetStream (see the module docs).
+pub struct NatsEditStore {
+    inner: Arc<Inner>,
+    handle: tokio::runtime::Handle,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for NatsEditStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NatsEditStore").field("cfg", &self.inner.cfg).finish()
+    }
+}
+
+impl Drop for NatsEditStore {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+fn io(what: &str, e: impl std::fmt::Display) -> EditStoreError {
+    EditStoreError::Io(format!("NATS {what}: {e}"))
+}
+
+impl NatsEditStore {
+    /// Connect to the cluster and make sure the world's stream exists (created with `cfg.replicas` replicas on
+    /// file storage if it does not).
+    pub fn connect(cfg: NatsConfig) -> Result<NatsEditStore, EditStoreError> {
+        let (handle_tx, handle_rx) = std::sync::mpsc::channel();
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let thread = std::thread::Builder::new()
+            .name("canopy-nats".into())
+            .spawn(move || {
+                let rt = match tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build() {
+                    Ok(rt) => rt,
+                    Err(e) => {
+                        let _ = handle_tx.send(Err(io("runtime", e)));
+                        return;
+                    }
+                };
+                let _ = handle_tx.send(Ok(rt.handle().clone()));
+                rt.block_on(async {
+                    let _ = stopped.await;
+                });
+                rt.shutdown_timeout(Duration::from_secs(1));
+            })
+            .map_err(|e| io("thread", e))?;
+        let handle = handle_rx.recv().map_err(|e| io("runtime", e))??;
+        let inner = run(&handle, Inner::connect(cfg))?;
+        Ok(NatsEditStore { inner: Arc::new(inner), handle, stop: Some(stop), thread: Some(thread) })
+    }
+
+    /// Its configuration.
+    pub fn config(&self) -> &NatsConfig {
+        &self.inner.cfg
+    }
+}
+
+/// Run `fut` on the store's runtime and wait for it (from any thread but the runtime's own), at most
+/// [`CALL_TIMEOUT`].
+fn run<T: Send + 'static>(
+    handle: &tokio::runtime::Handle,
+    fut: impl std::future::Future<Output = Result<T, EditStoreError>> + Send + 'static,
+) -> Result<T, EditStoreError> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    handle.spawn(async move {
+        let r = match tokio::time::timeout(CALL_TIMEOUT, fut).await {
+            Ok(r) => r,
+            Err(_) => Err(EditStoreError::Io(format!("NATS: no answer within {CALL_TIMEOUT:?}"))),
+        };
+        let _ = tx.send(r);
+    });
+    rx.recv().map_err(|e| io("runtime", e))?
+}
+
+impl Inner {
+    async fn connect(cfg: NatsConfig) -> Result<Inner, EditStoreError> {
+        let addrs: Vec<async_nats::ServerAddr> = cfg
+            .servers
+            .iter()
+            .map(|s| s.parse::<async_nats::ServerAddr>().map_err(|e| io(&format!("address {s}"), e)))
+            .collect::<Result<_, _>>()?;
+        let client = async_nats::ConnectOptions::new()
+            .retry_on_initial_connect()
+            .connection_timeout(Duration::from_secs(5))
+            .connect(addrs)
+            .await
+            .map_err(|e| io("connect", e))?;
+        let js = jetstream::new(client.clone());
+        let config = stream::Config {
+            name: cfg.stream(),
+            subjects: vec![cfg.wildcard()],
+            num_replicas: cfg.replicas.max(1),
+            storage: stream::StorageType::File,
+            duplicate_window: Duration::from_secs(120),
+            ..Default::default()
+        };
+        // A cluster that just started may not have elected its meta leader yet: ask a few times.
+        let mut tries = 0;
+        let stream = loop {
+            match js.get_or_create_stream(config.clone()).await {
+                Ok(s) => break s,
+                Err(e) if tries < 20 => {
+                    debug!("creating the edit stream: {e}; again");
+                    tries += 1;
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                }
+                Err(e) => return Err(io("creating the edit stream", e)),
+            }
+        };
+        Ok(Inner { cfg, js, stream, last: Mutex::default(), watches: Mutex::default() })
+    }
+
+    fn last(&self, c: CellCoord) -> u64 {
+        self.last.lock().unwrap_or_else(|e| e.into_inner()).get(&c).copied().unwrap_or(0)
+    }
+
+    fn set_last(&self, c: CellCoord, seq: u64) {
+        self.last.lock().unwrap_or_else(|e| e.into_inner()).insert(c, seq);
+    }
+
+    /// Publish one cell's edits in order, each naming the previous one's subject sequence.
+    async fn append_cell(self: Arc<Self>, c: CellCoord, edits: Vec<StoredEdit>) -> Result<(), EditStoreError> {
+        let subject = self.cfg.subject(c);
+        for e in edits {
+            let msg = jetstream::message::PublishMessage::build()
+                .payload(e.encode().into())
+                .message_id(format!("{}.{}.{}", c.x, c.z, e.version))
+                .expected_last_subject_sequence(self.last(c));
+            let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
+            match ack {
+                Ok(ack) => self.set_last(c, ack.sequence),
+                Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
+                    return Err(EditStoreError::Conflict { cell: c, version: e.version });
+                }
+                Err(err) => return Err(io("publishing an edit", err)),
+            }
+        }
+        Ok(())
+    }
+
+    async fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
+        let subject = self.cfg.subject(c);
+        let last = match self.stream.get_last_raw_message_by_subject(&subject).await {
+            Ok(m) => m,
+            Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => {
+                self.set_last(c, 0);
+                return Ok(Vec::new());
+            }
+            Err(e) => return Err(io("reading a cell's last edit", e)),
+        };
+        // The cell's edits up to that one, each the next on the subject after the previous (reads go to the
+        // stream's leader, so a write another edge saw acknowledged is there).
+        let mut out = Vec::new();
+        let mut seq = 1;
+        loop {
+            let m = self
+                .stream
+                .raw_message_builder()
+                .sequence(seq)
+                .next_by_subject(subject.clone())
+                .send()
+                .await
+                .map_err(|e| io("reading a cell's edits", e))?;
+            let e = StoredEdit::decode(&m.payload)
+                .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
+            if e.cell != c || e.version as usize != out.len() + 1 {
+                return Err(EditStoreError::Corrupt(format!(
+                    "cell {c:?} sequence {} holds version {} of {:?}",
+                    m.sequence, e.version, e.cell
+                )));
+            }
+            out.push(e);
+            if m.sequence >= last.sequence {
+                break;
+            }
+            seq = m.sequence + 1;
+        }
+        self.set_last(c, last.sequence);
+        Ok(out)
+    }
+}
+
+impl EditStore for NatsEditStore {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
+        let mut by_cell: BTreeMap<CellCoord, Vec<StoredEdit>> = BTreeMap::new();
+        for e in edits {
+            by_cell.entry(e.cell).or_default().push(e.clone());
+        }
+        let inner = Arc::clone(&self.inner);
+        run(&self.handle, async move {
+            let tasks: Vec<_> =
+                by_cell.into_iter().map(|(c, v)| tokio::spawn(Arc::clone(&inner).append_cell(c, v))).collect();
+            let mut first = Ok(());
+            for t in tasks {
+                let r = t.await.map_err(|e| io("append task", e)).and_then(|r| r);
+                if first.is_ok() {
+                    first = r;
+                }
+            }
+            first
+        })
+    }
+
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
+        let inner = Arc::clone(&self.inner);
+        run(&self.handle, async move { inner.load(c).await })
+    }
+
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
+        let inner = Arc::clone(&self.inner);
+        run(&self.handle, async move {
+            let mut subjects =
+                inner.stream.info_with_subjects(inner.cfg.wildcard()).await.map_err(|e| io("info", e))?;
+            let mut out = Vec::new();
+            while let Some((subject, count)) = subjects.try_next().await.map_err(|e| io("info", e))? {
+                if let Some(c) = inner.cfg.cell_of(&subject) {
+                    out.push((c, u32::try_from(count).unwrap_or(u32::MAX)));
+                }
+            }
+            out.sort_unstable();
+            Ok(out)
+        })
+    }
+
+    fn count(&self) -> Result<u64, EditStoreError> {
+        let inner = Arc::clone(&self.inner);
+        run(&self.handle, async move { Ok(inner.stream.get_info().await.map_err(|e| io("info", e))?.state.messages) })
+    }
+
+    fn watch(&self, c: CellCoord, watcher: Arc<dyn EditWatcher>) {
+        let inner = Arc::clone(&self.inner);
+        let start = inner.last(c) + 1;
+        let config = jetstream::consumer::pull::OrderedConfig {
+            filter_subject: inner.cfg.subject(c),
+            deliver_policy: jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence: start },
+            ..Default::default()
+        };
+        let stream = inner.stream.clone();
+        let created = run(&self.handle, async move {
+            let consumer = stream.create_consumer(config).await.map_err(|e| io("watching a cell", e))?;
+            consumer.messages().await.map_err(|e| io("watching a cell", e))
+        });
+        let mut messages = match created {
+            Ok(m) => m,
+            Err(e) => {
+                warn!(?c, "{e}");
+                return;
+            }
+        };
+        let task = self.handle.spawn(async move {
+            while let Some(m) = messages.next().await {
+                let m = match m {
+                    Ok(m) => m,
+                    Err(e) => {
+                        warn!(?c, "watching the cell: {e}");
+                        continue;
+                    }
+                };
+                // What this edge's next append to the cell must name as the cell's last edit.
+                if let Ok(info) = m.info() {
+                    let mut last = inner.last.lock().unwrap_or_else(|e| e.into_inner());
+                    let known = last.entry(c).or_insert(0);
+                    *known = (*known).max(info.stream_sequence);
+                }
+                match StoredEdit::decode(&m.payload) {
+                    Ok(e) if e.cell == c => watcher.edited(e),
+                    Ok(_) => warn!(?c, "a message on the cell's subject names another cell"),
+                    Err(e) => warn!(?c, "watching the cell: {e}"),
+                }
+            }
+        });
+        if let Some(old) = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner()).insert(c, task) {
+            old.abort();
+        }
+    }
+
+    fn unwatch(&self, c: CellCoord) {
+        if let Some(t) = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner()).remove(&c) {
+            // Dropping the consumer's message stream with its task ends it (an ordered consumer is ephemeral).
+            t.abort();
+        }
+    }
+}
