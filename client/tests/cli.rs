@@ -223,3 +223,19 @@ fn world_stats_samples_a_large_world_and_expands_a_rectangle_exactly() {
     assert_eq!(bad.status.code(), Some(2));
     assert!(text(&bad).contains("expected X0 ≤ X1 and Z0 ≤ Z1"), "{}", text(&bad));
 }
+
+/// `canopy bots --edit-rate` needs an editor token, and says so before connecting anywhere; a token that is not
+/// hexadecimal is refused too.
+#[test]
+fn bots_that_edit_need_a_token() {
+    let run = |extra: &[&str]| {
+        let args = [&["bots", "--edit-rate", "1", "--server", "127.0.0.1:9", "--no-verify"], extra].concat();
+        Command::new(env!("CARGO_BIN_EXE_canopy")).args(args).env_remove("CANOPY_TOKEN").output().unwrap()
+    };
+    let o = run(&[]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("--edit-rate needs an editor token: --token HEX or CANOPY_TOKEN"), "{}", text(&o));
+    let o = run(&["--token", "not-hex"]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("--token: expected hexadecimal digits"), "{}", text(&o));
+}

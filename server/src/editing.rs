@@ -310,17 +310,15 @@ impl Writer {
     ) -> Vec<EditJob> {
         let mut logs: BTreeMap<CellCoord, Option<Vec<StoredEdit>>> = BTreeMap::new();
         for (c, w) in working {
-            self.live.forget(*c);
-            let log = self.live.edit_store().load(*c).ok();
-            if let Some(log) = &log
-                && let Ok(overlay) = Overlay::from_log(w.base.records.len() as u16, log)
-                && overlay.version() > 0
-            {
-                let version = overlay.version();
-                self.live.publish(*c, overlay);
-                self.hub.announce(CellChange { cell: *c, version });
+            // The cell read again (and watched again, for a shared store) is what the sessions get.
+            match self.live.reload(*c, &w.base) {
+                Ok(overlay) if overlay.version() > 0 => {
+                    self.hub.announce(CellChange { cell: *c, version: overlay.version() });
+                }
+                Ok(_) => {}
+                Err(e) => warn!(?c, "reading the cell's edits again: {e}"),
             }
-            logs.insert(*c, log);
+            logs.insert(*c, self.live.edit_store().load(*c).ok());
         }
         let mut again = Vec::new();
         for (a, e) in accepted.into_iter().zip(edits) {

@@ -308,6 +308,12 @@ impl LiveStore {
         let _ = self.shared.hub.set(hub);
     }
 
+    /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it.
+    pub fn reload(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
+        self.forget(c);
+        self.shared.load(c, base.records.len() as u16)
+    }
+
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
     pub fn forget(&self, c: CellCoord) {
         self.shared.with(|o| o.remove(c));

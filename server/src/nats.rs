@@ -4,8 +4,9 @@
 //! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append names the
 //!   subject sequence of the cell's last edit it knows (`Nats-Expected-Last-Subject-Sequence`): the engine refuses
 //!   it if another edge got there first (compare-and-set), so no version is taken twice; the writer then reads the
-//!   cell again and answers `conflict`. `Nats-Msg-Id` (`X.Z.VERSION`) makes a retried publish a duplicate, not a
-//!   second edit.
+//!   cell again and answers `conflict`. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
+//!   second edit (the id carries a digest of the edit's bytes, so another edit of the same version is no
+//!   duplicate).
 //! - **Durable means replicated.** An append returns once JetStream acknowledged every message, which for a stream
 //!   of `replicas` > 1 is after its Raft group committed it on a quorum.
 //! - **Group commit.** A group's cells are published concurrently; one cell's versions go one after the other
@@ -215,9 +216,16 @@ impl Inner {
     async fn append_cell(self: Arc<Self>, c: CellCoord, edits: Vec<StoredEdit>) -> Result<(), EditStoreError> {
         let subject = self.cfg.subject(c);
         for e in edits {
+            let payload = e.encode();
+            // The id names this very edit (its bytes, not only its version): a publish retried after a lost
+            // acknowledgement is a duplicate, another edit of the same version is not (the compare-and-set refuses
+            // that one).
+            let digest: [u8; 32] =
+                sha2::Digest::finalize(<sha2::Sha256 as sha2::Digest>::new_with_prefix(&payload)).into();
+            let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
             let msg = jetstream::message::PublishMessage::build()
-                .payload(e.encode().into())
-                .message_id(format!("{}.{}.{}", c.x, c.z, e.version))
+                .payload(payload.into())
+                .message_id(format!("{}.{}.{}.{id}", c.x, c.z, e.version))
                 .expected_last_subject_sequence(self.last(c));
             let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
             match ack {

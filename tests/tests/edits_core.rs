@@ -3,66 +3,18 @@
 //! apply in one order and every client converges on the store; denied and invalid edits leave no trace; a version
 //! gap brings the whole cell again; a client that reconnects gets only what changed since its versions.
 
-use std::collections::{HashMap, VecDeque};
+mod support;
+
 use std::sync::Arc;
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use canopy_client::state::{ClientState, Event, InstanceView};
-use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_client::state::{ClientState, Event};
 use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome};
-use canopy_protocol::messages::{ServerStreaming, TerrainDesc};
-use canopy_protocol::xorshift::XorShift64;
-use canopy_protocol::{CellCoord, InstanceId, ServerMsg, SpeciesGraph};
-use canopy_server::LiveStore;
-use canopy_server::editing::{CellChange, EditJob, EditService};
-use canopy_server::editors::{Editors, editor_line};
+use canopy_protocol::messages::ServerStreaming;
+use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
 use canopy_server::edits::{EditStore, MemoryEditStore};
-use canopy_server::session::{MsgClass, Session, SessionConfig, StreamId};
-use canopy_server::store::{PlacedInstance, StoreBuilder, WorldStore};
-
-const CELL: f32 = 32.0;
-const ALICE: [u8; 32] = [1; 32];
-const BOB: [u8; 32] = [2; 32];
-/// Carol may edit only the cells with x < 0.
-const CAROL: [u8; 32] = [3; 32];
-/// Dave may make 3 edits a second.
-const DAVE: [u8; 32] = [4; 32];
-
-/// A 8 × 8 grid of 32 m cells around the origin, 1 to 5 instances a cell of two species.
-fn base() -> Arc<dyn WorldStore> {
-    let species: Vec<SpeciesGraph> =
-        ["worm", "conifer"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
-    let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) };
-    let mut b = StoreBuilder::new("edits", 7, grid, TerrainDesc::flat([-128.0, -128.0], 256.0), &species).unwrap();
-    for z in -4i32..4 {
-        for x in -4i32..4 {
-            let o = grid.cell_origin(CellCoord::new(x, z));
-            let n = (x + z).rem_euclid(5) as usize + 1;
-            let instances: Vec<PlacedInstance> = (0..n)
-                .map(|i| PlacedInstance {
-                    species: (i % 2) as u16,
-                    x: o[0] + 1.0 + i as f32 * 5.0,
-                    z: o[1] + 2.0 + i as f32 * 3.0,
-                    params: if i % 2 == 0 { vec![(0, 3.0 + i as f32)] } else { vec![] },
-                })
-                .collect();
-            b.add_cell(CellCoord::new(x, z), &instances).unwrap();
-        }
-    }
-    b.finish().shared()
-}
-
-struct World {
-    live: Arc<LiveStore>,
-    service: Arc<EditService>,
-    edits: Arc<MemoryEditStore>,
-    cfg: SessionConfig,
-}
-
-fn world() -> World {
-    world_over(Arc::new(MemoryEditStore::new()), None)
-}
+use canopy_server::session::MsgClass;
+use support::*;
 
 /// A store that, when `fail` is set, keeps only the first edit of a group and then fails (a commit that failed
 /// after part of it reached the disk, or a store without multi-key transactions).
@@ -94,168 +46,6 @@ impl EditStore for Flaky {
     fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
         self.inner.count()
     }
-}
-
-fn world_over(edits: Arc<MemoryEditStore>, store: Option<Arc<dyn EditStore>>) -> World {
-    let store = store.unwrap_or_else(|| Arc::clone(&edits) as Arc<dyn EditStore>);
-    let live = Arc::new(LiveStore::new(base(), store, 1 << 20));
-    let service = EditService::start(Arc::clone(&live));
-    let text = [
-        editor_line("alice", &ALICE, None, Some(1000)),
-        editor_line("bob", &BOB, None, Some(1000)),
-        editor_line("carol", &CAROL, Some([-128.0, -128.0, 0.0, 128.0]), None),
-        editor_line("dave", &DAVE, None, Some(3)),
-    ]
-    .join("\n");
-    let cfg = SessionConfig {
-        aoi: AoiParams { max_radius: 300.0, hysteresis: 24.0, lookahead_s: 0.0, max_lookahead: 0.0 },
-        batch_records: 2,
-        editors: Some(Arc::new(Editors::parse("editors", &text).unwrap())),
-        ..SessionConfig::default()
-    };
-    World { live, service, edits, cfg }
-}
-
-/// One client and its session, lanes delivered in a random interleaving, edits through the pipeline.
-struct Pair {
-    server: Session,
-    client: ClientState,
-    lanes: HashMap<StreamId, VecDeque<Vec<u8>>>,
-    changes: tokio::sync::broadcast::Receiver<CellChange>,
-    answers: (mpsc::Sender<(u32, EditOutcome)>, mpsc::Receiver<(u32, EditOutcome)>),
-    /// Edit results the client received, by request.
-    results: HashMap<u32, EditOutcome>,
-    rng: XorShift64,
-    now: Instant,
-}
-
-impl Pair {
-    fn connect(w: &World, client: ClientState, token: Option<[u8; 32]>, seed: u64) -> Pair {
-        let now = Instant::now();
-        let store = Arc::clone(&w.live) as Arc<dyn WorldStore>;
-        let mut server = Session::new(store, w.cfg.clone(), now);
-        let mut client = client;
-        server.handle(now, client.hello_as("pair", token.map(|t| t.to_vec())).unwrap()).unwrap();
-        let welcome = server.poll_transmit(now).unwrap();
-        server.on_flushed(welcome.len());
-        client.on_welcome(ServerMsg::decode(&welcome.bytes[4..]).unwrap()).unwrap();
-        for m in client.resume().unwrap() {
-            server.handle(now, m).unwrap();
-        }
-        server.handle(now, client.ready(Viewpoint::at(1, [0.0, 0.0], 300.0)).unwrap()).unwrap();
-        let changes = w.service.hub().subscribe();
-        Pair {
-            server,
-            client,
-            lanes: HashMap::new(),
-            changes,
-            answers: mpsc::channel(),
-            results: HashMap::new(),
-            rng: XorShift64::new(seed),
-            now,
-        }
-    }
-
-    fn edit(&mut self, op: EditOp) -> u32 {
-        let (request, msg) = self.client.edit(op).unwrap();
-        self.server.handle(self.now, msg).unwrap();
-        request
-    }
-
-    /// Hand edits to the pipeline, take its answers and the announced changes, let the server send and deliver
-    /// a few messages in a random lane order. Returns whether anything moved.
-    fn step(&mut self, w: &World) -> bool {
-        let mut moved = false;
-        while let Some((request, op, editor)) = self.server.poll_edit() {
-            let tx = self.answers.0.clone();
-            w.service.submit(EditJob { op, editor, reply: Box::new(move |o| tx.send((request, o)).unwrap()) });
-            moved = true;
-        }
-        while let Ok((request, outcome)) = self.answers.1.try_recv() {
-            self.server.on_edit_result(request, outcome);
-            moved = true;
-        }
-        loop {
-            match self.changes.try_recv() {
-                Ok(c) => self.server.on_cell_changed(c.cell),
-                Err(tokio::sync::broadcast::error::TryRecvError::Lagged(_)) => self.server.on_changes_missed(),
-                Err(_) => break,
-            }
-        }
-        for _ in 0..8 {
-            let Some(t) = self.server.poll_transmit(self.now) else { break };
-            self.server.on_flushed(t.len());
-            self.lanes.entry(t.stream).or_default().push_back(t.frame().to_vec());
-            moved = true;
-        }
-        for _ in 0..8 {
-            let mut busy: Vec<StreamId> = self.lanes.iter().filter(|(_, q)| !q.is_empty()).map(|(k, _)| *k).collect();
-            if busy.is_empty() {
-                break;
-            }
-            busy.sort_by_key(|s| match s {
-                StreamId::Control => 0,
-                StreamId::Lane(i) => 1 + u16::from(*i),
-            });
-            let lane = busy[(self.rng.next() as usize) % busy.len()];
-            let bytes = self.lanes.get_mut(&lane).unwrap().pop_front().unwrap();
-            match self.client.handle(ServerMsg::decode(&bytes[4..]).unwrap()).unwrap() {
-                Event::EditResult(r) => {
-                    self.results.insert(r.request, r.outcome);
-                }
-                Event::Gap(c) => {
-                    let msg = self.client.refresh(c).unwrap();
-                    self.server.handle(self.now, msg).unwrap();
-                }
-                _ => {}
-            }
-            moved = true;
-        }
-        self.now += Duration::from_millis(10);
-        moved
-    }
-}
-
-/// Step every pair until nothing moves and every edit is answered (the writer runs on its own thread).
-fn settle(w: &World, pairs: &mut [&mut Pair]) {
-    let deadline = Instant::now() + Duration::from_secs(20);
-    let mut quiet = 0;
-    while quiet < 20 {
-        assert!(Instant::now() < deadline, "pairs did not settle");
-        let moved = pairs.iter_mut().fold(false, |m, p| p.step(w) | m);
-        if moved {
-            quiet = 0;
-        } else {
-            quiet += 1;
-            std::thread::sleep(Duration::from_millis(2));
-        }
-    }
-}
-
-fn sorted(mut v: Vec<InstanceView>) -> Vec<(u64, u8, [u32; 3], Vec<(u16, u32)>)> {
-    v.sort_by_key(|i| i.id);
-    v.into_iter()
-        .map(|i| {
-            (i.id.0, i.species, i.position.map(f32::to_bits), i.params.iter().map(|p| (p.0, p.1.to_bits())).collect())
-        })
-        .collect()
-}
-
-/// What the store says every cell holds now, as a client would see it.
-fn expected(w: &World) -> Vec<(u64, u8, [u32; 3], Vec<(u16, u32)>)> {
-    let mut c = ClientState::new();
-    let mut p = Pair::connect(w, std::mem::take(&mut c), None, 99);
-    settle(w, &mut [&mut p]);
-    assert!(p.client.is_complete());
-    sorted(p.client.instances(&|_, _| 0.0).collect())
-}
-
-fn version(w: &World, c: CellCoord) -> u32 {
-    w.live.cell(c, None).ready().unwrap().version
-}
-
-fn id(x: i32, z: i32, i: u16) -> InstanceId {
-    InstanceId::new(CellCoord::new(x, z), i).unwrap()
 }
 
 #[test]
@@ -435,7 +225,7 @@ fn a_failed_write_acknowledges_exactly_what_the_store_kept() {
         fail: std::sync::atomic::AtomicBool::new(false),
         hold: std::sync::Mutex::new(()),
     });
-    let w = world_over(Arc::clone(&inner), Some(Arc::clone(&flaky) as Arc<dyn EditStore>));
+    let w = world_over(Arc::clone(&flaky) as Arc<dyn EditStore>);
     let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 14);
     let mut watcher = Pair::connect(&w, ClientState::new(), None, 15);
     settle(&w, &mut [&mut a, &mut watcher]);
@@ -502,7 +292,7 @@ impl EditStore for Slow {
 #[test]
 fn a_slow_edit_store_never_blocks_a_session() {
     let inner = Arc::new(MemoryEditStore::new());
-    let w = world_over(Arc::clone(&inner), Some(Arc::new(Slow(Arc::clone(&inner))) as Arc<dyn EditStore>));
+    let w = world_over(Arc::new(Slow(Arc::clone(&inner))) as Arc<dyn EditStore>);
     let mut p = Pair::connect(&w, ClientState::new(), None, 16);
     // Cell (0, 0)'s log takes a second to read: the session sends the other cells meanwhile, never waiting.
     let started = Instant::now();

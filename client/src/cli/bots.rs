@@ -1,6 +1,9 @@
 //! `canopy bots`: headless walkthrough clients against a running `canopy-server`, with a progress line and a
 //! summary (latencies, bytes per record, the check against the world). The exit status says whether every bot
 //! ended with a complete area of interest that matched the world.
+//!
+//! With `--edit-rate` the first `--editors` bots also edit the world as they walk (an editor token is needed), and
+//! the summary adds the edits' answers and how soon they reached the other bots (fan-out).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -9,9 +12,9 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use canopy_client::{ConnectConfig, Trust};
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress};
 use canopy_worlds::world::World;
 use clap::Args;
 
@@ -71,6 +74,21 @@ pub struct BotsArgs {
     /// How often each bot moves and decides whether to send a viewpoint, milliseconds.
     #[arg(long, default_value_t = 100)]
     tick_ms: u64,
+    /// Keep every bot inside a square of this side, metres, around the middle of the world (default: the whole
+    /// world), so they hold the same cells.
+    #[arg(long)]
+    spread: Option<f32>,
+    /// Edits a second each editing bot makes while it walks: plants of a random species within half its radius,
+    /// and every third edit a fell of one of its own plants (0: no edits). Needs `--token`.
+    #[arg(long, default_value_t = 0.0)]
+    edit_rate: f64,
+    /// How many bots edit, the first ones (default: all of them with `--edit-rate`); the others watch.
+    #[arg(long)]
+    editors: Option<usize>,
+    /// The editor token the editing bots connect with (64 hexadecimal digits, as `canopy-server --add-editor`
+    /// printed it; the editor's `rate` is shared by all of them); also read from `CANOPY_TOKEN`.
+    #[arg(long, env = "CANOPY_TOKEN", hide_env_values = true)]
+    token: Option<String>,
     /// No progress bar (for logs).
     #[arg(long)]
     quiet: bool,
@@ -88,6 +106,25 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     {
         bail!("--count must be positive, --speed, --duration, --settle and --altitude not negative");
     }
+    if !(args.edit_rate.is_finite() && (0.0..=10_000.0).contains(&args.edit_rate)) {
+        bail!("--edit-rate is edits a second per bot, 0 to 10000");
+    }
+    if args.spread.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        bail!("--spread must be a positive number of metres");
+    }
+    let edits = if args.edit_rate > 0.0 {
+        let Some(token) = &args.token else {
+            bail!(
+                "--edit-rate needs an editor token: --token HEX or CANOPY_TOKEN (as `canopy-server --editors FILE \
+                 --add-editor NAME` prints it)"
+            );
+        };
+        let token = canopy_server::editors::unhex(token.trim()).context("--token: expected hexadecimal digits")?;
+        let editors = args.editors.unwrap_or(args.count).min(args.count);
+        Some(EditPlan::new(args.edit_rate, editors, token))
+    } else {
+        None
+    };
     let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
     let verify = if args.no_verify {
         None
@@ -111,6 +148,8 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.seed = args.seed;
     cfg.tick = Duration::from_millis(args.tick_ms.max(1));
     cfg.verify = verify;
+    cfg.spread = args.spread;
+    cfg.edits = edits;
     let summary = run_bots(cfg, args.quiet)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
@@ -121,6 +160,7 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let progress = Arc::new(Progress::default());
     let total = cfg.count as u64;
+    let fanout = cfg.edits.as_ref().map(|e| Arc::clone(&e.fanout));
     let started = Instant::now();
     let reports = rt.block_on(async {
         let show = {
@@ -140,8 +180,12 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
                     let rate = (records - last.1) as f64 / now.duration_since(last.0).as_secs_f64();
                     last = (now, records);
                     bar.set_position(progress.finished.load(Relaxed));
+                    let edits = match progress.edits.load(Relaxed) {
+                        0 => String::new(),
+                        n => format!(" · edits {n}"),
+                    };
                     bar.set_message(format!(
-                        "connected {} · AOI complete {} · failed {} · records {records} ({rate:.0}/s)",
+                        "connected {} · AOI complete {} · failed {} · records {records} ({rate:.0}/s){edits}",
                         progress.connected.load(Relaxed),
                         progress.complete.load(Relaxed),
                         progress.failed.load(Relaxed),
@@ -160,5 +204,9 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
         let _ = show.await;
         reports
     })?;
-    Ok(BotsSummary::new(&reports, started.elapsed()))
+    let summary = BotsSummary::new(&reports, started.elapsed());
+    Ok(match fanout {
+        Some(f) => summary.with_fanout(f.report()),
+        None => summary,
+    })
 }

@@ -8,13 +8,20 @@
 //!
 //! Each bot measures its "area of interest change → complete" latencies: from the first viewpoint that left its
 //! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
+//!
+//! With an [`EditPlan`] the first bots also edit the world while they walk ([`edits`]: plants near them, fells of
+//! their own plants), and every bot measures how soon the others' edits reach it; the check against the world then
+//! compares edited cells only as far as the world's function still decides them, and compares them between bots.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
+use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::AoiParams;
+use canopy_protocol::edit::EditOp;
 use canopy_protocol::messages::{ByKind, ServerMsgKind};
 use canopy_worlds::world::World;
 use quinn::Endpoint;
@@ -25,10 +32,12 @@ use canopy_client::state::{Event, viewpoint_due};
 
 use crate::numbers::percentile;
 
+pub mod edits;
 mod verify;
 pub mod walker;
 
-pub use verify::{VerifySummary, expected_cells, verify};
+pub use edits::{EditPlan, EditStats, EditsSummary, FanOut, FanOutReport};
+pub use verify::{VerifySummary, expected_cells, verify, verify_with};
 pub(crate) use walker::Rng;
 pub use walker::{PathKind, Walker, grid_rect};
 
@@ -66,6 +75,11 @@ pub struct BotsConfig {
     pub verify: Option<Arc<World>>,
     /// Set to `true` to stop walking early (the bots then settle and check as at the end of `duration`).
     pub stop: tokio::sync::watch::Receiver<bool>,
+    /// Keep every walk inside a square of this side, metres, around the middle of the world (`None`: the whole
+    /// world): many bots holding the same cells.
+    pub spread: Option<f32>,
+    /// How the first bots edit the world while they walk (`None`: no edits).
+    pub edits: Option<EditPlan>,
 }
 
 impl BotsConfig {
@@ -87,6 +101,8 @@ impl BotsConfig {
             tick: Duration::from_millis(100),
             verify: None,
             stop: tokio::sync::watch::channel(false).1,
+            spread: None,
+            edits: None,
         }
     }
 }
@@ -104,6 +120,8 @@ pub struct Progress {
     pub finished: AtomicU64,
     /// Instance records received by all bots.
     pub records: AtomicU64,
+    /// Edits acknowledged (applied and durable).
+    pub edits: AtomicU64,
 }
 
 /// What one bot did.
@@ -137,6 +155,10 @@ pub struct BotReport {
     pub verify: Option<Result<VerifySummary, String>>,
     /// The area of interest sampled while walking (every [`SAMPLE_EVERY`]).
     pub moving: AoiSamples,
+    /// What its edits came to (`None`: it did not edit).
+    pub edits: Option<EditStats>,
+    /// Cells held at the end that edits changed (version > 0): cell, version, [`edits::cell_digest`].
+    pub edited_cells: Vec<(CellCoord, u32, u64)>,
 }
 
 /// How often a bot samples its area of interest while walking.
@@ -247,10 +269,28 @@ pub async fn connect_walking(
     cache: Option<Arc<SpeciesCache>>,
     walk: Walk,
 ) -> Result<(Connection, Walker), ClientError> {
+    connect_walking_within(endpoint, connect, cache, walk, None).await
+}
+
+/// [`connect_walking`], the walk kept inside a square of side `spread` metres around the middle of that rectangle
+/// when `spread` is given.
+pub async fn connect_walking_within(
+    endpoint: &Endpoint,
+    connect: &ConnectConfig,
+    cache: Option<Arc<SpeciesCache>>,
+    walk: Walk,
+    spread: Option<f32>,
+) -> Result<(Connection, Walker), ClientError> {
     let mut walker = None;
     let place = |w: &canopy_protocol::messages::Welcome| {
         let radius = walk.radius(&w.aoi);
-        let (lo, hi) = grid_rect(&w.world.grid, radius * 0.5);
+        let (mut lo, mut hi) = grid_rect(&w.world.grid, radius * 0.5);
+        if let Some(side) = spread {
+            for a in 0..2 {
+                let (mid, half) = ((lo[a] + hi[a]) * 0.5, (side * 0.5).min((hi[a] - lo[a]) * 0.5));
+                (lo[a], hi[a]) = (mid - half, mid + half);
+            }
+        }
         let wk = Walker::new(walk.path, walk.speed, lo, hi, walk.seed).with_altitude(walk.altitude);
         let vp = wk.viewpoint(radius);
         walker = Some(wk);
@@ -281,6 +321,11 @@ pub struct DrivePlan {
 pub trait DriveHooks {
     /// Every event applied, in order.
     fn event(&mut self, _ev: &Event) {}
+    /// Every event applied, in order, with the connection's state just after it (by default
+    /// [`DriveHooks::event`]).
+    fn applied(&mut self, _conn: &Connection, ev: &Event) {
+        self.event(ev);
+    }
     /// After the state changed: events applied, or a viewpoint sent.
     fn changed(&mut self, _conn: &Connection) {}
     /// After the walker stepped at `now`; may move it (a jump). Returns whether to send a viewpoint now.
@@ -289,6 +334,16 @@ pub trait DriveHooks {
     }
     /// At every sampling tick, while walking and while `settling` at rest.
     fn sample(&mut self, _conn: &Connection, _walker: &Walker, _settling: bool) {}
+    /// How often to ask [`DriveHooks::edit`] for an edit while walking (`None`: never). Asked once, at the start.
+    fn edit_every(&self) -> Option<Duration> {
+        None
+    }
+    /// The edit to send now, if any.
+    fn edit(&mut self, _now: Instant, _conn: &Connection, _walker: &Walker) -> Option<EditOp> {
+        None
+    }
+    /// `op` was sent as request `request`; `at` is just before it was written.
+    fn edit_sent(&mut self, _request: u32, _op: &EditOp, _at: Instant) {}
 }
 
 async fn next_tick(interval: &mut Option<tokio::time::Interval>) {
@@ -315,6 +370,8 @@ pub async fn drive(
         i.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         i
     });
+    // Edits are paced by their own clock, catching up after a late tick (the rate is what is asked for).
+    let mut edit_tick = hooks.edit_every().map(|d| tokio::time::interval(d.max(Duration::from_micros(100))));
     let mut last = Instant::now();
     let mut sent_at = last;
     let mut stop = plan.stop;
@@ -324,11 +381,18 @@ pub async fn drive(
         tokio::select! {
             r = stop.changed(), if stoppable => stoppable = r.is_ok(),
             ev = conn.next_event() => {
-                hooks.event(&ev?);
+                hooks.applied(conn, &ev?);
                 while let Some(ev) = conn.try_next_event() {
-                    hooks.event(&ev?);
+                    hooks.applied(conn, &ev?);
                 }
                 hooks.changed(conn);
+            }
+            _ = next_tick(&mut edit_tick) => {
+                if let Some(op) = hooks.edit(Instant::now(), conn, walker) {
+                    let at = Instant::now();
+                    let request = conn.edit(op.clone()).await?;
+                    hooks.edit_sent(request, &op, at);
+                }
             }
             _ = tick.tick() => {
                 let now = Instant::now();
@@ -354,7 +418,7 @@ pub async fn drive(
     while !conn.state().is_complete() {
         tokio::select! {
             ev = conn.next_event() => {
-                hooks.event(&ev?);
+                hooks.applied(conn, &ev?);
                 hooks.changed(conn);
             }
             _ = next_tick(&mut sample) => hooks.sample(conn, walker, true),
@@ -402,12 +466,33 @@ struct BotHooks<'a> {
     report: &'a mut BotReport,
     progress: &'a Progress,
     completion: Completion,
+    /// With edits on: the shared record, and the versions of the cells held.
+    fanout: Option<(Arc<FanOut>, edits::HeldVersions)>,
+    /// An editing bot's edits, made from `edit_window.0` until `edit_window.1`.
+    editing: Option<edits::Editing>,
+    edit_window: (Instant, Instant),
+    edit_every: Option<Duration>,
 }
 
 impl DriveHooks for BotHooks<'_> {
-    fn event(&mut self, ev: &Event) {
-        if let Event::Records { count, .. } = ev {
-            self.progress.records.fetch_add(*count as u64, Relaxed);
+    fn applied(&mut self, conn: &Connection, ev: &Event) {
+        let now = Instant::now();
+        match ev {
+            Event::Records { count, .. } => drop(self.progress.records.fetch_add(*count as u64, Relaxed)),
+            Event::EditResult(r) => {
+                if let Some(e) = &mut self.editing {
+                    let ok = e.stats.outcomes[0];
+                    e.answered(r, now);
+                    self.progress.edits.fetch_add(e.stats.outcomes[0] - ok, Relaxed);
+                }
+            }
+            _ => {}
+        }
+        if let Some((fanout, versions)) = &mut self.fanout
+            && let Some(covered) = versions.apply(ev, |c| conn.state().cells().get(&c).map(|h| h.version))
+            && let Event::Changed { cell, .. } = ev
+        {
+            fanout.seen(self.report.id, *cell, covered, now);
         }
     }
 
@@ -424,6 +509,22 @@ impl DriveHooks for BotHooks<'_> {
             self.report.moving.take(conn, walker.position());
         }
     }
+
+    fn edit_every(&self) -> Option<Duration> {
+        self.edit_every
+    }
+
+    fn edit(&mut self, now: Instant, conn: &Connection, walker: &Walker) -> Option<EditOp> {
+        let e = self.editing.as_mut()?;
+        let (from, until) = self.edit_window;
+        (from..until).contains(&now).then(|| e.next_op(walker.position(), &conn.welcome().world.grid))
+    }
+
+    fn edit_sent(&mut self, request: u32, op: &EditOp, at: Instant) {
+        if let Some(e) = &mut self.editing {
+            e.sent(request, op, at);
+        }
+    }
 }
 
 async fn bot_session(
@@ -436,9 +537,12 @@ async fn bot_session(
 ) -> Result<(), ClientError> {
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
+    let editor = cfg.edits.as_ref().filter(|e| report.id < e.editors && e.rate > 0.0);
+    // Editors connect with the token; the other bots watch, read-only.
+    connect.token = editor.map(|e| e.token.clone());
     let seed = cfg.seed.wrapping_add(report.id as u64);
     let walk = Walk { path: cfg.path, speed: cfg.speed, radius: cfg.radius, altitude: cfg.altitude, seed };
-    let (mut conn, mut walker) = connect_walking(endpoint, &connect, cache, walk).await?;
+    let (mut conn, mut walker) = connect_walking_within(endpoint, &connect, cache, walk, cfg.spread).await?;
     progress.connected.fetch_add(1, Relaxed);
     let plan = DrivePlan {
         radius: walk.radius(&conn.welcome().aoi),
@@ -448,8 +552,27 @@ async fn bot_session(
         sample: Some(SAMPLE_EVERY),
         stop: cfg.stop.clone(),
     };
-    let mut hooks = BotHooks { report: &mut *report, progress, completion: Completion::new(started) };
-    let result = match drive(&mut conn, &mut walker, plan, &mut hooks).await {
+    // Edits start once the last bot of the ramp has had `warmup` to connect and fill its area of interest, and stop
+    // `grace` before the walk ends.
+    let ramp_left = (cfg.count - report.id - 1) as f64 / cfg.connect_rate.max(0.001);
+    let edit_window = match editor {
+        Some(e) => (started + Duration::from_secs_f64(ramp_left) + e.warmup, plan.walk_until - e.grace),
+        None => (started, started),
+    };
+    let species = conn.welcome().species.len().min(usize::from(u8::MAX)) as u8;
+    let id = report.id;
+    let mut hooks = BotHooks {
+        report: &mut *report,
+        progress,
+        completion: Completion::new(started),
+        fanout: cfg.edits.as_ref().map(|e| (Arc::clone(&e.fanout), edits::HeldVersions::default())),
+        editing: editor.map(|e| edits::Editing::new(id, seed, species, plan.radius * 0.5, Arc::clone(&e.fanout))),
+        edit_window,
+        edit_every: editor.map(|e| Duration::from_secs_f64(1.0 / e.rate)),
+    };
+    let driven = drive(&mut conn, &mut walker, plan, &mut hooks).await;
+    report.edits = hooks.editing.take().map(edits::Editing::finish);
+    let result = match driven {
         Ok(true) => {
             report.complete = true;
             Ok(())
@@ -460,6 +583,14 @@ async fn bot_session(
     progress.connected.fetch_sub(1, Relaxed);
     report.read(&conn);
     let state = conn.close_into_state();
+    if cfg.edits.is_some() {
+        report.edited_cells = state
+            .cells()
+            .iter()
+            .filter(|(_, h)| h.version > 0 && h.is_complete())
+            .map(|(c, h)| (*c, h.version, edits::cell_digest(h)))
+            .collect();
+    }
     if result.is_ok()
         && let Some(world) = &cfg.verify
     {
@@ -468,7 +599,8 @@ async fn bot_session(
         static CHECKS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(2);
         let world = Arc::clone(world);
         let _permit = CHECKS.acquire().await.expect("the semaphore is never closed");
-        let checked = tokio::task::spawn_blocking(move || verify(&state, &world)).await;
+        let edited = cfg.edits.is_some();
+        let checked = tokio::task::spawn_blocking(move || verify_with(&state, &world, edited)).await;
         report.verify = Some(checked.unwrap_or_else(|e| Err(format!("check task: {e}"))));
     }
     result
@@ -509,6 +641,17 @@ pub struct BotsSummary {
     pub moving: AoiSamples,
     /// Wall time of the whole run.
     pub wall: Duration,
+    /// Cells that edits changed, held at the end by the bots checked: compared with the world only as far as its
+    /// function still decides them ([`verify_with`]).
+    pub edited_checked: usize,
+    /// What the bots' edits came to (`None`: no bot edited).
+    pub edits: Option<EditsSummary>,
+    /// How soon edits reached the other bots (`None`: not measured; [`BotsSummary::with_fanout`]).
+    pub fanout: Option<FanOutReport>,
+    /// Edited (cell, version) pairs held at the end by two bots or more, compared between them.
+    pub edited_compared: usize,
+    /// Of those, the pairs whose content differs between bots.
+    pub edited_differ: usize,
 }
 
 fn percentiles(mut v: Vec<Duration>) -> Option<[Duration; 4]> {
@@ -535,6 +678,19 @@ impl BotsSummary {
             })
             .collect();
         errors.truncate(10);
+        // Every bot holding an edited cell at one version must hold the same content.
+        let mut digests: HashMap<(CellCoord, u32), (u64, usize, bool)> = HashMap::new();
+        for (c, v, d) in reports.iter().flat_map(|r| &r.edited_cells) {
+            let e = digests.entry((*c, *v)).or_insert((*d, 0, false));
+            e.1 += 1;
+            e.2 |= e.0 != *d;
+        }
+        let differ: Vec<_> = digests.iter().filter(|(_, e)| e.2).map(|(k, _)| *k).collect();
+        if let Some((c, v)) = differ.first()
+            && errors.len() < 10
+        {
+            errors.push(format!("cell {c:?} at version {v} differs between bots"));
+        }
         BotsSummary {
             bots: reports.len(),
             failed: reports.iter().filter(|r| r.error.is_some()).count(),
@@ -555,12 +711,24 @@ impl BotsSummary {
                 a
             }),
             wall,
+            edited_checked: checked.iter().filter_map(|v| v.as_ref().ok()).map(|v| v.edited).sum(),
+            edits: EditsSummary::new(reports.iter().filter_map(|r| r.edits.as_ref())),
+            fanout: None,
+            edited_compared: digests.values().filter(|e| e.1 >= 2).count(),
+            edited_differ: differ.len(),
         }
     }
 
-    /// Whether every bot ended complete and every checked bot matched the world.
+    /// The same with the run's fan-out samples ([`FanOut::report`]).
+    pub fn with_fanout(mut self, fanout: FanOutReport) -> BotsSummary {
+        self.fanout = Some(fanout);
+        self
+    }
+
+    /// Whether every bot ended complete, every checked bot matched the world, and bots holding an edited cell at
+    /// one version held the same content.
     pub fn ok(&self) -> bool {
-        self.failed == 0 && self.complete == self.bots && self.verified == self.checked
+        self.failed == 0 && self.complete == self.bots && self.verified == self.checked && self.edited_differ == 0
     }
 }
 
@@ -576,7 +744,15 @@ impl std::fmt::Display for BotsSummary {
             self.wall.as_secs_f64()
         )?;
         if self.checked > 0 {
-            writeln!(f, "checked against the world: {} of {} exact", self.verified, self.checked)?;
+            write!(f, "checked against the world: {} of {} exact", self.verified, self.checked)?;
+            if self.edited_checked > 0 {
+                write!(
+                    f,
+                    " ({} edited cells compared only where the world's function still decides them)",
+                    self.edited_checked
+                )?;
+            }
+            writeln!(f)?;
         }
         if let Some([p50, p90, p99, max]) = self.latency {
             writeln!(
@@ -609,6 +785,79 @@ impl std::fmt::Display for BotsSummary {
                 100.0 * m.held_sum / m.samples as f64,
                 pc(m.complete),
                 pc(m.below)
+            )?;
+        }
+        if let Some(e) = &self.edits {
+            let [ok, denied, invalid, conflict] = e.outcomes;
+            writeln!(
+                f,
+                "edits: {} bots editing; {} sent ({} plants, {} fells), {ok} acknowledged, {denied} denied, \
+                 {invalid} invalid, {conflict} conflicts, {} unanswered; {:.1} acknowledged/s over {:.1} s",
+                e.editors,
+                e.sent(),
+                e.plants,
+                e.fells,
+                e.unanswered,
+                e.ok_per_second(),
+                e.span.as_secs_f64()
+            )?;
+            if let Some([p50, p90, p99, max]) = e.answer {
+                let n = e.outcomes.iter().sum::<u64>();
+                writeln!(
+                    f,
+                    "edit send → answer: p50 {} p90 {} p99 {} max {} ({n} answers)",
+                    ms(p50),
+                    ms(p90),
+                    ms(p99),
+                    ms(max)
+                )?;
+            }
+            for (what, why) in ["denied", "invalid"].iter().zip(&e.refusals) {
+                if let Some(why) = why {
+                    writeln!(f, "  first {what}: {why}")?;
+                }
+            }
+        }
+        if let Some(fo) = &self.fanout {
+            match (fo.visible(), fo.visible_on_all(), fo.watchers()) {
+                (Some([p50, p99, max]), Some([a50, a99, amax]), Some((mean, min))) => {
+                    writeln!(
+                        f,
+                        "edit fan-out, send → visible on another bot holding the cell: p50 {} p99 {} max {} ({} \
+                         samples)",
+                        ms(p50),
+                        ms(p99),
+                        ms(max),
+                        fo.samples.len()
+                    )?;
+                    writeln!(
+                        f,
+                        "edit fan-out, send → visible on every bot that received it (the last one): p50 {} p99 {} \
+                         max {} ({} edits, {mean:.1} bots each on average, at least {min})",
+                        ms(a50),
+                        ms(a99),
+                        ms(amax),
+                        fo.per_edit.len()
+                    )?;
+                }
+                _ => writeln!(f, "edit fan-out: no edit reached another bot")?,
+            }
+            if fo.unmatched > 0 {
+                writeln!(
+                    f,
+                    "  {} (bot, version) sightings not counted: no bot of this run had its answer while the record \
+                     kept the edit (another client's edits, or answers or deltas later than the record's newest \
+                     {} edits)",
+                    fo.unmatched,
+                    FanOut::DEFAULT_CAPACITY
+                )?;
+            }
+        }
+        if self.edits.is_some() || self.edited_compared > 0 {
+            writeln!(
+                f,
+                "edited cells at the end: {} (cell, version) held by two bots or more, {} differ between them",
+                self.edited_compared, self.edited_differ
             )?;
         }
         for e in &self.errors {

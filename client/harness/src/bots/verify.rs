@@ -1,5 +1,8 @@
 //! The check of a client's state against the world: the world as a function ([`World::expand_cell`]), so it works
 //! on worlds that are never materialised (the highlands) as on small ones, by one code path.
+//!
+//! Live edits change cells away from the function (a cell's version counts its edits): [`verify_with`] then checks
+//! an edited cell only as far as the function still decides it.
 
 use std::collections::{BTreeMap, HashSet};
 
@@ -18,6 +21,9 @@ pub struct VerifySummary {
     pub instances: usize,
     /// Species held.
     pub species: usize,
+    /// Cells held that edits changed (version > 0), checked only as far as the world's function decides them (with
+    /// [`verify_with`]`(.., true)`; 0 otherwise).
+    pub edited: usize,
 }
 
 /// The world's placements of `cells`, each cell's in its order (index in the cell = position in the vector). A
@@ -47,6 +53,16 @@ pub fn expected_cells(world: &World, cells: &[CellCoord]) -> BTreeMap<CellCoord,
 /// parameters; the height follows from the position and the terrain, which client and world share), and each
 /// species it needs once.
 pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, String> {
+    verify_with(state, world, false)
+}
+
+/// [`verify`], and with `edited` cells that live edits changed (version > 0) are expected: each edit appends a
+/// planted instance, leaves a felled one's index taken, or sets parameters, so such a cell must hold at least the
+/// world's records, and each of its instances at an index the world has must have the world's species, position and
+/// seed (its parameters may have been set); instances past them were planted and are not compared. Without
+/// `edited`, an edited cell differs from the world and fails the check.
+pub fn verify_with(state: &ClientState, world: &World, edited: bool) -> Result<VerifySummary, String> {
+    let is_edited = |c: &CellCoord| edited && state.cells().get(c).is_some_and(|h| h.version > 0);
     let w = state.welcome().ok_or("no welcome")?;
     if w.world.name != world.name || w.world.seed != world.seed {
         return Err(format!("the server's world `{}` is not the world checked against", w.world.name));
@@ -79,11 +95,14 @@ pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, Strin
     // Every held cell is near the viewpoint, so their bounding rectangle is small.
     let held: Vec<CellCoord> = state.cells().keys().copied().collect();
     let expected = expected_cells(world, &held);
+    let mut edited_cells = 0;
     for (c, h) in state.cells() {
         let n = expected.get(c).map_or(0, Vec::len);
-        if !h.is_complete() || usize::from(h.total) != n {
+        let total_ok = if is_edited(c) { usize::from(h.total) >= n } else { usize::from(h.total) == n };
+        if !h.is_complete() || !total_ok {
             return Err(format!("cell {c:?}: holds {} of {}, the world has {n}", h.records.len(), h.total));
         }
+        edited_cells += usize::from(is_edited(c));
         for r in &h.records {
             if state.species(r.species).is_none() {
                 return Err(format!("cell {c:?} needs species {}, which is not held", r.species));
@@ -97,17 +116,21 @@ pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, Strin
             return Err(format!("instance {:?} held twice", inst.id));
         }
         // The same (cell, index in the cell) in the world's function.
-        let p = expected
-            .get(&inst.id.cell())
-            .and_then(|v| v.get(usize::from(inst.id.index())))
-            .ok_or_else(|| format!("instance {:?} is not in the world", inst.id))?;
+        let edited = is_edited(&inst.id.cell());
+        let p = expected.get(&inst.id.cell()).and_then(|v| v.get(usize::from(inst.id.index())));
+        let p = match p {
+            Some(p) => p,
+            // Past the world's records of an edited cell: planted.
+            None if edited => continue,
+            None => return Err(format!("instance {:?} is not in the world", inst.id)),
+        };
         let [x, _, z] = inst.position;
         // Positions lie on the position grid, so the dequantised record equals the placement bit for bit;
         // `Placement::params` is sorted by slot, as the records' overrides are.
         if u16::from(inst.species) != p.species
             || x.to_bits() != p.x.to_bits()
             || z.to_bits() != p.z.to_bits()
-            || inst.params[..] != p.params[..]
+            || (!edited && inst.params[..] != p.params[..])
             || inst.seed != canopy_worlds::world::instance_seed(world.seed, inst.id)
         {
             return Err(format!("instance {:?} differs from the world: {inst:?} vs {p:?}", inst.id));
@@ -116,5 +139,10 @@ pub fn verify(state: &ClientState, world: &World) -> Result<VerifySummary, Strin
     if state.stats().species_duplicates != 0 {
         return Err(format!("{} species received twice", state.stats().species_duplicates));
     }
-    Ok(VerifySummary { cells: state.cells().len(), instances: ids.len(), species: state.species_held() })
+    Ok(VerifySummary {
+        cells: state.cells().len(),
+        instances: ids.len(),
+        species: state.species_held(),
+        edited: edited_cells,
+    })
 }
