@@ -11,7 +11,7 @@
 #   EDITORS=5 EDIT_RATE=50 scripts/edit-run.sh                    # 5 of the 100 editing at 50 edits/s each
 #   SPREAD= COUNT=20 EDITORS=20 EDIT_RATE=1000 scripts/edit-run.sh  # throughput: 20 editors over the whole world
 #
-# Numbers and the machine they were measured on: docs/edits-numbers.md.
+# Numbers and the machine they were measured on: docs/edits.md ("Numbers").
 #
 # Environment: COUNT, EDITORS (how many bots edit), EDIT_RATE (edits/s per editing bot), DURATION (s), PATH_KIND,
 # SPEED (m/s), SPREAD (side of the square the bots stay in, m; empty: the whole world), RADIUS (m), EDITOR_RATE (the

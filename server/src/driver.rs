@@ -423,9 +423,14 @@ async fn run_session(
                 Ok(Some(chunk)) => {
                     metrics.bytes_in.fetch_add(chunk.bytes.len() as u64, Relaxed);
                     decoder.push(&chunk.bytes);
-                    let before = session.stats().viewpoints;
+                    let (before, denied) = (session.stats().viewpoints, session.stats().edits_denied);
                     let handled = handle_frames(&mut decoder, &mut session, Instant::now());
                     let viewpoints = session.stats().viewpoints - before;
+                    if let Some(edits) = &cfg.edits {
+                        // The session's own refusals count with the writer's.
+                        let n = session.stats().edits_denied - denied;
+                        edits.metrics().outcomes[1].fetch_add(n, Relaxed);
+                    }
                     metrics.viewpoints.fetch_add(viewpoints, Relaxed);
                     if viewpoints > 0 {
                         last_viewpoint = Instant::now();

@@ -258,6 +258,8 @@ pub struct SessionStats {
     pub edits: u64,
     /// Deltas sent.
     pub deltas: u64,
+    /// Edits the session denied itself (read-only, over the editor's rate, too many waiting), before the writer.
+    pub edits_denied: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -603,21 +605,25 @@ impl Session {
             }
             ClientMsg::Streaming(ClientStreaming::Edit(e)) => {
                 self.stats.edits += 1;
-                let Some(editor) = &self.editor else {
-                    self.answer(
-                        e.request,
-                        EditOutcome::Denied("read-only session: connect with an editor token".into()),
-                    );
-                    return Ok(());
+                let denied = match &self.editor {
+                    None => Some("read-only session: connect with an editor token".to_string()),
+                    Some(_) if self.edits_in_flight >= MAX_EDITS_IN_FLIGHT => {
+                        Some("too many edits waiting for an answer".to_string())
+                    }
+                    Some(editor) if !editor.take(now) => {
+                        Some(format!("over {}'s rate of {} edits a second", editor.name, editor.rate))
+                    }
+                    Some(_) => None,
                 };
-                if self.edits_in_flight >= MAX_EDITS_IN_FLIGHT {
-                    self.answer(e.request, EditOutcome::Denied("too many edits waiting for an answer".into()));
-                } else if !editor.take(now) {
-                    let why = format!("over {}'s rate of {} edits a second", editor.name, editor.rate);
-                    self.answer(e.request, EditOutcome::Denied(why));
-                } else {
-                    self.edits_in_flight += 1;
-                    self.edits_out.push_back((e.request, e.op));
+                match denied {
+                    Some(why) => {
+                        self.stats.edits_denied += 1;
+                        self.answer(e.request, EditOutcome::Denied(why));
+                    }
+                    None => {
+                        self.edits_in_flight += 1;
+                        self.edits_out.push_back((e.request, e.op));
+                    }
                 }
             }
             ClientMsg::Streaming(ClientStreaming::Fetch(id)) => {
