@@ -1,28 +1,15 @@
 //! Live edits on the wire: byte snapshots of the edit, its result, the cell delta, resume and refresh messages and
 //! the versioned batch, their phases, and rejection of hostile values.
 
+mod wire;
+
 use canopy_protocol::edit::{CellDelta, Edit, EditOp, EditOutcome, EditResult, Planted, Resume, ResumeCell};
 use canopy_protocol::messages::{ClientHandshake, ClientStreaming, ServerStreaming};
 use canopy_protocol::record::PackedF32;
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, MessageError, Phase, ServerMsg, netlimits,
 };
-
-fn hex(b: &[u8]) -> String {
-    b.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-fn check_client(msg: &ClientMsg, expected: &str) {
-    let bytes = msg.encode();
-    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
-    assert_eq!(ClientMsg::decode(&bytes).as_ref(), Ok(msg));
-}
-
-fn check_server(msg: &ServerMsg, expected: &str) {
-    let bytes = msg.encode();
-    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
-    assert_eq!(ServerMsg::decode(&bytes).as_ref(), Ok(msg));
-}
+use wire::{check_client, check_server};
 
 fn edit(op: EditOp) -> ClientMsg {
     ClientMsg::Streaming(ClientStreaming::Edit(Edit { request: 300, op }))

@@ -1,6 +1,8 @@
 //! The streaming protocol's wire: byte snapshots of every message variant, round trips, phase legality, framing,
 //! and rejection of malformed, oversized and hostile bytes (a stable-toolchain stand-in for the fuzz targets).
 
+mod wire;
+
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{
@@ -13,23 +15,7 @@ use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase,
     ServerMsg, SpeciesHash, netlimits,
 };
-
-fn hex(b: &[u8]) -> String {
-    b.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-/// The snapshot check: the encoding is pinned, and it decodes back to the message.
-fn check_client(msg: &ClientMsg, expected: &str) {
-    let bytes = msg.encode();
-    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
-    assert_eq!(ClientMsg::decode(&bytes).as_ref(), Ok(msg));
-}
-
-fn check_server(msg: &ServerMsg, expected: &str) {
-    let bytes = msg.encode();
-    assert_eq!(hex(&bytes), expected, "the wire form of {} changed; bump PROTOCOL_VERSION if intended", msg.name());
-    assert_eq!(ServerMsg::decode(&bytes).as_ref(), Ok(msg));
-}
+use wire::{check_client, check_server, hex};
 
 fn viewpoint() -> Viewpoint {
     Viewpoint { seq: 7, position: [100.5, -20.25], yaw: 1.5, velocity: [3.0, -4.0], radius: 160.0 }

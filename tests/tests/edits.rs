@@ -3,6 +3,8 @@
 //! from all of them; a client that reconnects is sent only the deltas it missed, no cell again; read-only sessions
 //! and unknown tokens are denied and change nothing. Every wait is bounded: a hang fails the test.
 
+mod support;
+
 use std::collections::HashMap;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -13,47 +15,20 @@ use std::time::Duration;
 use canopy_client::net::endpoint;
 use canopy_client::state::{ClientState, Event, InstanceView};
 use canopy_client::{ConnectConfig, Connection, Trust};
-use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_protocol::aoi::{AoiParams, Viewpoint};
 use canopy_protocol::edit::{EditOp, EditOutcome};
-use canopy_protocol::messages::{ServerMsgKind, TerrainDesc};
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::record::position_step;
-use canopy_protocol::{CellCoord, InstanceId, SpeciesGraph};
+use canopy_protocol::{CellCoord, InstanceId};
 use canopy_server::editors::editor_line;
 use canopy_server::edits::{EditStore, MemoryEditStore};
-use canopy_server::store::{PlacedInstance, StoreBuilder};
 use canopy_server::{EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig, WorldStore};
+use support::{ALICE, BOB, CELL, base};
 
-const CELL: f32 = 32.0;
-const ALICE: [u8; 32] = [1; 32];
-const BOB: [u8; 32] = [2; 32];
 /// Far more than any wait here should take, short enough that a hang fails well within CI's patience.
 const WAIT: Duration = Duration::from_secs(20);
 /// A viewpoint whose area of interest holds the whole 8 × 8 grid.
 const EVERYWHERE: f32 = 200.0;
-
-/// An 8 × 8 grid of 32 m cells around the origin, 1 to 5 instances a cell of two species (worm, conifer).
-fn base() -> Arc<dyn WorldStore> {
-    let species: Vec<SpeciesGraph> =
-        ["worm", "conifer"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
-    let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) };
-    let mut b = StoreBuilder::new("edits", 7, grid, TerrainDesc::flat([-128.0, -128.0], 256.0), &species).unwrap();
-    for z in -4i32..4 {
-        for x in -4i32..4 {
-            let o = grid.cell_origin(CellCoord::new(x, z));
-            let n = (x + z).rem_euclid(5) as usize + 1;
-            let instances: Vec<PlacedInstance> = (0..n)
-                .map(|i| PlacedInstance {
-                    species: (i % 2) as u16,
-                    x: o[0] + 1.0 + i as f32 * 5.0,
-                    z: o[1] + 2.0 + i as f32 * 3.0,
-                    params: if i % 2 == 0 { vec![(0, 3.0 + i as f32)] } else { vec![] },
-                })
-                .collect();
-            b.add_cell(CellCoord::new(x, z), &instances).unwrap();
-        }
-    }
-    b.finish().shared()
-}
 
 /// A server over [`base`] with live edits; Alice and Bob are editors.
 struct Fixture {
