@@ -217,8 +217,8 @@ pub enum SessionError {
     /// The client did not finish its handshake in time.
     #[error("handshake not finished within {0:?}")]
     HandshakeTimeout(Duration),
-    /// Viewpoints arrive faster than the session's rate allows.
-    #[error("viewpoints faster than {0} a second")]
+    /// Viewpoints (with refreshes and refused edits) arrive faster than the session's rate allows.
+    #[error("viewpoints, refreshes and refused edits faster than {0} a second")]
     ViewpointFlood(u32),
     /// The resume messages name more cells than allowed, or not in increasing order.
     #[error("resume names more than {0} cells or repeats one")]
@@ -617,6 +617,12 @@ impl Session {
                 };
                 match denied {
                     Some(why) => {
+                        // Refused edits cost the server an answer each: they draw on the same budget as
+                        // viewpoints, so a flood of them ends the session instead of queueing answers.
+                        if !self.viewpoints.ready(now) {
+                            return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
+                        }
+                        self.viewpoints.take(now, 1);
                         self.stats.edits_denied += 1;
                         self.answer(e.request, EditOutcome::Denied(why));
                     }
@@ -646,6 +652,11 @@ impl Session {
                 }
             }
             ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
+                // A refresh sends a whole cell again: at most as often as viewpoints.
+                if !self.viewpoints.ready(now) {
+                    return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
+                }
+                self.viewpoints.take(now, 1);
                 if self.held.contains_key(&c) {
                     self.release(c);
                     self.dirty = true;

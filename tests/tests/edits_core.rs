@@ -309,3 +309,27 @@ fn a_slow_edit_store_never_blocks_a_session() {
     assert!(slowest < Duration::from_millis(500), "a step waited {slowest:?} for a read");
     assert_eq!(sorted(p.client.instances(&|_, _| 0.0).collect()), expected(&w));
 }
+
+#[test]
+fn a_flood_of_refused_edits_ends_the_session_instead_of_queueing_answers() {
+    let w = world();
+    let mut reader = Pair::connect(&w, ClientState::new(), None, 17);
+    settle(&w, &mut [&mut reader]);
+    let mut refused = 0;
+    let ended = (0..1_000).find_map(|i| {
+        let (_, msg) =
+            reader.client.edit(EditOp::Plant { species: 0, x: i as f32 * 0.01, z: 5.0, params: vec![] }).unwrap();
+        match reader.server.handle(reader.now, msg) {
+            Ok(()) => {
+                refused += 1;
+                None
+            }
+            Err(e) => Some(e),
+        }
+    });
+    let e = ended.expect("the flood ended the session");
+    assert_eq!(e.close_code(), canopy_protocol::CloseCode::Invalid);
+    // About the burst of the viewpoint budget (100, and what refilled while the pair settled).
+    assert!((100..=110).contains(&refused), "{refused} refused before the end");
+    assert_eq!(reader.server.stats().edits_denied, refused);
+}
