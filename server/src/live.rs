@@ -165,7 +165,8 @@ impl Shared {
         let overlay =
             Overlay::from_log(base_total, &log).map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
         let kept = self.with(|o| o.put(c, Arc::new(overlay), self.limit_bytes));
-        self.edits.watch(c, Arc::clone(self) as Arc<dyn canopy_edits::EditWatcher>);
+        // Weakly: the store the watch lives in belongs to this, and must not keep it alive.
+        self.edits.watch(c, Arc::new(Watcher(Arc::downgrade(self))));
         Ok(kept)
     }
 
@@ -360,6 +361,17 @@ impl LiveStore {
                 Ok(Some((base, overlay)))
             }
             _ => Ok(None),
+        }
+    }
+}
+
+/// The watcher a shared store tells of a cell's edits: the live store, if it still exists.
+struct Watcher(std::sync::Weak<Shared>);
+
+impl canopy_edits::EditWatcher for Watcher {
+    fn edited(&self, e: canopy_edits::StoredEdit) {
+        if let Some(shared) = self.0.upgrade() {
+            canopy_edits::EditWatcher::edited(&*shared, e);
         }
     }
 }
