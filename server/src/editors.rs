@@ -277,10 +277,10 @@ mod tests {
             ("editor a", "f:1:9: expected `sha256:`"),
             ("editor a sha256:zz", "f:1:10: expected `sha256:` and 64"),
             (&format!("{} region 1 2 3", editor_line("a", &[1; 32], None, None)), "needs more numbers"),
-            (&format!("{} rate 0", editor_line("a", &[1; 32], None, None)), ":1:89: rate is a whole number"),
+            (&format!("{} rate 0", editor_line("a", &[1; 32], None, None)), ":1:87: rate is a whole number"),
             (
                 &format!("\n  {} colour 3", editor_line("a", &[1; 32], None, None)),
-                "f:2:85: expected `region` or `rate`",
+                "f:2:84: expected `region` or `rate`",
             ),
         ];
         for (text, want) in cases {
