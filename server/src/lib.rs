@@ -25,12 +25,12 @@ pub mod terrain;
 pub mod tls;
 
 pub use admission::AdmissionConfig;
+pub use canopy_edits as edits;
 pub use canopy_worlds as worlds;
 pub use cells::{CellCache, CellCacheConfig};
 pub use driver::{Server, ServerConfig, StartError};
-pub use session::{Session, SessionConfig, SessionError, Transmit};
-pub use store::{GridStore, WorldStore};
-pub use canopy_edits as edits;
 pub use editing::EditService;
 pub use editors::Editors;
 pub use live::LiveStore;
+pub use session::{Session, SessionConfig, SessionError, Transmit};
+pub use store::{GridStore, WorldStore};

@@ -25,7 +25,6 @@ pub fn describe_terrain(terrain: &Terrain) -> TerrainDesc {
     }
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::*;

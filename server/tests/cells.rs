@@ -409,9 +409,8 @@ fn a_session_teleporting_over_a_world_of_a_million_metres_square_stays_within_th
     places.push(places[0]);
     let mut first_visit: HashMap<CellCoord, CellBatch> = HashMap::new();
     let mut records = 0usize;
-    let aoi_cells = Aoi::new(&Viewpoint::at(1, [0.0, 0.0], 300.0), &SessionConfig::default().aoi)
-        .inner_cells(cache.grid())
-        .len();
+    let aoi_cells =
+        Aoi::new(&Viewpoint::at(1, [0.0, 0.0], 300.0), &SessionConfig::default().aoi).inner_cells(cache.grid()).len();
     for (i, p) in places.iter().enumerate() {
         let now = t0 + Duration::from_secs(i as u64 + 1);
         s.handle(now, ClientMsg::viewpoint(Viewpoint::at(i as u32 + 2, *p, 300.0))).unwrap();

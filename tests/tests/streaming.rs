@@ -157,7 +157,12 @@ async fn bad_input_closes_that_connection_with_a_reason_and_the_others_carry_on(
         ([hello.clone(), hello.clone()].concat(), CloseCode::OutOfOrder, "hello is not legal in phase Welcomed"),
         (
             frame(
-                &ClientMsg::Handshake(ClientHandshake::Hello(Hello { version: 99, client: "future".into(), token: None })).encode(),
+                &ClientMsg::Handshake(ClientHandshake::Hello(Hello {
+                    version: 99,
+                    client: "future".into(),
+                    token: None,
+                }))
+                .encode(),
             ),
             CloseCode::Version,
             "client speaks protocol version 99",
