@@ -224,7 +224,13 @@ pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
     let height =
         canopy_client::world::ground(&w.world.terrain).map_err(|e| anyhow::anyhow!("the world's ground: {e}"))?;
     let live = held.records.len() - held.felled.len();
-    println!("cell {}:{} version {}: {live} instances ({} felled)", cell.x, cell.z, held.version, held.felled.len());
+    let mut out = format!(
+        "cell {}:{} version {}: {live} instances ({} felled)\n",
+        cell.x,
+        cell.z,
+        held.version,
+        held.felled.len()
+    );
     let mut instances: Vec<_> =
         c.conn.state().instances(&|x, z| height.height(x, z)).filter(|i| i.id.cell() == cell).collect();
     instances.sort_by_key(|i| i.id);
@@ -236,9 +242,13 @@ pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
             .map(|(s, v)| format!("{}={v}", g.params.get(usize::from(*s)).map_or("?", |p| p.name.as_str())))
             .collect();
         let [x, y, z] = i.position;
-        println!("{}  {}  {x:.2} {y:.2} {z:.2}  {}", show_id(i.id), g.name, params.join(" "));
+        out += &format!("{}  {}  {x:.2} {y:.2} {z:.2}  {}\n", show_id(i.id), g.name, params.join(" "));
     }
-    Ok(ExitCode::SUCCESS)
+    // A reader that stopped early (`| head`) is no error.
+    match std::io::Write::write_all(&mut std::io::stdout().lock(), out.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(ExitCode::SUCCESS),
+    }
 }
 
 /// `canopy world bake [MANIFEST] --data DIR -o OUT`: the world with the edits stored in `DIR` folded into a new
