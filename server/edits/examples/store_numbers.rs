@@ -10,6 +10,7 @@
 //! again with `--restart DIR`), so the RSS is the reopened store's, not the fill's leftovers. The file is in the OS
 //! page cache then (it was just written): the load latencies are those of a warm restart.
 
+use canopy_protocol::xorshift::XorShift64;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -30,15 +31,16 @@ const FILL_THRESHOLD: u64 = 1_000_000;
 /// Cells loaded after the restart.
 const RESTART_LOADS: usize = 1_000;
 
-/// xorshift64*.
-struct Rng(u64);
+/// The project's seeded test generator, with a bounded draw.
+struct Rng(XorShift64);
 
 impl Rng {
+    fn new(seed: u64) -> Rng {
+        Rng(XorShift64::new(seed))
+    }
+
     fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+        self.0.next()
     }
 
     fn below(&mut self, n: u64) -> u64 {
@@ -49,7 +51,7 @@ impl Rng {
 /// `n` distinct cells in a 4,000 × 4,000 region around the origin (negative coordinates included), the same for a
 /// seed.
 fn cells(n: usize, seed: u64) -> Vec<CellCoord> {
-    let mut rng = Rng(seed);
+    let mut rng = Rng::new(seed);
     let mut seen = HashSet::with_capacity(n);
     let mut out = Vec::with_capacity(n);
     while out.len() < n {
@@ -72,7 +74,7 @@ struct Workload {
 impl Workload {
     fn new(cells: Vec<CellCoord>, seed: u64) -> Workload {
         let next = vec![1; cells.len()];
-        Workload { cells, next, rng: Rng(seed) }
+        Workload { cells, next, rng: Rng::new(seed) }
     }
 
     fn edit(&mut self) -> StoredEdit {
@@ -294,7 +296,7 @@ fn restart(dir: &Path) -> Result<(), Box<dyn std::error::Error>> {
     println!("restart: RSS after open: {} (+{})", mib(after), mib(after.saturating_sub(before)));
 
     let all = cells(FILL_CELLS, SEED);
-    let mut rng = Rng(SEED + 4);
+    let mut rng = Rng::new(SEED + 4);
     let mut latencies = Vec::with_capacity(RESTART_LOADS);
     let mut loaded = 0usize;
     for _ in 0..RESTART_LOADS {

@@ -2,6 +2,7 @@
 //! in-memory reference store on a randomised sequence (conflicts included), refuses files that are not regular files
 //! and rows that do not decode.
 
+use canopy_protocol::xorshift::XorShift64;
 use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
 use std::process::{Command, Stdio};
@@ -11,15 +12,16 @@ use std::time::{Duration, Instant};
 use canopy_edits::{CellEdit, EditStore, EditStoreError, MemoryEditStore, SqliteEditStore, StoredEdit};
 use canopy_protocol::{CellCoord, InstanceRecord};
 
-/// xorshift64*: a small seeded generator, the same sequence on every run.
-struct Rng(u64);
+/// The project's seeded test generator, with a bounded draw.
+struct Rng(XorShift64);
 
 impl Rng {
+    fn new(seed: u64) -> Rng {
+        Rng(XorShift64::new(seed))
+    }
+
     fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+        self.0.next()
     }
 
     fn below(&mut self, n: u64) -> u64 {
@@ -73,7 +75,7 @@ fn assert_same(sqlite: &dyn EditStore, memory: &dyn EditStore) {
 fn matches_the_memory_store_and_survives_reopening() {
     let dir = tempfile::tempdir().unwrap();
     let memory = MemoryEditStore::new();
-    let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+    let mut rng = Rng::new(0x9e37_79b9_7f4a_7c15);
     let mut conflicts = 0;
     {
         let sqlite = SqliteEditStore::open(dir.path()).unwrap();
@@ -335,7 +337,7 @@ fn loads_see_a_consistent_prefix_while_a_writer_appends() {
 fn append_until_killed(dir: &Path) {
     let store = SqliteEditStore::open(dir).unwrap();
     let cells = [CellCoord::new(-3, 9), CellCoord::new(i32::MAX, i32::MIN)];
-    let mut rng = Rng(7);
+    let mut rng = Rng::new(7);
     let mut next = [1u32; 2];
     let mut out = std::io::stdout().lock();
     let start = Instant::now();
