@@ -3,9 +3,10 @@
 
 use std::process::Command;
 
-use canopy_protocol::record::{ParamOverride, quantize};
+use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellCoord, InstanceRecord};
 use canopy_server::edits::{CellEdit, EditStore, Overlay, SqliteEditStore, StoredEdit};
+use canopy_server::store::{CellData, StoreHead};
 use canopy_worlds::world::{CellKey, Placement, World};
 
 const MANIFEST: &str = "seed 7\nbounds -64 -64 64 64\ncell 32\nspecies conifer conifer\nspecies bush bush\n\
@@ -15,23 +16,10 @@ scatter conifer {\n  spacing 6\n  param height = 10 .. 20 step 1\n}\nscatter bus
 type Live = Vec<(u8, u16, u16, Vec<(u16, u32)>)>;
 
 fn quantised(world: &World, c: CellKey, placements: &[Placement]) -> (Vec<InstanceRecord>, Vec<ParamOverride>) {
-    let o = world.cell_origin(c);
-    let records = placements
-        .iter()
-        .map(|p| {
-            InstanceRecord::new(
-                p.species as u8,
-                quantize(p.x, o[0], world.cell_size),
-                quantize(p.z, o[1], world.cell_size),
-            )
-        })
-        .collect();
-    let overrides = placements
-        .iter()
-        .enumerate()
-        .flat_map(|(i, p)| p.params.iter().map(move |&(slot, value)| ParamOverride { record: i as u16, slot, value }))
-        .collect();
-    (records, overrides)
+    // As a server holds the cell.
+    let grid = StoreHead::of_world(world).unwrap().world().grid;
+    let d = CellData::from_placements(&grid, CellCoord::new(c.x, c.z), world.species.len(), placements).unwrap();
+    (d.records.clone(), d.overrides.clone())
 }
 
 fn live(records: &[InstanceRecord], overrides: &[ParamOverride], felled: &[u16]) -> Live {

@@ -260,11 +260,14 @@ pub fn bake(
     data: &std::path::Path,
     out: &std::path::Path,
 ) -> anyhow::Result<ExitCode> {
-    use canopy_protocol::record::{dequantize, quantize};
+    use canopy_protocol::record::dequantize;
     use canopy_server::edits::{EditStore, Overlay, SqliteEditStore};
+    use canopy_server::store::{CellData, StoreHead};
     use canopy_worlds::world::{CellKey, EMBEDDED_WORLDS};
 
     let world = super::load_world(manifest).map_err(|d| anyhow::anyhow!("{d}"))?;
+    // The server's grid of the world: cells are quantised exactly as a server holds them.
+    let grid = StoreHead::of_world(&world)?.world().grid;
     // The manifest's text and where its relative paths lead.
     let (text, base) = match manifest {
         Some(path) if path.exists() => {
@@ -298,32 +301,18 @@ pub fn bake(
         }
         // The cell as the server holds it: the world function's placements, quantised in the cell.
         let placements = world.expand_cell(key);
-        let origin = world.cell_origin(key);
-        let s = world.cell_size;
-        let records: Vec<canopy_protocol::InstanceRecord> = placements
-            .iter()
-            .map(|p| {
-                let q = [quantize(p.x, origin[0], s), quantize(p.z, origin[1], s)];
-                canopy_protocol::InstanceRecord::new(p.species as u8, q[0], q[1])
-            })
-            .collect();
-        let overrides: Vec<canopy_protocol::record::ParamOverride> = placements
-            .iter()
-            .enumerate()
-            .flat_map(|(i, p)| {
-                p.params.iter().map(move |&(slot, value)| canopy_protocol::record::ParamOverride {
-                    record: i as u16,
-                    slot,
-                    value,
-                })
-            })
-            .collect();
+        let base = CellData::from_placements(&grid, cell, world.species.len(), &placements)?;
+        let (records, overrides) = (&base.records, &base.overrides);
         let overlay = Overlay::from_log(records.len() as u16, &store.load(cell)?)
             .map_err(|e| anyhow::anyhow!("cell {}:{}: {e}", cell.x, cell.z))?;
-        let applied = overlay.apply_to(&records, &overrides);
+        let applied = overlay.apply_to(records, overrides);
+        let origin = grid.cell_origin(cell);
         lines.push(format!("# cell {}:{} at version {version}", cell.x, cell.z));
+        // Overrides are sorted by record: each record's are one run.
         let own = |i: usize| -> Vec<(u16, f32)> {
-            applied.overrides.iter().filter(|o| usize::from(o.record) == i).map(|o| (o.slot, o.value)).collect()
+            let lo = applied.overrides.partition_point(|o| usize::from(o.record) < i);
+            let hi = applied.overrides.partition_point(|o| usize::from(o.record) <= i);
+            applied.overrides[lo..hi].iter().map(|o| (o.slot, o.value)).collect()
         };
         for (i, r) in applied.records.iter().enumerate() {
             let felled = applied.felled.binary_search(&(i as u16)).is_ok();
@@ -337,6 +326,7 @@ pub fn bake(
                     sets += 1;
                 }
             } else if !felled {
+                let s = grid.cell_size;
                 let (x, z) = (dequantize(r.qx(), origin[0], s), dequantize(r.qz(), origin[1], s));
                 lines.push(format!("instance {} at {x} {z}{}", name(r.species), params(r.species, &own(i))));
                 plants += 1;
