@@ -429,7 +429,7 @@ async fn run_session(
                     if let Some(edits) = &cfg.edits {
                         // The session's own refusals count with the writer's.
                         let n = session.stats().edits_denied - denied;
-                        edits.metrics().outcomes[1].fetch_add(n, Relaxed);
+                        edits.metrics().refused(n);
                     }
                     metrics.viewpoints.fetch_add(viewpoints, Relaxed);
                     if viewpoints > 0 {

@@ -79,6 +79,11 @@ pub struct EditMetrics {
 }
 
 impl EditMetrics {
+    /// Count `n` edits refused before they reached the writer (by the sessions themselves).
+    pub fn refused(&self, n: u64) {
+        self.outcomes[1].fetch_add(n, Relaxed);
+    }
+
     /// Count an outcome.
     pub fn count(&self, o: &EditOutcome) {
         let i = match o {

@@ -456,19 +456,7 @@ impl Session {
                     d.grant = h.grant;
                     // Species of planted instances go first, on the same lane, if the client lacks them.
                     for species in d.adds.iter().map(|a| a.record.species).collect::<BTreeSet<u8>>() {
-                        if !self.has_species(species)
-                            && let Some(bytes) = store.species_frame(species)
-                        {
-                            self.set_species(species);
-                            let t = Transmit {
-                                stream: StreamId::Lane(h.lane),
-                                bytes,
-                                body: Bytes::new(),
-                                class: MsgClass::Species,
-                                records: 0,
-                            };
-                            self.urgent.push_back(t);
-                        }
+                        self.send_species_once(species, StreamId::Lane(h.lane));
                     }
                     let held = self.held.get_mut(&cell).expect("held");
                     (held.sent, held.total, held.version) = (d.total, d.total, d.to_version);
@@ -619,10 +607,7 @@ impl Session {
                     Some(why) => {
                         // Refused edits cost the server an answer each: they draw on the same budget as
                         // viewpoints, so a flood of them ends the session instead of queueing answers.
-                        if !self.viewpoints.ready(now) {
-                            return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
-                        }
-                        self.viewpoints.take(now, 1);
+                        self.take_request(now)?;
                         self.stats.edits_denied += 1;
                         self.answer(e.request, EditOutcome::Denied(why));
                     }
@@ -636,27 +621,11 @@ impl Session {
                 if usize::from(id) >= self.store.species().len() {
                     return Err(SessionError::UnknownSpecies(id));
                 }
-                // Each species goes to a client once, however often it asks.
-                if !self.has_species(id)
-                    && let Some(bytes) = self.store.species_frame(id)
-                {
-                    self.set_species(id);
-                    let t = Transmit {
-                        stream: StreamId::Lane(0),
-                        bytes,
-                        body: Bytes::new(),
-                        class: MsgClass::Species,
-                        records: 0,
-                    };
-                    self.urgent.push_back(t);
-                }
+                self.send_species_once(id, StreamId::Lane(0));
             }
             ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
                 // A refresh sends a whole cell again: at most as often as viewpoints.
-                if !self.viewpoints.ready(now) {
-                    return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
-                }
-                self.viewpoints.take(now, 1);
+                self.take_request(now)?;
                 if self.held.contains_key(&c) {
                     self.release(c);
                     self.dirty = true;
@@ -668,14 +637,32 @@ impl Session {
                     return Err(SessionError::Stale { seq: v.seq, last });
                 }
                 // A flood of viewpoints costs the server a release pass each: bounded by a token bucket.
-                if !self.viewpoints.ready(now) {
-                    return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
-                }
-                self.viewpoints.take(now, 1);
+                self.take_request(now)?;
                 self.set_viewpoint(v);
             }
         }
         Ok(())
+    }
+
+    /// Take one request (a viewpoint, a refresh, a refused edit: each costs the server work or an answer) from the
+    /// session's budget; past it the client floods and the session ends.
+    fn take_request(&mut self, now: Instant) -> Result<(), SessionError> {
+        if !self.viewpoints.ready(now) {
+            return Err(SessionError::ViewpointFlood(self.cfg.viewpoint_rate.0));
+        }
+        self.viewpoints.take(now, 1);
+        Ok(())
+    }
+
+    /// Send species `id`'s program on `stream` now, unless the client holds it or was sent it.
+    fn send_species_once(&mut self, id: u8, stream: StreamId) {
+        if !self.has_species(id)
+            && let Some(bytes) = self.store.species_frame(id)
+        {
+            self.set_species(id);
+            let t = Transmit { stream, bytes, body: Bytes::new(), class: MsgClass::Species, records: 0 };
+            self.urgent.push_back(t);
+        }
     }
 
     /// Take a new viewpoint. Releases happen now, viewpoint by viewpoint, exactly as the client evicts when it sends
