@@ -16,13 +16,14 @@
 
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::atomic::{AtomicBool, AtomicU64};
+use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_client::net::endpoint;
 use canopy_client::state::ClientState;
 use canopy_client::{ConnectConfig, Connection, Trust};
+use canopy_harness::hole::HoleRelay;
 use canopy_protocol::aoi::{Grid, Viewpoint};
 use canopy_protocol::edit::EditOp;
 use canopy_protocol::frame::{FrameDecoder, frame};
@@ -31,7 +32,6 @@ use canopy_server::driver::{OWED_SLACK, SEND_WINDOW};
 use canopy_server::session::SendBudget;
 use canopy_server::{GridStore, Server, ServerConfig, SessionConfig, WorldStore};
 use canopy_worlds::world::World;
-use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, timeout};
 
@@ -61,68 +61,6 @@ fn store() -> Arc<dyn WorldStore> {
     Arc::clone(STORE.get_or_init(|| {
         GridStore::from_world(&World::default_world()).expect("the default world builds a store").shared()
     }))
-}
-
-/// A UDP relay for one client on loopback: client → server always, server → client until [`HoleRelay::black_hole`].
-struct HoleRelay {
-    addr: SocketAddr,
-    down_open: Arc<AtomicBool>,
-    /// Server → client bytes dropped since the black hole opened.
-    dropped: Arc<AtomicU64>,
-    tasks: Vec<JoinHandle<()>>,
-}
-
-impl HoleRelay {
-    async fn start(server: SocketAddr) -> HoleRelay {
-        let front = Arc::new(UdpSocket::bind("127.0.0.1:0").await.unwrap());
-        let back = Arc::new(UdpSocket::bind("127.0.0.1:0").await.unwrap());
-        back.connect(server).await.unwrap();
-        let addr = front.local_addr().unwrap();
-        let client: Arc<OnceLock<SocketAddr>> = Arc::default();
-        let down_open = Arc::new(AtomicBool::new(true));
-        let dropped = Arc::new(AtomicU64::new(0));
-        let up = {
-            let (front, back, client) = (Arc::clone(&front), Arc::clone(&back), Arc::clone(&client));
-            tokio::spawn(async move {
-                let mut buf = vec![0u8; 65_536];
-                while let Ok((n, from)) = front.recv_from(&mut buf).await {
-                    client.get_or_init(|| from);
-                    let _ = back.send(&buf[..n]).await;
-                }
-            })
-        };
-        let down = {
-            let (open, dropped) = (Arc::clone(&down_open), Arc::clone(&dropped));
-            tokio::spawn(async move {
-                let mut buf = vec![0u8; 65_536];
-                while let Ok(n) = back.recv(&mut buf).await {
-                    match client.get() {
-                        Some(to) if open.load(Relaxed) => drop(front.send_to(&buf[..n], *to).await),
-                        _ => drop(dropped.fetch_add(n as u64, Relaxed)),
-                    }
-                }
-            })
-        };
-        HoleRelay { addr, down_open, dropped, tasks: vec![up, down] }
-    }
-
-    /// From now on nothing the server sends reaches the client (so the client acknowledges nothing new).
-    fn black_hole(&self) {
-        self.down_open.store(false, Relaxed);
-    }
-
-    /// Stop relaying either way: to the server, the client is gone.
-    fn cut(&self) {
-        for t in &self.tasks {
-            t.abort();
-        }
-    }
-}
-
-impl Drop for HoleRelay {
-    fn drop(&mut self) {
-        self.cut();
-    }
 }
 
 /// A client that never acknowledges what the server sends after its welcome.
@@ -192,7 +130,7 @@ impl Hostile {
         at: [f32; 2],
         radius: f32,
     ) -> Hostile {
-        let relay = HoleRelay::start(server).await;
+        let relay = HoleRelay::start(server).await.expect("a relay on loopback");
         let conn = ep.connect_with(cfg.clone(), relay.addr, "localhost").unwrap().await.unwrap();
         let (mut control, mut recv) = conn.open_bi().await.unwrap();
         let mut state = ClientState::new();

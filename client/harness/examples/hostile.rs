@@ -25,11 +25,12 @@
 //!   radius 512 — at `--rate` a second (0: as fast as it can write) for `--duration` seconds or until the server
 //!   closes it. Prints the viewpoint bytes, the bytes received and their ratio.
 
+use canopy_harness::hole::HoleRelay;
 use std::collections::{BTreeMap, HashSet};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use std::sync::Arc;
+use std::sync::atomic::AtomicU64;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::atomic::{AtomicBool, AtomicU64};
-use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_client::net::endpoint;
@@ -113,60 +114,6 @@ impl Rng {
 fn place(grid: &Grid, f: [f32; 2]) -> [f32; 2] {
     let (lo, hi) = (grid.cell_origin(grid.min), grid.cell_origin(grid.max));
     [lo[0] + f[0] * (hi[0] - lo[0]), lo[1] + f[1] * (hi[1] - lo[1])]
-}
-
-/// A UDP relay for one client: client → server always, server → client until [`HoleRelay::black_hole`].
-struct HoleRelay {
-    addr: SocketAddr,
-    down_open: Arc<AtomicBool>,
-    tasks: Vec<JoinHandle<()>>,
-}
-
-impl HoleRelay {
-    async fn start(server: SocketAddr) -> std::io::Result<HoleRelay> {
-        let front = Arc::new(UdpSocket::bind("127.0.0.1:0").await?);
-        let back = Arc::new(UdpSocket::bind("127.0.0.1:0").await?);
-        back.connect(server).await?;
-        let addr = front.local_addr()?;
-        let client: Arc<OnceLock<SocketAddr>> = Arc::default();
-        let down_open = Arc::new(AtomicBool::new(true));
-        let up = {
-            let (front, back, client) = (Arc::clone(&front), Arc::clone(&back), Arc::clone(&client));
-            tokio::spawn(async move {
-                let mut buf = vec![0u8; 65_536];
-                while let Ok((n, from)) = front.recv_from(&mut buf).await {
-                    client.get_or_init(|| from);
-                    let _ = back.send(&buf[..n]).await;
-                }
-            })
-        };
-        let open = Arc::clone(&down_open);
-        let down = tokio::spawn(async move {
-            let mut buf = vec![0u8; 65_536];
-            while let Ok(n) = back.recv(&mut buf).await {
-                if let (Some(to), true) = (client.get(), open.load(Relaxed)) {
-                    let _ = front.send_to(&buf[..n], *to).await;
-                }
-            }
-        });
-        Ok(HoleRelay { addr, down_open, tasks: vec![up, down] })
-    }
-
-    fn black_hole(&self) {
-        self.down_open.store(false, Relaxed);
-    }
-
-    fn cut(&self) {
-        for t in &self.tasks {
-            t.abort();
-        }
-    }
-}
-
-impl Drop for HoleRelay {
-    fn drop(&mut self) {
-        self.cut();
-    }
 }
 
 /// Count every byte of `stream` as it arrives; decode nothing.

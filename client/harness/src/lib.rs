@@ -5,4 +5,5 @@
 
 pub mod bandwidth;
 pub mod bots;
+pub mod hole;
 pub mod numbers;
