@@ -313,21 +313,23 @@ impl Writer {
         error: &EditStoreError,
         retry: bool,
     ) -> Vec<EditJob> {
-        let mut logs: BTreeMap<CellCoord, Option<Vec<StoredEdit>>> = BTreeMap::new();
+        // Each cell read once again (and watched again, for a shared store): what the sessions get, and what says
+        // which edits were stored.
+        let mut read: BTreeMap<CellCoord, Arc<Overlay>> = BTreeMap::new();
         for (c, w) in working {
-            // The cell read again (and watched again, for a shared store) is what the sessions get.
             match self.live.reload(*c, &w.base) {
-                Ok(overlay) if overlay.version() > 0 => {
-                    self.hub.announce(CellChange { cell: *c, version: overlay.version() });
+                Ok(overlay) => {
+                    if overlay.version() > 0 {
+                        self.hub.announce(CellChange { cell: *c, version: overlay.version() });
+                    }
+                    read.insert(*c, overlay);
                 }
-                Ok(_) => {}
                 Err(e) => warn!(?c, "reading the cell's edits again: {e}"),
             }
-            logs.insert(*c, self.live.edit_store().load(*c).ok());
         }
         let mut again = Vec::new();
         for (a, e) in accepted.into_iter().zip(edits) {
-            let stored = logs.get(&e.cell).and_then(Option::as_ref).is_some_and(|log| log.contains(e));
+            let stored = read.get(&e.cell).and_then(|o| o.edit(e.version)).is_some_and(|kept| kept == e);
             let outcome = match error {
                 _ if stored => EditOutcome::Ok { id: a.id, version: a.version },
                 EditStoreError::Conflict { .. } if retry => {

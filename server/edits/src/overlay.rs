@@ -210,6 +210,12 @@ impl Overlay {
         Applied { records: all, overrides: out, felled: self.felled.iter().copied().collect() }
     }
 
+    /// The edit that made `version`, if it is among the last [`LOG_KEEP`] edits kept.
+    pub fn edit(&self, version: u32) -> Option<&StoredEdit> {
+        let first = self.log.front()?.version;
+        self.log.get(usize::try_from(version.checked_sub(first)?).ok()?)
+    }
+
     /// The oldest version a delta can start from (the one before the oldest edit kept).
     pub fn oldest_base(&self) -> u32 {
         self.log.front().map_or(self.version, |e| e.version - 1)
@@ -380,6 +386,7 @@ mod tests {
         let u: Vec<u16> = d.updates.iter().map(|u| u.0).collect();
         assert_eq!(u, vec![2], "the set on the felled instance is dropped");
         d.validate().unwrap();
+        assert_eq!((o.edit(3), o.edit(0), o.edit(7)), (Some(&log[2]), None, None));
         assert_eq!(o.total_at(0), Some(4));
         assert_eq!(o.total_at(2), Some(5));
         assert_eq!(o.total_at(7), None);
