@@ -206,6 +206,7 @@ fn main() -> anyhow::Result<()> {
     // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
     let base = CellCache::new(world, cache_cfg).context("building the world store")?;
     // Edits are kept in the data directory and read cell by cell when a cell is first needed: nothing at start.
+    let mut engine = None;
     let (edit_store, edits_at): (Arc<dyn EditStore>, String) = match &args.edits {
         Some(servers) => {
             let cfg = NatsConfig {
@@ -214,7 +215,9 @@ fn main() -> anyhow::Result<()> {
                 replicas: args.edit_replicas,
             };
             let at = format!("NATS JetStream stream {} ({} replicas) at {servers}", cfg.stream(), cfg.replicas);
-            (Arc::new(NatsEditStore::connect(cfg)?), at)
+            let store = NatsEditStore::connect(cfg)?;
+            engine = Some(Arc::clone(store.metrics()));
+            (Arc::new(store), at)
         }
         None => {
             let store = SqliteEditStore::open(&args.data_dir)?;
@@ -244,6 +247,9 @@ fn main() -> anyhow::Result<()> {
     rt.block_on(async move {
         let rss_before = resident_bytes();
         let server = Server::start(live, cfg).await?;
+        if let Some(engine) = engine {
+            server.metrics().attach_engine(engine);
+        }
         print!("{summary}");
         println!("cells expanded on demand by {} workers, cached up to {} MiB", cache_cfg.workers, args.cell_cache_mib);
         println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());

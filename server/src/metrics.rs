@@ -51,6 +51,28 @@ pub struct Metrics {
     cells: OnceLock<Arc<CellMetrics>>,
     /// The edit pipeline's counters, when the server takes edits.
     edits: OnceLock<Arc<crate::editing::EditMetrics>>,
+    /// The shared edit log's counters, when the server is an edge over a distributed engine.
+    engine: OnceLock<Arc<EngineMetrics>>,
+}
+
+/// An edge's counters of the distributed engine that holds the edit log (NATS JetStream): what a call costs, what
+/// the edge watches, what reaches it, how often its connection was re-established. Deltas out to the sessions are
+/// `canopy_sent_messages_total{class="delta"}`.
+#[derive(Debug, Default)]
+pub struct EngineMetrics {
+    /// Time of each call to the engine: a group's appends (acknowledged at the stream's replication), a cell's
+    /// read, the start of a watch.
+    pub round_trip: Histogram,
+    /// Cells watched now.
+    pub watched: AtomicU64,
+    /// Edits the watches delivered (every edge's, this one's included).
+    pub deltas_in: AtomicU64,
+    /// Times the connection to the engine was lost.
+    pub disconnects: AtomicU64,
+    /// Times it was re-established after a loss.
+    pub reconnects: AtomicU64,
+    /// Calls that failed (no answer in time, no quorum).
+    pub failures: AtomicU64,
 }
 
 /// Upper bounds of the expansion-time histogram's buckets, microseconds: 1 µs, 2 µs, 4 µs, … 8.4 s (then +Inf).
@@ -176,6 +198,7 @@ impl Metrics {
             last_tick: std::sync::Mutex::new((now, 0, 0)),
             cells: OnceLock::new(),
             edits: OnceLock::new(),
+            engine: OnceLock::new(),
         }
     }
 
@@ -187,6 +210,11 @@ impl Metrics {
     /// Report the edit pipeline's counters too (once; later calls are ignored).
     pub fn attach_edits(&self, edits: Arc<crate::editing::EditMetrics>) {
         let _ = self.edits.set(edits);
+    }
+
+    /// Report the distributed engine's counters too (once; later calls are ignored).
+    pub fn attach_engine(&self, engine: Arc<EngineMetrics>) {
+        let _ = self.engine.set(engine);
     }
 
     /// The cell cache's counters, if attached.
@@ -299,6 +327,17 @@ impl Metrics {
             let help = "Groups of edits written durably (one transaction each: group commit).";
             metric("canopy_edit_groups_total", "counter", help, &one(&e.groups));
         }
+        if let Some(e) = self.engine.get() {
+            metric("canopy_engine_watched_cells", "gauge", "Cells whose edits this edge watches.", &one(&e.watched));
+            let help = "Edits the engine's watches delivered to this edge.";
+            metric("canopy_engine_deltas_in_total", "counter", help, &one(&e.deltas_in));
+            let help = "Times the connection to the engine was lost.";
+            metric("canopy_engine_disconnects_total", "counter", help, &one(&e.disconnects));
+            let help = "Times the connection to the engine was re-established.";
+            metric("canopy_engine_reconnects_total", "counter", help, &one(&e.reconnects));
+            let help = "Calls to the engine that failed (no answer in time, no quorum).";
+            metric("canopy_engine_failures_total", "counter", help, &one(&e.failures));
+        }
         if let Some(rss) = resident_bytes() {
             metric("canopy_resident_bytes", "gauge", "Resident memory of the server process.", &[(String::new(), rss)]);
         }
@@ -309,6 +348,10 @@ impl Metrics {
         if let Some(e) = self.edits.get() {
             let help = "Time from a group's first edit to its durable commit.";
             e.commit_time.render(&mut s, "canopy_edit_commit_seconds", help);
+        }
+        if let Some(e) = self.engine.get() {
+            let help = "Time of one call to the engine (a group's appends, a cell's read, a watch's start).";
+            e.round_trip.render(&mut s, "canopy_engine_round_trip_seconds", help);
         }
         s
     }

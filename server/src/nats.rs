@@ -20,6 +20,7 @@
 //! own thread, so they may be called from any thread (the edit writer, overlay loaders).
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::Ordering::Relaxed;
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -30,8 +31,32 @@ use canopy_protocol::CellCoord;
 use futures_util::{StreamExt, TryStreamExt};
 use tracing::{debug, warn};
 
+use crate::metrics::EngineMetrics;
+
 /// How long a call may take before it fails (a cluster that lost its quorum).
 const CALL_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A call to the engine slower than this is logged.
+const SLOW_CALL: Duration = Duration::from_millis(500);
+
+/// How long the engine's acknowledgement of one publish is waited for before it is sent again.
+const ACK_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// How long one publish is tried again (a node died, the stream elects a leader) before the append fails.
+const PUBLISH_PATIENCE: Duration = Duration::from_secs(8);
+
+/// The first pause before a publish is tried again (doubling up to [`PUBLISH_RETRY_MAX`]).
+const PUBLISH_RETRY: Duration = Duration::from_millis(50);
+
+/// The longest pause between two tries of one publish.
+const PUBLISH_RETRY_MAX: Duration = Duration::from_secs(1);
+
+/// The first pause before a cell's watch is set up again after it could not be (doubling up to
+/// [`WATCH_RETRY_MAX`]).
+const WATCH_RETRY: Duration = Duration::from_millis(100);
+
+/// The longest pause between attempts to set up a cell's watch.
+const WATCH_RETRY_MAX: Duration = Duration::from_secs(5);
 
 /// Where and how the edit log lives.
 #[derive(Clone, Debug, PartialEq)]
@@ -78,6 +103,7 @@ impl NatsConfig {
 /// What the store's thread holds.
 struct Inner {
     cfg: NatsConfig,
+    metrics: Arc<EngineMetrics>,
     js: jetstream::Context,
     stream: stream::Stream,
     /// Per cell, the subject sequence of its last edit this store knows (0: none).
@@ -89,6 +115,7 @@ struct Inner {
 /// The edit log on NATS JetStream (see the module docs).
 pub struct NatsEditStore {
     inner: Arc<Inner>,
+    metrics: Arc<EngineMetrics>,
     handle: tokio::runtime::Handle,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
     thread: Option<JoinHandle<()>>,
@@ -139,19 +166,52 @@ impl NatsEditStore {
             })
             .map_err(|e| io("thread", e))?;
         let handle = handle_rx.recv().map_err(|e| io("runtime", e))??;
-        let inner = run(&handle, Inner::connect(cfg))?;
-        Ok(NatsEditStore { inner: Arc::new(inner), handle, stop: Some(stop), thread: Some(thread) })
+        let metrics = Arc::new(EngineMetrics::default());
+        let inner = run(&handle, &metrics, "connecting", Inner::connect(cfg, Arc::clone(&metrics)))?;
+        Ok(NatsEditStore { inner: Arc::new(inner), metrics, handle, stop: Some(stop), thread: Some(thread) })
     }
 
     /// Its configuration.
     pub fn config(&self) -> &NatsConfig {
         &self.inner.cfg
     }
+
+    /// Its counters (for the edge's metrics endpoint: [`crate::metrics::Metrics::attach_engine`]).
+    pub fn metrics(&self) -> &Arc<EngineMetrics> {
+        &self.metrics
+    }
+
+    fn run<T: Send + 'static>(
+        &self,
+        what: &'static str,
+        fut: impl std::future::Future<Output = Result<T, EditStoreError>> + Send + 'static,
+    ) -> Result<T, EditStoreError> {
+        run(&self.handle, &self.metrics, what, fut)
+    }
 }
 
 /// Run `fut` on the store's runtime and wait for it (from any thread but the runtime's own), at most
-/// [`CALL_TIMEOUT`].
+/// [`CALL_TIMEOUT`]; its time goes to `metrics`, and a call slower than [`SLOW_CALL`] to the log as `what`.
 fn run<T: Send + 'static>(
+    handle: &tokio::runtime::Handle,
+    metrics: &EngineMetrics,
+    what: &'static str,
+    fut: impl std::future::Future<Output = Result<T, EditStoreError>> + Send + 'static,
+) -> Result<T, EditStoreError> {
+    let started = std::time::Instant::now();
+    let r = run_untimed(handle, fut);
+    let took = started.elapsed();
+    metrics.round_trip.record(took);
+    if took > SLOW_CALL {
+        warn!("the engine took {took:.1?} {what}{}", if r.is_err() { " and failed" } else { "" });
+    }
+    if r.is_err() {
+        metrics.failures.fetch_add(1, Relaxed);
+    }
+    r
+}
+
+fn run_untimed<T: Send + 'static>(
     handle: &tokio::runtime::Handle,
     fut: impl std::future::Future<Output = Result<T, EditStoreError>> + Send + 'static,
 ) -> Result<T, EditStoreError> {
@@ -167,19 +227,40 @@ fn run<T: Send + 'static>(
 }
 
 impl Inner {
-    async fn connect(cfg: NatsConfig) -> Result<Inner, EditStoreError> {
+    async fn connect(cfg: NatsConfig, metrics: Arc<EngineMetrics>) -> Result<Inner, EditStoreError> {
         let addrs: Vec<async_nats::ServerAddr> = cfg
             .servers
             .iter()
             .map(|s| s.parse::<async_nats::ServerAddr>().map_err(|e| io(&format!("address {s}"), e)))
             .collect::<Result<_, _>>()?;
+        let events = Arc::clone(&metrics);
+        let lost = Arc::new(std::sync::atomic::AtomicBool::new(false));
         let client = async_nats::ConnectOptions::new()
+            .event_callback(move |event| {
+                let (events, lost) = (Arc::clone(&events), Arc::clone(&lost));
+                async move {
+                    match event {
+                        async_nats::Event::Disconnected => {
+                            lost.store(true, Relaxed);
+                            events.disconnects.fetch_add(1, Relaxed);
+                            warn!("lost the connection to NATS; reconnecting");
+                        }
+                        async_nats::Event::Connected if lost.swap(false, Relaxed) => {
+                            events.reconnects.fetch_add(1, Relaxed);
+                            warn!("connected to NATS again");
+                        }
+                        _ => {}
+                    }
+                }
+            })
             .retry_on_initial_connect()
             .connection_timeout(Duration::from_secs(5))
             .connect(addrs)
             .await
             .map_err(|e| io("connect", e))?;
-        let js = jetstream::new(client.clone());
+        let mut js = jetstream::new(client.clone());
+        // An acknowledgement lost with a node is waited for this long before the publish is sent again.
+        js.set_timeout(ACK_TIMEOUT);
         let config = stream::Config {
             name: cfg.stream(),
             subjects: vec![cfg.wildcard()],
@@ -201,7 +282,7 @@ impl Inner {
                 Err(e) => return Err(io("creating the edit stream", e)),
             }
         };
-        Ok(Inner { cfg, js, stream, last: Mutex::default(), watches: Mutex::default() })
+        Ok(Inner { cfg, metrics, js, stream, last: Mutex::default(), watches: Mutex::default() })
     }
 
     fn last(&self, c: CellCoord) -> u64 {
@@ -223,17 +304,36 @@ impl Inner {
             let digest: [u8; 32] =
                 sha2::Digest::finalize(<sha2::Sha256 as sha2::Digest>::new_with_prefix(&payload)).into();
             let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
-            let msg = jetstream::message::PublishMessage::build()
-                .payload(payload.into())
-                .message_id(format!("{}.{}.{}.{id}", c.x, c.z, e.version))
-                .expected_last_subject_sequence(self.last(c));
-            let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
-            match ack {
-                Ok(ack) => self.set_last(c, ack.sequence),
-                Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
-                    return Err(EditStoreError::Conflict { cell: c, version: e.version });
+            let payload = bytes::Bytes::from(payload);
+            let id = format!("{}.{}.{}.{id}", c.x, c.z, e.version);
+            let expected = self.last(c);
+            // A publish whose answer was lost (its node died, the stream is electing a leader) is sent again, the
+            // same message with the same id: if the first was stored, the engine answers the retry as a duplicate
+            // (or, having the edit as the cell's last, refuses it as a conflict, and the writer finds the edit
+            // stored when it reads the cell again). Never a second copy.
+            let deadline = tokio::time::Instant::now() + PUBLISH_PATIENCE;
+            let mut pause = PUBLISH_RETRY;
+            loop {
+                let msg = jetstream::message::PublishMessage::build()
+                    .payload(payload.clone())
+                    .message_id(id.clone())
+                    .expected_last_subject_sequence(expected);
+                let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
+                match ack {
+                    Ok(ack) => {
+                        self.set_last(c, ack.sequence);
+                        break;
+                    }
+                    Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
+                        return Err(EditStoreError::Conflict { cell: c, version: e.version });
+                    }
+                    Err(err) if tokio::time::Instant::now() + pause < deadline => {
+                        debug!(?c, "publishing an edit: {err}; again in {pause:?}");
+                        tokio::time::sleep(pause).await;
+                        pause = (pause * 2).min(PUBLISH_RETRY_MAX);
+                    }
+                    Err(err) => return Err(io("publishing an edit", err)),
                 }
-                Err(err) => return Err(io("publishing an edit", err)),
             }
         }
         Ok(())
@@ -281,6 +381,59 @@ impl Inner {
     }
 }
 
+/// Forward cell `c`'s edits from subject sequence `next` on to `watcher`, for as long as the task lives: an ordered
+/// consumer of the cell's subject, created again from just after the last edit forwarded whenever it cannot be
+/// created or its stream ends or fails (a node died), with a growing pause between attempts.
+async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, watcher: Arc<dyn EditWatcher>) {
+    let mut pause = WATCH_RETRY;
+    loop {
+        let config = jetstream::consumer::pull::OrderedConfig {
+            filter_subject: inner.cfg.subject(c),
+            deliver_policy: jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence: next },
+            ..Default::default()
+        };
+        let created = match inner.stream.create_consumer(config).await {
+            Ok(consumer) => consumer.messages().await.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
+        let mut messages = match created {
+            Ok(m) => m,
+            Err(e) => {
+                warn!(?c, "watching the cell: {e}; trying again in {pause:?}");
+                tokio::time::sleep(pause).await;
+                pause = (pause * 2).min(WATCH_RETRY_MAX);
+                continue;
+            }
+        };
+        pause = WATCH_RETRY;
+        while let Some(m) = messages.next().await {
+            let m = match m {
+                Ok(m) => m,
+                Err(e) => {
+                    warn!(?c, "watching the cell: {e}; watching again from sequence {next}");
+                    break;
+                }
+            };
+            if let Ok(info) = m.info() {
+                next = next.max(info.stream_sequence + 1);
+                // What this edge's next append to the cell must name as the cell's last edit.
+                let mut last = inner.last.lock().unwrap_or_else(|e| e.into_inner());
+                let known = last.entry(c).or_insert(0);
+                *known = (*known).max(info.stream_sequence);
+            }
+            match StoredEdit::decode(&m.payload) {
+                Ok(e) if e.cell == c => {
+                    inner.metrics.deltas_in.fetch_add(1, Relaxed);
+                    watcher.edited(e)
+                }
+                Ok(_) => warn!(?c, "a message on the cell's subject names another cell"),
+                Err(e) => warn!(?c, "watching the cell: {e}"),
+            }
+        }
+        tokio::time::sleep(pause).await;
+    }
+}
+
 impl EditStore for NatsEditStore {
     fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         let mut by_cell: BTreeMap<CellCoord, Vec<StoredEdit>> = BTreeMap::new();
@@ -288,7 +441,7 @@ impl EditStore for NatsEditStore {
             by_cell.entry(e.cell).or_default().push(e.clone());
         }
         let inner = Arc::clone(&self.inner);
-        run(&self.handle, async move {
+        self.run("appending edits", async move {
             let tasks: Vec<_> =
                 by_cell.into_iter().map(|(c, v)| tokio::spawn(Arc::clone(&inner).append_cell(c, v))).collect();
             let mut first = Ok(());
@@ -304,12 +457,12 @@ impl EditStore for NatsEditStore {
 
     fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         let inner = Arc::clone(&self.inner);
-        run(&self.handle, async move { inner.load(c).await })
+        self.run("reading a cell's edits", async move { inner.load(c).await })
     }
 
     fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
         let inner = Arc::clone(&self.inner);
-        run(&self.handle, async move {
+        self.run("listing the edited cells", async move {
             let mut subjects =
                 inner.stream.info_with_subjects(inner.cfg.wildcard()).await.map_err(|e| io("info", e))?;
             let mut out = Vec::new();
@@ -325,60 +478,31 @@ impl EditStore for NatsEditStore {
 
     fn count(&self) -> Result<u64, EditStoreError> {
         let inner = Arc::clone(&self.inner);
-        run(&self.handle, async move { Ok(inner.stream.get_info().await.map_err(|e| io("info", e))?.state.messages) })
+        self.run("counting the edits", async move {
+            Ok(inner.stream.get_info().await.map_err(|e| io("info", e))?.state.messages)
+        })
     }
 
     fn watch(&self, c: CellCoord, watcher: Arc<dyn EditWatcher>) {
         let inner = Arc::clone(&self.inner);
-        let start = inner.last(c) + 1;
-        let config = jetstream::consumer::pull::OrderedConfig {
-            filter_subject: inner.cfg.subject(c),
-            deliver_policy: jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence: start },
-            ..Default::default()
-        };
-        let stream = inner.stream.clone();
-        let created = run(&self.handle, async move {
-            let consumer = stream.create_consumer(config).await.map_err(|e| io("watching a cell", e))?;
-            consumer.messages().await.map_err(|e| io("watching a cell", e))
-        });
-        let mut messages = match created {
-            Ok(m) => m,
-            Err(e) => {
-                warn!(?c, "{e}");
-                return;
-            }
-        };
-        let task = self.handle.spawn(async move {
-            while let Some(m) = messages.next().await {
-                let m = match m {
-                    Ok(m) => m,
-                    Err(e) => {
-                        warn!(?c, "watching the cell: {e}");
-                        continue;
-                    }
-                };
-                // What this edge's next append to the cell must name as the cell's last edit.
-                if let Ok(info) = m.info() {
-                    let mut last = inner.last.lock().unwrap_or_else(|e| e.into_inner());
-                    let known = last.entry(c).or_insert(0);
-                    *known = (*known).max(info.stream_sequence);
-                }
-                match StoredEdit::decode(&m.payload) {
-                    Ok(e) if e.cell == c => watcher.edited(e),
-                    Ok(_) => warn!(?c, "a message on the cell's subject names another cell"),
-                    Err(e) => warn!(?c, "watching the cell: {e}"),
-                }
-            }
-        });
-        if let Some(old) = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner()).insert(c, task) {
+        // The watch starts just after the last edit the read of the log saw; it is set up on the store's runtime,
+        // not here: a cluster electing a leader can take seconds to create a consumer, and neither the writer nor
+        // a loader waits for that (nothing is missed: the consumer starts at that sequence whenever it starts).
+        let next = inner.last(c) + 1;
+        let task = self.handle.spawn(watch_cell(inner, c, next, watcher));
+        let mut watches = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(old) = watches.insert(c, task) {
             old.abort();
         }
+        self.metrics.watched.store(watches.len() as u64, Relaxed);
     }
 
     fn unwatch(&self, c: CellCoord) {
-        if let Some(t) = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner()).remove(&c) {
+        let mut watches = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(t) = watches.remove(&c) {
             // Dropping the consumer's message stream with its task ends it (an ordered consumer is ephemeral).
             t.abort();
         }
+        self.metrics.watched.store(watches.len() as u64, Relaxed);
     }
 }

@@ -1,9 +1,11 @@
 //! The edit log on NATS JetStream, for real: a 3-node cluster started by `scripts/cluster.sh` on loopback and
 //! stateless edges over it (each its own `NatsEditStore`, `LiveStore` and writer). An edit made through one edge
 //! reaches the clients of another; edges racing for one cell's versions never take one twice (the engine's
-//! compare-and-set, the writer's retry); a new edge starts with nothing and serves the same world. (A node killed
-//! mid-run is not in this test yet: edits go on being acknowledged, but an edge's watch of a cell can take longer
-//! than the test's bound to recover — see docs/edits.md.)
+//! compare-and-set, the writer's retry); a new edge starts with nothing and serves the same world. Then bots over
+//! three real QUIC edges while a NATS node is killed with SIGKILL and an edge dies (its runtime dropped: its clients
+//! hear nothing more, as after a SIGKILL): the bots of the dead edge resume on the others, every bot ends exact
+//! against the world function + edits, and every acknowledged edit is read back from the stream, none lost and none
+//! stored twice.
 
 mod support;
 
@@ -42,9 +44,11 @@ impl Cluster {
         text
     }
 
-    fn up() -> Cluster {
-        // Client ports PORT..PORT+2, routes +100, monitoring +200: a block of this process's own.
-        let port = 20_000 + (std::process::id() % 2_000) as u16 * 10;
+    /// Cluster `slot` (0..3) of this process.
+    fn up(slot: u16) -> Cluster {
+        // Client ports PORT..PORT+2, routes +100, monitoring +200: a block of ten of this process's own, three
+        // ports of it a slot.
+        let port = 20_000 + (std::process::id() % 2_000) as u16 * 10 + slot * 3;
         let c = Cluster { dir: tempfile::tempdir().unwrap(), port };
         c.run(&["up", "0"]);
         c
@@ -78,7 +82,7 @@ fn cell_version(p: &Pair, c: CellCoord) -> u32 {
 
 #[test]
 fn edges_over_jetstream_share_the_edits_and_their_versions() {
-    let cluster = Cluster::up();
+    let cluster = Cluster::up(0);
     let world = format!("edits-test-{}", std::process::id());
     let (ea, eb) = (cluster.edge(&world), cluster.edge(&world));
     let mut a = Pair::connect(&ea, ClientState::new(), Some(ALICE), 1);
@@ -129,4 +133,105 @@ fn edges_over_jetstream_share_the_edits_and_their_versions() {
     let ec = cluster.edge(&world);
     assert_eq!(expected(&ec), sorted(a.client.instances(&|_, _| 0.0).collect()));
     assert_eq!(ec.edits.count().unwrap(), 2 + versions.len() as u64);
+}
+
+/// A real edge: canopy-server over the default world's cell cache and the cluster's edit log, on a runtime of its
+/// own so that it can die at once.
+struct Edge {
+    rt: Option<tokio::runtime::Runtime>,
+    server: Option<canopy_server::Server>,
+    service: Arc<canopy_server::EditService>,
+    addr: std::net::SocketAddr,
+}
+
+impl Edge {
+    fn start(cluster: &Cluster, name: &str, world: &canopy_worlds::world::World) -> Edge {
+        use canopy_server::{CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig};
+        let cfg = NatsConfig { servers: cluster.urls(), world: name.into(), replicas: 3 };
+        let store = Arc::new(NatsEditStore::connect(cfg).expect("connecting to the cluster"));
+        let base = CellCache::new(world.clone(), CellCacheConfig::default()).unwrap().shared();
+        let live = Arc::new(LiveStore::new(base, store, 16 << 20));
+        let service = EditService::start(Arc::clone(&live));
+        let editors = canopy_server::editors::editor_line("bots", &ALICE, None, Some(10_000));
+        let cfg = ServerConfig {
+            listen: "127.0.0.1:0".parse().unwrap(),
+            session: canopy_server::SessionConfig {
+                editors: Some(Arc::new(Editors::parse("editors", &editors).unwrap())),
+                ..canopy_server::SessionConfig::default()
+            },
+            edits: Some(Arc::clone(&service)),
+            ..ServerConfig::default()
+        };
+        let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+        let server = rt.block_on(Server::start(live, cfg)).expect("the edge starts");
+        let addr = server.local_addr();
+        Edge { rt: Some(rt), server: Some(server), service, addr }
+    }
+
+    /// Die at once: the runtime and its tasks are dropped, nothing more is sent to the clients.
+    fn kill(&mut self) {
+        if let Some(rt) = self.rt.take() {
+            rt.shutdown_background();
+        }
+        drop(self.server.take());
+        self.service.stop();
+    }
+}
+
+impl Drop for Edge {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+#[test]
+fn bots_fail_over_between_edges_and_no_acknowledged_edit_is_lost() {
+    use canopy_client::{ConnectConfig, Trust};
+    use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, check_ledger};
+    use std::time::{Duration, Instant};
+
+    let cluster = Cluster::up(1);
+    let name = format!("failover-test-{}", std::process::id());
+    let world = Arc::new(canopy_worlds::world::World::default_world());
+    let mut edges: Vec<Edge> = (0..3).map(|_| Edge::start(&cluster, &name, &world)).collect();
+    let list = edges.iter().map(|e| e.addr.to_string()).collect::<Vec<_>>().join(",");
+    let mut cfg = BotsConfig::new(9, ConnectConfig::new_edges(&list.parse().unwrap(), Trust::Insecure));
+    cfg.path = PathKind::Random;
+    cfg.speed = 2.0;
+    cfg.duration = Duration::from_secs(16);
+    cfg.radius = 96.0;
+    cfg.spread = Some(64.0);
+    cfg.connect_rate = 20.0;
+    cfg.settle = Duration::from_secs(60);
+    cfg.verify = Some(Arc::clone(&world));
+    let mut plan = EditPlan::new(4.0, 3, ALICE.to_vec());
+    plan.warmup = Duration::from_secs(1);
+    let fanout = Arc::clone(&plan.fanout);
+    cfg.edits = Some(plan);
+
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let started = Instant::now();
+    let run = rt.spawn(bots::run(cfg, Arc::new(Progress::default())));
+    // Half-way: a NATS node and an edge die (bot i started on edge i mod 3, so three bots lose theirs).
+    std::thread::sleep(Duration::from_secs(8));
+    cluster.run(&["kill", "nats", "1"]);
+    edges[1].kill();
+    std::thread::sleep(Duration::from_secs(3));
+    cluster.run(&["start", "nats", "1"]);
+    let reports = rt.block_on(run).unwrap().expect("the bots ran");
+    let summary = BotsSummary::new(&reports, started.elapsed()).with_fanout(fanout.report());
+
+    // Every acknowledged edit read back from the stream (the killed node is back): none lost, none twice.
+    let check = NatsEditStore::connect(NatsConfig { servers: cluster.urls(), world: name, replicas: 3 }).unwrap();
+    let grid = canopy_server::store::StoreHead::of_world(&world).unwrap().world().grid;
+    let ledger = check_ledger(&check, &grid, BotsSummary::acknowledged(&reports)).unwrap();
+    let summary = summary.with_ledger(ledger.clone());
+    println!("{summary}");
+    assert!(summary.ok(), "{summary}");
+    assert_eq!(summary.checked, 9, "every bot checked against the world function + edits");
+    assert!(summary.reconnects >= 3, "the dead edge's bots resumed elsewhere: {summary}");
+    assert!(ledger.acknowledged >= 20, "edits went on being acknowledged: {summary}");
+    assert_eq!((ledger.lost, ledger.duplicated), (0, 0));
+    assert!(summary.fanout.as_ref().is_some_and(|f| f.visible().is_some()), "edits reached bots of other edges");
+    drop(edges);
 }

@@ -179,7 +179,7 @@ pub struct ClientStats {
 }
 
 /// What a resuming session keeps of an earlier one: its world, species table and graphs, and complete cells.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 struct Resumable {
     world: WorldInfo,
     table: Vec<canopy_protocol::messages::SpeciesEntry>,
@@ -188,7 +188,7 @@ struct Resumable {
 }
 
 /// The client's view of its session (see the module docs).
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct ClientState {
     phase: Phase,
     welcome: Option<Arc<Welcome>>,
@@ -242,6 +242,9 @@ impl ClientState {
             let (world, table, species) = (w.world.clone(), w.species.clone(), previous.species);
             s.resumable = Some(Resumable { world, table, species, cells });
         }
+        // Edit requests go on numbering where the earlier session stopped: an answer lost with it is never taken
+        // for a new request's.
+        s.next_request = previous.next_request;
         s
     }
 

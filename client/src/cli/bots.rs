@@ -5,7 +5,6 @@
 //! With `--edit-rate` the first `--editors` bots also edit the world as they walk (an editor token is needed), and
 //! the summary adds the edits' answers and how soon they reached the other bots (fan-out).
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -13,8 +12,13 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
+use canopy_client::net::Edges;
 use canopy_client::{ConnectConfig, Trust};
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, check_ledger};
+use canopy_protocol::aoi::Grid;
+use canopy_server::edits::{EditStore, SqliteEditStore};
+use canopy_server::nats::{NatsConfig, NatsEditStore};
+use canopy_server::store::StoreHead;
 use canopy_worlds::world::World;
 use clap::Args;
 
@@ -37,9 +41,10 @@ pub struct BotsArgs {
     /// How long they walk, seconds.
     #[arg(long, default_value_t = 20.0)]
     duration: f64,
-    /// The server's UDP address.
-    #[arg(long, default_value = "127.0.0.1:4433")]
-    server: SocketAddr,
+    /// The server's UDP address, or the edges of one world, comma-separated (`HOST:PORT,HOST:PORT,…`): bots are
+    /// spread over them, and a bot whose edge dies or closes resumes on another (the summary counts reconnects).
+    #[arg(long, default_value = "127.0.0.1:4433", value_name = "HOST:PORT[,…]")]
+    server: Edges,
     /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
     #[arg(long, conflicts_with = "insecure")]
     cert_fingerprint: Option<String>,
@@ -89,9 +94,32 @@ pub struct BotsArgs {
     /// printed it; the editor's `rate` is shared by all of them); also read from `CANOPY_TOKEN`.
     #[arg(long, env = "CANOPY_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// After the run, read every edit the bots had acknowledged back from the edit store — `nats://HOST:PORT[,…]`
+    /// (the edges' JetStream cluster) or a server's data directory (its `edits.sqlite`) — and count those lost or
+    /// stored twice; the summary's last line is then `edits acknowledged N, lost L, duplicated D, fan-out p50 … p99
+    /// …, reconnects R`, and a lost or duplicated edit fails the run. The world (`--world`) names the stream.
+    #[arg(long, value_name = "nats://…|DIR")]
+    check_edits: Option<String>,
     /// No progress bar (for logs).
     #[arg(long)]
     quiet: bool,
+}
+
+/// Open the edit store `--check-edits` names, for the world `world`.
+fn open_store(at: &str, world: &World) -> anyhow::Result<Arc<dyn EditStore>> {
+    if at.starts_with("nats://") {
+        let cfg = NatsConfig {
+            servers: at.split(',').map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect(),
+            world: world.name.clone(),
+            replicas: 1,
+        };
+        return Ok(Arc::new(NatsEditStore::connect(cfg).with_context(|| format!("--check-edits {at}"))?));
+    }
+    let dir = PathBuf::from(at);
+    if !dir.join("edits.sqlite").is_file() {
+        bail!("--check-edits {at}: no edits.sqlite there (expected nats://… or a server's data directory)");
+    }
+    Ok(Arc::new(SqliteEditStore::open(&dir).with_context(|| format!("--check-edits {at}"))?))
 }
 
 /// Run `canopy bots`.
@@ -126,16 +154,20 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
         None
     };
     let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
-    let verify = if args.no_verify {
+    let world = if args.no_verify && args.check_edits.is_none() {
         None
     } else {
-        let world = match &args.world {
+        Some(Arc::new(match &args.world {
             Some(w) => super::world_arg(w)?,
             None => World::default_world(),
-        };
-        Some(Arc::new(world))
+        }))
     };
-    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new(args.server, trust));
+    let ledger = match (&args.check_edits, &world) {
+        (Some(at), Some(w)) => Some((open_store(at, w)?, StoreHead::of_world(w)?.world().grid)),
+        _ => None,
+    };
+    let verify = if args.no_verify { None } else { world };
+    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new_edges(&args.server, trust));
     cfg.path = args.path;
     cfg.speed = args.speed;
     cfg.altitude = args.altitude;
@@ -150,13 +182,18 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.verify = verify;
     cfg.spread = args.spread;
     cfg.edits = edits;
-    let summary = run_bots(cfg, args.quiet)?;
+    let summary = run_bots(cfg, args.quiet, ledger)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
-/// Run bots on a fresh runtime with a progress display; returns the summary.
-pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
+/// Run bots on a fresh runtime with a progress display; returns the summary, with the acknowledged edits checked
+/// against `ledger`'s store (on its world's grid) when given.
+pub fn run_bots(
+    cfg: BotsConfig,
+    quiet: bool,
+    ledger: Option<(Arc<dyn EditStore>, Grid)>,
+) -> anyhow::Result<BotsSummary> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let progress = Arc::new(Progress::default());
     let total = cfg.count as u64;
@@ -184,6 +221,10 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
                         0 => String::new(),
                         n => format!(" · edits {n}"),
                     };
+                    let edits = match progress.reconnects.load(Relaxed) {
+                        0 => edits,
+                        n => format!("{edits} · reconnects {n}"),
+                    };
                     bar.set_message(format!(
                         "connected {} · AOI complete {} · failed {} · records {records} ({rate:.0}/s){edits}",
                         progress.connected.load(Relaxed),
@@ -205,8 +246,16 @@ pub fn run_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<BotsSummary> {
         reports
     })?;
     let summary = BotsSummary::new(&reports, started.elapsed());
-    Ok(match fanout {
+    let summary = match fanout {
         Some(f) => summary.with_fanout(f.report()),
+        None => summary,
+    };
+    Ok(match ledger {
+        Some((store, grid)) => {
+            let checked = check_ledger(store.as_ref(), &grid, BotsSummary::acknowledged(&reports))
+                .context("reading the acknowledged edits back from the store")?;
+            summary.with_ledger(checked)
+        }
         None => summary,
     })
 }

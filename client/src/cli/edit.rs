@@ -3,7 +3,7 @@
 //! species table's programs to resolve species and parameter names, and prints what the server answered: the
 //! instance's id and the cell's new version.
 
-use std::net::SocketAddr;
+use canopy_client::net::Edges;
 use std::process::ExitCode;
 use std::time::Duration;
 
@@ -18,9 +18,9 @@ use clap::Args;
 /// How to reach the server, and as whom.
 #[derive(Args, Debug, Clone)]
 pub struct ServerArgs {
-    /// The server's UDP address.
-    #[arg(long, default_value = "127.0.0.1:4433")]
-    server: SocketAddr,
+    /// The server's UDP address, or the edges of one world comma-separated (the first that answers is used).
+    #[arg(long, default_value = "127.0.0.1:4433", value_name = "HOST:PORT[,…]")]
+    server: Edges,
     /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
     #[arg(long, conflicts_with = "insecure")]
     cert_fingerprint: Option<String>,
@@ -79,10 +79,10 @@ struct Client {
 impl Client {
     fn connect(
         args: &ServerArgs,
-        at: impl FnOnce(&canopy_protocol::messages::Welcome) -> [f32; 2],
+        at: impl Fn(&canopy_protocol::messages::Welcome) -> [f32; 2],
     ) -> anyhow::Result<Client> {
         let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
-        let mut cfg = ConnectConfig::new(args.server, trust);
+        let mut cfg = ConnectConfig::new_edges(&args.server, trust);
         cfg.client_name = "canopy-world".into();
         let timeout = Duration::from_secs_f64(args.timeout.clamp(0.1, 3600.0));
         cfg.timeout = timeout;
@@ -92,8 +92,8 @@ impl Client {
         };
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let conn = rt.block_on(async {
-            let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(args.server))?;
-            let mut conn = Connection::connect(&endpoint, &cfg, None, |w| {
+            let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(args.server.first()))?;
+            let mut conn = Connection::connect_any(&endpoint, &cfg, None, |w| {
                 // A radius of a metre: the cell under the point, and what the server's rules add.
                 Viewpoint::at(1, at(w), 1.0)
             })

@@ -24,8 +24,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::net::Edges;
 use canopy_client::state::{Event, viewpoint_due};
-use canopy_client::{ConnectConfig, Connection, Trust};
+use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
@@ -45,10 +46,11 @@ use super::walk_edit::{EditKeys, EditLink};
 /// Options of `canopy walk`.
 #[derive(Args, Debug)]
 pub struct WalkArgs {
-    /// The server's UDP address (default: start canopy-server in this process on `--world`, or on the embedded
-    /// default world, and connect to it).
-    #[arg(long)]
-    server: Option<SocketAddr>,
+    /// The server's UDP address, or the edges of one world comma-separated (`HOST:PORT,HOST:PORT`: the walk
+    /// resumes on another edge when its own dies or closes). Default: start canopy-server in this process on
+    /// `--world`, or on the embedded default world, and connect to it.
+    #[arg(long, value_name = "HOST:PORT[,…]")]
+    server: Option<Edges>,
     /// World manifest for the in-process server (only without `--server`).
     #[arg(long, conflicts_with = "server")]
     world: Option<PathBuf>,
@@ -167,7 +169,7 @@ async fn net_session(
     let bind: SocketAddr = if cfg.server.is_ipv6() { "[::]:0".parse()? } else { "0.0.0.0:0".parse()? };
     let endpoint = canopy_client::net::endpoint(bind)?;
     let start = *lock(&shared.pose);
-    let mut conn = Connection::connect(&endpoint, &cfg, cache, |_| Viewpoint {
+    let mut conn = Connection::connect_any(&endpoint, &cfg, cache, |_| Viewpoint {
         seq: 0,
         position: start.position,
         yaw: start.yaw,
@@ -190,14 +192,50 @@ async fn net_session(
     }
     let mut generation = 1u64;
     *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    let grid = conn.welcome().world.grid;
+    let mut sent_at = Instant::now();
+    loop {
+        let streamed =
+            stream(&mut conn, &shared, &mut edits, &ground, &mut generation, grid, radius, &mut sent_at).await;
+        match streamed {
+            // The edge is gone: resume on another with what this session held, at the camera's pose now.
+            Err(e) if cfg.edges.len() > 1 && e.downcast_ref::<ClientError>().is_some_and(ClientError::edge_lost) => {
+                let lost = conn.server();
+                let pose = *lock(&shared.pose);
+                let vp = Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius };
+                lock(&shared.status).edit = Some(format!("edge {lost} lost ({e}); failing over"));
+                conn = conn.fail_over(&endpoint, &cfg, vp).await.context("failing over to another edge")?;
+                let line = format!("edge {lost} lost; resumed on {}", conn.server());
+                println!("{line}");
+                lock(&shared.status).edit = Some(line);
+                sent_at = Instant::now();
+            }
+            r => break r?,
+        }
+    }
+    conn.close();
+    endpoint.wait_idle().await;
+    Ok(())
+}
+
+/// Stream one session until the window closes: apply what arrives, send edits and viewpoints, publish snapshots.
+#[allow(clippy::too_many_arguments)]
+async fn stream(
+    conn: &mut Connection,
+    shared: &Shared,
+    edits: &mut Option<EditLink>,
+    ground: &Ground,
+    generation: &mut u64,
+    grid: canopy_protocol::aoi::Grid,
+    radius: f32,
+    sent_at: &mut Instant,
+) -> anyhow::Result<()> {
     let mut dirty = false;
     // A delta to a held cell (an edit, ours or another editor's) is shown at once; batches and releases at most
     // every 250 ms.
     let mut changed = false;
     let mut last_publish = Instant::now();
-    let grid = conn.welcome().world.grid;
-    let mut sent_at = Instant::now();
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
     while !shared.stop.load(Ordering::Relaxed) {
         tokio::select! {
             ev = conn.next_event() => {
@@ -218,9 +256,9 @@ async fn net_session(
                 }
                 dirty = true;
             }
-            req = EditLink::next(&mut edits) => {
+            req = EditLink::next(edits) => {
                 if let Some(link) = edits.as_mut() {
-                    link.send(&mut conn, req).await?;
+                    link.send(conn, req).await?;
                 }
             }
             _ = tick.tick() => {
@@ -228,13 +266,13 @@ async fn net_session(
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
                 if viewpoint_due(&grid, sent, pose.position, pose.yaw, sent_at.elapsed()) {
                     conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
-                    sent_at = Instant::now();
+                    *sent_at = Instant::now();
                 }
             }
         }
         if dirty && (changed || last_publish.elapsed() > Duration::from_millis(250)) {
-            generation += 1;
-            *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
+            *generation += 1;
+            *lock(&shared.scene) = Some(Arc::new(snapshot(conn, ground, *generation)));
             (dirty, changed) = (false, false);
             last_publish = Instant::now();
         }
@@ -244,8 +282,6 @@ async fn net_session(
         s.species_held = conn.state().species_held();
         s.complete = conn.state().is_complete();
     }
-    conn.close();
-    endpoint.wait_idle().await;
     Ok(())
 }
 
@@ -650,12 +686,12 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         ),
         (None, None) => None,
     };
-    let (server, trust) = match (&local, args.server, &args.cert_fingerprint, args.insecure) {
+    let (server, trust) = match (&local, args.server.clone(), &args.cert_fingerprint, args.insecure) {
         (Some(l), _, _, _) => (
-            l.server.local_addr(),
+            Edges::one(l.server.local_addr()),
             Trust::pinned(l.server.fingerprint()).context("the in-process server's fingerprint")?,
         ),
-        (None, Some(addr), f, insecure) => (addr, Trust::from_flags(f.as_deref(), insecure)?),
+        (None, Some(edges), f, insecure) => (edges, Trust::from_flags(f.as_deref(), insecure)?),
         (None, None, _, _) => unreachable!("without --server an in-process server runs"),
     };
     if !(args.radius.is_finite() && args.radius > 0.0 && args.speed.is_finite() && args.speed > 0.0) {
@@ -675,7 +711,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let camera = spec.resolve(&|_, _| 0.0);
     *lock(&shared.pose) =
         Pose { position: [camera.position.x, camera.position.z], yaw: camera.yaw, velocity: [0.0; 2] };
-    let mut connect = ConnectConfig::new(server, trust);
+    let mut connect = ConnectConfig::new_edges(&server, trust);
     connect.client_name = "canopy walk".into();
     // An editor's keys send their edits through the network thread, which sends them on the connection.
     let (edit_keys, edit_link) = match &token {

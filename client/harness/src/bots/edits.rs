@@ -74,6 +74,20 @@ pub struct EditStats {
     pub first_sent: Option<Instant>,
     /// When the last answer arrived.
     pub last_answer: Option<Instant>,
+    /// Every acknowledged edit: what was asked, and the instance and cell version the answer named (checked
+    /// against the store by [`super::ledger`]).
+    pub acknowledged: Vec<Acknowledged>,
+}
+
+/// An edit a server acknowledged: durable from then on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Acknowledged {
+    /// What the bot asked for.
+    pub op: EditOp,
+    /// The instance planted, felled or set.
+    pub id: InstanceId,
+    /// The version of the cell it made.
+    pub version: u32,
 }
 
 impl EditStats {
@@ -107,8 +121,8 @@ pub struct Editing {
     made: u64,
     /// Acknowledged plants not felled yet.
     planted: Vec<InstanceId>,
-    /// Requests sent and not answered: when, and whether a plant.
-    pending: HashMap<u32, (Instant, bool)>,
+    /// Requests sent and not answered: when, and what.
+    pending: HashMap<u32, (Instant, EditOp)>,
     fanout: Arc<FanOut>,
     /// The counts and latencies so far.
     pub stats: EditStats,
@@ -161,21 +175,22 @@ impl Editing {
             self.stats.fells += 1;
         }
         self.stats.first_sent.get_or_insert(at);
-        self.pending.insert(request, (at, plant));
+        self.pending.insert(request, (at, op.clone()));
     }
 
     /// An answer arrived at `now`; answers to requests this bot did not send are ignored.
     pub fn answered(&mut self, r: &EditResult, now: Instant) {
-        let Some((at, plant)) = self.pending.remove(&r.request) else { return };
+        let Some((at, op)) = self.pending.remove(&r.request) else { return };
         self.stats.answer.push(now.saturating_duration_since(at));
         self.stats.outcomes[outcome_index(&r.outcome)] += 1;
         self.stats.last_answer = Some(now);
         match &r.outcome {
             EditOutcome::Ok { id, version } => {
-                if plant {
+                if matches!(op, EditOp::Plant { .. }) {
                     self.planted.push(*id);
                 }
                 self.fanout.acknowledged(self.bot, id.cell(), *version, at);
+                self.stats.acknowledged.push(Acknowledged { op, id: *id, version: *version });
             }
             EditOutcome::Denied(why) => drop(self.stats.refusals[0].get_or_insert_with(|| why.clone())),
             EditOutcome::Invalid(why) => drop(self.stats.refusals[1].get_or_insert_with(|| why.clone())),

@@ -13,7 +13,6 @@
 //! their own plants), and every bot measures how soon the others' edits reach it; the check against the world then
 //! compares edited cells only as far as the world's function still decides them, and compares them between bots.
 
-use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -30,13 +29,15 @@ use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::net::{ClientError, ConnectConfig, Connection};
 use canopy_client::state::{Event, viewpoint_due};
 
-use crate::numbers::percentile;
-
 pub mod edits;
+pub mod ledger;
+mod summary;
 mod verify;
 pub mod walker;
 
-pub use edits::{EditPlan, EditStats, EditsSummary, FanOut, FanOutReport};
+pub use edits::{Acknowledged, EditPlan, EditStats, EditsSummary, FanOut, FanOutReport};
+pub use ledger::{EditLedger, check_ledger};
+pub use summary::BotsSummary;
 pub use verify::{VerifySummary, expected_cells, verify, verify_with};
 pub(crate) use walker::Rng;
 pub use walker::{PathKind, Walker, grid_rect};
@@ -122,6 +123,8 @@ pub struct Progress {
     pub records: AtomicU64,
     /// Edits acknowledged (applied and durable).
     pub edits: AtomicU64,
+    /// Sessions resumed on another edge after an edge was lost.
+    pub reconnects: AtomicU64,
 }
 
 /// What one bot did.
@@ -159,6 +162,10 @@ pub struct BotReport {
     pub edits: Option<EditStats>,
     /// Cells held at the end that edits changed (version > 0): cell, version, [`edits::cell_digest`].
     pub edited_cells: Vec<(CellCoord, u32, u64)>,
+    /// Times it lost its edge and resumed on another ([`Connection::fail_over`]).
+    pub reconnects: u32,
+    /// How long each fail-over took, from the error that ended the session to the resumed session's welcome.
+    pub failovers: Vec<Duration>,
 }
 
 /// How often a bot samples its area of interest while walking.
@@ -221,18 +228,21 @@ pub async fn run_bot(
 }
 
 impl BotReport {
-    /// Take a connection's counters: records received and held, bytes, species, viewpoints sent.
+    /// Add a session's counters (records received, bytes, species, viewpoints sent) to the bot's, and take the
+    /// records it holds: once at the end, and before each fail-over for the session that ended.
     pub fn read(&mut self, conn: &Connection) {
         let state = conn.state();
         let stats = state.stats();
-        self.records = stats.records;
-        self.species_received = stats.species_received;
-        self.species_duplicates = stats.species_duplicates;
+        self.records += stats.records;
+        self.species_received += stats.species_received;
+        self.species_duplicates += stats.species_duplicates;
         self.held = state.record_count();
-        self.frame_bytes = conn.frame_bytes_received();
-        self.udp_bytes = conn.bytes_received();
+        for k in ServerMsgKind::ALL {
+            self.frame_bytes[k] += conn.frame_bytes_received()[k];
+        }
+        self.udp_bytes += conn.bytes_received();
         // The ready's viewpoint has `seq` 0, and each one sent after it the next number.
-        self.viewpoints = state.viewpoint().map_or(0, |v| v.seq + 1);
+        self.viewpoints += state.viewpoint().map_or(0, |v| v.seq + 1);
     }
 }
 
@@ -281,7 +291,8 @@ pub async fn connect_walking_within(
     walk: Walk,
     spread: Option<f32>,
 ) -> Result<(Connection, Walker), ClientError> {
-    let mut walker = None;
+    // The first edge that answers places the walk (`connect_any` may try several).
+    let walker = std::sync::Mutex::new(None);
     let place = |w: &canopy_protocol::messages::Welcome| {
         let radius = walk.radius(&w.aoi);
         let (mut lo, mut hi) = grid_rect(&w.world.grid, radius * 0.5);
@@ -293,11 +304,12 @@ pub async fn connect_walking_within(
         }
         let wk = Walker::new(walk.path, walk.speed, lo, hi, walk.seed).with_altitude(walk.altitude);
         let vp = wk.viewpoint(radius);
-        walker = Some(wk);
+        *walker.lock().unwrap_or_else(|e| e.into_inner()) = Some(wk);
         vp
     };
-    let conn = Connection::connect(endpoint, connect, cache, place).await?;
-    Ok((conn, walker.expect("placed in the handshake")))
+    let conn = Connection::connect_any(endpoint, connect, cache, place).await?;
+    let walker = walker.into_inner().unwrap_or_else(|e| e.into_inner()).expect("placed in the handshake");
+    Ok((conn, walker))
 }
 
 /// How [`drive`] walks a connection.
@@ -537,6 +549,7 @@ async fn bot_session(
 ) -> Result<(), ClientError> {
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
+    spread_over_edges(&mut connect, report.id);
     let editor = cfg.edits.as_ref().filter(|e| report.id < e.editors && e.rate > 0.0);
     // Editors connect with the token; the other bots watch, read-only.
     connect.token = editor.map(|e| e.token.clone());
@@ -570,7 +583,28 @@ async fn bot_session(
         edit_window,
         edit_every: editor.map(|e| Duration::from_secs_f64(1.0 / e.rate)),
     };
-    let driven = drive(&mut conn, &mut walker, plan, &mut hooks).await;
+    let driven = loop {
+        match drive(&mut conn, &mut walker, plan.clone(), &mut hooks).await {
+            // The edge is gone: resume on another with what this session held, where the walker is now.
+            Err(e) if e.edge_lost() && connect.edges.len() > 1 => {
+                hooks.report.read(&conn);
+                let lost_at = Instant::now();
+                match conn.fail_over(endpoint, &connect, walker.viewpoint(plan.radius)).await {
+                    Ok(c) => conn = c,
+                    Err(e) => {
+                        // No edge took the session: what was measured so far stays in the report.
+                        report.edits = hooks.editing.take().map(edits::Editing::finish);
+                        progress.connected.fetch_sub(1, Relaxed);
+                        return Err(e);
+                    }
+                }
+                hooks.report.reconnects += 1;
+                hooks.report.failovers.push(lost_at.elapsed());
+                progress.reconnects.fetch_add(1, Relaxed);
+            }
+            r => break r,
+        }
+    };
     report.edits = hooks.editing.take().map(edits::Editing::finish);
     let result = match driven {
         Ok(true) => {
@@ -606,264 +640,16 @@ async fn bot_session(
     result
 }
 
-/// Everything a bots run measured.
-#[derive(Clone, Debug)]
-pub struct BotsSummary {
-    /// Bots run.
-    pub bots: usize,
-    /// Bots that failed (connection or protocol error, or no complete area of interest at the end).
-    pub failed: usize,
-    /// Bots that ended with a complete area of interest.
-    pub complete: usize,
-    /// Bots whose final state matched the world (of those checked).
-    pub verified: usize,
-    /// Bots checked against the world.
-    pub checked: usize,
-    /// The first failures' messages.
-    pub errors: Vec<String>,
-    /// Latency percentiles (p50, p90, p99, max) of area-of-interest change → complete.
-    pub latency: Option<[Duration; 4]>,
-    /// Latency percentiles of connect → first complete area of interest.
-    pub first_complete: Option<[Duration; 4]>,
-    /// Latency samples.
-    pub samples: usize,
-    /// Records received by all bots.
-    pub records: u64,
-    /// Frame bytes of cell batches per record received.
-    pub batch_bytes_per_record: f64,
-    /// UDP payload bytes per record received (species, releases, QUIC framing and acknowledgements included).
-    pub udp_bytes_per_record: f64,
-    /// Species received over the wire by all bots.
-    pub species_received: u64,
-    /// Species received twice by one bot.
-    pub species_duplicates: u64,
-    /// Every bot's area of interest sampled while walking.
-    pub moving: AoiSamples,
-    /// Wall time of the whole run.
-    pub wall: Duration,
-    /// Cells that edits changed, held at the end by the bots checked: compared with the world only as far as its
-    /// function still decides them ([`verify_with`]).
-    pub edited_checked: usize,
-    /// What the bots' edits came to (`None`: no bot edited).
-    pub edits: Option<EditsSummary>,
-    /// How soon edits reached the other bots (`None`: not measured; [`BotsSummary::with_fanout`]).
-    pub fanout: Option<FanOutReport>,
-    /// Edited (cell, version) pairs held at the end by two bots or more, compared between them.
-    pub edited_compared: usize,
-    /// Of those, the pairs whose content differs between bots.
-    pub edited_differ: usize,
-}
-
-fn percentiles(mut v: Vec<Duration>) -> Option<[Duration; 4]> {
-    v.sort_unstable();
-    let at = |q: f64| percentile(&v, q);
-    Some([at(0.5)?, at(0.9)?, at(0.99)?, at(1.0)?])
-}
-
-impl BotsSummary {
-    /// Summarise bot reports.
-    pub fn new(reports: &[BotReport], wall: Duration) -> BotsSummary {
-        let records: u64 = reports.iter().map(|r| r.records).sum();
-        let batch: u64 = reports.iter().map(|r| r.frame_bytes[ServerMsgKind::Cells]).sum();
-        let udp: u64 = reports.iter().map(|r| r.udp_bytes).sum();
-        let per = |b: u64| if records == 0 { 0.0 } else { b as f64 / records as f64 };
-        let checked: Vec<_> = reports.iter().filter_map(|r| r.verify.as_ref()).collect();
-        let mut errors: Vec<String> = reports
-            .iter()
-            .filter_map(|r| {
-                r.error.as_ref().map(|e| format!("bot {}: {e}", r.id)).or_else(|| match &r.verify {
-                    Some(Err(e)) => Some(format!("bot {} check: {e}", r.id)),
-                    _ => None,
-                })
-            })
-            .collect();
-        errors.truncate(10);
-        // Every bot holding an edited cell at one version must hold the same content.
-        let mut digests: HashMap<(CellCoord, u32), (u64, usize, bool)> = HashMap::new();
-        for (c, v, d) in reports.iter().flat_map(|r| &r.edited_cells) {
-            let e = digests.entry((*c, *v)).or_insert((*d, 0, false));
-            e.1 += 1;
-            e.2 |= e.0 != *d;
+/// Spread bots over the edges: bot `id` starts at edge `id mod n`, and every other round of bots lists the other
+/// edges backwards, so the bots of a lost edge fail over to both its neighbours.
+fn spread_over_edges(connect: &mut ConnectConfig, id: usize) {
+    let n = connect.edges.len();
+    if n > 1 {
+        connect.edges.rotate_left(id % n);
+        if (id / n) % 2 == 1 {
+            connect.edges[1..].reverse();
         }
-        let differ: Vec<_> = digests.iter().filter(|(_, e)| e.2).map(|(k, _)| *k).collect();
-        if let Some((c, v)) = differ.first()
-            && errors.len() < 10
-        {
-            errors.push(format!("cell {c:?} at version {v} differs between bots"));
-        }
-        BotsSummary {
-            bots: reports.len(),
-            failed: reports.iter().filter(|r| r.error.is_some()).count(),
-            complete: reports.iter().filter(|r| r.complete).count(),
-            verified: checked.iter().filter(|v| v.is_ok()).count(),
-            checked: checked.len(),
-            errors,
-            latency: percentiles(reports.iter().flat_map(|r| r.latencies.iter().copied()).collect()),
-            first_complete: percentiles(reports.iter().filter_map(|r| r.first_complete).collect()),
-            samples: reports.iter().map(|r| r.latencies.len()).sum(),
-            records,
-            batch_bytes_per_record: per(batch),
-            udp_bytes_per_record: per(udp),
-            species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
-            species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
-            moving: reports.iter().fold(AoiSamples::default(), |mut a, r| {
-                a.add(&r.moving);
-                a
-            }),
-            wall,
-            edited_checked: checked.iter().filter_map(|v| v.as_ref().ok()).map(|v| v.edited).sum(),
-            edits: EditsSummary::new(reports.iter().filter_map(|r| r.edits.as_ref())),
-            fanout: None,
-            edited_compared: digests.values().filter(|e| e.1 >= 2).count(),
-            edited_differ: differ.len(),
-        }
-    }
-
-    /// The same with the run's fan-out samples ([`FanOut::report`]).
-    pub fn with_fanout(mut self, fanout: FanOutReport) -> BotsSummary {
-        self.fanout = Some(fanout);
-        self
-    }
-
-    /// Whether every bot ended complete, every checked bot matched the world, and bots holding an edited cell at
-    /// one version held the same content.
-    pub fn ok(&self) -> bool {
-        self.failed == 0 && self.complete == self.bots && self.verified == self.checked && self.edited_differ == 0
-    }
-}
-
-impl std::fmt::Display for BotsSummary {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let ms = |d: Duration| format!("{:.1} ms", d.as_secs_f64() * 1e3);
-        writeln!(
-            f,
-            "bots: {} run, {} complete at the end, {} failed ({:.1} s)",
-            self.bots,
-            self.complete,
-            self.failed,
-            self.wall.as_secs_f64()
-        )?;
-        if self.checked > 0 {
-            write!(f, "checked against the world: {} of {} exact", self.verified, self.checked)?;
-            if self.edited_checked > 0 {
-                write!(
-                    f,
-                    " ({} edited cells compared only where the world's function still decides them)",
-                    self.edited_checked
-                )?;
-            }
-            writeln!(f)?;
-        }
-        if let Some([p50, p90, p99, max]) = self.latency {
-            writeln!(
-                f,
-                "AOI change → complete: p50 {} p90 {} p99 {} max {} ({} samples)",
-                ms(p50),
-                ms(p90),
-                ms(p99),
-                ms(max),
-                self.samples
-            )?;
-        }
-        if let Some([p50, _, p99, max]) = self.first_complete {
-            writeln!(f, "connect → first complete AOI: p50 {} p99 {} max {}", ms(p50), ms(p99), ms(max))?;
-        }
-        writeln!(
-            f,
-            "records: {} received; {:.2} B/record in cell batches, {:.2} B/record on the wire (UDP, all included)",
-            self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
-        )?;
-        writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
-        let m = &self.moving;
-        if m.samples > 0 {
-            let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;
-            writeln!(
-                f,
-                "while moving ({} samples): AOI cells held in full {:.1}% on average, whole AOI in {:.1}% of samples, \
-                 the cell below in {:.1}%",
-                m.samples,
-                100.0 * m.held_sum / m.samples as f64,
-                pc(m.complete),
-                pc(m.below)
-            )?;
-        }
-        if let Some(e) = &self.edits {
-            let [ok, denied, invalid, conflict] = e.outcomes;
-            writeln!(
-                f,
-                "edits: {} bots editing; {} sent ({} plants, {} fells), {ok} acknowledged, {denied} denied, \
-                 {invalid} invalid, {conflict} conflicts, {} unanswered; {:.1} acknowledged/s over {:.1} s",
-                e.editors,
-                e.sent(),
-                e.plants,
-                e.fells,
-                e.unanswered,
-                e.ok_per_second(),
-                e.span.as_secs_f64()
-            )?;
-            if let Some([p50, p90, p99, max]) = e.answer {
-                let n = e.outcomes.iter().sum::<u64>();
-                writeln!(
-                    f,
-                    "edit send → answer: p50 {} p90 {} p99 {} max {} ({n} answers)",
-                    ms(p50),
-                    ms(p90),
-                    ms(p99),
-                    ms(max)
-                )?;
-            }
-            for (what, why) in ["denied", "invalid"].iter().zip(&e.refusals) {
-                if let Some(why) = why {
-                    writeln!(f, "  first {what}: {why}")?;
-                }
-            }
-        }
-        if let Some(fo) = &self.fanout {
-            match (fo.visible(), fo.visible_on_all(), fo.watchers()) {
-                (Some([p50, p99, max]), Some([a50, a99, amax]), Some((mean, min))) => {
-                    writeln!(
-                        f,
-                        "edit fan-out, send → visible on another bot holding the cell: p50 {} p99 {} max {} ({} \
-                         samples)",
-                        ms(p50),
-                        ms(p99),
-                        ms(max),
-                        fo.samples.len()
-                    )?;
-                    writeln!(
-                        f,
-                        "edit fan-out, send → visible on every bot that received it (the last one): p50 {} p99 {} \
-                         max {} ({} edits, {mean:.1} bots each on average, at least {min})",
-                        ms(a50),
-                        ms(a99),
-                        ms(amax),
-                        fo.per_edit.len()
-                    )?;
-                }
-                _ => writeln!(f, "edit fan-out: no edit reached another bot")?,
-            }
-            if fo.unmatched > 0 {
-                writeln!(
-                    f,
-                    "  {} (bot, version) sightings not counted: no bot of this run had its answer while the record \
-                     kept the edit (another client's edits, or answers or deltas later than the record's newest \
-                     {} edits)",
-                    fo.unmatched,
-                    FanOut::DEFAULT_CAPACITY
-                )?;
-            }
-        }
-        if self.edits.is_some() || self.edited_compared > 0 {
-            writeln!(
-                f,
-                "edited cells at the end: {} (cell, version) held by two bots or more, {} differ between them",
-                self.edited_compared, self.edited_differ
-            )?;
-        }
-        for e in &self.errors {
-            writeln!(f, "  {e}")?;
-        }
-        Ok(())
+        connect.server = connect.edges[0];
     }
 }
 

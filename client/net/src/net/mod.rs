@@ -5,6 +5,7 @@
 //! state is changed by whoever owns the connection (a bot's task, the app's loop), so there is no lock on it.
 //! Anything wrong from the server closes the connection with a [`CloseCode`] and a reason.
 
+mod failover;
 pub mod tls;
 
 use std::net::SocketAddr;
@@ -21,6 +22,7 @@ use tokio::task::JoinHandle;
 
 use crate::cache::{CacheError, SpeciesCache};
 use crate::state::{ClientState, Event, StateError};
+pub use failover::{Edges, FAILOVER_IDLE, FAILOVER_TIMEOUT};
 pub use tls::Trust;
 
 /// UDP socket buffer size of a client endpoint (a bots process multiplexes thousands of connections on one).
@@ -41,8 +43,14 @@ pub struct ConnectConfig {
     pub timeout: Duration,
     /// An editor token for the hello (`None`: a read-only session).
     pub token: Option<Vec<u8>>,
-    /// The QUIC client configuration built for `trust`, shared by this configuration's clones.
-    quic: Arc<OnceLock<(Trust, quinn::ClientConfig)>>,
+    /// Every edge serving the world, `server` among them: where [`Connection::fail_over`] goes when the session
+    /// with `server` ends (empty: `server` alone).
+    pub edges: Vec<SocketAddr>,
+    /// How long the connection may hear nothing before it counts as lost (keep-alives go at a quarter of it). With
+    /// edges to fail over to it is [`FAILOVER_IDLE`], so a dead edge is noticed in seconds.
+    pub idle_timeout: Duration,
+    /// The QUIC client configuration built for `trust` and `idle_timeout`, shared by this configuration's clones.
+    quic: Arc<OnceLock<((Trust, Duration), quinn::ClientConfig)>>,
 }
 
 impl ConnectConfig {
@@ -55,20 +63,34 @@ impl ConnectConfig {
             client_name: "canopy".into(),
             timeout: Duration::from_secs(20),
             token: None,
+            edges: Vec::new(),
+            idle_timeout: tls::IDLE_TIMEOUT,
             quic: Arc::default(),
         }
+    }
+
+    /// Connect to the first of `edges` and fail over to the others ([`Connection::fail_over`]); with more than
+    /// one edge the idle timeout is [`FAILOVER_IDLE`].
+    pub fn new_edges(edges: &Edges, trust: Trust) -> ConnectConfig {
+        let mut cfg = ConnectConfig::new(edges.first(), trust);
+        if edges.len() > 1 {
+            cfg.edges = edges.to_vec();
+            cfg.idle_timeout = FAILOVER_IDLE;
+        }
+        cfg
     }
 
     /// The QUIC client configuration trusting as `trust` says: built on first use and shared by the clones (many
     /// connections, one TLS configuration).
     pub fn client_config(&self) -> Result<quinn::ClientConfig, ClientError> {
+        let key = (self.trust.clone(), self.idle_timeout);
         match self.quic.get() {
-            Some((trust, cfg)) if *trust == self.trust => Ok(cfg.clone()),
-            // `trust` was changed after the first build: build for it, uncached.
-            Some(_) => Ok(tls::client_config(self.trust.clone())?),
+            Some((k, cfg)) if *k == key => Ok(cfg.clone()),
+            // `trust` or the timeout was changed after the first build: build for them, uncached.
+            Some(_) => Ok(tls::client_config_idle(self.trust.clone(), self.idle_timeout)?),
             None => {
-                let cfg = tls::client_config(self.trust.clone())?;
-                Ok(self.quic.get_or_init(|| (self.trust.clone(), cfg)).1.clone())
+                let cfg = tls::client_config_idle(self.trust.clone(), self.idle_timeout)?;
+                Ok(self.quic.get_or_init(|| (key, cfg)).1.clone())
             }
         }
     }
@@ -138,6 +160,24 @@ impl ClientError {
                 reason: String::from_utf8_lossy(&c.reason).into_owned(),
             },
             e => ClientError::Lost(e),
+        }
+    }
+
+    /// Whether the session ended because its edge is gone or going — the connection lost or timed out, closed by
+    /// a shutdown, its streams ended, or no answer — rather than by a fault of either side's messages or a
+    /// refusal: what [`Connection::fail_over`] is for.
+    pub fn edge_lost(&self) -> bool {
+        match self {
+            ClientError::Lost(_)
+            | ClientError::Ended(_)
+            | ClientError::Read(_)
+            | ClientError::Write(_)
+            | ClientError::Timeout(_)
+            | ClientError::Connect(_) => true,
+            ClientError::Closed { code, .. } => {
+                matches!(code, None | Some(CloseCode::Shutdown | CloseCode::Timeout | CloseCode::Internal))
+            }
+            _ => false,
         }
     }
 
@@ -516,6 +556,11 @@ impl Connection {
             Some(e) => ClientError::from_connection(e),
             None => ClientError::Ended("while streaming"),
         }
+    }
+
+    /// The server this session is with.
+    pub fn server(&self) -> SocketAddr {
+        self.conn.remote_address()
     }
 
     /// Wait until the area of interest is complete (or `timeout` passes).

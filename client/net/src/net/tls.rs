@@ -108,8 +108,16 @@ pub enum TlsError {
     Quic(String),
 }
 
+/// How long a connection may hear nothing before it counts as lost, by default.
+pub const IDLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// A quinn client configuration trusting servers as `trust` says, speaking ALPN `canopy/1`.
 pub fn client_config(trust: Trust) -> Result<quinn::ClientConfig, TlsError> {
+    client_config_idle(trust, IDLE_TIMEOUT)
+}
+
+/// [`client_config`] with a connection counted as lost after `idle` of silence (keep-alives at a quarter of it).
+pub fn client_config_idle(trust: Trust, idle: std::time::Duration) -> Result<quinn::ClientConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let verifier = Arc::new(Verifier { trust, provider: Arc::clone(&provider) });
     let mut tls = rustls::ClientConfig::builder_with_provider(provider)
@@ -125,8 +133,8 @@ pub fn client_config(trust: Trust) -> Result<quinn::ClientConfig, TlsError> {
         .max_concurrent_bidi_streams(quinn::VarInt::from_u32(0))
         .stream_receive_window(quinn::VarInt::from_u32(1 << 20))
         .receive_window(quinn::VarInt::from_u32(4 << 20))
-        .keep_alive_interval(Some(std::time::Duration::from_secs(5)))
-        .max_idle_timeout(std::time::Duration::from_secs(30).try_into().ok());
+        .keep_alive_interval(Some(idle / 4))
+        .max_idle_timeout(idle.try_into().ok());
     cfg.transport_config(Arc::new(t));
     Ok(cfg)
 }

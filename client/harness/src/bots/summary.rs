@@ -1,0 +1,338 @@
+//! What a bots run measured, summed over the bots: completeness, latencies, bytes, edits and their fan-out, the
+//! check against the world and between bots, reconnects, and the edit ledger's one line.
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use canopy_protocol::CellCoord;
+use canopy_protocol::messages::ServerMsgKind;
+
+use super::{Acknowledged, AoiSamples, BotReport, EditLedger, EditsSummary, FanOut, FanOutReport};
+use crate::numbers::percentile;
+
+/// Everything a bots run measured.
+#[derive(Clone, Debug)]
+pub struct BotsSummary {
+    /// Bots run.
+    pub bots: usize,
+    /// Bots that failed (connection or protocol error, or no complete area of interest at the end).
+    pub failed: usize,
+    /// Bots that ended with a complete area of interest.
+    pub complete: usize,
+    /// Bots whose final state matched the world (of those checked).
+    pub verified: usize,
+    /// Bots checked against the world.
+    pub checked: usize,
+    /// The first failures' messages.
+    pub errors: Vec<String>,
+    /// Latency percentiles (p50, p90, p99, max) of area-of-interest change → complete.
+    pub latency: Option<[Duration; 4]>,
+    /// Latency percentiles of connect → first complete area of interest.
+    pub first_complete: Option<[Duration; 4]>,
+    /// Latency samples.
+    pub samples: usize,
+    /// Records received by all bots.
+    pub records: u64,
+    /// Frame bytes of cell batches per record received.
+    pub batch_bytes_per_record: f64,
+    /// UDP payload bytes per record received (species, releases, QUIC framing and acknowledgements included).
+    pub udp_bytes_per_record: f64,
+    /// Species received over the wire by all bots.
+    pub species_received: u64,
+    /// Species received twice by one bot.
+    pub species_duplicates: u64,
+    /// Every bot's area of interest sampled while walking.
+    pub moving: AoiSamples,
+    /// Wall time of the whole run.
+    pub wall: Duration,
+    /// Cells that edits changed, held at the end by the bots checked: compared with the world only as far as its
+    /// function still decides them ([`verify_with`]).
+    pub edited_checked: usize,
+    /// What the bots' edits came to (`None`: no bot edited).
+    pub edits: Option<EditsSummary>,
+    /// How soon edits reached the other bots (`None`: not measured; [`BotsSummary::with_fanout`]).
+    pub fanout: Option<FanOutReport>,
+    /// Edited (cell, version) pairs held at the end by two bots or more, compared between them.
+    pub edited_compared: usize,
+    /// Of those, the pairs whose content differs between bots.
+    pub edited_differ: usize,
+    /// Sessions resumed on another edge after an edge was lost, all bots.
+    pub reconnects: u64,
+    /// How long those fail-overs took (error → resumed): p50, p90, p99, max.
+    pub failover: Option<[Duration; 4]>,
+    /// Every acknowledged edit checked against the edit store (`None`: not checked; [`BotsSummary::with_ledger`]).
+    pub ledger: Option<EditLedger>,
+}
+
+fn percentiles(mut v: Vec<Duration>) -> Option<[Duration; 4]> {
+    v.sort_unstable();
+    let at = |q: f64| percentile(&v, q);
+    Some([at(0.5)?, at(0.9)?, at(0.99)?, at(1.0)?])
+}
+
+impl BotsSummary {
+    /// Summarise bot reports.
+    pub fn new(reports: &[BotReport], wall: Duration) -> BotsSummary {
+        let records: u64 = reports.iter().map(|r| r.records).sum();
+        let batch: u64 = reports.iter().map(|r| r.frame_bytes[ServerMsgKind::Cells]).sum();
+        let udp: u64 = reports.iter().map(|r| r.udp_bytes).sum();
+        let per = |b: u64| if records == 0 { 0.0 } else { b as f64 / records as f64 };
+        let checked: Vec<_> = reports.iter().filter_map(|r| r.verify.as_ref()).collect();
+        let mut errors: Vec<String> = reports
+            .iter()
+            .filter_map(|r| {
+                r.error.as_ref().map(|e| format!("bot {}: {e}", r.id)).or_else(|| match &r.verify {
+                    Some(Err(e)) => Some(format!("bot {} check: {e}", r.id)),
+                    _ => None,
+                })
+            })
+            .collect();
+        errors.truncate(10);
+        // Every bot holding an edited cell at one version must hold the same content.
+        let mut digests: HashMap<(CellCoord, u32), (u64, usize, bool)> = HashMap::new();
+        for (c, v, d) in reports.iter().flat_map(|r| &r.edited_cells) {
+            let e = digests.entry((*c, *v)).or_insert((*d, 0, false));
+            e.1 += 1;
+            e.2 |= e.0 != *d;
+        }
+        let differ: Vec<_> = digests.iter().filter(|(_, e)| e.2).map(|(k, _)| *k).collect();
+        if let Some((c, v)) = differ.first()
+            && errors.len() < 10
+        {
+            errors.push(format!("cell {c:?} at version {v} differs between bots"));
+        }
+        BotsSummary {
+            bots: reports.len(),
+            failed: reports.iter().filter(|r| r.error.is_some()).count(),
+            complete: reports.iter().filter(|r| r.complete).count(),
+            verified: checked.iter().filter(|v| v.is_ok()).count(),
+            checked: checked.len(),
+            errors,
+            latency: percentiles(reports.iter().flat_map(|r| r.latencies.iter().copied()).collect()),
+            first_complete: percentiles(reports.iter().filter_map(|r| r.first_complete).collect()),
+            samples: reports.iter().map(|r| r.latencies.len()).sum(),
+            records,
+            batch_bytes_per_record: per(batch),
+            udp_bytes_per_record: per(udp),
+            species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
+            species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
+            moving: reports.iter().fold(AoiSamples::default(), |mut a, r| {
+                a.add(&r.moving);
+                a
+            }),
+            wall,
+            edited_checked: checked.iter().filter_map(|v| v.as_ref().ok()).map(|v| v.edited).sum(),
+            edits: EditsSummary::new(reports.iter().filter_map(|r| r.edits.as_ref())),
+            fanout: None,
+            edited_compared: digests.values().filter(|e| e.1 >= 2).count(),
+            edited_differ: differ.len(),
+            reconnects: reports.iter().map(|r| u64::from(r.reconnects)).sum(),
+            failover: percentiles(reports.iter().flat_map(|r| r.failovers.iter().copied()).collect()),
+            ledger: None,
+        }
+    }
+
+    /// The same with the acknowledged edits checked against the store ([`check_ledger`]).
+    pub fn with_ledger(mut self, ledger: EditLedger) -> BotsSummary {
+        if let Some(p) = &ledger.first_problem
+            && self.errors.len() < 10
+        {
+            self.errors.push(p.clone());
+        }
+        self.ledger = Some(ledger);
+        self
+    }
+
+    /// Every edit acknowledged to a bot of `reports`, for [`check_ledger`].
+    pub fn acknowledged(reports: &[BotReport]) -> impl Iterator<Item = &Acknowledged> {
+        reports.iter().filter_map(|r| r.edits.as_ref()).flat_map(|e| &e.acknowledged)
+    }
+
+    /// The scale-out run's one line: `edits acknowledged N, lost L, duplicated D, fan-out p50 X ms p99 Y ms,
+    /// reconnects R` (`None` without a ledger).
+    pub fn ledger_line(&self) -> Option<String> {
+        let l = self.ledger.as_ref()?;
+        let fanout = match self.fanout.as_ref().and_then(|f| f.visible()) {
+            Some([p50, p99, _]) => {
+                format!("p50 {:.1} ms p99 {:.1} ms", p50.as_secs_f64() * 1e3, p99.as_secs_f64() * 1e3)
+            }
+            None => "not measured".into(),
+        };
+        Some(format!(
+            "edits acknowledged {}, lost {}, duplicated {}, fan-out {fanout}, reconnects {}",
+            l.acknowledged, l.lost, l.duplicated, self.reconnects
+        ))
+    }
+
+    /// The same with the run's fan-out samples ([`FanOut::report`]).
+    pub fn with_fanout(mut self, fanout: FanOutReport) -> BotsSummary {
+        self.fanout = Some(fanout);
+        self
+    }
+
+    /// Whether every bot ended complete, every checked bot matched the world, bots holding an edited cell at one
+    /// version held the same content, and (checked) no acknowledged edit was lost or duplicated.
+    pub fn ok(&self) -> bool {
+        self.failed == 0
+            && self.complete == self.bots
+            && self.verified == self.checked
+            && self.edited_differ == 0
+            && self.ledger.as_ref().is_none_or(|l| l.lost == 0 && l.duplicated == 0)
+    }
+}
+
+impl std::fmt::Display for BotsSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let ms = |d: Duration| format!("{:.1} ms", d.as_secs_f64() * 1e3);
+        writeln!(
+            f,
+            "bots: {} run, {} complete at the end, {} failed ({:.1} s)",
+            self.bots,
+            self.complete,
+            self.failed,
+            self.wall.as_secs_f64()
+        )?;
+        if self.checked > 0 {
+            write!(f, "checked against the world: {} of {} exact", self.verified, self.checked)?;
+            if self.edited_checked > 0 {
+                write!(
+                    f,
+                    " ({} edited cells compared only where the world's function still decides them)",
+                    self.edited_checked
+                )?;
+            }
+            writeln!(f)?;
+        }
+        if let Some([p50, p90, p99, max]) = self.latency {
+            writeln!(
+                f,
+                "AOI change → complete: p50 {} p90 {} p99 {} max {} ({} samples)",
+                ms(p50),
+                ms(p90),
+                ms(p99),
+                ms(max),
+                self.samples
+            )?;
+        }
+        if let Some([p50, _, p99, max]) = self.first_complete {
+            writeln!(f, "connect → first complete AOI: p50 {} p99 {} max {}", ms(p50), ms(p99), ms(max))?;
+        }
+        writeln!(
+            f,
+            "records: {} received; {:.2} B/record in cell batches, {:.2} B/record on the wire (UDP, all included)",
+            self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
+        )?;
+        writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        let m = &self.moving;
+        if m.samples > 0 {
+            let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;
+            writeln!(
+                f,
+                "while moving ({} samples): AOI cells held in full {:.1}% on average, whole AOI in {:.1}% of samples, \
+                 the cell below in {:.1}%",
+                m.samples,
+                100.0 * m.held_sum / m.samples as f64,
+                pc(m.complete),
+                pc(m.below)
+            )?;
+        }
+        if let Some(e) = &self.edits {
+            let [ok, denied, invalid, conflict] = e.outcomes;
+            writeln!(
+                f,
+                "edits: {} bots editing; {} sent ({} plants, {} fells), {ok} acknowledged, {denied} denied, \
+                 {invalid} invalid, {conflict} conflicts, {} unanswered; {:.1} acknowledged/s over {:.1} s",
+                e.editors,
+                e.sent(),
+                e.plants,
+                e.fells,
+                e.unanswered,
+                e.ok_per_second(),
+                e.span.as_secs_f64()
+            )?;
+            if let Some([p50, p90, p99, max]) = e.answer {
+                let n = e.outcomes.iter().sum::<u64>();
+                writeln!(
+                    f,
+                    "edit send → answer: p50 {} p90 {} p99 {} max {} ({n} answers)",
+                    ms(p50),
+                    ms(p90),
+                    ms(p99),
+                    ms(max)
+                )?;
+            }
+            for (what, why) in ["denied", "invalid"].iter().zip(&e.refusals) {
+                if let Some(why) = why {
+                    writeln!(f, "  first {what}: {why}")?;
+                }
+            }
+        }
+        if let Some(fo) = &self.fanout {
+            match (fo.visible(), fo.visible_on_all(), fo.watchers()) {
+                (Some([p50, p99, max]), Some([a50, a99, amax]), Some((mean, min))) => {
+                    writeln!(
+                        f,
+                        "edit fan-out, send → visible on another bot holding the cell: p50 {} p99 {} max {} ({} \
+                         samples)",
+                        ms(p50),
+                        ms(p99),
+                        ms(max),
+                        fo.samples.len()
+                    )?;
+                    writeln!(
+                        f,
+                        "edit fan-out, send → visible on every bot that received it (the last one): p50 {} p99 {} \
+                         max {} ({} edits, {mean:.1} bots each on average, at least {min})",
+                        ms(a50),
+                        ms(a99),
+                        ms(amax),
+                        fo.per_edit.len()
+                    )?;
+                }
+                _ => writeln!(f, "edit fan-out: no edit reached another bot")?,
+            }
+            if fo.unmatched > 0 {
+                writeln!(
+                    f,
+                    "  {} (bot, version) sightings not counted: no bot of this run had its answer while the record \
+                     kept the edit (another client's edits, or answers or deltas later than the record's newest \
+                     {} edits)",
+                    fo.unmatched,
+                    FanOut::DEFAULT_CAPACITY
+                )?;
+            }
+        }
+        if self.edits.is_some() || self.edited_compared > 0 {
+            writeln!(
+                f,
+                "edited cells at the end: {} (cell, version) held by two bots or more, {} differ between them",
+                self.edited_compared, self.edited_differ
+            )?;
+        }
+        if let Some([p50, _, p99, max]) = self.failover {
+            writeln!(
+                f,
+                "reconnects: {} sessions resumed on another edge after theirs was lost; lost → resumed p50 {} p99 {} \
+                 max {} (noticing the loss takes up to the idle timeout before that)",
+                self.reconnects,
+                ms(p50),
+                ms(p99),
+                ms(max)
+            )?;
+        }
+        if let Some(l) = &self.ledger {
+            writeln!(
+                f,
+                "edit store: {} edits in the {} cells the bots edited; of {} acknowledged, {} lost, {} duplicated",
+                l.stored, l.cells, l.acknowledged, l.lost, l.duplicated
+            )?;
+        }
+        for e in &self.errors {
+            writeln!(f, "  {e}")?;
+        }
+        if let Some(line) = self.ledger_line() {
+            writeln!(f, "{line}")?;
+        }
+        Ok(())
+    }
+}
