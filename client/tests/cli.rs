@@ -239,3 +239,31 @@ fn bots_that_edit_need_a_token() {
     assert!(!o.status.success());
     assert!(text(&o).contains("--token: expected hexadecimal digits"), "{}", text(&o));
 }
+
+/// `canopy species edit --screenshot` renders the editor window offscreen (lavapipe is enough) and exits; a file of
+/// no known format is refused; `species stats` prints the LOD levels the editor shows.
+#[test]
+fn species_edit_screenshot_writes_the_window() {
+    let out = temp("edit.png");
+    let o = canopy(&[
+        "species",
+        "edit",
+        "worm",
+        "--param",
+        "c=6",
+        "--width",
+        "640",
+        "--height",
+        "400",
+        "--screenshot",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let img = image::open(&out).expect("a PNG").to_rgba8();
+    assert_eq!(img.dimensions(), (640, 400));
+    let bad = canopy(&["species", "edit", "notes.txt", "--screenshot", out.to_str().unwrap()]);
+    assert!(!bad.status.success());
+    assert!(text(&bad).contains("unknown format"), "{}", text(&bad));
+    let o = canopy(&["species", "stats", "conifer", "--repeat", "1"]);
+    assert!(text(&o).contains("lod         4 level(s): detail 0 "), "{}", text(&o));
+}

@@ -29,6 +29,10 @@ const FORBIDDEN: &[(&str, &[&str])] = &[
         "canopy-render",
         &["quinn", "tokio", "winit", "clap", "indicatif", "anyhow", "canopy-server", "canopy-client", "canopy-harness"],
     ),
+    (
+        "canopy-editor",
+        &["quinn", "tokio", "clap", "indicatif", "anyhow", "canopy-server", "canopy-client", "canopy-harness"],
+    ),
     // The harness runs a canopy-server in process, and the server package carries its binary's clap and anyhow.
     ("canopy-harness", &["wgpu", "winit", "canopy-render"]),
 ];

@@ -83,8 +83,6 @@ pub struct Offscreen {
     target: wgpu::Texture,
     view: wgpu::TextureView,
     readback: wgpu::Buffer,
-    width: u32,
-    height: u32,
     padded_row: u32,
 }
 
@@ -109,14 +107,14 @@ impl Offscreen {
             view_formats: &[],
         });
         let view = target.create_view(&wgpu::TextureViewDescriptor::default());
-        let padded_row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let padded_row = padded_row(width);
         let readback = gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("readback"),
             size: u64::from(padded_row) * u64::from(height),
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        Ok(Offscreen { gpu, renderer, target, view, readback, width, height, padded_row })
+        Ok(Offscreen { gpu, renderer, target, view, readback, padded_row })
     }
 
     /// Update until everything in view is drawn at its wanted level (waiting for the workers, which a window never
@@ -150,47 +148,64 @@ impl Offscreen {
     /// Render the prepared frame and read it back.
     pub fn render(&mut self) -> Result<RenderedImage, OffscreenError> {
         self.renderer.render(&self.view);
-        let mut enc =
-            self.gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        enc.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &self.target,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &self.readback,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(self.padded_row),
-                    rows_per_image: Some(self.height),
-                },
-            },
-            wgpu::Extent3d { width: self.width, height: self.height, depth_or_array_layers: 1 },
-        );
-        let index = self.gpu.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        self.readback.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        self.gpu
-            .device
-            .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
-            .map_err(|e| OffscreenError::Readback(e.to_string()))?;
-        rx.recv()
-            .map_err(|e| OffscreenError::Readback(e.to_string()))?
-            .map_err(|e| OffscreenError::Readback(e.to_string()))?;
-        let mut rgba = Vec::with_capacity((self.width * self.height * 4) as usize);
-        {
-            let data = self.readback.get_mapped_range(..).map_err(|e| OffscreenError::Readback(e.to_string()))?;
-            for row in data.chunks_exact(self.padded_row as usize) {
-                rgba.extend_from_slice(&row[..(self.width * 4) as usize]);
-            }
-        }
-        self.readback.unmap();
-        Ok(RenderedImage { width: self.width, height: self.height, rgba })
+        read_back(&self.gpu.device, &self.gpu.queue, &self.target, &self.readback, self.padded_row)
     }
+}
+
+/// Bytes per row of a `width`-pixel RGBA8 readback, padded to wgpu's copy alignment.
+pub fn padded_row(width: u32) -> u32 {
+    (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT
+}
+
+/// Copy an RGBA8 texture (with `COPY_SRC`) into `readback` (a `MAP_READ | COPY_DST` buffer of
+/// `padded_row · height` bytes), wait for the GPU and return the image. The editor's screenshots read their window
+/// back with it too.
+pub fn read_back(
+    device: &wgpu::Device,
+    queue: &wgpu::Queue,
+    texture: &wgpu::Texture,
+    readback: &wgpu::Buffer,
+    padded_row: u32,
+) -> Result<RenderedImage, OffscreenError> {
+    let (width, height) = (texture.width(), texture.height());
+    let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+    enc.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: readback,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded_row),
+                rows_per_image: Some(height),
+            },
+        },
+        wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+    );
+    let index = queue.submit([enc.finish()]);
+    let (tx, rx) = std::sync::mpsc::channel();
+    readback.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device
+        .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
+        .map_err(|e| OffscreenError::Readback(e.to_string()))?;
+    rx.recv()
+        .map_err(|e| OffscreenError::Readback(e.to_string()))?
+        .map_err(|e| OffscreenError::Readback(e.to_string()))?;
+    let mut rgba = Vec::with_capacity((width * height * 4) as usize);
+    {
+        let data = readback.get_mapped_range(..).map_err(|e| OffscreenError::Readback(e.to_string()))?;
+        for row in data.chunks_exact(padded_row as usize) {
+            rgba.extend_from_slice(&row[..(width * 4) as usize]);
+        }
+    }
+    readback.unmap();
+    Ok(RenderedImage { width, height, rgba })
 }
 
 /// Render one still: set up, settle within `timeout`, render and read back.

@@ -1,4 +1,4 @@
-//! `canopy species check|stats|amplify|export|list` and `canopy demo`.
+//! `canopy species check|stats|amplify|export|list|edit` and `canopy demo`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use canopy_harness::numbers::{group, median};
+use canopy_harness::numbers::group;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
 use canopy_worlds::diag::SourceFile;
@@ -15,7 +15,7 @@ use canopy_worlds::library;
 use canopy_worlds::load::{CHECK_SEED, check_file, load, read_source};
 use canopy_worlds::lsystem::LSystem;
 use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
-use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
+use canopy_worlds::primitive::PrimitiveStream;
 use clap::{Args, Subcommand};
 
 #[path = "nearfield.rs"]
@@ -108,6 +108,9 @@ pub enum SpeciesCommand {
     },
     /// List the embedded species library.
     List,
+    /// The species editor: the source with diagnostics, a live 3D preview, parameter sliders, a grove and the
+    /// far field; `.hyp` hypertree definitions too (docs/editor.md).
+    Edit(EditArgs),
     /// Amplify every species of the embedded library, print its numbers and export a grove (.glb).
     Demo(DemoArgs),
 }
@@ -193,6 +196,55 @@ impl InstanceArgs {
     }
 }
 
+/// `canopy species edit [FILE] [--screenshot out.png]`.
+#[derive(Args, Debug)]
+pub struct EditArgs {
+    /// A `.species`, `.lsys` or `.hyp` file (created on save if it does not exist), or an embedded library species;
+    /// none starts a new species.
+    file: Option<PathBuf>,
+    /// Render the editor window once into this PNG (offscreen) and exit.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Override a parameter: `--param height=12` (repeatable).
+    #[arg(long = "param", value_parser = parse_setting)]
+    params: Vec<(String, f32)>,
+    /// The previewed seed.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The detail level.
+    #[arg(long, default_value_t = 0)]
+    detail: u8,
+    /// The view to start in.
+    #[arg(long, value_parser = super::named(&canopy_editor::ui::View::NAMES), default_value_t = canopy_editor::ui::View::Tree)]
+    view: canopy_editor::ui::View,
+    /// Window (and screenshot) width, pixels.
+    #[arg(long, default_value_t = 1280)]
+    width: u32,
+    /// Window (and screenshot) height, pixels.
+    #[arg(long, default_value_t = 800)]
+    height: u32,
+}
+
+fn edit(args: EditArgs) -> anyhow::Result<ExitCode> {
+    if !(320..=8192).contains(&args.width) || !(240..=8192).contains(&args.height) {
+        bail!("--width must be 320..=8192 and --height 240..=8192, got {}×{}", args.width, args.height);
+    }
+    let cfg = canopy_editor::EditConfig {
+        file: args.file,
+        params: args.params,
+        seed: args.seed,
+        detail: args.detail,
+        screenshot: args.screenshot.clone(),
+        size: (args.width, args.height),
+        view: args.view,
+    };
+    canopy_editor::run(&cfg)?;
+    if let Some(out) = args.screenshot {
+        println!("wrote {}", out.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 #[derive(Args, Debug)]
 pub struct DemoArgs {
     /// Where to write the grove.
@@ -230,6 +282,7 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
             )
         }
         SpeciesCommand::Demo(args) => demo(args),
+        SpeciesCommand::Edit(args) => edit(args),
         SpeciesCommand::List => {
             for e in library::SPECIES {
                 let g = e.load().map_err(|d| anyhow::anyhow!("{d}"))?;
@@ -275,70 +328,25 @@ fn check(files: &[PathBuf]) -> ExitCode {
     if failed == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE }
 }
 
-fn counts_line(s: &PrimitiveStream) -> String {
-    let c = s.counts();
-    PrimitiveKind::ALL
-        .iter()
-        .map(|k| format!("{} {}", k.name(), group(c[*k as usize] as u64)))
-        .collect::<Vec<_>>()
-        .join("  ")
-}
-
 fn stats(cfg: &InstanceConfig, repeat: u32) -> anyhow::Result<ExitCode> {
-    let g = &cfg.graph;
-    let mut times = Vec::new();
-    let mut stream = PrimitiveStream::default();
-    for _ in 0..repeat {
-        let t = Instant::now();
-        stream = cfg.amplify(&cfg.instance)?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
+    // One measurement for this command and the editor's stats panel.
+    let species = canopy_editor::species::Species::new(cfg.graph.clone(), cfg.lsystem.clone());
+    let (stats, _) = canopy_editor::stats::measure(&species, &cfg.instance, &cfg.budget, repeat)?;
+    for line in stats.lines() {
+        println!("{line}");
     }
-    let ms = median(times);
-    let opts = MeshOptions::for_detail(cfg.instance.detail);
-    let t = Instant::now();
-    let m = mesh(&stream, &opts);
-    let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
-    let encoded = g.encode().len();
-    let explicit = explicit_bytes(&stream);
-    let n = stream.primitives.len();
-    println!("species     {} ({} nodes, {} parameters)", g.name, g.nodes.len(), g.params.len());
-    println!("instance    seed {}, detail {}", cfg.instance.seed, cfg.instance.detail);
-    println!("primitives  {}  ({})", group(n as u64), counts_line(&stream));
-    println!("encoded     {} bytes (postcard species graph)", group(encoded as u64));
-    println!(
-        "explicit    {} bytes as seed 001 §7 counts it (cones/cylinders 7 floats, triangle vertices 3 floats): {}× the species",
-        group(explicit as u64),
-        ratio(explicit as f64 / encoded as f64)
-    );
-    println!("traversal   {ms:.3} ms median of {repeat} ({:.2} M primitives/s)", n as f64 / ms / 1e3);
-    println!(
-        "mesh        {} triangles, {} vertices in {mesh_ms:.3} ms",
-        group(m.triangle_count() as u64),
-        group(m.positions.len() as u64)
-    );
     Ok(ExitCode::SUCCESS)
-}
-
-/// A size ratio for people: whole numbers from 10 up, two significant digits below (`0.14`, `3.5`), so a species
-/// whose explicit geometry is smaller than its encoding does not read as `0`.
-fn ratio(r: f64) -> String {
-    if !r.is_finite() || r >= 9.95 {
-        format!("{r:.0}")
-    } else if r >= 0.995 {
-        format!("{r:.1}")
-    } else if r > 0.0 {
-        let decimals = (1.0 - r.log10().floor()).clamp(2.0, 12.0) as usize;
-        format!("{r:.decimals$}")
-    } else {
-        "0".to_string()
-    }
 }
 
 fn amplify_cmd(cfg: &InstanceConfig, out: Option<PathBuf>) -> anyhow::Result<ExitCode> {
     let stream = cfg.amplify(&cfg.instance)?;
     let m = mesh(&stream, &MeshOptions::for_detail(cfg.instance.detail));
     println!("species     {}", cfg.graph.name);
-    println!("primitives  {}  ({})", group(stream.primitives.len() as u64), counts_line(&stream));
+    println!(
+        "primitives  {}  ({})",
+        group(stream.primitives.len() as u64),
+        canopy_editor::stats::counts_line(&stream.counts())
+    );
     println!("stream hash {:016x}", stream.hash());
     println!("mesh hash   {:016x} ({} triangles)", m.hash(), group(m.triangle_count() as u64));
     if let Some(path) = out {
@@ -474,7 +482,7 @@ pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
             encoded,
             group((prims as f64 / n) as u64),
             group((explicit as f64 / n) as u64),
-            ratio(explicit as f64 / n / encoded as f64),
+            canopy_editor::stats::ratio(explicit as f64 / n / encoded as f64),
             secs * 1e3 / n,
             prims as f64 / secs / 1e6
         );

@@ -1,0 +1,237 @@
+//! A species instance's numbers — primitives by kind, encoded bytes, explicit bytes as seed 001 §7 counts them,
+//! traversal time, the mesh, LOD levels — measured once here for both `canopy species stats` and the editor's
+//! stats panel.
+
+use std::time::Instant;
+
+use canopy_worlds::amplify::{Budget, Instance};
+use canopy_worlds::mesh::{MeshOptions, explicit_bytes, mesh};
+use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
+
+use crate::species::{AmplifyFailure, Species};
+
+/// Detail levels looked at for LOD substitutes (levels stop at the first that draws the same as the one before).
+pub const MAX_LOD_LEVELS: u8 = 8;
+
+/// One detail level that differs from the one before it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LodLevel {
+    /// The detail level (0 is full detail).
+    pub detail: u8,
+    /// Primitives the instance emits at this level.
+    pub primitives: usize,
+}
+
+/// What `canopy species stats` prints and the editor shows.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SpeciesStats {
+    /// The species' name.
+    pub name: String,
+    /// Nodes in its graph.
+    pub nodes: usize,
+    /// Parameters it declares (an L-system's internal ones included).
+    pub params: usize,
+    /// The instance's seed.
+    pub seed: u64,
+    /// The instance's detail level.
+    pub detail: u8,
+    /// Primitives by [`PrimitiveKind`].
+    pub counts: [usize; 5],
+    /// Primitives in all.
+    pub primitives: usize,
+    /// Bytes of the species graph as sent (postcard).
+    pub encoded: usize,
+    /// Bytes of the instance as explicit geometry, counted as seed 001 §7 counts it.
+    pub explicit: usize,
+    /// The median traversal time, milliseconds.
+    pub traversal_ms: f64,
+    /// Traversals timed.
+    pub repeat: u32,
+    /// Mesh triangles.
+    pub triangles: usize,
+    /// Mesh vertices.
+    pub vertices: usize,
+    /// Time to mesh the stream, milliseconds.
+    pub mesh_ms: f64,
+    /// The hash of the primitive stream (the golden-hash function).
+    pub stream_hash: u64,
+    /// The detail levels that differ, from 0 up (one entry: the species has no LOD substitutes).
+    pub lod: Vec<LodLevel>,
+}
+
+/// Amplify `instance` of `species` `repeat` times (at least once), time the traversals, mesh the stream and find its
+/// LOD levels. Returns the numbers and the stream.
+pub fn measure(
+    species: &Species,
+    instance: &Instance,
+    budget: &Budget,
+    repeat: u32,
+) -> Result<(SpeciesStats, PrimitiveStream), AmplifyFailure> {
+    let repeat = repeat.max(1);
+    let mut times = Vec::with_capacity(repeat as usize);
+    let mut stream = PrimitiveStream::default();
+    for _ in 0..repeat {
+        let t = Instant::now();
+        stream = species.amplify(instance, budget)?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    let traversal_ms = times[times.len() / 2];
+    let t = Instant::now();
+    let m = mesh(&stream, &MeshOptions::for_detail(instance.detail));
+    let mesh_ms = t.elapsed().as_secs_f64() * 1e3;
+    let g = &species.graph;
+    let stats = SpeciesStats {
+        name: g.name.clone(),
+        nodes: g.nodes.len(),
+        params: g.params.len(),
+        seed: instance.seed,
+        detail: instance.detail,
+        counts: stream.counts(),
+        primitives: stream.primitives.len(),
+        encoded: g.encode().len(),
+        explicit: explicit_bytes(&stream),
+        traversal_ms,
+        repeat,
+        triangles: m.triangle_count(),
+        vertices: m.positions.len(),
+        mesh_ms,
+        stream_hash: stream.hash(),
+        lod: lod_levels(species, instance, budget, &stream)?,
+    };
+    Ok((stats, stream))
+}
+
+/// The detail levels from `instance.detail` up whose streams differ from the level before, up to
+/// [`MAX_LOD_LEVELS`]; `stream` is the instance's own.
+pub fn lod_levels(
+    species: &Species,
+    instance: &Instance,
+    budget: &Budget,
+    stream: &PrimitiveStream,
+) -> Result<Vec<LodLevel>, AmplifyFailure> {
+    let mut levels = vec![LodLevel { detail: instance.detail, primitives: stream.primitives.len() }];
+    let mut last = stream.hash();
+    for detail in instance.detail.saturating_add(1)..MAX_LOD_LEVELS {
+        let s = species.amplify(&Instance { detail, ..instance.clone() }, budget)?;
+        let h = s.hash();
+        if h == last {
+            break;
+        }
+        last = h;
+        levels.push(LodLevel { detail, primitives: s.primitives.len() });
+    }
+    Ok(levels)
+}
+
+impl SpeciesStats {
+    /// Primitives by kind: `cone 1  cylinder 0  sphere 6  box 0  leaf 0`.
+    pub fn counts_line(&self) -> String {
+        counts_line(&self.counts)
+    }
+
+    /// The report, one line each: species, instance, primitives, encoded, explicit, traversal, mesh, lod.
+    pub fn lines(&self) -> Vec<String> {
+        let n = self.primitives;
+        let lod = self
+            .lod
+            .iter()
+            .map(|l| format!("detail {} {}", l.detail, thousands(l.primitives as u64)))
+            .collect::<Vec<_>>()
+            .join(", ");
+        vec![
+            format!("species     {} ({} nodes, {} parameters)", self.name, self.nodes, self.params),
+            format!("instance    seed {}, detail {}", self.seed, self.detail),
+            format!("primitives  {}  ({})", thousands(n as u64), self.counts_line()),
+            format!("encoded     {} bytes (postcard species graph)", thousands(self.encoded as u64)),
+            format!(
+                "explicit    {} bytes as seed 001 §7 counts it (cones/cylinders 7 floats, triangle vertices 3 floats): {}× the species",
+                thousands(self.explicit as u64),
+                ratio(self.explicit as f64 / self.encoded as f64)
+            ),
+            format!(
+                "traversal   {:.3} ms median of {} ({:.2} M primitives/s)",
+                self.traversal_ms,
+                self.repeat,
+                n as f64 / self.traversal_ms / 1e3
+            ),
+            format!(
+                "mesh        {} triangles, {} vertices in {:.3} ms",
+                thousands(self.triangles as u64),
+                thousands(self.vertices as u64),
+                self.mesh_ms
+            ),
+            format!("lod         {} level(s): {lod}", self.lod.len()),
+        ]
+    }
+}
+
+/// Primitives by kind from [`PrimitiveStream::counts`].
+pub fn counts_line(counts: &[usize; 5]) -> String {
+    PrimitiveKind::ALL
+        .iter()
+        .map(|k| format!("{} {}", k.name(), thousands(counts[*k as usize] as u64)))
+        .collect::<Vec<_>>()
+        .join("  ")
+}
+
+/// A count with thousands separators (`12,345`).
+pub fn thousands(v: u64) -> String {
+    let s = v.to_string();
+    let mut out = String::with_capacity(s.len() + s.len() / 3);
+    for (i, c) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
+}
+
+/// A size ratio for people: whole numbers from 10 up, two significant digits below (`0.14`, `3.5`), so a species
+/// whose explicit geometry is smaller than its encoding does not read as `0`.
+pub fn ratio(r: f64) -> String {
+    if !r.is_finite() || r >= 9.95 {
+        format!("{r:.0}")
+    } else if r >= 0.995 {
+        format!("{r:.1}")
+    } else if r > 0.0 {
+        let decimals = (1.0 - r.log10().floor()).clamp(2.0, 12.0) as usize;
+        format!("{r:.decimals$}")
+    } else {
+        "0".to_string()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use canopy_worlds::library;
+
+    #[test]
+    fn worm_numbers_match_the_cli_contract() {
+        let e = library::find("worm").expect("worm");
+        let (s, _) = Species::parse(&e.source());
+        let s = s.expect("parses");
+        let slot = s.graph.param_slot("c").expect("c");
+        let inst = Instance { seed: 1, params: vec![(slot, 6.0)], detail: 0 };
+        let (st, stream) = measure(&s, &inst, &Budget::default(), 1).expect("amplifies");
+        assert_eq!(st.primitives, stream.primitives.len());
+        let lines = st.lines();
+        assert_eq!(lines[2], "primitives  7  (cone 1  cylinder 0  sphere 6  box 0  leaf 0)");
+        assert!(lines[3].starts_with("encoded     165 bytes"), "{lines:?}");
+        assert!(lines[7].starts_with("lod         1 level(s): detail 0 7"), "{lines:?}");
+        assert_eq!((thousands(1234567), ratio(0.1388), ratio(3.46)), ("1,234,567".into(), "0.14".into(), "3.5".into()));
+    }
+
+    #[test]
+    fn the_conifer_has_lod_levels() {
+        let e = library::find("conifer").expect("conifer");
+        let s = Species::parse(&e.source()).0.expect("parses");
+        let inst = Instance::new(1);
+        let stream = s.amplify(&inst, &Budget::default()).expect("amplifies");
+        let lod = lod_levels(&s, &inst, &Budget::default(), &stream).expect("amplifies");
+        assert!(lod.len() > 1, "{lod:?}");
+        assert!(lod.windows(2).all(|w| w[1].primitives < w[0].primitives), "{lod:?}");
+    }
+}
