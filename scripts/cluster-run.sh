@@ -13,8 +13,8 @@
 #   COUNT=300 EDITING=10 EDIT_RATE=20 scripts/cluster-run.sh
 #
 # Environment: COUNT, EDITING (how many bots edit), EDIT_RATE (edits/s per editing bot), DURATION (s), KILL_AT (s
-# after the bots start; empty: kill nothing), RESTART_AFTER (s after the kill to start the NATS node again), KILL_NATS
-# and KILL_EDGE (which ones), PATH_KIND, SPEED, SPREAD (side of the square the bots stay in, m: bots on different
+# after the bots start, when the edges are also reported; empty: never), RESTART_AFTER (s after the kill to start the
+# NATS node again), KILL_NATS and KILL_EDGE (which ones; empty: none), PATH_KIND, SPEED, SPREAD (side of the square the bots stay in, m: bots on different
 # edges hold the same cells), RADIUS, CONNECT_RATE, NATS_PORT, EDGE_PORT, CARGO_TARGET_DIR; EXTRA_BOTS_ARGS goes to
 # `canopy bots` as is; KEEP=1 keeps the logs (edges', NATS nodes', bots'). Numbers and the machine they were measured on: docs/scale-out.md.
 set -euo pipefail
@@ -26,8 +26,8 @@ EDIT_RATE=${EDIT_RATE:-5}
 DURATION=${DURATION:-40}
 KILL_AT=${KILL_AT-$((DURATION / 2))}
 RESTART_AFTER=${RESTART_AFTER:-5}
-KILL_NATS=${KILL_NATS:-1}
-KILL_EDGE=${KILL_EDGE:-1}
+KILL_NATS=${KILL_NATS-1}
+KILL_EDGE=${KILL_EDGE-1}
 PATH_KIND=${PATH_KIND:-random}
 SPEED=${SPEED:-1}
 SPREAD=${SPREAD:-64}
@@ -101,14 +101,16 @@ START=$(date +%s.%N)
 
 if [ -n "$KILL_AT" ]; then
     sleep "$KILL_AT"
-    echo "---- edges just before the kill"
+    echo "---- edges at ${KILL_AT} s, before the kill"
     edges_report
-    scripts/cluster.sh kill nats "$KILL_NATS"
-    scripts/cluster.sh kill edge "$KILL_EDGE"
-    KILLED=$(date +%s.%N)
-    sleep "$RESTART_AFTER"
-    scripts/cluster.sh start nats "$KILL_NATS"
-    awk -v a="$KILLED" -v b="$(date +%s.%N)" 'BEGIN { printf "cluster-run: NATS node started again %.1f s after the kill\n", b - a }'
+    [ -n "$KILL_NATS" ] && scripts/cluster.sh kill nats "$KILL_NATS"
+    [ -n "$KILL_EDGE" ] && scripts/cluster.sh kill edge "$KILL_EDGE"
+    if [ -n "$KILL_NATS" ]; then
+        KILLED=$(date +%s.%N)
+        sleep "$RESTART_AFTER"
+        scripts/cluster.sh start nats "$KILL_NATS"
+        awk -v a="$KILLED" -v b="$(date +%s.%N)" 'BEGIN { printf "cluster-run: NATS node started again %.1f s after the kill\n", b - a }'
+    fi
 fi
 
 set +e
@@ -119,6 +121,13 @@ set -e
 END=$(date +%s.%N)
 echo "---- edges at the end (the ones alive)"
 edges_report
+# The edit bus: bytes the NATS nodes received and sent (clients and routes: publishes, acknowledgements, replication,
+# watches, API calls, heartbeats) over the run, per acknowledged edit below.
+BUS=0
+for i in 0 1 2; do
+    b=$(curl -s "http://127.0.0.1:$((NATS_PORT + 200 + i))/varz" 2>/dev/null | python3 -c 'import json,sys; v=json.load(sys.stdin); print(v["in_bytes"] + v["out_bytes"])' 2>/dev/null || echo 0)
+    BUS=$((BUS + b))
+done
 echo "---- bots"
 cat "$WORK/bots.txt"
 if [ "$BOTS_STATUS" -ne 0 ] && [ ! -s "$WORK/bots.txt" ]; then
@@ -130,5 +139,7 @@ if [ -z "$LINE" ]; then
     echo "cluster-run: the bots printed no ledger line" >&2
     exit 1
 fi
+ACKED=$(echo "$LINE" | sed -n 's/^edits acknowledged \([0-9]*\),.*/\1/p')
+awk -v b="$BUS" -v n="$ACKED" 'BEGIN { printf "edit bus: %.1f MB in and out of the NATS nodes alive at the end (since their start), %.0f B per acknowledged edit\n", b / 1e6, (n > 0 ? b / n : 0) }'
 echo "$LINE"
 exit "$BOTS_STATUS"

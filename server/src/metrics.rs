@@ -1,7 +1,8 @@
 //! Server-wide counters and their Prometheus text exposition (format 0.0.4): clients, bytes and messages by
 //! message class, records sent and records per second, sessions closed by reason, process memory, and the cell
 //! cache's hits, misses, expansions (count, rate, time percentiles), bytes and cells, and the edit pipeline's
-//! outcomes, groups and commit times.
+//! outcomes, groups and commit times, and an edge's distributed engine (round trip, watched cells, edits in,
+//! reconnects).
 
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};

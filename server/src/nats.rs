@@ -1,10 +1,16 @@
 //! The edit log on NATS JetStream (issue 17): many stateless edges share one world's edits through a replicated
 //! stream, one subject a cell (`canopy.edits.WORLD.X.Z`), each message one [`StoredEdit`].
 //!
-//! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append names the
-//!   subject sequence of the cell's last edit it knows (`Nats-Expected-Last-Subject-Sequence`): the engine refuses
-//!   it if another edge got there first (compare-and-set), so no version is taken twice; the writer then reads the
-//!   cell again and answers `conflict`. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
+//! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append of version
+//!   v names the stream sequence of version v − 1 (`Nats-Expected-Last-Subject-Sequence`): the engine refuses it if
+//!   another edge got there first (compare-and-set), so no version is taken twice; the writer then reads the cell
+//!   again and checks the edit once more. The store remembers each cell's last edit as (version, sequence), and an
+//!   append whose v − 1 is not that edit (a watch already told of a later one) is refused without publishing —
+//!   naming the later edit's sequence would let the engine take version v a second time. The engine's check is not
+//!   serializable on a clustered stream before nats-server 2.9.21 (nats-io/nats-server#4320; Debian ships 2.9.10):
+//!   two publishes naming the same sequence may both be stored. So a version is the *first* message on the subject
+//!   that names it (`first_wins`, the fold every reader applies), and a writer acknowledges its edit only after
+//!   reading that its message is the first on the subject after the one it named; a loser is a conflict. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
 //!   second edit (the id carries a digest of the edit's bytes, so another edit of the same version is no
 //!   duplicate).
 //! - **Durable means replicated.** An append returns once JetStream acknowledged every message, which for a stream
@@ -100,14 +106,21 @@ impl NatsConfig {
     }
 }
 
+/// A cell's last edit as far as this store knows: its version and its stream sequence.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
+struct Known {
+    version: u32,
+    sequence: u64,
+}
+
 /// What the store's thread holds.
 struct Inner {
     cfg: NatsConfig,
     metrics: Arc<EngineMetrics>,
     js: jetstream::Context,
     stream: stream::Stream,
-    /// Per cell, the subject sequence of its last edit this store knows (0: none).
-    last: Mutex<HashMap<CellCoord, u64>>,
+    /// Per cell, the version of its last edit this store knows and that edit's stream sequence ((0, 0): none).
+    last: Mutex<HashMap<CellCoord, Known>>,
     /// Watched cells and the tasks forwarding their subjects.
     watches: Mutex<HashMap<CellCoord, tokio::task::JoinHandle<()>>>,
 }
@@ -285,12 +298,26 @@ impl Inner {
         Ok(Inner { cfg, metrics, js, stream, last: Mutex::default(), watches: Mutex::default() })
     }
 
-    fn last(&self, c: CellCoord) -> u64 {
-        self.last.lock().unwrap_or_else(|e| e.into_inner()).get(&c).copied().unwrap_or(0)
+    fn last(&self, c: CellCoord) -> Known {
+        self.last.lock().unwrap_or_else(|e| e.into_inner()).get(&c).copied().unwrap_or_default()
     }
 
-    fn set_last(&self, c: CellCoord, seq: u64) {
-        self.last.lock().unwrap_or_else(|e| e.into_inner()).insert(c, seq);
+    /// Learn of a cell's message: the cell's version is at least `k.version`, its subject's last sequence at least
+    /// `k.sequence` (a race's loser raises the sequence, not the version).
+    fn learn(&self, c: CellCoord, k: Known) {
+        let mut last = self.last.lock().unwrap_or_else(|e| e.into_inner());
+        let known = last.entry(c).or_default();
+        known.version = known.version.max(k.version);
+        known.sequence = known.sequence.max(k.sequence);
+    }
+
+    /// The stream sequence an append of `version` must name as the cell's last edit: that of version − 1, if that
+    /// is the last edit this store knows. Otherwise the writer's overlay is behind (a watch told of a later edit)
+    /// or ahead of what this store read: the append is refused as a conflict, and the writer reads the cell again.
+    /// (Naming the sequence of a later edit would let the engine take the version a second time.)
+    fn expected(&self, c: CellCoord, version: u32) -> Option<u64> {
+        let k = self.last(c);
+        (k.version + 1 == version).then_some(k.sequence)
     }
 
     /// Publish one cell's edits in order, each naming the previous one's subject sequence.
@@ -306,7 +333,9 @@ impl Inner {
             let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
             let payload = bytes::Bytes::from(payload);
             let id = format!("{}.{}.{}.{id}", c.x, c.z, e.version);
-            let expected = self.last(c);
+            let Some(expected) = self.expected(c, e.version) else {
+                return Err(EditStoreError::Conflict { cell: c, version: e.version });
+            };
             // A publish whose answer was lost (its node died, the stream is electing a leader) is sent again, the
             // same message with the same id: if the first was stored, the engine answers the retry as a duplicate
             // (or, having the edit as the cell's last, refuses it as a conflict, and the writer finds the edit
@@ -321,7 +350,24 @@ impl Inner {
                 let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
                 match ack {
                     Ok(ack) => {
-                        self.set_last(c, ack.sequence);
+                        // The engine's compare-and-set is not serializable on a clustered stream in nats-server
+                        // before 2.9.21 (nats-io/nats-server#4320): two publishes naming the same last sequence
+                        // may both be taken. The first of a cell's messages with a version is that version (the
+                        // fold every reader applies, `first_wins`); this one is the version only if it is the
+                        // first message on the subject after the one it named.
+                        let first = self
+                            .stream
+                            .raw_message_builder()
+                            .sequence(expected + 1)
+                            .next_by_subject(subject.clone())
+                            .send()
+                            .await
+                            .map_err(|err| io("checking a publish", err))?;
+                        if first.sequence != ack.sequence {
+                            self.learn(c, Known { version: 0, sequence: ack.sequence });
+                            return Err(EditStoreError::Conflict { cell: c, version: e.version });
+                        }
+                        self.learn(c, Known { version: e.version, sequence: ack.sequence });
                         break;
                     }
                     Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
@@ -343,10 +389,7 @@ impl Inner {
         let subject = self.cfg.subject(c);
         let last = match self.stream.get_last_raw_message_by_subject(&subject).await {
             Ok(m) => m,
-            Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => {
-                self.set_last(c, 0);
-                return Ok(Vec::new());
-            }
+            Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => return Ok(Vec::new()),
             Err(e) => return Err(io("reading a cell's last edit", e)),
         };
         // The cell's edits up to that one, each the next on the subject after the previous (reads go to the
@@ -364,20 +407,32 @@ impl Inner {
                 .map_err(|e| io("reading a cell's edits", e))?;
             let e = StoredEdit::decode(&m.payload)
                 .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
-            if e.cell != c || e.version as usize != out.len() + 1 {
-                return Err(EditStoreError::Corrupt(format!(
-                    "cell {c:?} sequence {} holds version {} of {:?}",
-                    m.sequence, e.version, e.cell
-                )));
+            if e.cell != c {
+                return Err(EditStoreError::Corrupt(format!("cell {c:?} sequence {} holds {:?}", m.sequence, e.cell)));
             }
-            out.push(e);
+            if first_wins(out.len() as u32, e.version)
+                .map_err(|v| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {v}", m.sequence)))?
+            {
+                out.push(e);
+            }
             if m.sequence >= last.sequence {
                 break;
             }
             seq = m.sequence + 1;
         }
-        self.set_last(c, last.sequence);
+        self.learn(c, Known { version: out.len() as u32, sequence: last.sequence });
         Ok(out)
+    }
+}
+
+/// The fold every reader of a cell's subject applies, given the versions taken so far and the next message's:
+/// `Ok(true)` the message is the next version; `Ok(false)` it names a version already taken — the loser of a race
+/// the engine let through, never acknowledged (its writer checked), skipped; `Err` a version skipped: damage.
+fn first_wins(taken: u32, version: u32) -> Result<bool, String> {
+    match version {
+        v if v == taken + 1 => Ok(true),
+        v if v <= taken => Ok(false),
+        v => Err(format!("version {v} after version {taken}")),
     }
 }
 
@@ -414,15 +469,16 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, watcher: Arc
                     break;
                 }
             };
-            if let Ok(info) = m.info() {
-                next = next.max(info.stream_sequence + 1);
-                // What this edge's next append to the cell must name as the cell's last edit.
-                let mut last = inner.last.lock().unwrap_or_else(|e| e.into_inner());
-                let known = last.entry(c).or_insert(0);
-                *known = (*known).max(info.stream_sequence);
+            let sequence = m.info().map(|i| i.stream_sequence).ok();
+            if let Some(s) = sequence {
+                next = next.max(s + 1);
             }
             match StoredEdit::decode(&m.payload) {
                 Ok(e) if e.cell == c => {
+                    // What this edge's next append to the cell must name as the cell's last edit, and its version.
+                    if let Some(sequence) = sequence {
+                        inner.learn(c, Known { version: e.version, sequence });
+                    }
                     inner.metrics.deltas_in.fetch_add(1, Relaxed);
                     watcher.edited(e)
                 }
@@ -488,7 +544,7 @@ impl EditStore for NatsEditStore {
         // The watch starts just after the last edit the read of the log saw; it is set up on the store's runtime,
         // not here: a cluster electing a leader can take seconds to create a consumer, and neither the writer nor
         // a loader waits for that (nothing is missed: the consumer starts at that sequence whenever it starts).
-        let next = inner.last(c) + 1;
+        let next = inner.last(c).sequence + 1;
         let task = self.handle.spawn(watch_cell(inner, c, next, watcher));
         let mut watches = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(old) = watches.insert(c, task) {
@@ -504,5 +560,31 @@ impl EditStore for NatsEditStore {
             t.abort();
         }
         self.metrics.watched.store(watches.len() as u64, Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_first_message_of_a_version_wins() {
+        assert_eq!(first_wins(0, 1), Ok(true));
+        assert_eq!(first_wins(4, 5), Ok(true));
+        // A race's loser: the version is taken already.
+        assert_eq!(first_wins(5, 5), Ok(false));
+        assert_eq!(first_wins(5, 3), Ok(false));
+        // A version skipped is damage.
+        assert!(first_wins(5, 7).is_err());
+        assert!(first_wins(0, 2).is_err());
+    }
+
+    #[test]
+    fn subjects_name_their_cells() {
+        let cfg = NatsConfig { servers: vec![], world: "the forest!".into(), replicas: 3 };
+        assert_eq!(cfg.stream(), "CANOPY_EDITS_the_forest_");
+        let c = CellCoord::new(-3, 17);
+        assert_eq!(cfg.cell_of(&cfg.subject(c)), Some(c));
+        assert_eq!(cfg.cell_of("canopy.edits.other.1.2"), None);
     }
 }

@@ -235,3 +235,47 @@ fn bots_fail_over_between_edges_and_no_acknowledged_edit_is_lost() {
     assert!(summary.fanout.as_ref().is_some_and(|f| f.visible().is_some()), "edits reached bots of other edges");
     drop(edges);
 }
+
+/// Edits a watch told of.
+#[derive(Default)]
+struct Seen(std::sync::Mutex<Vec<canopy_server::edits::StoredEdit>>);
+
+impl canopy_server::edits::EditWatcher for Seen {
+    fn edited(&self, e: canopy_server::edits::StoredEdit) {
+        self.0.lock().unwrap().push(e);
+    }
+}
+
+#[test]
+fn a_writer_behind_a_watch_never_takes_a_version_twice() {
+    use canopy_protocol::InstanceRecord;
+    use canopy_server::edits::{CellEdit, EditStore, EditStoreError, StoredEdit};
+    use std::time::{Duration, Instant};
+
+    let cluster = Cluster::up(2);
+    let cfg = NatsConfig { servers: cluster.urls(), world: format!("stale-test-{}", std::process::id()), replicas: 3 };
+    let (a, b) = (NatsEditStore::connect(cfg.clone()).unwrap(), NatsEditStore::connect(cfg).unwrap());
+    let c = CellCoord::new(3, 4);
+    let plant = |version: u32, index: u16| StoredEdit {
+        cell: c,
+        version,
+        op: CellEdit::Plant { index, record: InstanceRecord::new(0, index, 9), params: vec![] },
+    };
+    assert!(b.load(c).unwrap().is_empty());
+    let seen = Arc::new(Seen::default());
+    b.watch(c, seen.clone());
+    a.append(&[plant(1, 5)]).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while seen.0.lock().unwrap().is_empty() {
+        assert!(Instant::now() < deadline, "B's watch never told of A's edit");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // B's writer has not seen the watch's news yet (its overlay is at version 0): its version 1 is a conflict,
+    // not a second version 1 naming A's edit as the cell's last.
+    assert!(matches!(b.append(&[plant(1, 5)]), Err(EditStoreError::Conflict { version: 1, .. })));
+    // Read again, B writes on top of A's edit.
+    assert_eq!(b.load(c).unwrap().len(), 1);
+    b.append(&[plant(2, 6)]).unwrap();
+    let versions: Vec<u32> = a.load(c).unwrap().iter().map(|e| e.version).collect();
+    assert_eq!(versions, [1, 2]);
+}
