@@ -247,7 +247,7 @@ impl canopy_server::edits::EditWatcher for Seen {
 }
 
 #[test]
-fn a_writer_behind_a_watch_never_takes_a_version_twice() {
+fn a_writer_behind_a_watch_never_takes_a_version_twice_and_the_store_passes_the_suite() {
     use canopy_protocol::InstanceRecord;
     use canopy_server::edits::{CellEdit, EditStore, EditStoreError, StoredEdit};
     use std::time::{Duration, Instant};
@@ -278,4 +278,9 @@ fn a_writer_behind_a_watch_never_takes_a_version_twice() {
     b.append(&[plant(2, 6)]).unwrap();
     let versions: Vec<u32> = a.load(c).unwrap().iter().map(|e| e.version).collect();
     assert_eq!(versions, [1, 2]);
+
+    // The JetStream store passes the suite every edit store passes (a world of its own: an empty stream).
+    let fresh =
+        NatsConfig { servers: cluster.urls(), world: format!("suite-test-{}", std::process::id()), replicas: 3 };
+    canopy_server::edits::suite::check(&NatsEditStore::connect(fresh).unwrap());
 }

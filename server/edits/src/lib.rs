@@ -9,12 +9,16 @@
 //! once it is durable, so a server acknowledges an edit only after that; it refuses a `(cell, version)` it already
 //! holds, which is what keeps two writers from applying one version twice.
 //!
+//! [`suite::check`] is the store contract as one test: every store (these two, and the edges' JetStream store in
+//! `canopy-server`) passes the same suite.
+//!
 //! Contract: no networking and no clock; the SQLite store is the only code here that touches a file.
 
 pub mod log;
 pub mod overlay;
 pub mod sqlite;
 pub mod store;
+pub mod suite;
 
 pub use log::{CellEdit, LogError, StoredEdit};
 pub use overlay::{Overlay, OverlayError};

@@ -416,3 +416,9 @@ fn acknowledged_appends_survive_sigkill() {
     assert!(total > 0);
     eprintln!("child acknowledged {total} edits before SIGKILL; store holds {}", store.count().unwrap());
 }
+
+#[test]
+fn passes_the_store_suite() {
+    let dir = tempfile::tempdir().unwrap();
+    canopy_edits::suite::check(&SqliteEditStore::open(dir.path()).unwrap());
+}
