@@ -21,6 +21,13 @@ use clap::Parser;
 use std::sync::Arc;
 use tracing::info;
 
+/// The allocator: jemalloc, whose background threads (turned on in `main`) give pages that sit unused back to the
+/// operating system (glibc's malloc keeps what its per-thread arenas freed), so the server's memory goes down when
+/// clients leave (issue 14; docs/streaming.md).
+#[cfg(not(target_env = "msvc"))]
+#[global_allocator]
+static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
 /// Serve a Canopy world: species once per client, instance records by area of interest, over QUIC.
 #[derive(Parser, Debug)]
 #[command(name = "canopy-server", version, about)]
@@ -155,6 +162,11 @@ fn main() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    // jemalloc's background threads purge dirty pages of idle arenas (after its decay time, 10 s by default).
+    #[cfg(not(target_env = "msvc"))]
+    if let Err(e) = tikv_jemalloc_ctl::background_thread::write(true) {
+        tracing::warn!("jemalloc background threads: {e}; freed memory is given back only as arenas are used");
+    }
     let args = Args::parse();
     if let (Some(name), Some(file)) = (&args.add_editor, &args.editors) {
         return add_editor(file, name, args.region, args.rate);

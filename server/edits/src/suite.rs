@@ -85,7 +85,7 @@ pub fn check(store: &dyn EditStore) {
             reference.append(&have).unwrap();
         }
     }
-    let mut rng = XorShift64::new(0x5eed_57_0e5);
+    let mut rng = XorShift64::new(0x5eed_0057_0e55);
     let mut next: Vec<u32> = CELLS.iter().map(|&c| reference.load(c).unwrap().len() as u32 + 1).collect();
     assert_eq!(next[3], d_versions + 1);
     for round in 0..40 {
