@@ -8,9 +8,11 @@
 //! frame rendered offscreen once. Files are read through `canopy_worlds::fsread` and watched with `notify`. The
 //! editor knows no network.
 
+pub mod grid;
 pub mod hyp;
 pub mod model;
 pub mod preview;
+pub mod save;
 pub mod screenshot;
 pub mod species;
 pub mod stats;
@@ -41,6 +43,8 @@ pub struct EditConfig {
     pub size: (u32, u32),
     /// The view to start in.
     pub view: ui::View,
+    /// Close the window by itself after this long (tests, demos); `None` runs until it is closed.
+    pub exit_after: Option<std::time::Duration>,
 }
 
 impl Default for EditConfig {
@@ -53,6 +57,7 @@ impl Default for EditConfig {
             screenshot: None,
             size: (1280, 800),
             view: ui::View::Tree,
+            exit_after: None,
         }
     }
 }
@@ -78,6 +83,14 @@ pub enum EditorError {
         path: String,
         /// Why.
         reason: String,
+    },
+    /// The path to write exists and is not a regular file (a directory, a symbolic link, a device…).
+    #[error("{path}: {kind}: refusing to write over it (the editor writes regular files only)")]
+    NotAFile {
+        /// The path.
+        path: String,
+        /// What it is.
+        kind: &'static str,
     },
     /// The buffer has no file to save to.
     #[error("the buffer has no file: start the editor with a path to save")]
@@ -113,6 +126,6 @@ pub fn run(cfg: &EditConfig) -> Result<(), EditorError> {
             let img = screenshot::render(&mut ui, cfg.size)?;
             img.save_png(out).map_err(|e| EditorError::Screenshot(e.to_string()))
         }
-        None => window::run(ui, cfg.size),
+        None => window::run(ui, cfg.size, cfg.exit_after),
     }
 }

@@ -444,11 +444,10 @@ impl Editor {
         line
     }
 
-    /// Write the buffer to its file.
+    /// Write the buffer to its file (through a temporary file renamed over it: [`crate::save`]).
     pub fn save(&mut self) -> Result<PathBuf, EditorError> {
         let path = self.path.clone().ok_or(EditorError::NoPath)?;
-        std::fs::write(&path, &self.text)
-            .map_err(|e| EditorError::Write { path: path.display().to_string(), reason: e.to_string() })?;
+        crate::save::write_file(&path, self.text.as_bytes())?;
         self.saved_text = self.text.clone();
         Ok(path)
     }
@@ -474,11 +473,10 @@ impl Editor {
         glb(&[(name, &m, [0.0; 3])]).map_err(|e| EditorError::Export(e.to_string()))
     }
 
-    /// Write the previewed instance as a `.glb` file.
+    /// Write the previewed instance as a `.glb` file (as [`Editor::save`] writes).
     pub fn export_glb(&self, path: &Path) -> Result<(), EditorError> {
         let bytes = self.glb()?;
-        std::fs::write(path, bytes)
-            .map_err(|e| EditorError::Write { path: path.display().to_string(), reason: e.to_string() })
+        crate::save::write_file(path, &bytes)
     }
 }
 

@@ -59,27 +59,103 @@ impl Headless {
         self.ctx.run_ui(input, |root| ui.show(root, id))
     }
 
-    /// Lay the UI out, then draw the preview until it settles (and any raymarch finishes).
+    /// Lay the UI out, then draw the preview until it settles (and any raymarch finishes), then wait for the stats
+    /// panel's numbers of the current model.
     pub fn settle(&mut self, ui: &mut EditorUi, timeout: Duration) -> Result<(), EditorError> {
+        let started = Instant::now();
+        self.settle_preview(ui, timeout)?;
+        ui.wait_for_stats(timeout.saturating_sub(started.elapsed()));
+        if ui.stats_pending() {
+            return Err(EditorError::Screenshot(format!("the stats were not measured within {timeout:?}")));
+        }
+        let mut out = self.run_ui(ui, 0.0);
+        self.apply_textures(&mut out);
+        Ok(())
+    }
+
+    /// Lay the UI out, then draw the preview until it settles (and any raymarch finishes); the stats panel is not
+    /// waited for. Returns the preview frames drawn.
+    pub fn settle_preview(&mut self, ui: &mut EditorUi, timeout: Duration) -> Result<u32, EditorError> {
         let started = Instant::now();
         for _ in 0..2 {
             let mut out = self.run_ui(ui, 0.0);
             self.apply_textures(&mut out);
         }
+        let mut frames = 0;
         loop {
             let stats = self.preview.frame(&self.gpu.device, &self.gpu.queue, &mut self.egui, ui, 0.0)?;
+            frames += 1;
             let species = ui.model.species().is_some();
             ui.wait_for_volume(&self.ctx, Duration::from_millis(20));
             let mut out = self.run_ui(ui, 0.0);
             self.apply_textures(&mut out);
             if (!species || (stats.settled() && stats.jobs == 0)) && !ui.busy() {
-                return Ok(());
+                self.wait_for_gpu()?;
+                return Ok(frames);
             }
             if started.elapsed() > timeout {
                 return Err(EditorError::Screenshot(format!("the preview did not settle within {timeout:?}")));
             }
             self.preview.wait_for_workers(Duration::from_millis(20));
         }
+    }
+
+    /// Bring the preview's renderer up to date without drawing anything (the UI is not run either): repeated until
+    /// its geometry is built and uploaded — what a change costs before the GPU draws it. Returns the updates made.
+    pub fn update_until_ready(&mut self, ui: &mut EditorUi, timeout: Duration) -> Result<u32, EditorError> {
+        let started = Instant::now();
+        let mut updates = 0;
+        loop {
+            let stats = self.preview.update(&self.gpu.device, &self.gpu.queue, &mut self.egui, ui, 0.0)?;
+            updates += 1;
+            if ui.model.species().is_none() || (stats.settled() && stats.jobs == 0) {
+                return Ok(updates);
+            }
+            if started.elapsed() > timeout {
+                return Err(EditorError::Screenshot(format!("the preview was not ready within {timeout:?}")));
+            }
+            self.preview.wait_for_workers(Duration::from_millis(1));
+        }
+    }
+
+    /// One whole window frame as the window draws it — the UI, the preview, egui onto a window-sized target — and
+    /// wait for the GPU to finish it.
+    pub fn draw_frame(&mut self, ui: &mut EditorUi) -> Result<(), EditorError> {
+        self.preview.frame(&self.gpu.device, &self.gpu.queue, &mut self.egui, ui, 0.0)?;
+        let mut out = self.run_ui(ui, 0.0);
+        self.apply_textures(&mut out);
+        let target = self.window_target();
+        let view = target.create_view(&wgpu::TextureViewDescriptor::default());
+        let screen = egui_wgpu::ScreenDescriptor {
+            size_in_pixels: [self.size.0, self.size.1],
+            pixels_per_point: out.pixels_per_point,
+        };
+        let jobs = self.ctx.tessellate(std::mem::take(&mut out.shapes), out.pixels_per_point);
+        draw_egui(&mut self.egui, &self.gpu.device, &self.gpu.queue, &view, &jobs, &screen);
+        self.wait_for_gpu()
+    }
+
+    /// Block until the GPU has finished everything submitted.
+    pub fn wait_for_gpu(&self) -> Result<(), EditorError> {
+        self.gpu
+            .device
+            .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
+            .map(|_| ())
+            .map_err(|e| EditorError::Screenshot(e.to_string()))
+    }
+
+    fn window_target(&self) -> wgpu::Texture {
+        let (w, h) = self.size;
+        self.gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("editor window"),
+            size: wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        })
     }
 
     fn apply_textures(&mut self, out: &mut egui::FullOutput) {
@@ -100,17 +176,8 @@ impl Headless {
         let mut out = self.run_ui(ui, 0.0);
         self.apply_textures(&mut out);
         let (w, h) = self.size;
+        let target = self.window_target();
         let device = &self.gpu.device;
-        let target = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("editor window"),
-            size: wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
         let view = target.create_view(&wgpu::TextureViewDescriptor::default());
         let screen = egui_wgpu::ScreenDescriptor { size_in_pixels: [w, h], pixels_per_point: out.pixels_per_point };
         let jobs = self.ctx.tessellate(std::mem::take(&mut out.shapes), out.pixels_per_point);

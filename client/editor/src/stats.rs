@@ -1,8 +1,10 @@
 //! A species instance's numbers — primitives by kind, encoded bytes, explicit bytes as seed 001 §7 counts them,
 //! traversal time, the mesh, LOD levels — measured once here for both `canopy species stats` and the editor's
-//! stats panel.
+//! stats panel. [`StatsWorker`] measures off the UI thread: the editor sends it the instance of each model
+//! revision and shows what comes back for the revision still current (a stale result is dropped).
 
-use std::time::Instant;
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
+use std::time::{Duration, Instant};
 
 use canopy_worlds::amplify::{Budget, Instance};
 use canopy_worlds::mesh::{MeshOptions, explicit_bytes, mesh};
@@ -124,6 +126,89 @@ pub fn lod_levels(
     Ok(levels)
 }
 
+/// One measurement asked of the [`StatsWorker`]: the model revision it belongs to and what to measure.
+#[derive(Clone, Debug)]
+pub struct StatsJob {
+    /// The editor model's revision (results carry it back).
+    pub revision: u64,
+    /// The species.
+    pub species: Species,
+    /// The previewed instance.
+    pub instance: Instance,
+    /// The budget of every traversal.
+    pub budget: Budget,
+    /// Traversals timed.
+    pub repeat: u32,
+}
+
+/// What the worker measured for one revision.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StatsResult {
+    /// The revision of the job.
+    pub revision: u64,
+    /// The numbers, or why the instance could not be amplified.
+    pub stats: Result<SpeciesStats, String>,
+    /// The whole measurement (traversals, mesh, LOD levels), milliseconds, on the worker.
+    pub millis: f64,
+}
+
+/// A thread that runs [`measure`] for the editor, so the UI thread never does (three traversals, meshing up to a
+/// million triangles and the LOD levels take tens of milliseconds on a large tree). Jobs queued while it works
+/// are skipped to the newest; the thread ends when the worker is dropped.
+#[derive(Debug)]
+pub struct StatsWorker {
+    jobs: Sender<StatsJob>,
+    results: Receiver<StatsResult>,
+}
+
+impl StatsWorker {
+    /// Start the thread.
+    pub fn new() -> std::io::Result<StatsWorker> {
+        let (jobs, job_rx) = channel::<StatsJob>();
+        let (result_tx, results) = channel();
+        std::thread::Builder::new().name("editor-stats".into()).spawn(move || {
+            while let Ok(mut job) = job_rx.recv() {
+                // Only the newest job matters: the ones before it are stale already.
+                while let Ok(newer) = job_rx.try_recv() {
+                    job = newer;
+                }
+                let t = Instant::now();
+                let stats = measure(&job.species, &job.instance, &job.budget, job.repeat)
+                    .map(|(s, _)| s)
+                    .map_err(|e| e.to_string());
+                let r = StatsResult { revision: job.revision, stats, millis: t.elapsed().as_secs_f64() * 1e3 };
+                if result_tx.send(r).is_err() {
+                    break;
+                }
+            }
+        })?;
+        Ok(StatsWorker { jobs, results })
+    }
+
+    /// Queue a measurement; false when the thread has stopped.
+    pub fn request(&self, job: StatsJob) -> bool {
+        self.jobs.send(job).is_ok()
+    }
+
+    /// The newest result that has arrived, if any (older ones are dropped).
+    pub fn try_result(&self) -> Option<StatsResult> {
+        self.results.try_iter().last()
+    }
+
+    /// Wait up to `timeout` for a result of `revision` (older ones are dropped on the way).
+    pub fn wait_for(&self, revision: u64, timeout: Duration) -> Option<StatsResult> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            match self.results.recv_timeout(left) {
+                Ok(r) if r.revision == revision => return Some(r),
+                Ok(_) => {}
+                Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => return None,
+            }
+        }
+    }
+}
+
 impl SpeciesStats {
     /// Primitives by kind: `cone 1  cylinder 0  sphere 6  box 0  leaf 0`.
     pub fn counts_line(&self) -> String {
@@ -233,5 +318,27 @@ mod tests {
         let lod = lod_levels(&s, &inst, &Budget::default(), &stream).expect("amplifies");
         assert!(lod.len() > 1, "{lod:?}");
         assert!(lod.windows(2).all(|w| w[1].primitives < w[0].primitives), "{lod:?}");
+    }
+
+    #[test]
+    fn the_worker_measures_off_thread_and_tags_results_by_revision() {
+        let e = library::find("worm").expect("worm");
+        let s = Species::parse(&e.source()).0.expect("parses");
+        let w = StatsWorker::new().expect("a thread");
+        let job = |revision, seed| StatsJob {
+            revision,
+            species: s.clone(),
+            instance: Instance::new(seed),
+            budget: Budget::default(),
+            repeat: 1,
+        };
+        assert!(w.request(job(1, 1)) && w.request(job(2, 2)));
+        let r = w.wait_for(2, Duration::from_secs(30)).expect("revision 2 measured");
+        let direct = measure(&s, &Instance::new(2), &Budget::default(), 1).expect("amplifies").0;
+        let got = r.stats.expect("amplifies");
+        assert_eq!((got.seed, got.stream_hash, got.primitives), (2, direct.stream_hash, direct.primitives));
+        assert!(w.try_result().is_none(), "nothing newer is left");
+        // A revision never asked for is not made up.
+        assert!(w.wait_for(3, Duration::from_millis(50)).is_none());
     }
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 use egui::{Color32, RichText, TextureHandle, TextureId, Ui};
 
 use crate::model::{Editor, SourceKind};
-use crate::stats::{SpeciesStats, measure};
+use crate::stats::{SpeciesStats, StatsJob, StatsResult, StatsWorker};
 use crate::{EditConfig, EditorError, hyp};
 
 /// What the middle of the window shows.
@@ -110,6 +110,23 @@ impl Orbit {
     }
 }
 
+/// How long the model must stay unchanged before its stats are measured, seconds of the UI's clock (a slider drag
+/// changes it every frame; the worker would only compete with the preview's workers for the CPU).
+pub const STATS_DELAY: f64 = 0.25;
+
+/// Traversals the stats panel times.
+pub const STATS_REPEAT: u32 = 3;
+
+/// The stats panel's state: the numbers shown (of some revision) and the measurement asked of the worker.
+struct StatsPanel {
+    worker: Result<StatsWorker, String>,
+    shown: Option<StatsResult>,
+    /// The revision asked for and not yet back.
+    asked: Option<u64>,
+    /// The revision last seen and when (UI clock) it was first seen.
+    seen: Option<(u64, f64)>,
+}
+
 /// A raymarched volume image and the model revision it shows.
 struct VolumeImage {
     revision: u64,
@@ -132,8 +149,10 @@ pub struct EditorUi {
     pub preview_px: [u32; 2],
     /// Where `Export .glb` writes.
     pub export_path: String,
-    /// A line the glue should put on the clipboard (egui's `copy_text` does it through the platform output).
-    stats: Option<(u64, Result<SpeciesStats, String>)>,
+    /// Near-field mode: a species that declares `nearfield(…)` is drawn with its continuous mesh (true) or its
+    /// primitives (false); see [`crate::preview`].
+    pub near_field: bool,
+    stats: StatsPanel,
     volume: Option<VolumeImage>,
     volume_job: Option<(u64, Receiver<Result<hyp::VolumeImage, String>>)>,
     volume_error: Option<String>,
@@ -156,7 +175,13 @@ impl EditorUi {
             status: String::new(),
             preview_px: [640, 480],
             export_path,
-            stats: None,
+            near_field: true,
+            stats: StatsPanel {
+                worker: StatsWorker::new().map_err(|e| format!("starting the stats thread: {e}")),
+                shown: None,
+                asked: None,
+                seen: None,
+            },
             volume: None,
             volume_job: None,
             volume_error: None,
@@ -217,6 +242,91 @@ impl EditorUi {
     /// Whether something is still being computed for the picture (a debounced edit, a raymarch).
     pub fn busy(&self) -> bool {
         self.model.pending_edit().is_some() || self.volume_job.is_some()
+    }
+
+    /// Whether the stats shown are not yet those of the current model (a measurement waits or runs).
+    pub fn stats_pending(&self) -> bool {
+        self.model.kind() != SourceKind::Hypertree
+            && self.model.species().is_some()
+            && self.stats.worker.is_ok()
+            && self.stats.shown.as_ref().is_none_or(|r| r.revision != self.model.revision())
+    }
+
+    /// The stats shown: the revision they were measured for and the numbers (or why there are none).
+    pub fn stats(&self) -> Option<(u64, &Result<SpeciesStats, String>)> {
+        self.stats.shown.as_ref().map(|r| (r.revision, &r.stats))
+    }
+
+    /// Milliseconds the worker took for the stats shown.
+    pub fn stats_millis(&self) -> Option<f64> {
+        self.stats.shown.as_ref().map(|r| r.millis)
+    }
+
+    fn stats_job(&self) -> Option<StatsJob> {
+        Some(StatsJob {
+            revision: self.model.revision(),
+            species: self.model.species()?.clone(),
+            instance: self.model.instance(),
+            budget: *self.model.budget(),
+            repeat: STATS_REPEAT,
+        })
+    }
+
+    /// Take what the stats worker sent back (a stale result is dropped) and ask it for the current revision once
+    /// that has stood still for [`STATS_DELAY`] (or at once with `now_please`). Never measures on this thread.
+    fn poll_stats(&mut self, now: f64, now_please: bool) {
+        let rev = self.model.revision();
+        let arrived = match &self.stats.worker {
+            Ok(w) => w.try_result(),
+            Err(_) => return,
+        };
+        if let Some(r) = arrived {
+            if self.stats.asked == Some(r.revision) {
+                self.stats.asked = None;
+            }
+            if r.revision == rev {
+                self.stats.shown = Some(r);
+            }
+        }
+        if !self.stats_pending() || self.stats.asked == Some(rev) {
+            return;
+        }
+        let since = match self.stats.seen {
+            Some((r, t)) if r == rev => t,
+            _ => {
+                self.stats.seen = Some((rev, now));
+                now
+            }
+        };
+        if !(now_please || now - since >= STATS_DELAY || self.stats.shown.is_none()) {
+            return;
+        }
+        let Some(job) = self.stats_job() else { return };
+        let sent = self.stats.worker.as_ref().is_ok_and(|w| w.request(job));
+        if sent {
+            self.stats.asked = Some(rev);
+        } else {
+            self.stats.worker = Err("the stats thread stopped".into());
+        }
+    }
+
+    /// Wait up to `timeout` for the stats of the current model (screenshots, benchmarks).
+    pub fn wait_for_stats(&mut self, timeout: Duration) {
+        if !self.stats_pending() {
+            return;
+        }
+        self.poll_stats(0.0, true);
+        // The result may have arrived just now (taken by `poll_stats`): then there is nothing to wait for.
+        if !self.stats_pending() {
+            return;
+        }
+        let rev = self.model.revision();
+        if let Ok(w) = &self.stats.worker
+            && let Some(r) = w.wait_for(rev, timeout)
+        {
+            self.stats.asked = None;
+            self.stats.shown = Some(r);
+        }
     }
 
     /// Wait for a running raymarch (screenshots).
@@ -298,6 +408,13 @@ impl EditorUi {
             ctx.request_repaint_after(Duration::from_secs_f64((t + crate::model::DEBOUNCE - now).max(0.0)));
         }
         self.poll_volume(&ctx);
+        if self.model.kind() != SourceKind::Hypertree {
+            self.poll_stats(now, false);
+            if self.stats_pending() {
+                // Wake to send the job once the model stands still, and to collect the result.
+                ctx.request_repaint_after(Duration::from_millis(50));
+            }
+        }
         egui::Panel::top("bar").show(ui, |ui| self.top_bar(ui));
         egui::Panel::bottom("status").show(ui, |ui| {
             ui.horizontal(|ui| {
@@ -354,6 +471,12 @@ impl EditorUi {
                 }
                 if self.view == View::Grove {
                     ui.add(egui::Slider::new(&mut self.grove, 1..=8).text("N"));
+                }
+                if self.model.species().is_some_and(|s| crate::preview::has_nearfield(&s.graph)) {
+                    ui.checkbox(&mut self.near_field, "near-field mesh").on_hover_text(
+                        "the species declares nearfield(…): at detail 0 draw its continuous mesh (on) or its \
+                         primitives (off)",
+                    );
                 }
                 if ui.button("Frame").clicked() {
                     self.orbit.auto_frame = true;
@@ -412,24 +535,25 @@ impl EditorUi {
             ui.colored_label(crate::ui_source::ERROR, e);
         }
         ui.heading("Stats");
-        let rev = self.model.revision();
-        if self.stats.as_ref().is_none_or(|(r, _)| *r != rev) {
-            let s = self.model.species().map(|sp| {
-                measure(sp, &self.model.instance(), self.model.budget(), 3).map(|(s, _)| s).map_err(|e| e.to_string())
-            });
-            self.stats = s.map(|s| (rev, s));
+        let stale = self.stats_pending();
+        if let Err(e) = &self.stats.worker {
+            ui.colored_label(crate::ui_source::ERROR, e);
         }
-        match &self.stats {
-            Some((_, Ok(s))) => {
+        match &self.stats.shown {
+            Some(StatsResult { stats: Ok(s), .. }) => {
+                if stale {
+                    ui.label(RichText::new("measuring… (the numbers below are of an earlier model)").italics().small());
+                }
                 for line in s.lines() {
                     ui.label(RichText::new(line).monospace().small());
                 }
-                if let Some(a) = self.model.amplified() {
-                    ui.label(RichText::new(format!("stream hash {:016x}", a.hash)).monospace().small());
-                }
+                ui.label(RichText::new(format!("stream hash {:016x}", s.stream_hash)).monospace().small());
             }
-            Some((_, Err(e))) => {
+            Some(StatsResult { stats: Err(e), .. }) => {
                 ui.colored_label(crate::ui_source::ERROR, e);
+            }
+            None if self.model.species().is_some() => {
+                ui.label(RichText::new("measuring…").italics());
             }
             None => {
                 ui.label("no species yet");

@@ -34,6 +34,9 @@ struct App {
     error: Option<EditorError>,
     last: Instant,
     frames: u64,
+    /// How long to stay open (`--exit-after`), and from when the window opened, the moment to close.
+    exit_after: Option<Duration>,
+    deadline: Option<Instant>,
 }
 
 impl App {
@@ -80,6 +83,7 @@ impl App {
         );
         println!("adapter: {}; surface {:?} {}×{}", gpu.describe(), format, config.width, config.height);
         self.gfx = Some(Graphics { window, surface, config, gpu, egui, state });
+        self.deadline = self.exit_after.map(|d| Instant::now() + d);
         Ok(())
     }
 
@@ -144,7 +148,7 @@ impl App {
         if busy || delay.is_zero() {
             gfx.window.request_redraw();
         } else {
-            // Wake at least every 100 ms to look at the file watcher.
+            // Wake at least every 100 ms to look at the file watcher (and the deadline).
             event_loop.set_control_flow(ControlFlow::WaitUntil(Instant::now() + delay.min(Duration::from_millis(100))));
         }
     }
@@ -180,7 +184,11 @@ impl ApplicationHandler for App {
         }
     }
 
-    fn about_to_wait(&mut self, _event_loop: &ActiveEventLoop) {
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        if self.deadline.is_some_and(|d| Instant::now() >= d) {
+            event_loop.exit();
+            return;
+        }
         // The loop wakes at least every 100 ms (see `frame`), so a change on disk is seen within that.
         let changed = self.watch.as_ref().is_some_and(FileWatch::changed);
         if changed {
@@ -198,8 +206,10 @@ impl ApplicationHandler for App {
     }
 }
 
-/// Open the window on the UI and run until it is closed.
-pub fn run(ui: EditorUi, size: (u32, u32)) -> Result<(), EditorError> {
+/// Open the window on the UI and run until it is closed (or `exit_after` has passed since it opened, with the GPU
+/// set up). Prints the adapter when the window opens and, at the end, the frames presented (`N frames, preview
+/// settled` or `… waiting`). Closing by itself having presented no frame is an error.
+pub fn run(ui: EditorUi, size: (u32, u32), exit_after: Option<Duration>) -> Result<(), EditorError> {
     let watch = match ui.model.path().filter(|p| p.exists()) {
         Some(p) => match FileWatch::new(p) {
             Ok(w) => Some(w),
@@ -213,12 +223,26 @@ pub fn run(ui: EditorUi, size: (u32, u32)) -> Result<(), EditorError> {
     let event_loop = EventLoop::new()
         .map_err(|e| EditorError::Window(format!("opening the display (is DISPLAY or WAYLAND_DISPLAY set?): {e}")))?;
     event_loop.set_control_flow(ControlFlow::Wait);
-    let mut app =
-        App { ui, size, gfx: None, preview: Preview::new(), watch, error: None, last: Instant::now(), frames: 0 };
+    let mut app = App {
+        ui,
+        size,
+        gfx: None,
+        preview: Preview::new(),
+        watch,
+        error: None,
+        last: Instant::now(),
+        frames: 0,
+        exit_after,
+        deadline: None,
+    };
     event_loop.run_app(&mut app).map_err(|e| EditorError::Window(e.to_string()))?;
-    println!("{} frames", app.frames);
+    let settled = if app.preview.waiting() { "waiting" } else { "settled" };
+    println!("{} frames, preview {settled}", app.frames);
     match app.error {
         Some(e) => Err(e),
+        None if exit_after.is_some() && app.frames == 0 => {
+            Err(EditorError::Window("no frame was presented before --exit-after".into()))
+        }
         None => Ok(()),
     }
 }

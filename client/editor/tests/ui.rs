@@ -1,6 +1,7 @@
 //! The editor's UI logic without a window (egui_kittest drives the egui UI with synthetic input through its
 //! accessibility tree): typing re-parses and updates the diagnostics (gutter and list), a broken edit keeps the
-//! previous model, and a parameter slider changes the amplified stream's hash and nothing else.
+//! previous model, a parameter slider changes the amplified stream's hash and nothing else, and the stats are
+//! measured off the UI thread for the current model only.
 
 use canopy_editor::{Editor, EditorUi};
 use egui::accesskit::Role;
@@ -120,4 +121,39 @@ fn a_parameter_slider_changes_the_stream_hash_and_only_that() {
         }
     }
     assert_eq!(m.instance_line(), "instance worm at 0 0 c=6");
+}
+
+#[test]
+fn the_stats_panel_measures_off_the_ui_thread_and_drops_stale_results() {
+    let mut h = harness();
+    h.run();
+    h.state_mut().wait_for_stats(std::time::Duration::from_secs(60));
+    let (rev, hash) = {
+        let s = h.state();
+        let (rev, stats) = s.stats().expect("measured");
+        assert_eq!(rev, s.model.revision());
+        let hash = stats.as_ref().expect("amplifies").stream_hash;
+        assert_eq!(hash, s.model.amplified().expect("amplified").hash);
+        (rev, hash)
+    };
+    h.get_by_role_and_label(Role::Slider, "c").set_value_accesskit(9.0);
+    // One frame (a `run` could step the UI's clock past the stats delay): it takes the change and does not measure.
+    h.step();
+    {
+        // The panel still holds the old revision's numbers.
+        let s = h.state();
+        assert!(s.model.revision() > rev);
+        assert_eq!(s.stats().expect("the old numbers").0, rev);
+        assert!(s.stats_pending());
+    }
+    assert!(h.query_by_label_contains("measuring…").is_some(), "the panel says the numbers are stale");
+    h.state_mut().wait_for_stats(std::time::Duration::from_secs(60));
+    let s = h.state();
+    let (now, stats) = s.stats().expect("measured");
+    assert_eq!(now, s.model.revision());
+    let stats = stats.as_ref().expect("amplifies");
+    assert_ne!(stats.stream_hash, hash);
+    assert_eq!(stats.stream_hash, s.model.amplified().expect("amplified").hash);
+    assert_eq!(stats.primitives, 10, "9 spheres and a cone");
+    assert!(!s.stats_pending());
 }

@@ -196,7 +196,7 @@ impl InstanceArgs {
     }
 }
 
-/// `canopy species edit [FILE] [--screenshot out.png]`.
+/// `canopy species edit [FILE] [--screenshot out.png | --exit-after SECONDS]`.
 #[derive(Args, Debug)]
 pub struct EditArgs {
     /// A `.species`, `.lsys` or `.hyp` file (created on save if it does not exist), or an embedded library species;
@@ -223,12 +223,20 @@ pub struct EditArgs {
     /// Window (and screenshot) height, pixels.
     #[arg(long, default_value_t = 800)]
     height: u32,
+    /// Close the window by itself after this many seconds (prints the frames presented; tests, demos).
+    #[arg(long, value_name = "SECONDS", conflicts_with = "screenshot")]
+    exit_after: Option<f64>,
 }
 
 fn edit(args: EditArgs) -> anyhow::Result<ExitCode> {
     if !(320..=8192).contains(&args.width) || !(240..=8192).contains(&args.height) {
         bail!("--width must be 320..=8192 and --height 240..=8192, got {}×{}", args.width, args.height);
     }
+    let exit_after = match args.exit_after {
+        Some(s) if s.is_finite() && (0.0..=86_400.0).contains(&s) => Some(std::time::Duration::from_secs_f64(s)),
+        Some(s) => bail!("--exit-after must be 0..=86400 seconds, got {s}"),
+        None => None,
+    };
     let cfg = canopy_editor::EditConfig {
         file: args.file,
         params: args.params,
@@ -237,6 +245,7 @@ fn edit(args: EditArgs) -> anyhow::Result<ExitCode> {
         screenshot: args.screenshot.clone(),
         size: (args.width, args.height),
         view: args.view,
+        exit_after,
     };
     canopy_editor::run(&cfg)?;
     if let Some(out) = args.screenshot {
