@@ -4,60 +4,13 @@
 //! frames with the preview settled, and that it left the file alone. No display, no Xvfb or no adapter fails it.
 
 use std::io::Read;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// Ends a child process when dropped (the test's own children only).
-struct Reap(Child);
-
-impl Drop for Reap {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn find_xvfb() -> PathBuf {
-    for dir in std::env::var("PATH").unwrap_or_default().split(':').chain(["/usr/bin"]) {
-        let p = Path::new(dir).join("Xvfb");
-        if p.is_file() {
-            return p;
-        }
-    }
-    panic!("Xvfb not found: install it (`apt-get install -y xvfb xauth`) to run the editor window's test");
-}
-
-/// Start Xvfb on a free display; returns the display name and the process.
-fn start_xvfb() -> (String, Reap) {
-    let xvfb = find_xvfb();
-    // Away from render_walk.rs's displays (:90..:189), so the two tests can run at once.
-    for n in (200..250).map(|k| k + (std::process::id() % 50)) {
-        let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
-        let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
-        if socket.exists() || lock.exists() {
-            continue;
-        }
-        let child = Command::new(&xvfb)
-            .args([format!(":{n}").as_str(), "-screen", "0", "800x600x24", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("starting Xvfb");
-        let mut child = Reap(child);
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while Instant::now() < deadline {
-            if socket.exists() {
-                return (format!(":{n}"), child);
-            }
-            if let Ok(Some(_)) = child.0.try_wait() {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    panic!("could not start Xvfb on any display :200..:299");
-}
+#[path = "support/xvfb.rs"]
+mod xvfb;
+use xvfb::{Reap, start_xvfb};
 
 /// The number just before `key` on the last line that has it (`12 frames, preview settled` → 12).
 fn number_before(out: &str, key: &str) -> Option<u64> {
@@ -67,7 +20,8 @@ fn number_before(out: &str, key: &str) -> Option<u64> {
 
 #[test]
 fn the_editor_window_runs_under_xvfb_and_exits_by_itself_having_drawn_frames() {
-    let (display, _xvfb) = start_xvfb();
+    // Displays away from render_walk.rs's (:90..:189), so the two tests can run at once.
+    let (display, _xvfb) = start_xvfb(200, "800x600x24");
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("conifer.species");
     let source =

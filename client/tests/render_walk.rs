@@ -5,63 +5,16 @@
 
 use std::io::Read;
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use canopy_server::{GridStore, Server, ServerConfig};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::World;
 
-/// Ends a child process when dropped (the test's own children only).
-struct Reap(Child);
-
-impl Drop for Reap {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn find_xvfb() -> PathBuf {
-    for dir in std::env::var("PATH").unwrap_or_default().split(':').chain(["/usr/bin"]) {
-        let p = Path::new(dir).join("Xvfb");
-        if p.is_file() {
-            return p;
-        }
-    }
-    panic!("Xvfb not found: install it (`apt-get install -y xvfb xauth`) to run the windowed client's test");
-}
-
-/// Start Xvfb on a free display; returns the display name and the process.
-fn start_xvfb() -> (String, Reap) {
-    let xvfb = find_xvfb();
-    for n in (90..140).map(|k| k + (std::process::id() % 50)) {
-        let socket = PathBuf::from(format!("/tmp/.X11-unix/X{n}"));
-        let lock = PathBuf::from(format!("/tmp/.X{n}-lock"));
-        if socket.exists() || lock.exists() {
-            continue;
-        }
-        let child = Command::new(&xvfb)
-            .args([format!(":{n}").as_str(), "-screen", "0", "640x480x24", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("starting Xvfb");
-        let mut child = Reap(child);
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while Instant::now() < deadline {
-            if socket.exists() {
-                return (format!(":{n}"), child);
-            }
-            if let Ok(Some(_)) = child.0.try_wait() {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-    panic!("could not start Xvfb on any display :90..:189");
-}
+#[path = "support/xvfb.rs"]
+mod xvfb;
+use xvfb::{Reap, start_xvfb};
 
 fn world() -> World {
     let text = r#"
@@ -96,7 +49,7 @@ fn number_after(out: &str, key: &str) -> Option<u64> {
 
 #[test]
 fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
-    let (display, _xvfb) = start_xvfb();
+    let (display, _xvfb) = start_xvfb(90, "640x480x24");
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
     let w = world();
     let expected = w.instances.len();
