@@ -295,12 +295,9 @@ impl Editor {
             SourceKind::Species | SourceKind::LSystem => {
                 let (species, mut diags) = Species::parse(&src);
                 if let Some(species) = species {
-                    let instance = self.instance_for(&species);
-                    let t = Instant::now();
-                    match species.amplify(&instance, &self.budget) {
-                        Ok(stream) => {
-                            let millis = t.elapsed().as_secs_f64() * 1e3;
-                            self.amplified = Some(Amplified { hash: stream.hash(), stream: Arc::new(stream), millis });
+                    match self.amplify(&species) {
+                        Ok(a) => {
+                            self.amplified = Some(a);
                             self.amplify_error = None;
                             self.species = Some(species);
                             self.revision += 1;
@@ -317,6 +314,14 @@ impl Editor {
                 self.diagnostics = diags;
             }
         }
+    }
+
+    /// Amplify the previewed instance of `species`, timed.
+    fn amplify(&self, species: &Species) -> Result<Amplified, crate::species::AmplifyFailure> {
+        let t = Instant::now();
+        let stream = species.amplify(&self.instance_for(species), &self.budget)?;
+        let millis = t.elapsed().as_secs_f64() * 1e3;
+        Ok(Amplified { hash: stream.hash(), stream: Arc::new(stream), millis })
     }
 
     /// The overrides that name parameters of `species`, as slots.
@@ -337,12 +342,9 @@ impl Editor {
     fn reamplify(&mut self) {
         self.revision += 1;
         let Some(species) = &self.species else { return };
-        let instance = self.instance_for(species);
-        let t = Instant::now();
-        match species.amplify(&instance, &self.budget) {
-            Ok(stream) => {
-                let millis = t.elapsed().as_secs_f64() * 1e3;
-                self.amplified = Some(Amplified { hash: stream.hash(), stream: Arc::new(stream), millis });
+        match self.amplify(species) {
+            Ok(a) => {
+                self.amplified = Some(a);
                 self.amplify_error = None;
             }
             Err(e) => self.amplify_error = Some(e.to_string()),
