@@ -14,6 +14,7 @@ pub mod messages;
 pub mod netlimits;
 pub mod record;
 pub mod species;
+pub mod summary;
 pub mod xorshift;
 
 pub use expr::{Expr, Func, Op};

@@ -23,10 +23,11 @@ use crate::aoi::{AoiParams, AoiParamsError, Grid, GridError, Viewpoint, Viewpoin
 use crate::edit::{CellDelta, Edit, EditResult, Resume};
 use crate::frame::PREFIX;
 use crate::record::{BatchError, CellBatch, CellCoord, InstanceId, POSITION_STEPS};
+use crate::summary::{FarView, SummaryBatch, SummaryError};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";
@@ -127,6 +128,8 @@ pub enum ClientStreaming {
     Refresh(CellCoord),
     /// Send this species' program if it has not been sent (an editor about to plant it, a tool naming species).
     Fetch(u8),
+    /// How the client wants the far field (summaries beyond the records); none are sent before the first.
+    FarView(FarView),
 }
 
 /// The first message of a session. `version` comes first so that any future version still decodes it.
@@ -184,6 +187,8 @@ pub enum ServerStreaming {
     EditResult(EditResult),
     /// What changed in a held cell (on its grant's lane).
     Delta(CellDelta),
+    /// Far-view summary nodes, and nodes to forget (on the last lane).
+    Summaries(SummaryBatch),
 }
 
 /// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
@@ -203,11 +208,13 @@ pub enum ServerMsgKind {
     EditResult = 5,
     /// A change to a held cell.
     Delta = 6,
+    /// Far-view summaries.
+    Summaries = 7,
 }
 
 impl ServerMsgKind {
     /// Every kind, in index order.
-    pub const ALL: [ServerMsgKind; 7] = [
+    pub const ALL: [ServerMsgKind; 8] = [
         ServerMsgKind::Welcome,
         ServerMsgKind::Species,
         ServerMsgKind::Cells,
@@ -215,6 +222,7 @@ impl ServerMsgKind {
         ServerMsgKind::Geometry,
         ServerMsgKind::EditResult,
         ServerMsgKind::Delta,
+        ServerMsgKind::Summaries,
     ];
 
     /// The kind's name, for logs, errors and metrics.
@@ -227,6 +235,7 @@ impl ServerMsgKind {
             ServerMsgKind::Geometry => "geometry",
             ServerMsgKind::EditResult => "edit_result",
             ServerMsgKind::Delta => "delta",
+            ServerMsgKind::Summaries => "summaries",
         }
     }
 
@@ -613,6 +622,9 @@ pub enum MessageError {
     /// An edit, delta or resume is not acceptable.
     #[error("edit: {0}")]
     Edit(&'static str),
+    /// A summary batch or far view is not acceptable.
+    #[error(transparent)]
+    Summary(#[from] SummaryError),
 }
 
 impl MessageError {
@@ -672,6 +684,7 @@ impl ClientMsg {
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => Ok(v.validate()?),
             ClientMsg::Streaming(ClientStreaming::Edit(e)) => e.op.validate(),
             ClientMsg::Streaming(ClientStreaming::Fetch(_)) => Ok(()),
+            ClientMsg::Streaming(ClientStreaming::FarView(f)) => Ok(f.validate()?),
             ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
                 if InstanceId::names(*c) {
                     Ok(())
@@ -692,6 +705,7 @@ impl ClientMsg {
             ClientMsg::Streaming(ClientStreaming::Edit(_)) => "edit",
             ClientMsg::Streaming(ClientStreaming::Refresh(_)) => "refresh",
             ClientMsg::Streaming(ClientStreaming::Fetch(_)) => "fetch",
+            ClientMsg::Streaming(ClientStreaming::FarView(_)) => "far_view",
         }
     }
 
@@ -750,6 +764,7 @@ impl ServerMsg {
                 _ => Ok(()),
             },
             ServerMsg::Streaming(ServerStreaming::Delta(d)) => d.validate(),
+            ServerMsg::Streaming(ServerStreaming::Summaries(b)) => Ok(b.validate()?),
             ServerMsg::Streaming(ServerStreaming::Geometry(g)) => {
                 count("geometry chunk", g.bytes.len(), netlimits::MAX_GEOMETRY_CHUNK)?;
                 count("geometry blob", g.total as usize, netlimits::MAX_GEOMETRY_BYTES)?;
@@ -784,6 +799,7 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::Geometry(_)) => ServerMsgKind::Geometry,
             ServerMsg::Streaming(ServerStreaming::EditResult(_)) => ServerMsgKind::EditResult,
             ServerMsg::Streaming(ServerStreaming::Delta(_)) => ServerMsgKind::Delta,
+            ServerMsg::Streaming(ServerStreaming::Summaries(_)) => ServerMsgKind::Summaries,
         }
     }
 

@@ -51,3 +51,7 @@ pub const MAX_RESUME_CELLS: usize = 4096;
 pub const MAX_TOKEN_BYTES: usize = 64;
 /// Longest reason in an edit result, bytes.
 pub const MAX_EDIT_REASON: usize = 256;
+/// Farthest a client may ask for the far field, metres (a far view's range).
+pub const MAX_FAR_RANGE: f32 = 65_536.0;
+/// Smallest screen-space error threshold a client may ask for, pixels (finer would ask for every leaf in range).
+pub const MIN_FAR_ERROR_PX: f32 = 0.5;

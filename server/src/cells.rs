@@ -23,11 +23,14 @@ use std::time::Instant;
 
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::summary::NodeKey;
+use canopy_worlds::world::far::Summaries;
 use canopy_worlds::world::{CellKey, World};
 use tracing::{error, warn};
 
 use crate::metrics::CellMetrics;
-use crate::store::{CellData, CellState, CellWaker, StoreError, StoreHead, WorldStore};
+use crate::store::{CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, WorldStore};
+use crate::summaries::SummaryLru;
 
 /// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
 pub const BLOCK: i32 = 4;
@@ -42,6 +45,9 @@ pub struct CellCacheConfig {
     pub workers: usize,
     /// The batch size whose bodies are encoded with each cell (the sessions' [`crate::SessionConfig::batch_records`]).
     pub batch_records: usize,
+    /// Most bytes of cached far-view summary nodes (encoded, shared by sessions); the workers compute them when no
+    /// cell is queued.
+    pub summary_limit_bytes: usize,
 }
 
 impl Default for CellCacheConfig {
@@ -50,6 +56,7 @@ impl Default for CellCacheConfig {
             limit_bytes: 256 << 20,
             workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
             batch_records: crate::SessionConfig::default().batch_records,
+            summary_limit_bytes: 64 << 20,
         }
     }
 }
@@ -78,12 +85,24 @@ struct State {
     /// Cells queued or being expanded, with the wakers to wake when each is ready.
     pending: HashMap<CellCoord, Vec<Arc<dyn CellWaker>>>,
     queue: VecDeque<CellCoord>,
+    /// Far-view summary nodes: cached, queued, pending.
+    summaries: SummaryLru,
     stop: bool,
+}
+
+/// A worker's next job: cells first, summaries when no cell waits.
+enum Work {
+    Cells(Vec<CellCoord>),
+    Summary(NodeKey),
 }
 
 /// What the cache and its workers share.
 struct Shared {
-    world: World,
+    world: Arc<World>,
+    /// The summary hierarchy's memo (a node computed from its children, leaves in blocks); one worker at a time.
+    memo: Mutex<Summaries>,
+    /// The level of the summary roots: nodes of at least 4 km.
+    root_level: u8,
     grid: Grid,
     species_count: usize,
     cfg: CellCacheConfig,
@@ -156,6 +175,40 @@ impl Shared {
         }
     }
 
+    /// Do one job.
+    fn run(&self, work: Work) -> usize {
+        match work {
+            Work::Cells(cells) => {
+                self.complete(&cells);
+                cells.len()
+            }
+            Work::Summary(key) => {
+                self.summarise(key);
+                1
+            }
+        }
+    }
+
+    /// Compute a summary node (through the memo, which keeps the nodes below it), encode it, cache it and wake its
+    /// waiters.
+    fn summarise(&self, key: NodeKey) {
+        let started = Instant::now();
+        let node = self.memo.lock().unwrap_or_else(|e| e.into_inner()).get(key);
+        let encoded = Arc::new(EncodedSummary::new(node));
+        self.metrics.summary_time.record(started.elapsed());
+        self.metrics.summaries.fetch_add(1, Relaxed);
+        let wakers = {
+            let mut st = self.lock();
+            let wakers = st.summaries.insert(key, encoded, self.cfg.summary_limit_bytes);
+            self.metrics.summary_bytes.store(st.summaries.bytes() as u64, Relaxed);
+            self.generation.fetch_add(1, Release);
+            wakers
+        };
+        for w in wakers {
+            w.wake();
+        }
+    }
+
     /// Cache an expanded cell, evicting the least recently used ones past the bound, and wake its waiters.
     fn cache(&self, c: CellCoord, data: CellData) {
         let data = Arc::new(data);
@@ -191,11 +244,16 @@ impl Shared {
     /// Take the next queued cell and every other queued cell of its aligned block of [`BLOCK`] × [`BLOCK`] cells
     /// (expanded together), waiting for one unless `wait` is false; `None` when stopped or (not waiting) when the
     /// queue is empty.
-    fn next(&self, wait: bool) -> Option<Vec<CellCoord>> {
+    fn next(&self, wait: bool) -> Option<Work> {
         let mut st = self.lock();
         loop {
             if st.stop {
                 return None;
+            }
+            if st.queue.is_empty()
+                && let Some(k) = st.summaries.next_queued()
+            {
+                return Some(Work::Summary(k));
             }
             if let Some(c) = st.queue.pop_front() {
                 let block = |c: CellCoord| (c.x.div_euclid(BLOCK), c.z.div_euclid(BLOCK));
@@ -208,7 +266,7 @@ impl Shared {
                     !same
                 });
                 self.metrics.queued.store(st.queue.len() as u64, Relaxed);
-                return Some(cells);
+                return Some(Work::Cells(cells));
             }
             if !wait {
                 return None;
@@ -222,11 +280,15 @@ impl CellCache {
     /// A cache of `world`'s cells; starts `cfg.workers` worker threads.
     pub fn new(world: World, cfg: CellCacheConfig) -> Result<CellCache, StoreError> {
         let head = StoreHead::of_world(&world)?;
+        let world = Arc::new(world);
+        let root_level = crate::summaries::root_level(head.world().grid.cell_size);
         let metrics = Arc::new(CellMetrics::default());
         metrics.limit.store(cfg.limit_bytes as u64, Relaxed);
         let shared = Arc::new(Shared {
             grid: head.world().grid,
             species_count: head.species().len(),
+            memo: Mutex::new(Summaries::new(Arc::clone(&world))),
+            root_level,
             world,
             cfg,
             state: Mutex::new(State::default()),
@@ -240,8 +302,8 @@ impl CellCache {
                 std::thread::Builder::new()
                     .name(format!("canopy-cells-{i}"))
                     .spawn(move || {
-                        while let Some(cells) = shared.next(true) {
-                            shared.complete(&cells);
+                        while let Some(work) = shared.next(true) {
+                            shared.run(work);
                         }
                     })
                     .expect("spawning a cell worker")
@@ -255,15 +317,21 @@ impl CellCache {
         Arc::new(self)
     }
 
-    /// Expand every queued cell on this thread, cells queued meanwhile included; how many. With no workers this
-    /// is the only way cells get expanded (tests run the pool deterministically with it).
+    /// Expand every queued cell and compute every queued summary node on this thread, those queued meanwhile
+    /// included; how many. With no workers this is the only way cells get expanded (tests run the pool
+    /// deterministically with it).
     pub fn run_queued(&self) -> usize {
         let mut n = 0;
-        while let Some(cells) = self.shared.next(false) {
-            self.shared.complete(&cells);
-            n += cells.len();
+        while let Some(work) = self.shared.next(false) {
+            n += self.shared.run(work);
         }
         n
+    }
+
+    /// Summary nodes cached now, and their bytes.
+    pub fn summaries_cached(&self) -> (usize, usize) {
+        let st = self.shared.lock();
+        (st.summaries.len(), st.summaries.bytes())
     }
 
     /// The counters.
@@ -346,6 +414,22 @@ impl WorldStore for CellCache {
 
     fn generation(&self) -> u64 {
         self.shared.generation.load(Acquire)
+    }
+
+    fn summary(&self, key: NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> SummaryState {
+        if !key.is_valid() || key.level > self.shared.root_level || !crate::summaries::overlaps(&self.shared.grid, key)
+        {
+            return SummaryState::Unavailable;
+        }
+        let (state, queued) = self.shared.lock().summaries.lookup(key, waker);
+        if queued {
+            self.shared.work.notify_one();
+        }
+        state
+    }
+
+    fn summary_root_level(&self) -> u8 {
+        self.shared.root_level
     }
 
     fn cache_metrics(&self) -> Option<Arc<CellMetrics>> {

@@ -14,6 +14,7 @@ pub mod cells;
 pub mod driver;
 pub mod editing;
 pub mod editors;
+pub mod far;
 pub mod live;
 pub mod metrics;
 pub mod nats;
@@ -21,6 +22,7 @@ pub mod pacing;
 pub mod payload;
 pub mod session;
 pub mod store;
+pub mod summaries;
 pub mod terrain;
 pub mod tls;
 

@@ -19,7 +19,7 @@ use canopy_edits::{EditStore, EditStoreError, Overlay};
 use canopy_protocol::CellCoord;
 use tracing::error;
 
-use crate::store::{CellData, CellState, CellWaker, Changes, StoreHead, WorldStore};
+use crate::store::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, WorldStore};
 
 /// Bytes an overlay entry costs beyond the overlay and the records it keeps (map, LRU slot).
 const ENTRY_OVERHEAD: usize = 96;
@@ -424,6 +424,16 @@ impl WorldStore for LiveStore {
 
     fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
         self.base.cache_metrics()
+    }
+
+    // Summaries are of the world function: edits are not in them (a planted or felled tree changes a far node's
+    // count by one; its records draw it near the viewer).
+    fn summary(&self, key: canopy_protocol::summary::NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> SummaryState {
+        self.base.summary(key, waker)
+    }
+
+    fn summary_root_level(&self) -> u8 {
+        self.base.summary_root_level()
     }
 
     fn changes(&self, c: CellCoord, from: u32, waker: Option<&Arc<dyn CellWaker>>) -> Changes {

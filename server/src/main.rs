@@ -94,6 +94,9 @@ struct Args {
     /// and the least recently used evicted beyond it.
     #[arg(long, default_value_t = 256)]
     cell_cache_mib: usize,
+    /// Memory for far-view summary nodes (encoded once, shared by every session), MiB.
+    #[arg(long, default_value_t = 64)]
+    summary_cache_mib: usize,
     /// Threads expanding cells (default: the available cores).
     #[arg(long)]
     cell_workers: Option<usize>,
@@ -214,6 +217,7 @@ fn main() -> anyhow::Result<()> {
         limit_bytes: args.cell_cache_mib.saturating_mul(1 << 20),
         workers: args.cell_workers.unwrap_or(CellCacheConfig::default().workers).max(1),
         batch_records: session.batch_records,
+        summary_limit_bytes: args.summary_cache_mib.saturating_mul(1 << 20),
     };
     // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
     let base = CellCache::new(world, cache_cfg).context("building the world store")?;

@@ -165,6 +165,12 @@ pub struct CellMetrics {
     pub queued: AtomicU64,
     /// How long expansions took (expanding, quantising and encoding a cell).
     pub expansion_time: Histogram,
+    /// Far-view summary nodes computed.
+    pub summaries: AtomicU64,
+    /// Bytes the cached summary nodes hold now.
+    pub summary_bytes: AtomicU64,
+    /// How long a summary node took (its leaves and the nodes between, where not cached).
+    pub summary_time: Histogram,
 }
 
 impl Default for Metrics {
@@ -312,6 +318,13 @@ impl Metrics {
             metric("canopy_cell_cache_limit_bytes", "gauge", "The cell cache's bound.", &one(&c.limit));
             metric("canopy_cell_cache_cells", "gauge", "Cells cached.", &one(&c.cells));
             metric("canopy_cell_expansions_queued", "gauge", "Cells waiting for a worker.", &one(&c.queued));
+            metric("canopy_summaries_total", "counter", "Far-view summary nodes computed.", &one(&c.summaries));
+            metric(
+                "canopy_summary_cache_bytes",
+                "gauge",
+                "Bytes the cached summary nodes hold.",
+                &one(&c.summary_bytes),
+            );
             for (q, label) in [(0.5, "p50"), (0.99, "p99")] {
                 let us = c.expansion_time.quantile(q).map_or(0, |d| d.as_micros() as u64);
                 let help = format!("Cell expansion time, {label}, microseconds (its histogram bucket's upper bound).");

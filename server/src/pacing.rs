@@ -1,6 +1,7 @@
 //! Per-client pacing: a token bucket on virtual time, so a bandwidth cap spends a slow link on the most important
-//! records first instead of queueing everything in the transport.
+//! records first instead of queueing everything in the transport; and the send budget all sessions share.
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// A token bucket in bytes. Sending may take the bucket into debt by one message; the next send waits until the
@@ -41,6 +42,45 @@ impl TokenBucket {
     /// When the bucket will be out of debt again (`None` if it is not in debt).
     pub fn ready_at(&self) -> Option<Instant> {
         (self.tokens < 0.0).then(|| self.last + Duration::from_secs_f64(-self.tokens / self.rate))
+    }
+}
+
+/// Bytes handed to the transport and not yet flushed, summed over every session of a server, against a limit:
+/// past it, sessions pause (they send releases, nothing new) until bytes are flushed, instead of queueing more.
+#[derive(Debug)]
+pub struct SendBudget {
+    limit: usize,
+    used: std::sync::atomic::AtomicUsize,
+}
+
+impl SendBudget {
+    /// A budget of `limit` bytes, none used.
+    pub fn new(limit: usize) -> Arc<SendBudget> {
+        Arc::new(SendBudget { limit, used: std::sync::atomic::AtomicUsize::new(0) })
+    }
+
+    /// Bytes in use now.
+    pub fn used(&self) -> usize {
+        self.used.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether the budget is spent.
+    pub fn spent(&self) -> bool {
+        self.used() >= self.limit
+    }
+
+    pub(crate) fn add(&self, n: usize) {
+        self.used.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    pub(crate) fn sub(&self, n: usize) {
+        self.used.fetch_sub(n, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+impl PartialEq for SendBudget {
+    fn eq(&self, other: &SendBudget) -> bool {
+        std::ptr::eq(self, other)
     }
 }
 

@@ -34,6 +34,8 @@ use canopy_protocol::messages::{
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
 use crate::editors::{Editor, Editors};
+use crate::far::{Eye, FarSession};
+pub use crate::pacing::SendBudget;
 use crate::pacing::TokenBucket;
 use crate::store::{CellData, CellState, CellWaker, Changes, WorldStore};
 
@@ -73,45 +75,6 @@ pub struct SessionConfig {
     pub send_budget: Option<Arc<SendBudget>>,
     /// Who may edit (`None`: every session is read-only).
     pub editors: Option<Arc<Editors>>,
-}
-
-/// Bytes handed to the transport and not yet flushed, summed over every session of a server, against a limit:
-/// past it, sessions pause (they send releases, nothing new) until bytes are flushed, instead of queueing more.
-#[derive(Debug)]
-pub struct SendBudget {
-    limit: usize,
-    used: std::sync::atomic::AtomicUsize,
-}
-
-impl SendBudget {
-    /// A budget of `limit` bytes, none used.
-    pub fn new(limit: usize) -> Arc<SendBudget> {
-        Arc::new(SendBudget { limit, used: std::sync::atomic::AtomicUsize::new(0) })
-    }
-
-    /// Bytes in use now.
-    pub fn used(&self) -> usize {
-        self.used.load(std::sync::atomic::Ordering::Relaxed)
-    }
-
-    /// Whether the budget is spent.
-    pub fn spent(&self) -> bool {
-        self.used() >= self.limit
-    }
-
-    fn add(&self, n: usize) {
-        self.used.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
-    }
-
-    fn sub(&self, n: usize) {
-        self.used.fetch_sub(n, std::sync::atomic::Ordering::Relaxed);
-    }
-}
-
-impl PartialEq for SendBudget {
-    fn eq(&self, other: &SendBudget) -> bool {
-        std::ptr::eq(self, other)
-    }
 }
 
 impl Default for SessionConfig {
@@ -317,6 +280,8 @@ pub struct Session {
     changed: (BTreeSet<CellCoord>, Option<u64>),
     /// Cells a reconnecting client said it holds (between the welcome and `ready`).
     resume: Vec<ResumeCell>,
+    /// The far view, once the client asked for one: summary nodes beyond the records.
+    far: Option<FarSession>,
 }
 
 impl Drop for Session {
@@ -375,6 +340,7 @@ impl Session {
             edits_in_flight: 0,
             changed: (BTreeSet::new(), None),
             resume: Vec::new(),
+            far: None,
         }
     }
 
@@ -631,6 +597,14 @@ impl Session {
                     self.dirty = true;
                 }
             }
+            ClientMsg::Streaming(ClientStreaming::FarView(f)) => {
+                // Each far view costs a rebuild: the same budget as viewpoints.
+                self.take_request(now)?;
+                match &mut self.far {
+                    Some(far) => far.set_view(f),
+                    None => self.far = Some(FarSession::new(f)),
+                }
+            }
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => {
                 let last = self.viewpoint.map_or(0, |v| v.seq);
                 if v.seq <= last {
@@ -682,6 +656,9 @@ impl Session {
         }
         self.aoi = Some(aoi);
         self.dirty = true;
+        if let Some(far) = &mut self.far {
+            far.moved();
+        }
     }
 
     /// Check the handshake deadline.
@@ -697,14 +674,20 @@ impl Session {
         if self.phase != Phase::Streaming {
             return Some(self.deadline);
         }
-        if self.queue.is_empty() && self.staged.is_empty() {
-            return None;
+        let far_due = self.far.as_ref().and_then(|f| f.due_at(&*self.store));
+        let far_work = self.far.as_ref().is_some_and(FarSession::has_work);
+        if self.queue.is_empty() && self.staged.is_empty() && !far_work {
+            return far_due;
         }
         // Paused by the shared budget: other sessions' flushes do not wake this one, so look again shortly.
         if let Some(at) = self.paused {
             return Some(at + Duration::from_millis(5));
         }
-        self.bucket.as_ref().and_then(TokenBucket::ready_at)
+        let paced = self.bucket.as_ref().and_then(TokenBucket::ready_at);
+        match (paced, far_due) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// The transport took `bytes` of what was transmitted (reopens the window).
@@ -727,10 +710,12 @@ impl Session {
             self.update_aoi();
         }
         self.send_changes();
+        self.update_far(now);
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
         }
-        let idle = self.queue.is_empty() && self.staged.is_empty();
+        let far_work = self.far.as_ref().is_some_and(FarSession::has_work);
+        let idle = self.queue.is_empty() && self.staged.is_empty() && !far_work;
         if self.phase != Phase::Streaming || idle || self.unflushed >= self.cfg.window {
             return None;
         }
@@ -744,9 +729,20 @@ impl Session {
         {
             return None;
         }
-        // Nothing staged and no queued cell ready: the store wakes the session's waker when one is.
-        if self.staged.is_empty() && !self.stage_next_unit() {
-            return None;
+        if self.staged.is_empty() {
+            // Summaries take their turn, or go when no cell is ready.
+            let cell_bytes = self.stats.bytes[MsgClass::Cells];
+            if far_work
+                && (self.queue.is_empty() || self.far.as_ref().is_some_and(|f| f.turn(cell_bytes)))
+                && let Some(t) = self.next_far_batch()
+            {
+                return Some(self.account(now, t));
+            }
+            // Nothing staged and no queued cell ready: the store wakes the session's waker when one is.
+            if !self.stage_next_unit() {
+                let t = if far_work { self.next_far_batch() } else { None };
+                return t.map(|t| self.account(now, t));
+            }
         }
         let (cell, t) = self.staged.pop_front()?;
         if self.changed.0.contains(&cell) {
@@ -754,6 +750,29 @@ impl Session {
             self.changed.1 = None;
         }
         Some(self.account(now, t))
+    }
+
+    /// Rebuild the far view's queue if due (see [`FarSession::update`]).
+    fn update_far(&mut self, now: Instant) {
+        let (Some(far), Some(vp), Some(aoi)) = (&mut self.far, self.viewpoint, self.aoi) else { return };
+        let eye = Eye {
+            position: aoi.position,
+            heading: vp.heading(),
+            cos_half_fov: (self.cfg.fov_deg.to_radians() * 0.5).cos(),
+            record_radius: aoi.radius,
+        };
+        far.update(now, &*self.store, self.waker.as_ref(), &eye);
+    }
+
+    /// The far view's next summaries message, on the last lane.
+    fn next_far_batch(&mut self) -> Option<Transmit> {
+        let lane = self.cfg.lanes - 1;
+        self.far.as_mut()?.next_batch(&*self.store, self.waker.as_ref(), lane)
+    }
+
+    /// The far view, once the client asked for one.
+    pub fn far(&self) -> Option<&FarSession> {
+        self.far.as_ref()
     }
 
     fn account(&mut self, now: Instant, t: Transmit) -> Transmit {

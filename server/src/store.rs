@@ -11,6 +11,7 @@ use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
 use canopy_protocol::record::{ParamOverride, quantize};
+use canopy_protocol::summary::{NodeKey, NodeSummary};
 use canopy_protocol::{
     CellBatch, CellCoord, InstanceId, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
 };
@@ -168,6 +169,42 @@ impl CellState {
     }
 }
 
+/// A far-view summary node as a store answers for it ([`WorldStore::summary`]).
+#[derive(Clone, Debug)]
+pub enum SummaryState {
+    /// The node, with its encoding.
+    Ready(Arc<EncodedSummary>),
+    /// Being computed: the waker passed along is woken when it is ready.
+    Pending,
+    /// The store has no summaries (or the node lies outside the world).
+    Unavailable,
+}
+
+/// A summary node and its postcard encoding, made once and shared by every session that sends it.
+#[derive(Debug, PartialEq)]
+pub struct EncodedSummary {
+    /// The node.
+    pub node: Arc<NodeSummary>,
+    /// Its encoding: what a summaries message carries for it.
+    pub bytes: Bytes,
+}
+
+impl EncodedSummary {
+    /// Encode a node.
+    pub fn new(node: Arc<NodeSummary>) -> EncodedSummary {
+        let bytes = Bytes::from(postcard::to_allocvec(&*node).expect("encoding a node into a Vec cannot fail"));
+        EncodedSummary { node, bytes }
+    }
+
+    /// Bytes it holds (the node, its species, its encoding), for cache bounds.
+    pub fn heap_bytes(&self) -> usize {
+        std::mem::size_of::<EncodedSummary>()
+            + std::mem::size_of::<NodeSummary>()
+            + self.node.species.capacity() * std::mem::size_of::<canopy_protocol::summary::SpeciesCover>()
+            + self.bytes.len()
+    }
+}
+
 /// Told when cells a session asked for became ready (the driver's wake-up; the session itself never waits).
 pub trait CellWaker: Send + Sync {
     /// A cell this waker was registered for is ready.
@@ -210,6 +247,16 @@ pub trait WorldStore: Send + Sync + 'static {
     /// The cell grid.
     fn grid(&self) -> &Grid {
         &self.world().grid
+    }
+    /// A far-view summary node, never waiting (like [`WorldStore::cell`]; the generation moves when a pending one
+    /// becomes ready). A store without summaries answers [`SummaryState::Unavailable`].
+    fn summary(&self, key: NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> SummaryState {
+        let _ = (key, waker);
+        SummaryState::Unavailable
+    }
+    /// The level of the summary hierarchy's roots (the coarsest nodes a session sends).
+    fn summary_root_level(&self) -> u8 {
+        0
     }
     /// The cell cache's counters, for a store that expands cells on demand.
     fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {

@@ -32,7 +32,12 @@ fn eager() -> &'static GridStore {
 }
 
 fn cache(limit_bytes: usize, workers: usize) -> Arc<CellCache> {
-    let cfg = CellCacheConfig { limit_bytes, workers, batch_records: SessionConfig::default().batch_records };
+    let cfg = CellCacheConfig {
+        limit_bytes,
+        workers,
+        batch_records: SessionConfig::default().batch_records,
+        ..CellCacheConfig::default()
+    };
     Arc::new(CellCache::new(world().clone(), cfg).unwrap())
 }
 
@@ -339,8 +344,12 @@ fn a_world_expanded_only_on_demand_streams_from_the_cache() {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../worlds/highlands/highlands.world");
     let world = World::load(&path).unwrap();
     assert!(world.instances.is_empty() && !world.is_materialised());
-    let cfg =
-        CellCacheConfig { limit_bytes: 4 * MIB, workers: 0, batch_records: SessionConfig::default().batch_records };
+    let cfg = CellCacheConfig {
+        limit_bytes: 4 * MIB,
+        workers: 0,
+        batch_records: SessionConfig::default().batch_records,
+        ..CellCacheConfig::default()
+    };
     let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
     let t0 = Instant::now();
     let vp = Viewpoint::at(1, [12_345.0, -6_789.0], 160.0);
@@ -391,7 +400,12 @@ fn a_session_teleporting_over_a_world_of_a_million_metres_square_stays_within_th
     let world = World::parse(&canopy_worlds::diag::SourceFile::new("vast.world", text), None).unwrap();
     assert!(!world.is_materialised() && world.cell_count() > 60_000_000);
     let limit = MIB;
-    let cfg = CellCacheConfig { limit_bytes: limit, workers: 0, batch_records: SessionConfig::default().batch_records };
+    let cfg = CellCacheConfig {
+        limit_bytes: limit,
+        workers: 0,
+        batch_records: SessionConfig::default().batch_records,
+        ..CellCacheConfig::default()
+    };
     let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
     let t0 = Instant::now();
     let mut s = session(as_store(&cache), Viewpoint::at(1, [0.0, 0.0], 300.0), t0);

@@ -1,11 +1,13 @@
 //! Criterion benchmarks of world loading: the embedded default world (parse, terrain amplification, population
 //! expansion, cell index), terrain height lookups, and the large world's cells as a function (load, one cell
-//! alone, a 4 × 4 block, fractal heights).
+//! alone, a 4 × 4 block, fractal heights), and its far-view summaries (a leaf block of 16 × 16 cells, a level-6
+//! node of 64 × 64 cells; one core and all of them).
 //!
 //! `cargo bench -p canopy-worlds --bench world` — load time is a measurement here, never a test assertion.
 
 use std::hint::black_box;
 
+use canopy_protocol::summary::NodeKey;
 use canopy_worlds::world::{CellKey, World};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 
@@ -52,5 +54,25 @@ fn bench_world(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_world);
+fn bench_summaries(c: &mut Criterion) {
+    let h = World::embedded("highlands").expect("embedded");
+    let mut group = c.benchmark_group("summaries");
+    group.sample_size(10);
+    // One aligned block of 16 × 16 cells on the conifer slopes (a fractal patch and 256 leaves), and one of the
+    // forest (a height grid).
+    let (c0, c1) = (CellKey { x: -320, z: 368 }, CellKey { x: -305, z: 383 });
+    group.throughput(Throughput::Elements(256));
+    group.bench_function("leaf_block_16x16", |b| b.iter(|| h.leaf_summaries(black_box(c0), black_box(c1)).len()));
+    let f = World::default_world();
+    let (f0, f1) = (CellKey { x: -8, z: -8 }, CellKey { x: 7, z: 7 });
+    group
+        .bench_function("leaf_block_16x16_forest", |b| b.iter(|| f.leaf_summaries(black_box(f0), black_box(f1)).len()));
+    // A level-6 node: 4,096 leaves in 16 blocks (on the available cores) aggregated up.
+    let node = NodeKey { level: 6, x: -5, z: 5 };
+    group.throughput(Throughput::Elements(4096));
+    group.bench_function("node_level6", |b| b.iter(|| h.node_summary(black_box(node)).species.len()));
+    group.finish();
+}
+
+criterion_group!(benches, bench_world, bench_summaries);
 criterion_main!(benches);

@@ -1,6 +1,8 @@
 //! Golden determinism vectors: hashes of the primitive stream and mesh of every library species for fixed seeds
 //! and detail levels, committed in `tests/golden/amplify.txt`, and of the cells of 16 blocks of 4 × 4 cells of both
-//! embedded worlds (`tests/golden/cells.txt`: cell expansion is held to the same rule as amplification). The same test binary runs natively, under qemu for
+//! embedded worlds (`tests/golden/cells.txt`: cell expansion is held to the same rule as amplification), and of
+//! far-view summary nodes of both worlds at levels 0, 2, 4 and 6 (`tests/golden/summaries.txt`). The same test
+//! binary runs natively, under qemu for
 //! aarch64 and under node's WASI for wasm32 in CI (`.ci/cross-determinism`), so a change in any platform's
 //! floating point, libm or RNG path shows up as a mismatch here.
 //!
@@ -127,4 +129,108 @@ fn cell_expansion_matches_golden_vectors() {
     }
     assert_eq!(got.len(), want.len(), "number of golden cells");
     assert!(want.iter().filter(|l| !l.contains(" 0 ")).count() > 100, "the golden cells hold instances");
+}
+
+/// Far-view summary nodes whose encoding is golden, `(world, level, x, z)`: the default world's cells, quadrants
+/// and whole quarters; the large world's far corners, tree line, bare rock, meadow edge, valley floor and conifer
+/// slopes (levels 0, 2, 4 and 6: a level-6 node is 4,096 leaves, so few of them, for wasm32's sake).
+const SUMMARY_NODES: [(&str, u8, i32, i32); 64] = [
+    ("forest", 0, -16, -16),
+    ("forest", 0, 15, 15),
+    ("forest", 0, 0, 0),
+    ("forest", 0, -1, -1),
+    ("forest", 0, 4, -10),
+    ("forest", 0, -8, 0),
+    ("forest", 0, 8, 4),
+    ("forest", 0, -12, -6),
+    ("forest", 0, -15, 14),
+    ("forest", 0, 13, -3),
+    ("forest", 0, -5, 9),
+    ("forest", 0, 16, 0),
+    ("forest", 2, -4, -4),
+    ("forest", 2, 3, 3),
+    ("forest", 2, 0, 0),
+    ("forest", 2, 1, -3),
+    ("forest", 2, -2, 0),
+    ("forest", 2, 2, 1),
+    ("forest", 2, -3, -2),
+    ("forest", 2, -4, 3),
+    ("forest", 4, -1, -1),
+    ("forest", 4, 0, 0),
+    ("forest", 4, -1, 0),
+    ("forest", 4, 0, -1),
+    ("forest", 4, 1, 0),
+    ("forest", 6, -1, -1),
+    ("forest", 6, 0, 0),
+    ("highlands", 0, -800, -800),
+    ("highlands", 0, 799, 799),
+    ("highlands", 0, -800, 799),
+    ("highlands", 0, 799, -800),
+    ("highlands", 0, 0, 0),
+    ("highlands", 0, -247, 563),
+    ("highlands", 0, -358, 290),
+    ("highlands", 0, -543, -165),
+    ("highlands", 0, -320, 382),
+    ("highlands", 0, -602, 398),
+    ("highlands", 0, 100, 100),
+    ("highlands", 0, 0, -600),
+    ("highlands", 2, -62, 140),
+    ("highlands", 2, -90, 72),
+    ("highlands", 2, -136, -42),
+    ("highlands", 2, -80, 95),
+    ("highlands", 2, -151, 99),
+    ("highlands", 2, 25, 25),
+    ("highlands", 2, -200, -200),
+    ("highlands", 2, 199, 199),
+    ("highlands", 2, 0, 176),
+    ("highlands", 2, 149, -101),
+    ("highlands", 2, -1, -151),
+    ("highlands", 4, -16, 35),
+    ("highlands", 4, -23, 18),
+    ("highlands", 4, -34, -11),
+    ("highlands", 4, 0, 44),
+    ("highlands", 4, -50, -50),
+    ("highlands", 4, 49, 49),
+    ("highlands", 4, -50, 49),
+    ("highlands", 4, 49, -50),
+    ("highlands", 4, -20, 23),
+    ("highlands", 4, 6, 6),
+    ("highlands", 6, -6, 5),
+    ("highlands", 6, -4, 8),
+    ("highlands", 6, -13, -13),
+    ("highlands", 6, 12, 12),
+];
+
+/// One line per node: `world level x z species total hash` with FNV-1a over the node's postcard encoding.
+fn summary_vectors() -> Vec<String> {
+    use canopy_protocol::summary::NodeKey;
+    use canopy_worlds::primitive::Fnv;
+    use canopy_worlds::world::World;
+    let worlds = [World::embedded("forest").unwrap(), World::embedded("highlands").unwrap()];
+    let mut lines = Vec::new();
+    for (name, level, x, z) in SUMMARY_NODES {
+        let w = worlds.iter().find(|w| w.name == name).unwrap();
+        let node = w.node_summary(NodeKey { level, x, z });
+        let mut h = Fnv::new();
+        h.bytes(&postcard::to_allocvec(&node).unwrap());
+        lines.push(format!("{name} {level} {x} {z} {} {} {:016x}", node.species.len(), node.total(), h.finish()));
+    }
+    lines
+}
+
+#[test]
+fn summaries_match_golden_vectors() {
+    const SUMMARIES: &str = include_str!("golden/summaries.txt");
+    let got = summary_vectors().join("\n") + "\n";
+    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
+        std::fs::write(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/golden/summaries.txt"), &got).unwrap();
+        return;
+    }
+    let want: Vec<&str> = SUMMARIES.lines().filter(|l| !l.starts_with('#')).collect();
+    let got: Vec<&str> = got.lines().collect();
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!(g, w, "a summary node differs from the golden vector (world level x z species total hash)");
+    }
+    assert_eq!(got.len(), want.len(), "number of golden summary nodes");
+    assert!(want.iter().filter(|l| !l.contains(" 0 0 ")).count() > 40, "the golden nodes hold instances");
 }

@@ -1,7 +1,8 @@
 //! Bots that fly (issue 18): 250 m/s over the highlands, a 102.4 km world that exists only cell by cell (the
 //! server's cell cache expands what the flights ask for), across cell borders, 2 km region borders and a terrain
 //! tile border, ending exact against the world's function: `verify` compares every held cell with
-//! `World::expand_cell`. Real QUIC on loopback, in process.
+//! `World::expand_cell`; and receiving the far view's summary nodes at altitude (issue 15). Real QUIC on loopback,
+//! in process.
 
 use std::collections::HashSet;
 use std::sync::{Arc, OnceLock};
@@ -11,6 +12,7 @@ use canopy_client::net::{Connection, endpoint};
 use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, DriveHooks, DrivePlan, PathKind, Progress, Walker};
 use canopy_protocol::aoi::AoiParams;
+use canopy_protocol::summary::FarView;
 use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig};
 use canopy_worlds::world::{REGION_BLOCK, World};
 
@@ -100,9 +102,17 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
         settle: Duration::from_secs(60),
         sample: None,
         stop: tokio::sync::watch::channel(false).1,
+        // The far view beyond the records (issue 15): summary nodes out to 3 km.
+        far: Some(FarView { error_px: 16.0, height_px: 1080, fov_y: 1.0, range: 3000.0, altitude: 0.0 }),
     };
     let complete = bots::drive(&mut conn, &mut walker, plan, &mut track).await.expect("flies");
     assert!(complete, "the area of interest filled at the end");
+    // At altitude the bot asked for the far view and received summary nodes, none of them finer than the rule
+    // allows from 1,500 m up (a level-0 node's error, 8 m, projects to under 16 px from there).
+    let far = conn.state().summaries();
+    assert!(conn.state().stats().summaries > 0 && !far.is_empty(), "summaries arrived");
+    assert_eq!(conn.state().far_view().map(|f| f.altitude), Some(1500.0), "the far view carries the altitude");
+    assert!(far.keys().all(|k| k.level >= 1), "{:?}", far.keys().next());
     let state = conn.close_into_state();
     let checked = tokio::task::spawn_blocking(move || bots::verify(&state, &highlands())).await.unwrap();
     let summary = checked.expect("exact against World::expand_cell");

@@ -9,7 +9,7 @@
 //! ([`canopy_protocol::aoi`]): it never keeps a cell beyond radius + hysteresis, even before the server's release
 //! arrives, and drops the rest of such a grant until that release.
 
-use std::collections::{BTreeSet, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -19,6 +19,7 @@ use canopy_protocol::messages::{
     ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome, WorldInfo,
 };
 use canopy_protocol::record::{ParamOverride, dequantize};
+use canopy_protocol::summary::{FarView, NodeKey, NodeSummary, SummaryBatch};
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash,
 };
@@ -115,7 +116,17 @@ pub enum Event {
         /// Payload bytes in the chunk.
         bytes: usize,
     },
+    /// Far-view summary nodes arrived or were released.
+    Summaries {
+        /// Nodes added (or replaced).
+        added: usize,
+        /// Nodes released.
+        released: usize,
+    },
 }
+
+/// Most far-view summary nodes a client holds; a server that sends more is faulty (it releases as it refines).
+pub const MAX_HELD_SUMMARIES: usize = 1 << 16;
 
 /// Why a server message is not acceptable (the client closes the connection).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -150,6 +161,9 @@ pub enum StateError {
     /// A batch's version differs from its grant's, or a delta does not fit the cell it changes.
     #[error("cell {0:?}: {1}")]
     Edit(CellCoord, &'static str),
+    /// The server sent more summary nodes than a client holds.
+    #[error("more than {MAX_HELD_SUMMARIES} summary nodes held")]
+    TooManySummaries,
 }
 
 /// Counters of what the client received.
@@ -176,6 +190,10 @@ pub struct ClientStats {
     pub deltas: u64,
     /// Deltas that did not start at the version held (each asks for the cell again).
     pub gaps: u64,
+    /// Far-view summary nodes received.
+    pub summaries: u64,
+    /// Far-view summary nodes released.
+    pub summaries_released: u64,
 }
 
 /// What a resuming session keeps of an earlier one: its world, species table and graphs, and complete cells.
@@ -205,6 +223,12 @@ pub struct ClientState {
     /// Cells kept from an earlier session of the same world, to name in resume messages (between the welcome and
     /// `ready`), and that world.
     resumable: Option<Resumable>,
+    /// Far-view summary nodes held.
+    summaries: BTreeMap<NodeKey, Arc<NodeSummary>>,
+    /// Bumped whenever `summaries` changes.
+    summaries_generation: u64,
+    /// The far view last sent.
+    far_view: Option<FarView>,
 }
 
 impl Default for ClientState {
@@ -229,6 +253,9 @@ impl ClientState {
             stats: ClientStats::default(),
             next_request: 1,
             resumable: None,
+            summaries: BTreeMap::new(),
+            summaries_generation: 0,
+            far_view: None,
         }
     }
 
@@ -298,6 +325,39 @@ impl ClientState {
         let msg = ClientMsg::Streaming(ClientStreaming::Fetch(id));
         msg.next_phase(self.phase)?;
         Ok(msg)
+    }
+
+    /// The message saying how the client wants the far field (summary nodes beyond the records); the server sends
+    /// none before the first. See [`ClientState::far_view_due`] for when to send it again.
+    pub fn set_far_view(&mut self, view: FarView) -> Result<ClientMsg, StateError> {
+        let msg = ClientMsg::Streaming(ClientStreaming::FarView(view));
+        msg.next_phase(self.phase)?;
+        self.far_view = Some(view);
+        Ok(msg)
+    }
+
+    /// Whether `view` differs enough from the far view last sent to send it: the first one, a change of anything
+    /// but the altitude, or the altitude by more than an eighth (and more than 4 m).
+    pub fn far_view_due(&self, view: &FarView) -> bool {
+        let Some(last) = self.far_view else { return true };
+        let same_rest = FarView { altitude: last.altitude, ..*view } == last;
+        let moved = (view.altitude - last.altitude).abs();
+        !same_rest || (moved > 4.0 && moved > last.altitude.abs() / 8.0)
+    }
+
+    /// The far view last sent.
+    pub fn far_view(&self) -> Option<&FarView> {
+        self.far_view.as_ref()
+    }
+
+    /// The far-view summary nodes held, by key.
+    pub fn summaries(&self) -> &BTreeMap<NodeKey, Arc<NodeSummary>> {
+        &self.summaries
+    }
+
+    /// Changes whenever the summary nodes held change.
+    pub fn summaries_generation(&self) -> u64 {
+        self.summaries_generation
     }
 
     /// The message asking for held cell `c` again, whole (after a [`Event::Gap`]).
@@ -448,6 +508,7 @@ impl ClientState {
             ServerStreaming::Cells(b) => self.on_batch(b),
             ServerStreaming::Release(r) => Ok(self.on_release(r)),
             ServerStreaming::Delta(d) => self.on_delta(d),
+            ServerStreaming::Summaries(b) => self.on_summaries(b),
             ServerStreaming::EditResult(r) => Ok(Event::EditResult(r)),
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
@@ -456,6 +517,27 @@ impl ClientState {
                 Ok(Event::Geometry { kind: g.kind, id: g.id, offset: g.offset, total: g.total, bytes: g.bytes.len() })
             }
         }
+    }
+
+    /// Releases first, then the nodes (a batch may release a node and send its replacement).
+    fn on_summaries(&mut self, b: SummaryBatch) -> Result<Event, StateError> {
+        let released = b.released.iter().filter(|k| self.summaries.remove(k).is_some()).count();
+        let added = b.nodes.len();
+        let table = self.species.len();
+        if b.nodes.iter().flat_map(|n| &n.species).any(|s| usize::from(s.species) >= table) {
+            let bad = b.nodes.iter().flat_map(|n| &n.species).map(|s| s.species).max().unwrap_or(0);
+            return Err(StateError::UnknownSpecies(bad.min(255) as u8));
+        }
+        for n in b.nodes {
+            self.summaries.insert(n.key, Arc::new(n));
+        }
+        if self.summaries.len() > MAX_HELD_SUMMARIES {
+            return Err(StateError::TooManySummaries);
+        }
+        self.stats.summaries += added as u64;
+        self.stats.summaries_released += released as u64;
+        self.summaries_generation += 1;
+        Ok(Event::Summaries { added, released })
     }
 
     fn on_species(&mut self, s: SpeciesData) -> Result<Event, StateError> {
@@ -707,6 +789,47 @@ mod tests {
 
     fn release(cell: CellCoord, grant: u32) -> ServerMsg {
         ServerMsg::Streaming(ServerStreaming::Release(Release { cell, grant }))
+    }
+
+    #[test]
+    fn summaries_are_held_until_released_and_bounded() {
+        use canopy_protocol::summary::SpeciesCover;
+        let mut s = streaming();
+        let view = FarView { error_px: 16.0, height_px: 720, fov_y: 1.0, range: 5000.0, altitude: 300.0 };
+        assert!(s.far_view_due(&view));
+        s.set_far_view(view).unwrap();
+        assert!(!s.far_view_due(&view) && !s.far_view_due(&FarView { altitude: 330.0, ..view }));
+        assert!(
+            s.far_view_due(&FarView { altitude: 400.0, ..view }) && s.far_view_due(&FarView { range: 1.0, ..view })
+        );
+        let node = |level, x, species| NodeSummary {
+            key: NodeKey { level, x, z: 0 },
+            error: 8.0,
+            species: vec![SpeciesCover { species, count: 5, height_dm: 100, spread_dm: 0, cover: 1 }],
+        };
+        let msg = |nodes, released| ServerMsg::Streaming(ServerStreaming::Summaries(SummaryBatch { nodes, released }));
+        let g0 = s.summaries_generation();
+        assert_eq!(
+            s.handle(msg(vec![node(2, 0, 0), node(1, 0, 0)], vec![])),
+            Ok(Event::Summaries { added: 2, released: 0 })
+        );
+        assert_eq!(s.summaries().len(), 2);
+        assert!(s.summaries_generation() > g0);
+        let gone = NodeKey { level: 2, x: 0, z: 0 };
+        assert_eq!(s.handle(msg(vec![node(1, 1, 0)], vec![gone])), Ok(Event::Summaries { added: 1, released: 1 }));
+        assert!(!s.summaries().contains_key(&gone) && s.summaries().len() == 2);
+        // A species outside the table is refused.
+        assert_eq!(s.handle(msg(vec![node(0, 9, 4)], vec![])), Err(StateError::UnknownSpecies(4)));
+        // No more than the bound.
+        let mut refused = None;
+        for x in 0..(MAX_HELD_SUMMARIES / 64 + 2) as i32 {
+            let nodes = (0..64).map(|i| node(0, x * 64 + i, 0)).collect();
+            if let Err(e) = s.handle(msg(nodes, vec![])) {
+                refused = Some(e);
+                break;
+            }
+        }
+        assert_eq!(refused, Some(StateError::TooManySummaries));
     }
 
     #[test]

@@ -109,6 +109,7 @@
 //! Every count, size and extent read from the file is bounded (the `MAX_` constants below).
 
 mod cells;
+pub mod far;
 mod fractal;
 mod ground;
 mod manifest;
@@ -127,6 +128,7 @@ use crate::amplify::Instance;
 use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
 pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
+pub use far::{DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, PACKING, Summaries, aggregate, summary_bytes};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use ground::Ground;
 pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule};

@@ -21,6 +21,8 @@ pub struct Bytes {
     pub records: u64,
     /// Explicit geometry (baselines) — frames of geometry chunks: meshes, species meshes, transforms.
     pub geometry: u64,
+    /// Far-view summaries — frames of summaries messages.
+    pub summaries: u64,
     /// Control: the welcome, releases, and everything the client sent (hello, ready, viewpoints).
     pub control: u64,
     /// Transport overhead: UDP payload bytes beyond the frames (QUIC headers, acknowledgements, handshake,
@@ -34,16 +36,17 @@ pub struct Bytes {
 
 impl Bytes {
     /// Split a client's counters: frame bytes received by class (welcome, species, cells, release, geometry, edit
-    /// results, deltas: the last two count as control and records), frame bytes it sent, and its connection's UDP
-    /// totals.
+    /// results, deltas, summaries: edit results and deltas count as control and records), frame bytes it sent, and
+    /// its connection's UDP totals.
     pub fn split(frames_rx: ByKind<u64>, frames_tx: u64, udp_rx: u64, udp_tx: u64) -> Bytes {
-        let ByKind([welcome, species, cells, release, geometry, edit_results, deltas]) = frames_rx;
+        let ByKind([welcome, species, cells, release, geometry, edit_results, deltas, summaries]) = frames_rx;
         let (records, welcome) = (cells + deltas, welcome + edit_results);
         let rx = frames_rx.total();
         Bytes {
             species,
             records,
             geometry,
+            summaries,
             control: welcome + release + frames_tx,
             overhead: udp_rx.saturating_sub(rx) + udp_tx.saturating_sub(frames_tx),
             udp_rx: udp_rx.max(rx),
@@ -58,7 +61,7 @@ impl Bytes {
 
     /// The sum of the classes (equal to [`Bytes::total`]).
     pub fn class_sum(&self) -> u64 {
-        self.species + self.records + self.geometry + self.control + self.overhead
+        self.species + self.records + self.geometry + self.summaries + self.control + self.overhead
     }
 
     /// Add another client's bytes.
@@ -66,6 +69,7 @@ impl Bytes {
         self.species += o.species;
         self.records += o.records;
         self.geometry += o.geometry;
+        self.summaries += o.summaries;
         self.control += o.control;
         self.overhead += o.overhead;
         self.udp_rx += o.udp_rx;
@@ -263,13 +267,13 @@ mod tests {
 
     #[test]
     fn byte_classes_add_up_to_the_wire() {
-        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7, 0, 0]), 400, 14_000, 1_000);
+        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7, 0, 0, 0]), 400, 14_000, 1_000);
         assert_eq!(b.class_sum(), b.total());
         assert_eq!(b.total(), 15_000);
         assert_eq!((b.species, b.records, b.geometry, b.control), (2_000, 10_000, 7, 300 + 50 + 400));
         assert_eq!(b.overhead, (14_000 - 12_357) + (1_000 - 400));
         // Counters read a moment apart can see frames before their datagrams: the totals never fall below them.
-        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0, 0, 0]), 10, 400, 5);
+        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0, 0, 0, 0]), 10, 400, 5);
         assert_eq!(odd.class_sum(), odd.total());
         let mut sum = b;
         sum.add(&odd);

@@ -539,6 +539,7 @@ async fn bot_session(
         settle: p.settle,
         sample: Some(p.sample),
         stop: tokio::sync::watch::channel(false).1,
+        far: None,
     };
     let mut m = Measure {
         r: &mut *r,

@@ -22,6 +22,7 @@ use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::edit::EditOp;
 use canopy_protocol::messages::{ByKind, ServerMsgKind};
+use canopy_protocol::summary::FarView;
 use canopy_worlds::world::World;
 use quinn::Endpoint;
 
@@ -81,6 +82,9 @@ pub struct BotsConfig {
     pub spread: Option<f32>,
     /// How the first bots edit the world while they walk (`None`: no edits).
     pub edits: Option<EditPlan>,
+    /// The far view the bots ask for (summary nodes beyond the records; `None`: none). A flight's altitude
+    /// replaces the one given here.
+    pub far: Option<FarView>,
 }
 
 impl BotsConfig {
@@ -104,6 +108,7 @@ impl BotsConfig {
             stop: tokio::sync::watch::channel(false).1,
             spread: None,
             edits: None,
+            far: None,
         }
     }
 }
@@ -150,6 +155,8 @@ pub struct BotReport {
     pub udp_bytes: u64,
     /// Species received over the wire.
     pub species_received: u32,
+    /// Far-view summary nodes received.
+    pub summaries: u64,
     /// Species received twice.
     pub species_duplicates: u32,
     /// Viewpoints sent.
@@ -235,6 +242,7 @@ impl BotReport {
         let stats = state.stats();
         self.records += stats.records;
         self.species_received += stats.species_received;
+        self.summaries += stats.summaries;
         self.species_duplicates += stats.species_duplicates;
         self.held = state.record_count();
         for k in ServerMsgKind::ALL {
@@ -327,6 +335,8 @@ pub struct DrivePlan {
     pub sample: Option<Duration>,
     /// Set to `true` to stop walking early.
     pub stop: tokio::sync::watch::Receiver<bool>,
+    /// The far view to ask for (its altitude the walker's), sent once streaming and again when it changes enough.
+    pub far: Option<FarView>,
 }
 
 /// What a caller of [`drive`] sees along the way (every method does nothing by default).
@@ -389,6 +399,10 @@ pub async fn drive(
     let mut stop = plan.stop;
     // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
     let mut stoppable = stop.has_changed().is_ok();
+    let far_view = |walker: &Walker| plan.far.map(|f| FarView { altitude: walker.altitude().max(2.0), ..f });
+    if let Some(f) = far_view(walker) {
+        conn.set_far_view(f).await?;
+    }
     while Instant::now() < plan.walk_until && !*stop.borrow() {
         tokio::select! {
             r = stop.changed(), if stoppable => stoppable = r.is_ok(),
@@ -564,6 +578,7 @@ async fn bot_session(
         settle: cfg.settle,
         sample: Some(SAMPLE_EVERY),
         stop: cfg.stop.clone(),
+        far: cfg.far,
     };
     // Edits start once the last bot of the ramp has had `warmup` to connect and fill its area of interest, and stop
     // `grace` before the walk ends.

@@ -39,6 +39,12 @@ pub struct BotsSummary {
     pub udp_bytes_per_record: f64,
     /// Species received over the wire by all bots.
     pub species_received: u64,
+    /// Far-view summary nodes received by all bots.
+    pub summary_nodes: u64,
+    /// Frame bytes of summaries messages, all bots.
+    pub summary_bytes: u64,
+    /// Frame bytes of cell batches, all bots.
+    pub batch_bytes: u64,
     /// Species received twice by one bot.
     pub species_duplicates: u64,
     /// Every bot's area of interest sampled while walking.
@@ -115,6 +121,9 @@ impl BotsSummary {
             batch_bytes_per_record: per(batch),
             udp_bytes_per_record: per(udp),
             species_received: reports.iter().map(|r| u64::from(r.species_received)).sum(),
+            summary_nodes: reports.iter().map(|r| r.summaries).sum(),
+            summary_bytes: reports.iter().map(|r| r.frame_bytes[ServerMsgKind::Summaries]).sum(),
+            batch_bytes: batch,
             species_duplicates: reports.iter().map(|r| u64::from(r.species_duplicates)).sum(),
             moving: reports.iter().fold(AoiSamples::default(), |mut a, r| {
                 a.add(&r.moving);
@@ -223,6 +232,17 @@ impl std::fmt::Display for BotsSummary {
             self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
         )?;
         writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        if self.summary_nodes > 0 {
+            let per_bot = |b: u64| b as f64 / self.bots.max(1) as f64 / 1024.0;
+            writeln!(
+                f,
+                "far view: {} summary nodes, {:.1} KiB of summaries beside {:.1} KiB of cell batches per bot ({:.1} B a node)",
+                self.summary_nodes,
+                per_bot(self.summary_bytes),
+                per_bot(self.batch_bytes),
+                self.summary_bytes as f64 / self.summary_nodes as f64
+            )?;
+        }
         let m = &self.moving;
         if m.samples > 0 {
             let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;

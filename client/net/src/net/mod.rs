@@ -458,6 +458,18 @@ impl Connection {
         self.control.write_all(&bytes).await.map_err(ClientError::from_write)
     }
 
+    /// Say how the client wants the far field (summary nodes beyond the records), if it differs enough from the
+    /// far view last sent ([`ClientState::far_view_due`]); `true` when it was sent. It costs the server a request
+    /// like a viewpoint does.
+    pub async fn set_far_view(&mut self, view: canopy_protocol::summary::FarView) -> Result<bool, ClientError> {
+        if !self.state.far_view_due(&view) {
+            return Ok(false);
+        }
+        let msg = self.state.set_far_view(view)?;
+        self.write(&msg).await?;
+        Ok(true)
+    }
+
     /// Ask for an edit; its answer arrives as an [`Event::EditResult`] with the request number returned here.
     pub async fn edit(&mut self, op: canopy_protocol::edit::EditOp) -> Result<u32, ClientError> {
         let (request, msg) = self.state.edit(op)?;

@@ -1,0 +1,176 @@
+//! The cell cache's far-view summary nodes (issue 15): computed on the cache's workers when no cell waits, encoded
+//! once ([`EncodedSummary`]) and shared by every session, kept in an LRU bounded by bytes, with the wakers of the
+//! sessions that found a node pending. Sans-IO: the cache's lock guards it, the workers fill it.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
+
+use canopy_protocol::aoi::Grid;
+use canopy_protocol::summary::{MAX_LEVEL, NodeKey};
+
+use crate::store::{CellWaker, EncodedSummary, SummaryState};
+
+/// Edge of a root node at least, metres: the roots are the coarsest nodes whose edge reaches this.
+pub const ROOT_EDGE: f32 = 4096.0;
+
+/// Most summary nodes queued for computing; a lookup past it answers pending without queueing (the session asks
+/// again later), so a flood of far views cannot grow the queue.
+pub const MAX_QUEUED: usize = 16_384;
+
+/// The level whose nodes first reach [`ROOT_EDGE`] for cells of `cell_size` metres.
+pub fn root_level(cell_size: f32) -> u8 {
+    let mut level = 0u8;
+    while level < MAX_LEVEL && f64::from(cell_size) * f64::from(1u32 << level) < f64::from(ROOT_EDGE) {
+        level += 1;
+    }
+    level
+}
+
+/// Whether node `key` covers at least one cell of the grid.
+pub fn overlaps(grid: &Grid, key: NodeKey) -> bool {
+    let c = key.first_cell();
+    let side = i64::from(key.side());
+    let (x0, z0) = (i64::from(c.x), i64::from(c.z));
+    x0 <= i64::from(grid.max.x)
+        && x0 + side > i64::from(grid.min.x)
+        && z0 <= i64::from(grid.max.z)
+        && z0 + side > i64::from(grid.min.z)
+}
+
+/// A cached node and when it was last used.
+struct Entry {
+    node: Arc<EncodedSummary>,
+    bytes: usize,
+    used: u64,
+}
+
+/// Cached, queued and pending summary nodes (see the module docs).
+#[derive(Default)]
+pub struct SummaryLru {
+    cached: HashMap<NodeKey, Entry>,
+    /// Cached nodes by last use, oldest first.
+    lru: BTreeMap<u64, NodeKey>,
+    bytes: usize,
+    clock: u64,
+    /// Nodes queued or being computed, with the wakers to wake when each is ready.
+    pending: HashMap<NodeKey, Vec<Arc<dyn CellWaker>>>,
+    queue: VecDeque<NodeKey>,
+}
+
+impl SummaryLru {
+    /// The node if cached (marking it used); else queue it, once, registering `waker`. The flag says whether it
+    /// was queued now (a worker should be woken).
+    pub fn lookup(&mut self, key: NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> (SummaryState, bool) {
+        self.clock += 1;
+        let now = self.clock;
+        if let Some(e) = self.cached.get_mut(&key) {
+            let before = std::mem::replace(&mut e.used, now);
+            let node = Arc::clone(&e.node);
+            self.lru.remove(&before);
+            self.lru.insert(now, key);
+            return (SummaryState::Ready(node), false);
+        }
+        let queued = self.pending.contains_key(&key);
+        if !queued && self.queue.len() >= MAX_QUEUED {
+            return (SummaryState::Pending, false);
+        }
+        let wakers = self.pending.entry(key).or_default();
+        if let Some(w) = waker
+            && !wakers.iter().any(|x| std::ptr::addr_eq(Arc::as_ptr(x), Arc::as_ptr(w)))
+        {
+            wakers.push(Arc::clone(w));
+        }
+        if !queued {
+            self.queue.push_back(key);
+        }
+        (SummaryState::Pending, !queued)
+    }
+
+    /// The next queued node to compute (coarsest first: a finer node's parent is usually wanted first, and
+    /// computing it leaves the children's nodes in the memo).
+    pub fn next_queued(&mut self) -> Option<NodeKey> {
+        let best = self.queue.iter().enumerate().max_by_key(|(i, k)| (k.level, std::cmp::Reverse(*i)))?.0;
+        self.queue.remove(best)
+    }
+
+    /// Cache a computed node, evicting the least recently used past `limit` bytes; the wakers of its waiters.
+    pub fn insert(&mut self, key: NodeKey, node: Arc<EncodedSummary>, limit: usize) -> Vec<Arc<dyn CellWaker>> {
+        let bytes = node.heap_bytes() + std::mem::size_of::<Entry>() + 48;
+        while self.bytes + bytes > limit {
+            let Some((_, old)) = self.lru.pop_first() else { break };
+            let e = self.cached.remove(&old).expect("the LRU names cached nodes");
+            self.bytes -= e.bytes;
+        }
+        self.clock += 1;
+        let used = self.clock;
+        if let Some(old) = self.cached.insert(key, Entry { node, bytes, used }) {
+            self.lru.remove(&old.used);
+            self.bytes -= old.bytes;
+        }
+        self.lru.insert(used, key);
+        self.bytes += bytes;
+        self.pending.remove(&key).unwrap_or_default()
+    }
+
+    /// Nodes cached.
+    pub fn len(&self) -> usize {
+        self.cached.len()
+    }
+
+    /// Whether none is cached.
+    pub fn is_empty(&self) -> bool {
+        self.cached.is_empty()
+    }
+
+    /// Bytes the cached nodes hold.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use canopy_protocol::CellCoord;
+    use canopy_protocol::summary::NodeSummary;
+
+    #[test]
+    fn roots_reach_four_kilometres() {
+        assert_eq!(root_level(64.0), 6);
+        assert_eq!(root_level(128.0), 5);
+        assert_eq!(root_level(4096.0), 0);
+        assert_eq!(root_level(0.001), MAX_LEVEL);
+    }
+
+    #[test]
+    fn overlap_with_the_grid() {
+        let grid =
+            Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-16, -16), max: CellCoord::new(15, 15) };
+        assert!(overlaps(&grid, NodeKey { level: 6, x: 0, z: 0 }));
+        assert!(overlaps(&grid, NodeKey { level: 6, x: -1, z: -1 }));
+        assert!(!overlaps(&grid, NodeKey { level: 6, x: 1, z: 0 }));
+        assert!(!overlaps(&grid, NodeKey { level: 2, x: 4, z: 0 }));
+        assert!(overlaps(&grid, NodeKey { level: 2, x: 3, z: -4 }));
+    }
+
+    #[test]
+    fn bounded_by_bytes_least_recently_used_first_and_queued_once() {
+        let mut lru = SummaryLru::default();
+        let k = |x| NodeKey { level: 1, x, z: 0 };
+        let node = |x| Arc::new(EncodedSummary::new(Arc::new(NodeSummary { key: k(x), error: 0.0, species: vec![] })));
+        assert!(matches!(lru.lookup(k(0), None), (SummaryState::Pending, true)));
+        assert!(matches!(lru.lookup(k(0), None), (SummaryState::Pending, false)), "queued once");
+        assert_eq!(lru.next_queued(), Some(k(0)));
+        let one = node(0).heap_bytes() + std::mem::size_of::<Entry>() + 48;
+        for x in 0..4 {
+            lru.insert(k(x), node(x), 3 * one);
+        }
+        assert_eq!(lru.len(), 3);
+        assert!(lru.bytes() <= 3 * one);
+        assert!(matches!(lru.lookup(k(0), None).0, SummaryState::Pending), "the oldest went first");
+        assert!(matches!(lru.lookup(k(3), None).0, SummaryState::Ready(_)));
+        // Coarse first.
+        lru.lookup(NodeKey { level: 4, x: 0, z: 0 }, None);
+        assert_eq!(lru.next_queued(), Some(NodeKey { level: 4, x: 0, z: 0 }));
+    }
+}

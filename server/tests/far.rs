@@ -1,0 +1,208 @@
+//! Far-view summaries from a session on virtual time (issue 15): over the default world's cell cache (workers run
+//! on the test's thread through `CellCache::run_queued`), a session sends exactly the nodes the refinement rule
+//! wants, parents before children and the most visible first, keeps them through small moves (hysteresis),
+//! releases them when the viewer goes away, and lets records go first near the viewer.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::messages::{ClientStreaming, ServerStreaming};
+use canopy_protocol::summary::{FarView, NodeKey, Refine};
+use canopy_protocol::{ClientMsg, Phase, ServerMsg};
+use canopy_server::session::{MsgClass, Session, SessionConfig, Transmit};
+use canopy_server::store::{SummaryState, WorldStore};
+use canopy_server::{CellCache, CellCacheConfig};
+use canopy_worlds::world::World;
+
+fn world() -> &'static World {
+    static WORLD: OnceLock<World> = OnceLock::new();
+    WORLD.get_or_init(World::default_world)
+}
+
+fn cache() -> Arc<CellCache> {
+    let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 0, ..CellCacheConfig::default() };
+    Arc::new(CellCache::new(world().clone(), cfg).unwrap())
+}
+
+fn view() -> FarView {
+    FarView { error_px: 8.0, height_px: 720, fov_y: 1.0, range: 2500.0, altitude: 120.0 }
+}
+
+fn viewpoint(seq: u32, position: [f32; 2]) -> Viewpoint {
+    Viewpoint { seq, position, yaw: 0.0, velocity: [0.0, 0.0], radius: 256.0 }
+}
+
+fn session(cache: &Arc<CellCache>, at: [f32; 2], t0: Instant) -> Session {
+    let store = Arc::clone(cache) as Arc<dyn WorldStore>;
+    let mut s = Session::new(store, SessionConfig::default(), t0);
+    s.handle(t0, ClientMsg::hello("far")).unwrap();
+    let w = s.poll_transmit(t0).unwrap();
+    s.on_flushed(w.len());
+    s.handle(t0, ClientMsg::ready(vec![], viewpoint(1, at))).unwrap();
+    assert_eq!(s.phase(), Phase::Streaming);
+    s.handle(t0, ClientMsg::Streaming(ClientStreaming::FarView(view()))).unwrap();
+    s
+}
+
+/// What a client holds of the far view, and the order nodes came in.
+#[derive(Default)]
+struct Far {
+    held: BTreeSet<NodeKey>,
+    arrived: Vec<NodeKey>,
+    released: Vec<NodeKey>,
+    bytes: u64,
+}
+
+impl Far {
+    fn take(&mut self, t: &Transmit) {
+        if t.class != MsgClass::Summaries {
+            return;
+        }
+        self.bytes += t.len() as u64;
+        let frame = t.frame();
+        let ServerMsg::Streaming(ServerStreaming::Summaries(b)) = ServerMsg::decode(&frame[4..]).unwrap() else {
+            panic!("a summaries transmit is a summaries message")
+        };
+        for k in b.released {
+            assert!(self.held.remove(&k), "released {k:?}, which was not held");
+            self.released.push(k);
+        }
+        for n in b.nodes {
+            assert!(self.held.insert(n.key), "{:?} sent twice", n.key);
+            self.arrived.push(n.key);
+        }
+    }
+}
+
+/// Poll the session, computing whatever it asked for, until it has nothing more to send; virtual time advances
+/// past each rebuild interval.
+fn run(s: &mut Session, cache: &CellCache, far: &mut Far, mut now: Instant) -> (Instant, Vec<Transmit>) {
+    let mut all = vec![];
+    for _ in 0..200 {
+        while let Some(t) = s.poll_transmit(now) {
+            s.on_flushed(t.len());
+            far.take(&t);
+            all.push(t);
+        }
+        let computed = cache.run_queued();
+        let rebuild = s.poll_timeout().is_some();
+        if computed == 0 && !rebuild && s.far().is_some_and(|f| f.queued() == 0) {
+            return (now, all);
+        }
+        now += Duration::from_millis(250);
+    }
+    panic!("the far view never settled");
+}
+
+/// The nodes the rule wants at `at`, from the cache's nodes (all computed by now).
+fn wanted(cache: &CellCache, at: [f32; 2]) -> BTreeSet<NodeKey> {
+    let grid = *cache.grid();
+    let r = Refine {
+        view: view(),
+        eye: at,
+        origin: grid.origin,
+        cell_size: grid.cell_size,
+        root_level: cache.summary_root_level(),
+        record_radius: 256.0,
+    };
+    let error = |k: NodeKey| match cache.summary(k, None) {
+        SummaryState::Ready(n) => Some(n.node.error),
+        _ => None,
+    };
+    let mut out = BTreeSet::new();
+    let mut stack = r.roots(false);
+    while let Some(k) = stack.pop() {
+        let Some(e) = error(k) else { continue };
+        if r.selects(k, false, error) {
+            out.insert(k);
+        }
+        if r.refines(k, e, false) {
+            stack.extend(k.children().into_iter().flatten());
+        }
+    }
+    out
+}
+
+#[test]
+fn a_session_sends_what_the_rule_wants_coarse_and_visible_first() {
+    let cache = cache();
+    let t0 = Instant::now();
+    let at = [300.0, -200.0];
+    // A first session fills the cache; a second finds every node ready and sends in order at once.
+    let mut first = session(&cache, at, t0);
+    let mut far = Far::default();
+    run(&mut first, &cache, &mut far, t0);
+    assert!(far.held.len() > 20, "{} nodes", far.held.len());
+    let want = wanted(&cache, at);
+    assert_eq!(far.held, want, "the session sends exactly what the rule wants");
+    assert!(want.iter().any(|k| k.level == 0) && want.iter().any(|k| k.level >= 4), "{want:?}");
+
+    let mut second = session(&cache, at, t0);
+    let mut far = Far::default();
+    let (_, sent) = run(&mut second, &cache, &mut far, t0);
+    assert_eq!(far.held, want);
+    // Parents first.
+    let position: BTreeMap<NodeKey, usize> = far.arrived.iter().enumerate().map(|(i, k)| (*k, i)).collect();
+    for (k, i) in &position {
+        if let Some(p) = k.parent().and_then(|p| position.get(&p)) {
+            assert!(p < i, "{k:?} came before its parent");
+        }
+    }
+    // The most visible first: the mean level of the first half is coarser than the second half's, and nodes near
+    // the eye come before far ones of the same level.
+    let half = far.arrived.len() / 2;
+    let mean = |ks: &[NodeKey]| ks.iter().map(|k| f64::from(k.level)).sum::<f64>() / ks.len() as f64;
+    assert!(mean(&far.arrived[..half]) > mean(&far.arrived[half..]), "{:?}", far.arrived);
+    let level0: Vec<&NodeKey> = far.arrived.iter().filter(|k| k.level == 0).collect();
+    let dist = |k: &NodeKey| {
+        let c = k.first_cell();
+        ((c.x as f32 * 64.0 + 32.0 - at[0]).powi(2) + (c.z as f32 * 64.0 + 32.0 - at[1]).powi(2)).sqrt()
+    };
+    let q = level0.len() / 4;
+    let near: f32 = level0[..q].iter().map(|k| dist(k)).sum::<f32>() / q as f32;
+    let late: f32 = level0[level0.len() - q..].iter().map(|k| dist(k)).sum::<f32>() / q as f32;
+    assert!(near < late, "level-0 nodes: first quarter {near} m away on average, last quarter {late} m");
+    // Records keep priority: until the last cell batch went, summaries took at most a quarter of the bytes (one
+    // message of slack).
+    let last_cell = sent.iter().rposition(|t| t.class == MsgClass::Cells).expect("cells were sent");
+    let bytes = |class| sent[..=last_cell].iter().filter(|t| t.class == class).map(|t| t.len()).sum::<usize>();
+    let (cells, summaries) = (bytes(MsgClass::Cells), bytes(MsgClass::Summaries));
+    assert!(summaries <= cells / 3 + 9 * 1024, "{summaries} B of summaries before the last of {cells} B of cells");
+    assert!(summaries > 0, "summaries were interleaved, not held back until the records were done");
+}
+
+#[test]
+fn summaries_are_kept_through_small_moves_and_released_when_the_viewer_leaves() {
+    let cache = cache();
+    let t0 = Instant::now();
+    let a = [0.0, 0.0];
+    let mut s = session(&cache, a, t0);
+    let mut far = Far::default();
+    let (mut now, _) = run(&mut s, &cache, &mut far, t0);
+    let settled = far.held.clone();
+    // Back and forth by 40 m: nodes at the edge of the rule stay (hysteresis), so nothing is released or sent
+    // twice (`Far::take` would fail on a node sent twice).
+    let mut seq = 2;
+    for i in 0..6 {
+        let x = if i % 2 == 0 { 40.0 } else { 0.0 };
+        s.handle(now, ClientMsg::viewpoint(viewpoint(seq, [x, 0.0]))).unwrap();
+        seq += 1;
+        now += Duration::from_millis(300);
+        (now, _) = run(&mut s, &cache, &mut far, now);
+    }
+    assert!(far.released.is_empty(), "small moves released {:?}", far.released);
+    assert!(far.held.is_superset(&settled));
+    let at_b = wanted(&cache, [40.0, 0.0]);
+    assert!(at_b.is_subset(&far.held), "what the rule wants is held");
+    // Far away: everything held near the old place goes, coarse before fine within each message.
+    s.handle(now, ClientMsg::viewpoint(viewpoint(seq, [9000.0, 9000.0]))).unwrap();
+    now += Duration::from_millis(300);
+    run(&mut s, &cache, &mut far, now);
+    assert!(far.held.iter().all(|k| !settled.contains(k)), "nothing near the old place is held");
+    assert!(!far.released.is_empty());
+    // Everything held afterwards is what is kept at the new place.
+    let kept_new = wanted(&cache, [9000.0, 9000.0]);
+    assert!(far.held.is_subset(&kept_new) || far.held.is_empty(), "{:?}", far.held);
+}
