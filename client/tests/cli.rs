@@ -267,3 +267,31 @@ fn species_edit_screenshot_writes_the_window() {
     let o = canopy(&["species", "stats", "conifer", "--repeat", "1"]);
     assert!(text(&o).contains("lod         4 level(s): detail 0 "), "{}", text(&o));
 }
+
+/// `canopy render --world highlands` from altitude (issue 15): the records around the camera expanded from the world
+/// function and, beyond them, the far view's summary nodes drawn as forest; `--no-summaries` draws only the ground
+/// beyond the records, so the picture loses its forest.
+#[test]
+fn render_from_altitude_draws_the_far_view_from_summaries() {
+    let camera = "position 2000 ~1500 -30000; look-at 2600 ~0 -22000; fov 60";
+    let run = |out: &PathBuf, extra: &[&str]| {
+        let mut args = vec!["render", "--world", "highlands", "--camera", camera, "--width", "160", "--height", "90"];
+        args.extend(["--far-range", "6000", "--record-radius", "128", "--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        let o = canopy(&args);
+        assert!(o.status.success(), "{}", text(&o));
+        (text(&o), image::open(out).expect("a PNG").to_rgba8())
+    };
+    let (with, a) = run(&temp("far.png"), &[]);
+    let (without, b) = run(&temp("near.png"), &["--no-summaries"]);
+    let nodes = |out: &str| {
+        let at = out.find(" summary nodes").unwrap_or_else(|| panic!("{out}"));
+        out[..at].rsplit(' ').next().unwrap().parse::<usize>().unwrap()
+    };
+    assert!(nodes(&with) > 10 && nodes(&without) == 0, "{with}\n{without}");
+    assert!(with.contains("forest patches") && !with.contains("as 0 forest patches"), "{with}");
+    // Forest is dark green: green well above red and blue, and dark.
+    let forest =
+        |img: &image::RgbaImage| img.pixels().filter(|p| p[1] > p[0] + 10 && p[1] > p[2] + 10 && p[1] < 90).count();
+    assert!(forest(&a) > 1000 && forest(&b) < forest(&a) / 10, "{} vs {}", forest(&a), forest(&b));
+}

@@ -12,6 +12,11 @@
 //! - **mid**: the species' LOD substitutes, detail 1..=[`LodConfig::mid_levels`], one level per halving of size;
 //! - **far** (< [`LodConfig::far_px`]): the species' hypertree volume, raymarched on an instanced proxy box.
 //!
+//! Beyond the records, the scene's far field ([`SceneFar`]: summary nodes of issue 15) is drawn as forest
+//! (`forest.rs`): one raymarched proxy box per node and species, through the species' canopy tile ([`tile`]: its far
+//! volume repeated as a stand of trees), on the sub-squares the node covers and neither its held children nor the
+//! record cells draw, cross-fading as that changes.
+//!
 //! Level changes use hysteresis and a dithered cross-fade (both drawn with complementary screen-door masks).
 //! Amplification and voxelisation run on worker threads ([`workers`]); results are uploaded under a per-frame byte
 //! budget into fixed-size GPU arenas ([`arena`]), which are the memory bound of the geometry cache (least recently
@@ -22,6 +27,7 @@ pub mod arena;
 mod cache;
 pub mod camera;
 pub mod compare;
+mod forest;
 pub mod geometry;
 pub mod gpu;
 pub mod ground;
@@ -33,6 +39,7 @@ pub mod scene;
 mod select;
 mod stats;
 mod terrain;
+pub mod tile;
 pub mod volume;
 pub mod workers;
 
@@ -41,7 +48,7 @@ pub use gpu::{Gpu, GpuError};
 pub use lod::{Band, LodConfig};
 pub use offscreen::{OffscreenError, RenderedImage};
 pub use renderer::{FrameStats, Renderer};
-pub use scene::{Scene, SceneInstance};
+pub use scene::{Scene, SceneFar, SceneInstance};
 
 use canopy_worlds::amplify::Budget;
 use canopy_worlds::hypertree::render::{Light, RenderOptions, Shading};

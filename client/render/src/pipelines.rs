@@ -142,11 +142,15 @@ pub struct Pipelines {
     pub mesh_layout: wgpu::BindGroupLayout,
     pub draw_layout: wgpu::BindGroupLayout,
     pub volume_layout: wgpu::BindGroupLayout,
+    /// The forest patches' ground heights (a storage buffer read by the fragment shader).
+    pub forest_layout: wgpu::BindGroupLayout,
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub prims: wgpu::RenderPipeline,
     pub mesh: wgpu::RenderPipeline,
     pub volume: wgpu::RenderPipeline,
+    /// Summary patches raymarched through canopy tiles ([`super::forest`]).
+    pub forest: wgpu::RenderPipeline,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -239,6 +243,10 @@ impl Pipelines {
                 },
                 storage(1, vs_fs),
             ],
+        });
+        let forest_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("forest ground"),
+            entries: &[storage(0, wgpu::ShaderStages::FRAGMENT)],
         });
         let layout = |label: &str, groups: &[&wgpu::BindGroupLayout]| {
             let groups: Vec<Option<&wgpu::BindGroupLayout>> = groups.iter().map(|g| Some(*g)).collect();
@@ -362,6 +370,27 @@ impl Pipelines {
             &premultiplied,
         );
 
+        let forest_mod = module(device, "forest", &[COMMON, include_str!("../shaders/forest.wgsl")]);
+        let patch_attrs = wgpu::vertex_attr_array![
+            0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
+            6 => Float32, 7 => Float32, 8 => Float32
+        ];
+        // No culling: from inside a node's box its back faces march (the shader picks by `front_facing`).
+        let forest = pipeline(
+            "forest",
+            &layout("forest", &[&globals_layout, &volume_layout, &forest_layout]),
+            &forest_mod,
+            ("vs_forest", "fs_forest"),
+            &[Some(wgpu::VertexBufferLayout {
+                array_stride: size_of::<super::forest::ForestPatch>() as u64,
+                step_mode: wgpu::VertexStepMode::Instance,
+                attributes: &patch_attrs,
+            })],
+            None,
+            depth(false, greater),
+            &premultiplied,
+        );
+
         let frusta = FRUSTUM_SEGMENTS
             .iter()
             .map(|&n| {
@@ -384,11 +413,13 @@ impl Pipelines {
             mesh_layout,
             draw_layout,
             volume_layout,
+            forest_layout,
             sky,
             terrain,
             prims,
             mesh,
             volume,
+            forest,
             frusta,
             spheres,
             cube,

@@ -30,6 +30,9 @@ use super::workers::{Job, JobResult, Workers};
 
 pub use super::stats::FrameStats;
 
+mod forest_gpu;
+use forest_gpu::ForestGpu;
+
 /// Initial bytes of the segment buffer and of the far-instance buffer (both grow to the next power of two).
 const INITIAL_LIST_BYTES: u64 = 64 * 1024;
 /// Initial bytes of the volume-info buffer (a few dozen species).
@@ -74,9 +77,11 @@ struct Atlas {
     slot: u32,
     per_row: u32,
     rows: u32,
+    /// Slots taken.
     used: u32,
-    /// CPU copies of every volume, to re-upload when the atlas grows.
-    volumes: Vec<(u32, Arc<FarVolume>)>,
+    /// CPU copies of every volume with its first texel, to re-upload when the atlas grows (growing adds rows, so
+    /// a slot keeps its place).
+    volumes: Vec<([u32; 3], Arc<FarVolume>)>,
 }
 
 struct TerrainGpu {
@@ -173,6 +178,8 @@ impl GeometryGpu {
 struct FarField {
     /// Volume state by species id (`None`: not asked for yet).
     vols: Vec<Option<VolState>>,
+    /// Each species' full-resolution volume once resident (canopy tiles are baked from it).
+    sources: Vec<Option<Arc<FarVolume>>>,
     atlas: Option<Atlas>,
     infos: Vec<VolumeInfo>,
     info_buf: Growable,
@@ -186,6 +193,8 @@ pub struct Renderer {
     gpu: GpuCore,
     geometry: GeometryGpu,
     far: FarField,
+    /// The summary patches beyond the records.
+    forest: ForestGpu,
     terrain: Option<TerrainGpu>,
     /// The window drawn of a fractal ground.
     window: Option<FractalWindow>,
@@ -286,6 +295,7 @@ impl Renderer {
         };
         let far = FarField {
             vols: Vec::new(),
+            sources: Vec::new(),
             atlas: None,
             infos: Vec::new(),
             info_buf: Growable::new(device, "volume infos", INITIAL_VOLUME_INFO_BYTES, wgpu::BufferUsages::STORAGE),
@@ -305,6 +315,7 @@ impl Renderer {
             },
             geometry,
             far,
+            forest: ForestGpu::new(device),
             terrain: None,
             window: None,
             cache: GeometryCache::new(prim_units, vert_units, index_units),
@@ -354,6 +365,7 @@ impl Renderer {
         self.cache
             .upload(self.frame, self.cfg.upload_budget, &mut stats, &mut |geo, at| geometry.write(&gpu.queue, geo, at));
         self.select(scene, camera, dt, &mut stats);
+        self.plan_forest(scene, camera, dt, &mut stats);
         self.write_globals(camera);
         stats.instances = scene.instances.len();
         stats.cache_entries = self.cache.len();
@@ -444,8 +456,16 @@ impl Renderer {
                     let state = match result {
                         Ok(v) => {
                             tracing::debug!("species {species}: far-field volumes in {took:?}");
+                            // Canopy tiles are baked from the halved resolution: what the far band draws at
+                            // the sizes summaries are seen at.
+                            let source = Arc::new(v.low);
                             let full = self.add_volume(Arc::new(v.full));
-                            let low = self.add_volume(Arc::new(v.low));
+                            let sources = &mut self.far.sources;
+                            if sources.len() <= usize::from(species) {
+                                sources.resize(usize::from(species) + 1, None);
+                            }
+                            sources[usize::from(species)] = Some(Arc::clone(&source));
+                            let low = self.add_volume(source);
                             match (full, low) {
                                 (Some((full, center, radius)), Some((low, _, _))) => {
                                     VolState::Ready(SpeciesVol { full, low, center, radius, height: v.height })
@@ -465,15 +485,28 @@ impl Renderer {
                         *slot = Some(state);
                     }
                 }
+                JobResult::Tile { species, result, took } => self.tile_finished(species, result, took),
             }
         }
     }
 
-    /// Place a volume in the atlas (growing it if needed); returns its index and bounding sphere.
+    /// Place a volume in an atlas slot of its own (growing the atlas if needed); returns its index and bounding
+    /// sphere.
     fn add_volume(&mut self, v: Arc<FarVolume>) -> Option<(u32, Vec3, f32)> {
         let slot_edge = self.cfg.volume_resolution.next_power_of_two();
+        if v.dims.iter().any(|&d| d > slot_edge) {
+            return None;
+        }
+        let origin = self.reserve_slot()?;
+        let (c, r) = v.bounding_sphere();
+        Some((self.place_volume(v, origin), Vec3::from(c), r))
+    }
+
+    /// Take a free atlas slot (growing the atlas if needed); returns its first texel.
+    fn reserve_slot(&mut self) -> Option<[u32; 3]> {
+        let slot_edge = self.cfg.volume_resolution.next_power_of_two();
         let max3d = self.gpu.device.limits().max_texture_dimension_3d;
-        if v.dims.iter().any(|&d| d > slot_edge) || slot_edge > max3d {
+        if slot_edge > max3d {
             return None;
         }
         let per_row = (max3d / slot_edge).clamp(1, ATLAS_MAX_PER_ROW);
@@ -484,17 +517,24 @@ impl Renderer {
             return None;
         }
         if far.atlas.is_none() || full {
-            let (rows, old) = match far.atlas.take() {
-                None => (1, Vec::new()),
-                Some(a) => (a.rows * 2, a.volumes),
+            let (rows, used, old) = match far.atlas.take() {
+                None => (1, 0, Vec::new()),
+                Some(a) => (a.rows * 2, a.used, a.volumes),
             };
-            far.atlas = Some(make_atlas(&self.gpu, slot_edge, per_row, rows, old));
+            far.atlas = Some(make_atlas(&self.gpu, slot_edge, per_row, rows, used, old));
         }
         let atlas = far.atlas.as_mut()?;
         let index = atlas.used;
         atlas.used += 1;
-        atlas.volumes.push((index, Arc::clone(&v)));
-        let origin = write_volume(&self.gpu.queue, atlas, index, &v);
+        Some([(index % atlas.per_row) * atlas.slot, 0, (index / atlas.per_row) * atlas.slot])
+    }
+
+    /// Write a volume at `origin` of the atlas (within a reserved slot) and list its info; returns its index.
+    fn place_volume(&mut self, v: Arc<FarVolume>, origin: [u32; 3]) -> u32 {
+        let far = &mut self.far;
+        let Some(atlas) = far.atlas.as_mut() else { return 0 };
+        atlas.volumes.push((origin, Arc::clone(&v)));
+        write_volume(&self.gpu.queue, &atlas.texture, origin, &v);
         let info = VolumeInfo {
             atlas: [origin[0], origin[1], origin[2], 0],
             dims: [v.dims[0], v.dims[1], v.dims[2], 0],
@@ -511,19 +551,16 @@ impl Renderer {
         let id = far.infos.len() as u32;
         far.infos.push(info);
         far.info_buf.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&far.infos));
-        if let Some(atlas) = &far.atlas {
-            let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
-            far.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("volumes"),
-                layout: &self.gpu.p.volume_layout,
-                entries: &[
-                    wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
-                    wgpu::BindGroupEntry { binding: 1, resource: far.info_buf.buffer.as_entire_binding() },
-                ],
-            }));
-        }
-        let (c, r) = v.bounding_sphere();
-        Some((id, Vec3::from(c), r))
+        let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
+        far.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("volumes"),
+            layout: &self.gpu.p.volume_layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
+                wgpu::BindGroupEntry { binding: 1, resource: far.info_buf.buffer.as_entire_binding() },
+            ],
+        }));
+        id
     }
 
     /// Plan the frame ([`FramePlan::plan`]), submit its jobs, mark what it draws as used, and write its lists.
@@ -588,6 +625,7 @@ impl Renderer {
     /// Prepare a frame with nothing but the sky and whatever terrain is loaded (before any scene arrives).
     pub fn update_view(&mut self, camera: &Camera) {
         self.plan.clear();
+        self.forest.clear();
         self.write_globals(camera);
     }
 
@@ -673,6 +711,7 @@ impl Renderer {
                 pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
                 pass.draw(0..count, 0..1);
             }
+            self.draw_forest(&mut pass);
             let far_count = self.plan.far_count();
             if let (true, Some(bg)) = (far_count > 0, &self.far.bg) {
                 pass.set_pipeline(&gpu.p.volume);
@@ -686,7 +725,14 @@ impl Renderer {
     }
 }
 
-fn make_atlas(gpu: &GpuCore, slot: u32, per_row: u32, rows: u32, volumes: Vec<(u32, Arc<FarVolume>)>) -> Atlas {
+fn make_atlas(
+    gpu: &GpuCore,
+    slot: u32,
+    per_row: u32,
+    rows: u32,
+    used: u32,
+    volumes: Vec<([u32; 3], Arc<FarVolume>)>,
+) -> Atlas {
     let texture = gpu.device.create_texture(&wgpu::TextureDescriptor {
         label: Some("far-field atlas"),
         size: wgpu::Extent3d { width: slot * per_row, height: slot, depth_or_array_layers: slot * rows },
@@ -697,18 +743,16 @@ fn make_atlas(gpu: &GpuCore, slot: u32, per_row: u32, rows: u32, volumes: Vec<(u
         usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
         view_formats: &[],
     });
-    let mut atlas = Atlas { texture, slot, per_row, rows, used: volumes.len() as u32, volumes };
-    for (index, v) in atlas.volumes.clone() {
-        write_volume(&gpu.queue, &mut atlas, index, &v);
+    for (origin, v) in &volumes {
+        write_volume(&gpu.queue, &texture, *origin, v);
     }
-    atlas
+    Atlas { texture, slot, per_row, rows, used, volumes }
 }
 
-fn write_volume(queue: &wgpu::Queue, atlas: &mut Atlas, index: u32, v: &FarVolume) -> [u32; 3] {
-    let origin = [(index % atlas.per_row) * atlas.slot, 0, (index / atlas.per_row) * atlas.slot];
+fn write_volume(queue: &wgpu::Queue, texture: &wgpu::Texture, origin: [u32; 3], v: &FarVolume) {
     queue.write_texture(
         wgpu::TexelCopyTextureInfo {
-            texture: &atlas.texture,
+            texture,
             mip_level: 0,
             origin: wgpu::Origin3d { x: origin[0], y: origin[1], z: origin[2] },
             aspect: wgpu::TextureAspect::All,
@@ -721,5 +765,4 @@ fn write_volume(queue: &wgpu::Queue, atlas: &mut Atlas, index: u32, v: &FarVolum
         },
         wgpu::Extent3d { width: v.dims[0], height: v.dims[1], depth_or_array_layers: v.dims[2] },
     );
-    origin
 }

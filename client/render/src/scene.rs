@@ -1,10 +1,12 @@
 //! The scene description the renderer consumes: species graphs by id, instances (species, position, seed,
-//! parameters), the terrain, and optionally ready-made hypertree volumes per species. No networking: `canopy walk`
-//! builds one from the client library's state, `canopy render` from a world.
+//! parameters), the terrain, optionally ready-made hypertree volumes per species, and the far field beyond the
+//! records (summary nodes, issue 15). No networking: `canopy walk` builds one from the client library's state,
+//! `canopy render` from a world.
 
 use std::sync::Arc;
 
-use canopy_protocol::SpeciesGraph;
+use canopy_protocol::summary::NodeSummary;
+use canopy_protocol::{CellCoord, SpeciesGraph};
 use canopy_worlds::hypertree::Hypertree;
 use canopy_worlds::world::{Ground, InstanceId, World};
 
@@ -35,6 +37,21 @@ pub struct SceneVolume {
     pub units: f32,
 }
 
+/// The far field beyond the records: summary nodes and the cells records already draw.
+#[derive(Clone, Debug, Default)]
+pub struct SceneFar {
+    /// Summary nodes held, any order. A node is drawn where none of its children is held to replace it: a node whose
+    /// four children are all held is not drawn (its children are); partially refined nodes draw their sub-squares
+    /// not covered by held children.
+    pub nodes: Vec<Arc<NodeSummary>>,
+    /// The world's cell edge, metres.
+    pub cell_size: f32,
+    /// Cells whose records are held complete (sorted): summary coverage inside them is not drawn — records draw them.
+    pub record_cells: Vec<CellCoord>,
+    /// Changes whenever nodes or record cells change.
+    pub generation: u64,
+}
+
 /// Everything drawn (see the module docs).
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -49,6 +66,8 @@ pub struct Scene {
     pub ground: Ground,
     /// Changes whenever species or instances change (the renderer rebuilds its per-instance state then).
     pub generation: u64,
+    /// The far field beyond the records: summary nodes drawn as forest (empty: nothing beyond the instances).
+    pub far: SceneFar,
 }
 
 impl Scene {
@@ -75,12 +94,20 @@ impl Scene {
             instances,
             ground: Ground::of_world(world),
             generation: 1,
+            far: SceneFar::default(),
         }
     }
 
     /// An empty scene on a ground (a height grid `Arc<Terrain>` or a fractal `Arc<Fractal>`).
     pub fn empty(ground: impl Into<Ground>) -> Scene {
-        Scene { species: Vec::new(), volumes: Vec::new(), instances: Vec::new(), ground: ground.into(), generation: 0 }
+        Scene {
+            species: Vec::new(),
+            volumes: Vec::new(),
+            instances: Vec::new(),
+            ground: ground.into(),
+            generation: 0,
+            far: SceneFar::default(),
+        }
     }
 
     /// The graph of a species id, if held.

@@ -598,6 +598,7 @@ mod tests {
             instances,
             ground: Arc::new(Terrain::flat([0.0, 0.0], 1.0)).into(),
             generation: 1,
+            far: Default::default(),
         }
     }
 

@@ -46,13 +46,23 @@ pub struct FrameStats {
     pub failed: usize,
     /// Geometry given up this frame because the cache was full of what is in view (drawn at a stand-in level).
     pub deferred: usize,
+    /// Summary nodes in the scene's far field.
+    pub summary_nodes: usize,
+    /// Summary nodes drawn (in view, above the cull size, with a species to draw).
+    pub forest_nodes: usize,
+    /// Forest patch instances drawn (one per node, species and fading part).
+    pub forest_patches: usize,
+    /// Sub-squares those patches march (their covered sub-squares and the neighbours their stands thin into).
+    pub forest_squares: u64,
+    /// Summary nodes whose ground, and (node, species) pairs whose canopy tile, are still being made.
+    pub forest_waiting: usize,
     /// CPU time of [`Renderer::update`](super::Renderer::update), milliseconds.
     pub update_ms: f64,
 }
 
 impl FrameStats {
-    /// Whether nothing in view waits for a worker or an upload.
+    /// Whether nothing in view waits for a worker or an upload, and the far field's ground and tiles are made.
     pub fn settled(&self) -> bool {
-        self.waiting == 0 && self.uploads_waiting == 0
+        self.waiting == 0 && self.uploads_waiting == 0 && self.forest_waiting == 0
     }
 }

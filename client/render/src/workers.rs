@@ -1,5 +1,5 @@
-//! Worker threads for the renderer's CPU work — amplifying instances into geometry and voxelising species into
-//! far-field volumes — so the render loop never waits: it submits jobs with a priority and collects whatever has
+//! Worker threads for the renderer's CPU work — amplifying instances into geometry, voxelising species into
+//! far-field volumes and baking their canopy tiles — so the render loop never waits: it submits jobs with a priority and collects whatever has
 //! finished with [`Workers::try_recv`].
 
 use std::collections::BinaryHeap;
@@ -13,7 +13,8 @@ use canopy_worlds::amplify::{Budget, Instance};
 
 use super::geometry::{TreeGeometry, build_tree};
 use super::scene::SceneVolume;
-use super::volume::{SpeciesVolumes, species_volumes, volumes_of};
+use super::tile::{CanopyTile, bake_tile};
+use super::volume::{FarVolume, SpeciesVolumes, species_volumes, volumes_of};
 use super::{Lighting, NearMode};
 
 /// The geometry cache key: one instance at one detail level (instances are identified by species and seed).
@@ -77,6 +78,15 @@ pub enum Job {
         /// Shading to bake.
         lighting: Lighting,
     },
+    /// Bake a species' canopy tile from its far volume (summary patches, [`super::tile`]).
+    Tile {
+        /// Species id.
+        species: u16,
+        /// The species' full-resolution far volume.
+        volume: Arc<FarVolume>,
+        /// Voxels along the tile's edge.
+        resolution: u32,
+    },
 }
 
 /// What a job produced.
@@ -97,6 +107,15 @@ pub enum JobResult {
         species: u16,
         /// The volumes.
         result: Result<SpeciesVolumes, String>,
+        /// Time the job took.
+        took: Duration,
+    },
+    /// A species' canopy tile, or why there is none.
+    Tile {
+        /// Species id.
+        species: u16,
+        /// The tile.
+        result: Result<CanopyTile, String>,
         /// Time the job took.
         took: Duration,
     },
@@ -167,6 +186,12 @@ fn run(job: Job) -> JobResult {
             .map_err(|_| "voxelisation panicked".to_string())
             .and_then(|r| r.map_err(|e| e.to_string()));
             JobResult::Volume { species, result, took: started.elapsed() }
+        }
+        Job::Tile { species, volume, resolution } => {
+            let result = std::panic::catch_unwind(|| bake_tile(&volume, resolution))
+                .map_err(|_| "baking the canopy tile panicked".to_string())
+                .and_then(|r| r.map_err(|e| e.to_string()));
+            JobResult::Tile { species, result, took: started.elapsed() }
         }
     }
 }

@@ -10,7 +10,7 @@ use std::time::Duration;
 use canopy_render::compare::{Tolerance, check_reference, compare};
 use canopy_render::offscreen::{RenderedImage, render_still};
 use canopy_render::scene::SceneVolume;
-use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneInstance};
+use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneFar, SceneInstance};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
@@ -168,6 +168,7 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
         }],
         ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),
         generation: 1,
+        far: SceneFar::default(),
     };
     let mut cfg = RenderConfig {
         lod: LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, low_res_px: 0.0, ..LodConfig::default() },

@@ -4,6 +4,7 @@ mod bandwidth;
 mod bots;
 mod demo;
 mod edit;
+mod far;
 mod hypertree;
 mod render;
 mod species;

@@ -3,12 +3,13 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::offscreen::Offscreen;
-use canopy_render::{LodConfig, NearMode, RenderConfig, Scene};
+use canopy_render::{LodConfig, NearMode, RenderConfig};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -44,14 +45,15 @@ pub struct RendererArgs {
     /// Voxels along the longest axis of far-field volumes.
     #[arg(long, default_value_t = RenderConfig::default().volume_resolution)]
     volume_resolution: u32,
-    /// Fog density per metre (0: none).
-    #[arg(long, default_value_t = RenderConfig::default().lighting.fog_density)]
-    fog: f32,
+    /// Fog density per metre (0: none; default 0.0007 near the ground, thinned with the camera's altitude above
+    /// 50 m so a view from altitude reaches the horizon).
+    #[arg(long)]
+    fog: Option<f32>,
 }
 
 impl RendererArgs {
-    /// The validated renderer configuration.
-    pub fn config(&self) -> anyhow::Result<RenderConfig> {
+    /// The validated renderer configuration for a camera `altitude` metres above the ground.
+    pub fn config(&self, altitude: f32) -> anyhow::Result<RenderConfig> {
         let mut cfg = RenderConfig {
             lod: LodConfig {
                 near_px: self.near_px,
@@ -72,10 +74,17 @@ impl RendererArgs {
         cfg.prim_memory = bytes / 2;
         cfg.mesh_memory = bytes / 2;
         cfg.volume_resolution = self.volume_resolution;
-        cfg.lighting.fog_density = self.fog;
+        cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
         cfg.validate().context("renderer options")?;
         Ok(cfg)
     }
+}
+
+/// The default fog density for a camera `altitude` metres above the ground: the walkthrough's near the ground,
+/// thinned in proportion above 50 m.
+pub fn fog_at(altitude: f32) -> f32 {
+    let near = RenderConfig::default().lighting.fog_density;
+    if altitude.is_finite() && altitude > 50.0 { near * 50.0 / altitude } else { near }
 }
 
 /// Options of `canopy render`.
@@ -103,6 +112,12 @@ pub struct RenderArgs {
     /// Seconds to wait for the view's geometry.
     #[arg(long, default_value_t = 600.0)]
     timeout: f64,
+    /// A world expanded cell by cell (`highlands`): records are drawn for the cells within this radius of the camera,
+    /// metres; beyond it the far view's summary nodes.
+    #[arg(long, default_value_t = 512.0)]
+    record_radius: f32,
+    #[command(flatten)]
+    far: super::far::FarArgs,
     #[command(flatten)]
     renderer: RendererArgs,
 }
@@ -125,14 +140,9 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 
 /// Run `canopy render`.
 pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
-    let cfg = args.renderer.config()?;
     let spec = camera_spec(args.camera.as_deref())?;
-    // The adapter first: without one there is no point in loading the world.
-    let mut off = Offscreen::new(cfg, args.width, args.height)?;
-    println!("adapter: {}", off.gpu.describe());
     let loaded = Instant::now();
-    let world = super::load_world(args.world.as_deref()).map_err(|d| anyhow::anyhow!("{d}"))?;
-    let scene = Scene::from_world(&world);
+    let world = Arc::new(super::load_world(args.world.as_deref()).map_err(|d| anyhow::anyhow!("{d}"))?);
     let camera: Camera = spec.resolve(&|x, z| world.height(x, z));
     println!(
         "world {}: {} instances of {} species, loaded in {:.2} s",
@@ -141,15 +151,36 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
         world.species.len(),
         loaded.elapsed().as_secs_f64()
     );
+    // Records near the camera (every instance of a world materialised at load), the far view's summaries beyond.
+    let altitude = camera.position.y - world.height(camera.position.x, camera.position.z);
+    let cfg = args.renderer.config(altitude)?;
+    let mut off = Offscreen::new(cfg, args.width, args.height)?;
+    println!("adapter: {}", off.gpu.describe());
+    let far = args.far.view(args.height, camera.fov_y, altitude)?;
+    if !(args.record_radius.is_finite() && args.record_radius >= 0.0) {
+        anyhow::bail!("--record-radius must be a distance in metres");
+    }
+    let built = Instant::now();
+    let eye = [camera.position.x, camera.position.y, camera.position.z];
+    let scene = super::far::scene_around(&world, eye, args.record_radius, far);
+    println!(
+        "scene: {} records, {} summary nodes{}, built in {:.2} s",
+        scene.instances.len(),
+        scene.far.nodes.len(),
+        if far.is_some() { "" } else { " (--no-summaries)" },
+        built.elapsed().as_secs_f64()
+    );
     let settle = Instant::now();
     let stats = off.settle(&scene, &camera, Duration::from_secs_f64(args.timeout.max(0.0)))?;
     println!(
-        "settled in {:.2} s: {} in view — near {}, mid {}, far {}; {} primitives, {} mesh triangles, {} terrain triangles, {} draw calls; cache {} entries, {:.1} of {:.0} MiB",
+        "settled in {:.2} s: {} in view — near {}, mid {}, far {}; far view {} nodes drawn as {} forest patches; {} primitives, {} mesh triangles, {} terrain triangles, {} draw calls; cache {} entries, {:.1} of {:.0} MiB",
         settle.elapsed().as_secs_f64(),
         stats.in_view,
         stats.near,
         stats.mid,
         stats.far,
+        stats.forest_nodes,
+        stats.forest_patches,
         stats.primitives,
         stats.mesh_triangles,
         stats.terrain_triangles,

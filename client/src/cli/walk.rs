@@ -27,9 +27,11 @@ use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::net::Edges;
 use canopy_client::state::{Event, viewpoint_due};
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::summary::FarView;
 use canopy_render::camera::{Camera, CameraSpec};
-use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneInstance};
+use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneFar, SceneInstance};
 use canopy_worlds::world::Ground;
 use clap::Args;
 use glam::Vec3;
@@ -98,6 +100,8 @@ pub struct WalkArgs {
     /// Present without waiting for vertical sync (for measuring frame rates).
     #[arg(long)]
     no_vsync: bool,
+    #[command(flatten)]
+    far: super::far::FarArgs,
     /// Species cache directory (default: none).
     #[arg(long)]
     cache_dir: Option<PathBuf>,
@@ -111,6 +115,8 @@ struct Pose {
     position: [f32; 2],
     yaw: f32,
     velocity: [f32; 2],
+    /// Height of the eye above the ground under it (the far view's altitude).
+    altitude: f32,
 }
 
 /// What the network thread reports.
@@ -131,6 +137,8 @@ struct NetStatus {
 #[derive(Default)]
 struct Shared {
     pose: Mutex<Pose>,
+    /// The far view asked for (its altitude replaced by the pose's); `None`: no summaries.
+    far: Mutex<Option<FarView>>,
     scene: Mutex<Option<Arc<Scene>>>,
     status: Mutex<NetStatus>,
     stop: AtomicBool,
@@ -156,7 +164,22 @@ fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
         })
         .collect();
     instances.sort_by_key(|i| i.id);
-    Scene { volumes: vec![None; species.len()], species, instances, ground: ground.clone(), generation }
+    let mut record_cells: Vec<CellCoord> =
+        state.cells().iter().filter(|(_, h)| h.is_complete()).map(|(c, _)| *c).collect();
+    record_cells.sort_unstable();
+    Scene {
+        volumes: vec![None; species.len()],
+        species,
+        instances,
+        ground: ground.clone(),
+        generation,
+        far: SceneFar {
+            nodes: state.summaries().values().cloned().collect(),
+            cell_size: welcome.world.grid.cell_size,
+            record_cells,
+            generation,
+        },
+    }
 }
 
 async fn net_session(
@@ -263,6 +286,10 @@ async fn stream(
             }
             _ = tick.tick() => {
                 let pose = *lock(&shared.pose);
+                let far = *lock(&shared.far);
+                if let Some(f) = far {
+                    conn.set_far_view(FarView { altitude: pose.altitude.max(2.0), ..f }).await?;
+                }
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
                 if viewpoint_due(&grid, sent, pose.position, pose.yaw, sent_at.elapsed()) {
                     conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
@@ -419,10 +446,15 @@ impl App {
                 self.camera.position.y = self.camera.position.y.max(ground + 0.5);
             }
         }
+        let altitude = match &self.scene {
+            Some(scene) => self.camera.position.y - scene.ground.height(self.camera.position.x, self.camera.position.z),
+            None => self.camera.position.y,
+        };
         *lock(&self.shared.pose) = Pose {
             position: [self.camera.position.x, self.camera.position.z],
             yaw: self.camera.yaw,
             velocity: [v.x, v.z],
+            altitude,
         };
     }
 
@@ -671,8 +703,9 @@ fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::
 
 /// Run `canopy walk`.
 pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
-    let cfg = args.renderer.config()?;
     let spec = camera_spec(args.camera.as_deref())?;
+    // The fog for the starting camera's height above a ground not known yet (taken as 0).
+    let cfg = args.renderer.config(spec.resolve(&|_, _| 0.0).position.y)?;
     let local = match args.server {
         Some(_) => None,
         None => Some(local_server(args.world.as_ref(), args.data_dir.as_ref())?),
@@ -709,8 +742,13 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     };
     let shared = Arc::new(Shared::default());
     let camera = spec.resolve(&|_, _| 0.0);
-    *lock(&shared.pose) =
-        Pose { position: [camera.position.x, camera.position.z], yaw: camera.yaw, velocity: [0.0; 2] };
+    *lock(&shared.pose) = Pose {
+        position: [camera.position.x, camera.position.z],
+        yaw: camera.yaw,
+        velocity: [0.0; 2],
+        altitude: camera.position.y,
+    };
+    *lock(&shared.far) = args.far.view(args.height, camera.fov_y, camera.position.y)?;
     let mut connect = ConnectConfig::new_edges(&server, trust);
     connect.client_name = "canopy walk".into();
     // An editor's keys send their edits through the network thread, which sends them on the connection.

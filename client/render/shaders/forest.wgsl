@@ -1,0 +1,282 @@
+// The far view's summaries as forest (issue 15; the plan is `src/forest.rs`): one instance per summary node and
+// species, a proxy box over the node raymarched through the species' canopy tile (a periodic stand of its baked
+// far volume, `src/tile.rs`) repeated in world coordinates over the ground, each repetition shifted at random
+// (texture bombing). The ray walks the node's 8 × 8 sub-squares (a 2D DDA); in a sub-square the instance draws,
+// it steps through the canopy layer between the ground (bilinear between the sub-square's corner heights) and the
+// canopy's top, samples at `t0 + (n + j)·Δs` from the box entry (j a per-pixel jitter in [0, 1): a fixed offset
+// would draw the step grid as bands), lights them by the slope relative to level ground, keeps the trees whose
+// density class is below the patch's density times the coverage interpolated between sub-square centres, and
+// blends front to back; it stops at the ground. Patches arrive back to front and blend premultiplied, like the far
+// instances they are drawn before.
+
+// Uses VolumeInfo, `atlas` and `volumes` from volume.wgsl's bindings (declared again here).
+struct VolumeInfo {
+    atlas: vec4<u32>,
+    dims: vec4<u32>,
+    voxel: vec4<f32>,
+    lo: vec4<f32>,
+    hi: vec4<f32>,
+    origin: vec4<f32>,
+};
+
+@group(1) @binding(0) var atlas: texture_3d<f32>;
+@group(1) @binding(1) var<storage, read> volumes: array<VolumeInfo>;
+// Heights at the sub-squares' corners of every drawn node, 9 × 9 per node, x first.
+@group(2) @binding(0) var<storage, read> heights: array<f32>;
+
+// Most samples one ray takes.
+const MAX_SAMPLES: i32 = 640;
+// The proxy box is drawn this much nearer than it is (metres, and a fraction of the distance), along each eye ray:
+// the canopy stands on the scene's ground, which the terrain drawn only approximates at a distance.
+const PULL_METRES: f32 = 25.0;
+const PULL_FRACTION: f32 = 0.02;
+const CLASSES: f32 = 8.0;
+
+struct PatchOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) @interpolate(flat) rect: vec4<f32>,
+    @location(2) @interpolate(flat) span: vec2<f32>,
+    @location(3) @interpolate(flat) cover: vec2<u32>,
+    @location(4) @interpolate(flat) field: vec2<u32>,
+    @location(5) @interpolate(flat) ids: vec2<u32>,
+    @location(6) @interpolate(flat) params: vec3<f32>,
+};
+
+@vertex
+fn vs_forest(
+    @builtin(vertex_index) vi: u32,
+    @location(0) rect: vec4<f32>,
+    @location(1) span: vec2<f32>,
+    @location(2) cover: vec2<u32>,
+    @location(3) field: vec2<u32>,
+    @location(4) ground: u32,
+    @location(5) volume: u32,
+    @location(6) scale: f32,
+    @location(7) keep: f32,
+    @location(8) mask: f32,
+) -> PatchOut {
+    let corners = array<vec3<f32>, 36>(
+        vec3(0., 0., 1.), vec3(1., 0., 1.), vec3(1., 1., 1.), vec3(0., 0., 1.), vec3(1., 1., 1.), vec3(0., 1., 1.),
+        vec3(1., 0., 0.), vec3(0., 0., 0.), vec3(0., 1., 0.), vec3(1., 0., 0.), vec3(0., 1., 0.), vec3(1., 1., 0.),
+        vec3(1., 0., 1.), vec3(1., 0., 0.), vec3(1., 1., 0.), vec3(1., 0., 1.), vec3(1., 1., 0.), vec3(1., 1., 1.),
+        vec3(0., 0., 0.), vec3(0., 0., 1.), vec3(0., 1., 1.), vec3(0., 0., 0.), vec3(0., 1., 1.), vec3(0., 1., 0.),
+        vec3(0., 1., 1.), vec3(1., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 0.),
+        vec3(0., 0., 0.), vec3(1., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 1.),
+    );
+    let lo = vec3<f32>(rect.x, span.x, rect.y);
+    let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
+    let world = lo + size * corners[vi];
+    let to = world - g.eye.xyz;
+    let d = max(length(to), 1e-3);
+    let pull = min(PULL_METRES + PULL_FRACTION * d, 0.5 * d) / d;
+    var out: PatchOut;
+    out.clip = g.view_proj * vec4<f32>(world - to * pull, 1.0);
+    out.world = world;
+    out.rect = rect;
+    out.span = span;
+    out.cover = cover;
+    out.field = field;
+    out.ids = vec2<u32>(ground, volume);
+    out.params = vec3<f32>(scale, keep, mask);
+    return out;
+}
+
+// A hash of the pixel to [0, 1): where the first sample falls within a step (sampling from the box entry at a
+// fixed offset would draw the layer's intersections with the step grid as bands).
+fn jitter(frag: vec2<f32>) -> f32 {
+    var x = u32(frag.x) * 0x9e3779b1u ^ u32(frag.y) * 0x85ebca77u;
+    x ^= x >> 15u;
+    x *= 0x2c1b3c6du;
+    x ^= x >> 12u;
+    return f32(x & 0xffffu) / 65536.0;
+}
+
+// Where a tile placed at tile cell (cx, cz) starts within the tile, [0, 1)² (texture bombing: every repetition
+// shifted at random, so that the stand does not repeat in rows a far view turns into moiré).
+fn shift(cx: f32, cz: f32) -> vec2<f32> {
+    var x = bitcast<u32>(i32(cx)) * 0x8da6b343u ^ bitcast<u32>(i32(cz)) * 0xd8163841u;
+    x ^= x >> 16u;
+    x *= 0x7feb352du;
+    x ^= x >> 15u;
+    return vec2<f32>(f32(x & 0xffffu), f32(x >> 16u)) / 65536.0;
+}
+
+// The slope's light over flat ground's (the terrain's lighting model): the canopy follows the ground, and its
+// baked shading is a lone tree's on level ground.
+fn relief(h00: f32, h10: f32, h01: f32, h11: f32, cell: f32) -> vec3<f32> {
+    let gx = 0.5 * (h10 - h00 + h11 - h01) / cell;
+    let gz = 0.5 * (h01 - h00 + h11 - h10) / cell;
+    let n = normalize(vec3<f32>(-gx, 1.0, -gz));
+    return shade(vec3<f32>(1.0), n) / shade(vec3<f32>(1.0), vec3<f32>(0.0, 1.0, 0.0));
+}
+
+fn bit(m: vec2<u32>, i: i32, j: i32) -> bool {
+    let k = u32(j * 8 + i);
+    let w = select(m.x, m.y, k >= 32u);
+    return ((w >> (k & 31u)) & 1u) == 1u;
+}
+
+// The coverage field at (u, v), in sub-squares from the node's corner: the mask's bits bilinear between sub-square
+// centres (clamped at the node's edges).
+fn coverage(m: vec2<u32>, u: f32, v: f32) -> f32 {
+    let a = vec2<f32>(u - 0.5, v - 0.5);
+    let f = a - floor(a);
+    let i0 = clamp(i32(floor(a.x)), 0, 7);
+    let j0 = clamp(i32(floor(a.y)), 0, 7);
+    let i1 = clamp(i32(floor(a.x)) + 1, 0, 7);
+    let j1 = clamp(i32(floor(a.y)) + 1, 0, 7);
+    let b = vec4<f32>(
+        select(0.0, 1.0, bit(m, i0, j0)),
+        select(0.0, 1.0, bit(m, i1, j0)),
+        select(0.0, 1.0, bit(m, i0, j1)),
+        select(0.0, 1.0, bit(m, i1, j1)),
+    );
+    return mix(mix(b.x, b.y, f.x), mix(b.z, b.w, f.x), f.y);
+}
+
+@fragment
+fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+    let scale = in.params.x;
+    let keep = in.params.y;
+    if !dither_keeps(in.params.z, in.clip.xy) {
+        discard;
+    }
+    let lo = vec3<f32>(in.rect.x, in.span.x, in.rect.y);
+    let ext = vec3<f32>(in.rect.z, in.span.y - in.span.x, in.rect.z);
+    // The ray, relative to the box's lower corner (precision far from the origin).
+    let o = g.eye.xyz - lo;
+    let inside = all(o > vec3<f32>(0.0)) && all(o < ext);
+    // From outside, the front faces march; from inside, the back faces (from the eye).
+    if front == inside {
+        discard;
+    }
+    let d = normalize(in.world - g.eye.xyz);
+    let inv_d = 1.0 / d;
+    let ta = -o * inv_d;
+    let tb = (ext - o) * inv_d;
+    let tmin = min(ta, tb);
+    let tmax = max(ta, tb);
+    let t0 = max(max(max(tmin.x, tmin.y), tmin.z), 0.0);
+    let t1 = min(min(tmax.x, tmax.y), tmax.z);
+    if t1 <= t0 {
+        discard;
+    }
+    let info = volumes[in.ids.y];
+    let period = info.hi.xz * scale;
+    let vox = info.voxel.xyz * scale;
+    let step = info.voxel.w * scale;
+    let top = in.rect.w;
+    let cell = in.rect.z / 8.0;
+    let dims = vec3<i32>(info.dims.xyz);
+    let base = vec3<i32>(info.atlas.xyz);
+    let gbase = i32(in.ids.x);
+
+    // The 2D walk over sub-squares.
+    let p0 = o + d * t0;
+    var i = clamp(i32(floor(p0.x / cell)), 0, 7);
+    var j = clamp(i32(floor(p0.z / cell)), 0, 7);
+    let si = select(-1, 1, d.x > 0.0);
+    let sj = select(-1, 1, d.z > 0.0);
+    let big = 1e30;
+    var next_x = big;
+    var next_z = big;
+    if d.x != 0.0 {
+        next_x = (f32(i + select(0, 1, d.x > 0.0)) * cell - o.x) * inv_d.x;
+    }
+    if d.z != 0.0 {
+        next_z = (f32(j + select(0, 1, d.z > 0.0)) * cell - o.z) * inv_d.z;
+    }
+    let delta_x = select(big, cell * abs(inv_d.x), d.x != 0.0);
+    let delta_z = select(big, cell * abs(inv_d.z), d.z != 0.0);
+
+    var color = vec3<f32>(0.0);
+    var alpha = 0.0;
+    var first_hit = -1.0;
+    var samples = 0;
+    var t_in = t0;
+    var grounded = false;
+    let offset = jitter(in.clip.xy);
+    for (var walked = 0; walked < 17; walked++) {
+        let t_out = min(min(next_x, next_z), t1);
+        let h = gbase + j * 9 + i;
+        let h00 = heights[h] - lo.y;
+        let h10 = heights[h + 1] - lo.y;
+        let h01 = heights[h + 9] - lo.y;
+        let h11 = heights[h + 10] - lo.y;
+        let ya = o.y + d.y * t_in;
+        let yb = o.y + d.y * t_out;
+        if max(ya, yb) < min(min(h00, h10), min(h01, h11)) {
+            break;
+        }
+        if bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
+            let light = relief(h00, h10, h01, h11, cell);
+            var n = max(ceil((t_in - t0) / step - offset), 0.0);
+            loop {
+                let t = t0 + (n + offset) * step;
+                if t >= t_out || samples >= MAX_SAMPLES {
+                    break;
+                }
+                samples++;
+                n += 1.0;
+                let p = o + d * t;
+                let u = clamp(p.x / cell - f32(i), 0.0, 1.0);
+                let v = clamp(p.z / cell - f32(j), 0.0, 1.0);
+                let ground = mix(mix(h00, h10, u), mix(h01, h11, u), v);
+                let w = p.y - ground;
+                if w < 0.0 {
+                    grounded = true;
+                    break;
+                }
+                if w >= top {
+                    continue;
+                }
+                // Tile coordinates: world x and z in tile periods, each repetition shifted; height above the
+                // ground.
+                let wt = vec2<f32>(p.x + lo.x, p.z + lo.z) / period;
+                let cell_t = floor(wt);
+                let ft = fract(wt - cell_t + shift(cell_t.x, cell_t.y)) * period;
+                let q = vec3<f32>(ft.x, w, ft.y);
+                let c = clamp(vec3<i32>(floor(q / vox)), vec3<i32>(0), dims - vec3<i32>(1));
+                let s = textureLoad(atlas, base + c, 0);
+                if s.a <= 0.0 {
+                    continue;
+                }
+                let bits = vec3<u32>(bitcast<u32>(s.r), bitcast<u32>(s.g), bitcast<u32>(s.b)) >> vec3<u32>(31u);
+                let cls = f32(bits.x + 2u * bits.y + 4u * bits.z);
+                if (cls + 0.5) / CLASSES >= keep * coverage(in.field, p.x / cell, p.z / cell) {
+                    continue;
+                }
+                if first_hit < 0.0 {
+                    first_hit = t;
+                }
+                let wgt = (1.0 - alpha) * s.a;
+                color += wgt * abs(s.rgb) * light;
+                alpha += wgt;
+                if alpha >= 0.995 {
+                    break;
+                }
+            }
+        }
+        if grounded || alpha >= 0.995 || samples >= MAX_SAMPLES || t_out >= t1 {
+            break;
+        }
+        if next_x < next_z {
+            i += si;
+            t_in = next_x;
+            next_x += delta_x;
+        } else {
+            j += sj;
+            t_in = next_z;
+            next_z += delta_z;
+        }
+        if i < 0 || i > 7 || j < 0 || j > 7 {
+            break;
+        }
+    }
+    if alpha < 1.0 / 512.0 {
+        discard;
+    }
+    let f = fog_factor(first_hit);
+    return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
+}
