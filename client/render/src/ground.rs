@@ -20,8 +20,9 @@ pub const WINDOW_SQUARES: u32 = 256;
 pub const ALIGN: i64 = 32;
 /// The window covers at least this many metres per edge, however low the viewer.
 pub const MIN_EXTENT: f64 = 1_500.0;
-/// … and at least this many times the viewer's height above the ground.
-pub const EXTENT_PER_HEIGHT: f64 = 12.0;
+/// … and at least this many times the viewer's height above the ground: 28 reaches 21 km from 1,500 m up, the far
+/// view's default range, so the forest of summary nodes stands on drawn ground to the horizon.
+pub const EXTENT_PER_HEIGHT: f64 = 28.0;
 
 /// A window of a fractal's lattice around the viewer, as a height grid.
 #[derive(Clone, Debug)]
