@@ -43,6 +43,10 @@ pub const GROUND_NODES_PER_FRAME: usize = 256;
 /// A patch whose density keeps less than half a class of its tile's trees is not drawn.
 const MIN_KEEP: f32 = 0.5 / DENSITY_CLASSES as f32;
 
+/// The tile resolution a patch marches has voxels of about this many pixels (0.5: the finest detail; 1: half the
+/// samples — on an H200 at 1920×1080 from 1,500 m up, 0.5 cost 70 ms a frame).
+pub const VOXEL_PX: f32 = 1.0;
+
 /// A species' canopy tile, resident in the atlas.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TileVol {
@@ -413,8 +417,8 @@ impl ForestPlan {
                 if keep < MIN_KEEP {
                     continue;
                 }
-                // The resolution whose voxels are about half a pixel (coarser ones lose the sunlit sides).
-                let level = (0.5 * near * footprint / (t.voxel * scale)).max(1.0).log2().floor() as usize;
+                // The resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the sunlit sides).
+                let level = (VOXEL_PX * near * footprint / (t.voxel * scale)).max(1.0).log2().floor() as usize;
                 let volume = t.mips[level.min(TILE_MIPS - 1)];
                 for (m, mask) in s.fade.parts() {
                     // March the uncovered neighbours too: the stand thins into them.
