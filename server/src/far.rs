@@ -10,8 +10,9 @@
 //! before fine, in the same messages. Records keep priority: summaries take at most a quarter of the bytes while
 //! cells are queued ([`FarSession::turn`]), under the session's pacing.
 //!
-//! Memory per session is bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, and a rebuild visits at most
-//! [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`].
+//! Memory and work per session are bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, a rebuild visits at
+//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`], and whatever a client asks, its range is at most
+//! [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the cache compute).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
@@ -32,6 +33,12 @@ pub const MAX_VISITS: usize = 65_536;
 pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
 /// Largest summaries message the session builds, bytes of nodes (a few QUIC packets).
 pub const BATCH_BYTES: usize = 8 * 1024;
+/// The farthest a session's far view reaches, metres, whatever the client asks (bounds the nodes a client can make
+/// the cache compute: a 32 km disc is about 800 km² of leaves, computed once and shared).
+pub const MAX_RANGE: f32 = 32_768.0;
+/// The finest screen-space error threshold a session applies, pixels.
+pub const MIN_ERROR_PX: f32 = 2.0;
+
 /// A node whose centre lies outside the view cone is queued as if its projected error were this much smaller.
 pub const OUT_OF_VIEW_FACTOR: f32 = 0.5;
 
@@ -69,7 +76,7 @@ impl FarSession {
     /// A far view just asked for.
     pub fn new(view: FarView) -> FarSession {
         FarSession {
-            view,
+            view: bounded(view),
             held: BTreeMap::new(),
             queue: Vec::new(),
             releases: Vec::new(),
@@ -82,8 +89,13 @@ impl FarSession {
 
     /// The client changed its far view.
     pub fn set_view(&mut self, view: FarView) {
-        self.view = view;
+        self.view = bounded(view);
         self.dirty = true;
+    }
+
+    /// The far view applied: the client's, bounded ([`MAX_RANGE`], [`MIN_ERROR_PX`]).
+    pub fn view(&self) -> &FarView {
+        &self.view
     }
 
     /// The viewpoint moved.
@@ -242,6 +254,12 @@ impl FarSession {
     }
 }
 
+/// The far view a session applies: the client's, its range at most [`MAX_RANGE`] and its threshold at least
+/// [`MIN_ERROR_PX`].
+fn bounded(view: FarView) -> FarView {
+    FarView { range: view.range.min(MAX_RANGE), error_px: view.error_px.max(MIN_ERROR_PX), ..view }
+}
+
 /// A summaries message from nodes encoded once: `ServerMsg::Streaming` (1), `ServerStreaming::Summaries` (6), the
 /// nodes' count and encodings, the releases' count and keys — postcard's encoding of the same
 /// [`canopy_protocol::summary::SummaryBatch`], without decoding and encoding each node again.
@@ -272,6 +290,16 @@ mod tests {
     use canopy_protocol::ServerMsg;
     use canopy_protocol::messages::ServerStreaming;
     use canopy_protocol::summary::{NodeSummary, SpeciesCover, SummaryBatch};
+
+    #[test]
+    fn a_hostile_far_view_is_bounded() {
+        let greedy = FarView { error_px: 0.5, height_px: u16::MAX, fov_y: 0.02, range: 65_536.0, altitude: 2.0 };
+        greedy.validate().unwrap();
+        let mut far = FarSession::new(greedy);
+        assert_eq!((far.view().range, far.view().error_px), (MAX_RANGE, MIN_ERROR_PX));
+        far.set_view(FarView { range: 100.0, error_px: 30.0, ..greedy });
+        assert_eq!((far.view().range, far.view().error_px), (100.0, 30.0));
+    }
 
     #[test]
     fn a_batch_encoded_from_shared_nodes_is_the_message() {
