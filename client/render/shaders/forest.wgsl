@@ -211,6 +211,13 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
         }
         if bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
             let light = relief(h00, h10, h01, h11, cell);
+            // How fast the ray can close on the canopy's top over this sub-square: its descent plus the steepest the
+            // bilinear ground can rise along it. A sample `w - top` above the top is followed by at least
+            // `(w - top) / closing` of ray with nothing to hit, whose samples are skipped (they would all be above
+            // the top: the picture is the same, the work is not).
+            let gx = max(abs(h10 - h00), abs(h11 - h01)) / cell;
+            let gz = max(abs(h01 - h00), abs(h11 - h10)) / cell;
+            let closing = max(-d.y + gx * abs(d.x) + gz * abs(d.z), 1e-4);
             var n = max(ceil((t_in - t0) / step - offset), 0.0);
             loop {
                 let t = t0 + (n + offset) * step;
@@ -229,6 +236,7 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
                     break;
                 }
                 if w >= top {
+                    n += max(floor((w - top) / closing / step), 0.0);
                     continue;
                 }
                 // Tile coordinates: world x and z in tile periods, each repetition shifted; height above the
