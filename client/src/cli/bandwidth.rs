@@ -1,6 +1,7 @@
 //! `canopy bandwidth`: the bandwidth measurement harness — procedural streaming against explicit geometry
-//! (unique meshes, instanced meshes) through the same server, paths and emulated links; writes a markdown report,
-//! CSV files and SVG plots (see `canopy_harness::bandwidth` and docs/bandwidth.md).
+//! (unique meshes, instanced meshes) through the same server, paths and emulated links; and, with `--path
+//! flight`, bots flying over the highlands with a far view, summary bytes beside record bytes. Writes a markdown
+//! report, CSV files and SVG plots (see `canopy_harness::bandwidth` and docs/bandwidth.md).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -8,10 +9,11 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use canopy_client::Trust;
 use canopy_harness::bandwidth::link::{LinkSpec, parse_rate};
 use canopy_harness::bandwidth::{self, BandwidthConfig, External, Scenario, report};
+use canopy_harness::bots::PathKind;
 use canopy_server::session::PayloadMode;
 use canopy_worlds::world::World;
 use clap::{Args, ValueEnum};
@@ -27,6 +29,24 @@ enum Mode {
     Instanced,
 }
 
+/// The bots' path on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum Path {
+    /// A straight walk from a seeded start, bouncing off the world's edge, with a teleport half-way.
+    Line,
+    /// Straight legs and turns at `--altitude` above the terrain (procedural only; default world: highlands).
+    Flight,
+}
+
+impl From<Path> for PathKind {
+    fn from(p: Path) -> PathKind {
+        match p {
+            Path::Line => PathKind::Line,
+            Path::Flight => PathKind::Flight,
+        }
+    }
+}
+
 impl From<Mode> for PayloadMode {
     fn from(m: Mode) -> PayloadMode {
         match m {
@@ -38,9 +58,20 @@ impl From<Mode> for PayloadMode {
 }
 
 /// Options of `canopy bandwidth`. With no options: the default walkthrough (all three payloads over 1 Mbit/s,
-/// procedural over 56 kbit/s and over 10 Mbit/s with 1 % loss; 2 bots, 30 s at 10 m/s with a teleport).
+/// procedural over 56 kbit/s and over 10 Mbit/s with 1 % loss; 2 bots, 30 s at 10 m/s with a teleport). With
+/// `--path flight`: the flight (procedural over 1 Mbit/s and 10 Mbit/s; 2 bots, 30 s at 250 m/s, 1,500 m above
+/// the highlands, asking for the far view).
 #[derive(Args, Debug)]
 pub struct BandwidthArgs {
+    /// The bots' path: walk lines (the default walkthrough) or fly (the flight scenario: procedural only, far view
+    /// summaries beside records).
+    #[arg(long, value_enum, default_value_t = Path::Line)]
+    path: Path,
+    /// The world: an embedded world's name (`forest`, `highlands`) or a manifest path (default: the embedded
+    /// default world walking, `highlands` flying). A world never materialised is served through the server's cell
+    /// cache, procedural only.
+    #[arg(long)]
+    world: Option<String>,
     /// Payload modes to run (comma-separated); with --rate, every mode over every rate.
     #[arg(long, value_enum, value_delimiter = ',')]
     modes: Vec<Mode>,
@@ -56,24 +87,39 @@ pub struct BandwidthArgs {
     /// Bots per scenario.
     #[arg(long, default_value_t = 2)]
     bots: usize,
-    /// How long each bot walks, seconds.
+    /// How long each bot walks (or flies), seconds.
     #[arg(long, default_value_t = 30.0)]
     duration: f64,
-    /// Walking speed, metres per second.
-    #[arg(long, default_value_t = 10.0)]
-    speed: f32,
-    /// Area-of-interest radius, metres.
+    /// Walking (or flying) speed, metres per second (default: 10 walking, 250 flying).
+    #[arg(long)]
+    speed: Option<f32>,
+    /// `--path flight`: height above the terrain, metres (the area-of-interest radius then follows from altitude
+    /// and speed under the server's rules, instead of `--radius`).
+    #[arg(long, default_value_t = 1500.0)]
+    altitude: f32,
+    /// Area-of-interest radius, metres (walkers; a flight's follows from `--altitude` and `--speed`).
     #[arg(long, default_value_t = 160.0)]
     radius: f32,
-    /// View distance for visible completeness, metres (default: the AOI radius).
+    /// View distance for visible completeness, metres (default: the area-of-interest radius asked for).
     #[arg(long)]
     view: Option<f32>,
-    /// Walk straight on without the teleport half-way.
+    /// The far view's screen-space error threshold, pixels on a 1080-pixel-high, 60° view: summary nodes beyond
+    /// the records. Flights ask for 16 by default, walkers only with this.
+    #[arg(long)]
+    far_error: Option<f32>,
+    /// How far the far view reaches, metres.
+    #[arg(long, default_value_t = 20_000.0)]
+    far_range: f32,
+    /// No far view, even flying.
+    #[arg(long, conflicts_with = "far_error")]
+    no_far: bool,
+    /// Walk straight on without the teleport half-way (flights never teleport).
     #[arg(long)]
     no_teleport: bool,
-    /// Path seed.
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
+    /// Path seed (bot `i` uses seed + i; default 1 walking, 6 flying: forest under both bots' flights over the
+    /// highlands).
+    #[arg(long)]
+    seed: Option<u64>,
     /// Longest wait at the end for a complete area of interest, seconds.
     #[arg(long, default_value_t = 10.0)]
     settle: f64,
@@ -86,17 +132,21 @@ pub struct BandwidthArgs {
     /// Memory bound of the server's cache of encoded instance meshes, MiB.
     #[arg(long, default_value_t = 512)]
     cache_mib: usize,
-    /// Instances per species for the seed 001 §7 size table (0: no table).
-    #[arg(long, default_value_t = 3)]
-    size_seeds: u32,
-    /// Instances of the world whose unique meshes are encoded to estimate baseline 1 per instance (0: none).
-    #[arg(long, default_value_t = 40)]
-    mesh_sample: usize,
+    /// Instances per species for the seed 001 §7 size table (0: no table; default 3 walking, 0 flying).
+    #[arg(long)]
+    size_seeds: Option<u32>,
+    /// Instances of the world whose unique meshes are encoded to estimate baseline 1 per instance (0: none;
+    /// default 40 walking, 0 flying).
+    #[arg(long)]
+    mesh_sample: Option<usize>,
+    /// Cells of a world never materialised that the ground truth keeps expanded between samples.
+    #[arg(long, default_value_t = canopy_harness::bandwidth::truth::DEFAULT_MEMO_CELLS)]
+    truth_cells: usize,
     /// Output folder.
     #[arg(long, default_value = "out/bandwidth")]
     out: PathBuf,
     /// Measure a running canopy-server (procedural scenarios only) instead of one in process; it must serve the
-    /// embedded default world.
+    /// world of `--world` (default: the embedded default world walking, `highlands` flying).
     #[arg(long)]
     server: Option<SocketAddr>,
     /// Pin that server's certificate by its SHA-256 fingerprint.
@@ -111,7 +161,8 @@ pub struct BandwidthArgs {
 }
 
 fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
-    let mut cfg = BandwidthConfig::default_run();
+    let flying = args.path == Path::Flight;
+    let mut cfg = if flying { BandwidthConfig::flight_run() } else { BandwidthConfig::default_run() };
     let secs = |v: f64, what: &str| -> anyhow::Result<Duration> {
         if !(v.is_finite() && (0.0..=86_400.0).contains(&v)) {
             bail!("--{what} must be between 0 and 86400 seconds");
@@ -121,28 +172,36 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     if !(0.0..1.0).contains(&args.loss) {
         bail!("--loss must be in 0..1");
     }
-    if !(args.speed.is_finite() && args.speed >= 0.0 && args.radius.is_finite() && args.radius > 0.0) {
+    let speed = args.speed.unwrap_or(cfg.speed);
+    if !(speed.is_finite() && speed >= 0.0 && args.radius.is_finite() && args.radius > 0.0) {
         bail!("--speed and --radius must be positive numbers");
+    }
+    if !(args.altitude.is_finite() && args.altitude >= 0.0) || args.view.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
+        bail!("--altitude must not be negative, --view must be positive");
     }
     cfg.bots = args.bots;
     cfg.duration = secs(args.duration, "duration")?;
     cfg.settle = secs(args.settle, "settle")?;
-    cfg.speed = args.speed;
+    cfg.speed = speed;
+    cfg.altitude = if flying { args.altitude } else { 0.0 };
     cfg.radius = args.radius;
-    cfg.view = args.view.unwrap_or(args.radius);
-    cfg.teleport = !args.no_teleport;
-    cfg.seed = args.seed;
+    // Walkers measure over their radius by default (a flight over the radius the server's rules give it).
+    cfg.view = args.view.or((!flying).then_some(args.radius));
+    cfg.far = super::bots::far_view(args.far_error, args.far_range, args.no_far, flying, args.altitude)?;
+    cfg.teleport = !args.no_teleport && !flying;
+    cfg.seed = args.seed.unwrap_or(cfg.seed);
     cfg.sample = Duration::from_millis(args.sample_ms.clamp(10, 60_000));
     cfg.pace = args.pace.clamp(0.0, 10.0);
     cfg.cache_bytes = args.cache_mib.saturating_mul(1024 * 1024);
-    cfg.size_seeds = args.size_seeds;
-    cfg.mesh_sample = args.mesh_sample;
+    cfg.size_seeds = args.size_seeds.unwrap_or(cfg.size_seeds);
+    cfg.mesh_sample = args.mesh_sample.unwrap_or(cfg.mesh_sample);
+    cfg.truth_cells = args.truth_cells.max(1);
     cfg.out = args.out.clone();
     cfg.progress = !args.quiet;
     cfg.command = std::iter::once("canopy".to_string()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
     if !args.modes.is_empty() || !args.rate.is_empty() || args.server.is_some() {
         let modes: Vec<PayloadMode> = if args.modes.is_empty() {
-            if args.server.is_some() { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
+            if args.server.is_some() || flying { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
         } else {
             args.modes.iter().map(|&m| m.into()).collect()
         };
@@ -156,8 +215,10 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
             .flat_map(|&rate| {
                 modes.iter().map(move |&m| Scenario::new(m, LinkSpec::new(rate, args.latency_ms, args.loss)))
             })
+            .map(|s| if flying { s.prefixed("flight") } else { s })
             .collect();
     }
+    cfg.path = args.path.into();
     if let Some(server) = args.server {
         let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
         cfg.external = Some(External { server, trust });
@@ -169,15 +230,24 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
 pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     let cfg = config(&args)?;
     let loaded = Instant::now();
-    let world = Arc::new(World::default_world());
+    let world = Arc::new(match (&args.world, cfg.flying()) {
+        (Some(w), _) => super::world_arg(w)?,
+        (None, true) => World::embedded("highlands").context("the embedded highlands")?,
+        (None, false) => World::default_world(),
+    });
     println!(
-        "world `{}`: {} instances, loaded in {:.1} s; {} scenarios × {} bots, {} s walks; report into {}",
+        "world `{}`: {}, loaded in {:.1} s; {} scenarios × {} bots, {} s {}; report into {}",
         world.name,
-        world.instances.len(),
+        if world.is_materialised() {
+            format!("{} instances", world.instances.len())
+        } else {
+            format!("{} cells expanded on demand", world.cell_count())
+        },
         loaded.elapsed().as_secs_f64(),
         cfg.scenarios.len(),
         cfg.bots,
         cfg.duration.as_secs_f64(),
+        if cfg.flying() { format!("flights at {} m/s, {} m up", cfg.speed, cfg.altitude) } else { "walks".into() },
         cfg.out.display()
     );
     let outcome = bandwidth::run(&cfg, world)?;

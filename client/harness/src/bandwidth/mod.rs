@@ -3,36 +3,43 @@
 //!
 //! A run is a list of [`Scenario`]s — a payload mode ([`PayloadMode`]: procedural, unique meshes, instanced) and a
 //! link ([`link::LinkSpec`]: rate cap, latency, loss, emulated by a UDP relay per client) — each run by the same
-//! bots on the same scripted paths: a straight walk at a given speed with a teleport half-way. Every bot samples,
-//! at a fixed interval, its bytes by class (the transport overhead being what the UDP totals hold beyond the
-//! frames, so the classes add up to the wire), and its visible completeness: of the instances within view
-//! distance in the world itself ([`measure::GroundTruth`]), the fraction it holds. The [`report`] writes a
-//! markdown report, CSV files and SVG plots.
+//! bots on the same scripted paths: a straight walk at a given speed with a teleport half-way, or a flight
+//! ([`PathKind::Flight`]: legs and turns at an altitude, the record radius [`AoiParams::flight_radius`] gives,
+//! a far view of summary nodes beyond it) over a world never materialised, such as the highlands, which the
+//! in-process server then serves through its [`CellCache`]. Every bot samples, at a fixed interval, its bytes by
+//! class (the transport overhead being what the UDP totals hold beyond the frames, so the classes add up to the
+//! wire), and what it holds within view distance; its visible completeness — of the instances within view
+//! distance in the world itself ([`measure::GroundTruth`]), the fraction it held — is computed from those
+//! snapshots once the scenario's bots are done. The [`report`] writes a markdown report, CSV files and SVG plots.
+//!
+//! [`AoiParams::flight_radius`]: canopy_protocol::aoi::AoiParams::flight_radius
 
+mod bot;
 pub mod geometry;
 pub mod link;
 pub mod measure;
 pub mod report;
 pub mod sizes;
+pub mod truth;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
-use canopy_protocol::messages::{ByKind, GeometryKind};
+use canopy_protocol::messages::ByKind;
+use canopy_protocol::summary::FarView;
 use canopy_server::session::{GeometrySource, Payload, PayloadMode, SessionConfig};
-use canopy_server::{GridStore, Server, ServerConfig, WorldStore};
+use canopy_server::{CellCache, CellCacheConfig, GridStore, Server, ServerConfig, WorldStore};
 use canopy_worlds::world::World;
-use quinn::Endpoint;
 
-use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, PathKind, Walker};
-use canopy_client::net::{ClientError, ConnectConfig, Connection, Trust};
-use canopy_client::state::Event;
+use crate::bots::{BotReport, PathKind};
+use canopy_client::net::{ClientError, Trust};
 use geometry::{MeshSource, SourceStats};
-use link::{LinkSpec, Relay};
+use link::LinkSpec;
 use measure::{Bytes, CompletenessStats, GroundTruth, Sample, SamplePhase};
+use truth::TruthStats;
 
 /// One measured configuration: what the server sends and over which link.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,6 +63,12 @@ impl Scenario {
         let loss = if link.loss > 0.0 { format!("-loss{}", link.loss * 100.0) } else { String::new() };
         Scenario { name: format!("{}-{rate}{loss}", mode.label()), mode, link }
     }
+
+    /// The same scenario, its name prefixed (`flight-procedural-1M`).
+    pub fn prefixed(mut self, prefix: &str) -> Scenario {
+        self.name = format!("{prefix}-{}", self.name);
+        self
+    }
 }
 
 /// A server to measure instead of the in-process one (only the payload it serves can be measured).
@@ -72,14 +85,25 @@ pub struct External {
 pub struct BandwidthConfig {
     /// Bots per scenario.
     pub bots: usize,
-    /// How long each bot walks.
+    /// How long each bot walks (or flies).
     pub duration: Duration,
-    /// Walking speed, metres per second.
+    /// The bots' path: [`PathKind::Line`] (a straight walk, bouncing off the world's edge) or
+    /// [`PathKind::Flight`] (legs and turns at `altitude`, procedural payload only).
+    pub path: PathKind,
+    /// Walking (or flying) speed, metres per second.
     pub speed: f32,
-    /// Area-of-interest radius the bots ask for, metres.
+    /// A flight's height above the terrain, metres.
+    pub altitude: f32,
+    /// Area-of-interest radius walkers ask for, metres (a flight asks for [`AoiParams::flight_radius`] of its
+    /// altitude and speed under the server's rules instead).
+    ///
+    /// [`AoiParams::flight_radius`]: canopy_protocol::aoi::AoiParams::flight_radius
     pub radius: f32,
-    /// View distance for visible completeness, metres.
-    pub view: f32,
+    /// View distance for visible completeness, metres (`None`: the radius the bots ask for).
+    pub view: Option<f32>,
+    /// The far view the bots ask for (summary nodes beyond the records; `None`: none). The altitude is replaced by
+    /// the walker's.
+    pub far: Option<FarView>,
     /// Teleport half-way through the walk.
     pub teleport: bool,
     /// Seeds the paths (bot `i` uses `seed + i`; the same in every scenario).
@@ -103,6 +127,8 @@ pub struct BandwidthConfig {
     /// Instances of the world whose unique meshes are encoded to estimate baseline 1's cost per instance over the
     /// whole world (evenly spaced ids; 0: none). A slow link lets only a few whole trees through in a short walk.
     pub mesh_sample: usize,
+    /// Cells the ground truth of a world never materialised keeps expanded ([`truth::DEFAULT_MEMO_CELLS`]).
+    pub truth_cells: usize,
     /// Show a progress bar.
     pub progress: bool,
     /// The command line, for the report.
@@ -117,9 +143,12 @@ impl BandwidthConfig {
         BandwidthConfig {
             bots: 2,
             duration: Duration::from_secs(30),
+            path: PathKind::Line,
             speed: 10.0,
+            altitude: 0.0,
             radius: 160.0,
-            view: 160.0,
+            view: Some(160.0),
+            far: None,
             teleport: true,
             seed: 1,
             settle: Duration::from_secs(10),
@@ -137,9 +166,47 @@ impl BandwidthConfig {
             cache_bytes: 512 * 1024 * 1024,
             size_seeds: 3,
             mesh_sample: 40,
+            truth_cells: truth::DEFAULT_MEMO_CELLS,
             progress: true,
             command: "canopy bandwidth".into(),
         }
+    }
+
+    /// The default flight (issues 15 and 18): 2 bots flying 30 s at 250 m/s, 1,500 m above the terrain, without a
+    /// teleport, asking for the radius their altitude and speed give (capped by the server) and for the far view
+    /// (16 px on a 1080-pixel 60° view, 20 km), the view distance that radius; procedural over 1 Mbit/s and over
+    /// 10 Mbit/s (20 ms). Meant for a world never materialised (`highlands`); no size table, no mesh sample. Seed
+    /// 6: over the highlands, bots 0 and 1 fly over forest nearly all the way (seeds 1 and 2 cross bare rock above
+    /// the tree line, where there are no records to measure).
+    pub fn flight_run() -> BandwidthConfig {
+        let link = |rate| LinkSpec::new(Some(rate), 20, 0.0);
+        BandwidthConfig {
+            path: PathKind::Flight,
+            speed: 250.0,
+            altitude: 1500.0,
+            view: None,
+            far: Some(FarView {
+                error_px: 16.0,
+                height_px: 1080,
+                fov_y: 60f32.to_radians(),
+                range: 20_000.0,
+                altitude: 1500.0,
+            }),
+            teleport: false,
+            seed: 6,
+            scenarios: [1_000_000, 10_000_000]
+                .map(|rate| Scenario::new(PayloadMode::Procedural, link(rate)).prefixed("flight"))
+                .to_vec(),
+            size_seeds: 0,
+            mesh_sample: 0,
+            command: "canopy bandwidth --path flight".into(),
+            ..BandwidthConfig::default_run()
+        }
+    }
+
+    /// Whether the bots fly.
+    pub fn flying(&self) -> bool {
+        self.path == PathKind::Flight
     }
 }
 
@@ -162,12 +229,24 @@ pub enum BandwidthError {
     #[error("{0}")]
     Config(String),
     /// The server streams another world than the one the ground truth was computed from.
-    #[error("the server's world has {server} instances, the ground truth {truth}: not the same world")]
+    #[error("the server streams {server}, the ground truth is {truth}: not the same world")]
     WorldMismatch {
-        /// Instances in the server's welcome.
-        server: u32,
-        /// Instances in the ground truth.
-        truth: usize,
+        /// The server's world as its welcome describes it: name, instances, grid.
+        server: String,
+        /// The ground truth's world, likewise.
+        truth: String,
+    },
+    /// An explicit-geometry payload asked of a run that can only be procedural: its meshes come from the instances
+    /// of a world materialised at load.
+    #[error(
+        "{mode} needs the meshes of a world materialised at load, and {why}: run it with --modes procedural \
+         (the explicit baselines run on the default walkthrough)"
+    )]
+    ProceduralOnly {
+        /// The payload mode refused.
+        mode: &'static str,
+        /// Why the run is procedural only.
+        why: String,
     },
 }
 
@@ -185,9 +264,13 @@ pub struct LinkTotals {
 /// What one bot measured.
 #[derive(Clone, Debug, Default)]
 pub struct BotResult {
-    /// What any bot reports: index, why it stopped early (if it did), records received and held, time to its
-    /// first complete area of interest, whether it ended complete.
+    /// What any bot reports: index, why it stopped early (if it did), records received and held, summary nodes
+    /// received, time to its first complete area of interest, whether it ended complete.
     pub bot: BotReport,
+    /// The area-of-interest radius it asked for, metres (a flight's from its altitude and speed).
+    pub radius: f32,
+    /// The view distance its visible completeness was measured over, metres.
+    pub view: f32,
     /// Its samples, in time order.
     pub samples: Vec<Sample>,
     /// Its bytes at the end.
@@ -326,6 +409,8 @@ impl ScenarioResult {
 /// Everything a run measured.
 #[derive(Clone, Debug)]
 pub struct Outcome {
+    /// The world's name.
+    pub world: String,
     /// Per scenario.
     pub scenarios: Vec<ScenarioResult>,
     /// The seed 001 §7 size table.
@@ -334,6 +419,8 @@ pub struct Outcome {
     pub mesh_sample: Option<MeshSample>,
     /// Baseline 2's species meshes: compressed bytes by species id (in-process runs).
     pub species_meshes: Vec<u64>,
+    /// What the ground truth expanded of a world never materialised (zeros for a materialised one).
+    pub truth: TruthStats,
     /// Files written.
     pub files: Vec<PathBuf>,
     /// Wall time of the whole run.
@@ -380,282 +467,84 @@ impl MeshSample {
     }
 }
 
-/// Live counters for the progress display.
-#[derive(Debug, Default)]
-struct Live {
-    bytes: AtomicU64,
-    records: AtomicU64,
-}
-
-struct BotParams {
-    duration: Duration,
-    speed: f32,
-    radius: f32,
-    view: f32,
-    teleport: bool,
-    seed: u64,
-    settle: Duration,
-    sample: Duration,
-    truth: Arc<GroundTruth>,
-    live: Arc<Live>,
-    /// When the scenario started (sample times count from here).
-    t0: Instant,
-}
-
-async fn run_bot(
-    id: usize,
-    endpoint: Endpoint,
-    connect: ConnectConfig,
-    relay: Option<Relay>,
-    p: Arc<BotParams>,
-) -> BotResult {
-    let mut r = BotResult { bot: BotReport { id, ..BotReport::default() }, ..BotResult::default() };
-    if let Err(e) = bot_session(&mut r, &endpoint, connect, &p).await {
-        r.bot.error = Some(e.to_string());
-    }
-    if let Some(relay) = relay {
-        let s = relay.stats();
-        let dir = |d: &link::DirectionStats| {
-            [d.packets.load(Relaxed), d.lost.load(Relaxed), d.overflow.load(Relaxed), d.delivered.load(Relaxed)]
-        };
-        r.link = Some(LinkTotals { down: dir(&s.down), up: dir(&s.up), down_bytes: s.down.bytes.load(Relaxed) });
-    }
-    r
-}
-
-fn bytes_of(conn: &Connection) -> Bytes {
-    Bytes::split(conn.frame_bytes_received(), conn.frame_bytes_sent(), conn.bytes_received(), conn.bytes_sent())
-}
-
-/// A measuring bot's hooks into the drive loop: what arrived by kind, its phase, the teleport, samples.
-struct Measure<'a> {
-    r: &'a mut BotResult,
-    p: &'a BotParams,
-    completion: Completion,
-    phase: SamplePhase,
-    teleport_at: Option<Instant>,
-    teleported: Option<Instant>,
-    last_bytes: u64,
-    last_records: u64,
-}
-
-impl Measure<'_> {
-    fn take(&mut self, conn: &Connection, phase: SamplePhase, pos: [f32; 2]) {
-        let truth = &*self.p.truth;
-        let (visible, held) =
-            measure::completeness(truth, pos, self.p.view, |c| measure::held_indices(conn.state(), c));
-        self.r.samples.push(Sample {
-            t: self.p.t0.elapsed().as_secs_f64(),
-            phase,
-            position: pos,
-            bytes: bytes_of(conn),
-            visible,
-            held,
-            aoi_complete: conn.state().is_complete(),
-        });
-        let b = conn.bytes_received() + conn.bytes_sent();
-        let rec = conn.state().stats().records;
-        self.p.live.bytes.fetch_add(b.saturating_sub(self.last_bytes), Relaxed);
-        self.p.live.records.fetch_add(rec.saturating_sub(self.last_records), Relaxed);
-        self.last_bytes = b;
-        self.last_records = rec;
-    }
-}
-
-impl DriveHooks for Measure<'_> {
-    fn event(&mut self, ev: &Event) {
-        let species_ids = &mut self.r.species_ids;
-        if let Event::Species { id, .. } = ev
-            && !species_ids.contains(id)
-        {
-            species_ids.push(*id);
-        }
-        if let Event::Geometry { kind: GeometryKind::SpeciesMesh, id, offset: 0, .. } = ev {
-            let id = u8::try_from(*id).unwrap_or(u8::MAX);
-            if !species_ids.contains(&id) {
-                species_ids.push(id);
-            }
-        }
-        if let Event::Geometry { kind: GeometryKind::InstanceMesh, offset: 0, total, .. } = ev {
-            self.r.mesh_headers.0 += 1;
-            self.r.mesh_headers.1 += u64::from(*total);
-        }
-    }
-
-    fn changed(&mut self, conn: &Connection) {
-        self.completion.note(conn, &mut self.r.bot);
-        if !conn.state().is_complete() {
-            return;
-        }
-        match self.phase {
-            SamplePhase::Start => self.phase = SamplePhase::Walking,
-            SamplePhase::Teleported => {
-                self.r.teleport_complete = self.teleported.map(|t| t.elapsed().as_secs_f64());
-                self.phase = SamplePhase::Walking;
-            }
-            _ => {}
-        }
-    }
-
-    fn stepped(&mut self, now: Instant, walker: &mut Walker) -> bool {
-        let due = self.teleported.is_none() && self.teleport_at.is_some_and(|t| now >= t);
-        if !due {
-            return false;
-        }
-        // Jump to another walk: a new start and heading, same speed.
-        walker.jump();
-        self.teleported = Some(now);
-        self.r.teleported_at = Some(self.p.t0.elapsed().as_secs_f64());
-        self.phase = SamplePhase::Teleported;
-        true
-    }
-
-    fn sample(&mut self, conn: &Connection, walker: &Walker, settling: bool) {
-        let phase = if settling { SamplePhase::Settling } else { self.phase };
-        self.take(conn, phase, walker.position());
-    }
-}
-
-async fn bot_session(
-    r: &mut BotResult,
-    endpoint: &Endpoint,
-    mut connect: ConnectConfig,
-    p: &BotParams,
-) -> Result<(), BandwidthError> {
-    connect.client_name = format!("bandwidth-{}", r.bot.id);
-    let started = Instant::now();
-    let seed = p.seed.wrapping_add(r.bot.id as u64);
-    let walk = bots::Walk { path: PathKind::Line, speed: p.speed, radius: p.radius, altitude: 0.0, seed };
-    let (mut conn, mut walker) = bots::connect_walking(endpoint, &connect, None, walk).await?;
-    if conn.welcome().world.instances as usize != p.truth.len() {
-        let server = conn.welcome().world.instances;
-        conn.close();
-        return Err(BandwidthError::WorldMismatch { server, truth: p.truth.len() });
-    }
-    let plan = DrivePlan {
-        radius: p.radius,
-        tick: Duration::from_millis(100),
-        walk_until: started + p.duration,
-        settle: p.settle,
-        sample: Some(p.sample),
-        stop: tokio::sync::watch::channel(false).1,
-        far: None,
-    };
-    let mut m = Measure {
-        r: &mut *r,
-        p,
-        completion: Completion::new(started),
-        phase: SamplePhase::Start,
-        teleport_at: p.teleport.then(|| started + p.duration / 2),
-        teleported: None,
-        last_bytes: 0,
-        last_records: 0,
-    };
-    let result = bots::drive(&mut conn, &mut walker, plan, &mut m).await;
-    if result.is_ok() {
-        // The last sample, at rest, whether or not the area of interest filled.
-        m.take(&conn, SamplePhase::Settling, walker.position());
-    }
-    r.geometry = conn.state().stats().geometry_bytes;
-    r.bot.read(&conn);
-    r.bot.complete = conn.state().is_complete();
-    r.bytes = bytes_of(&conn);
-    conn.close();
-    result.map(|_| ()).map_err(BandwidthError::from)
-}
-
-/// Run one scenario against a server at `server`: a relay per bot when the link is shaped, the bots, their
-/// results.
-async fn run_scenario(
-    cfg: &BandwidthConfig,
-    scenario: &Scenario,
-    server: SocketAddr,
-    trust: Trust,
-    truth: Arc<GroundTruth>,
-    bar: &indicatif::ProgressBar,
-) -> Result<Vec<BotResult>, BandwidthError> {
-    let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(server))?;
-    let params = Arc::new(BotParams {
-        duration: cfg.duration,
-        speed: cfg.speed,
-        radius: cfg.radius,
-        view: cfg.view,
-        teleport: cfg.teleport,
-        seed: cfg.seed,
-        settle: cfg.settle,
-        sample: cfg.sample,
-        truth,
-        live: Arc::new(Live::default()),
-        t0: Instant::now(),
-    });
-    let live = Arc::clone(&params.live);
-    let t0 = params.t0;
-    // One TLS configuration for all the bots: each one's clone only changes the address (its relay's).
-    let base = ConnectConfig::new(server, trust);
-    let mut tasks = Vec::new();
-    for id in 0..cfg.bots {
-        let (relay, addr) = if scenario.link.is_shaped() {
-            let relay =
-                Relay::start(server, scenario.link, cfg.seed.wrapping_mul(1000).wrapping_add(id as u64)).await?;
-            let addr = relay.addr();
-            (Some(relay), addr)
-        } else {
-            (None, server)
-        };
-        let mut connect = base.clone();
-        connect.server = addr;
-        tasks.push(tokio::spawn(run_bot(id, endpoint.clone(), connect, relay, Arc::clone(&params))));
-    }
-    let total = (cfg.duration + cfg.settle).as_secs_f64();
-    let mut ticker = tokio::time::interval(Duration::from_millis(200));
-    let results;
-    let all = bots::join(tasks, |id, error| BotResult {
-        bot: BotReport { id, error: Some(error), ..Default::default() },
-        ..Default::default()
-    });
-    tokio::pin!(all);
-    loop {
-        tokio::select! {
-            r = &mut all => { results = r; break; }
-            _ = ticker.tick() => {
-                let t = t0.elapsed().as_secs_f64();
-                bar.set_position(((t / total).min(1.0) * 1000.0) as u64);
-                bar.set_message(format!(
-                    "{}: {:.1} MB, {} records",
-                    scenario.name,
-                    live.bytes.load(Relaxed) as f64 / 1e6,
-                    live.records.load(Relaxed)
-                ));
-            }
-        }
-    }
-    endpoint.close(0u32.into(), b"done");
-    let _ = tokio::time::timeout(Duration::from_secs(2), endpoint.wait_idle()).await;
-    Ok(results)
-}
-
-/// Run every scenario of `cfg` on `world` (the in-process server's world and the ground truth; with an external
-/// server it must be the world that server serves), write the report, and return what was measured.
-pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, BandwidthError> {
+/// Refuse what cannot run: no bots or scenarios, a path other than a line or a flight, an unusable far view, and
+/// explicit geometry against an external server, in a flight, or on a world never materialised.
+fn check(cfg: &BandwidthConfig, world: &World) -> Result<(), BandwidthError> {
     if cfg.bots == 0 || cfg.scenarios.is_empty() {
         return Err(BandwidthError::Config("nothing to run: no bots or no scenarios".into()));
     }
-    if cfg.external.is_some() && cfg.scenarios.iter().any(|s| s.mode != PayloadMode::Procedural) {
+    if !matches!(cfg.path, PathKind::Line | PathKind::Flight) {
+        return Err(BandwidthError::Config(format!("the bots walk lines or fly, not `{}`", cfg.path)));
+    }
+    if let Some(far) = &cfg.far {
+        far.validate().map_err(|e| BandwidthError::Config(format!("the far view: {e}")))?;
+    }
+    let Some(explicit) = cfg.scenarios.iter().find(|s| s.mode != PayloadMode::Procedural) else { return Ok(()) };
+    if cfg.external.is_some() {
         return Err(BandwidthError::Config(
             "an external server serves its own payload: only procedural scenarios can run against it".into(),
         ));
     }
+    let why = if cfg.flying() {
+        format!("a flight is procedural only (over `{}`)", world.name)
+    } else if !world.is_materialised() {
+        format!("`{}` is never materialised (its cells are expanded on demand)", world.name)
+    } else {
+        return Ok(());
+    };
+    Err(BandwidthError::ProceduralOnly { mode: explicit.mode.label(), why })
+}
+
+/// Where the in-process server's cells come from.
+enum Cells {
+    /// Every cell up front, shared by the scenarios (a world materialised at load).
+    Grid(Arc<dyn WorldStore>),
+    /// Cells expanded on demand, as `canopy-server` serves any world: a cold cache per scenario.
+    Cache(Arc<World>),
+}
+
+impl Cells {
+    fn store(&self, batch_records: usize) -> Result<Arc<dyn WorldStore>, BandwidthError> {
+        match self {
+            Cells::Grid(store) => Ok(Arc::clone(store)),
+            Cells::Cache(world) => {
+                let cfg = CellCacheConfig { batch_records, ..CellCacheConfig::default() };
+                let cache = CellCache::new((**world).clone(), cfg).map_err(|e| BandwidthError::Store(e.to_string()))?;
+                Ok(cache.shared())
+            }
+        }
+    }
+}
+
+/// Run every scenario of `cfg` on `world` (the in-process server's world and the ground truth; with an external
+/// server it must be the world that server serves), write the report, and return what was measured.
+///
+/// A world materialised at load is served from a [`GridStore`] shared by the scenarios; any other through a
+/// [`CellCache`], cold in each scenario (a flight's cells are expanded as it asks for them, as by
+/// `canopy-server`). Visible completeness is computed after each scenario's bots are done and its server is shut
+/// down, from what each bot held at each sample, so that expanding the ground truth's cells neither delays the
+/// bots nor takes CPU from the server.
+pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, BandwidthError> {
+    check(cfg, &world)?;
     let started = Instant::now();
-    let truth = Arc::new(GroundTruth::new(Arc::clone(&world)));
+    let truth = Arc::new(if world.is_materialised() {
+        GroundTruth::new(Arc::clone(&world))
+    } else {
+        GroundTruth::from_function(Arc::clone(&world), cfg.truth_cells)
+    });
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     // The server and the bots run on separate runtimes, so that a server encoding meshes (baseline 1) does not
     // delay the bots' clocks, samples and acknowledgements.
     let server_rt =
         tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-server").enable_all().build()?;
     let bots_rt =
         tokio::runtime::Builder::new_multi_thread().worker_threads(2).thread_name("bw-bots").enable_all().build()?;
-    let store: Option<Arc<dyn WorldStore>> = match &cfg.external {
-        Some(_) => None,
-        None => Some(GridStore::from_world(&world).map_err(|e| BandwidthError::Store(e.to_string()))?.shared()),
+    let cells = match (&cfg.external, world.is_materialised()) {
+        (Some(_), _) => None,
+        (None, true) => {
+            Some(Cells::Grid(GridStore::from_world(&world).map_err(|e| BandwidthError::Store(e.to_string()))?.shared()))
+        }
+        (None, false) => Some(Cells::Cache(Arc::clone(&world))),
     };
     let source = Arc::new(MeshSource::new(Arc::clone(&world), cfg.cache_bytes));
     let bar = if cfg.progress {
@@ -675,17 +564,18 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         bar.set_position(0);
         let t = Instant::now();
         let before = source.stats();
-        let (server, addr, trust) = match (&cfg.external, &store) {
+        let (server, addr, trust) = match (&cfg.external, &cells) {
             (Some(e), _) => (None, e.server, e.trust.clone()),
-            (None, Some(store)) => {
+            (None, Some(cells)) => {
                 let mut session = SessionConfig::default();
                 if let (Some(rate), true) = (scenario.link.rate, cfg.pace > 0.0) {
                     session.bandwidth = Some(((rate as f64 / 8.0) * cfg.pace).max(1.0) as u64);
                 }
                 session.payload = Payload::new(scenario.mode, Arc::clone(&source) as Arc<dyn GeometrySource>);
+                let store = cells.store(session.batch_records)?;
                 let server_cfg =
                     ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), session, ..ServerConfig::default() };
-                let server = server_rt.block_on(Server::start(Arc::clone(store), server_cfg))?;
+                let server = server_rt.block_on(Server::start(store, server_cfg))?;
                 let trust = Trust::pinned(server.fingerprint())
                     .ok_or_else(|| BandwidthError::Config("the server's fingerprint is not pinnable".into()))?;
                 let addr = server.local_addr();
@@ -693,7 +583,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
             }
             (None, None) => unreachable!("an in-process run has a store"),
         };
-        let bots = bots_rt.block_on(run_scenario(cfg, scenario, addr, trust, Arc::clone(&truth), &bar));
+        let bots = bots_rt.block_on(bot::run_scenario(cfg, scenario, addr, trust, Arc::clone(&truth), &bar));
         let server_bytes = server.as_ref().map(|s| {
             let m = s.metrics();
             m.bytes.map(|b| b.load(Relaxed))
@@ -701,7 +591,15 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         if let Some(s) = server {
             server_rt.block_on(s.shutdown(Duration::from_secs(1)));
         }
-        let bots = bots?;
+        let wall = t.elapsed().as_secs_f64();
+        bar.set_message(format!("{}: visible completeness against the world", scenario.name));
+        let bots: Vec<BotResult> = bots?
+            .into_iter()
+            .map(|(mut bot, held)| {
+                truth::evaluate(&truth, &mut bot.samples, &held, bot.view, threads);
+                bot
+            })
+            .collect();
         let after = source.stats();
         let source_stats = (scenario.mode != PayloadMode::Procedural && cfg.external.is_none()).then(|| SourceStats {
             instance_meshes: after.instance_meshes - before.instance_meshes,
@@ -710,13 +608,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
             hits: after.hits - before.hits,
             encode_seconds: after.encode_seconds - before.encode_seconds,
         });
-        let result = ScenarioResult {
-            scenario: scenario.clone(),
-            bots,
-            wall: t.elapsed().as_secs_f64(),
-            source: source_stats,
-            server_bytes,
-        };
+        let result = ScenarioResult { scenario: scenario.clone(), bots, wall, source: source_stats, server_bytes };
         if !bar.is_hidden() {
             bar.println(report::scenario_line(&result));
         } else {
@@ -726,12 +618,25 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
     }
     bar.finish_and_clear();
     let sizes = if cfg.size_seeds > 0 { sizes::table(&world, cfg.size_seeds) } else { Vec::new() };
-    let mesh_sample = (cfg.mesh_sample > 0).then(|| MeshSample::take(&world, &source, cfg.mesh_sample));
+    let mesh_sample =
+        (cfg.mesh_sample > 0 && world.is_materialised()).then(|| MeshSample::take(&world, &source, cfg.mesh_sample));
+    // Baseline 2's species meshes, for the comparison (which needs an explicit scenario beside procedural).
+    let explicit = cfg.scenarios.iter().any(|s| s.mode != PayloadMode::Procedural);
     let species_meshes = match cfg.external {
         Some(_) => Vec::new(),
+        None if !explicit => Vec::new(),
         None => (0..world.species.len().min(256)).map(|i| source.species_mesh(i as u8).len() as u64).collect(),
     };
-    let mut outcome = Outcome { scenarios: results, sizes, mesh_sample, species_meshes, files: Vec::new(), wall: 0.0 };
+    let mut outcome = Outcome {
+        world: world.name.clone(),
+        scenarios: results,
+        sizes,
+        mesh_sample,
+        species_meshes,
+        truth: truth.stats(),
+        files: Vec::new(),
+        wall: 0.0,
+    };
     outcome.wall = started.elapsed().as_secs_f64();
     outcome.files = report::write(cfg, &outcome)?;
     Ok(outcome)

@@ -1,11 +1,13 @@
-//! The report of a bandwidth run: `report.md` (settings, a table per scenario, the procedural-vs-explicit
-//! comparison, seed 001 §7's size table, method notes), `scenarios.csv` (per bot and per scenario),
-//! `samples.csv` (every sample), `sizes.csv`, and hand-written SVG line plots: bytes over time and visible
-//! completeness over time per scenario, and cumulative bytes of all scenarios on a log scale.
+//! The report of a bandwidth run: `report.md` (settings, a table per scenario, far-view summaries beside records,
+//! the procedural-vs-explicit comparison, seed 001 §7's size table, method notes), `scenarios.csv` (per bot and per
+//! scenario), `samples.csv` (every sample), `sizes.csv`, and hand-written SVG line plots: bytes over time (with
+//! records and summaries when a far view was asked for) and visible completeness over time per scenario, and
+//! cumulative bytes of all scenarios on a log scale.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use canopy_protocol::summary::FarView;
 use canopy_server::session::PayloadMode;
 
 use super::measure::{Bytes, fraction};
@@ -25,11 +27,20 @@ fn pct(v: f64) -> String {
 pub fn scenario_line(r: &ScenarioResult) -> String {
     let b = r.bytes();
     format!(
-        "{:<22} {:>9} on the wire, {:>6} records, {:>8}/instance, visible completeness walking {} overall {}, first complete {}, after teleport {}{}",
+        "{:<22} {:>9} on the wire, {:>6} records, {:>8}/instance{}, visible completeness walking {} overall {}, first complete {}, after teleport {}{}",
         r.scenario.name,
         human(b.total() as f64),
         r.records(),
         r.bytes_per_instance().map_or("-".into(), human),
+        if b.summaries > 0 {
+            format!(
+                ", far view {} of summaries beside {} of records",
+                human(b.summaries as f64),
+                human(b.records as f64)
+            )
+        } else {
+            String::new()
+        },
         if r.walking().samples == 0 { "n/a".into() } else { pct(r.walking().mean()) },
         pct(r.overall().mean()),
         secs(r.first_complete()),
@@ -133,19 +144,114 @@ pub fn projections(o: &Outcome, [p, u, i]: [&ScenarioResult; 3]) -> [Option<Proj
     [procedural, unique, instanced]
 }
 
+/// The area-of-interest radius the bots asked for: a flight's from the server's rules (the first bot that
+/// connected says), a walker's as configured.
+fn radius_asked(cfg: &BandwidthConfig, o: &Outcome) -> f32 {
+    o.scenarios.iter().flat_map(|r| &r.bots).map(|b| b.radius).find(|&r| r > 0.0).unwrap_or(cfg.radius)
+}
+
+fn far_view(f: &FarView) -> String {
+    format!(
+        "far view {} px on a {}-pixel, {:.0}° view out to {} m",
+        f.error_px,
+        f.height_px,
+        f.fov_y.to_degrees(),
+        group(f.range as u64)
+    )
+}
+
+/// The far view's bytes beside the records', per bot, for the scenarios that received summaries (or all, when
+/// the bots asked for a far view).
+fn far_section(s: &mut String, cfg: &BandwidthConfig, o: &Outcome) {
+    let far: Vec<&ScenarioResult> =
+        o.scenarios.iter().filter(|r| cfg.far.is_some() || r.bytes().summaries > 0).collect();
+    if far.is_empty() {
+        return;
+    }
+    let radius = radius_asked(cfg, o);
+    let _ = writeln!(s, "\n## The far view: summaries beside records\n");
+    let _ = writeln!(
+        s,
+        "{} the bots asked for the far view{} — summary nodes of the world beyond their records — beside the instance records of their area of interest ({radius} m). Per bot, on the wire's frames: far-view summaries against records; visible completeness is of the records within {} m of the bot ({}).\n",
+        if cfg.flying() { "Flying," } else { "Walking," },
+        cfg.far.map_or(String::new(), |f| format!(" ({})", far_view(&f))),
+        cfg.view.unwrap_or(radius),
+        if cfg.flying() {
+            "flying: the samples taken in flight once the area of interest had filled; overall: every sample before the stop"
+        } else {
+            "walking and overall as above"
+        }
+    );
+    let _ = writeln!(
+        s,
+        "| scenario | link | summary nodes per bot | summaries per bot | records per bot | summaries : records | species per bot | control per bot | transport per bot | {} completeness (samples) | overall (samples) |",
+        if cfg.flying() { "flying" } else { "walking" }
+    );
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for r in far {
+        let (b, n) = (r.bytes(), r.bots.len().max(1) as f64);
+        let per = |v: u64| human(v as f64 / n);
+        let (w, all) = (r.walking(), r.overall());
+        let nodes = r.bots.iter().map(|b| b.bot.summaries).sum::<u64>() as f64 / n;
+        let _ = writeln!(
+            s,
+            "| {} | {} | {nodes:.0} | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) |",
+            r.scenario.name,
+            r.scenario.link.label(),
+            per(b.summaries),
+            per(b.records),
+            if b.records > 0 { format!("{:.2}", b.summaries as f64 / b.records as f64) } else { "-".into() },
+            per(b.species),
+            per(b.control),
+            per(b.overhead),
+            if w.samples == 0 { "n/a".into() } else { pct(w.mean()) },
+            w.samples,
+            pct(all.mean()),
+            all.samples
+        );
+    }
+    if o.truth.expanded > 0 {
+        let t = &o.truth;
+        let _ = writeln!(
+            s,
+            "\nThe ground truth of `{}` (never materialised) came from its function cell by cell: {} cells expanded ({:.1} s of expansion after the bots were done), {} look-ups found in its memo.",
+            o.world,
+            group(t.expanded),
+            t.seconds,
+            group(t.hits)
+        );
+    }
+}
+
 fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# Bandwidth: procedural streaming against explicit geometry\n");
     let _ = writeln!(s, "Command: `{}`  ", cfg.command);
+    let radius = radius_asked(cfg, o);
+    let path = if cfg.flying() {
+        format!(
+            "{} s flight at {} m/s, {} m above the terrain{}, over `{}`; area of interest {radius} m (the flight radius of that altitude and speed, capped by the server)",
+            cfg.duration.as_secs_f64(),
+            cfg.speed,
+            cfg.altitude,
+            if cfg.teleport { ", with a teleport half-way" } else { "" },
+            o.world,
+        )
+    } else {
+        format!(
+            "{} s straight walk at {} m/s{} on `{}`; area of interest {radius} m",
+            cfg.duration.as_secs_f64(),
+            cfg.speed,
+            if cfg.teleport { " with a teleport half-way" } else { "" },
+            o.world,
+        )
+    };
+    let far = cfg.far.map_or(String::new(), |f| format!(", {}", far_view(&f)));
     let _ = writeln!(
         s,
-        "{} bots per scenario, {} s straight walk at {} m/s{}, area of interest {} m, view distance {} m, samples every {} ms, settle ≤ {} s; server pacing {}. Wall time {:.0} s.\n",
+        "{} bots per scenario, {path}{far}, view distance {} m, samples every {} ms, settle ≤ {} s; server pacing {}. Wall time {:.0} s.\n",
         cfg.bots,
-        cfg.duration.as_secs_f64(),
-        cfg.speed,
-        if cfg.teleport { " with a teleport half-way" } else { "" },
-        cfg.radius,
-        cfg.view,
+        cfg.view.unwrap_or(radius),
         cfg.sample.as_millis(),
         cfg.settle.as_secs_f64(),
         match (&cfg.external, cfg.pace > 0.0) {
@@ -158,15 +264,15 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
     let _ = writeln!(s, "## Scenarios\n");
     let _ = writeln!(
         s,
-        "| scenario | payload | link | wire bytes | species | records | geometry | control | transport | instances | bytes/instance | walking completeness (min; samples) | overall | first complete | after teleport | complete at end |"
+        "| scenario | payload | link | wire bytes | species | records | geometry | summaries | control | transport | instances | bytes/instance | walking completeness (min; samples) | overall | first complete | after teleport | complete at end |"
     );
-    let _ = writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in &o.scenarios {
         let b = r.bytes();
         let w = r.walking();
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} ({}; {}/{}) | {} | {} | {} | {}/{} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} ({}; {}/{}) | {} | {} | {} | {}/{} |",
             r.scenario.name,
             r.scenario.mode.label(),
             r.scenario.link.label(),
@@ -174,6 +280,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             group(b.species),
             group(b.records),
             group(b.geometry),
+            group(b.summaries),
             group(b.control),
             group(b.overhead),
             group(r.records()),
@@ -249,6 +356,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             st.hits
         );
     }
+    far_section(&mut s, cfg, o);
     let _ = writeln!(s, "\n## Procedural against explicit geometry\n");
     let cmp = comparisons(o);
     if cmp.is_empty() {
@@ -373,7 +481,8 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         "- Same server session core for every payload: the area of interest, priority order (nearest first, in view first), lanes, window and token bucket decide what goes next; only what is sent per instance and species differs. Unique meshes go one instance per unit (mesh chunks, then its record); instanced sends each species' mesh where procedural sends its program, and each batch's transforms before the batch.\n\
          - Bytes are the client's QUIC connection statistics (UDP payloads, both directions). Classes are frame bytes by message; transport overhead is the rest (QUIC headers, acknowledgements, handshake, retransmissions), so the classes add up to the wire.\n\
          - Links are a UDP relay per bot: random loss, a rate-limited bottleneck (IP/UDP headers counted) with a drop-tail queue of 250 ms, then the one-way latency, in each direction.\n\
-         - Visible completeness: of the world's instances within the view distance of the bot's position (ground truth from the world itself), the fraction the client holds. Walking completeness excludes the initial fill and the refill after the teleport (those are the two times to complete).\n\
+         - Visible completeness: of the world's instances within the view distance of the bot's position (ground truth from the world itself: its instances when materialised at load, else its function cell by cell), the fraction the client holds; each sample notes what the client held, and the comparison with the world runs once the scenario's bots are done. Walking completeness excludes the initial fill and the refill after the teleport (those are the two times to complete).\n\
+         - Far view: summary nodes (per species counts, heights and coverage over 2^L × 2^L cells) beyond the records, as much of the horizon as the client's screen-space error asks for; their bytes are the summaries class. A world never materialised is served through the server's cell cache, cold in each scenario.\n\
          - Meshes: full-detail amplification, 8 radial segments, positions quantised to 16 bits in the mesh's bounds, normals and colours to 8 bits, vertex cache and fetch optimised, meshoptimizer vertex and index codecs, then deflate (level 6). Transforms: translation 3 × f32, rotation 4 × snorm16, scale 3 × f32 per instance (EXT_mesh_gpu_instancing), meshoptimizer's vertex codec per stream, then deflate."
     );
     s
@@ -406,11 +515,13 @@ fn csv_scenarios(o: &Outcome) -> String {
         "species",
         "records",
         "geometry",
+        "summaries",
         "control",
         "transport",
         "instance_mesh_bytes",
         "species_mesh_bytes",
         "transform_bytes",
+        "summary_nodes",
         "instances_received",
         "instances_held",
         "bytes_per_instance",
@@ -433,7 +544,7 @@ fn csv_scenarios(o: &Outcome) -> String {
             sc.link.loss.to_string(),
         ];
         let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.3}"));
-        let row = |bot: String, x: &Bytes, geometry: [u64; 3], tail: [String; 10]| {
+        let row = |bot: String, x: &Bytes, geometry: [u64; 3], tail: [String; 11]| {
             let mut row = head.to_vec();
             row.push(bot);
             row.extend(byte_columns(x));
@@ -448,6 +559,7 @@ fn csv_scenarios(o: &Outcome) -> String {
                 x,
                 b.geometry,
                 [
+                    b.bot.summaries.to_string(),
                     b.bot.records.to_string(),
                     b.bot.held.to_string(),
                     if b.bot.records > 0 {
@@ -471,6 +583,7 @@ fn csv_scenarios(o: &Outcome) -> String {
             &r.bytes(),
             [g(0), g(1), g(2)],
             [
+                r.bots.iter().map(|b| b.bot.summaries).sum::<u64>().to_string(),
                 r.records().to_string(),
                 r.bots.iter().map(|b| b.bot.held).sum::<usize>().to_string(),
                 r.bytes_per_instance().map_or(String::new(), |v| format!("{v:.3}")),
@@ -488,8 +601,9 @@ fn csv_scenarios(o: &Outcome) -> String {
 }
 
 /// The byte columns of a scenarios row: `wire_bytes` (UDP both ways), `udp_rx`, `udp_tx`, then by class.
-fn byte_columns(x: &Bytes) -> [String; 8] {
-    [x.total(), x.udp_rx, x.udp_tx, x.species, x.records, x.geometry, x.control, x.overhead].map(|v| v.to_string())
+fn byte_columns(x: &Bytes) -> [String; 9] {
+    [x.total(), x.udp_rx, x.udp_tx, x.species, x.records, x.geometry, x.summaries, x.control, x.overhead]
+        .map(|v| v.to_string())
 }
 
 fn csv_samples(o: &Outcome) -> String {
@@ -504,6 +618,7 @@ fn csv_samples(o: &Outcome) -> String {
         "species",
         "records",
         "geometry",
+        "summaries",
         "control",
         "transport",
         "visible",
@@ -525,6 +640,7 @@ fn csv_samples(o: &Outcome) -> String {
                     x.bytes.species.to_string(),
                     x.bytes.records.to_string(),
                     x.bytes.geometry.to_string(),
+                    x.bytes.summaries.to_string(),
                     x.bytes.control.to_string(),
                     x.bytes.overhead.to_string(),
                     x.visible.to_string(),
@@ -689,7 +805,7 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
     put("sizes.csv", csv_sizes(o))?;
     let mut all = Vec::new();
     for r in &o.scenarios {
-        let bytes: Vec<Series> = r
+        let mut bytes: Vec<Series> = r
             .bots
             .iter()
             .map(|b| Series {
@@ -697,6 +813,17 @@ pub fn write(cfg: &BandwidthConfig, o: &Outcome) -> std::io::Result<Vec<PathBuf>
                 points: b.samples.iter().map(|x| (x.t, x.bytes.total() as f64)).collect(),
             })
             .collect();
+        // With a far view: each bot's records and summaries beside its total.
+        if r.bytes().summaries > 0 {
+            for b in &r.bots {
+                let class = |name: &str, f: fn(&Bytes) -> u64| Series {
+                    name: format!("bot {} {name}", b.bot.id),
+                    points: b.samples.iter().map(|x| (x.t, f(&x.bytes) as f64)).collect(),
+                };
+                bytes.push(class("records", |x| x.records));
+                bytes.push(class("summaries", |x| x.summaries));
+            }
+        }
         let title = format!("{} — {}: bytes on the wire", r.scenario.name, r.scenario.link.label());
         put(
             &format!("bytes-{}.svg", r.scenario.name),
@@ -764,6 +891,7 @@ mod tests {
         // Instanced: two species meshes started, 100 instances with 20 bytes of transforms each.
         let i = Bytes::split(ByKind([500, 0, 500, 0, 502_000, 0, 0, 0]), 500, 504_000, 1_000);
         let o = Outcome {
+            world: "forest".into(),
             scenarios: vec![
                 scenario(PayloadMode::Procedural, p, [0; 3], 1_000, vec![0, 2]),
                 scenario(PayloadMode::UniqueMesh, u, [1_000_000, 0, 0], 0, vec![]),
@@ -772,6 +900,7 @@ mod tests {
             sizes: vec![],
             mesh_sample: Some(MeshSample { count: 4, bytes: 4_000_000, by_species: vec![], seconds: 0.0 }),
             species_meshes: vec![300_000, 200_000, 700_000],
+            truth: Default::default(),
             files: vec![],
             wall: 1.0,
         };
