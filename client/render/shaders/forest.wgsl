@@ -9,18 +9,7 @@
 // blends front to back; it stops at the ground. Patches arrive back to front and blend premultiplied, like the far
 // instances they are drawn before.
 
-// Uses VolumeInfo, `atlas` and `volumes` from volume.wgsl's bindings (declared again here).
-struct VolumeInfo {
-    atlas: vec4<u32>,
-    dims: vec4<u32>,
-    voxel: vec4<f32>,
-    lo: vec4<f32>,
-    hi: vec4<f32>,
-    origin: vec4<f32>,
-};
-
-@group(1) @binding(0) var atlas: texture_3d<f32>;
-@group(1) @binding(1) var<storage, read> volumes: array<VolumeInfo>;
+// VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
 // Heights at the sub-squares' corners of every drawn node, 9 × 9 per node, x first.
 @group(2) @binding(0) var<storage, read> heights: array<f32>;
 

@@ -2,25 +2,7 @@
 // front to back through a 3D texture atlas of baked voxels (rgb: lit colour, a: opacity α = 1 − (1 − µ)^k), with
 // the CPU reference renderer's sampling: steps of the smallest voxel side from the entry into the voxels' box,
 // sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit at 99.5 % opacity. Instances arrive sorted back
-// to front and blend premultiplied.
-
-struct VolumeInfo {
-    // xyz: the volume's first texel in the atlas.
-    atlas: vec4<u32>,
-    // xyz: voxels per axis.
-    dims: vec4<u32>,
-    // xyz: voxel edge lengths in box units; w: the step Δs (the smallest edge).
-    voxel: vec4<f32>,
-    // xyz: lower corner of the non-empty voxels' box; w: metres per box unit.
-    lo: vec4<f32>,
-    // xyz: upper corner.
-    hi: vec4<f32>,
-    // xyz: the species origin in box units.
-    origin: vec4<f32>,
-};
-
-@group(1) @binding(0) var atlas: texture_3d<f32>;
-@group(1) @binding(1) var<storage, read> volumes: array<VolumeInfo>;
+// to front and blend premultiplied. VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
 
 struct VolumeOut {
     @builtin(position) clip: vec4<f32>,

@@ -18,6 +18,8 @@ pub const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
 pub const SPHERE_RINGS: [u32; 4] = [6, 4, 2, 2];
 
 const COMMON: &str = include_str!("../shaders/common.wgsl");
+/// The far-field volumes' infos and atlas bindings, shared by the volume and forest shaders.
+const VOLUME_INFO: &str = include_str!("../shaders/volume_info.wgsl");
 const SEGMENT: &str = include_str!("../shaders/segment.wgsl");
 
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
@@ -353,7 +355,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let volume_mod = module(device, "volumes", &[COMMON, include_str!("../shaders/volume.wgsl")]);
+        let volume_mod = module(device, "volumes", &[COMMON, VOLUME_INFO, include_str!("../shaders/volume.wgsl")]);
         let far_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32, 2 => Float32];
         let volume = pipeline(
             "volumes",
@@ -370,7 +372,7 @@ impl Pipelines {
             &premultiplied,
         );
 
-        let forest_mod = module(device, "forest", &[COMMON, include_str!("../shaders/forest.wgsl")]);
+        let forest_mod = module(device, "forest", &[COMMON, VOLUME_INFO, include_str!("../shaders/forest.wgsl")]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32

@@ -103,16 +103,8 @@ pub struct BandwidthArgs {
     /// View distance for visible completeness, metres (default: the area-of-interest radius asked for).
     #[arg(long)]
     view: Option<f32>,
-    /// The far view's screen-space error threshold, pixels on a 1080-pixel-high, 60° view: summary nodes beyond
-    /// the records. Flights ask for 16 by default, walkers only with this.
-    #[arg(long)]
-    far_error: Option<f32>,
-    /// How far the far view reaches, metres.
-    #[arg(long, default_value_t = 20_000.0)]
-    far_range: f32,
-    /// No far view, even flying.
-    #[arg(long, conflicts_with = "far_error")]
-    no_far: bool,
+    #[command(flatten)]
+    far: super::far::BotFarArgs,
     /// Walk straight on without the teleport half-way (flights never teleport).
     #[arg(long)]
     no_teleport: bool,
@@ -187,7 +179,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     cfg.radius = args.radius;
     // Walkers measure over their radius by default (a flight over the radius the server's rules give it).
     cfg.view = args.view.or((!flying).then_some(args.radius));
-    cfg.far = super::bots::far_view(args.far_error, args.far_range, args.no_far, flying, args.altitude)?;
+    cfg.far = args.far.view(flying, args.altitude)?;
     cfg.teleport = !args.no_teleport && !flying;
     cfg.seed = args.seed.unwrap_or(cfg.seed);
     cfg.sample = Duration::from_millis(args.sample_ms.clamp(10, 60_000));

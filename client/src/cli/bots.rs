@@ -16,7 +16,6 @@ use canopy_client::net::Edges;
 use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, check_ledger};
 use canopy_protocol::aoi::Grid;
-use canopy_protocol::summary::FarView;
 use canopy_server::edits::{EditStore, SqliteEditStore};
 use canopy_server::nats::{NatsConfig, NatsEditStore};
 use canopy_server::store::StoreHead;
@@ -42,17 +41,8 @@ pub struct BotsArgs {
     /// How long they walk, seconds.
     #[arg(long, default_value_t = 20.0)]
     duration: f64,
-    /// Screen-space error of the far view, pixels: summary nodes beyond the records, refined while their error
-    /// projects larger on a 1080-pixel-high, 60° view (Cesium's default is 16). Flights ask for a far view of 16
-    /// by default, walkers only with this.
-    #[arg(long)]
-    far_error: Option<f32>,
-    /// How far the far view reaches, metres.
-    #[arg(long, default_value_t = 20_000.0)]
-    far_range: f32,
-    /// No far view, even flying.
-    #[arg(long, conflicts_with = "far_error")]
-    no_far: bool,
+    #[command(flatten)]
+    far: super::far::BotFarArgs,
     /// The server's UDP address, or the edges of one world, comma-separated (`HOST:PORT,HOST:PORT,…`): bots are
     /// spread over them, and a bot whose edge dies or closes resumes on another (the summary counts reconnects).
     #[arg(long, default_value = "127.0.0.1:4433", value_name = "HOST:PORT[,…]")]
@@ -194,7 +184,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.verify = verify;
     cfg.spread = args.spread;
     cfg.edits = edits;
-    cfg.far = far_view(args.far_error, args.far_range, args.no_far, args.path == PathKind::Flight, args.altitude)?;
+    cfg.far = args.far.view(args.path == PathKind::Flight, args.altitude)?;
     let summary = run_bots(cfg, args.quiet, ledger)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
@@ -271,25 +261,4 @@ pub fn run_bots(
         }
         None => summary,
     })
-}
-
-/// The far view bots ask for: `--far-error` if given, 16 px flying, none walking or with `--no-far`.
-pub fn far_view(
-    error: Option<f32>,
-    range: f32,
-    off: bool,
-    flying: bool,
-    altitude: f32,
-) -> anyhow::Result<Option<FarView>> {
-    let error = match (off, error, flying) {
-        (true, _, _) => return Ok(None),
-        (false, Some(e), _) => e,
-        (false, None, true) => 16.0,
-        (false, None, false) => return Ok(None),
-    };
-    let view =
-        FarView { error_px: error, height_px: 1080, fov_y: 60f32.to_radians(), range, altitude: altitude.max(2.0) };
-    view.validate()
-        .map_err(|e| anyhow::anyhow!("--far-error/--far-range: {e} (error at least 0.5 px, range at most 65,536 m)"))?;
-    Ok(Some(view))
 }

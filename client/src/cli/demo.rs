@@ -184,7 +184,7 @@ fn demo(
         cfg.verify = Some(Arc::clone(&world));
         cfg.stop = bots_stop;
         // Flying bots ask for the far view (summary nodes to the horizon), as `canopy bots` does.
-        cfg.far = super::bots::far_view(None, 20_000.0, false, args.path == PathKind::Flight, args.altitude)?;
+        cfg.far = super::far::BotFarArgs::default().view(args.path == PathKind::Flight, args.altitude)?;
         let forever = args.duration <= 0.0 || windowed;
         let walk = bots::Walk { path: args.path, speed: args.speed, radius: args.radius, altitude: args.altitude, seed: 0 };
         let height = if args.path == PathKind::Flight { format!(", {} m above the terrain", args.altitude) } else { String::new() };

@@ -47,6 +47,44 @@ impl FarArgs {
     }
 }
 
+/// The far view of bots (`canopy bots`, `canopy bandwidth`, `canopy demo`): flights ask for one by default.
+#[derive(Args, Debug, Clone)]
+pub struct BotFarArgs {
+    /// Screen-space error of the far view, pixels: summary nodes beyond the records, refined while their error
+    /// projects larger on a 1080-pixel-high, 60° view (Cesium's default is 16). Flights ask for a far view of 16
+    /// by default, walkers only with this.
+    #[arg(long)]
+    pub far_error: Option<f32>,
+    /// How far the far view reaches, metres.
+    #[arg(long, default_value_t = 20_000.0)]
+    pub far_range: f32,
+    /// No far view, even flying.
+    #[arg(long, conflicts_with = "far_error")]
+    pub no_far: bool,
+}
+
+impl Default for BotFarArgs {
+    fn default() -> Self {
+        BotFarArgs { far_error: None, far_range: 20_000.0, no_far: false }
+    }
+}
+
+impl BotFarArgs {
+    /// The far view bots ask for: `--far-error` if given, 16 px flying, none walking or with `--no-far`.
+    pub fn view(&self, flying: bool, altitude: f32) -> anyhow::Result<Option<FarView>> {
+        let args = FarArgs {
+            far_error: match (self.far_error, flying) {
+                (Some(e), _) => e,
+                (None, true) => 16.0,
+                (None, false) => return Ok(None),
+            },
+            far_range: self.far_range,
+            no_summaries: self.no_far,
+        };
+        args.view(1080, 60.0, altitude)
+    }
+}
+
 /// The root level of a world's summary hierarchy: the coarsest nodes reach 4 km (as a server's).
 pub fn root_level(cell_size: f32) -> u8 {
     canopy_server::summaries::root_level(cell_size)

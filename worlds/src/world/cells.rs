@@ -143,14 +143,15 @@ pub(crate) fn cell_work(world: &World) -> f64 {
         .sum()
 }
 
-/// Height and slope for density ramps: the world's terrain, read through a fractal patch when it has one.
-enum Ground<'a> {
+/// Height and slope for density ramps: the world's terrain, read through a fractal patch when it has one (cell
+/// expansion and the far view's leaves read it alike).
+pub(crate) enum Ground<'a> {
     World(&'a World),
     Patch(Patch),
 }
 
 impl Ground<'_> {
-    fn height_and_slope(&self, x: f64, z: f64) -> (f32, f32) {
+    pub(crate) fn height_and_slope(&self, x: f64, z: f64) -> (f32, f32) {
         match self {
             Ground::World(w) => w.height_and_slope(x as f32, z as f32),
             Ground::Patch(p) => p.height_and_slope(x, z),

@@ -51,7 +51,7 @@ use std::sync::Arc;
 use canopy_protocol::summary::{COVER_SIDE, MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover};
 use canopy_protocol::{CellCoord, Expr, Func, Op};
 
-use super::fractal::Patch;
+use super::cells::Ground;
 use super::{CellKey, ParamValue, Ramp, ScatterRule, World, par};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
@@ -239,21 +239,6 @@ impl Model {
     }
 }
 
-/// Terrain heights and slopes for a block: a fractal patch, or the world's grid.
-enum Heights<'a> {
-    World(&'a World),
-    Patch(Patch),
-}
-
-impl Heights<'_> {
-    fn at(&self, x: f64, z: f64) -> (f32, f32) {
-        match self {
-            Heights::World(w) => w.height_and_slope(x as f32, z as f32),
-            Heights::Patch(p) => p.height_and_slope(x, z),
-        }
-    }
-}
-
 /// Per-species sums over one cell while it is computed.
 #[derive(Clone, Debug)]
 struct Tally {
@@ -316,8 +301,8 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
     let lo = [at(c0.x, 0, 0), at(c0.z, 0, 0)];
     let hi = [at(c1.x, COVER_SIDE - 1, 7), at(c1.z, COVER_SIDE - 1, 7)];
     let heights = match &world.fractal {
-        Some(f) => Heights::Patch(f.patch(lo, hi, f.depth)),
-        None => Heights::World(world),
+        Some(f) => Ground::Patch(f.patch(lo, hi, f.depth)),
+        None => Ground::World(world),
     };
     // Rules that can place nothing in the block are skipped (their densities there are exactly 0).
     let active: Vec<usize> = (0..world.rules.len())
@@ -329,8 +314,8 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                 && f64::from(g.min[1]) <= hi[1]
                 && f64::from(g.max[1]) > lo[1];
             let reachable = match &heights {
-                Heights::Patch(p) => rule.altitude.max_over(p.height_range()) > 0.0,
-                Heights::World(_) => true,
+                Ground::Patch(p) => rule.altitude.max_over(p.height_range()) > 0.0,
+                Ground::World(_) => true,
             };
             meets && reachable && rule.density > 0.0
         })
@@ -359,7 +344,7 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                         }
                         // The keep probability, in f32 exactly as `ScatterRule::density_at`.
                         let p = if m.ramps {
-                            let (h, sl) = *ground.get_or_insert_with(|| heights.at(x, z));
+                            let (h, sl) = *ground.get_or_insert_with(|| heights.height_and_slope(x, z));
                             rule.density * rule.altitude.at(h) * rule.slope.at(sl)
                         } else {
                             rule.density
