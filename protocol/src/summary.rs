@@ -326,6 +326,27 @@ impl Refine {
     }
 }
 
+impl Refine {
+    /// Every node the rule reaches from the roots in range: a node's children (those in range) are reached while
+    /// its error, `error_of(k)`, is known and projects past the threshold. Each node with its error, `None` where it
+    /// is not known (its subtree is then not reached: coarse first). Roots first, then depth first.
+    pub fn reach(&self, mut error_of: impl FnMut(NodeKey) -> Option<f32>) -> Vec<(NodeKey, Option<f32>)> {
+        let mut out = Vec::new();
+        let mut stack = self.roots(false);
+        stack.reverse();
+        while let Some(k) = stack.pop() {
+            let error = error_of(k);
+            out.push((k, error));
+            if let Some(e) = error
+                && self.refines(k, e, false)
+            {
+                stack.extend(k.children().into_iter().flatten().filter(|c| self.in_range(*c, false)));
+            }
+        }
+        out
+    }
+}
+
 /// Why a summary message is not acceptable.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum SummaryError {

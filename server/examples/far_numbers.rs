@@ -88,20 +88,15 @@ fn completeness(
         root_level: cache.summary_root_level(),
         record_radius,
     };
+    let reached = r.reach(|k| match cache.summary(k, None) {
+        SummaryState::Ready(n) => Some(n.node.error),
+        _ => None,
+    });
+    let known = reached.iter().filter(|(k, _)| !matches!(cache.summary(*k, None), SummaryState::Unavailable));
     let (mut wanted, mut have) = (0, 0);
-    let mut stack = r.roots(false);
-    while let Some(k) = stack.pop() {
-        let state = cache.summary(k, None);
-        if matches!(state, SummaryState::Unavailable) {
-            continue;
-        }
+    for (k, _) in known {
         wanted += 1;
-        have += usize::from(held.contains(&k));
-        if let SummaryState::Ready(n) = state
-            && r.refines(k, n.node.error, false)
-        {
-            stack.extend(k.children().into_iter().flatten().filter(|c| r.in_range(*c, false)));
-        }
+        have += usize::from(held.contains(k));
     }
     (wanted, have)
 }

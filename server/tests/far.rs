@@ -111,18 +111,8 @@ fn wanted(cache: &CellCache, at: [f32; 2]) -> BTreeSet<NodeKey> {
         SummaryState::Ready(n) => Some(n.node.error),
         _ => None,
     };
-    let mut out = BTreeSet::new();
-    let mut stack = r.roots(false);
-    while let Some(k) = stack.pop() {
-        let Some(e) = error(k) else { continue };
-        if r.selects(k, false, error) {
-            out.insert(k);
-        }
-        if r.refines(k, e, false) {
-            stack.extend(k.children().into_iter().flatten());
-        }
-    }
-    out
+    // Nodes reached with a known error that the rule selects (a root or a refined parent, in range).
+    r.reach(error).into_iter().filter(|(k, e)| e.is_some() && r.selects(*k, false, error)).map(|(k, _)| k).collect()
 }
 
 #[test]

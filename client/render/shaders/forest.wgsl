@@ -45,17 +45,9 @@ fn vs_forest(
     @location(7) keep: f32,
     @location(8) mask: f32,
 ) -> PatchOut {
-    let corners = array<vec3<f32>, 36>(
-        vec3(0., 0., 1.), vec3(1., 0., 1.), vec3(1., 1., 1.), vec3(0., 0., 1.), vec3(1., 1., 1.), vec3(0., 1., 1.),
-        vec3(1., 0., 0.), vec3(0., 0., 0.), vec3(0., 1., 0.), vec3(1., 0., 0.), vec3(0., 1., 0.), vec3(1., 1., 0.),
-        vec3(1., 0., 1.), vec3(1., 0., 0.), vec3(1., 1., 0.), vec3(1., 0., 1.), vec3(1., 1., 0.), vec3(1., 1., 1.),
-        vec3(0., 0., 0.), vec3(0., 0., 1.), vec3(0., 1., 1.), vec3(0., 0., 0.), vec3(0., 1., 1.), vec3(0., 1., 0.),
-        vec3(0., 1., 1.), vec3(1., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 0.),
-        vec3(0., 0., 0.), vec3(1., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 1.),
-    );
     let lo = vec3<f32>(rect.x, span.x, rect.y);
     let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
-    let world = lo + size * corners[vi];
+    let world = lo + size * unit_cube(vi);
     let to = world - g.eye.xyz;
     let d = max(length(to), 1e-3);
     let pull = min(PULL_METRES + PULL_FRACTION * d, 0.5 * d) / d;

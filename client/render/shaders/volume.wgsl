@@ -19,17 +19,8 @@ fn vs_volume(
     @location(1) volume: u32,
     @location(2) mask: f32,
 ) -> VolumeOut {
-    // A unit cube's 12 triangles, counter-clockwise seen from outside.
-    let corners = array<vec3<f32>, 36>(
-        vec3(0., 0., 1.), vec3(1., 0., 1.), vec3(1., 1., 1.), vec3(0., 0., 1.), vec3(1., 1., 1.), vec3(0., 1., 1.),
-        vec3(1., 0., 0.), vec3(0., 0., 0.), vec3(0., 1., 0.), vec3(1., 0., 0.), vec3(0., 1., 0.), vec3(1., 1., 0.),
-        vec3(1., 0., 1.), vec3(1., 0., 0.), vec3(1., 1., 0.), vec3(1., 0., 1.), vec3(1., 1., 0.), vec3(1., 1., 1.),
-        vec3(0., 0., 0.), vec3(0., 0., 1.), vec3(0., 1., 1.), vec3(0., 0., 0.), vec3(0., 1., 1.), vec3(0., 1., 0.),
-        vec3(0., 1., 1.), vec3(1., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 0.),
-        vec3(0., 0., 0.), vec3(1., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 1.),
-    );
     let info = volumes[volume];
-    let b = mix(info.lo.xyz, info.hi.xyz, corners[vi]);
+    let b = mix(info.lo.xyz, info.hi.xyz, unit_cube(vi));
     let k = pos_scale.w * info.lo.w;
     let world = pos_scale.xyz + k * (b - info.origin.xyz);
     var out: VolumeOut;

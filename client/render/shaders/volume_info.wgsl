@@ -18,3 +18,17 @@ struct VolumeInfo {
 
 @group(1) @binding(0) var atlas: texture_3d<f32>;
 @group(1) @binding(1) var<storage, read> volumes: array<VolumeInfo>;
+
+// Corner `vi` (0..36) of a unit cube's 12 triangles, counter-clockwise seen from outside: the proxy boxes of far
+// instances and forest patches.
+fn unit_cube(vi: u32) -> vec3<f32> {
+    let corners = array<vec3<f32>, 36>(
+        vec3(0., 0., 1.), vec3(1., 0., 1.), vec3(1., 1., 1.), vec3(0., 0., 1.), vec3(1., 1., 1.), vec3(0., 1., 1.),
+        vec3(1., 0., 0.), vec3(0., 0., 0.), vec3(0., 1., 0.), vec3(1., 0., 0.), vec3(0., 1., 0.), vec3(1., 1., 0.),
+        vec3(1., 0., 1.), vec3(1., 0., 0.), vec3(1., 1., 0.), vec3(1., 0., 1.), vec3(1., 1., 0.), vec3(1., 1., 1.),
+        vec3(0., 0., 0.), vec3(0., 0., 1.), vec3(0., 1., 1.), vec3(0., 0., 0.), vec3(0., 1., 1.), vec3(0., 1., 0.),
+        vec3(0., 1., 1.), vec3(1., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 1.), vec3(1., 1., 0.), vec3(0., 1., 0.),
+        vec3(0., 0., 0.), vec3(1., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 0.), vec3(1., 0., 1.), vec3(0., 0., 1.),
+    );
+    return corners[vi];
+}

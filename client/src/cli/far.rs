@@ -108,16 +108,15 @@ pub fn wanted_nodes(
         record_radius,
     };
     let mut out = Vec::new();
-    let mut stack: Vec<NodeKey> = refine.roots(false).into_iter().filter(|k| overlaps(&world, *k)).collect();
-    while let Some(k) = stack.pop() {
+    refine.reach(|k| {
+        if !overlaps(&world, k) {
+            return None;
+        }
         let node = summaries.get(k);
-        if refine.in_range(k, false) {
-            out.push(Arc::clone(&node));
-        }
-        if refine.refines(k, node.error, false) {
-            stack.extend(k.children().into_iter().flatten().filter(|c| refine.in_range(*c, false)));
-        }
-    }
+        let error = node.error;
+        out.push(node);
+        Some(error)
+    });
     out.sort_by_key(|n| n.key);
     out
 }
