@@ -8,10 +8,18 @@
 // density class is below the patch's density times the coverage interpolated between sub-square centres, and
 // blends front to back; it stops at the ground. Patches arrive back to front and blend premultiplied, like the far
 // instances they are drawn before.
+//
+// Where a pixel is wider than the trees' spacing (most of a view from altitude) the tile's voxels would only
+// alias: there the ray crosses the species' profile instead — the stand as a horizontally uniform layer whose
+// extinction and colour vary with height (`CanopyProfile` in `src/tile.rs`) — a few samples per sub-square from a
+// small table rather than a march through the 3D tile. The two meet in a dithered band of footprints.
 
 // VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
 // Heights at the sub-squares' corners of every drawn node, 9 × 9 per node, x first.
 @group(2) @binding(0) var<storage, read> heights: array<f32>;
+// Every resident tile's profile: per height band (16, bottom first) the extinction per metre with 1..8 classes
+// kept (two vec4s) and the colour (one vec4).
+@group(2) @binding(1) var<storage, read> profiles: array<vec4<f32>>;
 
 // Most samples one ray takes.
 const MAX_SAMPLES: i32 = 640;
@@ -20,6 +28,9 @@ const MAX_SAMPLES: i32 = 640;
 const PULL_METRES: f32 = 25.0;
 const PULL_FRACTION: f32 = 0.02;
 const CLASSES: f32 = 8.0;
+const BANDS: f32 = 16.0;
+// Samples of the layer per sub-square the ray crosses it in.
+const LAYER_SAMPLES: i32 = 4;
 
 struct PatchOut {
     @builtin(position) clip: vec4<f32>,
@@ -30,6 +41,8 @@ struct PatchOut {
     @location(4) @interpolate(flat) field: vec2<u32>,
     @location(5) @interpolate(flat) ids: vec2<u32>,
     @location(6) @interpolate(flat) params: vec3<f32>,
+    @location(7) @interpolate(flat) profile: u32,
+    @location(8) @interpolate(flat) layer_from: f32,
 };
 
 @vertex
@@ -44,6 +57,8 @@ fn vs_forest(
     @location(6) scale: f32,
     @location(7) keep: f32,
     @location(8) mask: f32,
+    @location(9) profile: u32,
+    @location(10) layer_from: f32,
 ) -> PatchOut {
     let lo = vec3<f32>(rect.x, span.x, rect.y);
     let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
@@ -60,6 +75,8 @@ fn vs_forest(
     out.field = field;
     out.ids = vec2<u32>(ground, volume);
     out.params = vec3<f32>(scale, keep, mask);
+    out.profile = profile;
+    out.layer_from = layer_from;
     return out;
 }
 
@@ -114,6 +131,22 @@ fn coverage(m: vec2<u32>, u: f32, v: f32) -> f32 {
         select(0.0, 1.0, bit(m, i1, j1)),
     );
     return mix(mix(b.x, b.y, f.x), mix(b.z, b.w, f.x), f.y);
+}
+
+// The layer's extinction per metre (tile scale 1) at band position `b` (in bands from the ground) with `m` of
+// the classes kept (fractional: the extinctions between whole classes are interpolated).
+fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
+    let k = clamp(m, 0.0, CLASSES);
+    let n = min(u32(k), 7u);
+    let f = k - f32(n);
+    let bi = u32(clamp(b, 0.0, BANDS - 1.0));
+    let lo = base + 3u * bi;
+    let upper = profiles[lo + n / 4u][n % 4u];
+    var lower = 0.0;
+    if n > 0u {
+        lower = profiles[lo + (n - 1u) / 4u][(n - 1u) % 4u];
+    }
+    return mix(lower, upper, f);
 }
 
 @fragment
@@ -178,6 +211,10 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
     var t_in = t0;
     var grounded = false;
     let offset = jitter(in.clip.xy);
+    // The layer beyond the patch's distance (where a pixel spans `RenderConfig::forest_layer` tree spacings),
+    // dithered over ±25 %.
+    let layer = t0 > in.layer_from * (0.75 + 0.5 * offset);
+    let band = top / BANDS;
     for (var walked = 0; walked < 17; walked++) {
         let t_out = min(min(next_x, next_z), t1);
         let h = gbase + j * 9 + i;
@@ -190,7 +227,68 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
         if max(ya, yb) < min(min(h00, h10), min(h01, h11)) {
             break;
         }
-        if bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
+        if layer && bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
+            let light = relief(h00, h10, h01, h11, cell);
+            // Height above the ground at the sub-square's entry and exit, and the part of the crossing within
+            // the layer (the ground taken as linear along it), sampled LAYER_SAMPLES times.
+            let pa = o + d * t_in;
+            let pb = o + d * t_out;
+            let ua = clamp(pa.x / cell - f32(i), 0.0, 1.0);
+            let va = clamp(pa.z / cell - f32(j), 0.0, 1.0);
+            let ub = clamp(pb.x / cell - f32(i), 0.0, 1.0);
+            let vb = clamp(pb.z / cell - f32(j), 0.0, 1.0);
+            let wa = ya - mix(mix(h00, h10, ua), mix(h01, h11, ua), va);
+            let wb = yb - mix(mix(h00, h10, ub), mix(h01, h11, ub), vb);
+            var sa = 0.0;
+            var sb = 1.0;
+            let dw = wb - wa;
+            if abs(dw) > 1e-6 {
+                let s_top = (top - wa) / dw;
+                let s_ground = -wa / dw;
+                sa = clamp(min(s_top, s_ground), 0.0, 1.0);
+                sb = clamp(max(s_top, s_ground), 0.0, 1.0);
+            } else if wa < 0.0 || wa > top {
+                sb = 0.0;
+            }
+            let ds = (sb - sa) * (t_out - t_in) / f32(LAYER_SAMPLES);
+            if ds > 0.0 {
+                // Classes kept at the crossing's ends (the coverage field is smooth within a sub-square).
+                let ta = t_in + sa * (t_out - t_in);
+                let tb = t_in + sb * (t_out - t_in);
+                let qa = o + d * ta;
+                let qb = o + d * tb;
+                let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell) - 0.5;
+                let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell) - 0.5;
+                for (var k = 0; k < LAYER_SAMPLES; k++) {
+                    let f = (f32(k) + offset) / f32(LAYER_SAMPLES);
+                    let w = mix(wa, wb, sa + (sb - sa) * f);
+                    let b = clamp(w / band - 0.5, 0.0, BANDS - 1.0);
+                    let b0 = floor(b);
+                    let fb = b - b0;
+                    let m = mix(ma, mb, f);
+                    let sigma = mix(layer_sigma(in.profile, b0, m), layer_sigma(in.profile, b0 + 1.0, m), fb) / scale;
+                    let a = 1.0 - exp(-sigma * ds);
+                    if a <= 0.0 {
+                        continue;
+                    }
+                    let at = in.profile + 3u * u32(b0) + 2u;
+                    let c = mix(profiles[at].rgb, profiles[min(at + 3u, in.profile + 3u * u32(BANDS) - 1u)].rgb, fb);
+                    if first_hit < 0.0 {
+                        first_hit = mix(ta, tb, f);
+                    }
+                    let wgt = (1.0 - alpha) * a;
+                    color += wgt * c * light;
+                    alpha += wgt;
+                    if alpha >= 0.995 {
+                        break;
+                    }
+                }
+            }
+            // The ground is under the layer's lower end when the crossing left it downward.
+            if wb < 0.0 {
+                grounded = true;
+            }
+        } else if !layer && bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
             let light = relief(h00, h10, h01, h11, cell);
             // How fast the ray can close on the canopy's top over this sub-square: its descent plus the steepest the
             // bilinear ground can rise along it. A sample `w - top` above the top is followed by at least

@@ -31,7 +31,7 @@ use super::lod::projected_size;
 use super::scene::SceneFar;
 use super::select::View;
 use super::stats::FrameStats;
-use super::tile::{DENSITY_CLASSES, TILE_MIPS};
+use super::tile::{DENSITY_CLASSES, TILE_MIPS, TILE_TREES};
 
 /// Corners per node edge of a node's ground grid (the sub-squares' corners).
 pub const GROUND_SIDE: usize = COVER_SIDE as usize + 1;
@@ -63,6 +63,8 @@ pub struct TileVol {
     /// The representative's `height` parameter (summaries' heights scale the tile by their mean over it); `None`
     /// for a species without one.
     pub reference: Option<f32>,
+    /// Index of the tile's [`super::tile::CanopyProfile`] in the profiles buffer (its first `vec4`).
+    pub profile: u32,
 }
 
 /// Where a species' canopy tile stands.
@@ -98,8 +100,11 @@ pub struct ForestPatch {
     pub keep: f32,
     /// Dither mask (see [`super::lod::LodDraw::mask`]).
     pub mask: f32,
-    /// Padding.
-    pub pad: u32,
+    /// The tile's profile (its first `vec4` in the profiles buffer): the stand as a uniform layer.
+    pub profile: u32,
+    /// Distance from the eye beyond which a ray takes the profile rather than the tile's voxels, metres (dithered
+    /// over ±25 %; infinite: never).
+    pub layer_from: f32,
 }
 
 /// The sub-squares of quadrant `q` (children order: `(0,0), (1,0), (0,1), (1,1)`).
@@ -224,6 +229,8 @@ pub struct ForestInputs<'a> {
     pub view: View,
     /// Nodes smaller than this on screen, pixels, are not drawn.
     pub cull_px: f32,
+    /// Tree spacings a pixel spans beyond which the canopy is drawn as its uniform layer (0: never).
+    pub layer: f32,
 }
 
 /// The forest plan (see the module docs), kept between frames.
@@ -420,6 +427,9 @@ impl ForestPlan {
                 // The resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the sunlit sides).
                 let level = (VOXEL_PX * near * footprint / (t.voxel * scale)).max(1.0).log2().floor() as usize;
                 let volume = t.mips[level.min(TILE_MIPS - 1)];
+                // Where a pixel spans `layer` tree spacings.
+                let spacing = t.period * scale / TILE_TREES as f32;
+                let layer_from = if input.layer > 0.0 { input.layer * spacing / footprint } else { f32::INFINITY };
                 for (m, mask) in s.fade.parts() {
                     // March the uncovered neighbours too: the stand thins into them.
                     let march = m | (dilate(m) & !s.cover.cover & !e.hidden);
@@ -438,7 +448,8 @@ impl ForestPlan {
                         scale,
                         keep,
                         mask,
-                        pad: 0,
+                        profile: t.profile,
+                        layer_from,
                     };
                     self.unsorted.push((dist, t.top * scale, patch));
                 }
@@ -529,8 +540,15 @@ mod tests {
     }
 
     fn tiles() -> Vec<Option<TileState>> {
-        let t =
-            TileVol { mips: [7, 8, 9, 10], period: 20.0, top: 20.0, voxel: 0.3, density: 0.04, reference: Some(17.0) };
+        let t = TileVol {
+            mips: [7, 8, 9, 10],
+            period: 20.0,
+            top: 20.0,
+            voxel: 0.3,
+            density: 0.04,
+            reference: Some(17.0),
+            profile: 0,
+        };
         vec![Some(TileState::Ready(t)), Some(TileState::Pending)]
     }
 
@@ -567,7 +585,8 @@ mod tests {
 
         fn frame(&mut self, far: &SceneFar, progress: f32) {
             let (ground, tiles) = (flat(), tiles());
-            let input = ForestInputs { far, ground: &ground, tiles: &tiles, view: view(progress), cull_px: 1.0 };
+            let input =
+                ForestInputs { far, ground: &ground, tiles: &tiles, view: view(progress), cull_px: 1.0, layer: 1.0 };
             self.stats = FrameStats::default();
             self.plan.plan(&input, &mut self.stats);
         }

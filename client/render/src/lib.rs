@@ -175,6 +175,9 @@ pub struct RenderConfig {
     pub near_clip: f32,
     /// Lattice squares per edge of the window drawn of a fractal ground ([`ground::FractalWindow`]).
     pub ground_window: u32,
+    /// Tree spacings a pixel spans beyond which a summary patch draws its species' canopy as a uniform layer
+    /// ([`tile::CanopyProfile`]) instead of marching the canopy tile's voxels; 0: march everywhere.
+    pub forest_layer: f32,
 }
 
 impl Default for RenderConfig {
@@ -198,6 +201,7 @@ impl Default for RenderConfig {
             volume_resolution: 64,
             near_clip: 0.25,
             ground_window: ground::WINDOW_SQUARES,
+            forest_layer: 1.0,
         }
     }
 }
@@ -247,6 +251,7 @@ impl RenderConfig {
             ((1..=4096).contains(&self.max_jobs), "job count"),
             ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
             (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
+            ((0.0..=1000.0).contains(&self.forest_layer), "forest layer"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

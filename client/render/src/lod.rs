@@ -9,6 +9,7 @@
 //! progress and the old level where it is not — complementary masks, so no pixel is drawn twice or left empty.
 
 use super::ConfigError;
+use super::volume::COARSER;
 
 /// Distance bands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -60,8 +61,11 @@ pub struct LodConfig {
     pub mid_levels: u8,
     /// Below this size an instance is not drawn.
     pub cull_px: f32,
-    /// Far instances below this size use the halved volume resolution.
+    /// Far instances below this size use the halved volume resolution, below half of it a quarter of the full
+    /// resolution, below a quarter of it an eighth (as `far_resolutions` allows).
     pub low_res_px: f32,
+    /// Resolutions far instances are drawn at (2: full and halved; 4: down to an eighth).
+    pub far_resolutions: u8,
     /// A level changes only when the size leaves its range by this fraction (0.15 = ±15 %).
     pub hysteresis: f32,
     /// Duration of a cross-fade, seconds (0 switches at once).
@@ -76,6 +80,7 @@ impl Default for LodConfig {
             mid_levels: 3,
             cull_px: 1.0,
             low_res_px: 24.0,
+            far_resolutions: 4,
             hysteresis: 0.15,
             fade_seconds: 0.4,
         }
@@ -91,6 +96,7 @@ impl LodConfig {
             (pos(self.far_px) && self.far_px <= self.near_px, "far threshold (at most the near threshold)"),
             (pos(self.cull_px) && self.cull_px <= self.far_px.max(1.0), "cull threshold"),
             (pos(self.low_res_px), "low-resolution threshold"),
+            ((2..=2 + COARSER as u8).contains(&self.far_resolutions), "far resolutions"),
             (self.mid_levels <= 16, "mid-band levels"),
             ((0.0..0.9).contains(&self.hysteresis), "hysteresis"),
             (pos(self.fade_seconds) && self.fade_seconds <= 60.0, "fade time"),

@@ -25,7 +25,7 @@ use super::select::{
     View, VolState,
 };
 use super::terrain::TerrainMesh;
-use super::volume::FarVolume;
+use super::volume::{COARSER, FarVolume};
 use super::workers::{Job, JobResult, Workers};
 
 pub use super::stats::FrameStats;
@@ -465,10 +465,10 @@ impl Renderer {
                                 sources.resize(usize::from(species) + 1, None);
                             }
                             sources[usize::from(species)] = Some(Arc::clone(&source));
-                            let low = self.add_volume(source);
-                            match (full, low) {
-                                (Some((full, center, radius)), Some((low, _, _))) => {
-                                    VolState::Ready(SpeciesVol { full, low, center, radius, height: v.height })
+                            let lower = self.add_lower_volumes(source, v.coarser);
+                            match (full, lower) {
+                                (Some((full, center, radius)), Some((low, coarser))) => {
+                                    VolState::Ready(SpeciesVol { full, low, coarser, center, radius, height: v.height })
                                 }
                                 _ => {
                                     tracing::warn!("species {species}: the far-field atlas is full");
@@ -500,6 +500,39 @@ impl Renderer {
         let origin = self.reserve_slot()?;
         let (c, r) = v.bounding_sphere();
         Some((self.place_volume(v, origin), Vec3::from(c), r))
+    }
+
+    /// Place a species' halved volume and its coarser ones in one atlas slot (each at most half the last's edge:
+    /// side by side along x at 0, ½ and ¾ of the slot); returns their volume indices, the coarsest repeated where
+    /// there are fewer than [`COARSER`].
+    fn add_lower_volumes(&mut self, low: Arc<FarVolume>, coarser: Vec<FarVolume>) -> Option<(u32, [u32; COARSER])> {
+        let e = self.cfg.volume_resolution.next_power_of_two();
+        let fits = |v: &FarVolume, edge: u32| v.dims.iter().all(|&d| d <= edge);
+        if !fits(&low, e / 2) || coarser.len() > COARSER {
+            return None;
+        }
+        let mut at = [0u32; 3];
+        let mut edge = e / 2;
+        let mut out = [0u32; COARSER];
+        let mut places = Vec::with_capacity(1 + coarser.len());
+        places.push((low, at));
+        for v in coarser {
+            at[0] += edge;
+            edge /= 2;
+            if !fits(&v, edge) {
+                return None;
+            }
+            places.push((Arc::new(v), at));
+        }
+        let origin = self.reserve_slot()?;
+        let ids: Vec<u32> = places
+            .into_iter()
+            .map(|(v, o)| self.place_volume(v, [origin[0] + o[0], origin[1] + o[1], origin[2] + o[2]]))
+            .collect();
+        for (k, slot) in out.iter_mut().enumerate() {
+            *slot = ids[(k + 1).min(ids.len() - 1)];
+        }
+        Some((ids[0], out))
     }
 
     /// Take a free atlas slot (growing the atlas if needed); returns its first texel.

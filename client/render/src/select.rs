@@ -17,6 +17,7 @@ use super::lod::{Band, InstanceLod, Level, LodConfig, projected_size};
 use super::scene::{Scene, SceneInstance};
 use super::stats::FrameStats;
 use super::terrain::TerrainMesh;
+use super::volume::COARSER;
 use super::volume::instance_scale;
 use super::workers::TreeKey;
 
@@ -133,6 +134,9 @@ pub struct SpeciesVol {
     pub full: u32,
     /// Volume index at the halved resolution.
     pub low: u32,
+    /// Volume indices at a quarter and an eighth of the full resolution (the coarsest there is repeated where a
+    /// species has fewer).
+    pub coarser: [u32; COARSER],
     /// Bounding sphere centre relative to the species origin, metres at scale 1.
     pub center: Vec3,
     /// Bounding sphere radius, metres at scale 1.
@@ -428,7 +432,12 @@ impl FramePlan {
                         self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
                     }
                     (Level::Far, Some(v)) => {
-                        let volume = if size < lod.low_res_px { v.low } else { v.full };
+                        // About as many voxels as pixels: each halving below `low_res_px`, to the coarsest allowed.
+                        let volume = match (lod.low_res_px / size.max(1e-6)).log2().floor() {
+                            h if h < 0.0 => v.full,
+                            h if h < 1.0 || lod.far_resolutions <= 2 => v.low,
+                            h => v.coarser[((h as usize).min(usize::from(lod.far_resolutions) - 2)) - 1],
+                        };
                         let [x, y, z] = si.position;
                         self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
                     }
@@ -634,7 +643,7 @@ mod tests {
     }
 
     fn ready_volume() -> Vec<Option<VolState>> {
-        let v = SpeciesVol { full: 10, low: 11, center: Vec3::ZERO, radius: R, height: None };
+        let v = SpeciesVol { full: 10, low: 11, coarser: [12, 13], center: Vec3::ZERO, radius: R, height: None };
         vec![Some(VolState::Ready(v))]
     }
 
@@ -648,19 +657,19 @@ mod tests {
         plan: FramePlan,
         state: LodState,
         stats: FrameStats,
+        lod: LodConfig,
     }
 
     impl Frame {
         fn new() -> Frame {
-            Frame { plan: FramePlan::default(), state: LodState::new(&lod()), stats: FrameStats::default() }
+            Frame { plan: FramePlan::default(), state: LodState::new(&lod()), stats: FrameStats::default(), lod: lod() }
         }
 
         fn run(&mut self, scene: &Scene, cache: &GeometryCache, vols: &[Option<VolState>], view: &View, room: usize) {
             self.state.sync(scene.generation, &scene.instances);
             self.stats = FrameStats::default();
             let residency = Residency { cache, volumes: vols };
-            let lod = lod();
-            let input = FrameInputs { scene, residency, lod: &lod, view: *view, terrain: None, job_room: room };
+            let input = FrameInputs { scene, residency, lod: &self.lod, view: *view, terrain: None, job_room: room };
             self.plan.plan(&input, &mut self.state, &mut self.stats);
         }
 
@@ -684,12 +693,32 @@ mod tests {
         assert_eq!((f.stats.in_view, f.stats.near, f.stats.mid, f.stats.far), (6, 1, 3, 2));
         assert_eq!((f.stats.waiting, f.stats.hidden), (0, 0));
         assert!(f.plan.jobs.is_empty(), "everything is resident");
-        // Geometry draws in instance order; the far field back to front, the smallest at the halved resolution.
+        // Geometry draws in instance order; the far field back to front, the smallest (10 px, under half of
+        // `low_res_px`) at a quarter of the full resolution.
         let drawn: Vec<_> = f.plan.geo_draws.iter().map(|g| g.key).collect();
         assert_eq!(drawn, vec![key(0, 0), key(1, 1), key(2, 2), key(3, 3)]);
         assert!(f.plan.geo_draws.iter().all(|g| g.mask == 1.0));
         let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
-        assert_eq!(far, vec![(at_size(10.0)[2], 11), (at_size(30.0)[2], 10)]);
+        assert_eq!(far, vec![(at_size(10.0)[2], 12), (at_size(30.0)[2], 10)]);
+    }
+
+    #[test]
+    fn far_instances_take_a_coarser_volume_at_each_halving_of_their_size() {
+        let sizes = [40.0, 20.0, 10.0, 4.0];
+        let s = scene(sizes.iter().enumerate().map(|(i, &px)| instance(i as u32, i as u64, at_size(px))).collect());
+        let cache = all_resident(0..=3);
+        let volumes = |resolutions: u8| {
+            let mut f = Frame::new();
+            f.lod = LodConfig { far_resolutions: resolutions, ..f.lod };
+            f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
+            let mut v: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            v.into_iter().map(|(_, v)| v).collect::<Vec<_>>()
+        };
+        // Nearest first: full, halved, a quarter, an eighth; with two resolutions, the halved one below 24 px.
+        assert_eq!(volumes(4), [10, 11, 12, 13]);
+        assert_eq!(volumes(3), [10, 11, 12, 12]);
+        assert_eq!(volumes(2), [10, 11, 11, 11]);
     }
 
     #[test]

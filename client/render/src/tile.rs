@@ -29,6 +29,8 @@ pub const CROWN_SPACING: f32 = 0.4;
 pub const TILE_MIPS: usize = 4;
 /// Classes trees are thinned by (three sign bits).
 pub const DENSITY_CLASSES: u32 = 8;
+/// Height bands of a tile's [`CanopyProfile`].
+pub const PROFILE_BANDS: usize = 16;
 /// Smallest colour magnitude written (keeps the sign bit of every texel meaningful).
 const MIN_COLOUR: f32 = 1.0 / 1024.0;
 /// Largest source opacity resampled (an opaque voxel would have an infinite optical depth).
@@ -52,6 +54,61 @@ pub struct CanopyTile {
     pub density: f32,
     /// The resolutions, finest first ([`TILE_MIPS`] of them).
     pub mips: Vec<FarVolume>,
+    /// The stand as a layer of uniform medium, for pixels wider than a tree's spacing.
+    pub profile: CanopyProfile,
+}
+
+/// A canopy tile seen from so far that a pixel covers more than one tree: a horizontally uniform layer whose
+/// extinction and colour vary only with height (the tile's mean per height band), drawn without marching the
+/// tile's voxels. The extinction is given per number of density classes kept, and scaled so that seen from
+/// straight above the layer covers the ground as the tile's trees do (a uniform medium would close the gaps
+/// between crowns); the colours are scaled so that the layer's mean far view is the tile's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CanopyProfile {
+    /// Per band, bottom first: extinction per metre at scale 1 with the first `n + 1` classes kept.
+    pub sigma: [[f32; DENSITY_CLASSES as usize]; PROFILE_BANDS],
+    /// Per band: the colour the layer shows there.
+    pub colour: [[f32; 3]; PROFILE_BANDS],
+}
+
+impl CanopyProfile {
+    /// The profile as the shader reads it: per band, the eight extinctions, then the colour (three `vec4`s).
+    pub fn gpu(&self) -> Vec<[f32; 4]> {
+        let mut out = Vec::with_capacity(3 * PROFILE_BANDS);
+        for b in 0..PROFILE_BANDS {
+            let s = &self.sigma[b];
+            let c = self.colour[b];
+            out.extend([[s[0], s[1], s[2], s[3]], [s[4], s[5], s[6], s[7]], [c[0], c[1], c[2], 0.0]]);
+        }
+        out
+    }
+
+    /// Cover from straight above with the first `classes` classes kept: `1 − e^(−∫σ dh)` over the tile's height
+    /// `top`.
+    pub fn cover_from_above(&self, classes: usize, top: f32) -> f32 {
+        if classes == 0 {
+            return 0.0;
+        }
+        let depth: f32 = self.sigma.iter().map(|s| s[classes - 1]).sum::<f32>() * top / PROFILE_BANDS as f32;
+        1.0 - (-depth).exp()
+    }
+
+    /// The mean colour the layer shows, as [`Grid::mean_view`] looks (straight down and at 30° elevation), with
+    /// every class kept.
+    fn mean_view(&self, top: f32) -> [f32; 3] {
+        let band = top / PROFILE_BANDS as f32;
+        let (mut sum, mut weight) = ([0.0f32; 3], 0.0f32);
+        for sin in [1.0f32, 0.5, 0.5, 0.5, 0.5] {
+            let mut trans = 1.0f32;
+            for b in (0..PROFILE_BANDS).rev() {
+                let a = trans * (1.0 - (-self.sigma[b][DENSITY_CLASSES as usize - 1] * band / sin).exp());
+                (0..3).for_each(|i| sum[i] += a * self.colour[b][i]);
+                weight += a;
+                trans -= a;
+            }
+        }
+        sum.map(|v| v / weight.max(1e-9))
+    }
 }
 
 /// Why a tile could not be made.
@@ -257,6 +314,63 @@ impl Grid {
         sum.map(|v| (v / weight.max(1e-9)) as f32)
     }
 
+    /// The stand as a uniform layer (see [`CanopyProfile`]): per height band, the mean extinction of the voxels
+    /// of each class and below and the colour of what shows from above, calibrated to the grid's cover from above
+    /// per classes kept and to its mean far view `colour`.
+    fn profile(&self, top: f32, colour: [f32; 3]) -> CanopyProfile {
+        const CLASSES: usize = DENSITY_CLASSES as usize;
+        let [dx, dy, dz] = self.dims;
+        let step = self.voxel[0].min(self.voxel[1]);
+        let band_of =
+            |y: u32| (((y as f32 + 0.5) * self.voxel[1] / top * PROFILE_BANDS as f32) as usize).min(PROFILE_BANDS - 1);
+        let mut sigma = [[0.0f32; CLASSES]; PROFILE_BANDS];
+        let (mut rgb, mut weight) = ([[0.0f32; 3]; PROFILE_BANDS], [0.0f32; PROFILE_BANDS]);
+        // Per column and classes kept: the optical depth straight down, for the cover the layer is held to.
+        let mut cover = [0.0f64; CLASSES];
+        for z in 0..dz {
+            for x in 0..dx {
+                let mut column = [0.0f32; CLASSES];
+                for y in 0..dy {
+                    let i = self.index(x, y, z);
+                    let t = self.tau[i];
+                    if t <= 0.0 {
+                        continue;
+                    }
+                    let b = band_of(y);
+                    // Extinction per metre times the voxel's share of its band's volume.
+                    let share = t / step * self.voxel[1] / (top / PROFILE_BANDS as f32) / (dx * dz) as f32;
+                    let class = usize::from(self.class[i]).min(CLASSES - 1);
+                    for n in class..CLASSES {
+                        sigma[b][n] += share;
+                        column[n] += t * self.voxel[1] / step;
+                    }
+                    let w = t * (self.vis[i] + 1e-3);
+                    (0..3).for_each(|c| rgb[b][c] += w * self.rgb[i][c]);
+                    weight[b] += w;
+                }
+                for n in 0..CLASSES {
+                    cover[n] += f64::from(1.0 - (-column[n]).exp());
+                }
+            }
+        }
+        let colours: [[f32; 3]; PROFILE_BANDS] =
+            std::array::from_fn(|b| if weight[b] > 0.0 { rgb[b].map(|c| c / weight[b]) } else { [0.0; 3] });
+        let mut profile = CanopyProfile { sigma, colour: colours };
+        let band = top / PROFILE_BANDS as f32;
+        for n in 0..CLASSES {
+            let target = (cover[n] / f64::from(dx * dz)) as f32;
+            let depth: f32 = profile.sigma.iter().map(|s| s[n]).sum::<f32>() * band;
+            if depth > 0.0 {
+                let want = -(1.0 - target.min(MAX_ALPHA)).ln();
+                profile.sigma.iter_mut().for_each(|s| s[n] *= want / depth);
+            }
+        }
+        let seen = profile.mean_view(top);
+        let gain: [f32; 3] = std::array::from_fn(|i| (colour[i] / seen[i].max(1e-6)).clamp(0.5, 2.0));
+        profile.colour.iter_mut().for_each(|c| *c = std::array::from_fn(|i| c[i] * gain[i]));
+        profile
+    }
+
     /// The baked volume: colour with the class in its sign bits, opacity `1 − e^(−τ)`.
     fn volume(&self) -> FarVolume {
         let mut texels = vec![0u16; 4 * self.tau.len()];
@@ -365,6 +479,7 @@ pub fn bake_tile(v: &FarVolume, resolution: u32) -> Result<CanopyTile, TileError
     let mut mips = vec![grid.volume()];
     let target = grid.cover_from_above(1.0);
     let colour = grid.mean_view();
+    let profile = grid.profile(top, colour);
     for _ in 1..TILE_MIPS {
         grid = grid.halved();
         let mut calibrated = Grid {
@@ -382,7 +497,7 @@ pub fn bake_tile(v: &FarVolume, resolution: u32) -> Result<CanopyTile, TileError
         mips.push(calibrated.volume());
     }
     let density = (TILE_TREES * TILE_TREES) as f32 / (period * period);
-    Ok(CanopyTile { period, top, density, mips })
+    Ok(CanopyTile { period, top, density, mips, profile })
 }
 
 #[cfg(test)]
@@ -460,6 +575,27 @@ mod tests {
         // Coarser resolutions keep the cover seen from above (optical depth is conserved).
         let coarse = cover(&tile.mips[2], DENSITY_CLASSES);
         assert!((coarse - full).abs() < 0.25, "{coarse} against {full}");
+    }
+
+    #[test]
+    fn the_profile_covers_the_ground_as_the_trees_do() {
+        let (_, tile) = conifer_tile(32);
+        let p = &tile.profile;
+        for k in 1..=DENSITY_CLASSES {
+            let (layer, trees) = (p.cover_from_above(k as usize, tile.top), cover(&tile.mips[0], k));
+            assert!((layer - trees).abs() < 0.02, "{k} classes: the layer covers {layer}, the trees {trees}");
+        }
+        // Extinction grows with every class kept, in every band; the crowns' band holds the most.
+        for s in &p.sigma {
+            assert!(s.windows(2).all(|w| w[0] <= w[1]), "{s:?}");
+        }
+        let depth = |b: usize| p.sigma[b][DENSITY_CLASSES as usize - 1];
+        let densest = (0..PROFILE_BANDS).max_by(|&a, &b| depth(a).total_cmp(&depth(b))).unwrap();
+        assert!(depth(densest) > 0.0 && depth(PROFILE_BANDS - 1) < depth(densest), "{:?}", p.sigma);
+        // Colours are the tile's: green above all.
+        let seen = p.mean_view(tile.top);
+        assert!(seen[1] > seen[0] && seen[1] > seen[2] && seen[1] > 0.02, "{seen:?}");
+        assert_eq!(p.gpu().len(), 3 * PROFILE_BANDS);
     }
 
     #[test]

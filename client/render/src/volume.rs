@@ -65,6 +65,10 @@ pub struct SpeciesVolumes {
     pub full: FarVolume,
     /// Halved resolution (voxel fusion, seed 000 §9), for the farthest instances.
     pub low: FarVolume,
+    /// Further halvings of `low` (a quarter and an eighth of the full resolution: [`COARSER`] of them, or fewer
+    /// where a volume is already a few voxels), for instances smaller still on screen: a ray marches about as many
+    /// samples as the instance is pixels tall, not as the full resolution has voxels.
+    pub coarser: Vec<FarVolume>,
     /// The slot of the species' `height` parameter and the representative's value of it: instances scale by their
     /// own value over this one (species without a `height` parameter draw every instance at the representative's
     /// size).
@@ -148,8 +152,11 @@ pub fn voxelise_representative(
     Ok((tree, std::array::from_fn(|i| pad - lo[i])))
 }
 
-/// Bake a hypertree at its resolution (reduced so that no axis exceeds `max_edge` voxels, at most [`MAX_SLOT`])
-/// and at half of it.
+/// Halvings of a species' volume below the halved one.
+pub const COARSER: usize = 2;
+
+/// Bake a hypertree at its resolution (reduced so that no axis exceeds `max_edge` voxels, at most [`MAX_SLOT`]),
+/// at half of it, and at up to [`COARSER`] further halvings.
 pub fn volumes_of(
     tree: &Hypertree,
     origin: [f32; 3],
@@ -171,9 +178,20 @@ pub fn volumes_of(
     let r = full_tree.volume.resolution;
     let half = r.map(|v| v.div_ceil(2).max(1));
     let low_tree = ops::reduce(full_tree, half).map_err(|e| VolumeError::Reduce(e.to_string()))?;
+    let mut coarser = Vec::with_capacity(COARSER);
+    let mut last = low_tree.clone();
+    for _ in 0..COARSER {
+        let r = last.volume.resolution;
+        if r.iter().copied().max().unwrap_or(0) <= 4 {
+            break;
+        }
+        last = ops::reduce(&last, r.map(|v| v.div_ceil(2).max(1))).map_err(|e| VolumeError::Reduce(e.to_string()))?;
+        coarser.push(bake(&last, origin, units, lighting)?);
+    }
     Ok(SpeciesVolumes {
         full: bake(full_tree, origin, units, lighting)?,
         low: bake(&low_tree, origin, units, lighting)?,
+        coarser,
         height: None,
     })
 }
@@ -327,6 +345,9 @@ mod tests {
         assert_eq!(v.full.dims.iter().copied().max(), Some(40));
         assert_eq!(v.low.dims.iter().copied().max(), Some(20));
         assert!(v.full.voxels > 100 && v.low.voxels > 10 && v.low.voxels < v.full.voxels);
+        let edges: Vec<u32> = v.coarser.iter().map(|c| c.dims.iter().copied().max().unwrap()).collect();
+        assert_eq!(edges, [10, 5]);
+        assert!(v.coarser.iter().all(|c| c.voxels > 0 && c.voxels < v.low.voxels));
         assert_eq!(v.height.map(|h| h.0), Some(0), "conifer declares height first");
         let (c, r) = v.full.bounding_sphere();
         assert!(r > 3.0 && c[1] > 0.0, "{c:?} {r}");

@@ -30,6 +30,10 @@ pub struct RendererArgs {
     /// Hysteresis of level changes, a fraction of the threshold.
     #[arg(long, default_value_t = LodConfig::default().hysteresis)]
     hysteresis: f32,
+    /// Resolutions far instances are drawn at: 2 (full and halved) to 4 (down to an eighth, for instances a few
+    /// pixels tall).
+    #[arg(long, default_value_t = LodConfig::default().far_resolutions)]
+    far_resolutions: u8,
     /// Cross-fade duration in seconds (0: switch at once).
     #[arg(long, default_value_t = LodConfig::default().fade_seconds)]
     fade: f32,
@@ -45,6 +49,10 @@ pub struct RendererArgs {
     /// Voxels along the longest axis of far-field volumes.
     #[arg(long, default_value_t = RenderConfig::default().volume_resolution)]
     volume_resolution: u32,
+    /// The far view's forest is drawn as a uniform canopy layer where a pixel spans more than this many tree
+    /// spacings, and its trees' voxels are marched nearer (0: march everywhere).
+    #[arg(long, default_value_t = RenderConfig::default().forest_layer)]
+    forest_layer: f32,
     /// Fog density per metre (0: none; default 0.0007 near the ground, thinned with the camera's altitude above
     /// 50 m so a view from altitude reaches the horizon).
     #[arg(long)]
@@ -61,6 +69,7 @@ impl RendererArgs {
                 mid_levels: self.mid_levels,
                 hysteresis: self.hysteresis,
                 fade_seconds: self.fade,
+                far_resolutions: self.far_resolutions,
                 ..LodConfig::default()
             },
             near_mode: self.near_mode,
@@ -74,6 +83,7 @@ impl RendererArgs {
         cfg.prim_memory = bytes / 2;
         cfg.mesh_memory = bytes / 2;
         cfg.volume_resolution = self.volume_resolution;
+        cfg.forest_layer = self.forest_layer;
         cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
         cfg.validate().context("renderer options")?;
         Ok(cfg)

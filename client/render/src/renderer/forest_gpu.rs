@@ -1,5 +1,5 @@
 //! The far view's summaries on the GPU (issue 15): each species' canopy tile baked on a worker and packed, in its
-//! four resolutions, into one atlas slot; the frame's [`ForestPlan`] run after the instances' plan, its patches
+//! four resolutions, into one atlas slot, its profile appended to the profiles buffer; the frame's [`ForestPlan`] run after the instances' plan, its patches
 //! and ground heights uploaded, and drawn ([`Renderer::draw_forest`]) before the far instances.
 
 use std::sync::Arc;
@@ -26,6 +26,11 @@ pub(super) struct ForestGpu {
     submitted: Vec<bool>,
     patches: Growable,
     ground: Growable,
+    /// Every resident tile's profile, in the order they were placed (`TileVol::profile` indexes it).
+    profiles: Vec<[f32; 4]>,
+    profiles_gpu: Growable,
+    /// Whether `profiles` changed since it was uploaded.
+    profiles_dirty: bool,
     bg: Option<wgpu::BindGroup>,
     count: u32,
 }
@@ -38,6 +43,9 @@ impl ForestGpu {
             submitted: Vec::new(),
             patches: Growable::new(device, "forest patches", INITIAL_LIST_BYTES, wgpu::BufferUsages::VERTEX),
             ground: Growable::new(device, "forest ground", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
+            profiles: Vec::new(),
+            profiles_gpu: Growable::new(device, "canopy profiles", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
+            profiles_dirty: false,
             bg: None,
             count: 0,
         }
@@ -71,18 +79,26 @@ impl Renderer {
             tiles: &f.tiles,
             view,
             cull_px: self.cfg.lod.cull_px,
+            layer: self.cfg.forest_layer,
         };
         f.plan.plan(&input, stats);
         f.count = f.plan.patches.len() as u32;
         if f.count > 0 {
             stats.draw_calls += 1;
             f.patches.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.patches));
-            let grew = f.ground.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.ground));
+            let mut grew = f.ground.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.ground));
+            if f.profiles_dirty {
+                grew |= f.profiles_gpu.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.profiles));
+                f.profiles_dirty = false;
+            }
             if grew || f.bg.is_none() {
                 f.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("forest ground"),
+                    label: Some("forest ground and profiles"),
                     layout: &self.gpu.p.forest_layout,
-                    entries: &[wgpu::BindGroupEntry { binding: 0, resource: f.ground.buffer.as_entire_binding() }],
+                    entries: &[
+                        wgpu::BindGroupEntry { binding: 0, resource: f.ground.buffer.as_entire_binding() },
+                        wgpu::BindGroupEntry { binding: 1, resource: f.profiles_gpu.buffer.as_entire_binding() },
+                    ],
                 }));
             }
         }
@@ -150,12 +166,15 @@ impl Renderer {
         };
         let slot = self.reserve_slot()?;
         let voxel = tile.mips[0].voxel_size[0];
+        let profile = self.forest.profiles.len() as u32;
+        self.forest.profiles.extend(tile.profile.gpu());
+        self.forest.profiles_dirty = true;
         let mut mips = [0u32; TILE_MIPS];
         for (m, v) in tile.mips.into_iter().enumerate() {
             let o = mip_offset(m, e);
             mips[m] = self.place_volume(Arc::new(v), [slot[0] + o[0], slot[1] + o[1], slot[2] + o[2]]);
         }
-        Some(TileVol { mips, period: tile.period, top: tile.top, voxel, density: tile.density, reference })
+        Some(TileVol { mips, period: tile.period, top: tile.top, voxel, density: tile.density, reference, profile })
     }
 
     /// Draw the frame's summary patches (in the scene pass, after the opaque geometry, before the far instances).
