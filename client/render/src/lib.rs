@@ -176,7 +176,9 @@ pub struct RenderConfig {
     /// Lattice squares per edge of the window drawn of a fractal ground ([`ground::FractalWindow`]).
     pub ground_window: u32,
     /// Tree spacings a pixel spans beyond which a summary patch draws its species' canopy as a uniform layer
-    /// ([`tile::CanopyProfile`]) instead of marching the canopy tile's voxels; 0: march everywhere.
+    /// ([`tile::CanopyProfile`]) instead of marching the canopy tile's voxels; 0: march everywhere. The default,
+    /// 0.5 (trees two pixels apart and farther), drew the highlands from 1,500 m in 15.7 ms on an H200 at
+    /// 1920 × 1080, against 25.5 ms at 1 (tree-sized texture a little nearer) and 43 ms marching everywhere.
     pub forest_layer: f32,
 }
 
@@ -201,7 +203,7 @@ impl Default for RenderConfig {
             volume_resolution: 64,
             near_clip: 0.25,
             ground_window: ground::WINDOW_SQUARES,
-            forest_layer: 1.0,
+            forest_layer: 0.5,
         }
     }
 }
