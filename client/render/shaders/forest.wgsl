@@ -43,6 +43,7 @@ struct PatchOut {
     @location(6) @interpolate(flat) params: vec3<f32>,
     @location(7) @interpolate(flat) profile: u32,
     @location(8) @interpolate(flat) layer_from: f32,
+    @location(9) @interpolate(flat) mip_scale: f32,
 };
 
 @vertex
@@ -59,6 +60,7 @@ fn vs_forest(
     @location(8) mask: f32,
     @location(9) profile: u32,
     @location(10) layer_from: f32,
+    @location(11) mip_scale: f32,
 ) -> PatchOut {
     let lo = vec3<f32>(rect.x, span.x, rect.y);
     let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
@@ -77,6 +79,7 @@ fn vs_forest(
     out.params = vec3<f32>(scale, keep, mask);
     out.profile = profile;
     out.layer_from = layer_from;
+    out.mip_scale = mip_scale;
     return out;
 }
 
@@ -178,12 +181,8 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
     }
     let info = volumes[in.ids.y];
     let period = info.hi.xz * scale;
-    let vox = info.voxel.xyz * scale;
-    let step = info.voxel.w * scale;
     let top = in.rect.w;
     let cell = in.rect.z / 8.0;
-    let dims = vec3<i32>(info.dims.xyz);
-    let base = vec3<i32>(info.atlas.xyz);
     let gbase = i32(in.ids.x);
 
     // The 2D walk over sub-squares.
@@ -297,6 +296,14 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
             let gx = max(abs(h10 - h00), abs(h11 - h01)) / cell;
             let gz = max(abs(h01 - h00), abs(h11 - h10)) / cell;
             let closing = max(-d.y + gx * abs(d.x) + gz * abs(d.z), 1e-4);
+            // The tile resolution whose voxels are about VOXEL_PX pixels where the ray enters the sub-square (the
+            // tile's resolutions are consecutive volumes, finest first).
+            let level = u32(clamp(floor(log2(max(t_in * in.mip_scale, 1.0))), 0.0, 3.0));
+            let mip = volumes[in.ids.y + level];
+            let vox = mip.voxel.xyz * scale;
+            let step = mip.voxel.w * scale;
+            let dims = vec3<i32>(mip.dims.xyz);
+            let base = vec3<i32>(mip.atlas.xyz);
             var n = max(ceil((t_in - t0) / step - offset), 0.0);
             loop {
                 let t = t0 + (n + offset) * step;

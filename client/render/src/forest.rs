@@ -92,7 +92,7 @@ pub struct ForestPatch {
     pub field: [u32; 2],
     /// Index of the node's first height in the frame's ground list ([`GROUND_POINTS`] of them, row-major, x first).
     pub ground: u32,
-    /// The tile resolution's volume index.
+    /// The volume index of the tile's finest resolution (the others follow it).
     pub volume: u32,
     /// Tile scale: the species' mean height over its representative's.
     pub scale: f32,
@@ -105,6 +105,9 @@ pub struct ForestPatch {
     /// Distance from the eye beyond which a ray takes the profile rather than the tile's voxels, metres (dithered
     /// over ±25 %; infinite: never).
     pub layer_from: f32,
+    /// Per metre from the eye, the tile resolution's level the march takes: `⌊log₂(t · mip_scale)⌋`, clamped (voxels
+    /// of about [`VOXEL_PX`] pixels where a ray enters each sub-square).
+    pub mip_scale: f32,
 }
 
 /// The sub-squares of quadrant `q` (children order: `(0,0), (1,0), (0,1), (1,1)`).
@@ -407,7 +410,6 @@ impl ForestPlan {
             let radius = Vec3::new(0.5 * edge, 0.5 * (hi - lo), 0.5 * edge).length();
             let visible = ready_any && v.frustum.sphere_visible(center, radius);
             let dist = (center - v.eye).length();
-            let near = (dist - radius).max(1.0);
             let big_enough =
                 projected_size(0.5 * edge, dist.max(0.5 * edge + 1e-3), v.tan_half, v.height_px) >= input.cull_px;
             let mut first_ground = None;
@@ -424,9 +426,10 @@ impl ForestPlan {
                 if keep < MIN_KEEP {
                     continue;
                 }
-                // The resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the sunlit sides).
-                let level = (VOXEL_PX * near * footprint / (t.voxel * scale)).max(1.0).log2().floor() as usize;
-                let volume = t.mips[level.min(TILE_MIPS - 1)];
+                // The march takes the resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the
+                // sunlit sides) where each ray enters each sub-square.
+                let mip_scale = VOXEL_PX * footprint / (t.voxel * scale);
+                let volume = t.mips[0];
                 // Where a pixel spans `layer` tree spacings.
                 let spacing = t.period * scale / TILE_TREES as f32;
                 let layer_from = if input.layer > 0.0 { input.layer * spacing / footprint } else { f32::INFINITY };
@@ -450,6 +453,7 @@ impl ForestPlan {
                         mask,
                         profile: t.profile,
                         layer_from,
+                        mip_scale,
                     };
                     self.unsorted.push((dist, t.top * scale, patch));
                 }
@@ -680,14 +684,22 @@ mod tests {
         let drawn = r.drawn();
         assert_eq!(drawn.iter().map(|d| (d.0, d.1, d.2)).collect::<Vec<_>>(), vec![(0, 1, 5)]);
         assert_eq!(r.stats.summary_nodes, 4);
-        // Back to front, and the farther nodes at a coarser tile resolution.
+        // Back to front; both name the tile's finest resolution, and the march takes a coarser one where a voxel
+        // of the finest would be under VOXEL_PX pixels: level ⌊log₂(t · mip_scale)⌋.
         let near = node(4, 0, 2, ALL);
         let mid = node(4, 0, 12, ALL);
         r.frame(&far(vec![near, mid], vec![], 2), 1.0);
         let p = &r.plan.patches;
         assert_eq!(p.len(), 2);
         assert!(p[0].rect[1] > p[1].rect[1], "the farther first");
-        assert!(p[0].volume >= p[1].volume && p[0].volume > 7, "{} {}", p[0].volume, p[1].volume);
+        assert_eq!((p[0].volume, p[1].volume), (7, 7));
+        let v = view(1.0);
+        let footprint = 2.0 * v.tan_half / v.height_px;
+        for q in p {
+            // The tile's finest voxel is 0.3 m at scale 1: it spans VOXEL_PX pixels at 1 / mip_scale metres.
+            let t = 1.0 / q.mip_scale;
+            assert!((0.3 * q.scale / (t * footprint) - VOXEL_PX).abs() < 1e-3, "{t} m");
+        }
         // Ground: 81 heights per drawn node (flat ground at 0).
         assert_eq!(r.plan.ground.len(), 2 * GROUND_POINTS);
         assert!(r.plan.ground.iter().all(|&h| h == 0.0));

@@ -375,7 +375,7 @@ impl Pipelines {
         let forest_mod = module(device, "forest", &[COMMON, VOLUME_INFO, include_str!("../shaders/forest.wgsl")]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
-            6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32
+            6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
         ];
         // No culling: from inside a node's box its back faces march (the shader picks by `front_facing`).
         let forest = pipeline(

@@ -174,6 +174,10 @@ impl Renderer {
             let o = mip_offset(m, e);
             mips[m] = self.place_volume(Arc::new(v), [slot[0] + o[0], slot[1] + o[1], slot[2] + o[2]]);
         }
+        // The forest shader finds a resolution at the finest's index plus its level.
+        if mips.windows(2).any(|w| w[1] != w[0] + 1) {
+            return None;
+        }
         Some(TileVol { mips, period: tile.period, top: tile.top, voxel, density: tile.density, reference, profile })
     }
 
