@@ -177,8 +177,8 @@ pub struct RenderConfig {
     pub ground_window: u32,
     /// Tree spacings a pixel spans beyond which a summary patch draws its species' canopy as a uniform layer
     /// ([`tile::CanopyProfile`]) instead of marching the canopy tile's voxels; 0: march everywhere. The default,
-    /// 0.5 (trees two pixels apart and farther), drew the highlands from 1,500 m in 15.7 ms on an H200 at
-    /// 1920 × 1080, against 25.5 ms at 1 (tree-sized texture a little nearer) and 43 ms marching everywhere.
+    /// 0.5 (trees two pixels apart and farther), draws a view from altitude about 1.6 times as fast as 1 and 2.8
+    /// times as fast as marching everywhere (frame times in `docs/renderer.md`).
     pub forest_layer: f32,
 }
 
