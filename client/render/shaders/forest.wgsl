@@ -251,13 +251,15 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
             }
             let ds = (sb - sa) * (t_out - t_in) / f32(LAYER_SAMPLES);
             if ds > 0.0 {
-                // Classes kept at the crossing's ends (the coverage field is smooth within a sub-square).
+                // Classes kept at the crossing's ends (the coverage field is smooth within a sub-square): the
+                // fraction `keep` of the tile's trees, continuous (the march rounds to whole classes; the layer, the
+                // summary's count as it is, sparse species too).
                 let ta = t_in + sa * (t_out - t_in);
                 let tb = t_in + sb * (t_out - t_in);
                 let qa = o + d * ta;
                 let qb = o + d * tb;
-                let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell) - 0.5;
-                let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell) - 0.5;
+                let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell);
+                let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell);
                 for (var k = 0; k < LAYER_SAMPLES; k++) {
                     let f = (f32(k) + offset) / f32(LAYER_SAMPLES);
                     let w = mix(wa, wb, sa + (sb - sa) * f);

@@ -40,7 +40,8 @@ pub const GROUND_POINTS: usize = GROUND_SIDE * GROUND_SIDE;
 /// Nodes whose ground grids are computed per frame at most (nearest first; the rest wait for later frames). A grid
 /// of a fractal ground costs about 11 µs (one lattice patch per node): about 3 ms a frame at most.
 pub const GROUND_NODES_PER_FRAME: usize = 256;
-/// A patch whose density keeps less than half a class of its tile's trees is not drawn.
+/// A patch whose density keeps less than half a class of its tile's trees is not marched (it would keep no
+/// class): it is drawn only where rays take the uniform layer, which thins continuously.
 const MIN_KEEP: f32 = 0.5 / DENSITY_CLASSES as f32;
 
 /// The tile resolution a patch marches has voxels of about this many pixels (0.5: the finest detail; 1: half the
@@ -423,9 +424,6 @@ impl ForestPlan {
                 let scale = tile_scale(&s.cover, &t);
                 let covered = s.cover.cover.count_ones().max(1) as f32 * sub_area;
                 let keep = (s.cover.count as f32 / covered / (t.density / (scale * scale))).min(1.0);
-                if keep < MIN_KEEP {
-                    continue;
-                }
                 // The march takes the resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the
                 // sunlit sides) where each ray enters each sub-square.
                 let mip_scale = VOXEL_PX * footprint / (t.voxel * scale);
@@ -433,6 +431,10 @@ impl ForestPlan {
                 // Where a pixel spans `layer` tree spacings.
                 let spacing = t.period * scale / TILE_TREES as f32;
                 let layer_from = if input.layer > 0.0 { input.layer * spacing / footprint } else { f32::INFINITY };
+                // Too sparse to march, and no ray reaches the layer (its dither starts at 0.75 × `layer_from`).
+                if keep < MIN_KEEP && dist + radius < 0.75 * layer_from {
+                    continue;
+                }
                 for (m, mask) in s.fade.parts() {
                     // March the uncovered neighbours too: the stand thins into them.
                     let march = m | (dilate(m) & !s.cover.cover & !e.hidden);
@@ -580,17 +582,18 @@ mod tests {
     struct Run {
         plan: ForestPlan,
         stats: FrameStats,
+        layer: f32,
     }
 
     impl Run {
         fn new() -> Run {
-            Run { plan: ForestPlan::default(), stats: FrameStats::default() }
+            Run { plan: ForestPlan::default(), stats: FrameStats::default(), layer: 1.0 }
         }
 
         fn frame(&mut self, far: &SceneFar, progress: f32) {
             let (ground, tiles) = (flat(), tiles());
-            let input =
-                ForestInputs { far, ground: &ground, tiles: &tiles, view: view(progress), cull_px: 1.0, layer: 1.0 };
+            let (view, layer) = (view(progress), self.layer);
+            let input = ForestInputs { far, ground: &ground, tiles: &tiles, view, cull_px: 1.0, layer };
             self.stats = FrameStats::default();
             self.plan.plan(&input, &mut self.stats);
         }
@@ -646,6 +649,23 @@ mod tests {
         assert_eq!(parents[0].3, quadrant_mask(1) | quadrant_mask(2), "the parent draws the quadrants of absent kids");
         assert_eq!(drawn.iter().filter(|d| d.2 == 4).count(), 2);
         assert_eq!(r.stats.forest_waiting, 0);
+    }
+
+    #[test]
+    fn a_species_too_sparse_to_march_is_drawn_only_as_the_layer() {
+        // A level-5 node 2 km ahead holding 3 trees over its 4 km²: far less than a class of the tile's.
+        let mut n = node(5, 0, 1, ALL);
+        Arc::make_mut(&mut n).species[0].count = 3;
+        let mut r = Run::new();
+        r.frame(&far(vec![n.clone()], vec![], 1), 1.0);
+        let p = &r.plan.patches;
+        assert_eq!(p.len(), 1, "beyond the layer's distance it is drawn");
+        assert!(p[0].keep < MIN_KEEP && p[0].keep > 0.0, "{}", p[0].keep);
+        assert!(p[0].layer_from < 1500.0, "{} m: every ray takes the layer", p[0].layer_from);
+        // Marching everywhere, it would keep no class: nothing is drawn.
+        let mut r = Run { layer: 0.0, ..Run::new() };
+        r.frame(&far(vec![n], vec![], 1), 1.0);
+        assert!(r.plan.patches.is_empty());
     }
 
     #[test]
