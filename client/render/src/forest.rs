@@ -10,8 +10,9 @@
 //! on the sub-squares the instance draws, following the ground through a 9 × 9 grid of heights at the
 //! sub-squares' corners; scaled by the species' mean height over its representative's, thinned to the summary's
 //! density (count over covered area) by density classes, and feathered toward uncovered sub-squares by the
-//! coverage mask interpolated between sub-square centres. Far nodes march a coarser tile resolution so that a
-//! step stays about a pixel.
+//! coverage mask interpolated between sub-square centres. A ray marches the tile resolution whose voxels are about a
+//! pixel where it enters each sub-square; where trees stand closer than `RenderConfig::forest_layer` pixels it
+//! crosses the species' uniform layer ([`super::tile::CanopyProfile`]) instead.
 //!
 //! Work per frame is linear in the nodes held (the per-node tables are rebuilt only when the scene's far
 //! generation changes); a node smaller on screen than [`LodConfig::cull_px`](super::LodConfig) is dropped with its
@@ -31,7 +32,7 @@ use super::lod::projected_size;
 use super::scene::SceneFar;
 use super::select::View;
 use super::stats::FrameStats;
-use super::tile::{DENSITY_CLASSES, TILE_MIPS, TILE_TREES};
+use super::tile::{DENSITY_CLASSES, TILE_TREES};
 
 /// Corners per node edge of a node's ground grid (the sub-squares' corners).
 pub const GROUND_SIDE: usize = COVER_SIDE as usize + 1;
@@ -51,8 +52,9 @@ pub const VOXEL_PX: f32 = 1.0;
 /// A species' canopy tile, resident in the atlas.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TileVol {
-    /// Volume indices of the tile's resolutions, finest first.
-    pub mips: [u32; TILE_MIPS],
+    /// Volume index of the tile's finest resolution; the [`TILE_MIPS`](super::tile::TILE_MIPS) − 1 coarser ones
+    /// follow it (the forest shader takes the one at the finest's index plus its level).
+    pub volume: u32,
     /// Tile edge, metres at scale 1.
     pub period: f32,
     /// Tile height, metres at scale 1.
@@ -427,7 +429,6 @@ impl ForestPlan {
                 // The march takes the resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the
                 // sunlit sides) where each ray enters each sub-square.
                 let mip_scale = VOXEL_PX * footprint / (t.voxel * scale);
-                let volume = t.mips[0];
                 // Where a pixel spans `layer` tree spacings.
                 let spacing = t.period * scale / TILE_TREES as f32;
                 let layer_from = if input.layer > 0.0 { input.layer * spacing / footprint } else { f32::INFINITY };
@@ -449,7 +450,7 @@ impl ForestPlan {
                         cover: [march as u32, (march >> 32) as u32],
                         field: [s.cover.cover as u32, (s.cover.cover >> 32) as u32],
                         ground,
-                        volume,
+                        volume: t.volume,
                         scale,
                         keep,
                         mask,
@@ -547,7 +548,7 @@ mod tests {
 
     fn tiles() -> Vec<Option<TileState>> {
         let t = TileVol {
-            mips: [7, 8, 9, 10],
+            volume: 7,
             period: 20.0,
             top: 20.0,
             voxel: 0.3,

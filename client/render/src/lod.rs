@@ -9,7 +9,7 @@
 //! progress and the old level where it is not — complementary masks, so no pixel is drawn twice or left empty.
 
 use super::ConfigError;
-use super::volume::COARSER;
+use super::volume::FAR_LEVELS;
 
 /// Distance bands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -96,7 +96,7 @@ impl LodConfig {
             (pos(self.far_px) && self.far_px <= self.near_px, "far threshold (at most the near threshold)"),
             (pos(self.cull_px) && self.cull_px <= self.far_px.max(1.0), "cull threshold"),
             (pos(self.low_res_px), "low-resolution threshold"),
-            ((2..=2 + COARSER as u8).contains(&self.far_resolutions), "far resolutions"),
+            ((2..=FAR_LEVELS as u8).contains(&self.far_resolutions), "far resolutions"),
             (self.mid_levels <= 16, "mid-band levels"),
             ((0.0..0.9).contains(&self.hysteresis), "hysteresis"),
             (pos(self.fade_seconds) && self.fade_seconds <= 60.0, "fade time"),

@@ -25,7 +25,7 @@ use super::select::{
     View, VolState,
 };
 use super::terrain::TerrainMesh;
-use super::volume::{COARSER, FarVolume};
+use super::volume::FarVolume;
 use super::workers::{Job, JobResult, Workers};
 
 pub use super::stats::FrameStats;
@@ -465,10 +465,16 @@ impl Renderer {
                                 sources.resize(usize::from(species) + 1, None);
                             }
                             sources[usize::from(species)] = Some(Arc::clone(&source));
+                            let coarser = v.coarser.len() as u32;
                             let lower = self.add_lower_volumes(source, v.coarser);
                             match (full, lower) {
-                                (Some((full, center, radius)), Some((low, coarser))) => {
-                                    VolState::Ready(SpeciesVol { full, low, coarser, center, radius, height: v.height })
+                                (Some((full, center, radius)), Some(low)) => {
+                                    // Full, halved, then the coarser ones after the halved (the coarsest repeated).
+                                    let levels = std::array::from_fn(|k| match k {
+                                        0 => full,
+                                        k => low + (k as u32 - 1).min(coarser),
+                                    });
+                                    VolState::Ready(SpeciesVol { levels, center, radius, height: v.height })
                                 }
                                 _ => {
                                     tracing::warn!("species {species}: the far-field atlas is full");
@@ -493,46 +499,70 @@ impl Renderer {
     /// Place a volume in an atlas slot of its own (growing the atlas if needed); returns its index and bounding
     /// sphere.
     fn add_volume(&mut self, v: Arc<FarVolume>) -> Option<(u32, Vec3, f32)> {
-        let slot_edge = self.cfg.volume_resolution.next_power_of_two();
-        if v.dims.iter().any(|&d| d > slot_edge) {
-            return None;
-        }
-        let origin = self.reserve_slot()?;
         let (c, r) = v.bounding_sphere();
-        Some((self.place_volume(v, origin), Vec3::from(c), r))
+        Some((self.place_in_slot(vec![(v, [0; 3])])?, Vec3::from(c), r))
     }
 
     /// Place a species' halved volume and its coarser ones in one atlas slot (each at most half the last's edge:
-    /// side by side along x at 0, ½ and ¾ of the slot); returns their volume indices, the coarsest repeated where
-    /// there are fewer than [`COARSER`].
-    fn add_lower_volumes(&mut self, low: Arc<FarVolume>, coarser: Vec<FarVolume>) -> Option<(u32, [u32; COARSER])> {
+    /// side by side along x at 0, ½ and ¾ of the slot); returns the halved one's index (the coarser follow it).
+    fn add_lower_volumes(&mut self, low: Arc<FarVolume>, coarser: Vec<FarVolume>) -> Option<u32> {
         let e = self.cfg.volume_resolution.next_power_of_two();
-        let fits = |v: &FarVolume, edge: u32| v.dims.iter().all(|&d| d <= edge);
-        if !fits(&low, e / 2) || coarser.len() > COARSER {
-            return None;
-        }
-        let mut at = [0u32; 3];
-        let mut edge = e / 2;
-        let mut out = [0u32; COARSER];
-        let mut places = Vec::with_capacity(1 + coarser.len());
-        places.push((low, at));
+        let mut places = vec![(low, [0; 3])];
+        let (mut x, mut edge) = (0, e / 2);
         for v in coarser {
-            at[0] += edge;
-            edge /= 2;
-            if !fits(&v, edge) {
+            (x, edge) = (x + edge, edge / 2);
+            if v.dims.iter().any(|&d| d > edge) {
                 return None;
             }
-            places.push((Arc::new(v), at));
+            places.push((Arc::new(v), [x, 0, 0]));
         }
-        let origin = self.reserve_slot()?;
-        let ids: Vec<u32> = places
-            .into_iter()
-            .map(|(v, o)| self.place_volume(v, [origin[0] + o[0], origin[1] + o[1], origin[2] + o[2]]))
-            .collect();
-        for (k, slot) in out.iter_mut().enumerate() {
-            *slot = ids[(k + 1).min(ids.len() - 1)];
+        if places[0].0.dims.iter().any(|&d| d > e / 2) {
+            return None;
         }
-        Some((ids[0], out))
+        self.place_in_slot(places)
+    }
+
+    /// Take a free atlas slot and write `volumes` into it at their offsets, listing their infos (once, with one
+    /// new bind group); returns the first one's index — the others follow it, in order. `None` when one would
+    /// reach past the slot or no slot is left.
+    fn place_in_slot(&mut self, volumes: Vec<(Arc<FarVolume>, [u32; 3])>) -> Option<u32> {
+        let e = self.cfg.volume_resolution.next_power_of_two();
+        if volumes.is_empty() || volumes.iter().any(|(v, o)| (0..3).any(|i| o[i] + v.dims[i] > e)) {
+            return None;
+        }
+        let slot = self.reserve_slot()?;
+        let far = &mut self.far;
+        let atlas = far.atlas.as_mut()?;
+        let first = far.infos.len() as u32;
+        for (v, o) in volumes {
+            let origin = [slot[0] + o[0], slot[1] + o[1], slot[2] + o[2]];
+            write_volume(&self.gpu.queue, &atlas.texture, origin, &v);
+            far.infos.push(VolumeInfo {
+                atlas: [origin[0], origin[1], origin[2], 0],
+                dims: [v.dims[0], v.dims[1], v.dims[2], 0],
+                voxel: [
+                    v.voxel_size[0],
+                    v.voxel_size[1],
+                    v.voxel_size[2],
+                    v.voxel_size[0].min(v.voxel_size[1]).min(v.voxel_size[2]),
+                ],
+                lo: [v.aabb_min[0], v.aabb_min[1], v.aabb_min[2], v.units],
+                hi: [v.aabb_max[0], v.aabb_max[1], v.aabb_max[2], 0.0],
+                origin: [v.origin[0], v.origin[1], v.origin[2], 0.0],
+            });
+            atlas.volumes.push((origin, v));
+        }
+        far.info_buf.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&far.infos));
+        let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
+        far.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("volumes"),
+            layout: &self.gpu.p.volume_layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
+                wgpu::BindGroupEntry { binding: 1, resource: far.info_buf.buffer.as_entire_binding() },
+            ],
+        }));
+        Some(first)
     }
 
     /// Take a free atlas slot (growing the atlas if needed); returns its first texel.
@@ -560,40 +590,6 @@ impl Renderer {
         let index = atlas.used;
         atlas.used += 1;
         Some([(index % atlas.per_row) * atlas.slot, 0, (index / atlas.per_row) * atlas.slot])
-    }
-
-    /// Write a volume at `origin` of the atlas (within a reserved slot) and list its info; returns its index.
-    fn place_volume(&mut self, v: Arc<FarVolume>, origin: [u32; 3]) -> u32 {
-        let far = &mut self.far;
-        let Some(atlas) = far.atlas.as_mut() else { return 0 };
-        atlas.volumes.push((origin, Arc::clone(&v)));
-        write_volume(&self.gpu.queue, &atlas.texture, origin, &v);
-        let info = VolumeInfo {
-            atlas: [origin[0], origin[1], origin[2], 0],
-            dims: [v.dims[0], v.dims[1], v.dims[2], 0],
-            voxel: [
-                v.voxel_size[0],
-                v.voxel_size[1],
-                v.voxel_size[2],
-                v.voxel_size[0].min(v.voxel_size[1]).min(v.voxel_size[2]),
-            ],
-            lo: [v.aabb_min[0], v.aabb_min[1], v.aabb_min[2], v.units],
-            hi: [v.aabb_max[0], v.aabb_max[1], v.aabb_max[2], 0.0],
-            origin: [v.origin[0], v.origin[1], v.origin[2], 0.0],
-        };
-        let id = far.infos.len() as u32;
-        far.infos.push(info);
-        far.info_buf.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&far.infos));
-        let view = atlas.texture.create_view(&wgpu::TextureViewDescriptor::default());
-        far.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("volumes"),
-            layout: &self.gpu.p.volume_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&view) },
-                wgpu::BindGroupEntry { binding: 1, resource: far.info_buf.buffer.as_entire_binding() },
-            ],
-        }));
-        id
     }
 
     /// Plan the frame ([`FramePlan::plan`]), submit its jobs, mark what it draws as used, and write its lists.

@@ -17,7 +17,7 @@ use super::lod::{Band, InstanceLod, Level, LodConfig, projected_size};
 use super::scene::{Scene, SceneInstance};
 use super::stats::FrameStats;
 use super::terrain::TerrainMesh;
-use super::volume::COARSER;
+use super::volume::FAR_LEVELS;
 use super::volume::instance_scale;
 use super::workers::TreeKey;
 
@@ -130,13 +130,9 @@ pub struct JobRequest {
 /// A species' far-field volumes, resident in the atlas.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SpeciesVol {
-    /// Volume index at full resolution.
-    pub full: u32,
-    /// Volume index at the halved resolution.
-    pub low: u32,
-    /// Volume indices at a quarter and an eighth of the full resolution (the coarsest there is repeated where a
-    /// species has fewer).
-    pub coarser: [u32; COARSER],
+    /// Volume indices at full resolution, then halved, a quarter and an eighth of it (the coarsest there is
+    /// repeated where a species has fewer).
+    pub levels: [u32; FAR_LEVELS],
     /// Bounding sphere centre relative to the species origin, metres at scale 1.
     pub center: Vec3,
     /// Bounding sphere radius, metres at scale 1.
@@ -432,12 +428,10 @@ impl FramePlan {
                         self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
                     }
                     (Level::Far, Some(v)) => {
-                        // About as many voxels as pixels: each halving below `low_res_px`, to the coarsest allowed.
-                        let volume = match (lod.low_res_px / size.max(1e-6)).log2().floor() {
-                            h if h < 0.0 => v.full,
-                            h if h < 1.0 || lod.far_resolutions <= 2 => v.low,
-                            h => v.coarser[((h as usize).min(usize::from(lod.far_resolutions) - 2)) - 1],
-                        };
+                        // About as many voxels as pixels: one halving of the resolution below `low_res_px` and one
+                        // more for each halving of the size, to the coarsest allowed.
+                        let halvings = (lod.low_res_px / size.max(1e-6)).log2().floor() + 1.0;
+                        let volume = v.levels[halvings.clamp(0.0, f32::from(lod.far_resolutions - 1)) as usize];
                         let [x, y, z] = si.position;
                         self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
                     }
@@ -643,7 +637,7 @@ mod tests {
     }
 
     fn ready_volume() -> Vec<Option<VolState>> {
-        let v = SpeciesVol { full: 10, low: 11, coarser: [12, 13], center: Vec3::ZERO, radius: R, height: None };
+        let v = SpeciesVol { levels: [10, 11, 12, 13], center: Vec3::ZERO, radius: R, height: None };
         vec![Some(VolState::Ready(v))]
     }
 

@@ -154,6 +154,8 @@ pub fn voxelise_representative(
 
 /// Halvings of a species' volume below the halved one.
 pub const COARSER: usize = 2;
+/// Resolutions a far instance can be drawn at: full, halved and the [`COARSER`] ones.
+pub const FAR_LEVELS: usize = 2 + COARSER;
 
 /// Bake a hypertree at its resolution (reduced so that no axis exceeds `max_edge` voxels, at most [`MAX_SLOT`]),
 /// at half of it, and at up to [`COARSER`] further halvings.

@@ -164,21 +164,13 @@ impl Renderer {
             Some(VolState::Ready(v)) => v.height.map(|h| h.1),
             _ => None,
         };
-        let slot = self.reserve_slot()?;
         let voxel = tile.mips[0].voxel_size[0];
+        let places = tile.mips.into_iter().enumerate().map(|(m, v)| (Arc::new(v), mip_offset(m, e))).collect();
+        let volume = self.place_in_slot(places)?;
         let profile = self.forest.profiles.len() as u32;
         self.forest.profiles.extend(tile.profile.gpu());
         self.forest.profiles_dirty = true;
-        let mut mips = [0u32; TILE_MIPS];
-        for (m, v) in tile.mips.into_iter().enumerate() {
-            let o = mip_offset(m, e);
-            mips[m] = self.place_volume(Arc::new(v), [slot[0] + o[0], slot[1] + o[1], slot[2] + o[2]]);
-        }
-        // The forest shader finds a resolution at the finest's index plus its level.
-        if mips.windows(2).any(|w| w[1] != w[0] + 1) {
-            return None;
-        }
-        Some(TileVol { mips, period: tile.period, top: tile.top, voxel, density: tile.density, reference, profile })
+        Some(TileVol { volume, period: tile.period, top: tile.top, voxel, density: tile.density, reference, profile })
     }
 
     /// Draw the frame's summary patches (in the scene pass, after the opaque geometry, before the far instances).
