@@ -136,6 +136,14 @@ fn coverage(m: vec2<u32>, u: f32, v: f32) -> f32 {
     return mix(mix(b.x, b.y, f.x), mix(b.z, b.w, f.x), f.y);
 }
 
+// Height of `p` (node-relative) above sub-square (i, j)'s ground, bilinear between its corner heights `h` (00, 10,
+// 01, 11).
+fn above_ground(p: vec3<f32>, i: i32, j: i32, cell: f32, h: vec4<f32>) -> f32 {
+    let u = clamp(p.x / cell - f32(i), 0.0, 1.0);
+    let v = clamp(p.z / cell - f32(j), 0.0, 1.0);
+    return p.y - mix(mix(h.x, h.y, u), mix(h.z, h.w, u), v);
+}
+
 // The layer's extinction per metre (tile scale 1) at band position `b` (in bands from the ground) with `m` of
 // the classes kept (fractional: the extinctions between whole classes are interpolated).
 fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
@@ -226,131 +234,126 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
         if max(ya, yb) < min(min(h00, h10), min(h01, h11)) {
             break;
         }
-        if layer && bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
+        let corners = vec4<f32>(h00, h10, h01, h11);
+        if bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
             let light = relief(h00, h10, h01, h11, cell);
-            // Height above the ground at the sub-square's entry and exit, and the part of the crossing within
-            // the layer (the ground taken as linear along it), sampled LAYER_SAMPLES times.
-            let pa = o + d * t_in;
-            let pb = o + d * t_out;
-            let ua = clamp(pa.x / cell - f32(i), 0.0, 1.0);
-            let va = clamp(pa.z / cell - f32(j), 0.0, 1.0);
-            let ub = clamp(pb.x / cell - f32(i), 0.0, 1.0);
-            let vb = clamp(pb.z / cell - f32(j), 0.0, 1.0);
-            let wa = ya - mix(mix(h00, h10, ua), mix(h01, h11, ua), va);
-            let wb = yb - mix(mix(h00, h10, ub), mix(h01, h11, ub), vb);
-            var sa = 0.0;
-            var sb = 1.0;
-            let dw = wb - wa;
-            if abs(dw) > 1e-6 {
-                let s_top = (top - wa) / dw;
-                let s_ground = -wa / dw;
-                sa = clamp(min(s_top, s_ground), 0.0, 1.0);
-                sb = clamp(max(s_top, s_ground), 0.0, 1.0);
-            } else if wa < 0.0 || wa > top {
-                sb = 0.0;
-            }
-            let ds = (sb - sa) * (t_out - t_in) / f32(LAYER_SAMPLES);
-            if ds > 0.0 {
-                // Classes kept at the crossing's ends (the coverage field is smooth within a sub-square): the
-                // fraction `keep` of the tile's trees, continuous (the march rounds to whole classes; the layer, the
-                // summary's count as it is, sparse species too).
-                let ta = t_in + sa * (t_out - t_in);
-                let tb = t_in + sb * (t_out - t_in);
-                let qa = o + d * ta;
-                let qb = o + d * tb;
-                let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell);
-                let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell);
-                for (var k = 0; k < LAYER_SAMPLES; k++) {
-                    let f = (f32(k) + offset) / f32(LAYER_SAMPLES);
-                    let w = mix(wa, wb, sa + (sb - sa) * f);
-                    let b = clamp(w / band - 0.5, 0.0, BANDS - 1.0);
-                    let b0 = floor(b);
-                    let fb = b - b0;
-                    let m = mix(ma, mb, f);
-                    let sigma = mix(layer_sigma(in.profile, b0, m), layer_sigma(in.profile, b0 + 1.0, m), fb) / scale;
-                    let a = 1.0 - exp(-sigma * ds);
-                    if a <= 0.0 {
+            if layer {
+                // Height above the ground at the sub-square's entry and exit, and the part of the crossing within
+                // the layer (the ground taken as linear along it), sampled LAYER_SAMPLES times.
+                let wa = above_ground(o + d * t_in, i, j, cell, corners);
+                let wb = above_ground(o + d * t_out, i, j, cell, corners);
+                var sa = 0.0;
+                var sb = 1.0;
+                let dw = wb - wa;
+                if abs(dw) > 1e-6 {
+                    let s_top = (top - wa) / dw;
+                    let s_ground = -wa / dw;
+                    sa = clamp(min(s_top, s_ground), 0.0, 1.0);
+                    sb = clamp(max(s_top, s_ground), 0.0, 1.0);
+                } else if wa < 0.0 || wa > top {
+                    sb = 0.0;
+                }
+                let ds = (sb - sa) * (t_out - t_in) / f32(LAYER_SAMPLES);
+                if ds > 0.0 {
+                    // Classes kept at the crossing's ends (the coverage field is smooth within a sub-square): the
+                    // fraction `keep` of the tile's trees, continuous (the march rounds to whole classes; the layer
+                    // draws the summary's count as it is, sparse species too).
+                    let ta = t_in + sa * (t_out - t_in);
+                    let tb = t_in + sb * (t_out - t_in);
+                    let qa = o + d * ta;
+                    let qb = o + d * tb;
+                    let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell);
+                    let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell);
+                    for (var k = 0; k < LAYER_SAMPLES; k++) {
+                        let f = (f32(k) + offset) / f32(LAYER_SAMPLES);
+                        let w = mix(wa, wb, sa + (sb - sa) * f);
+                        let b = clamp(w / band - 0.5, 0.0, BANDS - 1.0);
+                        let b0 = floor(b);
+                        let fb = b - b0;
+                        let m = mix(ma, mb, f);
+                        let sigma_lo = layer_sigma(in.profile, b0, m);
+                        let sigma = mix(sigma_lo, layer_sigma(in.profile, b0 + 1.0, m), fb) / scale;
+                        let a = 1.0 - exp(-sigma * ds);
+                        if a <= 0.0 {
+                            continue;
+                        }
+                        let at = in.profile + 3u * u32(b0) + 2u;
+                        let above = min(at + 3u, in.profile + 3u * u32(BANDS) - 1u);
+                        let c = mix(profiles[at].rgb, profiles[above].rgb, fb);
+                        if first_hit < 0.0 {
+                            first_hit = mix(ta, tb, f);
+                        }
+                        let wgt = (1.0 - alpha) * a;
+                        color += wgt * c * light;
+                        alpha += wgt;
+                        if alpha >= 0.995 {
+                            break;
+                        }
+                    }
+                }
+                // The ground is under the layer's lower end when the crossing left it downward.
+                if wb < 0.0 {
+                    grounded = true;
+                }
+            } else {
+                // How fast the ray can close on the canopy's top over this sub-square: its descent plus the
+                // steepest the bilinear ground can rise along it. A sample `w - top` above the top is followed by at
+                // least `(w - top) / closing` of ray with nothing to hit, whose samples are skipped (they would all
+                // be above the top: the picture is the same, the work is not).
+                let gx = max(abs(h10 - h00), abs(h11 - h01)) / cell;
+                let gz = max(abs(h01 - h00), abs(h11 - h10)) / cell;
+                let closing = max(-d.y + gx * abs(d.x) + gz * abs(d.z), 1e-4);
+                // The tile resolution whose voxels are about VOXEL_PX pixels where the ray enters the sub-square (the
+                // tile's resolutions are consecutive volumes, finest first).
+                let level = u32(clamp(floor(log2(max(t_in * in.mip_scale, 1.0))), 0.0, 3.0));
+                let mip = volumes[in.ids.y + level];
+                let vox = mip.voxel.xyz * scale;
+                let step = mip.voxel.w * scale;
+                let dims = vec3<i32>(mip.dims.xyz);
+                let base = vec3<i32>(mip.atlas.xyz);
+                var n = max(ceil((t_in - t0) / step - offset), 0.0);
+                loop {
+                    let t = t0 + (n + offset) * step;
+                    if t >= t_out || samples >= MAX_SAMPLES {
+                        break;
+                    }
+                    samples++;
+                    n += 1.0;
+                    let p = o + d * t;
+                    let w = above_ground(p, i, j, cell, corners);
+                    if w < 0.0 {
+                        grounded = true;
+                        break;
+                    }
+                    if w >= top {
+                        n += max(floor((w - top) / closing / step), 0.0);
                         continue;
                     }
-                    let at = in.profile + 3u * u32(b0) + 2u;
-                    let c = mix(profiles[at].rgb, profiles[min(at + 3u, in.profile + 3u * u32(BANDS) - 1u)].rgb, fb);
-                    if first_hit < 0.0 {
-                        first_hit = mix(ta, tb, f);
+                    // Tile coordinates: world x and z in tile periods, each repetition shifted; height above the
+                    // ground.
+                    let wt = vec2<f32>(p.x + lo.x, p.z + lo.z) / period;
+                    let cell_t = floor(wt);
+                    let ft = fract(wt - cell_t + shift(cell_t.x, cell_t.y)) * period;
+                    let q = vec3<f32>(ft.x, w, ft.y);
+                    let c = clamp(vec3<i32>(floor(q / vox)), vec3<i32>(0), dims - vec3<i32>(1));
+                    let s = textureLoad(atlas, base + c, 0);
+                    if s.a <= 0.0 {
+                        continue;
                     }
-                    let wgt = (1.0 - alpha) * a;
-                    color += wgt * c * light;
+                    let bits = vec3<u32>(bitcast<u32>(s.r), bitcast<u32>(s.g), bitcast<u32>(s.b)) >> vec3<u32>(31u);
+                    let cls = f32(bits.x + 2u * bits.y + 4u * bits.z);
+                    if (cls + 0.5) / CLASSES >= keep * coverage(in.field, p.x / cell, p.z / cell) {
+                        continue;
+                    }
+                    if first_hit < 0.0 {
+                        first_hit = t;
+                    }
+                    let wgt = (1.0 - alpha) * s.a;
+                    color += wgt * abs(s.rgb) * light;
                     alpha += wgt;
                     if alpha >= 0.995 {
                         break;
                     }
-                }
-            }
-            // The ground is under the layer's lower end when the crossing left it downward.
-            if wb < 0.0 {
-                grounded = true;
-            }
-        } else if !layer && bit(in.cover, i, j) && min(ya, yb) <= max(max(h00, h10), max(h01, h11)) + top {
-            let light = relief(h00, h10, h01, h11, cell);
-            // How fast the ray can close on the canopy's top over this sub-square: its descent plus the steepest the
-            // bilinear ground can rise along it. A sample `w - top` above the top is followed by at least
-            // `(w - top) / closing` of ray with nothing to hit, whose samples are skipped (they would all be above
-            // the top: the picture is the same, the work is not).
-            let gx = max(abs(h10 - h00), abs(h11 - h01)) / cell;
-            let gz = max(abs(h01 - h00), abs(h11 - h10)) / cell;
-            let closing = max(-d.y + gx * abs(d.x) + gz * abs(d.z), 1e-4);
-            // The tile resolution whose voxels are about VOXEL_PX pixels where the ray enters the sub-square (the
-            // tile's resolutions are consecutive volumes, finest first).
-            let level = u32(clamp(floor(log2(max(t_in * in.mip_scale, 1.0))), 0.0, 3.0));
-            let mip = volumes[in.ids.y + level];
-            let vox = mip.voxel.xyz * scale;
-            let step = mip.voxel.w * scale;
-            let dims = vec3<i32>(mip.dims.xyz);
-            let base = vec3<i32>(mip.atlas.xyz);
-            var n = max(ceil((t_in - t0) / step - offset), 0.0);
-            loop {
-                let t = t0 + (n + offset) * step;
-                if t >= t_out || samples >= MAX_SAMPLES {
-                    break;
-                }
-                samples++;
-                n += 1.0;
-                let p = o + d * t;
-                let u = clamp(p.x / cell - f32(i), 0.0, 1.0);
-                let v = clamp(p.z / cell - f32(j), 0.0, 1.0);
-                let ground = mix(mix(h00, h10, u), mix(h01, h11, u), v);
-                let w = p.y - ground;
-                if w < 0.0 {
-                    grounded = true;
-                    break;
-                }
-                if w >= top {
-                    n += max(floor((w - top) / closing / step), 0.0);
-                    continue;
-                }
-                // Tile coordinates: world x and z in tile periods, each repetition shifted; height above the
-                // ground.
-                let wt = vec2<f32>(p.x + lo.x, p.z + lo.z) / period;
-                let cell_t = floor(wt);
-                let ft = fract(wt - cell_t + shift(cell_t.x, cell_t.y)) * period;
-                let q = vec3<f32>(ft.x, w, ft.y);
-                let c = clamp(vec3<i32>(floor(q / vox)), vec3<i32>(0), dims - vec3<i32>(1));
-                let s = textureLoad(atlas, base + c, 0);
-                if s.a <= 0.0 {
-                    continue;
-                }
-                let bits = vec3<u32>(bitcast<u32>(s.r), bitcast<u32>(s.g), bitcast<u32>(s.b)) >> vec3<u32>(31u);
-                let cls = f32(bits.x + 2u * bits.y + 4u * bits.z);
-                if (cls + 0.5) / CLASSES >= keep * coverage(in.field, p.x / cell, p.z / cell) {
-                    continue;
-                }
-                if first_hit < 0.0 {
-                    first_hit = t;
-                }
-                let wgt = (1.0 - alpha) * s.a;
-                color += wgt * abs(s.rgb) * light;
-                alpha += wgt;
-                if alpha >= 0.995 {
-                    break;
                 }
             }
         }
