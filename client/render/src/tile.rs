@@ -83,14 +83,13 @@ impl CanopyProfile {
         out
     }
 
-    /// Cover from straight above with the first `classes` classes kept: `1 − e^(−∫σ dh)` over the tile's height
-    /// `top`.
-    pub fn cover_from_above(&self, classes: usize, top: f32) -> f32 {
+    /// Optical depth straight down through the layer, `∫σ dh` over the tile's height `top`, with the first
+    /// `classes` classes kept (its cover from above is `1 − e^(−depth)`).
+    pub fn depth(&self, classes: usize, top: f32) -> f32 {
         if classes == 0 {
             return 0.0;
         }
-        let depth: f32 = self.sigma.iter().map(|s| s[classes - 1]).sum::<f32>() * top / PROFILE_BANDS as f32;
-        1.0 - (-depth).exp()
+        self.sigma.iter().map(|s| s[classes - 1]).sum::<f32>() * (top / PROFILE_BANDS as f32)
     }
 
     /// The mean colour the layer shows, as [`Grid::mean_view`] looks (straight down and at 30° elevation), with
@@ -356,10 +355,9 @@ impl Grid {
         let colours: [[f32; 3]; PROFILE_BANDS] =
             std::array::from_fn(|b| if weight[b] > 0.0 { rgb[b].map(|c| c / weight[b]) } else { [0.0; 3] });
         let mut profile = CanopyProfile { sigma, colour: colours };
-        let band = top / PROFILE_BANDS as f32;
         for n in 0..CLASSES {
             let target = (cover[n] / f64::from(dx * dz)) as f32;
-            let depth: f32 = profile.sigma.iter().map(|s| s[n]).sum::<f32>() * band;
+            let depth = profile.depth(n + 1, top);
             if depth > 0.0 {
                 let want = -(1.0 - target.min(MAX_ALPHA)).ln();
                 profile.sigma.iter_mut().for_each(|s| s[n] *= want / depth);
@@ -582,7 +580,7 @@ mod tests {
         let (_, tile) = conifer_tile(32);
         let p = &tile.profile;
         for k in 1..=DENSITY_CLASSES {
-            let (layer, trees) = (p.cover_from_above(k as usize, tile.top), cover(&tile.mips[0], k));
+            let (layer, trees) = (1.0 - (-p.depth(k as usize, tile.top)).exp(), cover(&tile.mips[0], k));
             assert!((layer - trees).abs() < 0.02, "{k} classes: the layer covers {layer}, the trees {trees}");
         }
         // Extinction grows with every class kept, in every band; the crowns' band holds the most.
