@@ -364,7 +364,18 @@ impl Inner {
                             .await
                             .map_err(|err| io("checking a publish", err))?;
                         if first.sequence != ack.sequence {
-                            self.learn(c, Known { version: 0, sequence: ack.sequence });
+                            // Lost: the message is refused, so it is taken out of the stream too — readers skip
+                            // it anyway, and the stream then holds exactly the edits acknowledged (its message
+                            // counts are `count` and `cells`). Should the delete fail, readers still skip it.
+                            match self.stream.delete_message(ack.sequence).await {
+                                // The winner, this very version, is the cell's last edit again (or a later one
+                                // is, which the store learns when it reads or watches the cell).
+                                Ok(_) => self.learn(c, Known { version: e.version, sequence: first.sequence }),
+                                Err(err) => {
+                                    debug!(?c, "deleting a lost publish: {err}");
+                                    self.learn(c, Known { version: 0, sequence: ack.sequence });
+                                }
+                            }
                             return Err(EditStoreError::Conflict { cell: c, version: e.version });
                         }
                         self.learn(c, Known { version: e.version, sequence: ack.sequence });
