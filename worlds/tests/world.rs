@@ -153,7 +153,7 @@ fn every_statement_of_the_format() {
     let rule = &w.rules[0];
     assert_eq!((rule.species, rule.spacing, rule.density), (1, 3.0, 0.75));
     assert_eq!((rule.altitude.a, rule.altitude.b, rule.altitude.c, rule.altitude.d), (5.0, 10.0, 20.0, 25.0));
-    assert_eq!((rule.slope.a, rule.slope.c, rule.slope.d), (f32::NEG_INFINITY, 30.0, 30.0));
+    assert_eq!((rule.slope.ramp.a, rule.slope.ramp.c, rule.slope.ramp.d), (f32::NEG_INFINITY, 30.0, 30.0));
     assert_eq!((rule.region.min, rule.region.max), ([-128.0, -64.0], [0.0, 64.0]));
     assert_eq!(rule.avoid, [(0, 2.0)]);
     // Scattered weeds: in the region, on the height steps, the constant spread stored (its default draws).
@@ -180,19 +180,19 @@ fn ramps_take_every_shape() {
         [0.0, 1.0, 1.0, 0.0]
     );
     assert_eq!(
-        [r.slope.at(1.0), r.slope.at(3.0), r.slope.at(5.0), r.slope.at(8.0), r.slope.at(11.0)],
+        [r.slope.ramp.at(1.0), r.slope.ramp.at(3.0), r.slope.ramp.at(5.0), r.slope.ramp.at(8.0), r.slope.ramp.at(11.0)],
         [0.0, 0.5, 1.0, 0.5, 0.0]
     );
     let r = &rules("  altitude -5 ..\n  slope .. 3 4\n")[0];
     assert_eq!([r.altitude.at(-5.5), r.altitude.at(-5.0), r.altitude.at(1e9)], [0.0, 1.0, 1.0]);
-    assert_eq!([r.slope.at(0.0), r.slope.at(3.5), r.slope.at(4.5)], [1.0, 0.5, 0.0]);
+    assert_eq!([r.slope.ramp.at(0.0), r.slope.ramp.at(3.5), r.slope.ramp.at(4.5)], [1.0, 0.5, 0.0]);
     // The greatest value over an interval, which lets ground where a rule's density is 0 throw no darts.
     assert_eq!(
-        [r.slope.max_over([3.5, 3.75]), r.slope.max_over([2.0, 9.0]), r.slope.max_over([4.0, 9.0])],
+        [r.slope.ramp.max_over([3.5, 3.75]), r.slope.ramp.max_over([2.0, 9.0]), r.slope.ramp.max_over([4.0, 9.0])],
         [0.5, 1.0, 0.0]
     );
     let r = &rules("")[0];
-    assert_eq!((r.altitude.at(-1e30), r.slope.at(89.0), r.density), (1.0, 1.0, 1.0));
+    assert_eq!((r.altitude.at(-1e30), r.slope.ramp.at(89.0), r.density), (1.0, 1.0, 1.0));
 }
 
 #[test]

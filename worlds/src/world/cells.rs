@@ -151,19 +151,20 @@ pub(crate) enum Ground<'a> {
 }
 
 impl Ground<'_> {
-    pub(crate) fn height_and_slope(&self, x: f64, z: f64) -> (f32, f32) {
+    /// Height and `|∇h|²` (for [`super::SlopeRamp`]).
+    pub(crate) fn height_and_gradient2(&self, x: f64, z: f64) -> (f32, f64) {
         match self {
-            Ground::World(w) => w.height_and_slope(x as f32, z as f32),
-            Ground::Patch(p) => p.height_and_slope(x, z),
+            Ground::World(w) => w.height_and_gradient2(x as f32, z as f32),
+            Ground::Patch(p) => p.height_and_gradient2(x, z),
         }
     }
 
     fn density(&self, rule: &ScatterRule, x: f64, z: f64) -> f32 {
-        if rule.altitude == Ramp::ALL && rule.slope == Ramp::ALL {
+        if rule.altitude == Ramp::ALL && rule.slope.ramp == Ramp::ALL {
             return rule.density;
         }
-        let (h, s) = self.height_and_slope(x, z);
-        rule.density * rule.altitude.at(h) * rule.slope.at(s)
+        let (h, g2) = self.height_and_gradient2(x, z);
+        rule.density * rule.altitude.at(h) * rule.slope.at(g2)
     }
 }
 

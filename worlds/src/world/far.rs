@@ -229,7 +229,7 @@ impl Model {
                 RuleModel {
                     species,
                     darts: PACKING / (spacing * spacing),
-                    ramps: r.altitude != Ramp::ALL || r.slope != Ramp::ALL,
+                    ramps: r.altitude != Ramp::ALL || r.slope.ramp != Ramp::ALL,
                     avoid,
                     height,
                 }
@@ -335,7 +335,7 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                     let (a, b) = phase(i, j);
                     let (x, z) = (at(cx, i, a), at(cz, j, b));
                     let k = (j * COVER_SIDE + i) as usize;
-                    let mut ground: Option<(f32, f32)> = None;
+                    let mut ground: Option<(f32, f64)> = None;
                     lambda.iter_mut().for_each(|l| *l = 0.0);
                     for &r in &active {
                         let (rule, m) = (&world.rules[r], &model.rules[r]);
@@ -344,8 +344,8 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                         }
                         // The keep probability, in f32 exactly as `ScatterRule::density_at`.
                         let p = if m.ramps {
-                            let (h, sl) = *ground.get_or_insert_with(|| heights.height_and_slope(x, z));
-                            rule.density * rule.altitude.at(h) * rule.slope.at(sl)
+                            let (h, g2) = *ground.get_or_insert_with(|| heights.height_and_gradient2(x, z));
+                            rule.density * rule.altitude.at(h) * rule.slope.at(g2)
                         } else {
                             rule.density
                         };
@@ -620,21 +620,75 @@ fn node_with(world: &World, model: &Model, key: NodeKey) -> NodeSummary {
     build_up(roots, side, |_| {})
 }
 
-/// Most blocks computed at once by [`Summaries::get`] (bounds what one request holds before caching it).
-const BLOCKS_AT_ONCE: usize = 64;
-
 /// Memoised summary nodes of one world, for the server's far view and `canopy render`: [`Summaries::get`] answers
 /// a node from the cache, from cached descendants, or from leaves computed in blocks of 16 × 16 cells (on the
 /// available cores). At most `capacity` nodes are kept; the least recently used goes first. Nodes are pure
 /// functions of the world and the key: what is cached, and the order of requests, never changes an answer.
+///
+/// A caller that shares the memo between threads computes outside its lock: [`Summaries::plan`] (under the lock:
+/// what is cached, which blocks are missing), [`Plan::compute`] (the leaves, without the memo), then
+/// [`Summaries::finish`] (under the lock again: cache and aggregate). Two threads planning overlapping nodes at once
+/// may compute a block twice; both get the same nodes.
 #[derive(Debug)]
 pub struct Summaries {
     world: Arc<World>,
-    model: Model,
+    model: Arc<Model>,
     capacity: usize,
     tick: u64,
     nodes: BTreeMap<NodeKey, (u64, Arc<NodeSummary>)>,
     used: BTreeMap<u64, NodeKey>,
+}
+
+/// What computing one node needs beyond the cache ([`Summaries::plan`]): the blocks of leaves to compute.
+#[derive(Debug)]
+pub struct Plan {
+    key: NodeKey,
+    world: Arc<World>,
+    model: Arc<Model>,
+    /// Nodes found cached on the way down, held so that evictions meanwhile do not matter.
+    local: BTreeMap<NodeKey, Arc<NodeSummary>>,
+    /// Blocks (level [`LEAF_BLOCK_LEVEL`]) to compute, sorted.
+    missing: Vec<NodeKey>,
+    /// Most nodes below the blocks' roots to hand back for caching (half the memo's capacity).
+    keep: usize,
+}
+
+/// A [`Plan`] computed, for [`Summaries::finish`].
+#[derive(Debug)]
+pub struct Computed {
+    key: NodeKey,
+    local: BTreeMap<NodeKey, Arc<NodeSummary>>,
+    /// The blocks' roots.
+    roots: Vec<NodeSummary>,
+    /// Nodes computed on the way (levels ≥ 1, leaves too when a leaf is asked for), to cache.
+    found: Vec<NodeSummary>,
+}
+
+impl Plan {
+    /// Compute the plan's blocks (on the available cores), touching no memo.
+    pub fn compute(self) -> Computed {
+        let Plan { key, world, model, local, missing, keep } = self;
+        let leaves = key.level == 0;
+        // Each block hands back its nodes of levels 1 ..= LEAF_BLOCK_LEVEL (85), or its 256 leaves as well.
+        let per_block = if leaves { 341 } else { 85 };
+        let kept_blocks = (keep / per_block).max(1);
+        let computed = par::map(
+            &missing,
+            || (),
+            |_, &b| {
+                let mut found = Vec::new();
+                let n = missing.partition_point(|&m| m < b);
+                let root = subtree(&world, &model, b, |node| {
+                    if n < kept_blocks && (node.key.level >= 1 || leaves) && node.key != b {
+                        found.push(node.clone());
+                    }
+                });
+                (root, found)
+            },
+        );
+        let (roots, found): (Vec<NodeSummary>, Vec<Vec<NodeSummary>>) = computed.into_iter().unzip();
+        Computed { key, local, roots, found: found.into_iter().flatten().collect() }
+    }
 }
 
 impl Summaries {
@@ -645,7 +699,7 @@ impl Summaries {
 
     /// A cache of at most `capacity` nodes (at least 1).
     pub fn with_capacity(world: Arc<World>, capacity: usize) -> Summaries {
-        let model = Model::new(&world);
+        let model = Arc::new(Model::new(&world));
         Summaries { world, model, capacity: capacity.max(1), tick: 0, nodes: BTreeMap::new(), used: BTreeMap::new() }
     }
 
@@ -672,66 +726,60 @@ impl Summaries {
     /// The summary of `key`: computed (and cached, with the nodes computed on the way: every node of level ≥ 1 of
     /// the blocks computed, and the leaves too when a leaf is asked for) unless cached.
     pub fn get(&mut self, key: NodeKey) -> Arc<NodeSummary> {
+        match self.plan(key) {
+            Ok(hit) => hit,
+            Err(plan) => self.finish(plan.compute()),
+        }
+    }
+
+    /// `key` if it is cached, else what computing it needs: the cached nodes below it and the missing blocks.
+    pub fn plan(&mut self, key: NodeKey) -> Result<Arc<NodeSummary>, Plan> {
         if let Some(hit) = self.touch(key) {
-            return hit;
+            return Ok(hit);
         }
-        if key.level <= LEAF_BLOCK_LEVEL {
-            let shift = LEAF_BLOCK_LEVEL - key.level;
-            let block = NodeKey { level: LEAF_BLOCK_LEVEL, x: key.x >> shift, z: key.z >> shift };
-            let mut found = Vec::new();
-            let mut wanted = None;
-            subtree(&self.world, &self.model, block, |n| {
-                if n.key == key {
-                    wanted = Some(Arc::new(n.clone()));
-                }
-                if n.key.level >= 1 || key.level == 0 {
-                    found.push(n.clone());
-                }
-            });
-            for n in found {
-                self.insert(Arc::new(n));
-            }
-            let wanted = wanted.expect("the block holds the node");
-            self.insert(wanted.clone());
-            return wanted;
-        }
-        // Cached nodes on the way down are held here, so that evictions while computing do not matter.
         let mut local: BTreeMap<NodeKey, Arc<NodeSummary>> = BTreeMap::new();
         let mut missing = Vec::new();
-        let mut stack = vec![key];
-        while let Some(k) = stack.pop() {
-            if let Some(n) = self.touch(k) {
-                local.insert(k, n);
-            } else if k.level == LEAF_BLOCK_LEVEL {
-                missing.push(k);
-            } else if let Some(children) = k.children() {
-                stack.extend(children);
-            }
-        }
-        missing.sort();
-        for chunk in missing.chunks(BLOCKS_AT_ONCE) {
-            let (world, model) = (&*self.world, &self.model);
-            let computed = par::map(
-                chunk,
-                || (),
-                |_, &b| {
-                    let mut found = Vec::new();
-                    let root = subtree(world, model, b, |n| {
-                        if n.key.level >= 1 {
-                            found.push(n.clone());
-                        }
-                    });
-                    (root, found)
-                },
-            );
-            for (root, found) in computed {
-                for n in found {
-                    self.insert(Arc::new(n));
+        if key.level <= LEAF_BLOCK_LEVEL {
+            let shift = LEAF_BLOCK_LEVEL - key.level;
+            missing.push(NodeKey { level: LEAF_BLOCK_LEVEL, x: key.x >> shift, z: key.z >> shift });
+        } else {
+            let mut stack = vec![key];
+            while let Some(k) = stack.pop() {
+                if let Some(n) = self.touch(k) {
+                    local.insert(k, n);
+                } else if k.level == LEAF_BLOCK_LEVEL {
+                    missing.push(k);
+                } else if let Some(children) = k.children() {
+                    stack.extend(children);
                 }
-                local.insert(root.key, Arc::new(root));
             }
+            missing.sort();
         }
-        self.resolve(key, &mut local)
+        let (world, model) = (Arc::clone(&self.world), Arc::clone(&self.model));
+        Err(Plan { key, world, model, local, missing, keep: self.capacity / 2 })
+    }
+
+    /// Cache what a plan computed and answer its node (aggregating the levels above the blocks).
+    pub fn finish(&mut self, computed: Computed) -> Arc<NodeSummary> {
+        let Computed { key, mut local, roots, found } = computed;
+        let mut wanted = None;
+        for n in found.into_iter().chain(roots) {
+            let n = Arc::new(n);
+            if n.key == key {
+                wanted = Some(n.clone());
+            }
+            if n.key.level == LEAF_BLOCK_LEVEL {
+                local.insert(n.key, n.clone());
+            }
+            self.insert(n);
+        }
+        match wanted {
+            Some(n) => {
+                self.touch(key);
+                n
+            }
+            None => self.resolve(key, &mut local),
+        }
     }
 
     /// `key` from `local` (cached nodes and computed blocks), aggregating missing levels and caching them.

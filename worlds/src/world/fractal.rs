@@ -28,6 +28,7 @@
 
 use canopy_protocol::messages::FractalDesc;
 
+use super::terrain::slope_degrees;
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
 
@@ -160,6 +161,11 @@ impl Fractal {
         self.patch([x, z], [x, z], self.depth).height_and_slope(x, z)
     }
 
+    /// Height and `|∇h|²` at (x, z) at full depth ([`Patch::height_and_gradient2`]).
+    pub fn height_and_gradient2(&self, x: f64, z: f64) -> (f32, f64) {
+        self.patch([x, z], [x, z], self.depth).height_and_gradient2(x, z)
+    }
+
     /// Height at (x, z) at a coarser depth (recursion-depth LOD); `depth` is clamped to the full depth.
     pub fn height_at_depth(&self, x: f64, z: f64, depth: u32) -> f32 {
         self.patch([x, z], [x, z], depth.min(self.depth)).height_and_slope(x, z).0
@@ -195,19 +201,26 @@ impl Fractal {
             let d = f64::from(self.relief) * pow_int(self.ratio, k as u32 - 1);
             let stream = child_key(self.seed, k as u64);
             let mut next = Grid::new(lo_k, hi_k);
-            for j in lo_k[1]..=hi_k[1] {
-                for i in lo_k[0]..=hi_k[0] {
-                    let p = |a: i64, b: i64| values.get(a.div_euclid(2), b.div_euclid(2));
-                    let v = match (i & 1, j & 1) {
-                        (0, 0) => p(i, j),
-                        (1, 0) => (p(i - 1, j) + p(i + 1, j)) * 0.5 + d * noise(&mut rng, stream, i, j),
-                        (0, _) => (p(i, j - 1) + p(i, j + 1)) * 0.5 + d * noise(&mut rng, stream, i, j),
-                        _ => {
-                            ((p(i - 1, j - 1) + p(i + 1, j - 1)) + (p(i - 1, j + 1) + p(i + 1, j + 1))) * 0.25
-                                + d * noise(&mut rng, stream, i, j)
+            // Tile by tile of 4 × 4 points, the points that share a noise block (`noise`): one ChaCha block each.
+            // Every point depends on the level above only, so the order changes no value.
+            for tj in lo_k[1] >> 2..=hi_k[1] >> 2 {
+                for ti in lo_k[0] >> 2..=hi_k[0] >> 2 {
+                    for j in (tj * 4).max(lo_k[1])..=(tj * 4 + 3).min(hi_k[1]) {
+                        for i in (ti * 4).max(lo_k[0])..=(ti * 4 + 3).min(hi_k[0]) {
+                            let p = |a: i64, b: i64| values.get(a.div_euclid(2), b.div_euclid(2));
+                            let n = |rng: &mut InstanceRng| d * noise(rng, stream, i, j);
+                            let v = match (i & 1, j & 1) {
+                                (0, 0) => p(i, j),
+                                (1, 0) => (p(i - 1, j) + p(i + 1, j)) * 0.5 + n(&mut rng),
+                                (0, _) => (p(i, j - 1) + p(i, j + 1)) * 0.5 + n(&mut rng),
+                                _ => {
+                                    ((p(i - 1, j - 1) + p(i + 1, j - 1)) + (p(i - 1, j + 1) + p(i + 1, j + 1))) * 0.25
+                                        + n(&mut rng)
+                                }
+                            };
+                            next.set(i, j, v);
                         }
-                    };
-                    next.set(i, j, v);
+                    }
                 }
             }
             values = next;
@@ -305,6 +318,13 @@ impl Patch {
     /// Height and slope (degrees) at (x, z), which must lie in the rectangle the patch was made for: on the
     /// triangle of the lattice square under it (split along `(0, 0)–(1, 1)`).
     pub fn height_and_slope(&self, x: f64, z: f64) -> (f32, f32) {
+        let (h, g2) = self.height_and_gradient2(x, z);
+        (h, slope_degrees(g2))
+    }
+
+    /// Height and `|∇h|²` at (x, z) (the slope before its `atan`, see [`slope_degrees`]), as
+    /// [`Patch::height_and_slope`].
+    pub fn height_and_gradient2(&self, x: f64, z: f64) -> (f32, f64) {
         let (u, v) = ((x - self.origin[0]) / self.spacing, (z - self.origin[1]) / self.spacing);
         let (i, j) = (u.floor(), v.floor());
         let (fx, fz) = (u - i, v - j);
@@ -315,8 +335,7 @@ impl Patch {
         let c11 = self.values.get(i + 1, j + 1);
         let (gx, gz) = if fx >= fz { (c10 - c00, c11 - c10) } else { (c11 - c01, c01 - c00) };
         let h = c00 + gx * fx + gz * fz;
-        let g2 = (gx * gx + gz * gz) / (self.spacing * self.spacing);
-        (h as f32, (libm::atan(g2.sqrt()) * (180.0 / std::f64::consts::PI)) as f32)
+        (h as f32, (gx * gx + gz * gz) / (self.spacing * self.spacing))
     }
 }
 

@@ -131,9 +131,9 @@ pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION
 pub use far::{DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, PACKING, Summaries, aggregate, summary_bytes};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use ground::Ground;
-pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule};
+pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule, SlopeRamp};
 pub use summary::Estimate;
-pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError};
+pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError, slope_degrees};
 
 /// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
 pub use canopy_protocol::netlimits::MAX_SPECIES;
@@ -516,9 +516,15 @@ impl World {
 
     /// Terrain height and slope (degrees) at (x, z).
     pub fn height_and_slope(&self, x: f32, z: f32) -> (f32, f32) {
+        let (h, g2) = self.height_and_gradient2(x, z);
+        (h, slope_degrees(g2))
+    }
+
+    /// Height and `|∇h|²` at (x, z): the slope before its `atan` ([`slope_degrees`]), for [`SlopeRamp`]s.
+    pub fn height_and_gradient2(&self, x: f32, z: f32) -> (f32, f64) {
         match &self.fractal {
-            Some(f) => f.height_and_slope(f64::from(x), f64::from(z)),
-            None => self.terrain.height_and_slope(x, z),
+            Some(f) => f.height_and_gradient2(f64::from(x), f64::from(z)),
+            None => self.terrain.height_and_gradient2(x, z),
         }
     }
 

@@ -483,9 +483,15 @@ impl Terrain {
 
     /// [`Terrain::height`] and [`Terrain::slope`] together, finding the triangle once.
     pub fn height_and_slope(&self, x: f32, z: f32) -> (f32, f32) {
+        let (h, g2) = self.height_and_gradient2(x, z);
+        (h, slope_degrees(g2))
+    }
+
+    /// [`Terrain::height`] and `|∇h|²` (the slope before its `atan`, see [`slope_degrees`]).
+    pub fn height_and_gradient2(&self, x: f32, z: f32) -> (f32, f64) {
         let (v, w, g) = self.triangle(x, z);
         let h = |k: usize| f64::from(self.vertex_height(v[k][0], v[k][1]));
-        ((w[0] * h(0) + w[1] * h(1) + w[2] * h(2)) as f32, slope_degrees(self.gradient_squared(g)))
+        ((w[0] * h(0) + w[1] * h(1) + w[2] * h(2)) as f32, self.gradient_squared(g))
     }
 
     /// The height gradient `(dh/dx, dh/dz)` of the triangle under (x, z).
@@ -509,7 +515,7 @@ impl Terrain {
     }
 }
 
-/// A slope in degrees from `|∇h|²`.
-fn slope_degrees(gradient2: f64) -> f32 {
+/// A slope in degrees from `|∇h|²`: `atan √g2 · 180 / π` in f64 through `libm`, rounded to f32.
+pub fn slope_degrees(gradient2: f64) -> f32 {
     (libm::atan(gradient2.sqrt()) * (180.0 / std::f64::consts::PI)) as f32
 }
