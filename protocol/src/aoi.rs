@@ -139,6 +139,14 @@ pub const FLIGHT_GROUND_PER_ALTITUDE: f32 = 2.0;
 /// The least radius a flying client asks for, metres (low flight still wants the cells around it).
 pub const FLIGHT_MIN_RADIUS: f32 = 128.0;
 
+/// The share of a link's rate that the records of a moving client's area of interest may take in
+/// [`AoiParams::link_radius`]: the rest carries the far view's summaries, control, transport, turns (a turn sweeps
+/// more new ground than a straight leg) and the filling of what the look-ahead point leads into.
+pub const LINK_RECORD_SHARE: f64 = 0.6;
+
+/// The least radius [`AoiParams::link_radius`] gives, metres: the cells under the client, however slow the link.
+pub const LINK_MIN_RADIUS: f32 = 32.0;
+
 impl AoiParams {
     /// The radius a client flying `altitude` metres above the terrain at `speed` metres per second asks for (the
     /// viewpoint carries no height: altitude enters the area of interest only through this rule):
@@ -154,6 +162,26 @@ impl AoiParams {
         let ground = (altitude.max(0.0) * FLIGHT_GROUND_PER_ALTITUDE).max(FLIGHT_MIN_RADIUS);
         let cut = (speed.abs() * self.lookahead_s - self.max_lookahead).max(0.0);
         (ground + cut).min(self.max_radius)
+    }
+
+    /// The largest radius whose records a link carries while the client moves: moving at `speed` metres per second,
+    /// an area of interest of radius `r` takes in `2 · r · speed` square metres of new ground a second (its leading
+    /// edge), holding `density` records a square metre at `record_bytes` bytes each on the wire, so
+    ///
+    /// `r = LINK_RECORD_SHARE · link_bits / 8 / (2 · speed · density · record_bytes)`
+    ///
+    /// within `LINK_MIN_RADIUS ..= max_radius` (at rest, or over an empty world, `max_radius`). A client on a slow
+    /// link asks for this instead of more (with [`AoiParams::flight_radius`]: the smaller of the two), so that the
+    /// records it asks for arrive in time and the far view draws the rest. Not-a-number inputs count as 0.
+    pub fn link_radius(&self, link_bits: f64, speed: f32, density: f64, record_bytes: f64) -> f32 {
+        let swept = 2.0 * f64::from(speed.abs()) * density.max(0.0) * record_bytes.max(0.0);
+        let cap = self.max_radius.max(LINK_MIN_RADIUS);
+        // Not moving, nothing to carry, or not a number: nothing limits the radius.
+        if swept.is_nan() || swept <= 0.0 {
+            return cap;
+        }
+        let r = LINK_RECORD_SHARE * link_bits.max(0.0) / 8.0 / swept;
+        if r.is_nan() { LINK_MIN_RADIUS } else { (r.min(f64::from(cap)) as f32).max(LINK_MIN_RADIUS) }
     }
 }
 
@@ -289,6 +317,25 @@ impl Aoi {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_link_radius_fits_the_records_of_the_leading_edge_into_a_share_of_the_link() {
+        let p = AoiParams::default();
+        // 1 Mbit/s, 250 m/s over 0.1 records a m² of 7.5 bytes: 0.6 · 125,000 / (2 · 250 · 0.1 · 7.5) = 200 m.
+        assert_eq!(p.link_radius(1e6, 250.0, 0.1, 7.5), 200.0);
+        assert_eq!(p.link_radius(1e6, -250.0, 0.1, 7.5), 200.0, "speed, not velocity");
+        // Ten times the link: capped at the server's radius.
+        assert_eq!(p.link_radius(1e7, 250.0, 0.1, 7.5), 512.0);
+        // Slower or denser: smaller, but never under the cells below.
+        assert_eq!(p.link_radius(1e6, 500.0, 0.1, 7.5), 100.0);
+        assert_eq!(p.link_radius(1e3, 250.0, 0.1, 7.5), LINK_MIN_RADIUS);
+        // At rest, over an empty world, or with nothing known: the cap.
+        assert_eq!(p.link_radius(1e6, 0.0, 0.1, 7.5), 512.0);
+        assert_eq!(p.link_radius(1e6, 250.0, 0.0, 7.5), 512.0);
+        assert_eq!(p.link_radius(1e6, f32::NAN, 0.1, 7.5), 512.0);
+        assert_eq!(p.link_radius(f64::NAN, 250.0, 0.1, 7.5), LINK_MIN_RADIUS);
+        assert_eq!(p.link_radius(f64::INFINITY, 250.0, 0.1, 7.5), 512.0);
+    }
 
     #[test]
     fn the_flight_radius_grows_with_altitude_and_the_cut_look_ahead_and_stops_at_the_cap() {

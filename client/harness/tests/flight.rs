@@ -104,6 +104,7 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
         stop: tokio::sync::watch::channel(false).1,
         // The far view beyond the records (issue 15): summary nodes out to 3 km.
         far: Some(FarView { error_px: 16.0, height_px: 1080, fov_y: 1.0, range: 3000.0, altitude: 0.0 }),
+        fit: None,
     };
     let complete = bots::drive(&mut conn, &mut walker, plan, &mut track).await.expect("flies");
     assert!(complete, "the area of interest filled at the end");
@@ -129,5 +130,65 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
     assert!(reports.iter().all(|r| r.viewpoints >= 10), "they moved: {summary}");
     assert!(summary.moving.samples >= 8, "sampled while flying: {summary}");
     eprintln!("{summary}");
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+/// The radii a bot asked for, viewpoint by viewpoint.
+#[derive(Default)]
+struct Radii(Vec<(u32, f32)>);
+
+impl DriveHooks for Radii {
+    fn changed(&mut self, conn: &Connection) {
+        if let Some(v) = conn.state().viewpoint()
+            && self.0.last().is_none_or(|&(seq, _)| seq != v.seq)
+        {
+            self.0.push((v.seq, v.radius));
+        }
+    }
+}
+
+/// A flight on a slow link asks, while it moves, for the radius the link carries at its speed
+/// (`AoiParams::link_radius` over the records around it), not the flight radius; at rest it asks for the flight
+/// radius again, and what it holds is exact against the world's function.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flight_on_a_slow_link_asks_for_the_radius_the_link_carries() {
+    let server = start_server().await;
+    let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+    let radius = AOI.flight_radius(1500.0, 250.0);
+    let mut walker = Walker::new(PathKind::Flight, 250.0, [-300.0, -300.0], [300.0, 300.0], 5).with_altitude(1500.0);
+    let first = walker.viewpoint(radius);
+    let mut conn = Connection::connect(&ep, &pinned(&server), None, |_| first).await.expect("connects");
+    // 100 kbit/s: 0.6 · 12,500 B/s over 2 · 250 m/s · 0.05 records/m² (the forest near (0, 0)) · ~7.5 B is
+    // ~40 m, well under the 192 m cap.
+    let fit = bots::LinkFit { link_bits: 100_000.0 };
+    let plan = DrivePlan {
+        radius,
+        tick: Duration::from_millis(100),
+        walk_until: Instant::now() + Duration::from_secs(3),
+        settle: Duration::from_secs(60),
+        sample: None,
+        stop: tokio::sync::watch::channel(false).1,
+        far: None,
+        fit: Some(fit),
+    };
+    let mut radii = Radii::default();
+    let complete = bots::drive(&mut conn, &mut walker, plan, &mut radii).await.expect("flies");
+    assert!(complete, "the area of interest filled at the end");
+    let (moving, rest) = radii.0.split_at(radii.0.len() - 1);
+    assert_eq!(rest[0].1, radius, "at rest: the flight radius again");
+    let fitted: Vec<f32> = moving.iter().map(|&(_, r)| r).filter(|&r| r < radius).collect();
+    assert!(!fitted.is_empty(), "a fitted radius was asked for while moving: {:?}", radii.0);
+    assert!(
+        fitted.iter().all(|&r| (canopy_protocol::aoi::LINK_MIN_RADIUS..=120.0).contains(&r)),
+        "what 100 kbit/s carries at 250 m/s: {:?}",
+        radii.0
+    );
+    // The density the fit read is the records' around the bot.
+    let density = conn.state().record_density().expect("cells held");
+    assert!((0.01..1.0).contains(&density), "{density} records a m²");
+    let state = conn.close_into_state();
+    let checked = tokio::task::spawn_blocking(move || bots::verify(&state, &highlands())).await.unwrap();
+    let summary = checked.expect("exact against World::expand_cell");
+    assert!(summary.instances > 0, "{summary:?}");
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -418,6 +418,15 @@ impl ClientState {
         self.phase == Phase::Streaming && self.missing == 0
     }
 
+    /// Records a square metre over the cells held (their counts as the server announced them, received or not):
+    /// what a client on a slow link fits its radius with ([`canopy_protocol::aoi::AoiParams::link_radius`]).
+    /// `None` before a welcome and a first cell.
+    pub fn record_density(&self) -> Option<f64> {
+        let s = f64::from(self.welcome.as_ref()?.world.grid.cell_size);
+        let records: u64 = self.cells.values().map(|c| u64::from(c.total)).sum();
+        (!self.cells.is_empty()).then(|| records as f64 / (self.cells.len() as f64 * s * s))
+    }
+
     /// Instance records held (felled ones not counted).
     pub fn record_count(&self) -> usize {
         self.cells.values().map(|c| c.records.len() - c.felled.len()).sum()
@@ -852,6 +861,18 @@ mod tests {
         s.on_welcome(welcome()).unwrap();
         assert!(matches!(s.on_welcome(welcome()), Err(StateError::Phase(_))));
         assert!(matches!(s.handle(batch(CellCoord::new(0, 0), 1, 0, 1, 1)), Err(StateError::Phase(_))));
+    }
+
+    /// The density a slow client fits its radius with: the announced totals of the cells held, over their area
+    /// (a cell counts from its first batch, before its last record arrives).
+    #[test]
+    fn record_density_is_the_held_cells_announced_records_over_their_area() {
+        let mut s = streaming();
+        assert_eq!(s.record_density(), None, "nothing held yet");
+        s.handle(batch(CellCoord::new(0, 0), 1, 0, 2, 30)).unwrap();
+        // 30 records in a 10 m × 10 m cell, 2 of them received.
+        assert_eq!(s.record_density(), Some(0.3));
+        assert_eq!(ClientState::new().record_density(), None, "no welcome");
     }
 
     #[test]

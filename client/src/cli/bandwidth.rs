@@ -108,6 +108,10 @@ pub struct BandwidthArgs {
     /// Walk straight on without the teleport half-way (flights never teleport).
     #[arg(long)]
     no_teleport: bool,
+    /// Ask for the same radius however slow the link (flights otherwise fit their radius to each scenario's link
+    /// rate while they move, and visible completeness is judged within the radius asked at each sample).
+    #[arg(long)]
+    fixed_radius: bool,
     /// Path seed (bot `i` uses seed + i; default 1 walking, 6 flying: forest under both bots' flights over the
     /// highlands).
     #[arg(long)]
@@ -181,6 +185,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     cfg.view = args.view.or((!flying).then_some(args.radius));
     cfg.far = args.far.view(flying, args.altitude)?;
     cfg.teleport = !args.no_teleport && !flying;
+    cfg.fit = flying && !args.fixed_radius;
     cfg.seed = args.seed.unwrap_or(cfg.seed);
     cfg.sample = Duration::from_millis(args.sample_ms.clamp(10, 60_000));
     cfg.pace = args.pace.clamp(0.0, 10.0);

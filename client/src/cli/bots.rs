@@ -56,6 +56,10 @@ pub struct BotsArgs {
     /// Area-of-interest radius, metres (walkers; a flight's follows from `--altitude` and `--speed`).
     #[arg(long, default_value_t = 160.0)]
     radius: f32,
+    /// The bots' link rate (bits a second: `1M`, `500k`): while moving they ask for the radius it carries at their
+    /// speed over the records around them, at most the one above (default: not fitted).
+    #[arg(long, value_parser = parse_link)]
+    link: Option<u64>,
     /// New connections per second while ramping up.
     #[arg(long, default_value_t = 200.0)]
     connect_rate: f64,
@@ -175,6 +179,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.altitude = args.altitude;
     cfg.duration = Duration::from_secs_f64(args.duration);
     cfg.radius = args.radius;
+    cfg.fit = args.link.map(|rate| canopy_harness::bots::LinkFit { link_bits: rate as f64 });
     cfg.connect_rate = args.connect_rate;
     cfg.cache_dir = args.cache_dir.clone();
     cfg.settle = Duration::from_secs_f64(args.settle);
@@ -261,4 +266,9 @@ pub fn run_bots(
         }
         None => summary,
     })
+}
+
+/// A link rate for `--link`: a number of bits a second, not "unlimited".
+fn parse_link(s: &str) -> Result<u64, String> {
+    canopy_harness::bandwidth::link::parse_rate(s)?.ok_or_else(|| format!("`{s}`: give a rate, e.g. 1M"))
 }

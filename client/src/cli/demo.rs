@@ -186,7 +186,8 @@ fn demo(
         // Flying bots ask for the far view (summary nodes to the horizon), as `canopy bots` does.
         cfg.far = super::far::BotFarArgs::default().view(args.path == PathKind::Flight, args.altitude)?;
         let forever = args.duration <= 0.0 || windowed;
-        let walk = bots::Walk { path: args.path, speed: args.speed, radius: args.radius, altitude: args.altitude, seed: 0 };
+        let walk =
+            bots::Walk { path: args.path, speed: args.speed, radius: args.radius, altitude: args.altitude, seed: 0, fit: None };
         let height = if args.path == PathKind::Flight { format!(", {} m above the terrain", args.altitude) } else { String::new() };
         println!(
             "{} bots {} ({}, {} m/s{height}, AOI radius {} m) {}",

@@ -18,7 +18,7 @@ use quinn::Endpoint;
 use super::link::{self, Relay};
 use super::measure::{Bytes, GroundTruth, HeldSnapshot, Sample, SamplePhase};
 use super::{BandwidthConfig, BandwidthError, BotResult, LinkTotals, Scenario};
-use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, PathKind, Walker};
+use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, LinkFit, PathKind, Walker};
 
 /// Live counters for the progress display.
 #[derive(Debug, Default)]
@@ -36,6 +36,7 @@ struct BotParams {
     radius: f32,
     view: Option<f32>,
     far: Option<FarView>,
+    fit: Option<LinkFit>,
     teleport: bool,
     seed: u64,
     settle: Duration,
@@ -92,11 +93,14 @@ impl Measure<'_> {
     /// A sample: bytes now, and what is held within view distance (compared with the ground truth later, so
     /// that a sample never waits for the world's cells to be expanded).
     fn take(&mut self, conn: &Connection, phase: SamplePhase, pos: [f32; 2]) {
-        self.held.push(HeldSnapshot::take(&self.p.truth, conn.state(), pos, self.r.view));
+        let asked = conn.state().viewpoint().map_or(self.r.radius, |v| v.radius);
+        let view = self.p.view.unwrap_or(asked);
+        self.held.push(HeldSnapshot::take(&self.p.truth, conn.state(), pos, view));
         self.r.samples.push(Sample {
             t: self.p.t0.elapsed().as_secs_f64(),
             phase,
             position: pos,
+            view,
             bytes: bytes_of(conn),
             visible: 0,
             held: 0,
@@ -175,7 +179,7 @@ async fn bot_session(
     connect.client_name = format!("bandwidth-{}", r.bot.id);
     let started = Instant::now();
     let seed = p.seed.wrapping_add(r.bot.id as u64);
-    let walk = bots::Walk { path: p.path, speed: p.speed, radius: p.radius, altitude: p.altitude, seed };
+    let walk = bots::Walk { path: p.path, speed: p.speed, radius: p.radius, altitude: p.altitude, seed, fit: p.fit };
     let (mut conn, mut walker) = bots::connect_walking(endpoint, &connect, None, walk).await?;
     let w = &conn.welcome().world;
     let describe = |name: &str, instances: usize, g: &Grid| {
@@ -200,6 +204,7 @@ async fn bot_session(
         sample: Some(p.sample),
         stop: tokio::sync::watch::channel(false).1,
         far: p.far,
+        fit: p.fit,
     };
     let mut m = Measure {
         r: &mut *r,
@@ -244,6 +249,7 @@ pub(super) async fn run_scenario(
         radius: cfg.radius,
         view: cfg.view,
         far: cfg.far,
+        fit: scenario.link.rate.filter(|_| cfg.fit).map(|rate| LinkFit { link_bits: rate as f64 }),
         teleport: cfg.teleport,
         seed: cfg.seed,
         settle: cfg.settle,

@@ -85,6 +85,9 @@ pub struct Sample {
     pub phase: SamplePhase,
     /// Position on the ground.
     pub position: [f32; 2],
+    /// The view distance visible completeness is judged within, metres: the configured one, or the radius asked
+    /// for at the sample.
+    pub view: f32,
     /// Bytes so far.
     pub bytes: Bytes,
     /// Instances within view distance.

@@ -104,6 +104,10 @@ pub struct BandwidthConfig {
     /// The far view the bots ask for (summary nodes beyond the records; `None`: none). The altitude is replaced by
     /// the walker's.
     pub far: Option<FarView>,
+    /// Fit each bot's radius to its scenario's link rate while it moves ([`crate::bots::LinkFit`]: what the link
+    /// carries at the bot's speed, the far view drawing beyond); with `view` unset, visible completeness is then
+    /// judged within the radius asked at each sample.
+    pub fit: bool,
     /// Teleport half-way through the walk.
     pub teleport: bool,
     /// Seeds the paths (bot `i` uses `seed + i`; the same in every scenario).
@@ -149,6 +153,7 @@ impl BandwidthConfig {
             radius: 160.0,
             view: Some(160.0),
             far: None,
+            fit: false,
             teleport: true,
             seed: 1,
             settle: Duration::from_secs(10),
@@ -192,6 +197,7 @@ impl BandwidthConfig {
                 range: 20_000.0,
                 altitude: 1500.0,
             }),
+            fit: true,
             teleport: false,
             seed: 6,
             scenarios: [1_000_000, 10_000_000]
@@ -596,7 +602,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
         let bots: Vec<BotResult> = bots?
             .into_iter()
             .map(|(mut bot, held)| {
-                truth::evaluate(&truth, &mut bot.samples, &held, bot.view, threads);
+                truth::evaluate(&truth, &mut bot.samples, &held, threads);
                 bot
             })
             .collect();

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use canopy_protocol::summary::FarView;
 use canopy_server::session::PayloadMode;
 
-use super::measure::{Bytes, fraction};
+use super::measure::{Bytes, SamplePhase, fraction};
 use super::{BandwidthConfig, Outcome, ScenarioResult};
 
 use crate::numbers::{group, human_bytes as human};
@@ -172,10 +172,15 @@ fn far_section(s: &mut String, cfg: &BandwidthConfig, o: &Outcome) {
     let _ = writeln!(s, "\n## The far view: summaries beside records\n");
     let _ = writeln!(
         s,
-        "{} the bots asked for the far view{} — summary nodes of the world beyond their records — beside the instance records of their area of interest ({radius} m). Per bot, on the wire's frames: far-view summaries against records; visible completeness is of the records within {} m of the bot ({}).\n",
+        "{} the bots asked for the far view{} — summary nodes of the world beyond their records — beside the instance records of their area of interest ({radius} m{}). Per bot, on the wire's frames: far-view summaries against records; visible completeness is of the records within {} of the bot ({}).\n",
         if cfg.flying() { "Flying," } else { "Walking," },
         cfg.far.map_or(String::new(), |f| format!(" ({})", far_view(&f))),
-        cfg.view.unwrap_or(radius),
+        if cfg.fit { " at most: while moving, the radius the link carries at their speed" } else { "" },
+        match cfg.view {
+            Some(v) => format!("{v} m"),
+            None if cfg.fit => "the radius asked at each sample".to_string(),
+            None => format!("{radius} m"),
+        },
         if cfg.flying() {
             "flying: the samples taken in flight once the area of interest had filled; overall: every sample before the stop"
         } else {
@@ -184,18 +189,31 @@ fn far_section(s: &mut String, cfg: &BandwidthConfig, o: &Outcome) {
     );
     let _ = writeln!(
         s,
-        "| scenario | link | summary nodes per bot | summaries per bot | records per bot | summaries : records | species per bot | control per bot | transport per bot | {} completeness (samples) | overall (samples) |",
+        "| scenario | link | summary nodes per bot | summaries per bot | records per bot | summaries : records | species per bot | control per bot | transport per bot | record radius {0} (mean) | {0} completeness (samples) | overall (samples) |",
         if cfg.flying() { "flying" } else { "walking" }
     );
-    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for r in far {
         let (b, n) = (r.bytes(), r.bots.len().max(1) as f64);
         let per = |v: u64| human(v as f64 / n);
         let (w, all) = (r.walking(), r.overall());
         let nodes = r.bots.iter().map(|b| b.bot.summaries).sum::<u64>() as f64 / n;
+        // The radius judged at the samples taken while moving (fitted to the link, or the one asked for).
+        let moving: Vec<f32> = r
+            .bots
+            .iter()
+            .flat_map(|b| &b.samples)
+            .filter(|s| s.phase == SamplePhase::Walking)
+            .map(|s| s.view)
+            .collect();
+        let view = if moving.is_empty() {
+            "-".to_string()
+        } else {
+            format!("{:.0} m", moving.iter().map(|&v| f64::from(v)).sum::<f64>() / moving.len() as f64)
+        };
         let _ = writeln!(
             s,
-            "| {} | {} | {nodes:.0} | {} | {} | {} | {} | {} | {} | {} ({}) | {} ({}) |",
+            "| {} | {} | {nodes:.0} | {} | {} | {} | {} | {} | {} | {view} | {} ({}) | {} ({}) |",
             r.scenario.name,
             r.scenario.link.label(),
             per(b.summaries),

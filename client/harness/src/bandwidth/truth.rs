@@ -319,10 +319,10 @@ impl HeldSnapshot {
 /// Fill in each sample's `visible` and `held` from its snapshot (`samples[i]` with `held[i]`): the instances of
 /// `truth` within `distance` of the sample's position and those of them the client held. Cells are expanded as the
 /// samples need them, in sample order, on up to `threads` threads.
-pub fn evaluate(truth: &GroundTruth, samples: &mut [Sample], held: &[HeldSnapshot], distance: f32, threads: usize) {
+pub fn evaluate(truth: &GroundTruth, samples: &mut [Sample], held: &[HeldSnapshot], threads: usize) {
     for (s, h) in samples.iter_mut().zip(held) {
-        truth.prefetch(&truth.cells_within(s.position, distance), threads);
-        (s.visible, s.held) = completeness(truth, s.position, distance, |c| h.held(c));
+        truth.prefetch(&truth.cells_within(s.position, s.view), threads);
+        (s.visible, s.held) = completeness(truth, s.position, s.view, |c| h.held(c));
     }
 }
 
@@ -422,6 +422,7 @@ mod tests {
             t,
             phase: SamplePhase::Walking,
             position: [0.0; 2],
+            view: 6.0,
             bytes: Bytes::default(),
             visible,
             held,
@@ -471,13 +472,16 @@ mod tests {
         let snap = HeldSnapshot { cells: vec![(CellCoord::new(-1, 0), 1), (CellCoord::new(0, 0), 1)] };
         assert_eq!(snap.held(CellCoord::new(-1, 0)), 0..1);
         assert_eq!(snap.held(CellCoord::new(0, 1)), 0..0);
-        let mut samples = [sample(0.0, 0, 0), sample(1.0, 0, 0)];
+        let mut samples = [sample(0.0, 0, 0), sample(1.0, 0, 0), sample(2.0, 0, 0)];
         samples[1].position = [0.0, 6.0];
-        let held = [HeldSnapshot::default(), snap];
+        // Each sample is judged within its own view distance (a radius fitted to the link shrinks it).
+        (samples[2].position, samples[2].view) = ([0.0, 6.0], 0.5);
+        let held = [HeldSnapshot::default(), snap.clone(), snap];
         for t in [&instances, &function] {
-            evaluate(t, &mut samples, &held, 6.0, 2);
-            // At (0, 0): 1 visible ((-5, 5) is √50 away), not held; at (0, 6): 0..4 visible, 0 and 2 held.
-            assert_eq!(samples.map(|s| (s.visible, s.held)), [(1, 0), (4, 2)]);
+            evaluate(t, &mut samples, &held, 2);
+            // At (0, 0): 1 visible ((-5, 5) is √50 away), not held; at (0, 6): 0..4 visible, 0 and 2 held; within
+            // 0.5 m of it, none.
+            assert_eq!(samples.map(|s| (s.visible, s.held)), [(1, 0), (4, 2), (0, 0)]);
         }
     }
 

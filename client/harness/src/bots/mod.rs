@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::edit::EditOp;
-use canopy_protocol::messages::{ByKind, ServerMsgKind};
+use canopy_protocol::messages::{ByKind, ServerMsgKind, Welcome};
 use canopy_protocol::summary::FarView;
 use canopy_worlds::world::World;
 use quinn::Endpoint;
@@ -85,6 +85,8 @@ pub struct BotsConfig {
     /// The far view the bots ask for (summary nodes beyond the records; `None`: none). A flight's altitude
     /// replaces the one given here.
     pub far: Option<FarView>,
+    /// Fit the radius to a link while moving ([`LinkFit`]; `None`: the radius of the walk).
+    pub fit: Option<LinkFit>,
 }
 
 impl BotsConfig {
@@ -109,6 +111,7 @@ impl BotsConfig {
             spread: None,
             edits: None,
             far: None,
+            fit: None,
         }
     }
 }
@@ -267,6 +270,9 @@ pub struct Walk {
     pub altitude: f32,
     /// Seeds the path.
     pub seed: u64,
+    /// Fit the radius of the first viewpoint to a link ([`LinkFit::first_radius`]; [`DrivePlan::fit`] fits the
+    /// later ones).
+    pub fit: Option<LinkFit>,
 }
 
 impl Walk {
@@ -304,6 +310,7 @@ pub async fn connect_walking_within(
     let place = |w: &canopy_protocol::messages::Welcome| {
         let radius = walk.radius(&w.aoi);
         let (mut lo, mut hi) = grid_rect(&w.world.grid, radius * 0.5);
+        let radius = walk.fit.map_or(radius, |f| f.first_radius(w, walk.speed, radius));
         if let Some(side) = spread {
             for a in 0..2 {
                 let (mid, half) = ((lo[a] + hi[a]) * 0.5, (side * 0.5).min((hi[a] - lo[a]) * 0.5));
@@ -318,6 +325,47 @@ pub async fn connect_walking_within(
     let conn = Connection::connect_any(endpoint, connect, cache, place).await?;
     let walker = walker.into_inner().unwrap_or_else(|e| e.into_inner()).expect("placed in the handshake");
     Ok((conn, walker))
+}
+
+/// A radius fitted to a link ([`AoiParams::link_radius`]): a bot on a slow link asks for what the link carries at
+/// its speed, over the records held around it, so that what it asks for arrives in time and the far view draws
+/// the rest.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LinkFit {
+    /// The link's rate, bits a second.
+    pub link_bits: f64,
+}
+
+/// Bytes a record takes on the wire until enough have arrived to measure it (the highlands measured 7.44).
+const PRIOR_RECORD_BYTES: f64 = 7.5;
+
+/// Records received before their bytes on the wire are measured rather than assumed.
+const MEASURED_AFTER_RECORDS: u64 = 1000;
+
+impl LinkFit {
+    /// The radius to ask for now, at most `cap`: [`AoiParams::link_radius`] at `speed` over the density of the
+    /// cells held (the world's mean before any) with the bytes a record took on the wire so far.
+    pub fn radius(&self, conn: &Connection, speed: f32, cap: f32) -> f32 {
+        let records = conn.state().stats().records;
+        let bytes = (records >= MEASURED_AFTER_RECORDS)
+            .then(|| conn.frame_bytes_received()[ServerMsgKind::Cells] as f64 / records as f64);
+        self.fitted(conn.welcome(), speed, cap, conn.state().record_density(), bytes)
+    }
+
+    /// The radius of the first viewpoint, before anything arrived: over the world's mean density.
+    pub fn first_radius(&self, welcome: &Welcome, speed: f32, cap: f32) -> f32 {
+        self.fitted(welcome, speed, cap, None, None)
+    }
+
+    fn fitted(&self, w: &Welcome, speed: f32, cap: f32, density: Option<f64>, bytes: Option<f64>) -> f32 {
+        let g = &w.world.grid;
+        let density = density.unwrap_or_else(|| {
+            let cells =
+                (f64::from(g.max.x) - f64::from(g.min.x) + 1.0) * (f64::from(g.max.z) - f64::from(g.min.z) + 1.0);
+            f64::from(w.world.instances) / (cells * f64::from(g.cell_size) * f64::from(g.cell_size))
+        });
+        w.aoi.link_radius(self.link_bits, speed, density, bytes.unwrap_or(PRIOR_RECORD_BYTES)).min(cap)
+    }
 }
 
 /// How [`drive`] walks a connection.
@@ -337,6 +385,8 @@ pub struct DrivePlan {
     pub stop: tokio::sync::watch::Receiver<bool>,
     /// The far view to ask for (its altitude the walker's), sent once streaming and again when it changes enough.
     pub far: Option<FarView>,
+    /// Fit the radius to a link while moving (`radius` is then the most it asks for; at rest it asks for `radius`).
+    pub fit: Option<LinkFit>,
 }
 
 /// What a caller of [`drive`] sees along the way (every method does nothing by default).
@@ -400,6 +450,7 @@ pub async fn drive(
     // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
     let mut stoppable = stop.has_changed().is_ok();
     let far_view = |walker: &Walker| plan.far.map(|f| FarView { altitude: walker.altitude().max(2.0), ..f });
+    let mut radius = conn.state().viewpoint().map_or(plan.radius, |v| v.radius);
     if let Some(f) = far_view(walker) {
         conn.set_far_view(f).await?;
     }
@@ -425,9 +476,19 @@ pub async fn drive(
                 let dt = now.duration_since(last).as_secs_f32();
                 last = now;
                 let jumped = walker.step(dt) | hooks.stepped(now, walker);
+                // A fitted radius changes the area of interest only when it moves by more than a tenth.
+                let mut refit = false;
+                if let Some(fit) = plan.fit {
+                    let [vx, vz] = walker.velocity();
+                    let r = fit.radius(conn, (vx * vx + vz * vz).sqrt(), plan.radius);
+                    refit = (r - radius).abs() > 0.1 * radius;
+                    if refit {
+                        radius = r;
+                    }
+                }
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
-                if jumped || viewpoint_due(&grid, sent, walker.position(), walker.yaw(), now - sent_at) {
-                    conn.set_viewpoint(walker.viewpoint(plan.radius)).await?;
+                if jumped || refit || viewpoint_due(&grid, sent, walker.position(), walker.yaw(), now - sent_at) {
+                    conn.set_viewpoint(walker.viewpoint(radius)).await?;
                     sent_at = now;
                     hooks.changed(conn);
                 }
@@ -568,7 +629,8 @@ async fn bot_session(
     // Editors connect with the token; the other bots watch, read-only.
     connect.token = editor.map(|e| e.token.clone());
     let seed = cfg.seed.wrapping_add(report.id as u64);
-    let walk = Walk { path: cfg.path, speed: cfg.speed, radius: cfg.radius, altitude: cfg.altitude, seed };
+    let walk =
+        Walk { path: cfg.path, speed: cfg.speed, radius: cfg.radius, altitude: cfg.altitude, seed, fit: cfg.fit };
     let (mut conn, mut walker) = connect_walking_within(endpoint, &connect, cache, walk, cfg.spread).await?;
     progress.connected.fetch_add(1, Relaxed);
     let plan = DrivePlan {
@@ -579,6 +641,7 @@ async fn bot_session(
         sample: Some(SAMPLE_EVERY),
         stop: cfg.stop.clone(),
         far: cfg.far,
+        fit: cfg.fit,
     };
     // Edits start once the last bot of the ramp has had `warmup` to connect and fill its area of interest, and stop
     // `grace` before the walk ends.
