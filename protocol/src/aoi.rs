@@ -318,6 +318,25 @@ impl Aoi {
 mod tests {
     use super::*;
 
+    /// Viewpoints and grids reach the corners of the coordinate range (±2^20 cells of 64 m), and no farther.
+    #[test]
+    fn the_coordinate_range_reaches_two_to_the_twenty_cells() {
+        let corner = 67_108_864.0;
+        assert_eq!(Viewpoint::at(1, [corner, -corner], 160.0).validate(), Ok(()));
+        assert_eq!(Viewpoint::at(1, [2.0 * corner, 0.0], 160.0).validate(), Err(ViewpointError::Range));
+        let far = 1 << 20;
+        let grid = |min: i32, max: i32| Grid {
+            origin: [0.0, 0.0],
+            cell_size: 64.0,
+            min: CellCoord::new(min, min),
+            max: CellCoord::new(max, max),
+        };
+        assert_eq!(grid(-far, far - 1).validate(), Ok(()));
+        assert!(grid(-far, far).validate().is_err(), "one cell more than 2^21 per axis");
+        // The cell of the far corner, from an f32 viewpoint there.
+        assert_eq!(grid(-far, far - 1).cell_of(corner - 32.0, -corner), CellCoord::new(far - 1, -far));
+    }
+
     #[test]
     fn the_link_radius_fits_the_records_of_the_leading_edge_into_a_share_of_the_link() {
         let p = AoiParams::default();

@@ -29,12 +29,15 @@ pub const MAX_CONTROL_HEIGHTS: usize = 1 << 16;
 pub const FRACTAL_DIMENSION: (f32, f32) = (2.0, 3.0);
 /// Largest area-of-interest radius a server may offer, in metres.
 pub const MAX_AOI_RADIUS: f32 = 4096.0;
-/// Largest coordinate magnitude accepted in a viewpoint, in metres.
-pub const MAX_COORDINATE: f32 = 1.0e7;
+/// Largest coordinate magnitude accepted in a viewpoint, in metres: past ±2^20 cells of 64 m (±6.7 · 10^7 m), the
+/// coordinate range of a world. Far out an f32 viewpoint is good to a few metres, plenty for choosing 64 m cells;
+/// the records themselves travel as a cell and steps within it, exact everywhere.
+pub const MAX_COORDINATE: f32 = 1.0e8;
 /// Largest speed accepted in a viewpoint, in metres per second.
 pub const MAX_SPEED: f32 = 1.0e4;
-/// Largest grid of cells a world may have per axis (keeps cell coordinates and AOI scans bounded).
-pub const MAX_CELLS_PER_AXIS: i32 = 1 << 16;
+/// Largest grid of cells a world may have per axis: 2^21, the coordinate range of ±2^20 cells (keeps cell
+/// coordinates inside what instance ids name; AOI scans are bounded by the radius, not the grid).
+pub const MAX_CELLS_PER_AXIS: i32 = 1 << 21;
 /// Largest chunk of explicit geometry in one message, bytes (the bandwidth baselines; fits a server frame).
 pub const MAX_GEOMETRY_CHUNK: usize = 64 * 1024;
 /// Largest explicit-geometry blob (one mesh or one batch's transforms), bytes.

@@ -124,10 +124,11 @@ pub fn position_step(cell_size: f32) -> f32 {
 
 /// Quantise a coordinate to its grid step within the cell starting at `origin`: the step at or below it, so a
 /// position already on the grid comes back bit for bit from [`dequantize`]. Values outside the cell clamp to its
-/// edge steps.
-pub fn quantize(value: f32, origin: f32, cell_size: f32) -> u16 {
-    let q = ((value - origin) / position_step(cell_size)).floor();
-    if q.is_nan() { 0 } else { q.clamp(0.0, (POSITION_STEPS - 1) as f32) as u16 }
+/// edge steps. In f64, so that positions on the grid are exact however far from the origin their cell lies (an
+/// f32 world coordinate holds the grid only within ±4,096 cells); f32 coordinates convert exactly.
+pub fn quantize(value: f64, origin: f64, cell_size: f32) -> u16 {
+    let q = ((value - origin) / f64::from(position_step(cell_size))).floor();
+    if q.is_nan() { 0 } else { q.clamp(0.0, f64::from(POSITION_STEPS - 1)) as u16 }
 }
 
 /// The coordinate of grid step `q` within the cell starting at `origin`: `origin + q · cell_size / POSITION_STEPS`.

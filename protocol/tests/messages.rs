@@ -229,9 +229,9 @@ fn records_are_four_bytes_and_positions_round_trip() {
         for q in [0u16, 1, 2047, 4095] {
             let origin = -1024.0;
             let v = dequantize(q, origin, cell_size);
-            assert_eq!(quantize(v, origin, cell_size), q, "cell {cell_size} step {q}");
+            assert_eq!(quantize(v.into(), origin.into(), cell_size), q, "cell {cell_size} step {q}");
         }
-        assert_eq!(quantize(f32::NAN, 0.0, cell_size), 0);
+        assert_eq!(quantize(f64::NAN, 0.0, cell_size), 0);
         assert_eq!(quantize(1e9, 0.0, cell_size), 4095);
     }
 }

@@ -415,7 +415,10 @@ impl Writer {
                 }
                 check_params(*species, params)?;
                 let origin = grid.cell_origin(cell);
-                let q = [quantize(*x, origin[0], grid.cell_size), quantize(*z, origin[1], grid.cell_size)];
+                let q = [
+                    quantize((*x).into(), origin[0].into(), grid.cell_size),
+                    quantize((*z).into(), origin[1].into(), grid.cell_size),
+                ];
                 let record = InstanceRecord::new(*species, q[0], q[1]);
                 (cell, CellEdit::Plant { index: 0, record, params: params.clone() })
             }

@@ -105,7 +105,7 @@ impl CellData {
     ) -> Result<CellData, StoreError> {
         let origin = grid.cell_origin(cell);
         let instances = placements.iter().map(|p| {
-            let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
+            let q = [quantize(p.x, origin[0].into(), grid.cell_size), quantize(p.z, origin[1].into(), grid.cell_size)];
             (p.species, q, p.params.as_slice())
         });
         CellData::from_quantised(cell, species_count, instances)
@@ -484,7 +484,10 @@ impl StoreBuilder {
         let grid = self.world.grid;
         let origin = grid.cell_origin(cell);
         let quantised = instances.iter().map(|p| {
-            let q = [quantize(p.x, origin[0], grid.cell_size), quantize(p.z, origin[1], grid.cell_size)];
+            let q = [
+                quantize(p.x.into(), origin[0].into(), grid.cell_size),
+                quantize(p.z.into(), origin[1].into(), grid.cell_size),
+            ];
             (p.species, q, p.params.as_slice())
         });
         let index = self.next_index(cell)?;

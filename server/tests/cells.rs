@@ -16,6 +16,7 @@ use canopy_protocol::{CellBatch, CellCoord, ClientMsg, Phase, ServerMsg};
 use canopy_server::session::{MsgClass, Session, SessionConfig, Transmit};
 use canopy_server::store::{CellState, CellWaker, GridStore, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig};
+use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::World;
 
 const MIB: usize = 1 << 20;
@@ -351,9 +352,30 @@ fn a_world_expanded_only_on_demand_streams_from_the_cache() {
         ..CellCacheConfig::default()
     };
     let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
+    let total = streams_exactly(&world, &cache, Viewpoint::at(1, [12_345.0, -6_789.0], 160.0));
+    assert!(total > 1_000, "{total} instances around the viewpoint");
+    assert!(cache.bytes() <= 4 * MIB);
+}
+
+#[test]
+fn cells_at_the_far_corner_of_the_coordinate_range_stream_exactly() {
+    // ±2^20 cells of 64 m: an f32 world coordinate there is good to 8 m, the records' steps to 1.6 cm.
+    let text = "world edge\nseed 11\nbounds -67108864 -67108864 67108864 67108864\ncell 64\nterrain fractal {\n  \
+                tile 65536\n  depth 14\n  param relief = 200\n}\nspecies a worm\nscatter a {\n  spacing 6\n}\n";
+    let world = World::parse(&SourceFile::new("edge.world", text), None).unwrap();
+    let cfg = CellCacheConfig { limit_bytes: 4 * MIB, workers: 0, ..CellCacheConfig::default() };
+    let cache = Arc::new(CellCache::new(world.clone(), cfg).unwrap());
+    assert_eq!(cache.grid().max, CellCoord::new((1 << 20) - 1, (1 << 20) - 1));
+    let total = streams_exactly(&world, &cache, Viewpoint::at(1, [67_108_800.0, 67_108_800.0], 160.0));
+    assert!(total > 1_000, "{total} instances around the corner");
+}
+
+/// Stream a viewpoint's area of interest from `cache` (cells expanded on this thread) and check every record
+/// against the world's own expansion of its cell: the same species and the same steps in the cell, exactly.
+/// Returns how many records.
+fn streams_exactly(world: &World, cache: &Arc<CellCache>, vp: Viewpoint) -> usize {
     let t0 = Instant::now();
-    let vp = Viewpoint::at(1, [12_345.0, -6_789.0], 160.0);
-    let mut s = session(as_store(&cache), vp, t0);
+    let mut s = session(as_store(cache), vp, t0);
     let mut batches: Vec<CellBatch> = vec![];
     loop {
         batches.extend(drain(&mut s, t0).iter().filter_map(batch_of));
@@ -365,29 +387,30 @@ fn a_world_expanded_only_on_demand_streams_from_the_cache() {
     let grid = *cache.grid();
     let area: HashSet<CellCoord> =
         Aoi::new(&vp, &SessionConfig::default().aoi).inner_cells(&grid).into_iter().collect();
-    let mut records: HashMap<CellCoord, Vec<(u8, [f32; 2])>> = HashMap::new();
+    let mut records: HashMap<CellCoord, Vec<(u8, [u16; 2])>> = HashMap::new();
     for b in &batches {
         for r in &b.records {
-            let o = grid.cell_origin(b.cell);
-            let q = |v: u16, o: f32| canopy_protocol::record::dequantize(v, o, grid.cell_size);
-            records.entry(b.cell).or_default().push((r.species, [q(r.qx(), o[0]), q(r.qz(), o[1])]));
+            records.entry(b.cell).or_default().push((r.species, [r.qx(), r.qz()]));
         }
     }
     assert_eq!(batches.iter().map(|b| b.cell).collect::<HashSet<_>>(), area);
     let mut total = 0;
     for c in &area {
-        // Each record is its placement in the world's own expansion of the cell, to within one position step.
+        // Each record is its placement in the world's own expansion of the cell: the same steps in the cell.
         let placements = world.expand_cell(canopy_worlds::world::CellKey { x: c.x, z: c.z });
         let got = records.remove(c).unwrap_or_default();
         assert_eq!(got.len(), placements.len(), "cell {c:?}");
-        for ((species, [x, z]), p) in got.iter().zip(&placements) {
+        let o = grid.cell_origin(*c);
+        let q = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), grid.cell_size);
+        for ((species, steps), p) in got.iter().zip(&placements) {
             assert_eq!(u16::from(*species), p.species);
-            assert!((x - p.x).abs() <= world.position_step() && (z - p.z).abs() <= world.position_step());
+            assert_eq!(*steps, [q(p.x, o[0]), q(p.z, o[1])], "cell {c:?}");
+            let back = [0, 1].map(|a| f64::from(o[a]) + f64::from(steps[a]) * f64::from(world.position_step()));
+            assert_eq!(back, [p.x, p.z], "the steps give the placement back exactly");
         }
         total += placements.len();
     }
-    assert!(total > 1_000, "{total} instances around the viewpoint");
-    assert!(cache.bytes() <= 4 * MIB);
+    total
 }
 
 #[test]

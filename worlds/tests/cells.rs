@@ -92,7 +92,7 @@ fn any_order_any_thread_alone_or_in_blocks_gives_the_same_cells() {
 
 /// Positions of the placements of one species.
 fn of(list: &[Placement], species: u16) -> Vec<[f64; 2]> {
-    list.iter().filter(|p| p.species == species).map(|p| [f64::from(p.x), f64::from(p.z)]).collect()
+    list.iter().filter(|p| p.species == species).map(|p| [p.x, p.z]).collect()
 }
 
 /// The smallest distance between a point of `a` and a different point of `b`.
@@ -153,7 +153,7 @@ fn density_follows_the_manifest_over_a_large_sample() {
     let (n, k) = (full.instances.len() as f64, half.instances.len() as f64);
     // The same darts, thinned: each kept with probability 0.5 (about 46,000 darts: a standard deviation of 0.23 %).
     assert!((k / n - 0.5).abs() < 0.015, "{k} of {n}");
-    let kept: std::collections::HashSet<(u32, u32)> =
+    let kept: std::collections::HashSet<(u64, u64)> =
         full.instances.iter().map(|p| (p.x.to_bits(), p.z.to_bits())).collect();
     assert!(half.instances.iter().all(|p| kept.contains(&(p.x.to_bits(), p.z.to_bits()))));
     // A full packing: about 0.63 darts per spacing² (dart throwing to saturation reaches 0.69).
@@ -164,23 +164,44 @@ fn density_follows_the_manifest_over_a_large_sample() {
 
 #[test]
 fn cells_at_the_far_corners_of_the_coordinate_range_expand() {
-    // Bounds at ±cell × 4096 (every position exact in f32) on a fractal terrain.
+    // Bounds at ±cell × 2^20 (±67,108,864 m of 64 m cells: 2^42 cells, the most a world may have) on a fractal
+    // terrain; an f32 holds a position there only to 4–8 m, so positions are f64.
+    let far = 1 << 20;
     let w = parse(
-        "seed 11\nbounds -262144 -262144 262144 262144\ncell 64\nterrain fractal {\n  tile 65536\n  depth 14\n  \
-         param relief = 200\n}\nspecies a worm\nscatter a {\n  spacing 6\n  altitude -1000 ..\n}\n",
+        "seed 11\nbounds -67108864 -67108864 67108864 67108864\ncell 64\nterrain fractal {\n  tile 65536\n  depth 14\n  \
+         param relief = 200\n}\nspecies a worm\nspecies b worm\nscatter a {\n  spacing 6\n  altitude -1000 ..\n}\n\
+         scatter b {\n  spacing 4\n  avoid a 3\n}\n",
     );
     assert!(!w.is_materialised());
-    for c in [key(-4096, -4096), key(4095, 4095), key(-4096, 4095), key(4095, -4096), key(0, 0)] {
-        let list = w.expand_cell(c);
-        assert!(!list.is_empty(), "cell {c:?}");
-        assert_eq!(list, w.expand_cell(c));
-        let [ox, oz] = w.cell_origin(c);
-        for p in &list {
-            assert_eq!(w.cell_of(p.x, p.z), c);
-            let step = w.position_step();
-            assert_eq!(((p.x - ox) / step).fract(), 0.0);
-            assert_eq!(((p.z - oz) / step).fract(), 0.0);
+    assert_eq!((w.first_cell(), w.cell_count()), (key(-far, -far), 1u64 << 42));
+    let step = f64::from(w.position_step());
+    for c in [key(-far, -far), key(far - 2, far - 2), key(-far, far - 2), key(far - 2, -far), key(-1, -1)] {
+        // A 2 × 2 block: each cell alone equals the block, and spacing and avoid hold across its borders.
+        let block = w.expand_cells(c, key(c.x + 1, c.z + 1));
+        let mut all = Vec::new();
+        for (k, list) in &block {
+            assert!(!list.is_empty(), "cell {k:?}");
+            assert_eq!(list, &w.expand_cell(*k), "cell {k:?} alone");
+            let [ox, oz] = w.cell_origin(*k).map(f64::from);
+            for p in list {
+                assert_eq!(w.cell_of(p.x, p.z), *k);
+                // On the cell's position grid, exactly: a whole number of steps below POSITION_STEPS.
+                let q = [(p.x - ox) / step, (p.z - oz) / step];
+                assert!(q.iter().all(|&q| q.fract() == 0.0 && (0.0..4096.0).contains(&q)), "{p:?} in {k:?}");
+                all.push(p);
+            }
+        }
+        for (i, p) in all.iter().enumerate() {
+            for o in &all[i + 1..] {
+                let d = ((p.x - o.x).powi(2) + (p.z - o.z).powi(2)).sqrt();
+                let least = match (p.species, o.species) {
+                    (0, 0) => 6.0,
+                    (1, 1) => 4.0,
+                    _ => 3.0,
+                };
+                assert!(d >= least, "{p:?} and {o:?} are {d} m apart near {c:?}");
+            }
         }
     }
-    assert!(w.expand_cell(key(4096, 0)).is_empty(), "out of bounds");
+    assert!(w.expand_cell(key(far, 0)).is_empty(), "out of bounds");
 }

@@ -202,8 +202,8 @@ fn the_leaf_expectation_is_close_to_the_exact_expansion() {
                     }
                     // Coverage: where the instances stand.
                     let [ox, oz] = w.cell_origin(c);
-                    let sub = w.cell_size / 8.0;
-                    let (i, j) = (((p.x - ox) / sub) as u32, ((p.z - oz) / sub) as u32);
+                    let sub = f64::from(w.cell_size / 8.0);
+                    let (i, j) = (((p.x - f64::from(ox)) / sub) as u32, ((p.z - f64::from(oz)) / sub) as u32);
                     placed += 1;
                     if leaf.species.iter().any(|s| s.species == p.species && s.covers(i, j)) {
                         inside += 1;

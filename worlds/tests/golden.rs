@@ -69,9 +69,10 @@ fn thread_count_does_not_change_results() {
     }
 }
 
-/// Blocks of 4 × 4 cells whose expansion is golden: the default world's corners and centre, and the large world's
-/// far corners, centre, tree line, meadow edge, valley floor and four blocks between the control heights.
-const CELL_BLOCKS: [(&str, i32, i32); 16] = [
+/// Blocks of 4 × 4 cells whose expansion is golden: the default world's corners and centre, the large world's
+/// far corners, centre, tree line, meadow edge, valley floor and four blocks between the control heights, and the
+/// four corners of the coordinate range (±2^20 cells, [`EDGE`]).
+const CELL_BLOCKS: [(&str, i32, i32); 20] = [
     ("forest", -16, -16),
     ("forest", 12, 12),
     ("forest", -2, -2),
@@ -88,21 +89,36 @@ const CELL_BLOCKS: [(&str, i32, i32); 16] = [
     ("highlands", 398, 198),
     ("highlands", -602, 398),
     ("highlands", 598, -402),
+    ("edge", -(1 << 20), -(1 << 20)),
+    ("edge", (1 << 20) - 4, (1 << 20) - 4),
+    ("edge", -(1 << 20), (1 << 20) - 4),
+    ("edge", (1 << 20) - 4, -(1 << 20)),
 ];
 
-/// One line per cell: `world x z count hash` over species, position bits and parameters.
+/// A world whose bounds are the whole coordinate range: ±2^20 cells of 64 m (±67,108,864 m, where an f32 holds a
+/// position only to 8 m), on a fractal terrain, with a rule that avoids another.
+const EDGE: &str = "world edge\nseed 11\nbounds -67108864 -67108864 67108864 67108864\ncell 64\n\
+    terrain fractal {\n  tile 65536\n  depth 14\n  param relief = 200\n}\nspecies a worm\nspecies b worm\n\
+    scatter a {\n  spacing 6\n  altitude -1000 ..\n  param c = 1 .. 3\n}\nscatter b {\n  spacing 4\n  avoid a 3\n}\n";
+
+/// One line per cell: `world x z count hash` over species, position (its steps in the cell, exact at any distance
+/// from the origin) and parameters.
 fn cell_vectors() -> Vec<String> {
     use canopy_worlds::primitive::Fnv;
     use canopy_worlds::world::{CellKey, World};
-    let worlds = [World::embedded("forest").unwrap(), World::embedded("highlands").unwrap()];
+    let edge = World::parse(&canopy_worlds::diag::SourceFile::new("edge.world", EDGE), None).expect("the edge world");
+    let worlds = [World::embedded("forest").unwrap(), World::embedded("highlands").unwrap(), edge];
     let mut lines = Vec::new();
     for (name, x, z) in CELL_BLOCKS {
         let w = worlds.iter().find(|w| w.name == name).unwrap();
         for (c, list) in w.expand_cells(CellKey { x, z }, CellKey { x: x + 3, z: z + 3 }) {
             let mut h = Fnv::new();
+            let [ox, oz] = w.cell_origin(c).map(f64::from);
+            let step = f64::from(w.position_step());
             for p in &list {
                 h.u32(u32::from(p.species));
-                h.f32s(&[p.x, p.z]);
+                h.u32(((p.x - ox) / step) as u32);
+                h.u32(((p.z - oz) / step) as u32);
                 for &(slot, v) in &p.params {
                     h.u32(u32::from(slot));
                     h.f32s(&[v]);

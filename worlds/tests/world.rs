@@ -56,7 +56,7 @@ const HEAD: &str = "seed 7\nbounds -256 -256 256 256\ncell 64\n";
 
 /// Instances of species `s` as (x, z).
 fn positions_of(w: &World, s: u16) -> Vec<[f32; 2]> {
-    w.instances.iter().filter(|p| p.species == s).map(|p| [p.x, p.z]).collect()
+    w.instances.iter().filter(|p| p.species == s).map(|p| [p.x as f32, p.z as f32]).collect()
 }
 
 /// The smallest distance between a point of `a` and a different point of `b` (f64, as the rules measure).
@@ -89,7 +89,7 @@ fn placement_hash(w: &World) -> u64 {
     let mut h = Fnv::new();
     for p in &w.instances {
         h.u32(u32::from(p.species));
-        h.f32s(&[p.x, p.z]);
+        h.f32s(&[p.x as f32, p.z as f32]);
         h.u32(p.params.len() as u32);
         for &(slot, v) in &p.params {
             h.u32(u32::from(slot));
@@ -315,9 +315,10 @@ fn names_parameters_and_places_are_checked_against_the_world() {
 
 #[test]
 fn sizes_and_counts_are_bounded() {
-    // Not a power of two; bounds beyond ±4096 cells; bounds off the position grid; too many cells.
+    // Not a power of two; bounds beyond ±2^20 cells; bounds off the position grid.
     check_errors("seed 1\nbounds 0 0 10 10\ncell 3\nspecies a worm\n", &[(3, 6, "power of two")]);
-    check_errors("seed 1\nbounds 0 0 300000 10\ncell 64\nspecies a worm\n", &[(2, 8, "within ±262144 m")]);
+    check_errors("seed 1\nbounds 0 0 68000000 10\ncell 64\nspecies a worm\n", &[(2, 8, "within ±67108864 m")]);
+    check_errors("seed 1\nbounds 0 0 2000000 10\ncell 1\nspecies a worm\n", &[(2, 8, "within ±1048576 m")]);
     check_errors(
         "seed 1\nbounds 0.001 0 10 10\ncell 64\nspecies a worm\n",
         &[(2, 8, "multiples of the position step")],
@@ -438,8 +439,8 @@ fn darts_leave_no_stripes() {
     let n = (2048.0 / g).ceil() as usize;
     let (mut rows, mut columns) = (vec![0u32; n], vec![0u32; n]);
     for p in &w.instances {
-        columns[((f64::from(p.x) + 1024.0) / g) as usize] += 1;
-        rows[((f64::from(p.z) + 1024.0) / g) as usize] += 1;
+        columns[((p.x + 1024.0) / g) as usize] += 1;
+        rows[((p.z + 1024.0) / g) as usize] += 1;
     }
     for (what, counts) in [("row", &rows), ("column", &columns)] {
         // The last one is a partial cell; the first has no darts before it and packs a little denser.
@@ -457,7 +458,7 @@ fn density_thins_the_same_darts() {
     // in proportion to the density.
     let full = world(&format!("{HEAD}species a worm\nscatter a {{\n  spacing 3\n}}\n"));
     let half = world(&format!("{HEAD}species a worm\nscatter a {{\n  spacing 3\n  density 0.5\n}}\n"));
-    let all: std::collections::HashSet<(u32, u32)> =
+    let all: std::collections::HashSet<(u64, u64)> =
         full.instances.iter().map(|p| (p.x.to_bits(), p.z.to_bits())).collect();
     assert!(half.instances.iter().all(|p| all.contains(&(p.x.to_bits(), p.z.to_bits()))));
     let ratio = half.instances.len() as f64 / full.instances.len() as f64;
@@ -474,7 +475,7 @@ fn altitude_and_slope_rules_hold() {
     let mut outside = 0;
     for p in &w.instances {
         let rule = w.rules.iter().find(|r| r.species == p.species).expect("one rule per species");
-        if rule.density_at(&w, p.x, p.z) <= 0.0 {
+        if rule.density_at(&w, p.x as f32, p.z as f32) <= 0.0 {
             outside += 1;
         }
     }
@@ -486,7 +487,8 @@ fn altitude_and_slope_rules_hold() {
     ));
     let (mut plateau, mut ramp) = ((0usize, 0.0f64), (0usize, 0.0f64));
     for p in &w.instances {
-        let (h, s) = (w.height(p.x, p.z), w.terrain.slope(p.x, p.z));
+        let (x, z) = (p.x as f32, p.z as f32);
+        let (h, s) = (w.height(x, z), w.terrain.slope(x, z));
         assert!((10.0..=90.0).contains(&h) && s <= 25.0, "an instance at height {h}, slope {s}");
         if (40.0..=60.0).contains(&h) {
             plateau.0 += 1;
@@ -602,7 +604,7 @@ fn instance_ids_name_every_instance_once() {
 fn cell_ranges_partition_the_instances() {
     let w = forest();
     let cells: Vec<_> = w.cells().collect();
-    assert_eq!(cells.len(), w.cell_count());
+    assert_eq!(cells.len() as u64, w.cell_count());
     assert_eq!(w.cell_count(), 32 * 32);
     let mut next = 0u32;
     for (k, &c) in cells.iter().enumerate() {
@@ -614,7 +616,8 @@ fn cell_ranges_partition_the_instances() {
         for id in range {
             let p = &w.instances[id as usize];
             assert_eq!(w.cell_of(p.x, p.z), c);
-            assert!(p.x >= ox && p.x < ox + w.cell_size && p.z >= oz && p.z < oz + w.cell_size);
+            let (ox, oz, s) = (f64::from(ox), f64::from(oz), f64::from(w.cell_size));
+            assert!(p.x >= ox && p.x < ox + s && p.z >= oz && p.z < oz + s);
         }
     }
     assert_eq!(next as usize, w.instances.len(), "every instance in exactly one cell");
@@ -640,9 +643,11 @@ fn positions_are_on_the_position_grid() {
         assert!(u32::from(q[0]) < POSITION_STEPS && u32::from(q[1]) < POSITION_STEPS);
         let [x, z] = w.dequantize(c, q);
         assert_eq!((x.to_bits(), z.to_bits()), (p.x.to_bits(), p.z.to_bits()), "instance {id} round trip");
-        assert_eq!(((p.x / step).fract(), (p.z / step).fract()), (0.0, 0.0));
+        assert_eq!(((p.x / f64::from(step)).fract(), (p.z / f64::from(step)).fract()), (0.0, 0.0));
         let pos = w.position(id);
-        assert_eq!(pos, [p.x, w.height(p.x, p.z), p.z]);
+        let (x, z) = (p.x as f32, p.z as f32);
+        assert_eq!(pos, [x, w.height(x, z), z]);
+        assert_eq!((f64::from(x), f64::from(z)), (p.x, p.z), "exact in f32 this near the origin");
     }
 }
 
@@ -801,8 +806,12 @@ fn default_world_meets_its_targets() {
     // Conifers high, broadleaf low, weeds in between.
     let mean_height = |name: &str| {
         let s = w.species_id(name).unwrap();
-        let hs: Vec<f64> =
-            w.instances.iter().filter(|p| p.species == s).map(|p| f64::from(w.height(p.x, p.z))).collect();
+        let hs: Vec<f64> = w
+            .instances
+            .iter()
+            .filter(|p| p.species == s)
+            .map(|p| f64::from(w.height(p.x as f32, p.z as f32)))
+            .collect();
         hs.iter().sum::<f64>() / hs.len() as f64
     };
     let (conifer, weed, broadleaf) = (mean_height("conifer"), mean_height("weed"), mean_height("broadleaf"));

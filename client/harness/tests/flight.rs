@@ -55,7 +55,7 @@ impl DriveHooks for Track {
     fn stepped(&mut self, _now: Instant, walker: &mut Walker) -> bool {
         let world = highlands();
         let [x, z] = walker.position();
-        let c = world.cell_of(x, z);
+        let c = world.cell_of(x.into(), z.into());
         self.cells.insert((c.x, c.z));
         let region = world.cell_size * REGION_BLOCK as f32;
         self.regions.insert(((x / region).floor() as i32, (z / region).floor() as i32));

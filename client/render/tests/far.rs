@@ -74,7 +74,8 @@ fn records(world: &World, c0: CellKey, n: i32) -> (Vec<SceneInstance>, Vec<CellC
         cells.push(cc);
         for (i, p) in list.iter().enumerate() {
             let id = InstanceId::new(cc, i as u16).expect("a cell's index");
-            let position = [p.x, world.height(p.x, p.z), p.z];
+            let (x, z) = (p.x as f32, p.z as f32);
+            let position = [x, world.height(x, z), z];
             let seed = world.instance_seed(id);
             instances.push(SceneInstance { id, species: p.species, position, seed, params: p.params.clone() });
         }
@@ -148,7 +149,7 @@ fn summaries_draw_forest_to_the_horizon_and_nothing_without_them() {
             Some(_) => {
                 let f = cam.forward();
                 let ahead = cam.position + f * 3_000.0 / (f.x * f.x + f.z * f.z).sqrt();
-                let c = world.cell_of(ahead.x, ahead.z);
+                let c = world.cell_of(ahead.x.into(), ahead.z.into());
                 records(&world, CellKey { x: c.x - 3, z: c.z - 3 }, 6)
             }
             None => (Vec::new(), Vec::new()),

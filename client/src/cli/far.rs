@@ -165,8 +165,8 @@ pub fn scene_around(world: &Arc<World>, eye: [f32; 3], record_radius: f32, view:
 /// The cells of the world whose centres lie within `radius` of `p`.
 fn cells_within(world: &World, p: [f32; 2], radius: f32) -> Vec<CellCoord> {
     let s = world.cell_size;
-    let lo = world.cell_of(p[0] - radius, p[1] - radius);
-    let hi = world.cell_of(p[0] + radius, p[1] + radius);
+    let lo = world.cell_of(f64::from(p[0] - radius), f64::from(p[1] - radius));
+    let hi = world.cell_of(f64::from(p[0] + radius), f64::from(p[1] + radius));
     let mut out = Vec::new();
     for z in lo.z..=hi.z {
         for x in lo.x..=hi.x {
@@ -199,10 +199,12 @@ fn records_around(world: &World, p: [f32; 2], radius: f32) -> Vec<SceneInstance>
         }
         for (i, p) in placements.iter().enumerate() {
             let Some(id) = u16::try_from(i).ok().and_then(|i| InstanceId::new(cell, i)) else { continue };
+            // The renderer's f32 world metres (exact within ±4,096 cells of the origin).
+            let (x, z) = (p.x as f32, p.z as f32);
             out.push(SceneInstance {
                 id,
                 species: p.species,
-                position: [p.x, ground.height(p.x, p.z), p.z],
+                position: [x, ground.height(x, z), z],
                 seed: world.instance_seed(id),
                 params: p.params.clone(),
             });

@@ -670,7 +670,7 @@ fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::
     let (name, eager) = (world.name.clone(), world.instances.len());
     // A world expanded at load is served whole; a large one (the highlands) cell by cell on demand, as
     // canopy-server serves it.
-    let store = if world.cell_count() > canopy_worlds::world::EAGER_CELLS {
+    let store = if world.cell_count() > canopy_worlds::world::EAGER_CELLS as u64 {
         canopy_server::CellCache::new(world, canopy_server::CellCacheConfig::default())
             .context("building the world store")?
             .shared()

@@ -444,7 +444,7 @@ fn scatter(
                     params.push((slot, v));
                 }
             }
-            kept.push(Placement { species: rule.species, x: x as f32, z: z as f32, params });
+            kept.push(Placement { species: rule.species, x, z, params });
         }
     }
     kept
@@ -521,7 +521,7 @@ fn expand_block(world: &World, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Pl
                 let explicit = pops.explicit_in(e0, e1).filter(|(o, _)| *o < order).map(|(_, p)| p);
                 let points = earlier_rules
                     .chain(explicit)
-                    .filter_map(|p| distance(p.species).map(|d| [f64::from(p.x), f64::from(p.z), f64::from(d)]))
+                    .filter_map(|p| distance(p.species).map(|d| [p.x, p.z, f64::from(d)]))
                     .collect();
                 Buckets::new(area.grow(reach), points)
             });
@@ -534,7 +534,7 @@ fn expand_block(world: &World, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Pl
         for (_, p) in items {
             let key = world.cell_of(p.x, p.z);
             if let Some(k) = cells.index(key)
-                && target.contains(f64::from(p.x), f64::from(p.z))
+                && target.contains(p.x, p.z)
             {
                 per_cell[k].push(p.clone());
             }

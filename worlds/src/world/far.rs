@@ -339,7 +339,7 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                     lambda.iter_mut().for_each(|l| *l = 0.0);
                     for &r in &active {
                         let (rule, m) = (&world.rules[r], &model.rules[r]);
-                        if !rule.region.contains(x as f32, z as f32) {
+                        if !rule.region.contains(x, z) {
                             continue;
                         }
                         // The keep probability, in f32 exactly as `ScatterRule::density_at`.
@@ -378,7 +378,7 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
             }
             for (_, p) in world.populations.explicit.get(&cell).into_iter().flatten() {
                 let t = &mut tallies[usize::from(p.species)];
-                let sub_of = |v: f32, o: i32| ((f64::from(v) - f64::from(o) * s) / sub).floor().clamp(0.0, 7.0) as u32;
+                let sub_of = |v: f64, o: i32| ((v - f64::from(o) * s) / sub).floor().clamp(0.0, 7.0) as u32;
                 t.explicit[(sub_of(p.z, cz) * COVER_SIDE + sub_of(p.x, cx)) as usize] += 1;
                 if let Some((slot, default)) = model.heights[usize::from(p.species)] {
                     let own =

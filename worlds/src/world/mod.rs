@@ -147,6 +147,9 @@ pub use canopy_protocol::record::POSITION_STEPS;
 
 /// Most cells in a world's bounds: 2^21 per axis (±2^20 around the origin).
 pub const MAX_CELLS: u64 = 1 << 42;
+/// A world's bounds lie within ±`MAX_CELL_COORD` cells of the origin on each axis (64 m cells: ±67,108 km), where
+/// instance ids ([`InstanceId`]: 24 bits per axis) name every cell and positions are exact in f64.
+pub const MAX_CELL_COORD: u32 = 1 << 20;
 /// Worlds of at most this many cells are expanded whole at load ([`World::instances`]); larger ones only cell by
 /// cell, on demand ([`World::expand_cell`]).
 pub const EAGER_CELLS: usize = 4096;
@@ -169,9 +172,11 @@ pub struct Bounds {
 }
 
 impl Bounds {
-    /// Whether (x, z) lies inside.
-    pub fn contains(&self, x: f32, z: f32) -> bool {
-        x >= self.min[0] && x < self.max[0] && z >= self.min[1] && z < self.max[1]
+    /// Whether (x, z) lies inside (in f64: positions far from the origin are not f32s).
+    pub fn contains(&self, x: f64, z: f64) -> bool {
+        let [x0, z0] = self.min.map(f64::from);
+        let [x1, z1] = self.max.map(f64::from);
+        x >= x0 && x < x1 && z >= z0 && z < z1
     }
 
     /// Width (x) and depth (z), metres.
@@ -202,10 +207,11 @@ pub struct WorldSpecies {
 pub struct Placement {
     /// Species id (index into [`World::species`]).
     pub species: u16,
+    /// Position, on the [`POSITION_STEPS`] grid of its cell: in f64, exact in every cell a world may have (±2^20
+    /// cells per axis; f32 holds the grid only within ±4,096 cells).
+    pub x: f64,
     /// Position, on the [`POSITION_STEPS`] grid of its cell.
-    pub x: f32,
-    /// Position, on the [`POSITION_STEPS`] grid of its cell.
-    pub z: f32,
+    pub z: f64,
     /// `(slot, value)` sorted by slot: only values that differ from the species defaults.
     pub params: Vec<(u16, f32)>,
 }
@@ -325,11 +331,12 @@ impl World {
         populations: Populations,
         explicit_instances: u32,
     ) -> World {
-        let cell = |v: f32| (v / cell_size).floor() as i32;
-        let cell_min = CellKey { x: cell(bounds.min[0]), z: cell(bounds.min[1]) };
+        // In f64: `max` minus a step is not an f32 far from the origin.
+        let cell = |v: f64| (v / f64::from(cell_size)).floor() as i32;
+        let cell_min = CellKey { x: cell(bounds.min[0].into()), z: cell(bounds.min[1].into()) };
         // `max` is exclusive: the last cell holds `max` minus one position step.
-        let step = cell_size / POSITION_STEPS as f32;
-        let cell_max = CellKey { x: cell(bounds.max[0] - step), z: cell(bounds.max[1] - step) };
+        let step = f64::from(cell_size) / f64::from(POSITION_STEPS);
+        let cell_max = CellKey { x: cell(f64::from(bounds.max[0]) - step), z: cell(f64::from(bounds.max[1]) - step) };
         let cell_dims = [(cell_max.x - cell_min.x + 1) as u32, (cell_max.z - cell_min.z + 1) as u32];
         World {
             name,
@@ -352,7 +359,7 @@ impl World {
     /// Expand every cell of a world of at most [`EAGER_CELLS`] cells into [`World::instances`] (in blocks of
     /// [`REGION_BLOCK`] cells, each worked on by the available cores: the result does not depend on either).
     fn materialise(mut self) -> World {
-        if self.cell_count() > EAGER_CELLS {
+        if self.cell_count() > EAGER_CELLS as u64 {
             return self;
         }
         let (min, [w, d]) = (self.cell_min, self.cell_dims.map(|v| v as i32));
@@ -373,9 +380,9 @@ impl World {
         !self.cell_starts.is_empty()
     }
 
-    /// Number of cells in bounds.
-    pub fn cell_count(&self) -> usize {
-        self.cell_dims[0] as usize * self.cell_dims[1] as usize
+    /// Number of cells in bounds (up to 2^42: a u64 on every target).
+    pub fn cell_count(&self) -> u64 {
+        u64::from(self.cell_dims[0]) * u64::from(self.cell_dims[1])
     }
 
     /// Cells in bounds per axis (x, z).
@@ -402,11 +409,12 @@ impl World {
     }
 
     /// The cell holding (x, z).
-    pub fn cell_of(&self, x: f32, z: f32) -> CellKey {
-        CellKey { x: (x / self.cell_size).floor() as i32, z: (z / self.cell_size).floor() as i32 }
+    pub fn cell_of(&self, x: f64, z: f64) -> CellKey {
+        let s = f64::from(self.cell_size);
+        CellKey { x: (x / s).floor() as i32, z: (z / s).floor() as i32 }
     }
 
-    /// The corner of a cell with the smallest x and z.
+    /// The corner of a cell with the smallest x and z (exact: a multiple of the cell size within ±2^26 cells).
     pub fn cell_origin(&self, c: CellKey) -> [f32; 2] {
         [c.x as f32 * self.cell_size, c.z as f32 * self.cell_size]
     }
@@ -457,15 +465,16 @@ impl World {
         let p = &self.instances[id as usize];
         let c = self.cell_of(p.x, p.z);
         let [ox, oz] = self.cell_origin(c);
-        let q = |v: f32, o: f32| canopy_protocol::record::quantize(v, o, self.cell_size);
+        let q = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), self.cell_size);
         (c, [q(p.x, ox), q(p.z, oz)])
     }
 
-    /// The position of steps `q` within cell `c`: `cell_origin + q · cell_size / POSITION_STEPS`, exact in f32.
-    pub fn dequantize(&self, c: CellKey, q: [u16; 2]) -> [f32; 2] {
+    /// The position of steps `q` within cell `c`: `cell_origin + q · cell_size / POSITION_STEPS`, exact in f64 (in
+    /// every cell a world may have; the protocol's f32 `dequantize` is exact within ±4,096 cells).
+    pub fn dequantize(&self, c: CellKey, q: [u16; 2]) -> [f64; 2] {
         let [ox, oz] = self.cell_origin(c);
-        let d = |q: u16, o: f32| canopy_protocol::record::dequantize(q, o, self.cell_size);
-        [d(q[0], ox), d(q[1], oz)]
+        let step = f64::from(self.position_step());
+        [f64::from(ox) + f64::from(q[0]) * step, f64::from(oz) + f64::from(q[1]) * step]
     }
 
     /// The instance seed of the instance `id` names: [`instance_seed`]`(world seed, id)`.
@@ -486,7 +495,7 @@ impl World {
         let range = self.cell_instances(c);
         debug_assert!(range.contains(&index), "instance {index} is not in its cell's range {range:?}");
         let in_cell = u16::try_from(index - range.start).expect("a cell holds at most 65,536 instances");
-        // A world's cells lie within ±POSITION_STEPS cells of the origin, well inside what ids can name.
+        // A world's cells lie within ±MAX_CELL_COORD cells of the origin, inside what ids can name.
         InstanceId::new(canopy_protocol::CellCoord::new(c.x, c.z), in_cell).expect("a world's cells can be named")
     }
 
@@ -528,10 +537,12 @@ impl World {
         }
     }
 
-    /// An instance's position: x, the terrain height there, z.
+    /// An instance's position: x, the terrain height there, z, in f32 world metres (what a renderer draws; exact
+    /// within ±4,096 cells of the origin, rounded farther out: materialised worlds lie well inside).
     pub fn position(&self, id: u32) -> [f32; 3] {
         let p = &self.instances[id as usize];
-        [p.x, self.height(p.x, p.z), p.z]
+        let (x, z) = (p.x as f32, p.z as f32);
+        [x, self.height(x, z), z]
     }
 
     /// The id of the species with this table name.

@@ -10,8 +10,8 @@ use super::manifest::{Manifest, Population, SourceRef, Span};
 use super::source::Resolver;
 use super::terrain::{TILE_PARAMS, Terrain, slope_degrees};
 use super::{
-    Bounds, CellKey, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS, Placement, World,
-    WorldSpecies,
+    Bounds, CellKey, MAX_CELL_COORD, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
+    Placement, World, WorldSpecies,
 };
 use crate::amplify::unknown_param;
 use crate::diag::{Diagnostic, SourceFile};
@@ -221,10 +221,10 @@ impl ScatterRule {
 
 /// Snap (x, z) down onto the [`POSITION_STEPS`] grid of its cell: `floor(v / step) · step` with the power-of-two
 /// `step = cell_size / POSITION_STEPS` (the cell size is a power of two and cells start at multiples of it, so
-/// this is the cell's grid). Exact in f32 within the bounds a world allows.
-pub(crate) fn snap(cell_size: f32, x: f64, z: f64) -> [f32; 2] {
+/// this is the cell's grid). Exact in f64 within the bounds a world allows.
+pub(crate) fn snap(cell_size: f32, x: f64, z: f64) -> [f64; 2] {
     let (step, inv_step) = position_step(cell_size);
-    [((x * inv_step).floor() * step) as f32, ((z * inv_step).floor() * step) as f32]
+    [(x * inv_step).floor() * step, (z * inv_step).floor() * step]
 }
 
 /// A species table entry while building: the graph, if it loaded.
@@ -343,7 +343,7 @@ pub(crate) fn build(
     if let (Some((b, bspan)), Some((cell_size, _))) = (&m.bounds, &m.cell) {
         let cell_size = *cell_size;
         let step = cell_size / POSITION_STEPS as f32;
-        let limit = f64::from(cell_size) * f64::from(POSITION_STEPS);
+        let limit = f64::from(cell_size) * f64::from(MAX_CELL_COORD);
         let bounds = Bounds { min: [b[0], b[1]], max: [b[2], b[3]] };
         let on_grid = b.iter().all(|&v| (f64::from(v) / f64::from(step)).fract() == 0.0);
         let cells = |lo: f32, hi: f32| {
@@ -356,7 +356,7 @@ pub(crate) fn build(
             diags.push(src.diag(
                 bspan.clone(),
                 format!(
-                    "bounds must lie within ±{limit} m (cell size × {POSITION_STEPS}), where positions are exact in f32"
+                    "bounds must lie within ±{limit} m (cell size × {MAX_CELL_COORD}, the cells instance ids can name)"
                 ),
             ));
         } else if !on_grid {
@@ -509,7 +509,7 @@ pub(crate) fn build(
                 let params = graph.map(|g| resolve_settings(src, g, &inst.params, diags));
                 let Some((bounds, cell_size)) = geometry else { continue };
                 let [x, z] = snap(cell_size, f64::from(inst.at[0]), f64::from(inst.at[1]));
-                if !bounds.contains(inst.at[0], inst.at[1]) || !bounds.contains(x, z) {
+                if !bounds.contains(inst.at[0].into(), inst.at[1].into()) || !bounds.contains(x, z) {
                     diags.push(src.diag(inst.at_span.clone(), "the instance lies outside the world's bounds"));
                     continue;
                 }
@@ -624,7 +624,10 @@ pub(crate) fn build(
     for (order, item) in resolved.into_iter().enumerate() {
         match item {
             Resolved::Instance(p) => {
-                let key = CellKey { x: (p.x / cell_size).floor() as i32, z: (p.z / cell_size).floor() as i32 };
+                let key = CellKey {
+                    x: (p.x / f64::from(cell_size)).floor() as i32,
+                    z: (p.z / f64::from(cell_size)).floor() as i32,
+                };
                 populations.explicit.entry(key).or_default().push((order as u32, p));
                 explicit += 1;
             }
@@ -633,7 +636,10 @@ pub(crate) fn build(
                 spans.push(span);
             }
             Resolved::Edit(fell, p) => {
-                let key = CellKey { x: (p.x / cell_size).floor() as i32, z: (p.z / cell_size).floor() as i32 };
+                let key = CellKey {
+                    x: (p.x / f64::from(cell_size)).floor() as i32,
+                    z: (p.z / f64::from(cell_size)).floor() as i32,
+                };
                 populations.edits.entry(key).or_default().push((fell, p));
             }
         }

@@ -74,7 +74,7 @@ impl World {
     /// The estimate from the placements of sampled cells: mean per cell × cells, per species, with the standard
     /// error of that mean.
     pub fn estimate(&self, sampled: &[Vec<Placement>]) -> Estimate {
-        let cells = self.cell_count() as u64;
+        let cells = self.cell_count();
         let m = sampled.len().max(1) as f64;
         let per_species = (0..self.species.len())
             .map(|sp| {
@@ -96,7 +96,7 @@ impl World {
         let n = self.instances.len();
         let _ = writeln!(s, "world {}: {w} m × {d} m = {area_km2:.2} km², seed {}", self.name, self.seed);
         if self.is_materialised() {
-            let per_cell = (0..self.cell_count()).map(|i| self.cell_starts[i + 1] - self.cell_starts[i]);
+            let per_cell = self.cell_starts.windows(2).map(|w| w[1] - w[0]);
             let max_cell = per_cell.clone().max().unwrap_or(0);
             let empty = per_cell.filter(|&c| c == 0).count();
             let _ = writeln!(

@@ -194,7 +194,8 @@ impl GroundTruth {
         let key = CellKey { x: c.x, z: c.z };
         let placements = self.world.expand_cells(key, key).pop().map(|(_, v)| v).unwrap_or_default();
         // A cell the protocol can stream holds at most 65,535 instances (the server refuses more).
-        let cell: CellPositions = placements.iter().take(usize::from(u16::MAX)).map(|q| [q.x, q.z]).collect();
+        let cell: CellPositions =
+            placements.iter().take(usize::from(u16::MAX)).map(|q| [q.x as f32, q.z as f32]).collect();
         self.nanos.fetch_add(t.elapsed().as_nanos() as u64, Relaxed);
         self.expanded.fetch_add(1, Relaxed);
         lock().insert(c, cell)
@@ -241,7 +242,7 @@ impl GroundTruth {
                     let range = self.world.cell_instances(CellKey { x: c.x, z: c.z });
                     let cell = &self.world.instances[range.start as usize..range.end as usize];
                     let it = cell.iter().take(usize::from(u16::MAX)).enumerate();
-                    f(c, &mut it.filter_map(|(i, q)| near([q.x, q.z]).then_some(i as u16)));
+                    f(c, &mut it.filter_map(|(i, q)| near([q.x as f32, q.z as f32]).then_some(i as u16)));
                 }
                 Source::Function(memo) => {
                     let cell = self.function_cell(memo, c);

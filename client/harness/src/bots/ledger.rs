@@ -37,8 +37,8 @@ fn same_content(edit: &CellEdit, op: &EditOp, cell: CellCoord, grid: &Grid) -> b
             let origin = grid.cell_origin(cell);
             let q = InstanceRecord::new(
                 *species,
-                quantize(*x, origin[0], grid.cell_size),
-                quantize(*z, origin[1], grid.cell_size),
+                quantize((*x).into(), origin[0].into(), grid.cell_size),
+                quantize((*z).into(), origin[1].into(), grid.cell_size),
             );
             *record == q && params == asked
         }

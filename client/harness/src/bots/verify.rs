@@ -124,12 +124,16 @@ pub fn verify_with(state: &ClientState, world: &World, edited: bool) -> Result<V
             None if edited => continue,
             None => return Err(format!("instance {:?} is not in the world", inst.id)),
         };
-        let [x, _, z] = inst.position;
-        // Positions lie on the position grid, so the dequantised record equals the placement bit for bit;
-        // `Placement::params` is sorted by slot, as the records' overrides are.
+        // Positions lie on the position grid, so the record's steps are the placement's exactly (compared as steps
+        // in the cell: far from the origin an f32 world coordinate does not hold the grid); `Placement::params` is
+        // sorted by slot, as the records' overrides are.
+        let c = inst.id.cell();
+        let record = state.cells().get(&c).and_then(|h| h.records.get(usize::from(inst.id.index())));
+        let origin = world.cell_origin(CellKey { x: c.x, z: c.z });
+        let step = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), world.cell_size);
+        let steps = [step(p.x, origin[0]), step(p.z, origin[1])];
         if u16::from(inst.species) != p.species
-            || x.to_bits() != p.x.to_bits()
-            || z.to_bits() != p.z.to_bits()
+            || record.is_none_or(|r| [r.qx(), r.qz()] != steps)
             || (!edited && inst.params[..] != p.params[..])
             || inst.seed != canopy_worlds::world::instance_seed(world.seed, inst.id)
         {

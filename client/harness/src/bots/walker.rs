@@ -320,7 +320,7 @@ mod tests {
                 let y = w.position3(|x, z| world.height(x, z))[1];
                 assert!((y - ground - 1500.0).abs() < 0.01 && y > ground, "{y} over ground {ground}");
             }
-            let c = world.cell_of(p[0], p[1]);
+            let c = world.cell_of(p[0].into(), p[1].into());
             cells.insert((c.x, c.z));
             regions.insert(((p[0] / region).floor() as i32, (p[1] / region).floor() as i32));
         }
