@@ -151,8 +151,12 @@ fn hover(cache: &Arc<CellCache>, a: &Args, label: &str) {
     let t0 = Instant::now();
     let mut s = session(cache, a, vp, t0);
     let mut c = Client::default();
+    let mut records_done = None;
     loop {
         c.take(&mut s, Instant::now());
+        if records_done.is_none() && s.is_complete() {
+            records_done = Some(t0.elapsed());
+        }
         let (wanted, have) = completeness(cache, view(a), a.at, radius, &c.held);
         if wanted > 0 && have == wanted && s.far().is_some_and(|f| f.queued() == 0) {
             let took = t0.elapsed();
@@ -165,6 +169,9 @@ fn hover(cache: &Arc<CellCache>, a: &Args, label: &str) {
             );
             let levels: Vec<usize> = (0..=8).map(|l| c.held.iter().filter(|k| k.level == l).count()).collect();
             println!("{label}: nodes held by level 0..8: {levels:?}");
+            if let Some(r) = records_done {
+                println!("{label}: the records of the {radius} m area of interest were complete after {:.2} s", r.as_secs_f64());
+            }
             return;
         }
         if t0.elapsed() > Duration::from_secs(600) {
