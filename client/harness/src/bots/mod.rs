@@ -450,7 +450,11 @@ pub async fn drive(
     // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
     let mut stoppable = stop.has_changed().is_ok();
     let far_view = |walker: &Walker| plan.far.map(|f| FarView { altitude: walker.altitude().max(2.0), ..f });
-    let mut radius = conn.state().viewpoint().map_or(plan.radius, |v| v.radius);
+    // Fitted, the first viewpoint's radius ([`LinkFit::first_radius`]) is where the fit starts from.
+    let mut radius = match plan.fit {
+        Some(_) => conn.state().viewpoint().map_or(plan.radius, |v| v.radius),
+        None => plan.radius,
+    };
     if let Some(f) = far_view(walker) {
         conn.set_far_view(f).await?;
     }
