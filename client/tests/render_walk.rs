@@ -80,6 +80,9 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
                 "200",
                 "--radius",
                 "300",
+                // The radius fitted to a link while the autopilot moves (fast enough that it stays 300 m).
+                "--link",
+                "100M",
                 "--autopilot",
                 "--exit-after",
                 "8",

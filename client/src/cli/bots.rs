@@ -269,6 +269,6 @@ pub fn run_bots(
 }
 
 /// A link rate for `--link`: a number of bits a second, not "unlimited".
-fn parse_link(s: &str) -> Result<u64, String> {
+pub(crate) fn parse_link(s: &str) -> Result<u64, String> {
     canopy_harness::bandwidth::link::parse_rate(s)?.ok_or_else(|| format!("`{s}`: give a rate, e.g. 1M"))
 }

@@ -24,6 +24,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::fit::LinkFit;
 use canopy_client::net::Edges;
 use canopy_client::state::{Event, viewpoint_due};
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
@@ -73,6 +74,10 @@ pub struct WalkArgs {
     /// Area-of-interest radius to ask for, metres (the server caps it).
     #[arg(long, default_value_t = 600.0)]
     radius: f32,
+    /// The link's rate (bits a second: `1M`, `500k`): while moving, ask for the radius it carries at the camera's
+    /// speed over the records around it, at most `--radius` (default: always `--radius`).
+    #[arg(long, value_parser = super::bots::parse_link)]
+    link: Option<u64>,
     /// Starting camera: a file, or statements inline (default: the default view of `canopy render`).
     #[arg(long)]
     camera: Option<String>,
@@ -184,7 +189,7 @@ fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
 
 async fn net_session(
     cfg: ConnectConfig,
-    radius: f32,
+    (radius, fit): (f32, Option<LinkFit>),
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
     mut edits: Option<EditLink>,
@@ -219,7 +224,7 @@ async fn net_session(
     let mut sent_at = Instant::now();
     loop {
         let streamed =
-            stream(&mut conn, &shared, &mut edits, &ground, &mut generation, grid, radius, &mut sent_at).await;
+            stream(&mut conn, &shared, &mut edits, &ground, &mut generation, grid, (radius, fit), &mut sent_at).await;
         match streamed {
             // The edge is gone: resume on another with what this session held, at the camera's pose now.
             Err(e) if cfg.edges.len() > 1 && e.downcast_ref::<ClientError>().is_some_and(ClientError::edge_lost) => {
@@ -250,7 +255,7 @@ async fn stream(
     ground: &Ground,
     generation: &mut u64,
     grid: canopy_protocol::aoi::Grid,
-    radius: f32,
+    (radius, fit): (f32, Option<LinkFit>),
     sent_at: &mut Instant,
 ) -> anyhow::Result<()> {
     let mut dirty = false;
@@ -290,8 +295,17 @@ async fn stream(
                 if let Some(f) = far {
                     conn.set_far_view(FarView { altitude: pose.altitude.max(2.0), ..f }).await?;
                 }
-                let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
-                if viewpoint_due(&grid, sent, pose.position, pose.yaw, sent_at.elapsed()) {
+                let sent = *conn.state().viewpoint().expect("a streaming session has a viewpoint");
+                // On a slow link the radius follows what the link carries at the camera's speed.
+                let asked = match fit {
+                    Some(f) => {
+                        let [vx, vz] = pose.velocity;
+                        LinkFit::settle(sent.radius, f.radius(conn, (vx * vx + vz * vz).sqrt(), radius))
+                    }
+                    None => radius,
+                };
+                if asked != sent.radius || viewpoint_due(&grid, &sent, pose.position, pose.yaw, sent_at.elapsed()) {
+                    let radius = asked;
                     conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
                     *sent_at = Instant::now();
                 }
@@ -314,7 +328,7 @@ async fn stream(
 
 fn net_thread(
     cfg: ConnectConfig,
-    radius: f32,
+    reach: (f32, Option<LinkFit>),
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
     edits: Option<EditLink>,
@@ -327,7 +341,7 @@ fn net_thread(
                 return;
             }
         };
-        if let Err(e) = rt.block_on(net_session(cfg, radius, cache, Arc::clone(&shared), edits)) {
+        if let Err(e) = rt.block_on(net_session(cfg, reach, cache, Arc::clone(&shared), edits)) {
             lock(&shared.status).error = Some(format!("{e:#}"));
         }
     })
@@ -760,7 +774,8 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         None => (None, None),
     };
     connect.token = token;
-    let net = net_thread(connect, args.radius, cache, Arc::clone(&shared), edit_link);
+    let fit = args.link.map(|rate| LinkFit { link_bits: rate as f64 });
+    let net = net_thread(connect, (args.radius, fit), cache, Arc::clone(&shared), edit_link);
     let event_loop = EventLoop::new().context("opening the display (is DISPLAY or WAYLAND_DISPLAY set?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let now = Instant::now();

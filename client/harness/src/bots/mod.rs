@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::edit::EditOp;
-use canopy_protocol::messages::{ByKind, ServerMsgKind, Welcome};
+use canopy_protocol::messages::{ByKind, ServerMsgKind};
 use canopy_protocol::summary::FarView;
 use canopy_worlds::world::World;
 use quinn::Endpoint;
@@ -36,6 +36,7 @@ mod summary;
 mod verify;
 pub mod walker;
 
+pub use canopy_client::fit::LinkFit;
 pub use edits::{Acknowledged, EditPlan, EditStats, EditsSummary, FanOut, FanOutReport};
 pub use ledger::{EditLedger, check_ledger};
 pub use summary::BotsSummary;
@@ -327,47 +328,6 @@ pub async fn connect_walking_within(
     Ok((conn, walker))
 }
 
-/// A radius fitted to a link ([`AoiParams::link_radius`]): a bot on a slow link asks for what the link carries at
-/// its speed, over the records held around it, so that what it asks for arrives in time and the far view draws
-/// the rest.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct LinkFit {
-    /// The link's rate, bits a second.
-    pub link_bits: f64,
-}
-
-/// Bytes a record takes on the wire until enough have arrived to measure it (the highlands measured 7.44).
-const PRIOR_RECORD_BYTES: f64 = 7.5;
-
-/// Records received before their bytes on the wire are measured rather than assumed.
-const MEASURED_AFTER_RECORDS: u64 = 1000;
-
-impl LinkFit {
-    /// The radius to ask for now, at most `cap`: [`AoiParams::link_radius`] at `speed` over the density of the
-    /// cells held (the world's mean before any) with the bytes a record took on the wire so far.
-    pub fn radius(&self, conn: &Connection, speed: f32, cap: f32) -> f32 {
-        let records = conn.state().stats().records;
-        let bytes = (records >= MEASURED_AFTER_RECORDS)
-            .then(|| conn.frame_bytes_received()[ServerMsgKind::Cells] as f64 / records as f64);
-        self.fitted(conn.welcome(), speed, cap, conn.state().record_density(), bytes)
-    }
-
-    /// The radius of the first viewpoint, before anything arrived: over the world's mean density.
-    pub fn first_radius(&self, welcome: &Welcome, speed: f32, cap: f32) -> f32 {
-        self.fitted(welcome, speed, cap, None, None)
-    }
-
-    fn fitted(&self, w: &Welcome, speed: f32, cap: f32, density: Option<f64>, bytes: Option<f64>) -> f32 {
-        let g = &w.world.grid;
-        let density = density.unwrap_or_else(|| {
-            let cells =
-                (f64::from(g.max.x) - f64::from(g.min.x) + 1.0) * (f64::from(g.max.z) - f64::from(g.min.z) + 1.0);
-            f64::from(w.world.instances) / (cells * f64::from(g.cell_size) * f64::from(g.cell_size))
-        });
-        w.aoi.link_radius(self.link_bits, speed, density, bytes.unwrap_or(PRIOR_RECORD_BYTES)).min(cap)
-    }
-}
-
 /// How [`drive`] walks a connection.
 #[derive(Clone, Debug)]
 pub struct DrivePlan {
@@ -484,11 +444,9 @@ pub async fn drive(
                 let mut refit = false;
                 if let Some(fit) = plan.fit {
                     let [vx, vz] = walker.velocity();
-                    let r = fit.radius(conn, (vx * vx + vz * vz).sqrt(), plan.radius);
-                    refit = (r - radius).abs() > 0.1 * radius;
-                    if refit {
-                        radius = r;
-                    }
+                    let r = LinkFit::settle(radius, fit.radius(conn, (vx * vx + vz * vz).sqrt(), plan.radius));
+                    refit = r != radius;
+                    radius = r;
                 }
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
                 if jumped || refit || viewpoint_due(&grid, sent, walker.position(), walker.yaw(), now - sent_at) {
