@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 
 use super::fractal::Patch;
-use super::{Bounds, CellKey, Placement, Ramp, ScatterRule, World, par};
+use super::{Bounds, CellKey, Placement, ScatterRule, World, par};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
 
@@ -160,11 +160,11 @@ impl Ground<'_> {
     }
 
     fn density(&self, rule: &ScatterRule, x: f64, z: f64) -> f32 {
-        if rule.altitude == Ramp::ALL && rule.slope.ramp == Ramp::ALL {
+        if !rule.has_ramps() {
             return rule.density;
         }
         let (h, g2) = self.height_and_gradient2(x, z);
-        rule.density * rule.altitude.at(h) * rule.slope.at(g2)
+        rule.keep(h, g2)
     }
 }
 

@@ -52,7 +52,7 @@ use canopy_protocol::summary::{COVER_SIDE, MAX_NODE_SPECIES, NodeKey, NodeSummar
 use canopy_protocol::{CellCoord, Expr, Func, Op};
 
 use super::cells::Ground;
-use super::{CellKey, ParamValue, Ramp, ScatterRule, World, par};
+use super::{CellKey, ParamValue, ScatterRule, World, par};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
 
@@ -229,7 +229,7 @@ impl Model {
                 RuleModel {
                     species,
                     darts: PACKING / (spacing * spacing),
-                    ramps: r.altitude != Ramp::ALL || r.slope.ramp != Ramp::ALL,
+                    ramps: r.has_ramps(),
                     avoid,
                     height,
                 }
@@ -342,10 +342,10 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                         if !rule.region.contains(x, z) {
                             continue;
                         }
-                        // The keep probability, in f32 exactly as `ScatterRule::density_at`.
+                        // The keep probability, in f32 exactly as cell expansion takes it.
                         let p = if m.ramps {
                             let (h, g2) = *ground.get_or_insert_with(|| heights.height_and_gradient2(x, z));
-                            rule.density * rule.altitude.at(h) * rule.slope.at(g2)
+                            rule.keep(h, g2)
                         } else {
                             rule.density
                         };

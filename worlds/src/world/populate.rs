@@ -215,7 +215,18 @@ impl ScatterRule {
     /// The probability that a dart at (x, z) is kept: `density · altitude(height) · slope(slope)`.
     pub fn density_at(&self, world: &World, x: f32, z: f32) -> f32 {
         let (height, g2) = world.height_and_gradient2(x, z);
+        self.keep(height, g2)
+    }
+
+    /// The probability that a dart is kept on ground of `height` whose squared gradient is `g2` (the one formula
+    /// of cell expansion and the far view's leaves).
+    pub fn keep(&self, height: f32, g2: f64) -> f32 {
         self.density * self.altitude.at(height) * self.slope.at(g2)
+    }
+
+    /// Whether the keep probability depends on the ground (an altitude or slope ramp); without, it is `density`.
+    pub fn has_ramps(&self) -> bool {
+        self.altitude != Ramp::ALL || self.slope.ramp != Ramp::ALL
     }
 }
 
