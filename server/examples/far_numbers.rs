@@ -170,7 +170,10 @@ fn hover(cache: &Arc<CellCache>, a: &Args, label: &str) {
             let levels: Vec<usize> = (0..=8).map(|l| c.held.iter().filter(|k| k.level == l).count()).collect();
             println!("{label}: nodes held by level 0..8: {levels:?}");
             if let Some(r) = records_done {
-                println!("{label}: the records of the {radius} m area of interest were complete after {:.2} s", r.as_secs_f64());
+                println!(
+                    "{label}: the records of the {radius} m area of interest were complete after {:.2} s",
+                    r.as_secs_f64()
+                );
             }
             return;
         }

@@ -397,16 +397,14 @@ fn streams_exactly(world: &World, cache: &Arc<CellCache>, vp: Viewpoint) -> usiz
     let mut total = 0;
     for c in &area {
         // Each record is its placement in the world's own expansion of the cell: the same steps in the cell.
-        let placements = world.expand_cell(canopy_worlds::world::CellKey { x: c.x, z: c.z });
+        let key = canopy_worlds::world::CellKey { x: c.x, z: c.z };
+        let placements = world.expand_cell(key);
         let got = records.remove(c).unwrap_or_default();
         assert_eq!(got.len(), placements.len(), "cell {c:?}");
-        let o = grid.cell_origin(*c);
-        let q = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), grid.cell_size);
         for ((species, steps), p) in got.iter().zip(&placements) {
             assert_eq!(u16::from(*species), p.species);
-            assert_eq!(*steps, [q(p.x, o[0]), q(p.z, o[1])], "cell {c:?}");
-            let back = [0, 1].map(|a| f64::from(o[a]) + f64::from(steps[a]) * f64::from(world.position_step()));
-            assert_eq!(back, [p.x, p.z], "the steps give the placement back exactly");
+            assert_eq!(*steps, world.steps(key, p), "cell {c:?}");
+            assert_eq!(world.dequantize(key, *steps), [p.x, p.z], "the steps give the placement back exactly");
         }
         total += placements.len();
     }

@@ -113,12 +113,11 @@ fn cell_vectors() -> Vec<String> {
         let w = worlds.iter().find(|w| w.name == name).unwrap();
         for (c, list) in w.expand_cells(CellKey { x, z }, CellKey { x: x + 3, z: z + 3 }) {
             let mut h = Fnv::new();
-            let [ox, oz] = w.cell_origin(c).map(f64::from);
-            let step = f64::from(w.position_step());
             for p in &list {
                 h.u32(u32::from(p.species));
-                h.u32(((p.x - ox) / step) as u32);
-                h.u32(((p.z - oz) / step) as u32);
+                let [qx, qz] = w.steps(c, p);
+                h.u32(u32::from(qx));
+                h.u32(u32::from(qz));
                 for &(slot, v) in &p.params {
                     h.u32(u32::from(slot));
                     h.f32s(&[v]);

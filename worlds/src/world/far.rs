@@ -226,13 +226,7 @@ impl Model {
                 let height = heights[species].and_then(|(slot, default)| {
                     r.params.iter().find(|(s, _)| *s == slot).map(|(_, v)| Law::of(v)).or(default)
                 });
-                RuleModel {
-                    species,
-                    darts: PACKING / (spacing * spacing),
-                    ramps: r.has_ramps(),
-                    avoid,
-                    height,
-                }
+                RuleModel { species, darts: PACKING / (spacing * spacing), ramps: r.has_ramps(), avoid, height }
             })
             .collect();
         Model { rules, heights }

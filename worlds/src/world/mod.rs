@@ -464,9 +464,15 @@ impl World {
     pub fn quantize(&self, id: u32) -> (CellKey, [u16; 2]) {
         let p = &self.instances[id as usize];
         let c = self.cell_of(p.x, p.z);
+        (c, self.steps(c, p))
+    }
+
+    /// A placement's steps within cell `c` (each below [`POSITION_STEPS`]), as its record carries them: exact for
+    /// a placement of that cell, wherever the cell lies.
+    pub fn steps(&self, c: CellKey, p: &Placement) -> [u16; 2] {
         let [ox, oz] = self.cell_origin(c);
         let q = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), self.cell_size);
-        (c, [q(p.x, ox), q(p.z, oz)])
+        [q(p.x, ox), q(p.z, oz)]
     }
 
     /// The position of steps `q` within cell `c`: `cell_origin + q · cell_size / POSITION_STEPS`, exact in f64 (in

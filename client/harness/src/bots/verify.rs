@@ -129,9 +129,7 @@ pub fn verify_with(state: &ClientState, world: &World, edited: bool) -> Result<V
         // sorted by slot, as the records' overrides are.
         let c = inst.id.cell();
         let record = state.cells().get(&c).and_then(|h| h.records.get(usize::from(inst.id.index())));
-        let origin = world.cell_origin(CellKey { x: c.x, z: c.z });
-        let step = |v: f64, o: f32| canopy_protocol::record::quantize(v, o.into(), world.cell_size);
-        let steps = [step(p.x, origin[0]), step(p.z, origin[1])];
+        let steps = world.steps(CellKey { x: c.x, z: c.z }, p);
         if u16::from(inst.species) != p.species
             || record.is_none_or(|r| [r.qx(), r.qz()] != steps)
             || (!edited && inst.params[..] != p.params[..])
