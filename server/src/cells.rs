@@ -194,14 +194,7 @@ impl Shared {
     fn summarise(&self, key: NodeKey) {
         let started = Instant::now();
         // The leaves are computed outside the memo's lock, so both workers compute at once.
-        let plan = self.memo.lock().unwrap_or_else(|e| e.into_inner()).plan(key);
-        let node = match plan {
-            Ok(hit) => hit,
-            Err(plan) => {
-                let computed = plan.compute();
-                self.memo.lock().unwrap_or_else(|e| e.into_inner()).finish(computed)
-            }
-        };
+        let node = Summaries::get_shared(&self.memo, key);
         let encoded = Arc::new(EncodedSummary::new(node));
         self.metrics.summary_time.record(started.elapsed());
         self.metrics.summaries.fetch_add(1, Relaxed);

@@ -46,7 +46,7 @@
 //! cache ([`Summaries`]).
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use canopy_protocol::summary::{COVER_SIDE, MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover};
 use canopy_protocol::{CellCoord, Expr, Func, Op};
@@ -619,10 +619,8 @@ fn node_with(world: &World, model: &Model, key: NodeKey) -> NodeSummary {
 /// available cores). At most `capacity` nodes are kept; the least recently used goes first. Nodes are pure
 /// functions of the world and the key: what is cached, and the order of requests, never changes an answer.
 ///
-/// A caller that shares the memo between threads computes outside its lock: [`Summaries::plan`] (under the lock:
-/// what is cached, which blocks are missing), [`Plan::compute`] (the leaves, without the memo), then
-/// [`Summaries::finish`] (under the lock again: cache and aggregate). Two threads planning overlapping nodes at once
-/// may compute a block twice; both get the same nodes.
+/// A memo shared between threads is asked through [`Summaries::get_shared`], which computes the leaves outside its
+/// lock. Two threads asking for overlapping nodes at once may compute a block twice; both get the same nodes.
 #[derive(Debug)]
 pub struct Summaries {
     world: Arc<World>,
@@ -635,7 +633,7 @@ pub struct Summaries {
 
 /// What computing one node needs beyond the cache ([`Summaries::plan`]): the blocks of leaves to compute.
 #[derive(Debug)]
-pub struct Plan {
+struct Plan {
     key: NodeKey,
     world: Arc<World>,
     model: Arc<Model>,
@@ -649,7 +647,7 @@ pub struct Plan {
 
 /// A [`Plan`] computed, for [`Summaries::finish`].
 #[derive(Debug)]
-pub struct Computed {
+struct Computed {
     key: NodeKey,
     local: BTreeMap<NodeKey, Arc<NodeSummary>>,
     /// The blocks' roots.
@@ -660,7 +658,7 @@ pub struct Computed {
 
 impl Plan {
     /// Compute the plan's blocks (on the available cores), touching no memo.
-    pub fn compute(self) -> Computed {
+    fn compute(self) -> Computed {
         let Plan { key, world, model, local, missing, keep } = self;
         let leaves = key.level == 0;
         // Each block hands back its nodes of levels 1 ..= LEAF_BLOCK_LEVEL (85), or its 256 leaves as well.
@@ -726,8 +724,23 @@ impl Summaries {
         }
     }
 
+    /// [`Summaries::get`] on a memo shared between threads: what is cached is looked up, and the result cached,
+    /// under its lock; the leaves are computed outside it, so several threads compute at once. A poisoned lock is
+    /// taken as it is (the memo holds only pure results).
+    pub fn get_shared(memo: &Mutex<Summaries>, key: NodeKey) -> Arc<NodeSummary> {
+        let lock = || memo.lock().unwrap_or_else(|e| e.into_inner());
+        let plan = lock().plan(key);
+        match plan {
+            Ok(hit) => hit,
+            Err(plan) => {
+                let computed = plan.compute();
+                lock().finish(computed)
+            }
+        }
+    }
+
     /// `key` if it is cached, else what computing it needs: the cached nodes below it and the missing blocks.
-    pub fn plan(&mut self, key: NodeKey) -> Result<Arc<NodeSummary>, Plan> {
+    fn plan(&mut self, key: NodeKey) -> Result<Arc<NodeSummary>, Plan> {
         if let Some(hit) = self.touch(key) {
             return Ok(hit);
         }
@@ -754,7 +767,7 @@ impl Summaries {
     }
 
     /// Cache what a plan computed and answer its node (aggregating the levels above the blocks).
-    pub fn finish(&mut self, computed: Computed) -> Arc<NodeSummary> {
+    fn finish(&mut self, computed: Computed) -> Arc<NodeSummary> {
         let Computed { key, mut local, roots, found } = computed;
         let mut wanted = None;
         for n in found.into_iter().chain(roots) {
