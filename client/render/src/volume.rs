@@ -177,25 +177,21 @@ pub fn volumes_of(
     };
     let full_tree = fit(tree, max_edge.clamp(1, MAX_SLOT))?;
     let full_tree = full_tree.as_ref().unwrap_or(tree);
-    let r = full_tree.volume.resolution;
-    let half = r.map(|v| v.div_ceil(2).max(1));
-    let low_tree = ops::reduce(full_tree, half).map_err(|e| VolumeError::Reduce(e.to_string()))?;
+    let halve = |t: &Hypertree| {
+        ops::reduce(t, t.volume.resolution.map(|v| v.div_ceil(2).max(1)))
+            .map_err(|e| VolumeError::Reduce(e.to_string()))
+    };
+    let mut last = halve(full_tree)?;
+    let low = bake(&last, origin, units, lighting)?;
     let mut coarser = Vec::with_capacity(COARSER);
-    let mut last = low_tree.clone();
     for _ in 0..COARSER {
-        let r = last.volume.resolution;
-        if r.iter().copied().max().unwrap_or(0) <= 4 {
+        if last.volume.resolution.iter().copied().max().unwrap_or(0) <= 4 {
             break;
         }
-        last = ops::reduce(&last, r.map(|v| v.div_ceil(2).max(1))).map_err(|e| VolumeError::Reduce(e.to_string()))?;
+        last = halve(&last)?;
         coarser.push(bake(&last, origin, units, lighting)?);
     }
-    Ok(SpeciesVolumes {
-        full: bake(full_tree, origin, units, lighting)?,
-        low: bake(&low_tree, origin, units, lighting)?,
-        coarser,
-        height: None,
-    })
+    Ok(SpeciesVolumes { full: bake(full_tree, origin, units, lighting)?, low, coarser, height: None })
 }
 
 /// Bake one hypertree: per-voxel lit colour and opacity (see the module docs).
