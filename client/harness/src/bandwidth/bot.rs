@@ -195,7 +195,6 @@ async fn bot_session(
     }
     // A walker asks for its radius, a flight for the one its altitude and speed give under the server's rules.
     r.radius = walk.radius(&conn.welcome().aoi);
-    r.view = p.view.unwrap_or(r.radius);
     let plan = DrivePlan {
         radius: r.radius,
         tick: Duration::from_millis(100),

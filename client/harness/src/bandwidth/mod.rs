@@ -273,10 +273,9 @@ pub struct BotResult {
     /// What any bot reports: index, why it stopped early (if it did), records received and held, summary nodes
     /// received, time to its first complete area of interest, whether it ended complete.
     pub bot: BotReport,
-    /// The area-of-interest radius it asked for, metres (a flight's from its altitude and speed).
+    /// The area-of-interest radius it asked for, metres (a flight's from its altitude and speed; fitted to the link,
+    /// the most it asked for). Each sample carries the view distance it is judged within ([`Sample::view`]).
     pub radius: f32,
-    /// The view distance its visible completeness was measured over, metres.
-    pub view: f32,
     /// Its samples, in time order.
     pub samples: Vec<Sample>,
     /// Its bytes at the end.
