@@ -27,8 +27,8 @@ const MAX_SAMPLES: i32 = 640;
 // the canopy stands on the scene's ground, which the terrain drawn only approximates at a distance.
 const PULL_METRES: f32 = 25.0;
 const PULL_FRACTION: f32 = 0.02;
-const CLASSES: f32 = 8.0;
-const BANDS: f32 = 16.0;
+// CLASSES (density classes), BANDS (a profile's height bands) and TILE_MIPS (a tile's resolutions) come from
+// `src/tile.rs`, prepended by `src/pipelines.rs`.
 // Samples of the layer per sub-square the ray crosses it in.
 const LAYER_SAMPLES: i32 = 4;
 
@@ -148,7 +148,7 @@ fn above_ground(p: vec3<f32>, i: i32, j: i32, cell: f32, h: vec4<f32>) -> f32 {
 // the classes kept (fractional: the extinctions between whole classes are interpolated).
 fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
     let k = clamp(m, 0.0, CLASSES);
-    let n = min(u32(k), 7u);
+    let n = min(u32(k), u32(CLASSES) - 1u);
     let f = k - f32(n);
     let bi = u32(clamp(b, 0.0, BANDS - 1.0));
     let lo = base + 3u * bi;
@@ -305,7 +305,7 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
                 let closing = max(-d.y + gx * abs(d.x) + gz * abs(d.z), 1e-4);
                 // The tile resolution whose voxels are about VOXEL_PX pixels where the ray enters the sub-square (the
                 // tile's resolutions are consecutive volumes, finest first).
-                let level = u32(clamp(floor(log2(max(t_in * in.mip_scale, 1.0))), 0.0, 3.0));
+                let level = u32(clamp(floor(log2(max(t_in * in.mip_scale, 1.0))), 0.0, f32(TILE_MIPS - 1u)));
                 let mip = volumes[in.ids.y + level];
                 let vox = mip.voxel.xyz * scale;
                 let step = mip.voxel.w * scale;

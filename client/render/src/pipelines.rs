@@ -372,7 +372,15 @@ impl Pipelines {
             &premultiplied,
         );
 
-        let forest_mod = module(device, "forest", &[COMMON, VOLUME_INFO, include_str!("../shaders/forest.wgsl")]);
+        // The tile's layout as the shader reads it, from the constants that bake it.
+        let tile_consts = format!(
+            "const CLASSES: f32 = {}.0;\nconst BANDS: f32 = {}.0;\nconst TILE_MIPS: u32 = {}u;\n",
+            super::tile::DENSITY_CLASSES,
+            super::tile::PROFILE_BANDS,
+            super::tile::TILE_MIPS
+        );
+        let forest_mod =
+            module(device, "forest", &[COMMON, VOLUME_INFO, &tile_consts, include_str!("../shaders/forest.wgsl")]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
