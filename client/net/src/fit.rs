@@ -49,6 +49,13 @@ impl LinkFit {
         w.aoi.link_radius(self.link_bits, speed, density, bytes.unwrap_or(PRIOR_RECORD_BYTES)).min(cap)
     }
 
+    /// The radius to ask for next, moving at `velocity` and asking for `current` now: [`LinkFit::radius`] once it
+    /// moved by more than a tenth ([`LinkFit::settle`]).
+    pub fn next(&self, conn: &Connection, current: f32, velocity: [f32; 2], cap: f32) -> f32 {
+        let [vx, vz] = velocity;
+        Self::settle(current, self.radius(conn, (vx * vx + vz * vz).sqrt(), cap))
+    }
+
     /// The radius to ask for next: `fitted` if it moved by more than a tenth from `current`, else `current` (a
     /// changed radius re-plans the area of interest on both sides, so small changes are not worth it).
     pub fn settle(current: f32, fitted: f32) -> f32 {

@@ -297,13 +297,7 @@ async fn stream(
                 }
                 let sent = *conn.state().viewpoint().expect("a streaming session has a viewpoint");
                 // On a slow link the radius follows what the link carries at the camera's speed.
-                let asked = match fit {
-                    Some(f) => {
-                        let [vx, vz] = pose.velocity;
-                        LinkFit::settle(sent.radius, f.radius(conn, (vx * vx + vz * vz).sqrt(), radius))
-                    }
-                    None => radius,
-                };
+                let asked = fit.map_or(radius, |f| f.next(conn, sent.radius, pose.velocity, radius));
                 if asked != sent.radius || viewpoint_due(&grid, &sent, pose.position, pose.yaw, sent_at.elapsed()) {
                     let radius = asked;
                     conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;

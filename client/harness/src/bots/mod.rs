@@ -443,8 +443,7 @@ pub async fn drive(
                 // A fitted radius changes the area of interest only when it moves by more than a tenth.
                 let mut refit = false;
                 if let Some(fit) = plan.fit {
-                    let [vx, vz] = walker.velocity();
-                    let r = LinkFit::settle(radius, fit.radius(conn, (vx * vx + vz * vz).sqrt(), plan.radius));
+                    let r = fit.next(conn, radius, walker.velocity(), plan.radius);
                     refit = r != radius;
                     radius = r;
                 }
