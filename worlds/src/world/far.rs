@@ -319,6 +319,10 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
     let mut lambda = vec![0.0f64; species];
     let mut tallies = vec![Tally::EMPTY; species];
     let mut expected = vec![0.0f64; world.rules.len()];
+    // The last densities each rule's avoid factors were computed for, and the factors: where the ramps are flat
+    // (most of the ground) neighbouring samples meet the same densities, and `log1p` and `exp` are pure.
+    let mut last: Vec<(Vec<Memo>, Memo)> =
+        model.rules.iter().map(|m| (vec![Memo::EMPTY; m.avoid.len()], Memo::EMPTY)).collect();
     let mut out = Vec::new();
     for cz in c0.z..=c1.z {
         for cx in c0.x..=c1.x {
@@ -348,13 +352,14 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                         }
                         let mut rho = f64::from(p) * m.darts;
                         let mut log_factor = 0.0;
-                        for a in &m.avoid {
+                        let (avoids, factor) = &mut last[r];
+                        for (a, memo) in m.avoid.iter().zip(avoids.iter_mut()) {
                             if lambda[a.species] > 0.0 {
-                                log_factor += a.log_factor(lambda[a.species]);
+                                log_factor += memo.get(lambda[a.species], |l| a.log_factor(l));
                             }
                         }
                         if log_factor < 0.0 {
-                            rho *= libm::exp(log_factor);
+                            rho *= factor.get(log_factor, libm::exp);
                         }
                         lambda[m.species] += rho;
                         expected[r] += rho;
@@ -386,6 +391,25 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
         }
     }
     out
+}
+
+/// A pure function's last argument and value, to skip recomputing it for the same argument (bit for bit).
+#[derive(Clone, Copy, Debug)]
+struct Memo {
+    arg: u64,
+    value: f64,
+}
+
+impl Memo {
+    /// Matches no argument a leaf computes (a NaN).
+    const EMPTY: Memo = Memo { arg: u64::MAX, value: 0.0 };
+
+    fn get(&mut self, arg: f64, f: impl FnOnce(f64) -> f64) -> f64 {
+        if arg.to_bits() != self.arg {
+            *self = Memo { arg: arg.to_bits(), value: f(arg) };
+        }
+        self.value
+    }
 }
 
 /// One leaf from its tallies.
