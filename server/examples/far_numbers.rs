@@ -152,13 +152,21 @@ fn hover(cache: &Arc<CellCache>, a: &Args, label: &str) {
     let mut s = session(cache, a, vp, t0);
     let mut c = Client::default();
     let mut records_done = None;
+    let mut checked = None;
     loop {
         c.take(&mut s, Instant::now());
         if records_done.is_none() && s.is_complete() {
             records_done = Some(t0.elapsed());
         }
+        // The far field can only have become complete with a summaries message and with nothing left queued:
+        // walking the rule's tree costs the cores the workers use, so it is walked only then.
+        if checked == Some(c.summary_bytes) || s.far().is_none_or(|f| f.queued() > 0) {
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        }
+        checked = Some(c.summary_bytes);
         let (wanted, have) = completeness(cache, view(a), a.at, radius, &c.held);
-        if wanted > 0 && have == wanted && s.far().is_some_and(|f| f.queued() == 0) {
+        if wanted > 0 && have == wanted {
             let took = t0.elapsed();
             println!(
                 "{label}: full far field of {wanted} nodes in {:.2} s: {:.1} KiB of summaries ({:.1} B a node), {:.1} KiB of cell batches meanwhile",

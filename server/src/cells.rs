@@ -198,6 +198,21 @@ impl Shared {
         let encoded = Arc::new(EncodedSummary::new(node));
         self.metrics.summary_time.record(started.elapsed());
         self.metrics.summaries.fetch_add(1, Relaxed);
+        self.publish(key, encoded);
+    }
+
+    /// Node `key` if the memo holds it already (computed with an ancestor, or for another session), published so
+    /// that no worker computes it: a session walking down a computed subtree gets it at once instead of queueing
+    /// every node behind the roots still being computed. `None` if not memoised or the memo is busy.
+    fn memoised(&self, key: NodeKey) -> Option<Arc<EncodedSummary>> {
+        let node = Arc::clone(self.memo.try_lock().ok()?.peek(key)?);
+        let encoded = Arc::new(EncodedSummary::new(node));
+        self.publish(key, Arc::clone(&encoded));
+        Some(encoded)
+    }
+
+    /// Cache an encoded node and wake its waiters.
+    fn publish(&self, key: NodeKey, encoded: Arc<EncodedSummary>) {
         let wakers = {
             let mut st = self.lock();
             let wakers = st.summaries.insert(key, encoded, self.cfg.summary_limit_bytes);
@@ -423,6 +438,11 @@ impl WorldStore for CellCache {
             return SummaryState::Unavailable;
         }
         let (state, queued) = self.shared.lock().summaries.lookup(key, waker);
+        if let SummaryState::Pending = state
+            && let Some(node) = self.shared.memoised(key)
+        {
+            return SummaryState::Ready(node);
+        }
         if queued {
             self.shared.work.notify_one();
         }

@@ -11,11 +11,13 @@
 //! cells are queued ([`FarSession::turn`]), under the session's pacing.
 //!
 //! Memory and work per session are bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, a rebuild visits at
-//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`], and whatever a client asks, its range is at most
+//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`] (every [`NODE_REBUILD_INTERVAL`] while nodes it
+//! asked for are being computed: only those wake it, so a loaded cache costs it nothing), and whatever a client asks, its range is at most
 //! [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the cache compute).
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -31,6 +33,9 @@ pub const MAX_SESSION_NODES: usize = 16_384;
 pub const MAX_VISITS: usize = 65_536;
 /// A rebuild happens at most this often (viewpoints come up to 50 a second).
 pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
+/// A rebuild after a node the session asked for became ready happens at most this often: the walk goes on down
+/// the computed subtree at once instead of a level per [`REBUILD_INTERVAL`].
+pub const NODE_REBUILD_INTERVAL: Duration = Duration::from_millis(20);
 /// Largest summaries message the session builds, bytes of nodes (a few QUIC packets).
 pub const BATCH_BYTES: usize = 8 * 1024;
 /// The farthest a session's far view reaches, metres, whatever the client asks (bounds the nodes a client can make
@@ -70,6 +75,32 @@ pub struct FarSession {
     generation: u64,
     /// Bytes of summaries messages built.
     bytes: u64,
+    /// Registered with the nodes found pending: says one became ready.
+    waker: Arc<NodeWaker>,
+}
+
+/// The far view's waker (see [`NODE_REBUILD_INTERVAL`]): remembers that a node the session asked for is ready and
+/// wakes the session.
+#[derive(Default)]
+struct NodeWaker {
+    ready: AtomicBool,
+    session: Mutex<Option<Arc<dyn CellWaker>>>,
+}
+
+impl CellWaker for NodeWaker {
+    fn wake(&self) {
+        self.ready.store(true, Ordering::Release);
+        let session = self.session.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        if let Some(w) = session {
+            w.wake();
+        }
+    }
+}
+
+impl std::fmt::Debug for NodeWaker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NodeWaker").field("ready", &self.ready.load(Ordering::Relaxed)).finish_non_exhaustive()
+    }
 }
 
 impl FarSession {
@@ -83,6 +114,7 @@ impl FarSession {
             dirty: true,
             rebuilt: None,
             generation: 0,
+            waker: Arc::default(),
             bytes: 0,
         }
     }
@@ -118,10 +150,26 @@ impl FarSession {
         !self.queue.is_empty() || !self.releases.is_empty()
     }
 
-    /// When a rebuild held back by [`REBUILD_INTERVAL`] is due.
+    /// When a rebuild held back by [`REBUILD_INTERVAL`] (or [`NODE_REBUILD_INTERVAL`]) is due.
     pub fn due_at(&self, store: &dyn WorldStore) -> Option<Instant> {
         let due = self.dirty || store.generation() != self.generation;
-        due.then(|| self.rebuilt.map(|t| t + REBUILD_INTERVAL)).flatten()
+        due.then(|| self.rebuilt.map(|t| t + self.interval())).flatten()
+    }
+
+    /// How long after the last rebuild the next may come.
+    fn interval(&self) -> Duration {
+        if self.waker.ready.load(Ordering::Acquire) { NODE_REBUILD_INTERVAL } else { REBUILD_INTERVAL }
+    }
+
+    /// The waker to register with pending nodes, waking `session` too.
+    fn node_waker(&self, session: Option<&Arc<dyn CellWaker>>) -> Arc<dyn CellWaker> {
+        if let Some(w) = session {
+            let mut slot = self.waker.session.lock().unwrap_or_else(|e| e.into_inner());
+            if !slot.as_ref().is_some_and(|s| Arc::ptr_eq(s, w)) {
+                *slot = Some(Arc::clone(w));
+            }
+        }
+        Arc::clone(&self.waker) as Arc<dyn CellWaker>
     }
 
     /// Whether summaries go next rather than records: releases always do; nodes while their bytes are under a
@@ -143,12 +191,16 @@ impl FarSession {
     }
 
     /// Rebuild the queue and the releases for where the client stands, if anything changed (a far view, the
-    /// viewpoint, a node computed) and the last rebuild is [`REBUILD_INTERVAL`] old.
+    /// viewpoint, a node computed) and the last rebuild is [`REBUILD_INTERVAL`] old ([`NODE_REBUILD_INTERVAL`]
+    /// when a node it asked for became ready). `waker` is woken when one does.
     pub fn update(&mut self, now: Instant, store: &dyn WorldStore, waker: Option<&Arc<dyn CellWaker>>, eye: &Eye) {
         let generation = store.generation();
-        if !(self.dirty || generation != self.generation) || self.rebuilt.is_some_and(|t| now < t + REBUILD_INTERVAL) {
+        if !(self.dirty || generation != self.generation) || self.rebuilt.is_some_and(|t| now < t + self.interval()) {
             return;
         }
+        let waker = self.node_waker(waker);
+        let waker = Some(&waker);
+        self.waker.ready.store(false, Ordering::Release);
         self.dirty = false;
         self.rebuilt = Some(now);
         self.generation = generation;
@@ -217,6 +269,8 @@ impl FarSession {
         lane: u8,
     ) -> Option<Transmit> {
         let root = store.summary_root_level();
+        let waker = self.node_waker(waker);
+        let waker = Some(&waker);
         let mut nodes: Vec<Arc<EncodedSummary>> = Vec::new();
         let mut size = 0;
         let mut deferred = Vec::new();

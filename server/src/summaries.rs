@@ -1,6 +1,7 @@
 //! The cell cache's far-view summary nodes (issue 15): computed on the cache's workers when no cell waits, encoded
 //! once ([`EncodedSummary`]) and shared by every session, kept in an LRU bounded by bytes, with the wakers of the
-//! sessions that found a node pending. Sans-IO: the cache's lock guards it, the workers fill it.
+//! sessions that found a node pending. Sans-IO: the cache's lock guards it, the workers fill it (and a lookup of a
+//! node the memo already holds, computed with an ancestor, fills it at once: `CellCache::summary`).
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
@@ -87,8 +88,11 @@ impl SummaryLru {
     }
 
     /// The next queued node to compute (coarsest first: a finer node's parent is usually wanted first, and
-    /// computing it leaves the children's nodes in the memo).
+    /// computing it leaves the children's nodes in the memo). Nodes cached meanwhile (answered from the memo) leave
+    /// the queue.
     pub fn next_queued(&mut self) -> Option<NodeKey> {
+        let cached = &self.cached;
+        self.queue.retain(|k| !cached.contains_key(k));
         let best = self.queue.iter().enumerate().max_by_key(|(i, k)| (k.level, std::cmp::Reverse(*i)))?.0;
         self.queue.remove(best)
     }

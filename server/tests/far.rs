@@ -11,6 +11,7 @@ use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::messages::{ClientStreaming, ServerStreaming};
 use canopy_protocol::summary::{FarView, NodeKey, Refine};
 use canopy_protocol::{ClientMsg, Phase, ServerMsg};
+use canopy_server::far::{NODE_REBUILD_INTERVAL, REBUILD_INTERVAL};
 use canopy_server::session::{MsgClass, Session, SessionConfig, Transmit};
 use canopy_server::store::{SummaryState, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig};
@@ -195,4 +196,39 @@ fn summaries_are_kept_through_small_moves_and_released_when_the_viewer_leaves() 
     // Everything held afterwards is what is kept at the new place.
     let kept_new = wanted(&cache, [9000.0, 9000.0]);
     assert!(far.held.is_subset(&kept_new) || far.held.is_empty(), "{:?}", far.held);
+}
+
+#[test]
+fn a_computed_subtree_goes_out_at_once_when_its_root_is_ready() {
+    let cache = cache();
+    let store = Arc::clone(&cache) as Arc<dyn WorldStore>;
+    let t0 = Instant::now();
+    let at = [300.0, -200.0];
+    let mut s = session(&cache, at, t0);
+    let mut far = Far::default();
+    let drain = |s: &mut Session, far: &mut Far, now| {
+        while let Some(t) = s.poll_transmit(now) {
+            s.on_flushed(t.len());
+            far.take(&t);
+        }
+    };
+    drain(&mut s, &mut far, t0);
+    assert!(far.held.is_empty(), "nothing is computed yet");
+    // The workers compute the roots the session asked for (and the cells): the memo then holds their subtrees.
+    assert!(cache.run_queued() > 0);
+    // A node it asked for is ready: the far view rebuilds after NODE_REBUILD_INTERVAL, not REBUILD_INTERVAL ...
+    let early = t0 + NODE_REBUILD_INTERVAL;
+    assert_eq!(s.far().unwrap().due_at(&*store), Some(early));
+    assert!(NODE_REBUILD_INTERVAL < REBUILD_INTERVAL);
+    drain(&mut s, &mut far, early);
+    // ... and that one rebuild walks down the computed subtrees: every node the rule wants whose error is known
+    // (all but the leaves, which the memo does not keep) went out without the workers running again.
+    let want = wanted(&cache, at);
+    assert!(want.iter().any(|k| k.level == 1) && want.iter().any(|k| k.level >= 4), "{want:?}");
+    assert_eq!(far.held, want);
+    // The leaves the rebuild found pending come with the next.
+    assert!(cache.run_queued() > 0);
+    let (_, _) = run(&mut s, &cache, &mut far, early);
+    assert!(far.held.iter().any(|k| k.level == 0));
+    assert_eq!(far.held, wanted(&cache, at));
 }
