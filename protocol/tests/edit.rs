@@ -87,7 +87,7 @@ fn resume_is_legal_between_the_welcome_and_ready_only() {
         assert_eq!(resume.next_phase(phase).ok(), (phase == Phase::Welcomed).then_some(Phase::Welcomed));
     }
     let e = edit(EditOp::Fell { id: InstanceId(0) });
-    assert_eq!(e.next_phase(Phase::Welcomed).is_ok(), false);
+    assert!(e.next_phase(Phase::Welcomed).is_err());
     assert_eq!(e.next_phase(Phase::Streaming), Ok(Phase::Streaming));
 }
 

@@ -35,7 +35,7 @@ fn fell_and_set_change_the_instance_at_that_position_only() {
     want.sort_by_key(|p| p.0);
     assert_eq!(set.params, want);
     // Everything else, and every other cell, as before: the felled conifer still spaced the bushes around it.
-    let rest: Vec<_> = before.iter().filter(|p| !(p.x == a.x && p.z == a.z) && !(p.x == b.x && p.z == b.z)).collect();
+    let rest: Vec<_> = before.iter().filter(|p| (p.x != a.x || p.z != a.z) && (p.x != b.x || p.z != b.z)).collect();
     let rest_after: Vec<_> = after.iter().filter(|p| !(p.x == b.x && p.z == b.z)).collect();
     assert_eq!(rest, rest_after);
     for other in [CellKey { x: -1, z: 0 }, CellKey { x: 1, z: -2 }] {

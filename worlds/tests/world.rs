@@ -330,9 +330,7 @@ fn sizes_and_counts_are_bounded() {
     );
     // An `avoid` chain that makes one cell's expansion need too much of its neighbourhood.
     check_errors(
-        &format!(
-            "seed 7\nbounds -4096 -4096 4096 4096\ncell 64\nspecies a worm\nspecies b worm\nscatter a {{\n  spacing 1\n}}\nscatter b {{\n  spacing 1\n  avoid a 1000\n}}\n"
-        ),
+        "seed 7\nbounds -4096 -4096 4096 4096\ncell 64\nspecies a worm\nspecies b worm\nscatter a {\n  spacing 1\n}\nscatter b {\n  spacing 1\n  avoid a 1000\n}\n",
         &[(6, 1, "sampling cells (spacings, halos and avoid chains), more than 16777216")],
     );
     // A terrain grid with too many vertices.
@@ -475,7 +473,7 @@ fn altitude_and_slope_rules_hold() {
     let mut outside = 0;
     for p in &w.instances {
         let rule = w.rules.iter().find(|r| r.species == p.species).expect("one rule per species");
-        if rule.density_at(&w, p.x as f32, p.z as f32) <= 0.0 {
+        if rule.density_at(w, p.x as f32, p.z as f32) <= 0.0 {
             outside += 1;
         }
     }

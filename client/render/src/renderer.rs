@@ -491,7 +491,7 @@ impl Renderer {
                         *slot = Some(state);
                     }
                 }
-                JobResult::Tile { species, result, took } => self.tile_finished(species, result, took),
+                JobResult::Tile { species, result, took } => self.tile_finished(species, result.map(|t| *t), took),
             }
         }
     }

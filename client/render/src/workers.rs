@@ -115,7 +115,7 @@ pub enum JobResult {
         /// Species id.
         species: u16,
         /// The tile.
-        result: Result<CanopyTile, String>,
+        result: Result<Box<CanopyTile>, String>,
         /// Time the job took.
         took: Duration,
     },
@@ -190,7 +190,7 @@ fn run(job: Job) -> JobResult {
         Job::Tile { species, volume, resolution } => {
             let result = std::panic::catch_unwind(|| bake_tile(&volume, resolution))
                 .map_err(|_| "baking the canopy tile panicked".to_string())
-                .and_then(|r| r.map_err(|e| e.to_string()));
+                .and_then(|r| r.map(Box::new).map_err(|e| e.to_string()));
             JobResult::Tile { species, result, took: started.elapsed() }
         }
     }

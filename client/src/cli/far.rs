@@ -127,9 +127,9 @@ fn overlaps(world: &World, k: NodeKey) -> bool {
     let c = k.first_cell();
     let side = i64::from(k.side());
     let (x0, z0) = (i64::from(c.x), i64::from(c.z));
-    x0 <= i64::from(first.x) + i64::from(dims[0]) - 1
+    x0 < i64::from(first.x) + i64::from(dims[0])
         && x0 + side > i64::from(first.x)
-        && z0 <= i64::from(first.z) + i64::from(dims[1]) - 1
+        && z0 < i64::from(first.z) + i64::from(dims[1])
         && z0 + side > i64::from(first.z)
 }
 

@@ -86,13 +86,19 @@ pub fn world_over(edits: Arc<dyn EditStore>) -> World {
     World { live, service, edits, cfg }
 }
 
+/// An edit's outcome for the request that asked it.
+type Answer = (u32, EditOutcome);
+
+/// An instance as the tests compare it: id, species, position bits and parameter bits.
+pub type Seen = (u64, u8, [u32; 3], Vec<(u16, u32)>);
+
 /// One client and its session, lanes delivered in a random interleaving, edits through the pipeline.
 pub struct Pair {
     pub server: Session,
     pub client: ClientState,
     lanes: HashMap<StreamId, VecDeque<Vec<u8>>>,
     changes: tokio::sync::broadcast::Receiver<CellChange>,
-    answers: (mpsc::Sender<(u32, EditOutcome)>, mpsc::Receiver<(u32, EditOutcome)>),
+    answers: (mpsc::Sender<Answer>, mpsc::Receiver<Answer>),
     /// Edit results the client received, by request.
     pub results: HashMap<u32, EditOutcome>,
     rng: XorShift64,
@@ -222,7 +228,7 @@ pub fn settle_until(pairs: &mut [(&World, &mut Pair)], done: impl Fn(&[(&World, 
     }
 }
 
-pub fn sorted(mut v: Vec<InstanceView>) -> Vec<(u64, u8, [u32; 3], Vec<(u16, u32)>)> {
+pub fn sorted(mut v: Vec<InstanceView>) -> Vec<Seen> {
     v.sort_by_key(|i| i.id);
     v.into_iter()
         .map(|i| {
@@ -232,7 +238,7 @@ pub fn sorted(mut v: Vec<InstanceView>) -> Vec<(u64, u8, [u32; 3], Vec<(u16, u32
 }
 
 /// What the store says every cell holds now, as a client would see it.
-pub fn expected(w: &World) -> Vec<(u64, u8, [u32; 3], Vec<(u16, u32)>)> {
+pub fn expected(w: &World) -> Vec<Seen> {
     let mut c = ClientState::new();
     let mut p = Pair::connect(w, std::mem::take(&mut c), None, 99);
     settle_until(&mut [(w, &mut p)], |p| p[0].1.client.is_complete());

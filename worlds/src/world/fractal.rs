@@ -99,7 +99,7 @@ impl Fractal {
         rows: &[Vec<f32>],
     ) -> Result<Fractal, FractalError> {
         let spacing = tile / f64::from(1u32 << depth.min(31));
-        if depth > MAX_FRACTAL_DEPTH || !(spacing >= MIN_FRACTAL_SPACING) {
+        if depth > MAX_FRACTAL_DEPTH || spacing.is_nan() || spacing < MIN_FRACTAL_SPACING {
             return Err(FractalError::Depth { depth, tile, spacing });
         }
         let numbers_ok = (DIMENSION_RANGE.0..DIMENSION_RANGE.1).contains(&dimension)

@@ -606,7 +606,8 @@ pub(crate) fn build(
                     key: child_key(h.finish(), ordinals[id as usize]),
                 };
                 ordinals[id as usize] += 1;
-                if !(f64::from(spacing) >= position_step(geometry.map_or(1.0, |g| g.1)).0) {
+                let spacing = f64::from(spacing);
+                if spacing.is_nan() || spacing < position_step(geometry.map_or(1.0, |g| g.1)).0 {
                     diags.push(src.diag(spacing_span.clone(), "the spacing must be at least one position step"));
                     ok = false;
                 }

@@ -215,7 +215,7 @@ pub fn endpoint(bind: SocketAddr) -> Result<Endpoint, ClientError> {
 }
 
 enum Inbound {
-    Msg(ServerMsg, usize),
+    Msg(Box<ServerMsg>, usize),
     Failed(ClientError),
 }
 
@@ -354,7 +354,7 @@ impl Connection {
                 match read_frame(&mut recv, &mut decoder).await {
                     Ok(None) => return,
                     Ok(Some((m @ ServerMsg::Streaming(ServerStreaming::EditResult(_)), len))) => {
-                        if ctl_tx.send(Inbound::Msg(m, len)).await.is_err() {
+                        if ctl_tx.send(Inbound::Msg(Box::new(m), len)).await.is_err() {
                             return;
                         }
                     }
@@ -386,7 +386,7 @@ impl Connection {
                     loop {
                         match read_frame(&mut stream, &mut decoder).await {
                             Ok(Some((m, len))) => {
-                                if tx.send(Inbound::Msg(m, len)).await.is_err() {
+                                if tx.send(Inbound::Msg(Box::new(m), len)).await.is_err() {
                                     return;
                                 }
                             }
@@ -518,6 +518,7 @@ impl Connection {
         let result = match inbound {
             Inbound::Failed(e) => Err(e),
             Inbound::Msg(m, len) => {
+                let m = *m;
                 self.frame_bytes[m.kind()] += len as u64;
                 // The program's bytes are kept only for a cache to store.
                 let species = match (&m, &self.cache) {
