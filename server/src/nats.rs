@@ -320,6 +320,27 @@ impl Inner {
         (k.version + 1 == version).then_some(k.sequence)
     }
 
+    /// The subject's last sequence as the engine's compare-and-set takes it, where that is not `known` though no
+    /// message follows `known` on the subject; `None` where one does (a real conflict) or the engine agrees.
+    ///
+    /// nats-server 2.9 loses track of a subject's last message once that message is deleted (a lost race's
+    /// publish, taken out by its writer): it answers "no message" for the subject's last and its compare-and-set
+    /// then wants 0, though earlier messages remain. Without this a cell whose last message was a deleted one could
+    /// never be edited again.
+    async fn engine_last(&self, subject: &str, known: u64) -> Result<Option<u64>, EditStoreError> {
+        match self.stream.raw_message_builder().sequence(known + 1).next_by_subject(subject.to_string()).send().await {
+            Ok(_) => return Ok(None),
+            Err(e) if e.kind() == stream::RawMessageErrorKind::NoMessageFound => {}
+            Err(e) => return Err(io("checking a cell's last edit", e)),
+        }
+        let last = match self.stream.get_last_raw_message_by_subject(subject).await {
+            Ok(m) => m.sequence,
+            Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => 0,
+            Err(e) => return Err(io("reading a cell's last edit", e)),
+        };
+        Ok((last != known).then_some(last))
+    }
+
     /// Publish one cell's edits in order, each naming the previous one's subject sequence.
     async fn append_cell(self: Arc<Self>, c: CellCoord, edits: Vec<StoredEdit>) -> Result<(), EditStoreError> {
         let subject = self.cfg.subject(c);
@@ -333,9 +354,13 @@ impl Inner {
             let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
             let payload = bytes::Bytes::from(payload);
             let id = format!("{}.{}.{}.{id}", c.x, c.z, e.version);
-            let Some(expected) = self.expected(c, e.version) else {
+            let Some(known) = self.expected(c, e.version) else {
                 return Err(EditStoreError::Conflict { cell: c, version: e.version });
             };
+            // What the publish names as the subject's last sequence: the last message known, unless the engine
+            // has lost track of it (`engine_last`).
+            let mut expected = known;
+            let mut asked_engine = false;
             // A publish whose answer was lost (its node died, the stream is electing a leader) is sent again, the
             // same message with the same id: if the first was stored, the engine answers the retry as a duplicate
             // (or, having the edit as the cell's last, refuses it as a conflict, and the writer finds the edit
@@ -358,7 +383,7 @@ impl Inner {
                         let first = self
                             .stream
                             .raw_message_builder()
-                            .sequence(expected + 1)
+                            .sequence(known + 1)
                             .next_by_subject(subject.clone())
                             .send()
                             .await
@@ -382,6 +407,14 @@ impl Inner {
                         break;
                     }
                     Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
+                        if !asked_engine {
+                            asked_engine = true;
+                            if let Some(last) = self.engine_last(&subject, known).await? {
+                                debug!(?c, known, last, "the engine names another last sequence; again with it");
+                                expected = last;
+                                continue;
+                            }
+                        }
                         return Err(EditStoreError::Conflict { cell: c, version: e.version });
                     }
                     Err(err) if tokio::time::Instant::now() + pause < deadline => {
@@ -398,24 +431,20 @@ impl Inner {
 
     async fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         let subject = self.cfg.subject(c);
-        let last = match self.stream.get_last_raw_message_by_subject(&subject).await {
-            Ok(m) => m,
-            Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => return Ok(Vec::new()),
-            Err(e) => return Err(io("reading a cell's last edit", e)),
-        };
-        // The cell's edits up to that one, each the next on the subject after the previous (reads go to the
-        // stream's leader, so a write another edge saw acknowledged is there).
+        // The cell's edits, each the next on the subject after the previous, until there is none (reads go to the
+        // stream's leader, so a write another edge saw acknowledged is there). Not bounded by the subject's last
+        // message as the engine reports it: nats-server 2.9 can answer "no message" for the last message of a
+        // subject whose last message was deleted (a lost race's publish, taken out), though earlier ones remain.
         let mut out = Vec::new();
         let mut seq = 1;
+        let mut last = 0;
         loop {
-            let m = self
-                .stream
-                .raw_message_builder()
-                .sequence(seq)
-                .next_by_subject(subject.clone())
-                .send()
-                .await
-                .map_err(|e| io("reading a cell's edits", e))?;
+            let m = match self.stream.raw_message_builder().sequence(seq).next_by_subject(subject.clone()).send().await
+            {
+                Ok(m) => m,
+                Err(e) if e.kind() == stream::RawMessageErrorKind::NoMessageFound => break,
+                Err(e) => return Err(io("reading a cell's edits", e)),
+            };
             let e = StoredEdit::decode(&m.payload)
                 .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
             if e.cell != c {
@@ -426,12 +455,10 @@ impl Inner {
             {
                 out.push(e);
             }
-            if m.sequence >= last.sequence {
-                break;
-            }
+            last = m.sequence;
             seq = m.sequence + 1;
         }
-        self.learn(c, Known { version: out.len() as u32, sequence: last.sequence });
+        self.learn(c, Known { version: out.len() as u32, sequence: last });
         Ok(out)
     }
 }

@@ -1,7 +1,8 @@
 //! The edit log on NATS JetStream, for real: a 3-node cluster started by `scripts/cluster.sh` on loopback and
 //! stateless edges over it (each its own `NatsEditStore`, `LiveStore` and writer). An edit made through one edge
 //! reaches the clients of another; edges racing for one cell's versions never take one twice (the engine's
-//! compare-and-set, the writer's retry); a new edge starts with nothing and serves the same world. Then bots over
+//! compare-and-set, the writer's retry); a new edge starts with nothing and serves the same world; a cell whose
+//! last message is a lost race's, deleted, reads whole and takes its next version. Then bots over
 //! three real QUIC edges while a NATS node is killed with SIGKILL and an edge dies (its runtime dropped: its clients
 //! hear nothing more, as after a SIGKILL): the bots of the dead edge resume on the others, every bot ends exact
 //! against the world function + edits, and every acknowledged edit is read back from the stream, none lost and none
@@ -74,6 +75,39 @@ impl Drop for Cluster {
             .env("NATS_PORT", self.port.to_string())
             .output();
     }
+}
+
+/// A cell whose last message is a lost race's publish, deleted by its writer, reads whole and takes the next
+/// version (nats-server 2.9 answers "no message" for such a subject's last; the store must not).
+fn a_cell_whose_last_message_is_a_deleted_lost_race_reads_whole(cluster: &Cluster) {
+    use canopy_server::edits::{CellEdit, EditStore, StoredEdit};
+    let cfg = NatsConfig {
+        servers: cluster.urls(),
+        world: format!("deleted-last-{}", std::process::id()),
+        replicas: 3,
+    };
+    let store = NatsEditStore::connect(cfg.clone()).expect("connecting to the cluster");
+    let c = CellCoord::new(3, -2);
+    let edit = |version, index| StoredEdit { cell: c, version, op: CellEdit::Fell { index } };
+    store.append(&[edit(1, 0), edit(2, 1)]).unwrap();
+    // A lost race as nats-server before 2.9.21 lets one through (two publishes naming the same last sequence both
+    // taken): a second version 2 after the winner, which its writer then takes out of the stream. The cell's last
+    // message is now a deleted one.
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    rt.block_on(async {
+        let client = async_nats::connect(cfg.servers[0].as_str()).await.unwrap();
+        let js = async_nats::jetstream::new(client);
+        let stream = js.get_stream(cfg.stream()).await.unwrap();
+        let ack = js.publish(cfg.subject(c), edit(2, 5).encode().into()).await.unwrap().await.unwrap();
+        assert!(stream.delete_message(ack.sequence).await.unwrap());
+    });
+    // Every edge reads the cell whole, the one that wrote it and a new one.
+    assert_eq!(store.load(c).unwrap(), vec![edit(1, 0), edit(2, 1)]);
+    let fresh = NatsEditStore::connect(cfg).expect("connecting to the cluster");
+    assert_eq!(fresh.load(c).unwrap(), vec![edit(1, 0), edit(2, 1)]);
+    // And the next edit takes the next version.
+    fresh.append(&[edit(3, 2)]).unwrap();
+    assert_eq!(store.load(c).unwrap().len(), 3);
 }
 
 fn cell_version(p: &Pair, c: CellCoord) -> u32 {
@@ -247,7 +281,7 @@ impl canopy_server::edits::EditWatcher for Seen {
 }
 
 #[test]
-fn a_writer_behind_a_watch_never_takes_a_version_twice_and_the_store_passes_the_suite() {
+fn a_writer_behind_a_watch_never_takes_a_version_twice_the_store_passes_the_suite_and_reads_past_deleted_races() {
     use canopy_protocol::InstanceRecord;
     use canopy_server::edits::{CellEdit, EditStore, EditStoreError, StoredEdit};
     use std::time::{Duration, Instant};
@@ -283,4 +317,6 @@ fn a_writer_behind_a_watch_never_takes_a_version_twice_and_the_store_passes_the_
     let fresh =
         NatsConfig { servers: cluster.urls(), world: format!("suite-test-{}", std::process::id()), replicas: 3 };
     canopy_server::edits::suite::check(&NatsEditStore::connect(fresh).unwrap());
+
+    a_cell_whose_last_message_is_a_deleted_lost_race_reads_whole(&cluster);
 }
