@@ -437,12 +437,14 @@ impl WorldStore for CellCache {
         {
             return SummaryState::Unavailable;
         }
-        let (state, queued) = self.shared.lock().summaries.lookup(key, waker);
-        if let SummaryState::Pending = state
-            && let Some(node) = self.shared.memoised(key)
-        {
+        // Cached; else held by the memo (computed with an ancestor); else queued.
+        if let Some(node) = self.shared.lock().summaries.cached(key) {
             return SummaryState::Ready(node);
         }
+        if let Some(node) = self.shared.memoised(key) {
+            return SummaryState::Ready(node);
+        }
+        let (state, queued) = self.shared.lock().summaries.lookup(key, waker);
         if queued {
             self.shared.work.notify_one();
         }

@@ -12,8 +12,9 @@
 //!
 //! Memory and work per session are bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, a rebuild visits at
 //! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`] (every [`NODE_REBUILD_INTERVAL`] while nodes it
-//! asked for are being computed: only those wake it, so a loaded cache costs it nothing), and whatever a client asks, its range is at most
-//! [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the cache compute).
+//! asked for are being computed: only those wake it, so a loaded cache costs it nothing), and whatever a client
+//! asks, its range is at most [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the
+//! cache compute).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -62,13 +62,7 @@ impl SummaryLru {
     /// The node if cached (marking it used); else queue it, once, registering `waker`. The flag says whether it
     /// was queued now (a worker should be woken).
     pub fn lookup(&mut self, key: NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> (SummaryState, bool) {
-        self.clock += 1;
-        let now = self.clock;
-        if let Some(e) = self.cached.get_mut(&key) {
-            let before = std::mem::replace(&mut e.used, now);
-            let node = Arc::clone(&e.node);
-            self.lru.remove(&before);
-            self.lru.insert(now, key);
+        if let Some(node) = self.cached(key) {
             return (SummaryState::Ready(node), false);
         }
         let queued = self.pending.contains_key(&key);
@@ -85,6 +79,18 @@ impl SummaryLru {
             self.queue.push_back(key);
         }
         (SummaryState::Pending, !queued)
+    }
+
+    /// The node if cached, marking it used.
+    pub fn cached(&mut self, key: NodeKey) -> Option<Arc<EncodedSummary>> {
+        self.clock += 1;
+        let now = self.clock;
+        let e = self.cached.get_mut(&key)?;
+        let before = std::mem::replace(&mut e.used, now);
+        let node = Arc::clone(&e.node);
+        self.lru.remove(&before);
+        self.lru.insert(now, key);
+        Some(node)
     }
 
     /// The next queued node to compute (coarsest first: a finer node's parent is usually wanted first, and
