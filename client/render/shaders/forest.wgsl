@@ -221,6 +221,11 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
     // The layer beyond the patch's distance (where a pixel spans `RenderConfig::forest_layer` tree spacings),
     // dithered over ±25 %.
     let layer = t0 > in.layer_from * (0.75 + 0.5 * offset);
+    // A species too sparse for the march to keep one class (it keeps class n where (n + ½) / CLASSES < keep ×
+    // coverage, and coverage ≤ 1) draws nothing where this ray would march: the same picture without the samples.
+    if !layer && keep * CLASSES < 0.5 {
+        discard;
+    }
     let band = top / BANDS;
     for (var walked = 0; walked < 17; walked++) {
         let t_out = min(min(next_x, next_z), t1);
