@@ -31,6 +31,8 @@ const PULL_FRACTION: f32 = 0.02;
 // `src/tile.rs`, prepended by `src/pipelines.rs`.
 // Samples of the layer per sub-square the ray crosses it in.
 const LAYER_SAMPLES: i32 = 4;
+// Metres around a box within which the eye counts as inside it (its inner faces drawn; see `vs_forest`).
+const INSIDE_MARGIN: f32 = 1.0;
 
 struct PatchOut {
     @builtin(position) clip: vec4<f32>,
@@ -64,7 +66,13 @@ fn vs_forest(
 ) -> PatchOut {
     let lo = vec3<f32>(rect.x, span.x, rect.y);
     let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
-    let world = lo + size * unit_cube(vi);
+    // Back faces are culled: from outside a box its front faces march. From inside (or within INSIDE_MARGIN of
+    // it) each triangle's corners come in reverse order, so that the faces seen from inside wind counter-clockwise
+    // and are the ones drawn (the ray then marches from the eye): the same triangles, half the fragments.
+    let e = g.eye.xyz - lo;
+    let inside = all(e > vec3<f32>(-INSIDE_MARGIN)) && all(e < size + vec3<f32>(INSIDE_MARGIN));
+    let corner = vi % 3u;
+    let world = lo + size * unit_cube(select(vi, vi - corner + 2u - corner, inside));
     let to = world - g.eye.xyz;
     let d = max(length(to), 1e-3);
     let pull = min(PULL_METRES + PULL_FRACTION * d, 0.5 * d) / d;
@@ -161,7 +169,7 @@ fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
 }
 
 @fragment
-fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     let scale = in.params.x;
     let keep = in.params.y;
     if !dither_keeps(in.params.z, in.clip.xy) {
@@ -169,13 +177,9 @@ fn fs_forest(in: PatchOut, @builtin(front_facing) front: bool) -> @location(0) v
     }
     let lo = vec3<f32>(in.rect.x, in.span.x, in.rect.y);
     let ext = vec3<f32>(in.rect.z, in.span.y - in.span.x, in.rect.z);
-    // The ray, relative to the box's lower corner (precision far from the origin).
+    // The ray, relative to the box's lower corner (precision far from the origin). Only the faces that march
+    // arrive (see `vs_forest`).
     let o = g.eye.xyz - lo;
-    let inside = all(o > vec3<f32>(0.0)) && all(o < ext);
-    // From outside, the front faces march; from inside, the back faces (from the eye).
-    if front == inside {
-        discard;
-    }
     let d = normalize(in.world - g.eye.xyz);
     let inv_d = 1.0 / d;
     let ta = -o * inv_d;

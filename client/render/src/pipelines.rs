@@ -385,7 +385,7 @@ impl Pipelines {
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
         ];
-        // No culling: from inside a node's box its back faces march (the shader picks by `front_facing`).
+        // Back faces culled: from inside a node's box the vertex shader mirrors it, so its inner faces are drawn.
         let forest = pipeline(
             "forest",
             &layout("forest", &[&globals_layout, &volume_layout, &forest_layout]),
@@ -396,7 +396,7 @@ impl Pipelines {
                 step_mode: wgpu::VertexStepMode::Instance,
                 attributes: &patch_attrs,
             })],
-            None,
+            Some(wgpu::Face::Back),
             depth(false, greater),
             &premultiplied,
         );

@@ -41,7 +41,8 @@ fn camera(world: &World) -> Camera {
 /// The nodes a client would hold for this view: every node `Refine` selects down from the roots, parents
 /// included (the renderer draws a parent only where its children are not held), skipping subtrees out of view.
 fn summaries(world: &Arc<World>, cam: &Camera, height_px: u16) -> Vec<Arc<NodeSummary>> {
-    let view = FarView { error_px: 4.0, height_px, fov_y: FOV.to_radians(), range: RANGE, altitude: ALTITUDE };
+    let altitude = cam.position.y - world.height(cam.position.x, cam.position.z);
+    let view = FarView { error_px: 4.0, height_px, fov_y: FOV.to_radians(), range: RANGE, altitude };
     let eye = [cam.position.x, cam.position.z];
     let refine =
         Refine { view, eye, origin: [0.0, 0.0], cell_size: world.cell_size, root_level: 6, record_radius: 0.0 };
@@ -179,4 +180,42 @@ fn summaries_draw_forest_to_the_horizon_and_nothing_without_them() {
     assert!(forest_without < W * H / 200, "{forest_without} forest pixels without summaries");
     check_reference(&with.image, &reference("far-summaries.png"), &Tolerance::default())
         .unwrap_or_else(|e| panic!("{e}"));
+}
+
+/// From inside a node's canopy: 10 m above the conifer slopes, looking straight down, every ray starts inside the
+/// box of the node under the eye (its inner faces are the ones drawn: the vertex shader reverses their winding
+/// under back-face culling). With summaries the view is canopy; without, ground.
+#[test]
+fn from_inside_a_nodes_canopy_the_forest_is_drawn_around_the_eye() {
+    let world = Arc::new(World::embedded("highlands").expect("embedded"));
+    let (x, z) = (2_000.0, -30_000.0);
+    let ground = world.height(x, z);
+    let cam = Camera::looking_at(Vec3::new(x, ground + 10.0, z), Vec3::new(x, ground, z + 0.01), FOV);
+    let nodes = summaries(&world, &cam, H as u16);
+    let under = nodes.iter().filter(|n| n.key.level == 0).count();
+    assert!(under > 0, "leaves are selected next to the eye: {:?}", nodes.iter().map(|n| n.key).collect::<Vec<_>>());
+    let mut scene = Scene::from_world(&world);
+    let bare = shoot(&scene, &cam, W, H);
+    scene.far = SceneFar { nodes, cell_size: world.cell_size, record_cells: Vec::new(), generation: 1 };
+    let with = shoot(&scene, &cam, W, H);
+    if let Some(dir) = std::env::var_os("CANOPY_FAR_PNG") {
+        let dir = PathBuf::from(dir);
+        with.image.save_png(&dir.join("inside-with.png")).expect("saved");
+        bare.image.save_png(&dir.join("inside-without.png")).expect("saved");
+    }
+    assert!(with.stats.forest_patches > 0, "{:?}", with.stats);
+    // Inside the canopy the rays meet shaded foliage at once: the view is dark green where the bare view is
+    // sunlit ground. Were the inner faces culled, the two would be the same picture.
+    let (mut canopy, mut ground) = (0, 0);
+    for y in 0..H {
+        for x in 0..W {
+            let ([r, g, b, _], [br, bg, bb, _]) = (with.image.pixel(x, y), bare.image.pixel(x, y));
+            let sum = |r: u8, g: u8, b: u8| u32::from(r) + u32::from(g) + u32::from(b);
+            canopy += u32::from(g >= r && g >= b && sum(r, g, b) + 60 < sum(br, bg, bb));
+            ground += u32::from(forest([br, bg, bb, 255]));
+        }
+    }
+    eprintln!("from inside: {canopy} canopy pixels with summaries; {ground} forest pixels without");
+    assert!(canopy > W * H * 9 / 10, "{canopy} of {} pixels are canopy with summaries", W * H);
+    assert_eq!(ground, 0, "no forest without summaries");
 }
