@@ -11,10 +11,10 @@
 //! cells are queued ([`FarSession::turn`]), under the session's pacing.
 //!
 //! Memory and work per session are bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, a rebuild visits at
-//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`] (every [`NODE_REBUILD_INTERVAL`] while nodes it
-//! asked for are being computed: only those wake it, so a loaded cache costs it nothing), and whatever a client
-//! asks, its range is at most [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the
-//! cache compute).
+//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`] (between rebuilds, nodes it waited for walk on
+//! from themselves once ready, at most every [`NODE_REBUILD_INTERVAL`]: the work of the new nodes only), and
+//! whatever a client asks, its range is at most [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the
+//! nodes it can make the cache compute).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -34,8 +34,8 @@ pub const MAX_SESSION_NODES: usize = 16_384;
 pub const MAX_VISITS: usize = 65_536;
 /// A rebuild happens at most this often (viewpoints come up to 50 a second).
 pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
-/// A rebuild after a node the session asked for became ready happens at most this often: the walk goes on down
-/// the computed subtree at once instead of a level per [`REBUILD_INTERVAL`].
+/// Once a node the session waits for is ready, the walk goes on from the nodes it waits for at most this often:
+/// down a computed subtree at once instead of a level per [`REBUILD_INTERVAL`].
 pub const NODE_REBUILD_INTERVAL: Duration = Duration::from_millis(20);
 /// Largest summaries message the session builds, bytes of nodes (a few QUIC packets).
 pub const BATCH_BYTES: usize = 8 * 1024;
@@ -73,6 +73,10 @@ pub struct FarSession {
     releases: Vec<NodeKey>,
     dirty: bool,
     rebuilt: Option<Instant>,
+    /// When the tree was last walked, whole or from the nodes it waited for.
+    walked: Option<Instant>,
+    /// Nodes the last walks found pending (wanted, not computed yet): a walk goes on from them once they are ready.
+    waiting: Vec<NodeKey>,
     generation: u64,
     /// Bytes of summaries messages built.
     bytes: u64,
@@ -114,6 +118,8 @@ impl FarSession {
             releases: Vec::new(),
             dirty: true,
             rebuilt: None,
+            walked: None,
+            waiting: Vec::new(),
             generation: 0,
             waker: Arc::default(),
             bytes: 0,
@@ -151,15 +157,21 @@ impl FarSession {
         !self.queue.is_empty() || !self.releases.is_empty()
     }
 
-    /// When a rebuild held back by [`REBUILD_INTERVAL`] (or [`NODE_REBUILD_INTERVAL`]) is due.
+    /// When a rebuild held back by [`REBUILD_INTERVAL`], or a walk from ready nodes held back by
+    /// [`NODE_REBUILD_INTERVAL`], is due.
     pub fn due_at(&self, store: &dyn WorldStore) -> Option<Instant> {
-        let due = self.dirty || store.generation() != self.generation;
-        due.then(|| self.rebuilt.map(|t| t + self.interval())).flatten()
+        let full = self.dirty || store.generation() != self.generation;
+        let full = full.then(|| self.rebuilt.map(|t| t + REBUILD_INTERVAL)).flatten();
+        let partial = self.waiting_ready().then(|| self.walked.map(|t| t + NODE_REBUILD_INTERVAL)).flatten();
+        match (full, partial) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
-    /// How long after the last rebuild the next may come.
-    fn interval(&self) -> Duration {
-        if self.waker.ready.load(Ordering::Acquire) { NODE_REBUILD_INTERVAL } else { REBUILD_INTERVAL }
+    /// Whether a node the session waits for became ready.
+    fn waiting_ready(&self) -> bool {
+        !self.waiting.is_empty() && self.waker.ready.load(Ordering::Acquire)
     }
 
     /// The waker to register with pending nodes, waking `session` too.
@@ -192,20 +204,29 @@ impl FarSession {
     }
 
     /// Rebuild the queue and the releases for where the client stands, if anything changed (a far view, the
-    /// viewpoint, a node computed) and the last rebuild is [`REBUILD_INTERVAL`] old ([`NODE_REBUILD_INTERVAL`]
-    /// when a node it asked for became ready). `waker` is woken when one does.
+    /// viewpoint, a node computed) and the last rebuild is [`REBUILD_INTERVAL`] old; between rebuilds, once a node
+    /// it waits for is ready and the last walk is [`NODE_REBUILD_INTERVAL`] old, walk on from the nodes it waits
+    /// for only (the work is that of the new nodes, not of the whole tree). `waker` is woken when one is ready.
     pub fn update(&mut self, now: Instant, store: &dyn WorldStore, waker: Option<&Arc<dyn CellWaker>>, eye: &Eye) {
         let generation = store.generation();
-        if !(self.dirty || generation != self.generation) || self.rebuilt.is_some_and(|t| now < t + self.interval()) {
+        let full =
+            (self.dirty || generation != self.generation) && !self.rebuilt.is_some_and(|t| now < t + REBUILD_INTERVAL);
+        let partial = !full && self.waiting_ready() && !self.walked.is_some_and(|t| now < t + NODE_REBUILD_INTERVAL);
+        if !full && !partial {
             return;
         }
         let waker = self.node_waker(waker);
-        let waker = Some(&waker);
         self.waker.ready.store(false, Ordering::Release);
+        self.walked = Some(now);
+        let refine = self.refine(store, eye);
+        if partial {
+            let from = std::mem::take(&mut self.waiting);
+            self.walk(from, &refine, eye, store, &waker);
+            return;
+        }
         self.dirty = false;
         self.rebuilt = Some(now);
         self.generation = generation;
-        let refine = self.refine(store, eye);
         // Releases, coarse first; a node whose parent goes goes too.
         let mut by_level: Vec<NodeKey> = self.held.keys().copied().collect();
         by_level.sort_unstable_by(|a, b| b.level.cmp(&a.level).then(a.cmp(b)));
@@ -222,7 +243,19 @@ impl FarSession {
         }
         // What is wanted and not held, from the roots down to where the error is small enough or unknown.
         self.queue.clear();
-        let mut stack = refine.roots(false);
+        self.waiting.clear();
+        self.walk(refine.roots(false), &refine, eye, store, &waker);
+    }
+
+    /// Queue what is wanted and not held from `stack` down, noting the nodes found pending, then order the queue.
+    fn walk(
+        &mut self,
+        mut stack: Vec<NodeKey>,
+        refine: &Refine,
+        eye: &Eye,
+        store: &dyn WorldStore,
+        waker: &Arc<dyn CellWaker>,
+    ) {
         let mut visits = 0;
         while let Some(k) = stack.pop() {
             visits += 1;
@@ -231,14 +264,20 @@ impl FarSession {
             }
             let error = match self.held.get(&k) {
                 Some(&e) => e,
-                None => match store.summary(k, waker) {
+                None => match store.summary(k, Some(waker)) {
                     SummaryState::Ready(n) => {
                         if self.held.len() + self.queue.len() < MAX_SESSION_NODES {
-                            self.queue.push((self.priority(&refine, eye, k), k));
+                            self.queue.push((self.priority(refine, eye, k), k));
                         }
                         n.node.error
                     }
-                    SummaryState::Pending | SummaryState::Unavailable => continue,
+                    SummaryState::Pending => {
+                        if self.waiting.len() < MAX_SESSION_NODES {
+                            self.waiting.push(k);
+                        }
+                        continue;
+                    }
+                    SummaryState::Unavailable => continue,
                 },
             };
             if refine.refines(k, error, false) {
