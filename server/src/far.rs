@@ -210,8 +210,8 @@ impl FarSession {
     pub fn update(&mut self, now: Instant, store: &dyn WorldStore, waker: Option<&Arc<dyn CellWaker>>, eye: &Eye) {
         let generation = store.generation();
         let full =
-            (self.dirty || generation != self.generation) && !self.rebuilt.is_some_and(|t| now < t + REBUILD_INTERVAL);
-        let partial = !full && self.waiting_ready() && !self.walked.is_some_and(|t| now < t + NODE_REBUILD_INTERVAL);
+            (self.dirty || generation != self.generation) && self.rebuilt.is_none_or(|t| now >= t + REBUILD_INTERVAL);
+        let partial = !full && self.waiting_ready() && self.walked.is_none_or(|t| now >= t + NODE_REBUILD_INTERVAL);
         if !full && !partial {
             return;
         }
