@@ -64,8 +64,20 @@ fn vs_forest(
     @location(10) layer_from: f32,
     @location(11) mip_scale: f32,
 ) -> PatchOut {
-    let lo = vec3<f32>(rect.x, span.x, rect.y);
-    let size = vec3<f32>(rect.z, span.y - span.x, rect.z);
+    // The box drawn spans the sub-squares the instance marches, not the whole node: a ray that meets none of
+    // them draws nothing (the fragment shader still walks the node's box, so what it draws is the same).
+    let cols = (cover.x | (cover.x >> 8u) | (cover.x >> 16u) | (cover.x >> 24u) | cover.y | (cover.y >> 8u)
+        | (cover.y >> 16u) | (cover.y >> 24u)) & 0xffu;
+    var rows = 0u;
+    for (var r = 0u; r < 4u; r++) {
+        rows |= select(0u, 1u << r, ((cover.x >> (8u * r)) & 0xffu) != 0u);
+        rows |= select(0u, 1u << (r + 4u), ((cover.y >> (8u * r)) & 0xffu) != 0u);
+    }
+    let cell = rect.z / 8.0;
+    let first = vec2<f32>(f32(firstTrailingBit(cols)), f32(firstTrailingBit(rows)));
+    let last = vec2<f32>(f32(firstLeadingBit(cols)), f32(firstLeadingBit(rows))) + 1.0;
+    let lo = vec3<f32>(rect.x + first.x * cell, span.x, rect.y + first.y * cell);
+    let size = vec3<f32>((last.x - first.x) * cell, span.y - span.x, (last.y - first.y) * cell);
     // Back faces are culled: from outside a box its front faces march. From inside (or within INSIDE_MARGIN of
     // it) each triangle's corners come in reverse order, so that the faces seen from inside wind counter-clockwise
     // and are the ones drawn (the ray then marches from the eye): the same triangles, half the fragments.
