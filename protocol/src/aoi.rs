@@ -67,6 +67,14 @@ impl Grid {
         [self.origin[0] + c.x as f32 * self.cell_size, self.origin[1] + c.z as f32 * self.cell_size]
     }
 
+    /// Position `(x, z)`'s steps within cell `c`, as a record carries them ([`crate::record::quantize`] of each
+    /// coordinate from the cell's origin, in f64: exact however far out the cell lies).
+    pub fn steps(&self, c: CellCoord, x: f64, z: f64) -> [u16; 2] {
+        let [ox, oz] = self.cell_origin(c);
+        let q = |v: f64, o: f32| crate::record::quantize(v, o.into(), self.cell_size);
+        [q(x, ox), q(z, oz)]
+    }
+
     /// The cell holding point `(x, z)` (which may lie outside `min..=max`).
     pub fn cell_of(&self, x: f32, z: f32) -> CellCoord {
         let f = |v: f32, o: f32| {

@@ -16,7 +16,6 @@ use std::time::{Duration, Instant};
 
 use canopy_edits::{CellEdit, EditStoreError, Overlay, StoredEdit};
 use canopy_protocol::edit::{EditOp, EditOutcome};
-use canopy_protocol::record::quantize;
 use canopy_protocol::{CellCoord, InstanceId, InstanceRecord, SpeciesGraph};
 use tracing::{info, warn};
 
@@ -414,11 +413,7 @@ impl Writer {
                     return Err(EditOutcome::Denied(format!("({x}, {z}) is outside {}'s region", editor.name)));
                 }
                 check_params(*species, params)?;
-                let origin = grid.cell_origin(cell);
-                let q = [
-                    quantize((*x).into(), origin[0].into(), grid.cell_size),
-                    quantize((*z).into(), origin[1].into(), grid.cell_size),
-                ];
+                let q = grid.steps(cell, (*x).into(), (*z).into());
                 let record = InstanceRecord::new(*species, q[0], q[1]);
                 (cell, CellEdit::Plant { index: 0, record, params: params.clone() })
             }

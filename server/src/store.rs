@@ -10,7 +10,7 @@ use canopy_protocol::aoi::Grid;
 use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
 };
-use canopy_protocol::record::{ParamOverride, quantize};
+use canopy_protocol::record::ParamOverride;
 use canopy_protocol::summary::{NodeKey, NodeSummary};
 use canopy_protocol::{
     CellBatch, CellCoord, InstanceId, InstanceRecord, POSITION_STEPS, ServerMsg, SpeciesGraph, SpeciesHash, netlimits,
@@ -103,11 +103,7 @@ impl CellData {
         species_count: usize,
         placements: &[Placement],
     ) -> Result<CellData, StoreError> {
-        let origin = grid.cell_origin(cell);
-        let instances = placements.iter().map(|p| {
-            let q = [quantize(p.x, origin[0].into(), grid.cell_size), quantize(p.z, origin[1].into(), grid.cell_size)];
-            (p.species, q, p.params.as_slice())
-        });
+        let instances = placements.iter().map(|p| (p.species, grid.steps(cell, p.x, p.z), p.params.as_slice()));
         CellData::from_quantised(cell, species_count, instances)
     }
 
@@ -482,14 +478,8 @@ impl StoreBuilder {
     /// cell's [`POSITION_STEPS`] grid.
     pub fn add_cell(&mut self, cell: CellCoord, instances: &[PlacedInstance]) -> Result<(), StoreError> {
         let grid = self.world.grid;
-        let origin = grid.cell_origin(cell);
-        let quantised = instances.iter().map(|p| {
-            let q = [
-                quantize(p.x.into(), origin[0].into(), grid.cell_size),
-                quantize(p.z.into(), origin[1].into(), grid.cell_size),
-            ];
-            (p.species, q, p.params.as_slice())
-        });
+        let quantised =
+            instances.iter().map(|p| (p.species, grid.steps(cell, p.x.into(), p.z.into()), p.params.as_slice()));
         let index = self.next_index(cell)?;
         let data = CellData::from_quantised(cell, self.species.len(), quantised)?;
         self.push(index, data);

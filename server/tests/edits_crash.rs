@@ -22,7 +22,7 @@ use canopy_client::{ConnectConfig, Connection, Trust};
 use canopy_protocol::aoi::{Grid, Viewpoint};
 use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::messages::ServerMsgKind;
-use canopy_protocol::record::{dequantize, quantize};
+use canopy_protocol::record::dequantize;
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, InstanceId, InstanceRecord};
 use canopy_server::edits::{CellEdit, EditStore, SqliteEditStore};
@@ -326,11 +326,7 @@ fn key_of_stored(cell: CellCoord, op: &CellEdit) -> Key {
 fn same_op(grid: &Grid, cell: CellCoord, stored: &CellEdit, sent: &EditOp) -> bool {
     match (stored, sent) {
         (CellEdit::Plant { record, params, .. }, EditOp::Plant { species, x, z, params: asked }) => {
-            let o = grid.cell_origin(cell);
-            let q = [
-                quantize((*x).into(), o[0].into(), grid.cell_size),
-                quantize((*z).into(), o[1].into(), grid.cell_size),
-            ];
+            let q = grid.steps(cell, (*x).into(), (*z).into());
             grid.cell_of(*x, *z) == cell && *record == InstanceRecord::new(*species, q[0], q[1]) && params == asked
         }
         (CellEdit::Set { index, params }, EditOp::Set { id, params: asked }) => {
@@ -483,10 +479,7 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
         for i in c.state().instances(&|_, _| 0.0) {
             let Some(p) = held.get_mut(&i.id.cell()) else { continue };
             let o = grid.cell_origin(i.id.cell());
-            let q = [
-                quantize(i.position[0].into(), o[0].into(), grid.cell_size),
-                quantize(i.position[2].into(), o[1].into(), grid.cell_size),
-            ];
+            let q = grid.steps(i.id.cell(), i.position[0].into(), i.position[2].into());
             assert_eq!(dequantize(q[0], o[0], grid.cell_size), i.position[0]);
             p.records.insert(i.id.index(), (i.species, q[0], q[1], i.params.clone()));
         }

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::edit::EditOp;
-use canopy_protocol::record::{InstanceRecord, quantize};
+use canopy_protocol::record::InstanceRecord;
 use canopy_server::edits::{CellEdit, EditStore, EditStoreError, StoredEdit};
 
 use super::edits::Acknowledged;
@@ -34,12 +34,8 @@ pub struct EditLedger {
 fn same_content(edit: &CellEdit, op: &EditOp, cell: CellCoord, grid: &Grid) -> bool {
     match (edit, op) {
         (CellEdit::Plant { record, params, .. }, EditOp::Plant { species, x, z, params: asked }) => {
-            let origin = grid.cell_origin(cell);
-            let q = InstanceRecord::new(
-                *species,
-                quantize((*x).into(), origin[0].into(), grid.cell_size),
-                quantize((*z).into(), origin[1].into(), grid.cell_size),
-            );
+            let [qx, qz] = grid.steps(cell, (*x).into(), (*z).into());
+            let q = InstanceRecord::new(*species, qx, qz);
             *record == q && params == asked
         }
         (CellEdit::Fell { index }, EditOp::Fell { id }) => *index == id.index(),
@@ -87,6 +83,7 @@ pub fn check_ledger<'a>(
 mod tests {
     use super::*;
     use canopy_protocol::InstanceId;
+    use canopy_protocol::record::quantize;
     use canopy_server::edits::MemoryEditStore;
 
     #[test]
