@@ -184,10 +184,15 @@ impl Bounds {
         [self.max[0] - self.min[0], self.max[1] - self.min[1]]
     }
 
+    /// Width and depth in f64, exact: an f32 size rounds bounds as wide as the coordinate range (134,217,728 m).
+    pub fn extent(&self) -> [f64; 2] {
+        [0, 1].map(|a| f64::from(self.max[a]) - f64::from(self.min[a]))
+    }
+
     /// Area, square metres.
     pub fn area(&self) -> f64 {
-        let [w, d] = self.size();
-        f64::from(w) * f64::from(d)
+        let [w, d] = self.extent();
+        w * d
     }
 }
 

@@ -633,13 +633,14 @@ pub(crate) fn build(
     let mut populations = Populations::default();
     let mut explicit = 0u32;
     let mut spans = Vec::new();
+    let cell_of = |p: &Placement| {
+        let s = f64::from(cell_size);
+        CellKey { x: (p.x / s).floor() as i32, z: (p.z / s).floor() as i32 }
+    };
     for (order, item) in resolved.into_iter().enumerate() {
         match item {
             Resolved::Instance(p) => {
-                let key = CellKey {
-                    x: (p.x / f64::from(cell_size)).floor() as i32,
-                    z: (p.z / f64::from(cell_size)).floor() as i32,
-                };
+                let key = cell_of(&p);
                 populations.explicit.entry(key).or_default().push((order as u32, p));
                 explicit += 1;
             }
@@ -648,10 +649,7 @@ pub(crate) fn build(
                 spans.push(span);
             }
             Resolved::Edit(fell, p) => {
-                let key = CellKey {
-                    x: (p.x / f64::from(cell_size)).floor() as i32,
-                    z: (p.z / f64::from(cell_size)).floor() as i32,
-                };
+                let key = cell_of(&p);
                 populations.edits.entry(key).or_default().push((fell, p));
             }
         }

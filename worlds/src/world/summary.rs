@@ -91,8 +91,7 @@ impl World {
     /// A human summary: area, cells, terrain, species and instance counts per species.
     pub fn content_summary(&self) -> String {
         let mut s = String::new();
-        // In f64: an f32 prints 134,217,728 m (the whole coordinate range) as 134217730.
-        let [w, d] = [0, 1].map(|a| f64::from(self.bounds.max[a]) - f64::from(self.bounds.min[a]));
+        let [w, d] = self.bounds.extent();
         let area_km2 = self.bounds.area() / 1e6;
         let n = self.instances.len();
         let _ = writeln!(s, "world {}: {w} m × {d} m = {area_km2:.2} km², seed {}", self.name, self.seed);
