@@ -6,8 +6,9 @@
 // canopy's top, samples at `t0 + (n + j)·Δs` from the box entry (j a per-pixel jitter in [0, 1): a fixed offset
 // would draw the step grid as bands), lights them by the slope relative to level ground, keeps the trees whose
 // density class is below the patch's density times the coverage interpolated between sub-square centres, and
-// blends front to back; it stops at the ground. Patches arrive back to front and blend premultiplied, like the far
-// instances they are drawn before.
+// blends front to back; it stops at the ground or once the pixel is opaque. Patches arrive front to back, after the
+// far instances, and blend premultiplied under what is in front of them, into the far field's accumulation
+// (far_accum.wgsl).
 //
 // Where a pixel is wider than the trees' spacing (most of a view from altitude) the tile's voxels would only
 // alias: there the ray crosses the species' profile instead — the stand as a horizontally uniform layer whose
@@ -180,13 +181,20 @@ fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
     return mix(lower, upper, f);
 }
 
-@fragment
+// Depth tests before the shader although it writes the pixel's opacity (see volume.wgsl).
+@fragment @early_depth_test(force)
 fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     let scale = in.params.x;
     let keep = in.params.y;
     if !dither_keeps(in.params.z, in.clip.xy) {
         discard;
     }
+    let pixel = pixel_index(in.clip.xy);
+    let front = opacity_in_front(pixel);
+    if front >= OPAQUE {
+        discard;
+    }
+    let stop = stop_alpha(front);
     let lo = vec3<f32>(in.rect.x, in.span.x, in.rect.y);
     let ext = vec3<f32>(in.rect.z, in.span.y - in.span.x, in.rect.z);
     // The ray, relative to the box's lower corner (precision far from the origin). Only the faces that march
@@ -307,7 +315,7 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
                         let wgt = (1.0 - alpha) * a;
                         color += wgt * c * light;
                         alpha += wgt;
-                        if alpha >= 0.995 {
+                        if alpha >= stop {
                             break;
                         }
                     }
@@ -372,13 +380,13 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
                     let wgt = (1.0 - alpha) * s.a;
                     color += wgt * abs(s.rgb) * light;
                     alpha += wgt;
-                    if alpha >= 0.995 {
+                    if alpha >= stop {
                         break;
                     }
                 }
             }
         }
-        if grounded || alpha >= 0.995 || samples >= MAX_SAMPLES || t_out >= t1 {
+        if grounded || alpha >= stop || samples >= MAX_SAMPLES || t_out >= t1 {
             break;
         }
         if next_x < next_z {
@@ -397,6 +405,7 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     if alpha < 1.0 / 512.0 {
         discard;
     }
+    add_opacity(pixel, front, alpha);
     let f = fog_factor(first_hit);
     return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
 }

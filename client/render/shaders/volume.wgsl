@@ -1,8 +1,9 @@
 // The far field (seed 000 §8): each far instance is a proxy box around its species' hypertree volume, raymarched
 // front to back through a 3D texture atlas of baked voxels (rgb: lit colour, a: opacity α = 1 − (1 − µ)^k), with
 // the CPU reference renderer's sampling: steps of the smallest voxel side from the entry into the voxels' box,
-// sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit at 99.5 % opacity. Instances arrive sorted back
-// to front and blend premultiplied. VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
+// sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit once the pixel is 99.5 % opaque. Instances
+// arrive sorted front to back and blend premultiplied under what is in front of them, into the far field's
+// accumulation (far_accum.wgsl). VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
 
 struct VolumeOut {
     @builtin(position) clip: vec4<f32>,
@@ -32,11 +33,19 @@ fn vs_volume(
     return out;
 }
 
-@fragment
+// Depth tests before the shader although it writes the pixel's opacity: a fragment behind the opaque scene does
+// nothing.
+@fragment @early_depth_test(force)
 fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
     if !dither_keeps(in.mask, in.clip.xy) {
         discard;
     }
+    let pixel = pixel_index(in.clip.xy);
+    let front = opacity_in_front(pixel);
+    if front >= OPAQUE {
+        discard;
+    }
+    let stop = stop_alpha(front);
     let info = volumes[in.volume];
     let k = in.inst.w * info.lo.w;
     // The ray in box units (a uniform scale keeps directions).
@@ -74,7 +83,7 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
             let w = (1.0 - alpha) * s.a;
             color += w * s.rgb;
             alpha += w;
-            if alpha >= 0.995 {
+            if alpha >= stop {
                 break;
             }
         }
@@ -82,6 +91,7 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
     if alpha < 1.0 / 512.0 {
         discard;
     }
+    add_opacity(pixel, front, alpha);
     // Fog at the first voxel hit, premultiplied like the colour.
     let hit = g.eye.xyz + d * (first_hit * k);
     let f = fog_factor(distance(hit, g.eye.xyz));

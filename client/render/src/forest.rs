@@ -1,7 +1,7 @@
 //! The far view's summary nodes drawn as forest (issue 15), pure (no GPU, no clock, no threads): from the scene's
 //! [`SceneFar`], the ground, the species' canopy tiles and the camera, a [`ForestPlan`] — which node draws which
 //! of its sub-squares (not those its held children or the records draw), cross-fades as that changes, culling, and
-//! the frame's [`ForestPatch`] instances back to front with the ground under them.
+//! the frame's [`ForestPatch`] instances front to back with the ground under them.
 //!
 //! On the GPU one summary node and one species is one instance: a proxy box over the node raymarched
 //! (`shaders/forest.wgsl`) through the species' canopy tile ([`super::tile`]), repeated over the ground in world
@@ -250,7 +250,7 @@ pub struct ForestPlan {
     pub species: Vec<u16>,
     /// Patches with their distance and height, before sorting.
     unsorted: Vec<(f32, f32, ForestPatch)>,
-    /// This frame's patches, back to front.
+    /// This frame's patches, front to back (the taller species of a node first).
     pub patches: Vec<ForestPatch>,
     /// This frame's ground grids, [`GROUND_POINTS`] per drawn node.
     pub ground: Vec<f32>,
@@ -264,7 +264,7 @@ impl ForestPlan {
     }
 
     /// Plan a frame: follow the scene's far field, compute missing ground grids (a bounded number), step the
-    /// fades, cull, and list the patches back to front; counts in `stats`.
+    /// fades, cull, and list the patches front to back; counts in `stats`.
     pub fn plan(&mut self, input: &ForestInputs, stats: &mut FrameStats) {
         self.unsorted.clear();
         self.patches.clear();
@@ -284,7 +284,7 @@ impl ForestPlan {
         self.compute_ground(input, stats);
         self.step_and_list(input, stats);
         self.nodes.retain(|n| n.present || n.species.iter().any(|s| !s.fade.idle()));
-        self.unsorted.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(a.1.total_cmp(&b.1)));
+        self.unsorted.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(b.1.total_cmp(&a.1)));
         self.patches.clear();
         self.patches.extend(self.unsorted.iter().map(|p| p.2));
         stats.summary_nodes = input.far.nodes.len();
@@ -705,14 +705,14 @@ mod tests {
         let drawn = r.drawn();
         assert_eq!(drawn.iter().map(|d| (d.0, d.1, d.2)).collect::<Vec<_>>(), vec![(0, 1, 5)]);
         assert_eq!(r.stats.summary_nodes, 4);
-        // Back to front; both name the tile's finest resolution, and the march takes a coarser one where a voxel
+        // Front to back; both name the tile's finest resolution, and the march takes a coarser one where a voxel
         // of the finest would be under VOXEL_PX pixels: level ⌊log₂(t · mip_scale)⌋.
         let near = node(4, 0, 2, ALL);
         let mid = node(4, 0, 12, ALL);
         r.frame(&far(vec![near, mid], vec![], 2), 1.0);
         let p = &r.plan.patches;
         assert_eq!(p.len(), 2);
-        assert!(p[0].rect[1] > p[1].rect[1], "the farther first");
+        assert!(p[0].rect[1] < p[1].rect[1], "the nearer first");
         assert_eq!((p[0].volume, p[1].volume), (7, 7));
         let v = view(1.0);
         let footprint = 2.0 * v.tan_half / v.height_px;

@@ -67,6 +67,12 @@ impl Gpu {
                 missing: "storage buffers in vertex shaders".into(),
             });
         }
+        if !down.flags.contains(wgpu::DownlevelFlags::FRAGMENT_WRITABLE_STORAGE) {
+            return Err(GpuError::Unsupported {
+                adapter: info.name,
+                missing: "writable storage buffers in fragment shaders (the far field's opacity)".into(),
+            });
+        }
         let have = adapter.limits();
         let need_binding = cfg.prim_memory.max(cfg.vertex_memory()).max(cfg.index_memory());
         if have.max_storage_buffer_binding_size < need_binding || have.max_buffer_size < need_binding {
@@ -93,7 +99,10 @@ impl Gpu {
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("canopy"),
-            required_features: wgpu::Features::empty(),
+            // Where the adapter has them: timestamps inside passes (`canopy render --frames` reports GPU time per
+            // part) and depth tests forced before the far field's shaders (which write the pixel's opacity).
+            required_features: adapter.features()
+                & (super::renderer::timing::FEATURES | wgpu::Features::SHADER_EARLY_DEPTH_TEST),
             required_limits: limits,
             ..Default::default()
         }))

@@ -47,7 +47,7 @@ pub use camera::{Camera, CameraError};
 pub use gpu::{Gpu, GpuError};
 pub use lod::{Band, LodConfig};
 pub use offscreen::{OffscreenError, RenderedImage};
-pub use renderer::{FrameStats, Renderer};
+pub use renderer::{FrameStats, Renderer, timing};
 pub use scene::{Scene, SceneFar, SceneInstance};
 
 use canopy_worlds::amplify::Budget;

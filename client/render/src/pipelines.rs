@@ -11,6 +11,14 @@ pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Format of the far-field atlas texels.
 pub const ATLAS_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
+/// Format of the far field's accumulation target (premultiplied colour and opacity, composited front to back).
+pub const ACCUM_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+
+/// The fragment shaders' attribute forcing depth tests before them (where the device has
+/// [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`]; without it the attribute is left out, and fragments the scene hides
+/// are shaded and then dropped: the same picture, more work).
+const EARLY_DEPTH_TEST: &str = "@early_depth_test(force)";
+
 /// Radial segments of cones and cylinders, and latitude bands of spheres, by detail level (as
 /// [`canopy_worlds::mesh::MeshOptions::for_detail`]).
 pub const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
@@ -21,6 +29,8 @@ const COMMON: &str = include_str!("../shaders/common.wgsl");
 /// The far-field volumes' infos and atlas bindings, shared by the volume and forest shaders.
 const VOLUME_INFO: &str = include_str!("../shaders/volume_info.wgsl");
 const SEGMENT: &str = include_str!("../shaders/segment.wgsl");
+/// The far field's per-pixel opacity, shared by the volume and forest shaders.
+const FAR_ACCUM: &str = include_str!("../shaders/far_accum.wgsl");
 
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
 #[repr(C)]
@@ -146,6 +156,10 @@ pub struct Pipelines {
     pub volume_layout: wgpu::BindGroupLayout,
     /// The forest patches' ground heights (a storage buffer read by the fragment shader).
     pub forest_layout: wgpu::BindGroupLayout,
+    /// The far field's per-pixel opacity (group 3 of the volume and forest pipelines).
+    pub accum_layout: wgpu::BindGroupLayout,
+    /// The accumulation target, read by the composite.
+    pub composite_layout: wgpu::BindGroupLayout,
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub prims: wgpu::RenderPipeline,
@@ -153,6 +167,8 @@ pub struct Pipelines {
     pub volume: wgpu::RenderPipeline,
     /// Summary patches raymarched through canopy tiles ([`super::forest`]).
     pub forest: wgpu::RenderPipeline,
+    /// The far field's accumulation laid over the scene.
+    pub composite: wgpu::RenderPipeline,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -192,8 +208,9 @@ fn depth(write: bool, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStenc
 }
 
 impl Pipelines {
-    /// Build every pipeline for targets of `format`.
-    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat) -> Pipelines {
+    /// Build every pipeline for targets of `format`; `early_depth`: whether the device has
+    /// [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
+    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, early_depth: bool) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let globals_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("globals"),
@@ -250,18 +267,60 @@ impl Pipelines {
             label: Some("forest ground and profiles"),
             entries: &[storage(0, wgpu::ShaderStages::FRAGMENT), storage(1, wgpu::ShaderStages::FRAGMENT)],
         });
-        let layout = |label: &str, groups: &[&wgpu::BindGroupLayout]| {
-            let groups: Vec<Option<&wgpu::BindGroupLayout>> = groups.iter().map(|g| Some(*g)).collect();
+        let accum_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("far-field opacity"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: false },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            }],
+        });
+        let composite_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("far-field accumulation"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            }],
+        });
+        let layout = |label: &str, groups: &[Option<&wgpu::BindGroupLayout>]| {
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some(label),
-                bind_group_layouts: &groups,
+                bind_group_layouts: groups,
                 immediate_size: 0,
             })
+        };
+        // A far-field shader: its parts, without the early depth attribute where the device lacks it.
+        let far_module = |label: &str, parts: &[&str]| {
+            let source = parts.concat();
+            let source = if early_depth { source } else { source.replace(EARLY_DEPTH_TEST, "") };
+            module(device, label, &[&source])
         };
         let opaque = [Some(wgpu::ColorTargetState { format, blend: None, write_mask: wgpu::ColorWrites::ALL })];
         let premultiplied = [Some(wgpu::ColorTargetState {
             format,
             blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            write_mask: wgpu::ColorWrites::ALL,
+        })];
+        // Premultiplied fragments arriving front to back, each composited under what is already there.
+        let under = wgpu::BlendComponent {
+            src_factor: wgpu::BlendFactor::OneMinusDstAlpha,
+            dst_factor: wgpu::BlendFactor::One,
+            operation: wgpu::BlendOperation::Add,
+        };
+        let accumulated = [Some(wgpu::ColorTargetState {
+            format: ACCUM_FORMAT,
+            blend: Some(wgpu::BlendState { color: under, alpha: under }),
             write_mask: wgpu::ColorWrites::ALL,
         })];
         let pipeline = |label: &str,
@@ -299,7 +358,7 @@ impl Pipelines {
         let sky_mod = module(device, "sky", &[COMMON, include_str!("../shaders/sky.wgsl")]);
         let sky = pipeline(
             "sky",
-            &layout("sky", &[&globals_layout]),
+            &layout("sky", &[Some(&globals_layout)]),
             &sky_mod,
             ("vs_sky", "fs_sky"),
             &[],
@@ -312,7 +371,7 @@ impl Pipelines {
         let terrain_attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Uint32, 2 => Uint32];
         let terrain = pipeline(
             "terrain",
-            &layout("terrain", &[&globals_layout]),
+            &layout("terrain", &[Some(&globals_layout)]),
             &terrain_mod,
             ("vs_terrain", "fs_terrain"),
             &[Some(wgpu::VertexBufferLayout {
@@ -330,7 +389,7 @@ impl Pipelines {
         // No culling: a mirroring transform flips a primitive's winding.
         let prims = pipeline(
             "prims",
-            &layout("prims", &[&globals_layout, &prims_layout, &draw_layout]),
+            &layout("prims", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout)]),
             &prims_mod,
             ("vs_prim", "fs_prim"),
             &[Some(wgpu::VertexBufferLayout {
@@ -346,7 +405,7 @@ impl Pipelines {
         let mesh_mod = module(device, "meshes", &[COMMON, include_str!("../shaders/mesh.wgsl"), SEGMENT]);
         let mesh = pipeline(
             "meshes",
-            &layout("meshes", &[&globals_layout, &mesh_layout, &draw_layout]),
+            &layout("meshes", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout)]),
             &mesh_mod,
             ("vs_mesh", "fs_mesh"),
             &[],
@@ -355,11 +414,12 @@ impl Pipelines {
             &opaque,
         );
 
-        let volume_mod = module(device, "volumes", &[COMMON, VOLUME_INFO, include_str!("../shaders/volume.wgsl")]);
+        let volume_mod =
+            far_module("volumes", &[COMMON, VOLUME_INFO, FAR_ACCUM, include_str!("../shaders/volume.wgsl")]);
         let far_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32, 2 => Float32];
         let volume = pipeline(
             "volumes",
-            &layout("volumes", &[&globals_layout, &volume_layout]),
+            &layout("volumes", &[Some(&globals_layout), Some(&volume_layout), None, Some(&accum_layout)]),
             &volume_mod,
             ("vs_volume", "fs_volume"),
             &[Some(wgpu::VertexBufferLayout {
@@ -369,7 +429,7 @@ impl Pipelines {
             })],
             Some(wgpu::Face::Back),
             depth(false, greater),
-            &premultiplied,
+            &accumulated,
         );
 
         // The tile's layout as the shader reads it, from the constants that bake it.
@@ -379,8 +439,10 @@ impl Pipelines {
             super::tile::PROFILE_BANDS,
             super::tile::TILE_MIPS
         );
-        let forest_mod =
-            module(device, "forest", &[COMMON, VOLUME_INFO, &tile_consts, include_str!("../shaders/forest.wgsl")]);
+        let forest_mod = far_module(
+            "forest",
+            &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, include_str!("../shaders/forest.wgsl")],
+        );
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
@@ -388,7 +450,10 @@ impl Pipelines {
         // Back faces culled: from inside a node's box the vertex shader mirrors it, so its inner faces are drawn.
         let forest = pipeline(
             "forest",
-            &layout("forest", &[&globals_layout, &volume_layout, &forest_layout]),
+            &layout(
+                "forest",
+                &[Some(&globals_layout), Some(&volume_layout), Some(&forest_layout), Some(&accum_layout)],
+            ),
             &forest_mod,
             ("vs_forest", "fs_forest"),
             &[Some(wgpu::VertexBufferLayout {
@@ -398,6 +463,18 @@ impl Pipelines {
             })],
             Some(wgpu::Face::Back),
             depth(false, greater),
+            &accumulated,
+        );
+
+        let composite_mod = module(device, "far-field composite", &[include_str!("../shaders/composite.wgsl")]);
+        let composite = pipeline(
+            "far-field composite",
+            &layout("far-field composite", &[Some(&composite_layout)]),
+            &composite_mod,
+            ("vs_composite", "fs_composite"),
+            &[],
+            None,
+            None,
             &premultiplied,
         );
 
@@ -424,12 +501,15 @@ impl Pipelines {
             draw_layout,
             volume_layout,
             forest_layout,
+            accum_layout,
+            composite_layout,
             sky,
             terrain,
             prims,
             mesh,
             volume,
             forest,
+            composite,
             frusta,
             spheres,
             cube,

@@ -18,7 +18,7 @@ use super::cache::{GeometryCache, INDEX_BYTES, Placement};
 use super::camera::Camera;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
 use super::ground::FractalWindow;
-use super::pipelines::{ATLAS_FORMAT, DEPTH_FORMAT, Pipelines};
+use super::pipelines::{ACCUM_FORMAT, ATLAS_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
 use super::select::{
     DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, SpeciesVol,
@@ -32,6 +32,8 @@ pub use super::stats::FrameStats;
 
 mod forest_gpu;
 use forest_gpu::ForestGpu;
+pub mod timing;
+use timing::PassTimer;
 
 /// Initial bytes of the segment buffer and of the far-instance buffer (both grow to the next power of two).
 const INITIAL_LIST_BYTES: u64 = 64 * 1024;
@@ -142,6 +144,51 @@ struct GpuCore {
     p: Pipelines,
     globals: wgpu::Buffer,
     globals_bg: wgpu::BindGroup,
+    accum: Accumulation,
+}
+
+/// The far field's accumulation target (far instances and forest patches composited front to back), the per-pixel
+/// opacity beside it (`far_accum.wgsl`), and their bind groups; sized to the target.
+struct Accumulation {
+    target: wgpu::TextureView,
+    opacity: wgpu::Buffer,
+    opacity_bg: wgpu::BindGroup,
+    composite_bg: wgpu::BindGroup,
+}
+
+impl Accumulation {
+    fn new(device: &wgpu::Device, p: &Pipelines, (w, h): (u32, u32)) -> Accumulation {
+        let (w, h) = (w.max(1), h.max(1));
+        let target = device
+            .create_texture(&wgpu::TextureDescriptor {
+                label: Some("far-field accumulation"),
+                size: wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: ACCUM_FORMAT,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+            .create_view(&wgpu::TextureViewDescriptor::default());
+        let opacity = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("far-field opacity"),
+            size: u64::from(w) * u64::from(h) * 4,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let opacity_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("far-field opacity"),
+            layout: &p.accum_layout,
+            entries: &[wgpu::BindGroupEntry { binding: 0, resource: opacity.as_entire_binding() }],
+        });
+        let composite_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("far-field accumulation"),
+            layout: &p.composite_layout,
+            entries: &[wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&target) }],
+        });
+        Accumulation { target, opacity, opacity_bg, composite_bg }
+    }
 }
 
 /// The GPU side of near and mid geometry: the arenas' buffers (their bookkeeping is the [`GeometryCache`]), the
@@ -209,6 +256,8 @@ pub struct Renderer {
     plan: FramePlan,
     frame: u64,
     last: FrameStats,
+    /// GPU time per part of the frame, once asked for ([`Renderer::time_parts`]) where the device can.
+    timer: Option<PassTimer>,
 }
 
 impl std::fmt::Debug for Renderer {
@@ -241,7 +290,7 @@ impl Renderer {
         size: (u32, u32),
         cfg: RenderConfig,
     ) -> std::io::Result<Renderer> {
-        let p = Pipelines::new(device, format);
+        let p = Pipelines::new(device, format, device.features().contains(wgpu::Features::SHADER_EARLY_DEPTH_TEST));
         let globals = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("globals"),
             size: size_of::<Globals>() as u64,
@@ -306,6 +355,7 @@ impl Renderer {
         Ok(Renderer {
             gpu: GpuCore {
                 depth: depth_view(device, size),
+                accum: Accumulation::new(device, &p, size),
                 device: device.clone(),
                 queue: queue.clone(),
                 size,
@@ -325,8 +375,24 @@ impl Renderer {
             plan: FramePlan::default(),
             frame: 0,
             last: FrameStats::default(),
+            timer: None,
             cfg,
         })
+    }
+
+    /// Time each part of every frame on the GPU from now on ([`timing::PARTS`]); false where the device lacks
+    /// timestamp queries inside passes ([`timing::FEATURES`]).
+    pub fn time_parts(&mut self) -> bool {
+        if self.timer.is_none() {
+            self.timer = PassTimer::new(&self.gpu.device, &self.gpu.queue);
+        }
+        self.timer.is_some()
+    }
+
+    /// Milliseconds of GPU time of each part of the last frame rendered ([`timing::PARTS`]), waiting for the GPU to
+    /// finish it; `None` unless [`Renderer::time_parts`] is on and a frame was rendered since the last call.
+    pub fn part_times(&mut self) -> Option<[f64; timing::PARTS.len()]> {
+        self.timer.as_mut()?.read(&self.gpu.device)
     }
 
     /// Switch levels at once instead of cross-fading (offscreen stills).
@@ -338,6 +404,7 @@ impl Renderer {
     pub fn resize(&mut self, width: u32, height: u32) {
         self.gpu.size = (width.max(1), height.max(1));
         self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
+        self.gpu.accum = Accumulation::new(&self.gpu.device, &self.gpu.p, self.gpu.size);
     }
 
     /// Block up to `timeout` until a worker finishes something (offscreen rendering waits; the window never does).
@@ -676,9 +743,19 @@ impl Renderer {
         self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));
     }
 
-    /// Encode and submit the frame prepared by [`Renderer::update`] into `view` (render).
+    /// Encode and submit the frame prepared by [`Renderer::update`] into `view` (render): the scene pass (sky,
+    /// terrain, near and mid geometry), then, where there is a far field, its instances and forest patches front to
+    /// back into the accumulation target (a fragment behind an opaque pixel stops at once) and that laid over the
+    /// scene.
     pub fn render(&mut self, view: &wgpu::TextureView) -> wgpu::SubmissionIndex {
         let gpu = &self.gpu;
+        let stamp = |pass: &mut wgpu::RenderPass<'_>, k| {
+            if let Some(t) = &self.timer {
+                t.stamp(pass, k);
+            }
+        };
+        let far_count = self.plan.far_count();
+        let far_field = far_count > 0 || self.forest.count > 0;
         let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         {
             let hz = self.cfg.lighting.sky_horizon;
@@ -700,13 +777,18 @@ impl Renderer {
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: &gpu.depth,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(0.0),
+                        // The far field is depth-tested against the scene in the next pass.
+                        store: if far_field { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard },
+                    }),
                     stencil_ops: None,
                 }),
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
+            stamp(&mut pass, 0);
             pass.set_bind_group(0, &gpu.globals_bg, &[]);
             pass.set_pipeline(&gpu.p.sky);
             pass.draw(0..SKY_VERTICES, 0..1);
@@ -718,6 +800,7 @@ impl Renderer {
                     pass.draw_indexed(r.clone(), 0, 0..1);
                 }
             }
+            stamp(&mut pass, 1);
             let geo = &self.geometry;
             if let (false, Some(bg)) = (self.plan.prim_draws.is_empty(), &geo.prims_bg) {
                 pass.set_pipeline(&gpu.p.prims);
@@ -734,23 +817,78 @@ impl Renderer {
                     pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
                 }
             }
+            stamp(&mut pass, 2);
             if let (Some((slot, count)), Some(bg)) = (self.plan.mesh_draw, &geo.mesh_bg) {
                 pass.set_pipeline(&gpu.p.mesh);
                 pass.set_bind_group(1, bg, &[]);
                 pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
                 pass.draw(0..count, 0..1);
             }
-            self.draw_forest(&mut pass);
-            let far_count = self.plan.far_count();
-            if let (true, Some(bg)) = (far_count > 0, &self.far.bg) {
-                pass.set_pipeline(&gpu.p.volume);
-                pass.set_bind_group(1, bg, &[]);
-                let bytes = u64::from(far_count) * size_of::<FarInstance>() as u64;
-                pass.set_vertex_buffer(0, self.far.instances.buffer.slice(..bytes));
-                pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
+            stamp(&mut pass, 3);
+            if !far_field {
+                for k in 4..timing::STAMPS {
+                    stamp(&mut pass, k);
+                }
             }
         }
-        gpu.queue.submit([enc.finish()])
+        if far_field {
+            enc.clear_buffer(&gpu.accum.opacity, 0, None);
+            {
+                let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("far field"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: &gpu.accum.target,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                            store: wgpu::StoreOp::Store,
+                        },
+                    })],
+                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                        view: &gpu.depth,
+                        depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
+                        stencil_ops: None,
+                    }),
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                });
+                pass.set_bind_group(0, &gpu.globals_bg, &[]);
+                pass.set_bind_group(3, &gpu.accum.opacity_bg, &[]);
+                if let (true, Some(bg)) = (far_count > 0, &self.far.bg) {
+                    pass.set_pipeline(&gpu.p.volume);
+                    pass.set_bind_group(1, bg, &[]);
+                    let bytes = u64::from(far_count) * size_of::<FarInstance>() as u64;
+                    pass.set_vertex_buffer(0, self.far.instances.buffer.slice(..bytes));
+                    pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
+                }
+                stamp(&mut pass, 4);
+                self.draw_forest(&mut pass);
+                stamp(&mut pass, 5);
+            }
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("far-field composite"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(&gpu.p.composite);
+            pass.set_bind_group(0, &gpu.accum.composite_bg, &[]);
+            pass.draw(0..SKY_VERTICES, 0..1);
+            stamp(&mut pass, 6);
+        }
+        if let Some(t) = &mut self.timer {
+            t.resolve(&mut enc);
+        }
+        self.gpu.queue.submit([enc.finish()])
     }
 }
 

@@ -1,6 +1,6 @@
 //! Per-frame selection, pure (no GPU, no clock, no threads): from the camera, the scene's instances, their
 //! level-of-detail state and what is resident, a [`FramePlan`] — which instance is in view, in which band and at
-//! which level, which geometry the workers must make, the far instances back to front, the geometry draw lists
+//! which level, which geometry the workers must make, the far instances front to back, the geometry draw lists
 //! packed as the shaders read them, and the terrain chunks with their steps. The renderer submits the jobs and
 //! writes the plan's buffers; nothing here touches wgpu.
 
@@ -301,7 +301,7 @@ pub struct FramePlan {
     pub geo_draws: Vec<GeoDraw>,
     /// Far instances with their distance, in instance order.
     far: Vec<(f32, FarInstance)>,
-    /// Far instances back to front, as uploaded.
+    /// Far instances front to back, as uploaded.
     pub far_sorted: Vec<FarInstance>,
     /// Geometry wanted and not pending, in instance order.
     requests: Vec<JobRequest>,
@@ -533,9 +533,9 @@ impl FramePlan {
         }
     }
 
-    /// Far instances back to front (they blend).
+    /// Far instances front to back (they blend under what is in front, and stop where it is opaque).
     fn sort_far(&mut self) {
-        self.far.sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+        self.far.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
         self.far_sorted.clear();
         self.far_sorted.extend(self.far.iter().map(|&(_, f)| f));
     }
@@ -687,13 +687,13 @@ mod tests {
         assert_eq!((f.stats.in_view, f.stats.near, f.stats.mid, f.stats.far), (6, 1, 3, 2));
         assert_eq!((f.stats.waiting, f.stats.hidden), (0, 0));
         assert!(f.plan.jobs.is_empty(), "everything is resident");
-        // Geometry draws in instance order; the far field back to front, the smallest (10 px, under half of
+        // Geometry draws in instance order; the far field front to back, the smallest (10 px, under half of
         // `low_res_px`) at a quarter of the full resolution.
         let drawn: Vec<_> = f.plan.geo_draws.iter().map(|g| g.key).collect();
         assert_eq!(drawn, vec![key(0, 0), key(1, 1), key(2, 2), key(3, 3)]);
         assert!(f.plan.geo_draws.iter().all(|g| g.mask == 1.0));
         let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
-        assert_eq!(far, vec![(at_size(10.0)[2], 12), (at_size(30.0)[2], 10)]);
+        assert_eq!(far, vec![(at_size(30.0)[2], 10), (at_size(10.0)[2], 12)]);
     }
 
     #[test]

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::offscreen::Offscreen;
-use canopy_render::{LodConfig, NearMode, RenderConfig};
+use canopy_render::{LodConfig, NearMode, RenderConfig, timing};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -205,12 +205,17 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     if args.frames > 0 {
         let mut times = Vec::new();
         let mut update = Vec::new();
+        let timed = off.renderer.time_parts();
+        let mut parts: Vec<Vec<f64>> = vec![Vec::new(); timing::PARTS.len()];
         for _ in 0..args.frames {
             let t = Instant::now();
             let s = off.renderer.update(&scene, &camera, 1.0 / 60.0);
             off.render_and_wait()?;
             times.push(t.elapsed().as_secs_f64() * 1e3);
             update.push(s.update_ms);
+            for (part, ms) in parts.iter_mut().zip(off.renderer.part_times().unwrap_or_default()) {
+                part.push(ms);
+            }
         }
         times.sort_by(f64::total_cmp);
         update.sort_by(f64::total_cmp);
@@ -227,6 +232,19 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
             times[0],
             percentile(&update, 0.5),
         );
+        if timed {
+            let mut line = String::from("GPU time median per part:");
+            let mut total = 0.0;
+            for (name, mut ms) in timing::PARTS.iter().zip(parts) {
+                ms.sort_by(f64::total_cmp);
+                let m = percentile(&ms, 0.5);
+                total += m;
+                line += &format!(" {name} {m:.2} ms,");
+            }
+            println!("{line} together {total:.2} ms");
+        } else {
+            println!("GPU time per part: the adapter has no timestamp queries inside passes");
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

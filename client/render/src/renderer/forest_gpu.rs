@@ -1,6 +1,6 @@
 //! The far view's summaries on the GPU (issue 15): each species' canopy tile baked on a worker and packed, in its
 //! four resolutions, into one atlas slot, its profile appended to the profiles buffer; the frame's [`ForestPlan`] run after the instances' plan, its patches
-//! and ground heights uploaded, and drawn ([`Renderer::draw_forest`]) before the far instances.
+//! and ground heights uploaded, and drawn ([`Renderer::draw_forest`]) after the far instances (front to back).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -32,7 +32,7 @@ pub(super) struct ForestGpu {
     /// Whether `profiles` changed since it was uploaded.
     profiles_dirty: bool,
     bg: Option<wgpu::BindGroup>,
-    count: u32,
+    pub(super) count: u32,
 }
 
 impl ForestGpu {
@@ -173,7 +173,7 @@ impl Renderer {
         Some(TileVol { volume, period: tile.period, top: tile.top, voxel, density: tile.density, reference, profile })
     }
 
-    /// Draw the frame's summary patches (in the scene pass, after the opaque geometry, before the far instances).
+    /// Draw the frame's summary patches (in the far field's pass, after the far instances: front to back).
     pub(super) fn draw_forest(&self, pass: &mut wgpu::RenderPass<'_>) {
         let f = &self.forest;
         if let (true, Some(volumes), Some(ground)) = (f.count > 0, &self.far.bg, &f.bg) {
