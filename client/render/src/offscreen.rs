@@ -137,7 +137,17 @@ impl Offscreen {
 
     /// Render the prepared frame and wait for the GPU to finish (for timings, without reading back).
     pub fn render_and_wait(&mut self) -> Result<(), OffscreenError> {
-        let index = self.renderer.render(&self.view);
+        let index = self.submit();
+        self.wait(index)
+    }
+
+    /// Submit the prepared frame without waiting: the CPU may prepare the next one meanwhile, as a window does.
+    pub fn submit(&mut self) -> wgpu::SubmissionIndex {
+        self.renderer.render(&self.view)
+    }
+
+    /// Wait for the GPU to finish the submission `index`.
+    pub fn wait(&self, index: wgpu::SubmissionIndex) -> Result<(), OffscreenError> {
         self.gpu
             .device
             .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
