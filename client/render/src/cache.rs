@@ -7,7 +7,7 @@ use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
 use std::ops::Range;
 
 use super::arena::Arena;
-use super::geometry::{MeshVertex, PrimInstance, Thickness, TreeGeometry};
+use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
 use super::stats::FrameStats;
 use super::workers::TreeKey;
 
@@ -28,8 +28,6 @@ pub struct CacheEntry {
     pub prims: Range<u64>,
     /// The range of each unit shape within `prims`, relative to its start.
     pub shape_ranges: [Range<u32>; 3],
-    /// Each unit shape's thickness classes (ends relative to the start of `prims`).
-    pub thickness: [Thickness; 3],
     /// Mesh vertices.
     pub verts: Range<u64>,
     /// Mesh indices.
@@ -256,7 +254,6 @@ impl GeometryCache {
             let entry = CacheEntry {
                 prims: placed.prims,
                 shape_ranges: geo.shape_ranges.clone(),
-                thickness: geo.thickness,
                 verts: placed.verts,
                 indices: placed.indices,
                 last_used: frame,
@@ -274,7 +271,6 @@ mod tests {
         TreeGeometry {
             prims: vec![bytemuck::Zeroable::zeroed(); prims],
             shape_ranges: [0..prims as u32, 0..0, 0..0],
-            thickness: [Thickness::whole(0..prims as u32), Thickness::whole(0..0), Thickness::whole(0..0)],
             vertices: vec![bytemuck::Zeroable::zeroed(); verts],
             indices: vec![0; indices],
             primitives: prims,

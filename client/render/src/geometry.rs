@@ -50,64 +50,6 @@ pub struct MeshVertex {
     pub color: u32,
 }
 
-/// Thickness classes of a unit shape's primitives ([`Thickness`]).
-pub const THICKNESS_CLASSES: usize = 4;
-
-/// A unit shape's primitives in thickness classes, thickest first: class `c` holds the radii within
-/// `(r / 2^(c+1), r / 2^c]` of the thickest `r` (the last class everything thinner), so that a draw takes a coarser
-/// tessellation for the thinner ones (a twig a pixel wide needs no octagon).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Thickness {
-    /// Where each class ends in the geometry's primitives (the last one where the shape's range ends).
-    pub ends: [u32; THICKNESS_CLASSES],
-    /// Each class's thickest radius across the shape's axis, metres (0 for an empty class).
-    pub radius: [f32; THICKNESS_CLASSES],
-}
-
-impl Thickness {
-    /// The whole of `range` as one class of unknown thickness (drawn at its tree's tessellation).
-    pub fn whole(range: Range<u32>) -> Thickness {
-        Thickness { ends: [range.end; THICKNESS_CLASSES], radius: [f32::INFINITY, 0.0, 0.0, 0.0] }
-    }
-
-    /// Sort `prims` (of one unit shape, starting at `start` in the geometry) thickest first and class them.
-    fn classify(shape: UnitShape, prims: &mut [PrimInstance], start: u32) -> Thickness {
-        let radius = |p: &PrimInstance| {
-            let col = |c: usize| {
-                let v = [p.rows[0][c], p.rows[1][c], p.rows[2][c]];
-                (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
-            };
-            match shape {
-                UnitShape::Frustum => p.shape[0].max(p.shape[1]) * col(0).max(col(2)),
-                UnitShape::Sphere => p.shape[0] * col(0).max(col(1)).max(col(2)),
-                UnitShape::Box => 0.0,
-            }
-        };
-        // Stable: primitives of equal radius keep the stream's order.
-        prims.sort_by(|a, b| radius(b).total_cmp(&radius(a)));
-        let thickest = prims.first().map_or(0.0, radius);
-        let class = |r: f32| {
-            if r > 0.0 && thickest > 0.0 {
-                ((thickest / r).log2().floor().max(0.0) as usize).min(THICKNESS_CLASSES - 1)
-            } else {
-                THICKNESS_CLASSES - 1
-            }
-        };
-        let mut t =
-            Thickness { ends: [start + prims.len() as u32; THICKNESS_CLASSES], radius: [0.0; THICKNESS_CLASSES] };
-        let mut c = 0;
-        for (i, p) in prims.iter().enumerate() {
-            let (r, k) = (radius(p), class(radius(p)));
-            while c < k {
-                t.ends[c] = start + i as u32;
-                c += 1;
-            }
-            t.radius[c] = t.radius[c].max(r);
-        }
-        t
-    }
-}
-
 /// The GPU-ready geometry of one (species, seed, detail).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TreeGeometry {
@@ -115,8 +57,6 @@ pub struct TreeGeometry {
     pub prims: Vec<PrimInstance>,
     /// The range of each [`UnitShape`] in `prims`.
     pub shape_ranges: [Range<u32>; 3],
-    /// Each unit shape's thickness classes within its range.
-    pub thickness: [Thickness; 3],
     /// Mesh vertices.
     pub vertices: Vec<MeshVertex>,
     /// Mesh triangle indices into `vertices`.
@@ -241,9 +181,7 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
                 mesh_into_where(stream, &opts, meshed, &mut mesh);
             }
             let mut start = 0u32;
-            let shapes = [UnitShape::Frustum, UnitShape::Sphere, UnitShape::Box];
             for (k, v) in by_shape.iter_mut().enumerate() {
-                out.thickness[k] = Thickness::classify(shapes[k], v, start);
                 out.shape_ranges[k] = start..start + v.len() as u32;
                 start += v.len() as u32;
                 out.prims.append(v);
@@ -293,32 +231,6 @@ mod tests {
         let mid =
             build_tree(&g, &Instance { detail: 1, ..inst.clone() }, NearMode::Instanced, &Budget::default()).unwrap();
         assert!(!mid.prims.is_empty());
-    }
-
-    #[test]
-    fn primitives_are_classed_by_thickness_thickest_first() {
-        // Cylinders of radius 1 scaled by 1, 0.6, 0.3, 0.1 and 0.01 across their axis (and 5 along it), given
-        // thinnest first.
-        let prim = |s: f32| PrimInstance {
-            rows: [[s, 0.0, 0.0, 0.0], [0.0, 5.0, 0.0, 0.0], [0.0, 0.0, s, 0.0]],
-            shape: [1.0, 1.0, 2.0],
-            color: 0,
-        };
-        let mut prims: Vec<_> = [0.01, 0.1, 0.3, 0.6, 1.0].map(prim).to_vec();
-        let t = Thickness::classify(UnitShape::Frustum, &mut prims, 10);
-        assert_eq!(prims.iter().map(|p| p.rows[0][0]).collect::<Vec<_>>(), vec![1.0, 0.6, 0.3, 0.1, 0.01]);
-        // (0.5, 1], (0.25, 0.5], (0.125, 0.25] and the rest.
-        assert_eq!(t.ends, [12, 13, 13, 15]);
-        assert_eq!(t.radius, [1.0, 0.3, 0.0, 0.1]);
-        // Spheres by their largest axis; boxes are one class.
-        let mut spheres = vec![PrimInstance { shape: [0.5; 3], ..prim(2.0) }];
-        let t = Thickness::classify(UnitShape::Sphere, &mut spheres, 0);
-        assert_eq!((t.ends, t.radius[0]), ([1; 4], 2.5));
-        let mut boxes = vec![prim(1.0), prim(0.1)];
-        let t = Thickness::classify(UnitShape::Box, &mut boxes, 3);
-        assert_eq!(t.ends, [3, 3, 3, 5]);
-        // No primitives: every class empty.
-        assert_eq!(Thickness::classify(UnitShape::Frustum, &mut [], 7).ends, [7; 4]);
     }
 
     #[test]

@@ -14,7 +14,6 @@ use glam::Vec3;
 use super::cache::GeometryCache;
 use super::camera::{Camera, Frustum};
 use super::lod::{Band, InstanceLod, Level, LodConfig, projected_size};
-use super::pipelines::{FRUSTUM_SEGMENTS, SPHERE_RINGS};
 use super::scene::{Scene, SceneInstance};
 use super::stats::FrameStats;
 use super::terrain::TerrainMesh;
@@ -47,25 +46,6 @@ pub const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
 /// The tessellation of a detail level.
 pub fn tess(detail: u8) -> usize {
     usize::from(detail).min(TESSELLATIONS - 1)
-}
-
-/// Most pixels a unit mesh's facets may lie inside the true surface: a primitive takes the coarsest tessellation
-/// within this.
-pub const FACET_PX: f32 = 0.25;
-
-/// The coarsest tessellation of unit shape `shape` (frustum, sphere; a box has one mesh, 0 here: its tree's) whose facets lie within
-/// [`FACET_PX`] of a surface `radius_px` pixels in radius: a polygon of n sides is `r · (1 − cos(π / n))` inside
-/// its circle, a sphere's bands likewise with half their angle.
-pub fn tess_for_radius(shape: usize, radius_px: f32) -> usize {
-    let inside = |t: usize| {
-        let half = match shape {
-            0 => std::f32::consts::PI / FRUSTUM_SEGMENTS[t] as f32,
-            1 => std::f32::consts::FRAC_PI_2 / SPHERE_RINGS[t] as f32,
-            _ => return f32::INFINITY,
-        };
-        radius_px * (1.0 - half.cos())
-    };
-    (0..TESSELLATIONS).rev().find(|&t| inside(t) <= FACET_PX).unwrap_or(0)
 }
 
 /// A run of one tree's primitives (or mesh indices) drawn at a position, as the shaders read it.
@@ -134,8 +114,6 @@ pub struct GeoDraw {
     pub position: [f32; 3],
     /// Dither mask.
     pub mask: f32,
-    /// Pixels per metre at the tree's nearest point (its primitives' tessellation follows).
-    pub px_per_m: f32,
 }
 
 /// Geometry the workers must make: a key for an instance, with its projected size as priority.
@@ -409,8 +387,6 @@ impl FramePlan {
             if size < lod.cull_px {
                 continue;
             }
-            // At its bounding sphere's nearest point (a metre away where the eye is inside it).
-            let px_per_m = view.height_px / (2.0 * view.tan_half * (dist - radius).max(1.0));
             stats.in_view += 1;
             let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
             let mut wanted = lod.select(st.target, size);
@@ -449,7 +425,7 @@ impl FramePlan {
             for d in st.lod.draws() {
                 match (d.level, vs) {
                     (Level::Detail(det), _) => {
-                        self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask, px_per_m })
+                        self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
                     }
                     (Level::Far, Some(v)) => {
                         // About as many voxels as pixels: one halving of the resolution below `low_res_px` and one
@@ -487,25 +463,18 @@ impl FramePlan {
         self.meshes.clear();
         for g in &self.geo_draws {
             let Some(e) = cache.get(&g.key) else { continue };
-            for (k, (r, th)) in e.shape_ranges.iter().zip(&e.thickness).enumerate() {
-                // Each thickness class at the coarsest tessellation its thickest needs, never finer than the
-                // tree's detail level.
-                let mut start = r.start;
-                for (&end, &radius) in th.ends.iter().zip(&th.radius) {
-                    let end = end.clamp(start, r.end);
-                    if end > start {
-                        let t = tess(g.key.detail).max(tess_for_radius(k, radius * g.px_per_m));
-                        self.lists[k][t].push(Segment {
-                            first: 0,
-                            base: (e.prims.start + u64::from(start)) as u32,
-                            vbase: 0,
-                            count: end - start,
-                            pos: g.position,
-                            mask: g.mask,
-                        });
-                    }
-                    start = end;
+            for (k, r) in e.shape_ranges.iter().enumerate() {
+                if r.is_empty() {
+                    continue;
                 }
+                self.lists[k][tess(g.key.detail)].push(Segment {
+                    first: 0,
+                    base: (e.prims.start + u64::from(r.start)) as u32,
+                    vbase: 0,
+                    count: r.len() as u32,
+                    pos: g.position,
+                    mask: g.mask,
+                });
             }
             if !e.indices.is_empty() {
                 self.meshes.push(Segment {
@@ -595,7 +564,7 @@ mod tests {
     use canopy_worlds::world::{Terrain, World};
 
     use super::*;
-    use crate::geometry::{Thickness, TreeGeometry};
+    use crate::geometry::TreeGeometry;
 
     const VIEWPORT: (u32, u32) = (1000, 1000);
     /// Bounding radius of the test species' volume, metres.
@@ -649,7 +618,6 @@ mod tests {
         });
         TreeGeometry {
             prims: vec![Zeroable::zeroed(); start as usize],
-            thickness: shape_ranges.clone().map(Thickness::whole),
             shape_ranges,
             vertices: vec![Zeroable::zeroed(); indices],
             indices: vec![0; indices],
@@ -858,29 +826,6 @@ mod tests {
         f.run(&s, &cache, &ready_volume(), &view(0.0, true), 0);
         assert!(f.plan.jobs.is_empty());
         assert_eq!(f.stats.waiting, 4, "every instance still waits");
-    }
-
-    #[test]
-    fn thin_primitives_take_coarser_tessellations() {
-        // Frusta of 8, 6, 4 and 3 sides are 0.076, 0.134, 0.293 and 0.5 of the radius inside the circle.
-        let frustum: Vec<_> = [0.5, 0.8, 1.8, 3.0, 10.0].map(|r| tess_for_radius(0, r)).to_vec();
-        assert_eq!(frustum, vec![3, 2, 1, 0, 0]);
-        // Spheres of 6, 4 and 2 bands: half-angles of 15°, 22.5° and 45°.
-        let sphere: Vec<_> = [0.8, 3.0, 5.0, 20.0].map(|r| tess_for_radius(1, r)).to_vec();
-        assert_eq!(sphere, vec![3, 1, 0, 0]);
-        assert_eq!(tess_for_radius(2, 0.1), 0, "a box has one mesh: its tree's tessellation");
-        // A near tree (detail 0) whose twigs are thin: its thick class at the finest tessellation, its thin class
-        // at the coarsest; a mid tree never finer than its level's.
-        let mut geo = geometry([10, 0, 0], 0);
-        geo.thickness[0] = Thickness { ends: [4, 4, 4, 10], radius: [0.5, 0.0, 0.0, 0.003] };
-        let s = scene(vec![instance(0, 1, at_size(800.0))]);
-        let cache = resident(&[(key(1, 0), geo)]);
-        let mut f = Frame::new();
-        f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
-        let px_per_m = f.plan.geo_draws[0].px_per_m;
-        assert!(0.003 * px_per_m < 1.0 && 0.5 * px_per_m > 10.0, "{px_per_m} px/m");
-        let draws: Vec<_> = f.plan.prim_draws.iter().map(|d| (d.shape, d.tess, d.instances)).collect();
-        assert_eq!(draws, vec![(0, 0, 4), (0, 3, 6)]);
     }
 
     #[test]
