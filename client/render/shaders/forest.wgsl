@@ -88,9 +88,8 @@ fn vs_forest(
     let world = lo + size * unit_cube(select(vi, vi - corner + 2u - corner, inside));
     let to = world - g.eye.xyz;
     let d = max(length(to), 1e-3);
-    let pull = min(PULL_METRES + PULL_FRACTION * d, 0.5 * d) / d;
     var out: PatchOut;
-    out.clip = g.view_proj * vec4<f32>(world - to * pull, 1.0);
+    out.clip = g.view_proj * vec4<f32>(world - to * (pull(d) / d), 1.0);
     out.world = world;
     out.rect = rect;
     out.span = span;
@@ -184,8 +183,6 @@ fn layer_sigma(base: u32, b: f32, m: f32) -> f32 {
 // Depth tests before the shader although it writes the pixel's opacity (see volume.wgsl).
 @fragment @early_depth_test(force)
 fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
-    let scale = in.params.x;
-    let keep = in.params.y;
     if !dither_keeps(in.params.z, in.clip.xy) {
         discard;
     }
@@ -194,13 +191,45 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     if front >= OPAQUE {
         discard;
     }
-    let stop = stop_alpha(front);
+    let p = Patch(in.rect, in.span, in.cover, in.field, in.ids, in.params, in.profile, in.layer_from, in.mip_scale);
+    let c = march_patch(p, normalize(in.world - g.eye.xyz), in.clip.xy, stop_alpha(front), 1e30);
+    if c.a < 1.0 / 512.0 {
+        discard;
+    }
+    add_opacity(pixel, front, c.a);
+    return c;
+}
+
+// A forest patch as its march reads it (`ForestPatch` in `src/forest.rs`; ids: ground, volume; params: scale,
+// keep, dither mask).
+struct Patch {
+    rect: vec4<f32>,
+    span: vec2<f32>,
+    cover: vec2<u32>,
+    field: vec2<u32>,
+    ids: vec2<u32>,
+    params: vec3<f32>,
+    profile: u32,
+    layer_from: f32,
+    mip_scale: f32,
+};
+
+// How much nearer than its box a patch counts for the opaque scene in front of it, at `d` metres: the canopy
+// stands on the scene's ground, which the terrain drawn only approximates at a distance.
+fn pull(d: f32) -> f32 {
+    return min(PULL_METRES + PULL_FRACTION * d, 0.5 * d);
+}
+
+// Patch `in` along the eye ray `d` at pixel `frag`: premultiplied colour and opacity, the march stopping at opacity
+// `stop`; nothing if its box begins (pulled nearer) beyond `t_scene` metres.
+fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32) -> vec4<f32> {
+    let scale = in.params.x;
+    let keep = in.params.y;
     let lo = vec3<f32>(in.rect.x, in.span.x, in.rect.y);
     let ext = vec3<f32>(in.rect.z, in.span.y - in.span.x, in.rect.z);
     // The ray, relative to the box's lower corner (precision far from the origin). Only the faces that march
     // arrive (see `vs_forest`).
     let o = g.eye.xyz - lo;
-    let d = normalize(in.world - g.eye.xyz);
     let inv_d = 1.0 / d;
     let ta = -o * inv_d;
     let tb = (ext - o) * inv_d;
@@ -208,8 +237,8 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     let tmax = max(ta, tb);
     let t0 = max(max(max(tmin.x, tmin.y), tmin.z), 0.0);
     let t1 = min(min(tmax.x, tmax.y), tmax.z);
-    if t1 <= t0 {
-        discard;
+    if t1 <= t0 || t0 - pull(t0) >= t_scene {
+        return vec4<f32>(0.0);
     }
     let info = volumes[in.ids.y];
     let period = info.hi.xz * scale;
@@ -241,14 +270,14 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     var samples = 0;
     var t_in = t0;
     var grounded = false;
-    let offset = jitter(in.clip.xy);
+    let offset = jitter(frag);
     // The layer beyond the patch's distance (where a pixel spans `RenderConfig::forest_layer` tree spacings),
     // dithered over ±25 %.
     let layer = t0 > in.layer_from * (0.75 + 0.5 * offset);
     // A species too sparse for the march to keep one class (it keeps class n where (n + ½) / CLASSES < keep ×
     // coverage, and coverage ≤ 1) draws nothing where this ray would march: the same picture without the samples.
     if !layer && keep * CLASSES < 0.5 {
-        discard;
+        return vec4<f32>(0.0);
     }
     let band = top / BANDS;
     for (var walked = 0; walked < 17; walked++) {
@@ -403,9 +432,8 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
         }
     }
     if alpha < 1.0 / 512.0 {
-        discard;
+        return vec4<f32>(0.0);
     }
-    add_opacity(pixel, front, alpha);
     let f = fog_factor(first_hit);
     return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
 }

@@ -45,12 +45,22 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
     if front >= OPAQUE {
         discard;
     }
-    let stop = stop_alpha(front);
-    let info = volumes[in.volume];
-    let k = in.inst.w * info.lo.w;
+    let c = march_volume(in.inst, in.volume, normalize(in.world - g.eye.xyz), stop_alpha(front), 1e30);
+    if c.a < 1.0 / 512.0 {
+        discard;
+    }
+    add_opacity(pixel, front, c.a);
+    return c;
+}
+
+// The far instance at `inst` (position, scale) of volume `volume` along the eye ray `d`: premultiplied colour and
+// opacity, the march stopping at opacity `stop`; nothing if its box begins beyond `t_scene` metres (the opaque
+// scene in front of it).
+fn march_volume(inst: vec4<f32>, volume: u32, d: vec3<f32>, stop: f32, t_scene: f32) -> vec4<f32> {
+    let info = volumes[volume];
+    let k = inst.w * info.lo.w;
     // The ray in box units (a uniform scale keeps directions).
-    let o = (g.eye.xyz - in.inst.xyz) / k + info.origin.xyz;
-    let d = normalize(in.world - g.eye.xyz);
+    let o = (g.eye.xyz - inst.xyz) / k + info.origin.xyz;
     let inv_d = 1.0 / d;
     let ta = (info.lo.xyz - o) * inv_d;
     let tb = (info.hi.xyz - o) * inv_d;
@@ -58,8 +68,8 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
     let tmax = max(ta, tb);
     let t0 = max(max(max(tmin.x, tmin.y), tmin.z), 0.0);
     let t1 = min(min(tmax.x, tmax.y), tmax.z);
-    if t1 < t0 {
-        discard;
+    if t1 < t0 || t0 * k >= t_scene {
+        return vec4<f32>(0.0);
     }
     let step = info.voxel.w;
     let last = i32(floor((t1 - t0) / step - 0.5));
@@ -89,9 +99,8 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
         }
     }
     if alpha < 1.0 / 512.0 {
-        discard;
+        return vec4<f32>(0.0);
     }
-    add_opacity(pixel, front, alpha);
     // Fog at the first voxel hit, premultiplied like the colour.
     let hit = g.eye.xyz + d * (first_hit * k);
     let f = fog_factor(distance(hit, g.eye.xyz));

@@ -24,6 +24,7 @@
 //! drawn at the nearest resident level, or not at all.
 
 pub mod arena;
+mod bins;
 mod cache;
 pub mod camera;
 pub mod compare;
@@ -146,6 +147,50 @@ impl Lighting {
     }
 }
 
+/// How the far field (far instances and forest patches) is drawn: marched by a compute pass over screen tiles, or
+/// rasterised as proxy boxes whose fragments march (also the values of `--far-path`). Measured in
+/// `docs/renderer.md`: on an NVIDIA H200 the compute pass is 20 to 45 times as fast (its graphics stages run on a
+/// few of its cores); on Mesa's lavapipe the boxes are 3 to 8 times as fast (a pixel there walks only the boxes
+/// that cover it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum FarPath {
+    /// Compute on a GPU, boxes on a CPU adapter (lavapipe).
+    Auto,
+    /// The compute pass.
+    Compute,
+    /// Rasterised boxes.
+    Raster,
+}
+
+impl FarPath {
+    /// The paths with their names (the values of `--far-path`).
+    pub const NAMES: [(&'static str, FarPath); 3] =
+        [("auto", FarPath::Auto), ("compute", FarPath::Compute), ("raster", FarPath::Raster)];
+
+    /// Whether the far field is marched by the compute pass on an adapter of `device_type`.
+    pub fn computes(self, device_type: wgpu::DeviceType) -> bool {
+        match self {
+            FarPath::Auto => device_type != wgpu::DeviceType::Cpu,
+            FarPath::Compute => true,
+            FarPath::Raster => false,
+        }
+    }
+}
+
+impl std::str::FromStr for FarPath {
+    type Err = String;
+    fn from_str(s: &str) -> Result<FarPath, String> {
+        FarPath::NAMES.iter().find(|(n, _)| *n == s).map(|(_, m)| *m).ok_or_else(|| format!("no far path `{s}`"))
+    }
+}
+
+impl std::fmt::Display for FarPath {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = FarPath::NAMES.iter().find(|(_, m)| m == self).map_or("?", |(n, _)| n);
+        f.write_str(name)
+    }
+}
+
 /// Everything that configures a renderer. Every threshold is here, none in the shaders.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RenderConfig {
@@ -180,6 +225,8 @@ pub struct RenderConfig {
     /// 0.5 (trees two pixels apart and farther), draws a view from altitude about 1.6 times as fast as 1 and 2.8
     /// times as fast as marching everywhere (frame times in `docs/renderer.md`).
     pub forest_layer: f32,
+    /// How the far field is drawn.
+    pub far_path: FarPath,
 }
 
 impl Default for RenderConfig {
@@ -204,6 +251,7 @@ impl Default for RenderConfig {
             near_clip: 0.25,
             ground_window: ground::WINDOW_SQUARES,
             forest_layer: 0.5,
+            far_path: FarPath::Auto,
         }
     }
 }

@@ -31,6 +31,8 @@ const VOLUME_INFO: &str = include_str!("../shaders/volume_info.wgsl");
 const SEGMENT: &str = include_str!("../shaders/segment.wgsl");
 /// The far field's per-pixel opacity, shared by the volume and forest shaders.
 const FAR_ACCUM: &str = include_str!("../shaders/far_accum.wgsl");
+const VOLUME: &str = include_str!("../shaders/volume.wgsl");
+const FOREST: &str = include_str!("../shaders/forest.wgsl");
 
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
 #[repr(C)]
@@ -160,6 +162,8 @@ pub struct Pipelines {
     pub accum_layout: wgpu::BindGroupLayout,
     /// The accumulation target, read by the composite.
     pub composite_layout: wgpu::BindGroupLayout,
+    /// The far field's compute march: scene depth, accumulation target, tile lists, far instances and patches.
+    pub march_layout: wgpu::BindGroupLayout,
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub prims: wgpu::RenderPipeline,
@@ -169,6 +173,8 @@ pub struct Pipelines {
     pub forest: wgpu::RenderPipeline,
     /// The far field's accumulation laid over the scene.
     pub composite: wgpu::RenderPipeline,
+    /// The far field marched per screen tile (`far_march.wgsl`).
+    pub far_march: wgpu::ComputePipeline,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -212,11 +218,12 @@ impl Pipelines {
     /// [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
     pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, early_depth: bool) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
+        let fs_cs = wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE;
         let globals_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("globals"),
             entries: &[wgpu::BindGroupLayoutEntry {
                 binding: 0,
-                visibility: vs_fs,
+                visibility: vs_fs | wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Buffer {
                     ty: wgpu::BufferBindingType::Uniform,
                     has_dynamic_offset: false,
@@ -252,7 +259,7 @@ impl Pipelines {
             entries: &[
                 wgpu::BindGroupLayoutEntry {
                     binding: 0,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    visibility: wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE,
                     ty: wgpu::BindingType::Texture {
                         sample_type: wgpu::TextureSampleType::Float { filterable: false },
                         view_dimension: wgpu::TextureViewDimension::D3,
@@ -260,12 +267,12 @@ impl Pipelines {
                     },
                     count: None,
                 },
-                storage(1, vs_fs),
+                storage(1, vs_fs | wgpu::ShaderStages::COMPUTE),
             ],
         });
         let forest_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("forest ground and profiles"),
-            entries: &[storage(0, wgpu::ShaderStages::FRAGMENT), storage(1, wgpu::ShaderStages::FRAGMENT)],
+            entries: &[storage(0, fs_cs), storage(1, fs_cs)],
         });
         let accum_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("far-field opacity"),
@@ -292,6 +299,36 @@ impl Pipelines {
                 },
                 count: None,
             }],
+        });
+        let cs = wgpu::ShaderStages::COMPUTE;
+        let march_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("far-field march"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: cs,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Depth,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 2,
+                    visibility: cs,
+                    ty: wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: ACCUM_FORMAT,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                    },
+                    count: None,
+                },
+                storage(3, cs),
+                storage(4, cs),
+                storage(5, cs),
+                storage(6, cs),
+            ],
         });
         let layout = |label: &str, groups: &[Option<&wgpu::BindGroupLayout>]| {
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -414,8 +451,7 @@ impl Pipelines {
             &opaque,
         );
 
-        let volume_mod =
-            far_module("volumes", &[COMMON, VOLUME_INFO, FAR_ACCUM, include_str!("../shaders/volume.wgsl")]);
+        let volume_mod = far_module("volumes", &[COMMON, VOLUME_INFO, FAR_ACCUM, VOLUME]);
         let far_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32, 2 => Float32];
         let volume = pipeline(
             "volumes",
@@ -439,10 +475,7 @@ impl Pipelines {
             super::tile::PROFILE_BANDS,
             super::tile::TILE_MIPS
         );
-        let forest_mod = far_module(
-            "forest",
-            &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, include_str!("../shaders/forest.wgsl")],
-        );
+        let forest_mod = far_module("forest", &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, FOREST]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
@@ -465,6 +498,22 @@ impl Pipelines {
             depth(false, greater),
             &accumulated,
         );
+
+        let march_mod = far_module(
+            "far-field march",
+            &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, VOLUME, FOREST, include_str!("../shaders/far_march.wgsl")],
+        );
+        let far_march = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("far-field march"),
+            layout: Some(&layout(
+                "far-field march",
+                &[Some(&globals_layout), Some(&volume_layout), Some(&forest_layout), Some(&march_layout)],
+            )),
+            module: &march_mod,
+            entry_point: Some("cs_far"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
 
         let composite_mod = module(device, "far-field composite", &[include_str!("../shaders/composite.wgsl")]);
         let composite = pipeline(
@@ -503,6 +552,7 @@ impl Pipelines {
             forest_layout,
             accum_layout,
             composite_layout,
+            march_layout,
             sky,
             terrain,
             prims,
@@ -510,6 +560,7 @@ impl Pipelines {
             volume,
             forest,
             composite,
+            far_march,
             frusta,
             spheres,
             cube,

@@ -30,7 +30,9 @@ use super::workers::{Job, JobResult, Workers};
 
 pub use super::stats::FrameStats;
 
+mod far_march;
 mod forest_gpu;
+use far_march::FarMarch;
 use forest_gpu::ForestGpu;
 pub mod timing;
 use timing::PassTimer;
@@ -167,7 +169,9 @@ impl Accumulation {
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
                 format: ACCUM_FORMAT,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                    | wgpu::TextureUsages::TEXTURE_BINDING
+                    | wgpu::TextureUsages::STORAGE_BINDING,
                 view_formats: &[],
             })
             .create_view(&wgpu::TextureViewDescriptor::default());
@@ -242,6 +246,8 @@ pub struct Renderer {
     far: FarField,
     /// The summary patches beyond the records.
     forest: ForestGpu,
+    /// The far field's tile lists (drawn by the compute pass when `Some`).
+    march: Option<FarMarch>,
     terrain: Option<TerrainGpu>,
     /// The window drawn of a fractal ground.
     window: Option<FractalWindow>,
@@ -275,7 +281,8 @@ fn depth_view(device: &wgpu::Device, (w, h): (u32, u32)) -> wgpu::TextureView {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            // Read by the far field's march.
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
             view_formats: &[],
         })
         .create_view(&wgpu::TextureViewDescriptor::default())
@@ -349,7 +356,12 @@ impl Renderer {
             infos: Vec::new(),
             info_buf: Growable::new(device, "volume infos", INITIAL_VOLUME_INFO_BYTES, wgpu::BufferUsages::STORAGE),
             bg: None,
-            instances: Growable::new(device, "far instances", INITIAL_LIST_BYTES, wgpu::BufferUsages::VERTEX),
+            instances: Growable::new(
+                device,
+                "far instances",
+                INITIAL_LIST_BYTES,
+                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
+            ),
         };
         let workers = Workers::new(cfg.workers)?;
         Ok(Renderer {
@@ -366,6 +378,7 @@ impl Renderer {
             geometry,
             far,
             forest: ForestGpu::new(device),
+            march: cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device)),
             terrain: None,
             window: None,
             cache: GeometryCache::new(prim_units, vert_units, index_units),
@@ -434,6 +447,10 @@ impl Renderer {
         self.select(scene, camera, dt, &mut stats);
         self.plan_forest(scene, camera, dt, &mut stats);
         self.write_globals(camera);
+        let (w, h) = self.gpu.size;
+        if self.march.is_some() {
+            self.bin_far_field(&camera.view_projection(w as f32 / h as f32, self.cfg.near_clip));
+        }
         stats.instances = scene.instances.len();
         stats.cache_entries = self.cache.len();
         stats.cache_bytes = self.cache.bytes_used();
@@ -832,8 +849,13 @@ impl Renderer {
             }
         }
         if far_field {
-            enc.clear_buffer(&gpu.accum.opacity, 0, None);
-            {
+            if let Some(march) = &self.march {
+                self.march_far_field(march, &mut enc);
+                if let Some(t) = &self.timer {
+                    t.stamp_encoder(&mut enc, 4);
+                }
+            } else {
+                enc.clear_buffer(&gpu.accum.opacity, 0, None);
                 let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                     label: Some("far field"),
                     color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -863,9 +885,8 @@ impl Renderer {
                     pass.set_vertex_buffer(0, self.far.instances.buffer.slice(..bytes));
                     pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
                 }
-                stamp(&mut pass, 4);
                 self.draw_forest(&mut pass);
-                stamp(&mut pass, 5);
+                stamp(&mut pass, 4);
             }
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("far-field composite"),
@@ -883,7 +904,7 @@ impl Renderer {
             pass.set_pipeline(&gpu.p.composite);
             pass.set_bind_group(0, &gpu.accum.composite_bg, &[]);
             pass.draw(0..SKY_VERTICES, 0..1);
-            stamp(&mut pass, 6);
+            stamp(&mut pass, 5);
         }
         if let Some(t) = &mut self.timer {
             t.resolve(&mut enc);

@@ -14,7 +14,7 @@ use canopy_protocol::summary::{FarView, NodeKey, NodeSummary, Refine};
 use canopy_render::camera::Frustum;
 use canopy_render::compare::{Tolerance, check_reference};
 use canopy_render::offscreen::{Offscreen, RenderedImage};
-use canopy_render::{Camera, FrameStats, RenderConfig, Scene, SceneFar, SceneInstance};
+use canopy_render::{Camera, FarPath, FrameStats, RenderConfig, Scene, SceneFar, SceneInstance};
 use canopy_worlds::world::{CellKey, InstanceId, Summaries, World};
 use glam::Vec3;
 
@@ -93,7 +93,11 @@ struct Shot {
 }
 
 fn shoot(scene: &Scene, cam: &Camera, w: u32, h: u32) -> Shot {
-    let mut cfg = RenderConfig { workers: 2, volume_resolution: 48, ..RenderConfig::default() };
+    shoot_with(scene, cam, w, h, FarPath::Auto)
+}
+
+fn shoot_with(scene: &Scene, cam: &Camera, w: u32, h: u32, far_path: FarPath) -> Shot {
+    let mut cfg = RenderConfig { workers: 2, volume_resolution: 48, far_path, ..RenderConfig::default() };
     cfg.lighting.fog_density = 0.0;
     let mut off = Offscreen::new(cfg, w, h).unwrap_or_else(|e| panic!("offscreen renderer: {e}"));
     let stats = off.settle(scene, cam, Duration::from_secs(300)).unwrap_or_else(|e| panic!("settling: {e}"));
@@ -180,6 +184,18 @@ fn summaries_draw_forest_to_the_horizon_and_nothing_without_them() {
     assert!(forest_without < W * H / 200, "{forest_without} forest pixels without summaries");
     check_reference(&with.image, &reference("far-summaries.png"), &Tolerance::default())
         .unwrap_or_else(|e| panic!("{e}"));
+    // Both ways of drawing the far field draw this picture: the compute pass over screen tiles and the boxes.
+    for far_path in [FarPath::Compute, FarPath::Raster] {
+        let shot = shoot_with(&scene_with(&world, &nodes), &cam, W, H, far_path);
+        check_reference(&shot.image, &reference("far-summaries.png"), &Tolerance::default())
+            .unwrap_or_else(|e| panic!("{far_path}: {e}"));
+    }
+}
+
+fn scene_with(world: &World, nodes: &[Arc<NodeSummary>]) -> Scene {
+    let mut scene = Scene::from_world(world);
+    scene.far = SceneFar { nodes: nodes.to_vec(), cell_size: world.cell_size, record_cells: Vec::new(), generation: 1 };
+    scene
 }
 
 /// From inside a node's canopy: 10 m above the conifer slopes, looking straight down, every ray starts inside the
@@ -194,15 +210,19 @@ fn from_inside_a_nodes_canopy_the_forest_is_drawn_around_the_eye() {
     let nodes = summaries(&world, &cam, H as u16);
     let under = nodes.iter().filter(|n| n.key.level == 0).count();
     assert!(under > 0, "leaves are selected next to the eye: {:?}", nodes.iter().map(|n| n.key).collect::<Vec<_>>());
-    let mut scene = Scene::from_world(&world);
-    let bare = shoot(&scene, &cam, W, H);
-    scene.far = SceneFar { nodes, cell_size: world.cell_size, record_cells: Vec::new(), generation: 1 };
-    let with = shoot(&scene, &cam, W, H);
-    if let Some(dir) = std::env::var_os("CANOPY_FAR_PNG") {
-        let dir = PathBuf::from(dir);
-        with.image.save_png(&dir.join("inside-with.png")).expect("saved");
-        bare.image.save_png(&dir.join("inside-without.png")).expect("saved");
+    let bare = shoot(&Scene::from_world(&world), &cam, W, H);
+    for far_path in [FarPath::Compute, FarPath::Raster] {
+        let with = shoot_with(&scene_with(&world, &nodes), &cam, W, H, far_path);
+        if let Some(dir) = std::env::var_os("CANOPY_FAR_PNG") {
+            let dir = PathBuf::from(dir);
+            with.image.save_png(&dir.join(format!("inside-with-{far_path}.png"))).expect("saved");
+            bare.image.save_png(&dir.join("inside-without.png")).expect("saved");
+        }
+        canopy_all_around(&with, &bare);
     }
+}
+
+fn canopy_all_around(with: &Shot, bare: &Shot) {
     assert!(with.stats.forest_patches > 0, "{:?}", with.stats);
     // Inside the canopy the rays meet shaded foliage at once: the view is dark green where the bare view is
     // sunlit ground. Were the inner faces culled, the two would be the same picture.

@@ -10,7 +10,7 @@ use std::time::Duration;
 use canopy_render::compare::{Tolerance, check_reference, compare};
 use canopy_render::offscreen::{RenderedImage, render_still};
 use canopy_render::scene::SceneVolume;
-use canopy_render::{Camera, LodConfig, NearMode, RenderConfig, Scene, SceneFar, SceneInstance};
+use canopy_render::{Camera, FarPath, FrameStats, LodConfig, NearMode, RenderConfig, Scene, SceneFar, SceneInstance};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
@@ -91,7 +91,14 @@ fn render_grove(cfg: RenderConfig, camera: fn(&World) -> Camera) -> (RenderedIma
 
 #[test]
 fn grove_with_all_three_bands_matches_its_reference() {
-    let (img, stats) = render_grove(grove_config(NearMode::Instanced), grove_camera);
+    // The far band both ways: marched by the compute pass over screen tiles, and as rasterised boxes.
+    for far_path in [FarPath::Compute, FarPath::Raster] {
+        grove_matches_its_reference(RenderConfig { far_path, ..grove_config(NearMode::Instanced) });
+    }
+}
+
+fn grove_matches_its_reference(cfg: RenderConfig) {
+    let (img, stats) = render_grove(cfg, grove_camera);
     assert!(stats.near >= 1, "a tree at full detail: {stats:?}");
     assert!(stats.mid >= 3, "trees with LOD substitutes: {stats:?}");
     assert!(stats.far >= 20, "hypertree volumes in the distance: {stats:?}");
@@ -180,11 +187,18 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
     cfg.lighting.fog_density = 0.0;
     cfg.lighting.sky_zenith = bg;
     cfg.lighting.sky_horizon = bg;
-    let (gpu, stats) =
-        render_still(cfg, &scene, &camera, w, h, Duration::from_secs(120)).unwrap_or_else(|e| panic!("{e}"));
+    for far_path in [FarPath::Compute, FarPath::Raster] {
+        let cfg = RenderConfig { far_path, ..cfg.clone() };
+        let (gpu, stats) =
+            render_still(cfg, &scene, &camera, w, h, Duration::from_secs(120)).unwrap_or_else(|e| panic!("{e}"));
+        volume_matches_the_cpu_reference(far_path, &gpu, &stats, &cpu);
+    }
+}
+
+fn volume_matches_the_cpu_reference(far_path: FarPath, gpu: &RenderedImage, stats: &FrameStats, cpu: &RenderedImage) {
     assert_eq!(stats.far, 1, "{stats:?}");
-    let c = compare(&gpu, &cpu, 8).unwrap();
-    eprintln!("GPU against the CPU reference: {c:?}");
+    let c = compare(gpu, cpu, 8).unwrap();
+    eprintln!("GPU ({far_path}) against the CPU reference: {c:?}");
     let covered = cpu.rgba.chunks_exact(4).filter(|p| p[..3] != [199, 217, 235]).count();
     assert!(covered > 2000, "the tree covers the image ({covered} pixels)");
     if !(c.fraction < 0.01 && c.mean < 0.5) {
@@ -192,7 +206,11 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
         let (g, r) = (dir.join("canopy-far-gpu.png"), dir.join("canopy-far-cpu.png"));
         gpu.save_png(&g).unwrap();
         cpu.save_png(&r).unwrap();
-        panic!("GPU raymarch differs from the CPU reference: {c:?}; see {} and {}", g.display(), r.display());
+        panic!(
+            "GPU raymarch ({far_path}) differs from the CPU reference: {c:?}; see {} and {}",
+            g.display(),
+            r.display()
+        );
     }
-    check_reference(&gpu, &reference("hypertree-apple.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+    check_reference(gpu, &reference("hypertree-apple.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
 }

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::offscreen::Offscreen;
-use canopy_render::{LodConfig, NearMode, RenderConfig, timing};
+use canopy_render::{FarPath, LodConfig, NearMode, RenderConfig, timing};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -53,6 +53,10 @@ pub struct RendererArgs {
     /// spacings, and its trees' voxels are marched nearer (0: march everywhere).
     #[arg(long, default_value_t = RenderConfig::default().forest_layer)]
     forest_layer: f32,
+    /// How the far field is drawn: marched by a compute pass (GPUs), as rasterised boxes (CPU adapters such as
+    /// lavapipe), or `auto` (by the adapter).
+    #[arg(long, value_parser = super::named(&FarPath::NAMES), default_value_t = FarPath::Auto)]
+    far_path: FarPath,
     /// Fog density per metre (0: none; default 0.0007 near the ground, thinned with the camera's altitude above
     /// 50 m so a view from altitude reaches the horizon).
     #[arg(long)]
@@ -84,6 +88,7 @@ impl RendererArgs {
         cfg.mesh_memory = bytes / 2;
         cfg.volume_resolution = self.volume_resolution;
         cfg.forest_layer = self.forest_layer;
+        cfg.far_path = self.far_path;
         cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
         cfg.validate().context("renderer options")?;
         Ok(cfg)

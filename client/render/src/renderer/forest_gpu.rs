@@ -41,7 +41,12 @@ impl ForestGpu {
             plan: ForestPlan::default(),
             tiles: Vec::new(),
             submitted: Vec::new(),
-            patches: Growable::new(device, "forest patches", INITIAL_LIST_BYTES, wgpu::BufferUsages::VERTEX),
+            patches: Growable::new(
+                device,
+                "forest patches",
+                INITIAL_LIST_BYTES,
+                wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
+            ),
             ground: Growable::new(device, "forest ground", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
             profiles: Vec::new(),
             profiles_gpu: Growable::new(device, "canopy profiles", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
@@ -54,6 +59,29 @@ impl ForestGpu {
     /// Draw no patches (a frame before any scene).
     pub(super) fn clear(&mut self) {
         self.count = 0;
+        self.plan.patches.clear();
+    }
+
+    /// This frame's patches, front to back, as uploaded.
+    pub(super) fn patches(&self) -> &[ForestPatch] {
+        &self.plan.patches[..self.count as usize]
+    }
+
+    /// The buffer holding them.
+    pub(super) fn patch_buffer(&self) -> &wgpu::Buffer {
+        &self.patches.buffer
+    }
+
+    /// The ground heights and profiles bound for the far field's march (whatever this frame holds).
+    pub(super) fn bind_group(&self, device: &wgpu::Device, layout: &wgpu::BindGroupLayout) -> wgpu::BindGroup {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("forest ground and profiles"),
+            layout,
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: self.ground.buffer.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: self.profiles_gpu.buffer.as_entire_binding() },
+            ],
+        })
     }
 }
 

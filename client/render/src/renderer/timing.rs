@@ -1,11 +1,10 @@
-//! GPU time per part of a frame (sky and terrain, primitives, meshes, far instances, forest, the far field's
-//! composite) from timestamp queries written inside the frame's render passes — where the adapter offers them
+//! GPU time per part of a frame (sky and terrain, primitives, meshes, the far field, its composite) from timestamp queries written inside the frame's render passes — where the adapter offers them
 //! (`canopy render --frames N` reports them). A tiling or software rasteriser (Mesa's lavapipe) runs a pass's
 //! fragments at its end, so there only the whole is meaningful.
 
-/// The parts of a frame timed, in drawing order (far instances count from the end of the scene pass, the far
-/// field's opacity cleared and its pass begun).
-pub const PARTS: [&str; 6] = ["sky+terrain", "primitives", "meshes", "far instances", "forest", "composite"];
+/// The parts of a frame timed, in drawing order (the far field, instances and forest, counts from the end of the
+/// scene pass).
+pub const PARTS: [&str; 5] = ["sky+terrain", "primitives", "meshes", "far field", "composite"];
 
 /// Timestamps: one before the first part and one after each.
 pub(super) const STAMPS: u32 = PARTS.len() as u32 + 1;
@@ -54,6 +53,11 @@ impl PassTimer {
     /// Write timestamp `index` (0 before the first part, `k + 1` after part `k`).
     pub(super) fn stamp(&self, pass: &mut wgpu::RenderPass<'_>, index: u32) {
         pass.write_timestamp(&self.set, index);
+    }
+
+    /// The same between passes.
+    pub(super) fn stamp_encoder(&self, enc: &mut wgpu::CommandEncoder, index: u32) {
+        enc.write_timestamp(&self.set, index);
     }
 
     /// After the pass: resolve the timestamps into the mappable buffer.
