@@ -17,10 +17,8 @@
 // The frame's forest patches, 18 words each (`ForestPatch`).
 @group(3) @binding(6) var<storage, read> patch_words: array<u32>;
 
-const PATCH_BIT: u32 = 0x80000000u;
-const MARCH_TILE: u32 = 16u;
-// Opacity at which a ray stops (what lies behind adds less than half a percent).
-const RAY_OPAQUE: f32 = 0.995;
+// PATCH_BIT and MARCH_TILE (a tile's side, the workgroup's) come from `src/bins.rs`, prepended by
+// `src/pipelines.rs`; OPAQUE (where a ray stops) and `stop_alpha` from far_accum.wgsl.
 
 fn word_f(w: u32) -> f32 {
     return bitcast<f32>(w);
@@ -47,7 +45,7 @@ fn load_patch(i: u32) -> Patch {
     );
 }
 
-@compute @workgroup_size(16, 16)
+@compute @workgroup_size(MARCH_TILE, MARCH_TILE)
 fn cs_far(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(workgroup_id) wg: vec3<u32>) {
     let size = vec2<u32>(g.viewport.xy);
     if gid.x >= size.x || gid.y >= size.y {
@@ -74,7 +72,7 @@ fn cs_far(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(workgroup_id) 
         }
         for (var k = first; k < last; k++) {
             let item = tile_items[k];
-            let stop = 1.0 - (1.0 - RAY_OPAQUE) / max(1.0 - alpha, 1.0 - RAY_OPAQUE);
+            let stop = stop_alpha(alpha);
             var c = vec4<f32>(0.0);
             if (item & PATCH_BIT) != 0u {
                 let p = load_patch(item & ~PATCH_BIT);
@@ -91,7 +89,7 @@ fn cs_far(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(workgroup_id) 
             }
             color += (1.0 - alpha) * c.rgb;
             alpha += (1.0 - alpha) * c.a;
-            if alpha >= RAY_OPAQUE {
+            if alpha >= OPAQUE {
                 break;
             }
         }

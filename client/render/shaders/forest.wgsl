@@ -6,9 +6,9 @@
 // canopy's top, samples at `t0 + (n + j)·Δs` from the box entry (j a per-pixel jitter in [0, 1): a fixed offset
 // would draw the step grid as bands), lights them by the slope relative to level ground, keeps the trees whose
 // density class is below the patch's density times the coverage interpolated between sub-square centres, and
-// blends front to back; it stops at the ground or once the pixel is opaque. Patches arrive front to back, after the
-// far instances, and blend premultiplied under what is in front of them, into the far field's accumulation
-// (far_accum.wgsl).
+// blends front to back; it stops at the ground or once the pixel is opaque (`march_patch`). Patches come front to
+// back after the far instances, into the far field's accumulation: walked by the compute pass's tile lists
+// (far_march.wgsl), or drawn as these boxes, blending under what is in front of them (far_accum.wgsl).
 //
 // Where a pixel is wider than the trees' spacing (most of a view from altitude) the tile's voxels would only
 // alias: there the ray crosses the species' profile instead — the stand as a horizontally uniform layer whose

@@ -1,9 +1,10 @@
 // The far field (seed 000 §8): each far instance is a proxy box around its species' hypertree volume, raymarched
 // front to back through a 3D texture atlas of baked voxels (rgb: lit colour, a: opacity α = 1 − (1 − µ)^k), with
 // the CPU reference renderer's sampling: steps of the smallest voxel side from the entry into the voxels' box,
-// sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit once the pixel is 99.5 % opaque. Instances
-// arrive sorted front to back and blend premultiplied under what is in front of them, into the far field's
-// accumulation (far_accum.wgsl). VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
+// sample n at t0 + (n + ½)·Δs, nearest-voxel lookups, early exit once the pixel is 99.5 % opaque
+// (`march_volume`). Instances come front to back into the far field's accumulation: walked by the compute pass's
+// tile lists (far_march.wgsl), or drawn as these boxes, blending under what is in front of them (far_accum.wgsl).
+// VolumeInfo, `atlas` and `volumes`: volume_info.wgsl.
 
 struct VolumeOut {
     @builtin(position) clip: vec4<f32>,

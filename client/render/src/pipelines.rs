@@ -499,9 +499,23 @@ impl Pipelines {
             &accumulated,
         );
 
+        let bins_consts = format!(
+            "const PATCH_BIT: u32 = {}u;\nconst MARCH_TILE: u32 = {}u;\n",
+            super::bins::PATCH_BIT,
+            super::bins::TILE_PX
+        );
         let march_mod = far_module(
             "far-field march",
-            &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, VOLUME, FOREST, include_str!("../shaders/far_march.wgsl")],
+            &[
+                COMMON,
+                VOLUME_INFO,
+                FAR_ACCUM,
+                &tile_consts,
+                &bins_consts,
+                VOLUME,
+                FOREST,
+                include_str!("../shaders/far_march.wgsl"),
+            ],
         );
         let far_march = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("far-field march"),

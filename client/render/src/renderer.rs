@@ -161,20 +161,8 @@ struct Accumulation {
 impl Accumulation {
     fn new(device: &wgpu::Device, p: &Pipelines, (w, h): (u32, u32)) -> Accumulation {
         let (w, h) = (w.max(1), h.max(1));
-        let target = device
-            .create_texture(&wgpu::TextureDescriptor {
-                label: Some("far-field accumulation"),
-                size: wgpu::Extent3d { width: w, height: h, depth_or_array_layers: 1 },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: ACCUM_FORMAT,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                    | wgpu::TextureUsages::TEXTURE_BINDING
-                    | wgpu::TextureUsages::STORAGE_BINDING,
-                view_formats: &[],
-            })
-            .create_view(&wgpu::TextureViewDescriptor::default());
+        let usage = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::STORAGE_BINDING;
+        let target = target_view(device, "far-field accumulation", (w, h), ACCUM_FORMAT, usage);
         let opacity = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("far-field opacity"),
             size: u64::from(w) * u64::from(h) * 4,
@@ -272,20 +260,31 @@ impl std::fmt::Debug for Renderer {
     }
 }
 
-fn depth_view(device: &wgpu::Device, (w, h): (u32, u32)) -> wgpu::TextureView {
+/// A view of a new `size` 2D texture that frames render into.
+fn target_view(
+    device: &wgpu::Device,
+    label: &str,
+    (w, h): (u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::TextureView {
     device
         .create_texture(&wgpu::TextureDescriptor {
-            label: Some("depth"),
+            label: Some(label),
             size: wgpu::Extent3d { width: w.max(1), height: h.max(1), depth_or_array_layers: 1 },
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
-            format: DEPTH_FORMAT,
-            // Read by the far field's march.
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            format,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | usage,
             view_formats: &[],
         })
         .create_view(&wgpu::TextureViewDescriptor::default())
+}
+
+/// The depth buffer (read by the far field's march).
+fn depth_view(device: &wgpu::Device, size: (u32, u32)) -> wgpu::TextureView {
+    target_view(device, "depth", size, DEPTH_FORMAT, wgpu::TextureUsages::TEXTURE_BINDING)
 }
 
 impl Renderer {

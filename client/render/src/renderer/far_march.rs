@@ -5,7 +5,7 @@
 use glam::Vec3;
 
 use super::{Growable, INITIAL_LIST_BYTES, Renderer};
-use crate::bins::{PATCH_BIT, TILE_PX, TileBins};
+use crate::bins::{PATCH_BIT, TileBins};
 
 /// The tile lists and their buffers.
 pub(super) struct FarMarch {
@@ -94,8 +94,8 @@ impl Renderer {
         pass.set_bind_group(1, volumes, &[]);
         pass.set_bind_group(2, &forest, &[]);
         pass.set_bind_group(3, &bg, &[]);
+        // One workgroup of TILE_PX × TILE_PX per tile.
         let (tx, ty) = m.bins.tiles;
-        debug_assert_eq!(TILE_PX, 16, "the shader's workgroup is 16 × 16");
         pass.dispatch_workgroups(tx, ty, 1);
     }
 }
