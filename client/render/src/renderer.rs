@@ -159,13 +159,14 @@ struct Accumulation {
 }
 
 impl Accumulation {
-    fn new(device: &wgpu::Device, p: &Pipelines, (w, h): (u32, u32)) -> Accumulation {
+    /// For a `size` target; `raster`: whether the boxes draw the far field (only they read the opacity buffer).
+    fn new(device: &wgpu::Device, p: &Pipelines, (w, h): (u32, u32), raster: bool) -> Accumulation {
         let (w, h) = (w.max(1), h.max(1));
         let usage = wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::STORAGE_BINDING;
         let target = target_view(device, "far-field accumulation", (w, h), ACCUM_FORMAT, usage);
         let opacity = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("far-field opacity"),
-            size: u64::from(w) * u64::from(h) * 4,
+            size: if raster { u64::from(w) * u64::from(h) * 4 } else { 4 },
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
@@ -363,10 +364,11 @@ impl Renderer {
             ),
         };
         let workers = Workers::new(cfg.workers)?;
+        let march = cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device));
         Ok(Renderer {
             gpu: GpuCore {
                 depth: depth_view(device, size),
-                accum: Accumulation::new(device, &p, size),
+                accum: Accumulation::new(device, &p, size, march.is_none()),
                 device: device.clone(),
                 queue: queue.clone(),
                 size,
@@ -377,7 +379,7 @@ impl Renderer {
             geometry,
             far,
             forest: ForestGpu::new(device),
-            march: cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device)),
+            march,
             terrain: None,
             window: None,
             cache: GeometryCache::new(prim_units, vert_units, index_units),
@@ -416,7 +418,7 @@ impl Renderer {
     pub fn resize(&mut self, width: u32, height: u32) {
         self.gpu.size = (width.max(1), height.max(1));
         self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
-        self.gpu.accum = Accumulation::new(&self.gpu.device, &self.gpu.p, self.gpu.size);
+        self.gpu.accum = Accumulation::new(&self.gpu.device, &self.gpu.p, self.gpu.size, self.march.is_none());
     }
 
     /// Block up to `timeout` until a worker finishes something (offscreen rendering waits; the window never does).
@@ -761,8 +763,8 @@ impl Renderer {
 
     /// Encode and submit the frame prepared by [`Renderer::update`] into `view` (render): the scene pass (sky,
     /// terrain, near and mid geometry), then, where there is a far field, its instances and forest patches front to
-    /// back into the accumulation target (a fragment behind an opaque pixel stops at once) and that laid over the
-    /// scene.
+    /// back into the accumulation target — by the compute pass over screen tiles, or as boxes whose fragments stop
+    /// behind an opaque pixel ([`crate::FarPath`]) — and that laid over the scene.
     pub fn render(&mut self, view: &wgpu::TextureView) -> wgpu::SubmissionIndex {
         let gpu = &self.gpu;
         let stamp = |pass: &mut wgpu::RenderPass<'_>, k| {
@@ -771,7 +773,8 @@ impl Renderer {
             }
         };
         let far_count = self.plan.far_count();
-        let far_field = far_count > 0 || self.forest.count > 0;
+        // Both ways need the volumes' bind group (there are far instances or patches only once a volume is resident).
+        let far_field = (far_count > 0 || self.forest.count > 0) && self.far.bg.is_some();
         let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         {
             let hz = self.cfg.lighting.sky_horizon;
