@@ -436,6 +436,9 @@ impl ForestPlan {
                 if keep < MIN_KEEP && dist + radius < 0.75 * layer_from {
                     continue;
                 }
+                let covered_drawn = (wanted & s.cover.cover).count_ones();
+                stats.forest_trees +=
+                    f64::from(s.cover.count) * f64::from(covered_drawn) / f64::from(s.cover.cover.count_ones().max(1));
                 for (m, mask) in s.fade.parts() {
                     // March the uncovered neighbours too: the stand thins into them.
                     let march = m | (dilate(m) & !s.cover.cover & !e.hidden);

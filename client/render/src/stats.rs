@@ -54,6 +54,9 @@ pub struct FrameStats {
     pub forest_patches: usize,
     /// Sub-squares those patches march (their covered sub-squares and the neighbours their stands thin into).
     pub forest_squares: u64,
+    /// Trees' worth of forest the drawn nodes stand for: each species' count times the share of its covered
+    /// sub-squares drawn.
+    pub forest_trees: f64,
     /// Summary nodes whose ground, and (node, species) pairs whose canopy tile, are still being made.
     pub forest_waiting: usize,
     /// CPU time of [`Renderer::update`](super::Renderer::update), milliseconds.

@@ -174,6 +174,10 @@ fn summaries_draw_forest_to_the_horizon_and_nothing_without_them() {
     assert_eq!(s.summary_nodes, nodes.len());
     assert!(s.forest_nodes >= 10 && s.forest_patches >= s.forest_nodes, "{s:?}");
     assert!(s.forest_nodes < nodes.len(), "refined parents are not drawn: {s:?}");
+    // The trees' worth drawn: some, and no more than the nodes drawn hold (a refined parent's trees are its
+    // children's).
+    let held: f64 = nodes.iter().flat_map(|n| &n.species).map(|c| f64::from(c.count)).sum();
+    assert!(s.forest_trees > 1000.0 && s.forest_trees <= held, "{} of {held}", s.forest_trees);
     assert_eq!((s.forest_waiting, s.waiting), (0, 0));
     assert_eq!((bare.stats.forest_patches, bare.stats.summary_nodes), (0, 0));
     // Forest pixels over the ground beyond the (empty) record area: many with summaries, none without.
