@@ -29,18 +29,7 @@ impl View {
         [("tree", View::Tree), ("grove", View::Grove), ("far", View::FarField)];
 }
 
-impl std::fmt::Display for View {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(View::NAMES.iter().find(|(_, v)| v == self).map_or("?", |(n, _)| n))
-    }
-}
-
-impl std::str::FromStr for View {
-    type Err = String;
-    fn from_str(s: &str) -> Result<View, String> {
-        View::NAMES.iter().find(|(n, _)| *n == s).map(|(_, v)| *v).ok_or_else(|| format!("no view `{s}`"))
-    }
-}
+canopy_render::named_values!(View, "view");
 
 /// The preview camera: orbiting a target.
 #[derive(Clone, Copy, Debug, PartialEq)]

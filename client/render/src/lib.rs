@@ -70,19 +70,28 @@ impl NearMode {
     pub const NAMES: [(&'static str, NearMode); 2] = [("instanced", NearMode::Instanced), ("merged", NearMode::Merged)];
 }
 
-impl std::fmt::Display for NearMode {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let name = NearMode::NAMES.iter().find(|(_, m)| m == self).map_or("?", |(n, _)| n);
-        f.write_str(name)
-    }
+/// `Display` and `FromStr` for a type whose values have names in its `NAMES` table (`(name, value)` pairs: the
+/// values of a command-line option), `$what` naming the set in the error for an unknown name. The crates that
+/// draw need no clap.
+#[macro_export]
+macro_rules! named_values {
+    ($t:ty, $what:literal) => {
+        impl std::fmt::Display for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(<$t>::NAMES.iter().find(|(_, v)| v == self).map_or("?", |(n, _)| n))
+            }
+        }
+
+        impl std::str::FromStr for $t {
+            type Err = String;
+            fn from_str(s: &str) -> Result<$t, String> {
+                <$t>::NAMES.iter().find(|(n, _)| *n == s).map(|(_, v)| *v).ok_or_else(|| format!("no {} `{s}`", $what))
+            }
+        }
+    };
 }
 
-impl std::str::FromStr for NearMode {
-    type Err = String;
-    fn from_str(s: &str) -> Result<NearMode, String> {
-        NearMode::NAMES.iter().find(|(n, _)| *n == s).map(|(_, m)| *m).ok_or_else(|| format!("no near mode `{s}`"))
-    }
-}
+named_values!(NearMode, "near mode");
 
 /// Lighting and atmosphere, shared by every band so that they match (and the far field's baked shading matches
 /// the CPU reference renderer's defaults).
@@ -177,19 +186,7 @@ impl FarPath {
     }
 }
 
-impl std::str::FromStr for FarPath {
-    type Err = String;
-    fn from_str(s: &str) -> Result<FarPath, String> {
-        FarPath::NAMES.iter().find(|(n, _)| *n == s).map(|(_, m)| *m).ok_or_else(|| format!("no far path `{s}`"))
-    }
-}
-
-impl std::fmt::Display for FarPath {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let name = FarPath::NAMES.iter().find(|(_, m)| m == self).map_or("?", |(n, _)| n);
-        f.write_str(name)
-    }
-}
+named_values!(FarPath, "far path");
 
 /// Everything that configures a renderer. Every threshold is here, none in the shaders.
 #[derive(Clone, Debug, PartialEq)]
