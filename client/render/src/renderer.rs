@@ -773,8 +773,11 @@ impl Renderer {
             }
         };
         let far_count = self.plan.far_count();
-        // Both ways need the volumes' bind group (there are far instances or patches only once a volume is resident).
-        let far_field = (far_count > 0 || self.forest.count > 0) && self.far.bg.is_some();
+        // Both ways need the volumes' bind group (there are far instances or patches only once a volume is resident)
+        // and the forest's (made by the first frame's plan).
+        let far_field = (far_count > 0 || !self.forest.patches().is_empty())
+            && self.far.bg.is_some()
+            && self.forest.bind_group().is_some();
         let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         {
             let hz = self.cfg.lighting.sky_horizon;

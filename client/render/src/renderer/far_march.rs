@@ -73,8 +73,7 @@ impl Renderer {
     /// March the far field into the accumulation target (after the scene pass, whose depth it reads).
     pub(super) fn march_far_field(&self, m: &FarMarch, enc: &mut wgpu::CommandEncoder) {
         let gpu = &self.gpu;
-        let Some(volumes) = &self.far.bg else { return };
-        let forest = self.forest.bind_group(&gpu.device, &gpu.p.forest_layout);
+        let (Some(volumes), Some(forest)) = (&self.far.bg, self.forest.bind_group()) else { return };
         let bg = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("far-field march"),
             layout: &gpu.p.march_layout,
@@ -92,7 +91,7 @@ impl Renderer {
         pass.set_pipeline(&gpu.p.far_march);
         pass.set_bind_group(0, &gpu.globals_bg, &[]);
         pass.set_bind_group(1, volumes, &[]);
-        pass.set_bind_group(2, &forest, &[]);
+        pass.set_bind_group(2, forest, &[]);
         pass.set_bind_group(3, &bg, &[]);
         // One workgroup of TILE_PX × TILE_PX per tile.
         let (tx, ty) = m.bins.tiles;

@@ -32,7 +32,6 @@ pub(super) struct ForestGpu {
     /// Whether `profiles` changed since it was uploaded.
     profiles_dirty: bool,
     bg: Option<wgpu::BindGroup>,
-    pub(super) count: u32,
 }
 
 impl ForestGpu {
@@ -52,19 +51,17 @@ impl ForestGpu {
             profiles_gpu: Growable::new(device, "canopy profiles", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
             profiles_dirty: false,
             bg: None,
-            count: 0,
         }
     }
 
     /// Draw no patches (a frame before any scene).
     pub(super) fn clear(&mut self) {
-        self.count = 0;
         self.plan.patches.clear();
     }
 
     /// This frame's patches, front to back, as uploaded.
     pub(super) fn patches(&self) -> &[ForestPatch] {
-        &self.plan.patches[..self.count as usize]
+        &self.plan.patches
     }
 
     /// The buffer holding them.
@@ -72,16 +69,10 @@ impl ForestGpu {
         &self.patches.buffer
     }
 
-    /// The ground heights and profiles bound for the far field's march (whatever this frame holds).
-    pub(super) fn bind_group(&self, device: &wgpu::Device, layout: &wgpu::BindGroupLayout) -> wgpu::BindGroup {
-        device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("forest ground and profiles"),
-            layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: self.ground.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: self.profiles_gpu.buffer.as_entire_binding() },
-            ],
-        })
+    /// The ground heights and profiles bound (the far field's march binds them whether or not there are patches);
+    /// `None` before the first frame's plan.
+    pub(super) fn bind_group(&self) -> Option<&wgpu::BindGroup> {
+        self.bg.as_ref()
     }
 }
 
@@ -110,25 +101,25 @@ impl Renderer {
             layer: self.cfg.forest_layer,
         };
         f.plan.plan(&input, stats);
-        f.count = f.plan.patches.len() as u32;
-        if f.count > 0 {
+        let mut grew = false;
+        if !f.plan.patches.is_empty() {
             stats.draw_calls += 1;
             f.patches.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.patches));
-            let mut grew = f.ground.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.ground));
+            grew = f.ground.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.plan.ground));
             if f.profiles_dirty {
                 grew |= f.profiles_gpu.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&f.profiles));
                 f.profiles_dirty = false;
             }
-            if grew || f.bg.is_none() {
-                f.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("forest ground and profiles"),
-                    layout: &self.gpu.p.forest_layout,
-                    entries: &[
-                        wgpu::BindGroupEntry { binding: 0, resource: f.ground.buffer.as_entire_binding() },
-                        wgpu::BindGroupEntry { binding: 1, resource: f.profiles_gpu.buffer.as_entire_binding() },
-                    ],
-                }));
-            }
+        }
+        if grew || f.bg.is_none() {
+            f.bg = Some(self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("forest ground and profiles"),
+                layout: &self.gpu.p.forest_layout,
+                entries: &[
+                    wgpu::BindGroupEntry { binding: 0, resource: f.ground.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: f.profiles_gpu.buffer.as_entire_binding() },
+                ],
+            }));
         }
         self.request_tiles();
     }
@@ -204,13 +195,14 @@ impl Renderer {
     /// Draw the frame's summary patches (in the far field's pass, after the far instances: front to back).
     pub(super) fn draw_forest(&self, pass: &mut wgpu::RenderPass<'_>) {
         let f = &self.forest;
-        if let (true, Some(volumes), Some(ground)) = (f.count > 0, &self.far.bg, &f.bg) {
+        let count = f.plan.patches.len() as u32;
+        if let (true, Some(volumes), Some(ground)) = (count > 0, &self.far.bg, &f.bg) {
             pass.set_pipeline(&self.gpu.p.forest);
             pass.set_bind_group(1, volumes, &[]);
             pass.set_bind_group(2, ground, &[]);
-            let bytes = u64::from(f.count) * size_of::<ForestPatch>() as u64;
+            let bytes = u64::from(count) * size_of::<ForestPatch>() as u64;
             pass.set_vertex_buffer(0, f.patches.buffer.slice(..bytes));
-            pass.draw(0..PROXY_BOX_VERTICES, 0..f.count);
+            pass.draw(0..PROXY_BOX_VERTICES, 0..count);
         }
     }
 }
