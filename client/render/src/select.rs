@@ -161,9 +161,9 @@ pub struct InstState {
     pub lod: InstanceLod,
     /// The level chosen last (with hysteresis), whether or not it can be drawn.
     pub target: Option<Level>,
-    /// The instance scale, once the species' volume gave its reference height, with the hash of the parameters it
-    /// was computed from (an edit that sets them computes it again).
-    pub scale: Option<(u64, f32)>,
+    /// The instance scale, once the species' volume gave its reference height (forgotten when an edit changes the
+    /// parameters it was computed from).
+    pub scale: Option<f32>,
     /// The hash of its parameters ([`TreeKey::params_hash`]), taken when a scene generation arrives rather than
     /// every frame (reading each instance's parameters from the heap was 40 % of a frame's selection).
     pub params: u64,
@@ -290,7 +290,9 @@ impl LodState {
                 Some(s) if s.id == i.id => *s,
                 _ => InstState::new(i.id),
             };
-            self.inst.push(InstState { params: TreeKey::params_hash(&i.params), ..state });
+            let params = TreeKey::params_hash(&i.params);
+            let scale = state.scale.filter(|_| state.params == params);
+            self.inst.push(InstState { params, scale, ..state });
         }
         old.clear();
         self.spare = old;
@@ -374,9 +376,9 @@ impl FramePlan {
             let vs = res.volume(si.species);
             let params = st.params;
             let scale = match (st.scale, vs) {
-                (Some((h, s)), _) if h == params => s,
-                (_, Some(v)) => st.scale.insert((params, instance_scale(graph, v.height, si.seed, &si.params))).1,
-                (_, None) => 1.0,
+                (Some(s), _) => s,
+                (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
+                (None, None) => 1.0,
             };
             let (c_off, radius) = match vs {
                 Some(v) => (v.center * scale, v.radius * scale),
