@@ -183,17 +183,25 @@ pub struct Pipelines {
     pub cube: UnitMesh,
 }
 
+/// A layout entry of `ty` at `binding`, seen by `vis`.
+fn entry(binding: u32, vis: wgpu::ShaderStages, ty: wgpu::BindingType) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry { binding, visibility: vis, ty, count: None }
+}
+
+/// A read-only storage buffer.
 fn storage(binding: u32, vis: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: vis,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only: true },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
+    let ty = wgpu::BufferBindingType::Storage { read_only: true };
+    entry(binding, vis, wgpu::BindingType::Buffer { ty, has_dynamic_offset: false, min_binding_size: None })
+}
+
+/// A texture read with `textureLoad` (no sampler).
+fn texture(
+    binding: u32,
+    vis: wgpu::ShaderStages,
+    sample_type: wgpu::TextureSampleType,
+    view_dimension: wgpu::TextureViewDimension,
+) -> wgpu::BindGroupLayoutEntry {
+    entry(binding, vis, wgpu::BindingType::Texture { sample_type, view_dimension, multisampled: false })
 }
 
 fn module(device: &wgpu::Device, label: &str, parts: &[&str]) -> wgpu::ShaderModule {
@@ -219,6 +227,7 @@ impl Pipelines {
     pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, early_depth: bool) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let fs_cs = wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE;
+        let unfiltered = wgpu::TextureSampleType::Float { filterable: false };
         let globals_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("globals"),
             entries: &[wgpu::BindGroupLayoutEntry {
@@ -257,16 +266,7 @@ impl Pipelines {
         let volume_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("volumes"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D3,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
+                texture(0, fs_cs, unfiltered, wgpu::TextureViewDimension::D3),
                 storage(1, vs_fs | wgpu::ShaderStages::COMPUTE),
             ],
         });
@@ -276,54 +276,34 @@ impl Pipelines {
         });
         let accum_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("far-field opacity"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
+            entries: &[entry(
+                0,
+                wgpu::ShaderStages::FRAGMENT,
+                wgpu::BindingType::Buffer {
                     ty: wgpu::BufferBindingType::Storage { read_only: false },
                     has_dynamic_offset: false,
                     min_binding_size: None,
                 },
-                count: None,
-            }],
+            )],
         });
         let composite_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("far-field accumulation"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::FRAGMENT,
-                ty: wgpu::BindingType::Texture {
-                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                    view_dimension: wgpu::TextureViewDimension::D2,
-                    multisampled: false,
-                },
-                count: None,
-            }],
+            entries: &[texture(0, wgpu::ShaderStages::FRAGMENT, unfiltered, wgpu::TextureViewDimension::D2)],
         });
         let cs = wgpu::ShaderStages::COMPUTE;
         let march_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("far-field march"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: cs,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Depth,
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 2,
-                    visibility: cs,
-                    ty: wgpu::BindingType::StorageTexture {
+                texture(1, cs, wgpu::TextureSampleType::Depth, wgpu::TextureViewDimension::D2),
+                entry(
+                    2,
+                    cs,
+                    wgpu::BindingType::StorageTexture {
                         access: wgpu::StorageTextureAccess::WriteOnly,
                         format: ACCUM_FORMAT,
                         view_dimension: wgpu::TextureViewDimension::D2,
                     },
-                    count: None,
-                },
+                ),
                 storage(3, cs),
                 storage(4, cs),
                 storage(5, cs),
