@@ -81,11 +81,8 @@ impl Drop for Cluster {
 /// version (nats-server 2.9 answers "no message" for such a subject's last; the store must not).
 fn a_cell_whose_last_message_is_a_deleted_lost_race_reads_whole(cluster: &Cluster) {
     use canopy_server::edits::{CellEdit, EditStore, StoredEdit};
-    let cfg = NatsConfig {
-        servers: cluster.urls(),
-        world: format!("deleted-last-{}", std::process::id()),
-        replicas: 3,
-    };
+    let cfg =
+        NatsConfig { servers: cluster.urls(), world: format!("deleted-last-{}", std::process::id()), replicas: 3 };
     let store = NatsEditStore::connect(cfg.clone()).expect("connecting to the cluster");
     let c = CellCoord::new(3, -2);
     let edit = |version, index| StoredEdit { cell: c, version, op: CellEdit::Fell { index } };
