@@ -39,7 +39,7 @@ TARGET=${CARGO_TARGET_DIR:-target}
 # shellcheck disable=SC2206
 EXTRA=(${EXTRA_BOTS_ARGS:-})
 
-cargo build --release -q -p canopy-server -p canopy-app
+cargo build --release -q -p canopy-server-app -p canopy-app
 WORK=$(mktemp -d)
 export CLUSTER_DIR="$WORK/cluster"
 export CANOPY_SERVER="$TARGET/release/canopy-server"

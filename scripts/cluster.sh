@@ -105,7 +105,7 @@ up() {
     done
     say "NATS JetStream cluster up: $(nats_urls)"
     if [ "$edges" -gt 0 ]; then
-        [ -x "$SERVER" ] || cargo build --release -q -p canopy-server
+        [ -x "$SERVER" ] || cargo build --release -q -p canopy-server-app
         # The first edge makes the certificate every edge then shares (one fingerprint for clients to pin).
         for ((j = 0; j < edges; j++)); do
             start_edge "$j"

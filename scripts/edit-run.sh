@@ -38,7 +38,7 @@ SPREAD_ARGS=()
 # shellcheck disable=SC2206
 EXTRA=(${EXTRA_BOTS_ARGS:-})
 
-cargo build --release -q -p canopy-server -p canopy-app
+cargo build --release -q -p canopy-server-app -p canopy-app
 WORK=$(mktemp -d)
 SERVER=
 cleanup() {

@@ -36,7 +36,7 @@ TARGET=${CARGO_TARGET_DIR:-target}
 # shellcheck disable=SC2206
 EXTRA=(${EXTRA_SERVER_ARGS:-})
 
-cargo build --release -q -p canopy-server
+cargo build --release -q -p canopy-server-app
 cargo build --release -q -p canopy-harness --example hostile
 HOSTILE="$TARGET/release/examples/hostile"
 WORK=$(mktemp -d)

@@ -33,7 +33,7 @@ WORLD_ARGS=()
 # shellcheck disable=SC2206
 EXTRA=(${EXTRA_BOTS_ARGS:-})
 
-cargo build --release -q -p canopy-server -p canopy-app
+cargo build --release -q -p canopy-server-app -p canopy-app
 WORK=$(mktemp -d)
 SERVER_LOG="$WORK/server.log"
 

@@ -6,7 +6,7 @@ use std::process::Command;
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellCoord, InstanceRecord};
 use canopy_server::edits::{CellEdit, EditStore, Overlay, SqliteEditStore, StoredEdit};
-use canopy_server::store::{CellData, StoreHead};
+use canopy_server::session::{CellData, StoreHead};
 use canopy_worlds::world::{CellKey, Placement, World};
 
 const MANIFEST: &str = "seed 7\nbounds -64 -64 64 64\ncell 32\nspecies conifer conifer\nspecies bush bush\n\

@@ -295,3 +295,53 @@ fn render_from_altitude_draws_the_far_view_from_summaries() {
         |img: &image::RgbaImage| img.pixels().filter(|p| p[1] > p[0] + 10 && p[1] > p[2] + 10 && p[1] < 90).count();
     assert!(forest(&a) > 1000 && forest(&b) < forest(&a) / 10, "{} vs {}", forest(&a), forest(&b));
 }
+
+/// The names in the `Commands:` section of a `--help` text (without `help`).
+fn subcommands(help: &str) -> Vec<String> {
+    help.lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("  "))
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|n| *n != "help")
+        .map(str::to_owned)
+        .collect()
+}
+
+#[test]
+fn help_names_every_subcommand_and_every_help_renders() {
+    let top = canopy(&["--help"]);
+    assert!(top.status.success(), "{}", text(&top));
+    let top = text(&top);
+    let commands = subcommands(&top);
+    for c in ["species", "hypertree", "world", "bandwidth", "bots", "demo", "render", "walk"] {
+        assert!(commands.iter().any(|n| n == c), "`canopy --help` lists {c}: {top}");
+    }
+    for command in &commands {
+        let o = canopy(&[command, "--help"]);
+        assert!(o.status.success(), "canopy {command} --help: {}", text(&o));
+        let help = text(&o);
+        // A command with subcommands: its one line in `canopy --help` names every one of them.
+        let line = top.lines().find(|l| l.split_whitespace().next() == Some(command)).expect("the command's line");
+        for sub in subcommands(&help) {
+            assert!(line.contains(&sub), "`canopy --help` says of {command}: {line:?}, without `{sub}`");
+            let o = canopy(&[command, &sub, "--help"]);
+            assert!(o.status.success(), "canopy {command} {sub} --help: {}", text(&o));
+        }
+    }
+}
+
+#[test]
+fn client_commands_share_the_connection_flags() {
+    for args in [&["walk", "--help"][..], &["bots", "--help"], &["bandwidth", "--help"], &["world", "plant", "--help"]]
+    {
+        let o = canopy(args);
+        let help = text(&o);
+        for flag in ["--server <HOST:PORT[,…]>", "--cert-fingerprint <CERT_FINGERPRINT>", "--insecure"] {
+            assert!(help.contains(flag), "canopy {} lacks {flag}: {help}", args.join(" "));
+        }
+    }
+    // Trust flags without a server to trust are refused where a server would run in process.
+    let o = canopy(&["bandwidth", "--insecure", "--duration", "1"]);
+    assert!(!o.status.success() && text(&o).contains("--insecure name the trust of a --server"), "{}", text(&o));
+}

@@ -8,9 +8,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-#[path = "support/xvfb.rs"]
-mod xvfb;
-use xvfb::{Reap, start_xvfb};
+use canopy_test_support::{Reap, start_xvfb};
 
 /// The number just before `key` on the last line that has it (`12 frames, preview settled` → 12).
 fn number_before(out: &str, key: &str) -> Option<u64> {

@@ -8,13 +8,11 @@ use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use canopy_server::{GridStore, Server, ServerConfig};
+use canopy_server::{Cells, ServeOptions, Served, ServerConfig, serve};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::World;
 
-#[path = "support/xvfb.rs"]
-mod xvfb;
-use xvfb::{Reap, start_xvfb};
+use canopy_test_support::{Reap, start_xvfb};
 
 fn world() -> World {
     let text = r#"
@@ -53,9 +51,9 @@ fn walk_window_presents_frames_of_a_streamed_world_under_xvfb() {
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
     let w = world();
     let expected = w.instances.len();
-    let store = GridStore::from_world(&w).expect("store");
-    let cfg = ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..ServerConfig::default() };
-    let server: Server = rt.block_on(Server::start(store.shared(), cfg)).expect("server starts");
+    let server = ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..ServerConfig::default() };
+    let opts = ServeOptions { server, cells: Cells::Materialised, ..ServeOptions::default() };
+    let server: Served = rt.block_on(serve(w, opts)).expect("server starts");
     let xdg_dir = tempfile::tempdir().unwrap();
     let xdg = xdg_dir.path();
     #[cfg(unix)]

@@ -10,11 +10,13 @@ pub mod expr;
 pub mod frame;
 pub mod hypertree;
 pub mod limits;
+pub mod lru;
 pub mod messages;
 pub mod netlimits;
 pub mod record;
 pub mod species;
 pub mod summary;
+pub mod sync;
 pub mod xorshift;
 
 pub use expr::{Expr, Func, Op};

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use canopy_edits::{CellEdit, EditStore, Overlay, StoredEdit};
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, InstanceRecord};
-use canopy_server::nats::{NatsConfig, NatsEditStore};
+use canopy_server::{NatsConfig, NatsEditStore};
 
 struct Args {
     nats: Vec<String>,

@@ -15,10 +15,11 @@ use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{AoiParams, Viewpoint};
 use canopy_protocol::messages::ClientStreaming;
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::summary::{FarView, NodeKey, Refine};
 use canopy_protocol::{ClientMsg, ServerMsg};
-use canopy_server::session::{MsgClass, Session, SessionConfig};
-use canopy_server::store::{SummaryState, WorldStore};
+use canopy_server::session::{Session, SessionConfig};
+use canopy_server::session::{SummaryState, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig};
 use canopy_worlds::world::World;
 
@@ -114,7 +115,7 @@ impl Client {
         while let Some(t) = s.poll_transmit(now) {
             s.on_flushed(t.len());
             match t.class {
-                MsgClass::Summaries => {
+                ServerMsgKind::Summaries => {
                     self.summary_bytes += t.len() as u64;
                     let frame = t.frame();
                     if let Ok(ServerMsg::Streaming(canopy_protocol::messages::ServerStreaming::Summaries(b))) =
@@ -126,7 +127,7 @@ impl Client {
                         self.held.extend(b.nodes.iter().map(|n| n.key));
                     }
                 }
-                MsgClass::Cells => self.cell_bytes += t.len() as u64,
+                ServerMsgKind::Cells => self.cell_bytes += t.len() as u64,
                 _ => {}
             }
         }

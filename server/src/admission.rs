@@ -132,11 +132,13 @@ impl Admission {
     }
 
     /// Clients holding a slot now.
+    #[cfg(test)]
     pub fn clients(&self) -> usize {
         self.clients
     }
 
     /// Handshakes in flight now.
+    #[cfg(test)]
     pub fn handshaking(&self) -> usize {
         self.handshaking
     }
@@ -148,6 +150,7 @@ impl Admission {
     }
 
     /// Source addresses with a connection now (the per-source table's size; it holds no more).
+    #[cfg(test)]
     pub fn sources(&self) -> usize {
         self.per_source.len()
     }

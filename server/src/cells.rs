@@ -1,5 +1,5 @@
 //! The shared cell cache: a [`WorldStore`] that expands cells on demand ([`World::expand_cell`]) on a pool of
-//! worker threads and keeps them, quantised ([`CellData`], exactly as [`crate::store::GridStore`] holds them) with
+//! worker threads and keeps them, quantised ([`CellData`], exactly as [`canopy_session::GridStore`] holds them) with
 //! their batches encoded once ([`CellData::bodies`]), in an LRU bounded by bytes.
 //!
 //! A session never waits: asking for a cell that is not cached queues its expansion (once, however many sessions
@@ -14,7 +14,6 @@
 //! whole limit is still kept, alone, so it can be sent.
 //! Cells pinned by sessions mid-send are bounded per session by its area of interest.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::AtomicU64;
 use std::sync::atomic::Ordering::{Acquire, Relaxed, Release};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -23,14 +22,16 @@ use std::time::Instant;
 
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::lru::Lru;
 use canopy_protocol::summary::NodeKey;
+use canopy_protocol::sync::{Locked, Waited};
 use canopy_worlds::world::far::Summaries;
 use canopy_worlds::world::{CellKey, World};
 use tracing::{error, warn};
 
 use crate::metrics::CellMetrics;
-use crate::store::{CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, WorldStore};
-use crate::summaries::SummaryLru;
+use canopy_session::{CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, WorldStore};
+use canopy_session::{SummaryLru, Waiters};
 
 /// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
 pub const BLOCK: i32 = 4;
@@ -43,7 +44,7 @@ pub struct CellCacheConfig {
     /// Worker threads expanding cells; 0: none, cells queued are expanded only by [`CellCache::run_queued`]
     /// (deterministic tests).
     pub workers: usize,
-    /// The batch size whose bodies are encoded with each cell (the sessions' [`crate::SessionConfig::batch_records`]).
+    /// The batch size whose bodies are encoded with each cell (the sessions' [`canopy_session::SessionConfig::batch_records`]).
     pub batch_records: usize,
     /// Most bytes of cached far-view summary nodes (encoded, shared by sessions); the workers compute them when no
     /// cell is queued.
@@ -55,7 +56,7 @@ impl Default for CellCacheConfig {
         CellCacheConfig {
             limit_bytes: 256 << 20,
             workers: std::thread::available_parallelism().map_or(1, |n| n.get()),
-            batch_records: crate::SessionConfig::default().batch_records,
+            batch_records: canopy_session::SessionConfig::default().batch_records,
             summary_limit_bytes: 64 << 20,
         }
     }
@@ -63,28 +64,18 @@ impl Default for CellCacheConfig {
 
 /// Bytes a cached cell costs beyond its [`CellData::heap_bytes`]: its entry, its LRU slot and their share of the
 /// maps' tables (an estimate, counted against the bound).
-const ENTRY_OVERHEAD: usize = std::mem::size_of::<Entry>() + std::mem::size_of::<(u64, CellCoord)>() + 64;
-
-/// A cached cell and when it was last used.
-struct Entry {
-    data: Arc<CellData>,
-    bytes: usize,
-    used: u64,
-}
+const ENTRY_OVERHEAD: usize =
+    std::mem::size_of::<(Arc<CellData>, usize, u64)>() + std::mem::size_of::<(u64, CellCoord)>() + 64;
 
 /// What the lock guards.
 #[derive(Default)]
 struct State {
-    cached: HashMap<CellCoord, Entry>,
-    /// Cached cells by last use, oldest first.
-    lru: BTreeMap<u64, CellCoord>,
-    bytes: usize,
+    /// Expanded cells, bounded by bytes.
+    cached: Lru<CellCoord, Arc<CellData>>,
     /// The most bytes ever cached at once.
     peak: usize,
-    clock: u64,
     /// Cells queued or being expanded, with the wakers to wake when each is ready.
-    pending: HashMap<CellCoord, Vec<Arc<dyn CellWaker>>>,
-    queue: VecDeque<CellCoord>,
+    pending: Waiters<CellCoord>,
     /// Far-view summary nodes: cached, queued, pending.
     summaries: SummaryLru,
     stop: bool,
@@ -128,7 +119,7 @@ impl std::fmt::Debug for CellCache {
 
 impl Shared {
     fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
+        self.state.locked()
     }
 
     /// Expand, quantise and encode `cells` (no lock held): queued cells of one aligned block of [`BLOCK`] ×
@@ -234,23 +225,15 @@ impl Shared {
             if bytes > self.cfg.limit_bytes {
                 warn!(cell = ?c, bytes, limit = self.cfg.limit_bytes, "one cell is larger than the cell cache");
             }
-            while st.bytes + bytes > self.cfg.limit_bytes {
-                let Some((_, old)) = st.lru.pop_first() else { break };
-                let e = st.cached.remove(&old).expect("the LRU names cached cells");
-                st.bytes -= e.bytes;
-                self.metrics.evictions.fetch_add(1, Relaxed);
-            }
-            st.clock += 1;
-            let used = st.clock;
-            st.lru.insert(used, c);
-            st.cached.insert(c, Entry { data, bytes, used });
-            st.bytes += bytes;
-            st.peak = st.peak.max(st.bytes);
-            self.metrics.bytes.store(st.bytes as u64, Relaxed);
+            st.cached.insert(c, data, bytes);
+            let evicted = st.cached.evict_to(self.cfg.limit_bytes, Some(&c));
+            self.metrics.evictions.fetch_add(evicted.len() as u64, Relaxed);
+            st.peak = st.peak.max(st.cached.cost());
+            self.metrics.bytes.store(st.cached.cost() as u64, Relaxed);
             self.metrics.cells.store(st.cached.len() as u64, Relaxed);
             self.metrics.expansions.fetch_add(1, Relaxed);
             self.generation.fetch_add(1, Release);
-            st.pending.remove(&c).unwrap_or_default()
+            st.pending.done(&c)
         };
         for w in wakers {
             w.wake();
@@ -266,28 +249,28 @@ impl Shared {
             if st.stop {
                 return None;
             }
-            if st.queue.is_empty()
+            if st.pending.queued() == 0
                 && let Some(k) = st.summaries.next_queued()
             {
                 return Some(Work::Summary(k));
             }
-            if let Some(c) = st.queue.pop_front() {
+            if let Some(c) = st.pending.queue().pop_front() {
                 let block = |c: CellCoord| (c.x.div_euclid(BLOCK), c.z.div_euclid(BLOCK));
                 let mut cells = vec![c];
-                st.queue.retain(|&q| {
+                st.pending.queue().retain(|&q| {
                     let same = block(q) == block(c);
                     if same {
                         cells.push(q);
                     }
                     !same
                 });
-                self.metrics.queued.store(st.queue.len() as u64, Relaxed);
+                self.metrics.queued.store(st.pending.queued() as u64, Relaxed);
                 return Some(Work::Cells(cells));
             }
             if !wait {
                 return None;
             }
-            st = self.work.wait(st).unwrap_or_else(|e| e.into_inner());
+            st = self.work.waited(st);
         }
     }
 }
@@ -297,7 +280,7 @@ impl CellCache {
     pub fn new(world: World, cfg: CellCacheConfig) -> Result<CellCache, StoreError> {
         let head = StoreHead::of_world(&world)?;
         let world = Arc::new(world);
-        let root_level = crate::summaries::root_level(head.world().grid.cell_size);
+        let root_level = canopy_session::root_level(head.world().grid.cell_size);
         let metrics = Arc::new(CellMetrics::default());
         metrics.limit.store(cfg.limit_bytes as u64, Relaxed);
         let shared = Arc::new(Shared {
@@ -357,7 +340,7 @@ impl CellCache {
 
     /// Bytes cached now.
     pub fn bytes(&self) -> usize {
-        self.shared.lock().bytes
+        self.shared.lock().cached.cost()
     }
 
     /// The most bytes cached at any one time so far.
@@ -367,12 +350,12 @@ impl CellCache {
 
     /// Whether a cell is cached now.
     pub fn is_cached(&self, c: CellCoord) -> bool {
-        self.shared.lock().cached.contains_key(&c)
+        self.shared.lock().cached.contains(&c)
     }
 
     /// Cells queued or being expanded now.
     pub fn pending(&self) -> usize {
-        self.shared.lock().pending.len()
+        self.shared.lock().pending.waiting()
     }
 
     /// The configuration.
@@ -402,26 +385,14 @@ impl WorldStore for CellCache {
         }
         let m = &self.shared.metrics;
         let mut st = self.shared.lock();
-        st.clock += 1;
-        let now = st.clock;
-        if let Some(e) = st.cached.get_mut(&c) {
-            let (data, before) = (Arc::clone(&e.data), std::mem::replace(&mut e.used, now));
-            st.lru.remove(&before);
-            st.lru.insert(now, c);
+        if let Some(data) = st.cached.get(&c) {
+            let data = Arc::clone(data);
             m.hits.fetch_add(1, Relaxed);
             return CellState::Ready(data);
         }
-        let queued = st.pending.contains_key(&c);
-        let wakers = st.pending.entry(c).or_default();
-        if let Some(w) = waker
-            && !wakers.iter().any(|x| std::ptr::addr_eq(Arc::as_ptr(x), Arc::as_ptr(w)))
-        {
-            wakers.push(Arc::clone(w));
-        }
-        if !queued {
+        if st.pending.wait(c, waker) {
             m.misses.fetch_add(1, Relaxed);
-            st.queue.push_back(c);
-            m.queued.store(st.queue.len() as u64, Relaxed);
+            m.queued.store(st.pending.queued() as u64, Relaxed);
             drop(st);
             self.shared.work.notify_one();
         }
@@ -433,8 +404,7 @@ impl WorldStore for CellCache {
     }
 
     fn summary(&self, key: NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> SummaryState {
-        if !key.is_valid() || key.level > self.shared.root_level || !crate::summaries::overlaps(&self.shared.grid, key)
-        {
+        if !key.is_valid() || key.level > self.shared.root_level || !canopy_session::overlaps(&self.shared.grid, key) {
             return SummaryState::Unavailable;
         }
         // Cached; else held by the memo (computed with an ancestor); else queued.

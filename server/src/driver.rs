@@ -14,6 +14,7 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::frame::{FrameDecoder, FrameError};
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{CloseCode, Phase, netlimits};
 use quinn::{Connection, ConnectionError, Endpoint, SendStream, VarInt};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -21,12 +22,13 @@ use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
 
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
-use crate::editing::{CellChange, EditJob, EditService};
+use crate::editing::{EditJob, EditService};
+use crate::live::CellChange;
 use crate::metrics::Metrics;
-use crate::session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
-use crate::store::{CellWaker, WorldStore};
 use crate::tls::{Identity, IdentityError};
 use canopy_protocol::edit::EditOutcome;
+use canopy_session::{CellWaker, WorldStore};
+use canopy_session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
 
 /// UDP socket buffer size: 1,000 concurrent handshakes on loopback overflow the default buffers.
 pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
@@ -62,7 +64,8 @@ pub struct ServerConfig {
     /// A session that sent no viewpoint for this long is closed while the server is near capacity (it holds a
     /// client slot without streaming: keep-alive PINGs alone do not keep a slot).
     pub idle_slot: Duration,
-    /// The edit pipeline (`None`: the world cannot change; every edit is denied).
+    /// The edit pipeline (`None`: the world cannot change; every edit is denied). [`crate::serve`] sets it from
+    /// [`crate::ServeOptions::edits`].
     pub edits: Option<Arc<EditService>>,
 }
 
@@ -151,7 +154,7 @@ fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
 
 impl Server {
     /// Bind, load or generate the certificate, and start accepting clients of `store`.
-    pub async fn start(store: Arc<dyn WorldStore>, mut cfg: ServerConfig) -> Result<Server, StartError> {
+    pub(crate) async fn start(store: Arc<dyn WorldStore>, mut cfg: ServerConfig) -> Result<Server, StartError> {
         if let Some(limit) = cfg.send_budget {
             cfg.session.send_budget = Some(SendBudget::new(limit));
         }
@@ -259,7 +262,7 @@ async fn accept_loop(
         };
         let peer = incoming.remote_address();
         let validated = incoming.remote_address_validated();
-        let verdict = admission.lock().unwrap_or_else(|e| e.into_inner()).incoming(peer.ip(), validated);
+        let verdict = admission.locked().incoming(peer.ip(), validated);
         let refusal = match verdict {
             Verdict::Accept => None,
             Verdict::Retry if incoming.may_retry() => {
@@ -281,7 +284,7 @@ async fn accept_loop(
         let (store, cfg, metrics, admission) =
             (Arc::clone(&store), Arc::clone(&cfg), Arc::clone(&metrics), Arc::clone(&admission));
         tokio::spawn(async move {
-            let lock = || admission.lock().unwrap_or_else(|e| e.into_inner());
+            let lock = || admission.locked();
             let handshake = tokio::time::timeout(cfg.session.handshake_timeout, incoming).await;
             metrics.handshakes.fetch_sub(1, Relaxed);
             let code = match handshake {
@@ -289,7 +292,7 @@ async fn accept_loop(
                     // A completed handshake has proved its address: only now does it take a client slot.
                     if lock().handshake_done(peer.ip(), true) {
                         metrics.clients.fetch_add(1, Relaxed);
-                        let code = serve(conn, store, &cfg, &metrics, &admission).await;
+                        let code = serve_connection(conn, store, &cfg, &metrics, &admission).await;
                         metrics.clients.fetch_sub(1, Relaxed);
                         lock().closed(peer.ip());
                         code
@@ -327,7 +330,7 @@ impl Closing {
 }
 
 /// Serve one connection to its end; returns how it was closed (`None`: the transport failed).
-async fn serve(
+async fn serve_connection(
     conn: Connection,
     store: Arc<dyn WorldStore>,
     cfg: &ServerConfig,
@@ -473,7 +476,7 @@ async fn run_session(
             }
             _ = tokio::time::sleep_until(idle_check) => {
                 let now = Instant::now();
-                let near_capacity = admission.lock().unwrap_or_else(|e| e.into_inner()).near_capacity();
+                let near_capacity = admission.locked().near_capacity();
                 if now.duration_since(last_viewpoint) >= cfg.idle_slot && near_capacity {
                     let reason = format!("no viewpoint for {:?} while the server is near capacity", cfg.idle_slot);
                     break Err(Closing::new(CloseCode::Full, reason));

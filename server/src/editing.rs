@@ -1,7 +1,7 @@
 //! The edit pipeline of one server: editors' requests are checked against the world and the cell they change, given
 //! the cell's next version, written durably in groups (group commit: one transaction, one sync for every request
 //! that arrived meanwhile), and only then published to the [`LiveStore`], announced to the sessions
-//! ([`EditHub`]) and acknowledged.
+//! ([`crate::live::EditHub`]) and acknowledged.
 //!
 //! One writer thread owns the versions: it applies a group's edits to working copies of their cells' overlays, so
 //! several edits of one cell in one group take consecutive versions, and a refused group (a conflict with another
@@ -16,13 +16,14 @@ use std::time::{Duration, Instant};
 
 use canopy_edits::{CellEdit, EditStoreError, Overlay, StoredEdit};
 use canopy_protocol::edit::{EditOp, EditOutcome};
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, InstanceId, InstanceRecord, SpeciesGraph};
 use tracing::{info, warn};
 
-use crate::editors::Editor;
-use crate::live::LiveStore;
-use crate::metrics::Histogram;
-use crate::store::{CellData, CellState, CellWaker, WorldStore};
+use crate::live::{EditHub, LiveStore};
+use canopy_session::Editor;
+use canopy_session::counters::Histogram;
+use canopy_session::{CellData, CellState, CellWaker, WorldStore};
 
 /// Most requests written in one group.
 pub const MAX_GROUP: usize = 4096;
@@ -32,39 +33,6 @@ pub const MAX_QUEUED: usize = 65_536;
 pub const MAX_PARAM_VALUE: f32 = 1.0e4;
 /// How long the writer waits for a cell's expansion before it gives up on an edit of it.
 const CELL_WAIT: Duration = Duration::from_secs(30);
-
-/// A cell changed: it is at `version` now.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct CellChange {
-    /// The cell.
-    pub cell: CellCoord,
-    /// Its version.
-    pub version: u32,
-}
-
-/// Tells every session of a server which cells changed (each keeps those it holds).
-#[derive(Debug)]
-pub struct EditHub {
-    tx: tokio::sync::broadcast::Sender<CellChange>,
-}
-
-impl EditHub {
-    /// A hub keeping up to `capacity` changes for a slow listener (past it, the listener is told it lagged).
-    pub fn new(capacity: usize) -> Arc<EditHub> {
-        Arc::new(EditHub { tx: tokio::sync::broadcast::channel(capacity.max(16)).0 })
-    }
-
-    /// Listen to every change from now on.
-    pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<CellChange> {
-        self.tx.subscribe()
-    }
-
-    /// Tell every session that a cell changed.
-    pub fn announce(&self, change: CellChange) {
-        // Nobody listening is fine.
-        let _ = self.tx.send(change);
-    }
-}
 
 /// Counters of the edit pipeline.
 #[derive(Debug, Default)]
@@ -122,7 +90,6 @@ impl std::fmt::Debug for EditService {
 /// What the writer needs to check and apply edits.
 struct Writer {
     live: Arc<LiveStore>,
-    hub: Arc<EditHub>,
     metrics: Arc<EditMetrics>,
     /// Parameters each species declares.
     params: Vec<usize>,
@@ -137,12 +104,10 @@ impl EditService {
                 head.species_graph(i as u8).and_then(|g| SpeciesGraph::decode(g).ok()).map_or(0, |g| g.params.len())
             })
             .collect();
-        let hub = EditHub::new(1 << 14);
-        // Other writers' edits (a shared store) reach the sessions through the same hub.
-        live.set_hub(Arc::clone(&hub));
+        let hub = Arc::clone(live.hub());
         let metrics = Arc::new(EditMetrics::default());
         let (tx, rx) = mpsc::sync_channel(MAX_QUEUED);
-        let writer = Writer { live, hub: Arc::clone(&hub), metrics: Arc::clone(&metrics), params };
+        let writer = Writer { live, metrics: Arc::clone(&metrics), params };
         let thread = std::thread::Builder::new()
             .name("canopy-edits".into())
             .spawn(move || writer.run(rx))
@@ -163,7 +128,7 @@ impl EditService {
     /// Hand a request to the writer; its reply comes through `job.reply` (at once when the queue is full or the
     /// service stopped).
     pub fn submit(&self, job: EditJob) {
-        let tx = self.tx.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let tx = self.tx.locked().clone();
         let Some(tx) = tx else {
             (job.reply)(EditOutcome::Denied("the server is shutting down".into()));
             return;
@@ -181,8 +146,8 @@ impl EditService {
 
     /// Stop taking requests, write what is queued, and wait for the writer.
     pub fn stop(&self) {
-        self.tx.lock().unwrap_or_else(|e| e.into_inner()).take();
-        if let Some(t) = self.thread.lock().unwrap_or_else(|e| e.into_inner()).take() {
+        self.tx.locked().take();
+        if let Some(t) = self.thread.locked().take() {
             let _ = t.join();
         }
     }
@@ -203,7 +168,7 @@ struct BlockingWaker {
 
 impl CellWaker for BlockingWaker {
     fn wake(&self) {
-        *self.woken.lock().unwrap_or_else(|e| e.into_inner()) = true;
+        *self.woken.locked() = true;
         self.cv.notify_all();
     }
 }
@@ -277,10 +242,8 @@ impl Writer {
                 self.metrics.groups.fetch_add(1, Relaxed);
                 self.metrics.commit_time.record(started.elapsed());
                 for (cell, w) in working {
-                    let version = w.overlay.version();
                     if edits.iter().any(|e| e.cell == cell) {
                         self.live.publish(cell, w.overlay);
-                        self.hub.announce(CellChange { cell, version });
                     }
                 }
                 for a in accepted {
@@ -318,9 +281,6 @@ impl Writer {
         for (c, w) in working {
             match self.live.reload(*c, &w.base) {
                 Ok(overlay) => {
-                    if overlay.version() > 0 {
-                        self.hub.announce(CellChange { cell: *c, version: overlay.version() });
-                    }
                     read.insert(*c, overlay);
                 }
                 Err(e) => warn!(?c, "reading the cell's edits again: {e}"),
@@ -369,11 +329,11 @@ impl Writer {
                     CellState::Ready(_) => continue,
                     CellState::Outside => return Err(EditOutcome::Invalid("the cell is outside the world".into())),
                 }
-                let woken = waker.woken.lock().unwrap_or_else(|e| e.into_inner());
+                let woken = waker.woken.locked();
                 let (mut woken, _) = waker
                     .cv
                     .wait_timeout_while(woken, (deadline - now).min(Duration::from_millis(100)), |w| !*w)
-                    .unwrap_or_else(|e| e.into_inner());
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
                 *woken = false;
             };
             slot.insert(Working { base, overlay: (*overlay).clone() });

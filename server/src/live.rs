@@ -6,10 +6,9 @@
 //!
 //! A cell never edited costs one look-up in the edit store and a small entry; an edited cell also keeps its records
 //! at the current version ([`CellData`] with its batches encoded once, shared by every session like any cell).
-//! [`crate::editing`] publishes an overlay here after its edit is durable, then tells the sessions; an overlay only
+//! [`crate::editing`] publishes an overlay here after its edit is durable, and this tells the sessions ([`EditHub`]); an overlay only
 //! ever moves forward (the newer version wins), so a log read racing a publish cannot take a cell back.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -17,9 +16,47 @@ use std::time::Duration;
 
 use canopy_edits::{EditStore, EditStoreError, Overlay};
 use canopy_protocol::CellCoord;
+use canopy_protocol::lru::Lru;
+use canopy_protocol::sync::{Locked, Waited};
 use tracing::error;
 
-use crate::store::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, WorldStore};
+use canopy_session::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, Waiters, WorldStore};
+
+/// A cell changed: it is at `version` now.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CellChange {
+    /// The cell.
+    pub cell: CellCoord,
+    /// Its version.
+    pub version: u32,
+}
+
+/// Tells every session of a server which cells changed (each keeps those it holds).
+#[derive(Debug)]
+pub struct EditHub {
+    tx: tokio::sync::broadcast::Sender<CellChange>,
+}
+
+impl EditHub {
+    /// A hub keeping up to `capacity` changes for a slow listener (past it, the listener is told it lagged).
+    fn new(capacity: usize) -> EditHub {
+        EditHub { tx: tokio::sync::broadcast::channel(capacity.max(16)).0 }
+    }
+
+    /// Listen to every change from now on.
+    pub fn subscribe(&self) -> tokio::sync::broadcast::Receiver<CellChange> {
+        self.tx.subscribe()
+    }
+
+    /// Tell every session that a cell changed.
+    fn announce(&self, change: CellChange) {
+        // Nobody listening is fine.
+        let _ = self.tx.send(change);
+    }
+}
+
+/// Changes a slow listener may fall behind by before it is told it lagged (and reloads what it holds).
+const HUB_CAPACITY: usize = 1 << 14;
 
 /// Bytes an overlay entry costs beyond the overlay and the records it keeps (map, LRU slot).
 const ENTRY_OVERHEAD: usize = 96;
@@ -28,80 +65,56 @@ struct Entry {
     overlay: Arc<Overlay>,
     /// The cell's records at the overlay's version (edited cells only), built on first need.
     applied: Option<Arc<CellData>>,
-    bytes: usize,
-    used: u64,
 }
 
+/// The cached overlays, bounded by bytes.
 #[derive(Default)]
 struct Overlays {
-    map: HashMap<CellCoord, Entry>,
-    lru: BTreeMap<u64, CellCoord>,
-    clock: u64,
-    bytes: usize,
+    lru: Lru<CellCoord, Entry>,
     /// Cells whose overlays left the cache since the last look (their watches end).
     dropped: Vec<CellCoord>,
 }
 
 impl Overlays {
-    fn touch(&mut self, c: CellCoord) {
-        self.clock += 1;
-        let clock = self.clock;
-        if let Some(e) = self.map.get_mut(&c) {
-            self.lru.remove(&e.used);
-            e.used = clock;
-            self.lru.insert(clock, c);
-        }
+    fn get(&self, c: CellCoord) -> Option<&Entry> {
+        self.lru.peek(&c)
     }
 
     fn remove(&mut self, c: CellCoord) {
-        if let Some(e) = self.map.remove(&c) {
-            self.lru.remove(&e.used);
-            self.bytes -= e.bytes;
+        if self.lru.remove(&c).is_some() {
             self.dropped.push(c);
         }
     }
 
     /// Put `overlay` for `c` unless a newer one is there; then evict beyond `limit`.
     fn put(&mut self, c: CellCoord, overlay: Arc<Overlay>, limit: usize) -> Arc<Overlay> {
-        if let Some(e) = self.map.get(&c)
+        if let Some(e) = self.lru.get(&c)
             && e.overlay.version() >= overlay.version()
         {
-            let kept = Arc::clone(&e.overlay);
-            self.touch(c);
-            return kept;
+            return Arc::clone(&e.overlay);
         }
-        self.remove(c);
+        self.lru.remove(&c);
         self.dropped.retain(|d| *d != c);
-        self.clock += 1;
         let bytes = overlay.heap_bytes() + ENTRY_OVERHEAD;
-        self.map.insert(c, Entry { overlay: Arc::clone(&overlay), applied: None, bytes, used: self.clock });
-        self.lru.insert(self.clock, c);
-        self.bytes += bytes;
+        self.lru.insert(c, Entry { overlay: Arc::clone(&overlay), applied: None }, bytes);
         self.evict(limit, c);
         overlay
     }
 
     /// Evict the least recently used entries beyond `limit`, never `keep`.
     fn evict(&mut self, limit: usize, keep: CellCoord) {
-        while self.bytes > limit {
-            let Some((&used, &c)) = self.lru.iter().find(|(_, c)| **c != keep) else { return };
-            self.lru.remove(&used);
-            if let Some(e) = self.map.remove(&c) {
-                self.bytes -= e.bytes;
-                self.dropped.push(c);
-            }
-        }
+        let gone = self.lru.evict_to(limit, Some(&keep));
+        self.dropped.extend(gone.into_iter().map(|(c, _)| c));
     }
 }
 
 /// Threads reading cells' edit logs.
 pub const LOADERS: usize = 2;
 
-/// Cells whose logs are queued or being read, with the wakers to wake and the cell's world-function record count.
+/// Cells whose logs are queued or being read (with the cell's world-function record count), and the wakers to wake.
 #[derive(Default)]
 struct Loads {
-    queue: VecDeque<(CellCoord, u16)>,
-    waiting: HashMap<CellCoord, Vec<Arc<dyn CellWaker>>>,
+    waiters: Waiters<(CellCoord, u16)>,
     stop: bool,
 }
 
@@ -114,8 +127,9 @@ struct Shared {
     work: Condvar,
     /// Bumped whenever a load finishes (or fails): [`WorldStore::generation`] adds it to the base's.
     loaded: AtomicU64,
-    /// Where changes other writers made are announced (set by the edit service).
-    hub: std::sync::OnceLock<Arc<crate::editing::EditHub>>,
+    /// Where every change is announced: this server's edits ([`LiveStore::publish`]) and other writers' (a shared
+    /// store's watch, a reload).
+    hub: Arc<EditHub>,
 }
 
 /// A cell's world-function records and its overlay.
@@ -130,7 +144,7 @@ pub struct LiveStore {
 
 impl Drop for LiveStore {
     fn drop(&mut self) {
-        self.shared.loads.lock().unwrap_or_else(|e| e.into_inner()).stop = true;
+        self.shared.loads.locked().stop = true;
         self.shared.work.notify_all();
         for t in self.loaders.drain(..) {
             let _ = t.join();
@@ -140,7 +154,7 @@ impl Drop for LiveStore {
 
 impl Shared {
     fn lock(&self) -> MutexGuard<'_, Overlays> {
-        self.overlays.lock().unwrap_or_else(|e| e.into_inner())
+        self.overlays.locked()
     }
 
     /// Do `f` with the overlays, then stop watching the cells it dropped from the cache (outside the lock).
@@ -158,7 +172,7 @@ impl Shared {
 
     /// Read a cell's log, cache its overlay and watch the cell (`base_total`: its world-function record count).
     fn load(self: &Arc<Self>, c: CellCoord, base_total: u16) -> Result<Arc<Overlay>, EditStoreError> {
-        if let Some(e) = self.lock().map.get(&c) {
+        if let Some(e) = self.lock().get(c) {
             return Ok(Arc::clone(&e.overlay));
         }
         let log = self.edits.load(c)?;
@@ -171,24 +185,22 @@ impl Shared {
     }
 
     fn announce(&self, cell: CellCoord, version: u32) {
-        if let Some(hub) = self.hub.get() {
-            hub.announce(crate::editing::CellChange { cell, version });
-        }
+        self.hub.announce(CellChange { cell, version });
     }
 
     /// A loader thread: read queued cells' logs, wake who waits for them.
     fn run_loader(self: &Arc<Self>) {
         loop {
             let (c, base_total) = {
-                let mut l = self.loads.lock().unwrap_or_else(|e| e.into_inner());
+                let mut l = self.loads.locked();
                 loop {
                     if l.stop {
                         return;
                     }
-                    if let Some(next) = l.queue.pop_front() {
+                    if let Some(next) = l.waiters.queue().pop_front() {
                         break next;
                     }
-                    l = self.work.wait(l).unwrap_or_else(|e| e.into_inner());
+                    l = self.work.waited(l);
                 }
             };
             if let Err(e) = self.load(c, base_total) {
@@ -196,7 +208,7 @@ impl Shared {
                 error!(?c, "reading the cell's edits: {e}");
                 std::thread::sleep(Duration::from_millis(100));
             }
-            let wakers = self.loads.lock().unwrap_or_else(|e| e.into_inner()).waiting.remove(&c).unwrap_or_default();
+            let wakers = self.loads.locked().waiters.done(&(c, base_total));
             self.loaded.fetch_add(1, Relaxed);
             for w in wakers {
                 w.wake();
@@ -206,16 +218,8 @@ impl Shared {
 
     /// Queue cell `c`'s log (once however many ask) and have `waker` woken when it is read.
     fn queue(&self, c: CellCoord, base_total: u16, waker: Option<&Arc<dyn CellWaker>>) {
-        let mut l = self.loads.lock().unwrap_or_else(|e| e.into_inner());
-        let fresh = !l.waiting.contains_key(&c);
-        let wakers = l.waiting.entry(c).or_default();
-        if let Some(w) = waker
-            && !wakers.iter().any(|x| Arc::ptr_eq(x, w))
-        {
-            wakers.push(Arc::clone(w));
-        }
-        if fresh {
-            l.queue.push_back((c, base_total));
+        let mut l = self.loads.locked();
+        if l.waiters.wait((c, base_total), waker) {
             drop(l);
             self.work.notify_one();
         }
@@ -239,7 +243,7 @@ impl LiveStore {
             loads: Mutex::new(Loads::default()),
             work: Condvar::new(),
             loaded: AtomicU64::new(0),
-            hub: std::sync::OnceLock::new(),
+            hub: Arc::new(EditHub::new(HUB_CAPACITY)),
         });
         let loaders = (0..LOADERS)
             .map(|i| {
@@ -269,7 +273,7 @@ impl LiveStore {
 
     /// Bytes the overlays hold now.
     pub fn overlay_bytes(&self) -> usize {
-        self.lock().bytes
+        self.lock().lru.cost()
     }
 
     /// The overlay of cell `c`, whose world-function records are `base`: cached, or read from the edit store now
@@ -288,31 +292,37 @@ impl LiveStore {
     ) -> Option<Arc<Overlay>> {
         {
             let mut o = self.lock();
-            if let Some(e) = o.map.get(&c) {
-                let overlay = Arc::clone(&e.overlay);
-                o.touch(c);
-                return Some(overlay);
+            if let Some(e) = o.lru.get(&c) {
+                return Some(Arc::clone(&e.overlay));
             }
         }
         self.shared.queue(c, base.records.len() as u16, waker);
         None
     }
 
-    /// Make `overlay` cell `c`'s (after its edits are durable). A newer overlay already there is kept.
+    /// Make `overlay` cell `c`'s (after its edits are durable) and announce the cell's version to the sessions. A
+    /// newer overlay already there is kept.
     pub fn publish(&self, c: CellCoord, overlay: Overlay) {
         let limit = self.shared.limit_bytes;
+        let version = overlay.version();
         self.shared.with(|o| o.put(c, Arc::new(overlay), limit));
+        self.shared.announce(c, version);
     }
 
-    /// Announce other writers' changes on `hub` (the edit service's).
-    pub fn set_hub(&self, hub: Arc<crate::editing::EditHub>) {
-        let _ = self.shared.hub.set(hub);
+    /// Where every change of a cell is announced: each session subscribes and keeps those it holds.
+    pub fn hub(&self) -> &Arc<EditHub> {
+        &self.shared.hub
     }
 
-    /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it.
+    /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it, and
+    /// announce what was read (an edited cell's version) to the sessions.
     pub fn reload(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
         self.forget(c);
-        self.shared.load(c, base.records.len() as u16)
+        let overlay = self.shared.load(c, base.records.len() as u16)?;
+        if overlay.version() > 0 {
+            self.shared.announce(c, overlay.version());
+        }
+        Ok(overlay)
     }
 
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
@@ -325,7 +335,7 @@ impl LiveStore {
         if overlay.version() == 0 {
             return Arc::clone(base);
         }
-        if let Some(e) = self.lock().map.get(&c)
+        if let Some(e) = self.lock().get(c)
             && Arc::ptr_eq(&e.overlay, overlay)
             && let Some(a) = &e.applied
         {
@@ -335,14 +345,13 @@ impl LiveStore {
         let data = Arc::new(CellData::edited(c, overlay.version(), a.records, a.overrides, a.felled));
         let limit = self.shared.limit_bytes;
         self.shared.with(|o| {
-            if let Some(e) = o.map.get_mut(&c)
+            if let Some(e) = o.lru.get(&c)
                 && Arc::ptr_eq(&e.overlay, overlay)
                 && e.applied.is_none()
             {
-                let extra = data.heap_bytes();
                 e.applied = Some(Arc::clone(&data));
-                e.bytes += extra;
-                o.bytes += extra;
+                let bytes = overlay.heap_bytes() + ENTRY_OVERHEAD + data.heap_bytes();
+                o.lru.set_cost(&c, bytes);
                 o.evict(limit, c);
             }
         });
@@ -384,7 +393,7 @@ impl canopy_edits::EditWatcher for Shared {
         let version = e.version;
         let limit = self.limit_bytes;
         let changed = self.with(|o| {
-            let Some(entry) = o.map.get(&cell) else { return false };
+            let Some(entry) = o.get(cell) else { return false };
             let current = entry.overlay.version();
             if version <= current {
                 return false;
@@ -422,7 +431,7 @@ impl WorldStore for LiveStore {
         self.base.generation().wrapping_add(self.shared.loaded.load(Relaxed))
     }
 
-    fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
+    fn cache_metrics(&self) -> Option<Arc<canopy_session::counters::CellMetrics>> {
         self.base.cache_metrics()
     }
 

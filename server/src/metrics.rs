@@ -7,13 +7,16 @@
 use std::fmt::Write;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, OnceLock};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use canopy_protocol::CloseCode;
 use canopy_protocol::messages::ByKind;
+use canopy_protocol::sync::Locked;
+
+use canopy_protocol::messages::ServerMsgKind;
+pub use canopy_session::counters::{CellMetrics, Histogram};
 
 use crate::admission::Refusal;
-use crate::session::MsgClass;
 
 /// Counters shared by every connection of one server.
 #[derive(Debug)]
@@ -31,9 +34,9 @@ pub struct Metrics {
     pub connections: AtomicU64,
     /// Sessions that reached the streaming phase.
     pub sessions: AtomicU64,
-    /// Bytes by [`MsgClass`].
+    /// Bytes by [`ServerMsgKind`].
     pub bytes: ByKind<AtomicU64>,
-    /// Messages by [`MsgClass`].
+    /// Messages by [`ServerMsgKind`].
     pub messages: ByKind<AtomicU64>,
     /// Instance records sent.
     pub records: AtomicU64,
@@ -74,103 +77,6 @@ pub struct EngineMetrics {
     pub reconnects: AtomicU64,
     /// Calls that failed (no answer in time, no quorum).
     pub failures: AtomicU64,
-}
-
-/// Upper bounds of the expansion-time histogram's buckets, microseconds: 1 µs, 2 µs, 4 µs, … 8.4 s (then +Inf).
-const BUCKETS_US: [u64; 24] = {
-    let mut b = [0u64; 24];
-    let mut i = 0;
-    while i < 24 {
-        b[i] = 1 << i;
-        i += 1;
-    }
-    b
-};
-
-/// A histogram of durations in fixed power-of-two buckets, lock-free.
-#[derive(Debug, Default)]
-pub struct Histogram {
-    /// Counts per bucket of [`BUCKETS_US`], and one for longer.
-    counts: [AtomicU64; BUCKETS_US.len() + 1],
-    sum_us: AtomicU64,
-}
-
-impl Histogram {
-    /// Count one duration.
-    pub fn record(&self, d: Duration) {
-        let us = d.as_micros().min(u128::from(u64::MAX)) as u64;
-        let i = BUCKETS_US.iter().position(|&b| us <= b).unwrap_or(BUCKETS_US.len());
-        self.counts[i].fetch_add(1, Relaxed);
-        self.sum_us.fetch_add(us, Relaxed);
-    }
-
-    /// How many durations were counted.
-    pub fn count(&self) -> u64 {
-        self.counts.iter().map(|c| c.load(Relaxed)).sum()
-    }
-
-    /// The `q`-quantile (0..=1) as the upper bound of the bucket it falls in (`None`: nothing counted; the
-    /// overflow bucket answers with the largest bound).
-    pub fn quantile(&self, q: f64) -> Option<Duration> {
-        let counts: Vec<u64> = self.counts.iter().map(|c| c.load(Relaxed)).collect();
-        let total: u64 = counts.iter().sum();
-        if total == 0 {
-            return None;
-        }
-        let rank = ((q.clamp(0.0, 1.0) * total as f64).ceil() as u64).max(1);
-        let mut seen = 0;
-        for (i, c) in counts.iter().enumerate() {
-            seen += c;
-            if seen >= rank {
-                return Some(Duration::from_micros(BUCKETS_US[i.min(BUCKETS_US.len() - 1)]));
-            }
-        }
-        Some(Duration::from_micros(BUCKETS_US[BUCKETS_US.len() - 1]))
-    }
-
-    /// Prometheus histogram lines for `name` (`_bucket` by `le` in seconds, `_sum`, `_count`).
-    fn render(&self, s: &mut String, name: &str, help: &str) {
-        let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} histogram");
-        let mut cumulative = 0;
-        for (i, c) in self.counts.iter().enumerate() {
-            cumulative += c.load(Relaxed);
-            let le = BUCKETS_US.get(i).map_or("+Inf".to_owned(), |&us| format!("{}", us as f64 / 1e6));
-            let _ = writeln!(s, "{name}_bucket{{le=\"{le}\"}} {cumulative}");
-        }
-        let _ = writeln!(s, "{name}_sum {}", self.sum_us.load(Relaxed) as f64 / 1e6);
-        let _ = writeln!(s, "{name}_count {cumulative}");
-    }
-}
-
-/// The cell cache's counters: updated by the cache ([`crate::cells::CellCache`]), read by the metrics endpoint.
-#[derive(Debug, Default)]
-pub struct CellMetrics {
-    /// Lookups that found the cell ready.
-    pub hits: AtomicU64,
-    /// Lookups that found it neither ready nor queued, and queued its expansion.
-    pub misses: AtomicU64,
-    /// Expansions finished (a cell evicted and asked for again is expanded again).
-    pub expansions: AtomicU64,
-    /// Cells evicted to keep the cache within its bound.
-    pub evictions: AtomicU64,
-    /// Expansions that failed (the cell went out empty; a bug in the world, logged).
-    pub failures: AtomicU64,
-    /// Bytes the cached cells hold now.
-    pub bytes: AtomicU64,
-    /// Cells cached now.
-    pub cells: AtomicU64,
-    /// The cache's bound, bytes.
-    pub limit: AtomicU64,
-    /// Cells queued for expansion now.
-    pub queued: AtomicU64,
-    /// How long expansions took (expanding, quantising and encoding a cell).
-    pub expansion_time: Histogram,
-    /// Far-view summary nodes computed.
-    pub summaries: AtomicU64,
-    /// Bytes the cached summary nodes hold now.
-    pub summary_bytes: AtomicU64,
-    /// How long a summary node took (its leaves and the nodes between, where not cached).
-    pub summary_time: Histogram,
 }
 
 impl Default for Metrics {
@@ -235,7 +141,7 @@ impl Metrics {
     }
 
     /// Count one transmitted message.
-    pub fn sent(&self, class: MsgClass, bytes: usize, records: u32) {
+    pub fn sent(&self, class: ServerMsgKind, bytes: usize, records: u32) {
         self.bytes[class].fetch_add(bytes as u64, Relaxed);
         self.messages[class].fetch_add(1, Relaxed);
         self.records.fetch_add(u64::from(records), Relaxed);
@@ -251,7 +157,7 @@ impl Metrics {
     pub fn tick(&self, now: Instant) {
         let records = self.records.load(Relaxed);
         let expansions = self.cells.get().map_or(0, |c| c.expansions.load(Relaxed));
-        let mut last = self.last_tick.lock().unwrap_or_else(|e| e.into_inner());
+        let mut last = self.last_tick.locked();
         let dt = now.saturating_duration_since(last.0).as_secs_f64();
         if dt > 0.0 {
             let rate = |n: u64, before: u64| (n.saturating_sub(before) as f64 / dt).round() as u64;
@@ -382,12 +288,13 @@ pub fn resident_bytes() -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Duration;
 
     #[test]
     fn exposition_has_every_family_and_counts() {
         let m = Metrics::new();
-        m.sent(MsgClass::Cells, 100, 20);
-        m.sent(MsgClass::Species, 900, 0);
+        m.sent(ServerMsgKind::Cells, 100, 20);
+        m.sent(ServerMsgKind::Species, 900, 0);
         m.closed(Some(CloseCode::Malformed));
         let text = m.render();
         assert!(text.contains("canopy_sent_bytes_total{class=\"cells\"} 100"), "{text}");

@@ -34,6 +34,7 @@ use std::time::Duration;
 use async_nats::jetstream::{self, context::PublishErrorKind, stream};
 use canopy_edits::{EditStore, EditStoreError, EditWatcher, StoredEdit};
 use canopy_protocol::CellCoord;
+use canopy_protocol::sync::Locked;
 use futures_util::{StreamExt, TryStreamExt};
 use tracing::{debug, warn};
 
@@ -299,13 +300,13 @@ impl Inner {
     }
 
     fn last(&self, c: CellCoord) -> Known {
-        self.last.lock().unwrap_or_else(|e| e.into_inner()).get(&c).copied().unwrap_or_default()
+        self.last.locked().get(&c).copied().unwrap_or_default()
     }
 
     /// Learn of a cell's message: the cell's version is at least `k.version`, its subject's last sequence at least
     /// `k.sequence` (a race's loser raises the sequence, not the version).
     fn learn(&self, c: CellCoord, k: Known) {
-        let mut last = self.last.lock().unwrap_or_else(|e| e.into_inner());
+        let mut last = self.last.locked();
         let known = last.entry(c).or_default();
         known.version = known.version.max(k.version);
         known.sequence = known.sequence.max(k.sequence);
@@ -584,7 +585,7 @@ impl EditStore for NatsEditStore {
         // a loader waits for that (nothing is missed: the consumer starts at that sequence whenever it starts).
         let next = inner.last(c).sequence + 1;
         let task = self.handle.spawn(watch_cell(inner, c, next, watcher));
-        let mut watches = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner());
+        let mut watches = self.inner.watches.locked();
         if let Some(old) = watches.insert(c, task) {
             old.abort();
         }
@@ -592,7 +593,7 @@ impl EditStore for NatsEditStore {
     }
 
     fn unwatch(&self, c: CellCoord) {
-        let mut watches = self.inner.watches.lock().unwrap_or_else(|e| e.into_inner());
+        let mut watches = self.inner.watches.locked();
         if let Some(t) = watches.remove(&c) {
             // Dropping the consumer's message stream with its task ends it (an ordered consumer is ephemeral).
             t.abort();

@@ -10,21 +10,18 @@ use std::sync::{Arc, Condvar, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{Aoi, Viewpoint};
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::ServerStreaming;
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellBatch, CellCoord, ClientMsg, Phase, ServerMsg};
-use canopy_server::session::{MsgClass, Session, SessionConfig, Transmit};
-use canopy_server::store::{CellState, CellWaker, GridStore, WorldStore};
+use canopy_server::session::{CellState, CellWaker, GridStore, WorldStore};
+use canopy_server::session::{Session, SessionConfig, Transmit};
 use canopy_server::{CellCache, CellCacheConfig};
+use canopy_test_support::forest as world;
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::World;
 
 const MIB: usize = 1 << 20;
-
-fn world() -> &'static World {
-    static WORLD: OnceLock<World> = OnceLock::new();
-    WORLD.get_or_init(World::default_world)
-}
 
 /// The eager store of the default world: what the lazy one must match.
 fn eager() -> &'static GridStore {
@@ -39,7 +36,7 @@ fn cache(limit_bytes: usize, workers: usize) -> Arc<CellCache> {
         batch_records: SessionConfig::default().batch_records,
         ..CellCacheConfig::default()
     };
-    Arc::new(CellCache::new(world().clone(), cfg).unwrap())
+    Arc::new(CellCache::new((**world()).clone(), cfg).unwrap())
 }
 
 /// The cache as a session's store (the same object).
@@ -221,7 +218,7 @@ fn many_sessions_asking_for_one_area_cause_one_expansion_per_cell_and_share_the_
     for s in &mut sessions {
         let mut got = HashSet::new();
         for t in drain(s, t0) {
-            if t.class != MsgClass::Cells {
+            if t.class != ServerMsgKind::Cells {
                 continue;
             }
             let b = batch_of(&t).unwrap();

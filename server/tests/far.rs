@@ -4,27 +4,23 @@
 //! releases them when the viewer goes away, and lets records go first near the viewer.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::{ClientStreaming, ServerStreaming};
 use canopy_protocol::summary::{FarView, NodeKey, Refine};
 use canopy_protocol::{ClientMsg, Phase, ServerMsg};
-use canopy_server::far::{NODE_REBUILD_INTERVAL, REBUILD_INTERVAL};
-use canopy_server::session::{MsgClass, Session, SessionConfig, Transmit};
-use canopy_server::store::{SummaryState, WorldStore};
+use canopy_server::session::{NODE_REBUILD_INTERVAL, REBUILD_INTERVAL};
+use canopy_server::session::{Session, SessionConfig, Transmit};
+use canopy_server::session::{SummaryState, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig};
-use canopy_worlds::world::World;
-
-fn world() -> &'static World {
-    static WORLD: OnceLock<World> = OnceLock::new();
-    WORLD.get_or_init(World::default_world)
-}
+use canopy_test_support::forest as world;
 
 fn cache() -> Arc<CellCache> {
     let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 0, ..CellCacheConfig::default() };
-    Arc::new(CellCache::new(world().clone(), cfg).unwrap())
+    Arc::new(CellCache::new((**world()).clone(), cfg).unwrap())
 }
 
 fn view() -> FarView {
@@ -58,7 +54,7 @@ struct Far {
 
 impl Far {
     fn take(&mut self, t: &Transmit) {
-        if t.class != MsgClass::Summaries {
+        if t.class != ServerMsgKind::Summaries {
             return;
         }
         self.bytes += t.len() as u64;
@@ -157,9 +153,9 @@ fn a_session_sends_what_the_rule_wants_coarse_and_visible_first() {
     assert!(near < late, "level-0 nodes: first quarter {near} m away on average, last quarter {late} m");
     // Records keep priority: until the last cell batch went, summaries took at most a quarter of the bytes (one
     // message of slack).
-    let last_cell = sent.iter().rposition(|t| t.class == MsgClass::Cells).expect("cells were sent");
+    let last_cell = sent.iter().rposition(|t| t.class == ServerMsgKind::Cells).expect("cells were sent");
     let bytes = |class| sent[..=last_cell].iter().filter(|t| t.class == class).map(|t| t.len()).sum::<usize>();
-    let (cells, summaries) = (bytes(MsgClass::Cells), bytes(MsgClass::Summaries));
+    let (cells, summaries) = (bytes(ServerMsgKind::Cells), bytes(ServerMsgKind::Summaries));
     assert!(summaries <= cells / 3 + 9 * 1024, "{summaries} B of summaries before the last of {cells} B of cells");
     assert!(summaries > 0, "summaries were interleaved, not held back until the records were done");
 }

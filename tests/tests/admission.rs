@@ -4,26 +4,20 @@
 //! streaming is closed while the server is near capacity, and kept while it is not.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_client::net::endpoint;
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_protocol::CloseCode;
 use canopy_protocol::aoi::Viewpoint;
-use canopy_server::admission::Refusal;
-use canopy_server::{AdmissionConfig, GridStore, Server, ServerConfig, SessionConfig, WorldStore};
-use canopy_worlds::world::World;
+use canopy_server::Refusal;
+use canopy_server::session::SessionConfig;
+use canopy_server::{AdmissionConfig, ServeOptions, Served, Server, ServerConfig, serve_store};
+use canopy_test_support::{forest_store, pinned};
 
-fn store() -> Arc<dyn WorldStore> {
-    static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
-    Arc::clone(STORE.get_or_init(|| {
-        GridStore::from_world(&World::default_world()).expect("the default world builds a store").shared()
-    }))
-}
-
-async fn start_server(admission: AdmissionConfig, idle_slot: Duration) -> Server {
+async fn start_server(admission: AdmissionConfig, idle_slot: Duration) -> Served {
     let cfg = ServerConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
         session: SessionConfig { handshake_timeout: Duration::from_secs(5), ..SessionConfig::default() },
@@ -31,11 +25,7 @@ async fn start_server(admission: AdmissionConfig, idle_slot: Duration) -> Server
         idle_slot,
         ..ServerConfig::default()
     };
-    Server::start(store(), cfg).await.expect("server starts")
-}
-
-fn pinned(server: &Server) -> ConnectConfig {
-    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
+    serve_store(forest_store(), ServeOptions { server: cfg, ..ServeOptions::default() }).await.expect("server starts")
 }
 
 /// A client bound to `from` (any loopback address), connected with a small area of interest.

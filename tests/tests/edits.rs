@@ -20,9 +20,10 @@ use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::record::position_step;
 use canopy_protocol::{CellCoord, InstanceId};
-use canopy_server::editors::editor_line;
 use canopy_server::edits::{EditStore, MemoryEditStore};
-use canopy_server::{EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig, WorldStore};
+use canopy_server::session::editor_line;
+use canopy_server::session::{Editors, SessionConfig};
+use canopy_server::{EditService, Edits, ServeOptions, Served, ServerConfig, serve_store};
 use support::{ALICE, BOB, CELL, base};
 
 /// Far more than any wait here should take, short enough that a hang fails well within CI's patience.
@@ -32,7 +33,7 @@ const EVERYWHERE: f32 = 200.0;
 
 /// A server over [`base`] with live edits; Alice and Bob are editors.
 struct Fixture {
-    server: Server,
+    server: Served,
     edits: Arc<MemoryEditStore>,
     service: Arc<EditService>,
 }
@@ -40,8 +41,6 @@ struct Fixture {
 impl Fixture {
     async fn start() -> Fixture {
         let edits = Arc::new(MemoryEditStore::new());
-        let live = Arc::new(LiveStore::new(base(), Arc::clone(&edits) as Arc<dyn EditStore>, 1 << 20));
-        let service = EditService::start(Arc::clone(&live));
         let text = [editor_line("alice", &ALICE, None, Some(1000)), editor_line("bob", &BOB, None, Some(1000))];
         let cfg = ServerConfig {
             listen: "127.0.0.1:0".parse().unwrap(),
@@ -51,10 +50,16 @@ impl Fixture {
                 editors: Some(Arc::new(Editors::parse("editors", &text.join("\n")).unwrap())),
                 ..SessionConfig::default()
             },
-            edits: Some(Arc::clone(&service)),
             ..ServerConfig::default()
         };
-        let server = Server::start(live as Arc<dyn WorldStore>, cfg).await.expect("server starts");
+        let opts = ServeOptions {
+            server: cfg,
+            edits: Edits::Store(Arc::clone(&edits) as Arc<dyn EditStore>),
+            overlay_cache_bytes: 1 << 20,
+            ..ServeOptions::default()
+        };
+        let server = serve_store(base(), opts).await.expect("server starts");
+        let service = Arc::clone(server.edits().expect("a server taking edits"));
         Fixture { server, edits, service }
     }
 
@@ -85,8 +90,8 @@ impl Fixture {
     }
 
     async fn stop(self) {
+        // Closes the connections, then stops the edit writer.
         self.server.shutdown(Duration::from_secs(1)).await;
-        self.service.stop();
     }
 }
 

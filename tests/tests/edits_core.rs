@@ -10,10 +10,10 @@ use std::time::{Duration, Instant};
 
 use canopy_client::state::{ClientState, Event};
 use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome};
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::ServerStreaming;
 use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
 use canopy_server::edits::{EditStore, MemoryEditStore};
-use canopy_server::session::MsgClass;
 use support::*;
 
 /// A store that, when `fail` is set, keeps only the first edit of a group and then fails (a commit that failed
@@ -176,11 +176,11 @@ fn a_version_gap_brings_the_whole_cell_at_its_current_version() {
         updates: vec![],
     };
     assert_eq!(a.client.handle(ServerMsg::Streaming(ServerStreaming::Delta(stray))), Ok(Event::Gap(c)));
-    let batches = a.server.stats().messages[MsgClass::Cells];
+    let batches = a.server.stats().messages[ServerMsgKind::Cells];
     let refresh = a.client.refresh(c).unwrap();
     a.server.handle(a.now, refresh).unwrap();
     settle(&w, &mut [&mut a]);
-    assert!(a.server.stats().messages[MsgClass::Cells] > batches, "the cell came again");
+    assert!(a.server.stats().messages[ServerMsgKind::Cells] > batches, "the cell came again");
     assert!(a.client.cells()[&c].grant > grant);
     assert_eq!(a.client.cells()[&c].version, 1);
     assert_eq!(sorted(a.client.instances(&|_, _| 0.0).collect()), expected(&w));
@@ -208,10 +208,10 @@ fn a_client_that_reconnects_gets_exactly_the_missing_deltas() {
     assert!(again.client.is_complete());
     assert_eq!(again.client.cells().len(), held);
     let stats = again.server.stats();
-    assert_eq!(stats.messages[MsgClass::Cells], 0, "no cell sent again");
-    assert_eq!(stats.messages[MsgClass::Species], 0, "species come from the cache, not resent");
+    assert_eq!(stats.messages[ServerMsgKind::Cells], 0, "no cell sent again");
+    assert_eq!(stats.messages[ServerMsgKind::Species], 0, "species come from the cache, not resent");
     assert_eq!(stats.deltas, 2, "a delta for each changed cell");
-    assert_eq!(stats.messages[MsgClass::Delta], 2);
+    assert_eq!(stats.messages[ServerMsgKind::Delta], 2);
     assert_eq!(again.client.cells()[&CellCoord::new(0, 0)].version, 2);
     assert_eq!(again.client.cells()[&CellCoord::new(-2, -2)].version, 2);
     assert_eq!(sorted(again.client.instances(&|_, _| 0.0).collect()), expected(&w));

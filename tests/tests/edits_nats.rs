@@ -17,7 +17,7 @@ use std::sync::Arc;
 use canopy_client::state::ClientState;
 use canopy_protocol::CellCoord;
 use canopy_protocol::edit::{EditOp, EditOutcome};
-use canopy_server::nats::{NatsConfig, NatsEditStore};
+use canopy_server::{NatsConfig, NatsEditStore};
 use support::*;
 
 fn script() -> PathBuf {
@@ -170,31 +170,32 @@ fn edges_over_jetstream_share_the_edits_and_their_versions() {
 /// own so that it can die at once.
 struct Edge {
     rt: Option<tokio::runtime::Runtime>,
-    server: Option<canopy_server::Server>,
+    server: Option<canopy_server::Served>,
     service: Arc<canopy_server::EditService>,
     addr: std::net::SocketAddr,
 }
 
 impl Edge {
     fn start(cluster: &Cluster, name: &str, world: &canopy_worlds::world::World) -> Edge {
-        use canopy_server::{CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig};
-        let cfg = NatsConfig { servers: cluster.urls(), world: name.into(), replicas: 3 };
-        let store = Arc::new(NatsEditStore::connect(cfg).expect("connecting to the cluster"));
-        let base = CellCache::new(world.clone(), CellCacheConfig::default()).unwrap().shared();
-        let live = Arc::new(LiveStore::new(base, store, 16 << 20));
-        let service = EditService::start(Arc::clone(&live));
-        let editors = canopy_server::editors::editor_line("bots", &ALICE, None, Some(10_000));
-        let cfg = ServerConfig {
-            listen: "127.0.0.1:0".parse().unwrap(),
-            session: canopy_server::SessionConfig {
-                editors: Some(Arc::new(Editors::parse("editors", &editors).unwrap())),
-                ..canopy_server::SessionConfig::default()
+        use canopy_server::session::{Editors, SessionConfig};
+        use canopy_server::{Cells, Edits, ServeOptions, ServerConfig, serve};
+        let editors = canopy_server::session::editor_line("bots", &ALICE, None, Some(10_000));
+        let opts = ServeOptions {
+            server: ServerConfig {
+                listen: "127.0.0.1:0".parse().unwrap(),
+                session: SessionConfig {
+                    editors: Some(Arc::new(Editors::parse("editors", &editors).unwrap())),
+                    ..SessionConfig::default()
+                },
+                ..ServerConfig::default()
             },
-            edits: Some(Arc::clone(&service)),
-            ..ServerConfig::default()
+            cells: Cells::OnDemand(canopy_server::CellCacheConfig::default()),
+            edits: Edits::Nats(NatsConfig { servers: cluster.urls(), world: name.into(), replicas: 3 }),
+            overlay_cache_bytes: 16 << 20,
         };
         let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
-        let server = rt.block_on(Server::start(live, cfg)).expect("the edge starts");
+        let server = rt.block_on(serve(world.clone(), opts)).expect("the edge starts");
+        let service = Arc::clone(server.edits().expect("an edge taking edits"));
         let addr = server.local_addr();
         Edge { rt: Some(rt), server: Some(server), service, addr }
     }
@@ -254,7 +255,7 @@ fn bots_fail_over_between_edges_and_no_acknowledged_edit_is_lost() {
 
     // Every acknowledged edit read back from the stream (the killed node is back): none lost, none twice.
     let check = NatsEditStore::connect(NatsConfig { servers: cluster.urls(), world: name, replicas: 3 }).unwrap();
-    let grid = canopy_server::store::StoreHead::of_world(&world).unwrap().world().grid;
+    let grid = canopy_server::session::StoreHead::of_world(&world).unwrap().world().grid;
     let ledger = check_ledger(&check, &grid, BotsSummary::acknowledged(&reports)).unwrap();
     let summary = summary.with_ledger(ledger.clone());
     println!("{summary}");

@@ -12,12 +12,12 @@
 //! Requests that draw an answer (an edit from a read-only session: 9 bytes in, about 58 out, queued past the
 //! window) keep the same bound, whether the client never acknowledges or acknowledges but never reads its control
 //! stream: the server stops reading a client's requests while it owes it more than the window and
-//! [`OWED_SLACK`](canopy_server::driver::OWED_SLACK).
+//! [`OWED_SLACK`](canopy_server::OWED_SLACK).
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_client::net::endpoint;
@@ -28,10 +28,11 @@ use canopy_protocol::aoi::{Grid, Viewpoint};
 use canopy_protocol::edit::EditOp;
 use canopy_protocol::frame::{FrameDecoder, frame};
 use canopy_protocol::{CloseCode, InstanceId, ServerMsg, netlimits};
-use canopy_server::driver::{OWED_SLACK, SEND_WINDOW};
 use canopy_server::session::SendBudget;
-use canopy_server::{GridStore, Server, ServerConfig, SessionConfig, WorldStore};
-use canopy_worlds::world::World;
+use canopy_server::session::SessionConfig;
+use canopy_server::{OWED_SLACK, SEND_WINDOW};
+use canopy_server::{ServeOptions, Served, Server, ServerConfig, serve_store};
+use canopy_test_support::forest_store;
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, timeout};
 
@@ -53,15 +54,6 @@ const _: () = assert!(SLACK >= OWED_SLACK + 8 * 1024, "the slack covers what the
 /// A request rate (viewpoints, refreshes, refused edits a second, and the burst) no test floods past: the tests of
 /// answers queued past the window run with it, so that they check the driver's bound and not the session's rate.
 const UNLIMITED: (u32, u32) = (1_000_000, 1_000_000);
-
-/// The default world with every cell ready up front, so a session never waits for an expansion and fills its
-/// windows as fast as the transport lets it.
-fn store() -> Arc<dyn WorldStore> {
-    static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
-    Arc::clone(STORE.get_or_init(|| {
-        GridStore::from_world(&World::default_world()).expect("the default world builds a store").shared()
-    }))
-}
 
 /// A client that never acknowledges what the server sends after its welcome.
 struct Hostile {
@@ -211,7 +203,7 @@ fn sent_total(server: &Server) -> u64 {
 
 /// The test's server (short idle timeout; requests — viewpoints, refreshes, refused edits — at most
 /// `request_rate` a second and its burst) and the shared send budget its sessions count their unflushed bytes in.
-async fn start(request_rate: (u32, u32)) -> (Server, Arc<SendBudget>, SessionConfig) {
+async fn start(request_rate: (u32, u32)) -> (Served, Arc<SendBudget>, SessionConfig) {
     let budget = SendBudget::new(1 << 30);
     let session = SessionConfig {
         handshake_timeout: Duration::from_secs(5),
@@ -225,7 +217,13 @@ async fn start(request_rate: (u32, u32)) -> (Server, Arc<SendBudget>, SessionCon
         idle_timeout: IDLE,
         ..ServerConfig::default()
     };
-    (Server::start(store(), cfg).await.expect("server starts"), budget, session)
+    (
+        serve_store(forest_store(), ServeOptions { server: cfg, ..ServeOptions::default() })
+            .await
+            .expect("server starts"),
+        budget,
+        session,
+    )
 }
 
 /// The most the server held for `hostile` over `period`: (bytes sent − bytes read, the budget's bytes).

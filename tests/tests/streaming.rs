@@ -16,14 +16,10 @@ use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::frame;
 use canopy_protocol::messages::{ClientHandshake, Hello, ServerMsgKind};
 use canopy_protocol::{ClientMsg, CloseCode};
-use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig, WorldStore};
-use canopy_worlds::world::World;
+use canopy_server::session::{SessionConfig, WorldStore};
+use canopy_server::{CellCache, CellCacheConfig, ServeOptions, Served, Server, ServerConfig, serve_store};
+use canopy_test_support::{forest, pinned};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-
-fn world() -> Arc<World> {
-    static WORLD: OnceLock<Arc<World>> = OnceLock::new();
-    Arc::clone(WORLD.get_or_init(|| Arc::new(World::default_world())))
-}
 
 /// The server's store as `canopy-server` runs it: cells expanded on demand by worker threads, here into a cache
 /// (2 MiB) smaller than the world, so bots walking and teleporting also exercise eviction and re-expansion.
@@ -31,22 +27,18 @@ fn store() -> Arc<dyn WorldStore> {
     static STORE: OnceLock<Arc<dyn WorldStore>> = OnceLock::new();
     Arc::clone(STORE.get_or_init(|| {
         let cfg = CellCacheConfig { limit_bytes: 2 << 20, workers: 2, ..CellCacheConfig::default() };
-        CellCache::new((*world()).clone(), cfg).expect("the default world builds a store").shared()
+        CellCache::new((**forest()).clone(), cfg).expect("the default world builds a store").shared()
     }))
 }
 
-async fn start_server() -> Server {
+async fn start_server() -> Served {
     let cfg = ServerConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
         metrics: Some("127.0.0.1:0".parse().unwrap()),
         session: SessionConfig { handshake_timeout: Duration::from_secs(3), ..SessionConfig::default() },
         ..ServerConfig::default()
     };
-    Server::start(store(), cfg).await.expect("server starts")
-}
-
-fn pinned(server: &Server) -> ConnectConfig {
-    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
+    serve_store(store(), ServeOptions { server: cfg, ..ServeOptions::default() }).await.expect("server starts")
 }
 
 fn local() -> SocketAddr {
@@ -74,7 +66,7 @@ async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
         cfg.duration = Duration::from_secs(if path == PathKind::Teleport { 10 } else { 5 });
         cfg.radius = 120.0;
         cfg.seed = 100 * i as u64;
-        cfg.verify = Some(world());
+        cfg.verify = Some(Arc::clone(forest()));
         runs.push(tokio::spawn(bots::run(cfg, Arc::clone(&progress))));
     }
     let mut reports = vec![];
@@ -88,7 +80,7 @@ async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
         assert_eq!(r.species_duplicates, 0);
         assert!(r.held > 0 && !r.latencies.is_empty(), "bot {} {r:?}", r.id);
         // Each species at most once per bot, and only species its area of interest needed.
-        assert!(r.species_received as usize <= world().species.len());
+        assert!(r.species_received as usize <= forest().species.len());
     }
     assert!(summary.batch_bytes_per_record <= 8.0, "{summary}");
     let m = server.metrics();
@@ -115,7 +107,7 @@ async fn a_reconnecting_client_is_sent_no_species_again() {
     assert_eq!(again.state().stats().species_received, 0, "species were sent again");
     assert_eq!(server.metrics().messages[ServerMsgKind::Species].load(Relaxed), species_before);
     assert_eq!(again.state().record_count(), held_first);
-    bots::verify(again.state(), &world()).unwrap();
+    bots::verify(again.state(), forest()).unwrap();
     again.close();
     server.shutdown(Duration::from_secs(1)).await;
 }
@@ -187,7 +179,7 @@ async fn bad_input_closes_that_connection_with_a_reason_and_the_others_carry_on(
     for (i, c) in good.iter_mut().enumerate() {
         c.set_viewpoint(Viewpoint::at(0, [100.0 * i as f32, 300.0], 100.0)).await.unwrap();
         c.wait_complete(Duration::from_secs(60)).await.unwrap();
-        bots::verify(c.state(), &world()).unwrap();
+        bots::verify(c.state(), forest()).unwrap();
     }
     let m = server.metrics();
     assert_eq!(m.closed[CloseCode::Malformed as usize].load(Relaxed), 1);

@@ -4,7 +4,7 @@
 //! store has them, each species once.
 
 use std::collections::{HashMap, HashSet, VecDeque};
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::Instant;
 
 use canopy_client::state::ClientState;
@@ -12,14 +12,10 @@ use canopy_harness::bots::verify;
 use canopy_protocol::aoi::{Aoi, Viewpoint};
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
+use canopy_server::session::{GridStore, WorldStore};
 use canopy_server::session::{Session, SessionConfig, StreamId};
-use canopy_server::{GridStore, WorldStore};
-use canopy_worlds::world::{CellKey, World, instance_seed};
-
-fn world() -> Arc<World> {
-    static WORLD: OnceLock<Arc<World>> = OnceLock::new();
-    Arc::clone(WORLD.get_or_init(|| Arc::new(World::default_world())))
-}
+use canopy_test_support::forest as world;
+use canopy_worlds::world::{CellKey, instance_seed};
 
 struct Pair {
     server: Session,
@@ -96,7 +92,7 @@ impl Pair {
 #[test]
 fn client_and_server_agree_under_lane_reordering_through_walks_and_teleports() {
     let world = world();
-    let store = GridStore::from_world(&world).unwrap().shared();
+    let store = GridStore::from_world(world).unwrap().shared();
     let grid = *store.grid();
     for seed in [1u64, 0x9e37_79b9, 0xdead_beef_cafe] {
         let cfg = SessionConfig { batch_records: 16, ..SessionConfig::default() };
@@ -128,7 +124,7 @@ fn client_and_server_agree_under_lane_reordering_through_walks_and_teleports() {
             let vp = *pair.client.viewpoint().unwrap();
             let aoi = Aoi::new(&vp, &aoi_params);
             assert!(aoi.inner_cells(&grid).iter().all(|c| client_cells.contains_key(c)));
-            verify(&pair.client, &world).unwrap_or_else(|e| panic!("seed {seed} round {round}: {e}"));
+            verify(&pair.client, world).unwrap_or_else(|e| panic!("seed {seed} round {round}: {e}"));
         }
         assert!(pair.client.stats().dropped > 0 || pair.client.stats().evicted > 0, "reordering was exercised");
         assert_eq!(pair.client.stats().species_duplicates, 0);
@@ -138,7 +134,7 @@ fn client_and_server_agree_under_lane_reordering_through_walks_and_teleports() {
 #[test]
 fn a_clients_instances_have_the_worlds_seeds_for_the_same_cell_and_index() {
     let world = world();
-    let store = GridStore::from_world(&world).unwrap().shared();
+    let store = GridStore::from_world(world).unwrap().shared();
     // Somewhere off the origin, so cells of negative and positive coordinates are held.
     let mut pair = Pair::new(store, SessionConfig::default(), Viewpoint::at(0, [-300.0, 200.0], 150.0), 5);
     pair.settle();

@@ -2,24 +2,10 @@
 //! expanded in; Poisson-disk spacing and `avoid` distances across cell borders; densities as the manifest says.
 
 use std::collections::HashMap;
-use std::path::Path;
-use std::sync::OnceLock;
 
+use canopy_test_support::{forest, highlands};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::{CellKey, Placement, World};
-
-fn forest() -> &'static World {
-    static FOREST: OnceLock<World> = OnceLock::new();
-    FOREST.get_or_init(World::default_world)
-}
-
-fn highlands() -> &'static World {
-    static HIGHLANDS: OnceLock<World> = OnceLock::new();
-    HIGHLANDS.get_or_init(|| {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("highlands/highlands.world");
-        World::load(&path).unwrap_or_else(|d| panic!("{d}"))
-    })
-}
 
 fn parse(text: &str) -> World {
     World::parse(&SourceFile::new("t.world", text), None).unwrap_or_else(|d| panic!("{d}"))

@@ -3,21 +3,12 @@
 //! summarises to nothing, and the Poisson-disk packing constant is what the process measures.
 
 use std::collections::BTreeSet;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 use canopy_protocol::summary::{MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover};
+use canopy_test_support::{forest, highlands};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::world::{CellKey, PACKING, Placement, Summaries, World, aggregate, summary_bytes};
-
-fn forest() -> &'static World {
-    static FOREST: OnceLock<World> = OnceLock::new();
-    FOREST.get_or_init(World::default_world)
-}
-
-fn highlands() -> &'static World {
-    static HIGHLANDS: OnceLock<World> = OnceLock::new();
-    HIGHLANDS.get_or_init(|| World::embedded("highlands").expect("embedded"))
-}
 
 fn parse(text: &str) -> World {
     World::parse(&SourceFile::new("t.world", text), None).unwrap_or_else(|d| panic!("{d}"))
@@ -146,7 +137,7 @@ fn nodes_do_not_depend_on_order_blocks_or_cache() {
     }
     assert!(block.iter().map(NodeSummary::total).sum::<u64>() > 10_000);
     // A memo queried coarse to fine, and a tiny one queried fine to coarse, in another order.
-    let world = Arc::new(h.clone());
+    let world = Arc::clone(h);
     let mut keys = vec![key(6, -6, 5), key(5, -11, 11), key(5, -10, 10), key(4, -21, 22)];
     keys.extend([key(3, -41, 45), key(2, -81, 92), key(1, -163, 184), key(0, -326, 369), key(0, -325, 369)]);
     let mut big = Summaries::new(world.clone());

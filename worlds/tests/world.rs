@@ -6,19 +6,13 @@
 
 use std::collections::HashMap;
 use std::path::Path;
-use std::sync::OnceLock;
 
+use canopy_test_support::forest;
 use canopy_worlds::amplify::{Budget, amplify};
 use canopy_worlds::diag::{Diagnostic, SourceFile};
 use canopy_worlds::primitive::Fnv;
 use canopy_worlds::rng::child_key;
 use canopy_worlds::world::{POSITION_STEPS, World};
-
-/// The default world, loaded once for the tests that only read it.
-fn forest() -> &'static World {
-    static FOREST: OnceLock<World> = OnceLock::new();
-    FOREST.get_or_init(World::default_world)
-}
 
 fn parse(text: &str) -> Result<World, Vec<Diagnostic>> {
     World::parse(&SourceFile::new("t.world", text), None).map_err(|d| d.0)

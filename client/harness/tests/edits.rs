@@ -5,34 +5,22 @@
 //! an edited cell at one version hold the same content. A client that planted fails the plain check and passes the
 //! one that expects edits. Real QUIC on loopback.
 
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_client::net::{Connection, endpoint};
 use canopy_client::state::Event;
-use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress};
 use canopy_protocol::aoi::{AoiParams, Viewpoint};
 use canopy_protocol::edit::{EditOp, EditOutcome};
-use canopy_server::editors::editor_line;
-use canopy_server::edits::{EditStore, MemoryEditStore};
-use canopy_server::{
-    CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig, WorldStore,
-};
-use canopy_worlds::world::World;
+use canopy_server::session::{Editors, SessionConfig, editor_line};
+use canopy_server::{CellCacheConfig, Cells, EditService, Edits, ServeOptions, Served, ServerConfig, serve};
+use canopy_test_support::{highlands, pinned};
 
 const TOKEN: [u8; 32] = [7; 32];
 
-fn highlands() -> Arc<World> {
-    static WORLD: OnceLock<Arc<World>> = OnceLock::new();
-    Arc::clone(WORLD.get_or_init(|| Arc::new(World::embedded("highlands").expect("embedded"))))
-}
-
-async fn start_server() -> (Server, Arc<EditService>) {
+async fn start_server() -> (Served, Arc<EditService>) {
     let cache = CellCacheConfig { limit_bytes: 16 << 20, workers: 2, ..CellCacheConfig::default() };
-    let base = CellCache::new((*highlands()).clone(), cache).expect("the highlands build a store").shared();
-    let live = Arc::new(LiveStore::new(base, Arc::new(MemoryEditStore::new()) as Arc<dyn EditStore>, 1 << 20));
-    let service = EditService::start(Arc::clone(&live));
     let editors = editor_line("bots", &TOKEN, None, Some(10_000));
     let cfg = ServerConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
@@ -42,15 +30,13 @@ async fn start_server() -> (Server, Arc<EditService>) {
             editors: Some(Arc::new(Editors::parse("editors", &editors).unwrap())),
             ..SessionConfig::default()
         },
-        edits: Some(Arc::clone(&service)),
         ..ServerConfig::default()
     };
-    let server = Server::start(live as Arc<dyn WorldStore>, cfg).await.expect("server starts");
+    let opts =
+        ServeOptions { server: cfg, cells: Cells::OnDemand(cache), edits: Edits::Memory, overlay_cache_bytes: 1 << 20 };
+    let server = serve((**highlands()).clone(), opts).await.expect("server starts");
+    let service = Arc::clone(server.edits().expect("a server taking edits"));
     (server, service)
-}
-
-fn pinned(server: &Server) -> ConnectConfig {
-    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -62,7 +48,7 @@ async fn editing_bots_reach_every_watcher_and_the_checks_hold_with_edits() {
     cfg.duration = Duration::from_secs(6);
     cfg.radius = 96.0;
     cfg.spread = Some(32.0);
-    cfg.verify = Some(highlands());
+    cfg.verify = Some(Arc::clone(highlands()));
     let mut plan = EditPlan::new(10.0, 2, TOKEN.to_vec());
     plan.warmup = Duration::from_secs(1);
     plan.grace = Duration::from_millis(1500);
@@ -98,7 +84,7 @@ async fn an_edited_cell_fails_the_plain_check_and_passes_the_one_expecting_edits
     let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
     let mut conn = Connection::connect(&ep, &connect, None, |_| Viewpoint::at(0, [10.0, 10.0], 64.0)).await.unwrap();
     conn.wait_complete(Duration::from_secs(60)).await.unwrap();
-    let before = bots::verify(conn.state(), &highlands()).expect("exact before any edit");
+    let before = bots::verify(conn.state(), highlands()).expect("exact before any edit");
     assert_eq!(before.edited, 0);
     let request = conn.edit(EditOp::Plant { species: 0, x: 12.0, z: 9.0, params: vec![] }).await.unwrap();
     let (mut answered, mut changed) = (false, false);
@@ -113,9 +99,9 @@ async fn an_edited_cell_fails_the_plain_check_and_passes_the_one_expecting_edits
         }
     }
     let state = conn.close_into_state();
-    let plain = bots::verify(&state, &highlands());
+    let plain = bots::verify(&state, highlands());
     assert!(plain.is_err(), "an edited cell differs from the world's function");
-    let with = bots::verify_with(&state, &highlands(), true).expect("edits expected");
+    let with = bots::verify_with(&state, highlands(), true).expect("edits expected");
     assert_eq!((with.edited, with.instances), (1, before.instances + 1));
     server.shutdown(Duration::from_secs(1)).await;
     service.stop();

@@ -5,41 +5,33 @@
 //! in process.
 
 use std::collections::HashSet;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_client::net::{Connection, endpoint};
-use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, DriveHooks, DrivePlan, PathKind, Progress, Walker};
 use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::summary::FarView;
-use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig, SessionConfig};
-use canopy_worlds::world::{REGION_BLOCK, World};
-
-fn highlands() -> Arc<World> {
-    static WORLD: OnceLock<Arc<World>> = OnceLock::new();
-    Arc::clone(WORLD.get_or_init(|| Arc::new(World::embedded("highlands").expect("embedded"))))
-}
+use canopy_server::session::SessionConfig;
+use canopy_server::{CellCacheConfig, Cells, ServeOptions, Served, ServerConfig, serve};
+use canopy_test_support::{highlands, pinned};
+use canopy_worlds::world::REGION_BLOCK;
 
 /// The server's rules for these flights: a radius capped at 192 m (what a flight at 1500 m asks for is capped to
 /// it), a second of look-ahead led at most 128 m (so `flight_radius` adds the rest of 250 m to the radius, up to
 /// the cap).
 const AOI: AoiParams = AoiParams { max_radius: 192.0, hysteresis: 32.0, lookahead_s: 1.0, max_lookahead: 128.0 };
 
-async fn start_server() -> Server {
+async fn start_server() -> Served {
     let cache = CellCacheConfig { limit_bytes: 16 << 20, workers: 2, ..CellCacheConfig::default() };
-    let store = CellCache::new((*highlands()).clone(), cache).expect("the highlands build a store").shared();
     let cfg = ServerConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
         metrics: None,
         session: SessionConfig { aoi: AOI, ..SessionConfig::default() },
         ..ServerConfig::default()
     };
-    Server::start(store, cfg).await.expect("server starts")
-}
-
-fn pinned(server: &Server) -> ConnectConfig {
-    ConnectConfig::new(server.local_addr(), Trust::pinned(server.fingerprint()).unwrap())
+    let opts = ServeOptions { server: cfg, cells: Cells::OnDemand(cache), ..ServeOptions::default() };
+    serve((**highlands()).clone(), opts).await.expect("server starts")
 }
 
 /// Where the flight went.
@@ -83,7 +75,7 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
     cfg.duration = Duration::from_secs(4);
     cfg.settle = Duration::from_secs(60);
     cfg.seed = 18;
-    cfg.verify = Some(Arc::clone(&world));
+    cfg.verify = Some(Arc::clone(world));
     let runner = tokio::spawn(bots::run(cfg, Arc::new(Progress::default())));
 
     // One flight placed in a 600 m square around (0, 0), where cells, 2 km regions and 12.8 km terrain tiles all
@@ -115,7 +107,7 @@ async fn flights_over_the_highlands_cross_borders_and_end_exact_against_the_func
     assert_eq!(conn.state().far_view().map(|f| f.altitude), Some(1500.0), "the far view carries the altitude");
     assert!(far.keys().all(|k| k.level >= 1), "{:?}", far.keys().next());
     let state = conn.close_into_state();
-    let checked = tokio::task::spawn_blocking(move || bots::verify(&state, &highlands())).await.unwrap();
+    let checked = tokio::task::spawn_blocking(move || bots::verify(&state, highlands())).await.unwrap();
     let summary = checked.expect("exact against World::expand_cell");
     assert!(summary.instances > 0 && summary.cells >= 20, "{summary:?}");
     assert!(track.cells.len() >= 10, "{} cells flown over", track.cells.len());
@@ -187,7 +179,7 @@ async fn a_flight_on_a_slow_link_asks_for_the_radius_the_link_carries() {
     let density = conn.state().record_density().expect("cells held");
     assert!((0.01..1.0).contains(&density), "{density} records a m²");
     let state = conn.close_into_state();
-    let checked = tokio::task::spawn_blocking(move || bots::verify(&state, &highlands())).await.unwrap();
+    let checked = tokio::task::spawn_blocking(move || bots::verify(&state, highlands())).await.unwrap();
     let summary = checked.expect("exact against World::expand_cell");
     assert!(summary.instances > 0, "{summary:?}");
     server.shutdown(Duration::from_secs(1)).await;

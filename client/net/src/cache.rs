@@ -10,6 +10,7 @@ use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{SpeciesGraph, SpeciesHash, limits};
 
 /// Bounds of a species cache.
@@ -112,11 +113,11 @@ impl SpeciesCache {
 
     /// Counters so far.
     pub fn stats(&self) -> CacheStats {
-        *self.stats.lock().unwrap_or_else(|e| e.into_inner())
+        *self.stats.locked()
     }
 
     fn count(&self, f: impl FnOnce(&mut CacheStats)) {
-        f(&mut self.stats.lock().unwrap_or_else(|e| e.into_inner()));
+        f(&mut self.stats.locked());
     }
 
     fn path(&self, hash: &SpeciesHash) -> Option<PathBuf> {
@@ -125,7 +126,7 @@ impl SpeciesCache {
 
     /// The species with this content address, from memory or disk.
     pub fn get(&self, hash: &SpeciesHash) -> Option<Arc<SpeciesGraph>> {
-        if let Some(g) = self.memory.lock().unwrap_or_else(|e| e.into_inner()).map.get(hash) {
+        if let Some(g) = self.memory.locked().map.get(hash) {
             let g = Arc::clone(g);
             self.count(|s| s.memory_hits += 1);
             return Some(g);
@@ -153,7 +154,7 @@ impl SpeciesCache {
     }
 
     fn remember(&self, hash: SpeciesHash, graph: Arc<SpeciesGraph>) {
-        let mut m = self.memory.lock().unwrap_or_else(|e| e.into_inner());
+        let mut m = self.memory.locked();
         if m.map.insert(hash, graph).is_none() {
             m.order.push_back(hash);
         }

@@ -77,7 +77,7 @@ mod tests {
 
     use super::*;
 
-    /// The welcome's description of a world's fractal, as `canopy_server::terrain::describe` writes it, sent through
+    /// The welcome's description of a world's fractal, as `canopy_session::terrain_desc` writes it, sent through
     /// the wire's encoder and decoder.
     fn over_the_wire(world: &World) -> TerrainDesc {
         let fractal = world.fractal.as_ref().expect("a fractal world").describe();

@@ -9,6 +9,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::SpeciesGraph;
+use canopy_protocol::sync::{Locked, Waited};
 use canopy_worlds::amplify::{Budget, Instance};
 
 use super::geometry::{TreeGeometry, build_tree};
@@ -209,7 +210,7 @@ impl Workers {
                 loop {
                     let job = {
                         let (lock, cv) = &*shared;
-                        let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+                        let mut s = lock.locked();
                         loop {
                             if s.stop {
                                 return;
@@ -217,7 +218,7 @@ impl Workers {
                             if let Some(q) = s.heap.pop() {
                                 break q.job;
                             }
-                            s = cv.wait(s).unwrap_or_else(|e| e.into_inner());
+                            s = cv.waited(s);
                         }
                     };
                     if tx.send(run(job)).is_err() {
@@ -232,7 +233,7 @@ impl Workers {
     /// Queue a job; higher priorities run first.
     pub fn submit(&mut self, job: Job, priority: f32) {
         let (lock, cv) = &*self.shared;
-        let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+        let mut s = lock.locked();
         let order = s.next;
         s.next += 1;
         s.heap.push(Queued { priority, order, job });
@@ -269,7 +270,7 @@ impl Drop for Workers {
     fn drop(&mut self) {
         {
             let (lock, cv) = &*self.shared;
-            let mut s = lock.lock().unwrap_or_else(|e| e.into_inner());
+            let mut s = lock.locked();
             s.stop = true;
             s.heap.clear();
             cv.notify_all();

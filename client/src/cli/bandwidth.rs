@@ -3,14 +3,12 @@
 //! flight`, bots flying over the highlands with a far view, summary bytes beside record bytes. Writes a markdown
 //! report, CSV files and SVG plots (see `canopy_harness::bandwidth` and docs/bandwidth.md).
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
-use canopy_client::Trust;
 use canopy_harness::bandwidth::link::{LinkSpec, parse_rate};
 use canopy_harness::bandwidth::{self, BandwidthConfig, External, Scenario, report};
 use canopy_harness::bots::PathKind;
@@ -141,16 +139,10 @@ pub struct BandwidthArgs {
     /// Output folder.
     #[arg(long, default_value = "out/bandwidth")]
     out: PathBuf,
-    /// Measure a running canopy-server (procedural scenarios only) instead of one in process; it must serve the
+    /// A running canopy-server to measure (procedural scenarios only) instead of one in process; it must serve the
     /// world of `--world` (default: the embedded default world walking, `highlands` flying).
-    #[arg(long)]
-    server: Option<SocketAddr>,
-    /// Pin that server's certificate by its SHA-256 fingerprint.
-    #[arg(long, requires = "server", conflicts_with = "insecure")]
-    cert_fingerprint: Option<String>,
-    /// Accept any certificate from that server (local use only).
-    #[arg(long, requires = "server")]
-    insecure: bool,
+    #[command(flatten)]
+    connect: super::ConnectArgs,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -196,9 +188,10 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     cfg.out = args.out.clone();
     cfg.progress = !args.quiet;
     cfg.command = std::iter::once("canopy".to_string()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
-    if !args.modes.is_empty() || !args.rate.is_empty() || args.server.is_some() {
+    let external = args.connect.server.is_some();
+    if !args.modes.is_empty() || !args.rate.is_empty() || external {
         let modes: Vec<PayloadMode> = if args.modes.is_empty() {
-            if args.server.is_some() || flying { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
+            if external || flying { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
         } else {
             args.modes.iter().map(|&m| m.into()).collect()
         };
@@ -216,9 +209,12 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
             .collect();
     }
     cfg.path = args.path.into();
-    if let Some(server) = args.server {
-        let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
-        cfg.external = Some(External { server, trust });
+    match &args.connect.server {
+        Some(edges) => cfg.external = Some(External { server: edges.first(), trust: args.connect.trust()? }),
+        None if args.connect.trust_given() => {
+            anyhow::bail!("--cert-fingerprint and --insecure name the trust of a --server")
+        }
+        None => {}
     }
     Ok(cfg)
 }

@@ -12,13 +12,12 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
-use canopy_client::net::Edges;
-use canopy_client::{ConnectConfig, Trust};
+use canopy_client::ConnectConfig;
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, check_ledger};
 use canopy_protocol::aoi::Grid;
 use canopy_server::edits::{EditStore, SqliteEditStore};
-use canopy_server::nats::{NatsConfig, NatsEditStore};
-use canopy_server::store::StoreHead;
+use canopy_server::session::StoreHead;
+use canopy_server::{NatsConfig, NatsEditStore};
 use canopy_worlds::world::World;
 use clap::Args;
 
@@ -43,16 +42,9 @@ pub struct BotsArgs {
     duration: f64,
     #[command(flatten)]
     far: super::far::BotFarArgs,
-    /// The server's UDP address, or the edges of one world, comma-separated (`HOST:PORT,HOST:PORT,…`): bots are
-    /// spread over them, and a bot whose edge dies or closes resumes on another (the summary counts reconnects).
-    #[arg(long, default_value = "127.0.0.1:4433", value_name = "HOST:PORT[,…]")]
-    server: Edges,
-    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
-    #[arg(long, conflicts_with = "insecure")]
-    cert_fingerprint: Option<String>,
-    /// Accept any server certificate (local use only).
-    #[arg(long)]
-    insecure: bool,
+    /// Where the bots connect (spread over the edges given; the summary counts reconnects).
+    #[command(flatten)]
+    connect: super::ConnectArgs,
     /// Area-of-interest radius, metres (walkers; a flight's follows from `--altitude` and `--speed`).
     #[arg(long, default_value_t = 160.0)]
     radius: f32,
@@ -153,13 +145,13 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
                  --add-editor NAME` prints it)"
             );
         };
-        let token = canopy_server::editors::unhex(token.trim()).context("--token: expected hexadecimal digits")?;
+        let token = canopy_server::session::unhex(token.trim()).context("--token: expected hexadecimal digits")?;
         let editors = args.editors.unwrap_or(args.count).min(args.count);
         Some(EditPlan::new(args.edit_rate, editors, token))
     } else {
         None
     };
-    let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
+    let trust = args.connect.trust()?;
     let world = if args.no_verify && args.check_edits.is_none() {
         None
     } else {
@@ -173,7 +165,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
         _ => None,
     };
     let verify = if args.no_verify { None } else { world };
-    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new_edges(&args.server, trust));
+    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new_edges(&args.connect.edges(), trust));
     cfg.path = args.path;
     cfg.speed = args.speed;
     cfg.altitude = args.altitude;

@@ -18,9 +18,8 @@ use anyhow::Context;
 use canopy_client::{ConnectConfig, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_harness::numbers::kib;
-use canopy_server::metrics::Metrics;
-use canopy_server::session::MsgClass;
-use canopy_server::{CellCache, CellCacheConfig, Server, ServerConfig};
+use canopy_protocol::messages::ServerMsgKind;
+use canopy_server::{CellCacheConfig, Cells, Metrics, ServeOptions, ServerConfig, serve};
 use canopy_worlds::world::World;
 use clap::Args;
 
@@ -74,7 +73,7 @@ fn display_present() -> bool {
     ["DISPLAY", "WAYLAND_DISPLAY"].iter().any(|v| std::env::var_os(v).is_some_and(|s| !s.is_empty()))
 }
 
-/// `canopy walk` against the in-process server, as its own command line would say it.
+/// `canopy walk`'s options with their defaults (the demo sets the server and its certificate).
 #[derive(clap::Parser, Debug)]
 struct WalkCli {
     #[command(flatten)]
@@ -86,8 +85,8 @@ fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (In
     let now = Instant::now();
     let rate = (records - last.1) as f64 / now.duration_since(last.0).as_secs_f64().max(1e-3);
     *last = (now, records);
-    let b = |c: MsgClass| m.bytes[c].load(Relaxed);
-    let cells = b(MsgClass::Cells);
+    let b = |c: ServerMsgKind| m.bytes[c].load(Relaxed);
+    let cells = b(ServerMsgKind::Cells);
     let per = if records > 0 { cells as f64 / records as f64 } else { 0.0 };
     format!(
         "{:>5.1}s  clients {:>3}  AOI complete {}/{}  records {records} ({rate:.0}/s)  sent: cells {} ({per:.2} B/record), species {}, releases {}",
@@ -96,8 +95,8 @@ fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (In
         p.complete.load(Relaxed),
         bots,
         kib(cells),
-        kib(b(MsgClass::Species)),
-        kib(b(MsgClass::Release)),
+        kib(b(ServerMsgKind::Species)),
+        kib(b(ServerMsgKind::Release)),
     )
 }
 
@@ -110,14 +109,16 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     // winit wants the main thread: the server and the bots run on another, the window here.
     let (addr_tx, addr_rx) = std::sync::mpsc::channel();
     let duration = args.duration.max(0.0);
-    let exit_after = duration.to_string();
     let started = Instant::now();
     let headless = std::thread::spawn(move || demo(args, Some(addr_tx), stop_rx));
     let walked = match addr_rx.recv() {
         Ok((addr, fingerprint)) => {
-            use clap::Parser;
-            let argv = ["walk", "--server", &addr, "--cert-fingerprint", &fingerprint, "--exit-after", &exit_after];
-            Some(super::walk::run(WalkCli::try_parse_from(argv)?.walk))
+            // The window's own defaults, then the in-process server's address and certificate.
+            let mut walk = <WalkCli as clap::Parser>::try_parse_from(["walk"])?.walk;
+            walk.connect.server = Some(canopy_client::net::Edges::one(addr));
+            walk.connect.cert_fingerprint = Some(fingerprint);
+            walk.exit_after = duration;
+            Some(super::walk::run(walk))
         }
         // The demo failed before its server was up; its error is the one to report.
         Err(_) => None,
@@ -140,7 +141,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
 /// and the bots walk until `stop` (the window closed).
 fn demo(
     args: DemoArgs,
-    window: Option<std::sync::mpsc::Sender<(String, String)>>,
+    window: Option<std::sync::mpsc::Sender<(SocketAddr, String)>>,
     stop_rx: tokio::sync::watch::Receiver<bool>,
 ) -> anyhow::Result<ExitCode> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
@@ -152,7 +153,6 @@ fn demo(
         });
         // As `canopy-server` serves it: cells expanded on demand into a byte-bounded cache.
         let cache = CellCacheConfig { limit_bytes: args.cell_cache_mib.saturating_mul(1 << 20), ..CellCacheConfig::default() };
-        let store = CellCache::new((*world).clone(), cache).context("building the world store")?;
         print!("{}", world.content_summary());
         println!("world loaded in {:.1} s", loaded.elapsed().as_secs_f64());
         let mut cfg = ServerConfig { listen: args.listen, metrics: Some(args.metrics), ..ServerConfig::default() };
@@ -162,7 +162,8 @@ fn demo(
         }
         cfg.session.aoi.validate().context("--max-radius")?;
         let server_aoi = cfg.session.aoi;
-        let server = Server::start(store.shared(), cfg).await?;
+        let opts = ServeOptions { server: cfg, cells: Cells::OnDemand(cache), ..ServeOptions::default() };
+        let server = serve((*world).clone(), opts).await?;
         println!("canopy-server (in-process) on {} — fingerprint {}", server.local_addr(), server.fingerprint());
         if let Some(m) = server.metrics_addr() {
             println!("metrics: http://{m}/metrics");
@@ -171,7 +172,7 @@ fn demo(
         let mut window_closed = stop_rx.clone();
         let windowed = window.is_some();
         if let Some(tx) = window {
-            let _ = tx.send((server.local_addr().to_string(), server.fingerprint().to_string()));
+            let _ = tx.send((server.local_addr(), server.fingerprint().to_string()));
         }
         let trust = Trust::pinned(server.fingerprint()).context("the server's fingerprint")?;
         let mut cfg = BotsConfig::new(args.bots, ConnectConfig::new(server.local_addr(), trust));
@@ -234,7 +235,7 @@ fn demo(
             kib(sent),
             m.messages.iter().map(|(_, n)| n.load(Relaxed)).sum::<u64>(),
             m.records.load(Relaxed),
-            m.messages[MsgClass::Species].load(Relaxed),
+            m.messages[ServerMsgKind::Species].load(Relaxed),
             args.bots
         );
         server.shutdown(Duration::from_secs(1)).await;

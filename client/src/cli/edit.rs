@@ -3,13 +3,12 @@
 //! species table's programs to resolve species and parameter names, and prints what the server answered: the
 //! instance's id and the cell's new version.
 
-use canopy_client::net::Edges;
 use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
 use canopy_client::state::Event;
-use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_client::{ClientError, ConnectConfig, Connection};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::{CellCoord, InstanceId, SpeciesGraph};
@@ -18,15 +17,8 @@ use clap::Args;
 /// How to reach the server, and as whom.
 #[derive(Args, Debug, Clone)]
 pub struct ServerArgs {
-    /// The server's UDP address, or the edges of one world comma-separated (the first that answers is used).
-    #[arg(long, default_value = "127.0.0.1:4433", value_name = "HOST:PORT[,…]")]
-    server: Edges,
-    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
-    #[arg(long, conflicts_with = "insecure")]
-    cert_fingerprint: Option<String>,
-    /// Accept any server certificate (local use only).
-    #[arg(long)]
-    insecure: bool,
+    #[command(flatten)]
+    connect: super::ConnectArgs,
     /// The editor token (64 hexadecimal digits, as `canopy-server --add-editor` printed it); also read from
     /// `CANOPY_TOKEN`.
     #[arg(long, env = "CANOPY_TOKEN", hide_env_values = true)]
@@ -81,18 +73,19 @@ impl Client {
         args: &ServerArgs,
         at: impl Fn(&canopy_protocol::messages::Welcome) -> [f32; 2],
     ) -> anyhow::Result<Client> {
-        let trust = Trust::from_flags(args.cert_fingerprint.as_deref(), args.insecure)?;
-        let mut cfg = ConnectConfig::new_edges(&args.server, trust);
+        let trust = args.connect.trust()?;
+        let edges = args.connect.edges();
+        let mut cfg = ConnectConfig::new_edges(&edges, trust);
         cfg.client_name = "canopy-world".into();
         let timeout = Duration::from_secs_f64(args.timeout.clamp(0.1, 3600.0));
         cfg.timeout = timeout;
         cfg.token = match &args.token {
-            Some(t) => Some(canopy_server::editors::unhex(t.trim()).context("--token: expected hexadecimal digits")?),
+            Some(t) => Some(canopy_server::session::unhex(t.trim()).context("--token: expected hexadecimal digits")?),
             None => None,
         };
         let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let conn = rt.block_on(async {
-            let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(args.server.first()))?;
+            let endpoint = canopy_client::net::endpoint(canopy_client::net::loopback_for(edges.first()))?;
             let mut conn = Connection::connect_any(&endpoint, &cfg, None, |w| {
                 // A radius of a metre: the cell under the point, and what the server's rules add.
                 Viewpoint::at(1, at(w), 1.0)
@@ -260,14 +253,10 @@ pub fn bake(
     data: &std::path::Path,
     out: &std::path::Path,
 ) -> anyhow::Result<ExitCode> {
-    use canopy_protocol::record::dequantize;
-    use canopy_server::edits::{EditStore, Overlay, SqliteEditStore};
-    use canopy_server::store::{CellData, StoreHead};
-    use canopy_worlds::world::{CellKey, EMBEDDED_WORLDS};
+    use canopy_server::edits::{EditStore, SqliteEditStore};
+    use canopy_worlds::world::EMBEDDED_WORLDS;
 
     let world = super::load_world(manifest).map_err(|d| anyhow::anyhow!("{d}"))?;
-    // The server's grid of the world: cells are quantised exactly as a server holds them.
-    let grid = StoreHead::of_world(&world)?.world().grid;
     // The manifest's text and where its relative paths lead.
     let (text, base) = match manifest {
         Some(path) if path.exists() => {
@@ -286,52 +275,9 @@ pub fn bake(
         bail!("{}: no edits stored there", db.display());
     }
     let store = SqliteEditStore::open(data)?;
-    let mut lines = Vec::new();
-    let (mut fells, mut sets, mut plants) = (0usize, 0usize, 0usize);
-    let name = |species: u8| world.species[usize::from(species)].name.as_str();
-    let params = |species: u8, params: &[(u16, f32)]| -> String {
-        let g = &world.species[usize::from(species)].graph;
-        params.iter().map(|&(s, v)| format!(" {}={v}", g.params[usize::from(s)].name)).collect()
-    };
-    for (cell, version) in store.cells()? {
-        let key = CellKey { x: cell.x, z: cell.z };
-        if !world.contains_cell(key) {
-            eprintln!("warning: cell {}:{} has edits but lies outside the world; left out", cell.x, cell.z);
-            continue;
-        }
-        // The cell as the server holds it: the world function's placements, quantised in the cell.
-        let placements = world.expand_cell(key);
-        let base = CellData::from_placements(&grid, cell, world.species.len(), &placements)?;
-        let (records, overrides) = (&base.records, &base.overrides);
-        let overlay = Overlay::from_log(records.len() as u16, &store.load(cell)?)
-            .map_err(|e| anyhow::anyhow!("cell {}:{}: {e}", cell.x, cell.z))?;
-        let applied = overlay.apply_to(records, overrides);
-        let origin = grid.cell_origin(cell);
-        lines.push(format!("# cell {}:{} at version {version}", cell.x, cell.z));
-        // Overrides are sorted by record: each record's are one run.
-        let own = |i: usize| -> Vec<(u16, f32)> {
-            let lo = applied.overrides.partition_point(|o| usize::from(o.record) < i);
-            let hi = applied.overrides.partition_point(|o| usize::from(o.record) <= i);
-            applied.overrides[lo..hi].iter().map(|o| (o.slot, o.value)).collect()
-        };
-        for (i, r) in applied.records.iter().enumerate() {
-            let felled = applied.felled.binary_search(&(i as u16)).is_ok();
-            if i < placements.len() {
-                let p = &placements[i];
-                if felled {
-                    lines.push(format!("fell {} at {} {}", name(r.species), p.x, p.z));
-                    fells += 1;
-                } else if own(i) != p.params {
-                    lines.push(format!("set {} at {} {}{}", name(r.species), p.x, p.z, params(r.species, &own(i))));
-                    sets += 1;
-                }
-            } else if !felled {
-                let s = grid.cell_size;
-                let (x, z) = (dequantize(r.qx(), origin[0], s), dequantize(r.qz(), origin[1], s));
-                lines.push(format!("instance {} at {x} {z}{}", name(r.species), params(r.species, &own(i))));
-                plants += 1;
-            }
-        }
+    let canopy_server::Baked { lines, fells, sets, plants, outside } = canopy_server::bake(&world, &store)?;
+    for (x, z) in outside {
+        eprintln!("warning: cell {x}:{z} has edits but lies outside the world; left out");
     }
     let mut baked = rebase(&text, &base)?;
     baked.push_str(&format!(

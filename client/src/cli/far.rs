@@ -87,7 +87,7 @@ impl BotFarArgs {
 
 /// The root level of a world's summary hierarchy: the coarsest nodes reach 4 km (as a server's).
 pub fn root_level(cell_size: f32) -> u8 {
-    canopy_server::summaries::root_level(cell_size)
+    canopy_server::session::root_level(cell_size)
 }
 
 /// The summary nodes the far view wants around `eye` (x, z), records covering `record_radius`, computed through

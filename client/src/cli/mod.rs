@@ -30,13 +30,14 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Species tools: check, stats, amplify, export, list, demo.
+    /// Species tools: check, stats, amplify, export, nearfield, render, list, edit, demo.
     #[command(subcommand)]
     Species(species::SpeciesCommand),
-    /// Hypertrees (far-field volumes): check, generate, render, stats, reduce, union, clear, set, voxelise, bench.
+    /// Hypertrees (far-field volumes): list, check, generate, render, stats, reduce, union, clear, set, voxelise,
+    /// bench.
     #[command(subcommand)]
     Hypertree(hypertree::HypertreeCommand),
-    /// World manifests: stats (the embedded default world, or a manifest file).
+    /// Worlds: stats, plant, fell, set, bake, cell (manifests, and edits on a running server).
     #[command(subcommand)]
     World(world::WorldCommand),
     /// Bandwidth harness: procedural streaming against explicit geometry over emulated links; writes a report.
@@ -62,6 +63,43 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Demo(args) => demo::run(args),
         Command::Render(args) => render::run(args),
         Command::Walk(args) => walk::run(args),
+    }
+}
+
+/// Which server a client command connects to and how it trusts the server's certificate: one set of flags for
+/// `walk`, `bots`, `world plant|fell|set|cell` and `bandwidth`.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct ConnectArgs {
+    /// The server's UDP address, or the edges of one world comma-separated (`HOST:PORT,HOST:PORT`: a client whose
+    /// edge dies or closes resumes on another). Without it, `walk` and `bandwidth` start a server in this process,
+    /// and the other commands connect to 127.0.0.1:4433.
+    #[arg(long, value_name = "HOST:PORT[,…]")]
+    pub server: Option<canopy_client::net::Edges>,
+    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
+    #[arg(long, conflicts_with = "insecure")]
+    pub cert_fingerprint: Option<String>,
+    /// Accept any server certificate (local use only).
+    #[arg(long)]
+    pub insecure: bool,
+}
+
+impl ConnectArgs {
+    /// The address `canopy-server` listens on by default.
+    pub const DEFAULT_SERVER: &str = "127.0.0.1:4433";
+
+    /// The server's edges, or the default server's.
+    pub fn edges(&self) -> canopy_client::net::Edges {
+        self.server.clone().unwrap_or_else(|| Self::DEFAULT_SERVER.parse().expect("the default address parses"))
+    }
+
+    /// How to trust the server's certificate (one of the two flags is needed).
+    pub fn trust(&self) -> anyhow::Result<canopy_client::Trust> {
+        Ok(canopy_client::Trust::from_flags(self.cert_fingerprint.as_deref(), self.insecure)?)
+    }
+
+    /// Whether any flag was given (the commands with a server in process refuse trust flags without `--server`).
+    pub fn trust_given(&self) -> bool {
+        self.cert_fingerprint.is_some() || self.insecure
     }
 }
 

@@ -31,6 +31,7 @@ use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::summary::FarView;
+use canopy_protocol::sync::Locked;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneFar, SceneInstance};
 use canopy_worlds::world::Ground;
@@ -49,20 +50,13 @@ use super::walk_edit::{EditKeys, EditLink};
 /// Options of `canopy walk`.
 #[derive(Args, Debug)]
 pub struct WalkArgs {
-    /// The server's UDP address, or the edges of one world comma-separated (`HOST:PORT,HOST:PORT`: the walk
-    /// resumes on another edge when its own dies or closes). Default: start canopy-server in this process on
-    /// `--world`, or on the embedded default world, and connect to it.
-    #[arg(long, value_name = "HOST:PORT[,…]")]
-    server: Option<Edges>,
+    /// Where to walk (without `--server`: canopy-server in this process on `--world`, or on the embedded default
+    /// world).
+    #[command(flatten)]
+    pub(super) connect: super::ConnectArgs,
     /// World manifest for the in-process server (only without `--server`).
     #[arg(long, conflicts_with = "server")]
     world: Option<PathBuf>,
-    /// Pin the server's certificate by its SHA-256 fingerprint (as `canopy-server` prints it).
-    #[arg(long, conflicts_with = "insecure")]
-    cert_fingerprint: Option<String>,
-    /// Accept any server certificate (local use only).
-    #[arg(long)]
-    insecure: bool,
     /// With `--server`: the editor token (64 hexadecimal digits, as `canopy-server --add-editor` printed it), which
     /// turns on the editing keys; also read from `CANOPY_TOKEN`. The in-process server needs none: it makes the
     /// walker an editor itself.
@@ -101,7 +95,7 @@ pub struct WalkArgs {
     autopilot_turn: f32,
     /// Close after this many seconds (0: when the window is closed).
     #[arg(long, default_value_t = 0.0)]
-    exit_after: f64,
+    pub(super) exit_after: f64,
     /// Present without waiting for vertical sync (for measuring frame rates).
     #[arg(long)]
     no_vsync: bool,
@@ -149,10 +143,6 @@ struct Shared {
     stop: AtomicBool,
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
     let state = conn.state();
     let welcome = conn.welcome();
@@ -196,7 +186,7 @@ async fn net_session(
 ) -> anyhow::Result<()> {
     let bind: SocketAddr = if cfg.server.is_ipv6() { "[::]:0".parse()? } else { "0.0.0.0:0".parse()? };
     let endpoint = canopy_client::net::endpoint(bind)?;
-    let start = *lock(&shared.pose);
+    let start = *shared.pose.locked();
     let mut conn = Connection::connect_any(&endpoint, &cfg, cache, |_| Viewpoint {
         seq: 0,
         position: start.position,
@@ -213,13 +203,13 @@ async fn net_session(
     let welcome = Arc::clone(conn.welcome());
     let ground = canopy_client::world::ground(&welcome.world.terrain).context("rebuilding the terrain")?;
     {
-        let mut s = lock(&shared.status);
+        let mut s = shared.status.locked();
         s.connected = true;
         s.world = welcome.world.name.clone();
         s.species_total = welcome.species.len();
     }
     let mut generation = 1u64;
-    *lock(&shared.scene) = Some(Arc::new(snapshot(&conn, &ground, generation)));
+    *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, generation)));
     let grid = conn.welcome().world.grid;
     let mut sent_at = Instant::now();
     loop {
@@ -229,13 +219,13 @@ async fn net_session(
             // The edge is gone: resume on another with what this session held, at the camera's pose now.
             Err(e) if cfg.edges.len() > 1 && e.downcast_ref::<ClientError>().is_some_and(ClientError::edge_lost) => {
                 let lost = conn.server();
-                let pose = *lock(&shared.pose);
+                let pose = *shared.pose.locked();
                 let vp = Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius };
-                lock(&shared.status).edit = Some(format!("edge {lost} lost ({e}); failing over"));
+                shared.status.locked().edit = Some(format!("edge {lost} lost ({e}); failing over"));
                 conn = conn.fail_over(&endpoint, &cfg, vp).await.context("failing over to another edge")?;
                 let line = format!("edge {lost} lost; resumed on {}", conn.server());
                 println!("{line}");
-                lock(&shared.status).edit = Some(line);
+                shared.status.locked().edit = Some(line);
                 sent_at = Instant::now();
             }
             r => break r?,
@@ -271,7 +261,7 @@ async fn stream(
                     changed |= matches!(e, Event::Changed { .. });
                     if let Some(line) = edits.as_mut().and_then(|l| l.answer(&e)) {
                         println!("{line}");
-                        lock(&shared.status).edit = Some(line);
+                        shared.status.locked().edit = Some(line);
                     }
                 };
                 seen(ev?);
@@ -290,8 +280,8 @@ async fn stream(
                 }
             }
             _ = tick.tick() => {
-                let pose = *lock(&shared.pose);
-                let far = *lock(&shared.far);
+                let pose = *shared.pose.locked();
+                let far = *shared.far.locked();
                 if let Some(f) = far {
                     conn.set_far_view(FarView { altitude: pose.altitude.max(2.0), ..f }).await?;
                 }
@@ -307,11 +297,11 @@ async fn stream(
         }
         if dirty && (changed || last_publish.elapsed() > Duration::from_millis(250)) {
             *generation += 1;
-            *lock(&shared.scene) = Some(Arc::new(snapshot(conn, ground, *generation)));
+            *shared.scene.locked() = Some(Arc::new(snapshot(conn, ground, *generation)));
             (dirty, changed) = (false, false);
             last_publish = Instant::now();
         }
-        let mut s = lock(&shared.status);
+        let mut s = shared.status.locked();
         s.bytes_received = conn.bytes_received();
         s.records = conn.state().record_count();
         s.species_held = conn.state().species_held();
@@ -331,12 +321,12 @@ fn net_thread(
         let rt = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
             Ok(rt) => rt,
             Err(e) => {
-                lock(&shared.status).error = Some(format!("tokio runtime: {e}"));
+                shared.status.locked().error = Some(format!("tokio runtime: {e}"));
                 return;
             }
         };
         if let Err(e) = rt.block_on(net_session(cfg, reach, cache, Arc::clone(&shared), edits)) {
-            lock(&shared.status).error = Some(format!("{e:#}"));
+            shared.status.locked().error = Some(format!("{e:#}"));
         }
     })
 }
@@ -458,7 +448,7 @@ impl App {
             Some(scene) => self.camera.position.y - scene.ground.height(self.camera.position.x, self.camera.position.z),
             None => self.camera.position.y,
         };
-        *lock(&self.shared.pose) = Pose {
+        *self.shared.pose.locked() = Pose {
             position: [self.camera.position.x, self.camera.position.z],
             yaw: self.camera.yaw,
             velocity: [v.x, v.z],
@@ -467,7 +457,7 @@ impl App {
     }
 
     fn status_line(&self) -> String {
-        let s = lock(&self.shared.status).clone();
+        let s = self.shared.status.locked().clone();
         let st = &self.stats;
         let net = match (&s.error, s.connected) {
             (Some(e), _) => format!("network error: {e}"),
@@ -505,7 +495,7 @@ impl App {
         let Some(keys) = self.edit.as_mut() else { return };
         if let Some(line) = keys.key(code, &self.camera, self.scene.as_deref()) {
             println!("{line}");
-            lock(&self.shared.status).edit = Some(line);
+            self.shared.status.locked().edit = Some(line);
             // Show it now rather than at the next title update.
             self.last_title = self.last_title.checked_sub(Duration::from_secs(1)).unwrap_or(self.last_title);
         }
@@ -664,49 +654,35 @@ impl ApplicationHandler for App {
 /// A canopy-server in this process, for `canopy walk` without `--server`: it takes edits from the walker alone.
 struct LocalServer {
     runtime: tokio::runtime::Runtime,
-    server: canopy_server::Server,
-    edits: Arc<canopy_server::EditService>,
+    server: canopy_server::Served,
     /// The walker's editor token, made for this session.
     token: Vec<u8>,
 }
 
 fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::Result<LocalServer> {
-    use canopy_server::edits::{EditStore, MemoryEditStore, SqliteEditStore};
-    use canopy_server::{EditService, Editors, LiveStore, editors};
+    use canopy_server::session::{Editors, editor_line, new_token};
+    use canopy_server::{Edits, ServeOptions, ServerConfig, serve};
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let world = super::load_world(world.map(PathBuf::as_path)).map_err(|d| anyhow::anyhow!("{d}"))?;
     let (name, eager) = (world.name.clone(), world.instances.len());
-    // A world expanded at load is served whole; a large one (the highlands) cell by cell on demand, as
-    // canopy-server serves it.
-    let store = if world.cell_count() > canopy_worlds::world::EAGER_CELLS as u64 {
-        canopy_server::CellCache::new(world, canopy_server::CellCacheConfig::default())
-            .context("building the world store")?
-            .shared()
-    } else {
-        canopy_server::GridStore::from_world(&world).context("building the world store")?.shared()
+    let token = new_token().context("making the walker's editor token")?.to_vec();
+    let walker = Editors::parse("canopy walk", &editor_line("walker", &token, None, None))?;
+    let mut opts = ServeOptions {
+        server: ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), ..Default::default() },
+        // Edits as canopy-server keeps them (`--data DIR`: the same `edits.sqlite`), or in memory for this session.
+        edits: data_dir.map_or(Edits::Memory, |dir| Edits::Sqlite(dir.clone())),
+        ..ServeOptions::default()
     };
-    // Edits as canopy-server keeps them (`--data DIR`: the same `edits.sqlite`), or in memory for this session.
-    let (edit_store, kept): (Arc<dyn EditStore>, String) = match data_dir {
-        Some(dir) => {
-            let s = SqliteEditStore::open(dir).with_context(|| format!("the edit store in {}", dir.display()))?;
-            let kept = format!("edits kept in {} ({} stored)", s.path().display(), s.count()?);
-            (Arc::new(s), kept)
-        }
-        None => (Arc::new(MemoryEditStore::new()), "edits kept in memory".into()),
-    };
-    let live = Arc::new(LiveStore::new(store, edit_store, 64 << 20));
-    let edits = EditService::start(Arc::clone(&live));
-    let token = editors::new_token().context("making the walker's editor token")?.to_vec();
-    let walker = Editors::parse("canopy walk", &editors::editor_line("walker", &token, None, None))?;
-    let mut cfg = canopy_server::ServerConfig {
-        listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        edits: Some(Arc::clone(&edits)),
-        ..Default::default()
-    };
-    cfg.session.editors = Some(Arc::new(walker));
-    let server = runtime.block_on(canopy_server::Server::start(live, cfg))?;
-    println!("canopy-server (in-process) on {} serving {name}: {eager} instances at load; {kept}", server.local_addr());
-    Ok(LocalServer { runtime, server, edits, token })
+    opts.server.session.editors = Some(Arc::new(walker));
+    // A world expanded at load is served whole; a large one (the highlands) cell by cell on demand (`Cells::Auto`).
+    let server = runtime.block_on(serve(world, opts))?;
+    println!(
+        "canopy-server (in-process) on {} serving {name}: {eager} instances at load; {} edits kept in {}",
+        server.local_addr(),
+        server.edit_count(),
+        server.edits_at()
+    );
+    Ok(LocalServer { runtime, server, token })
 }
 
 /// Run `canopy walk`.
@@ -714,26 +690,26 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let spec = camera_spec(args.camera.as_deref())?;
     // The fog for the starting camera's height above a ground not known yet (taken as 0).
     let cfg = args.renderer.config(spec.resolve(&|_, _| 0.0).position.y)?;
-    let local = match args.server {
+    let local = match &args.connect.server {
         Some(_) => None,
+        None if args.connect.trust_given() => bail!("--cert-fingerprint and --insecure name the trust of a --server"),
         None => Some(local_server(args.world.as_ref(), args.data_dir.as_ref())?),
     };
     let token = match (&local, &args.token) {
         (Some(l), _) => Some(l.token.clone()),
         (None, Some(t)) => Some(
-            canopy_server::editors::unhex(t.trim())
+            canopy_server::session::unhex(t.trim())
                 .filter(|t| !t.is_empty())
                 .context("--token: expected hexadecimal digits")?,
         ),
         (None, None) => None,
     };
-    let (server, trust) = match (&local, args.server.clone(), &args.cert_fingerprint, args.insecure) {
-        (Some(l), _, _, _) => (
+    let (server, trust) = match &local {
+        Some(l) => (
             Edges::one(l.server.local_addr()),
             Trust::pinned(l.server.fingerprint()).context("the in-process server's fingerprint")?,
         ),
-        (None, Some(edges), f, insecure) => (edges, Trust::from_flags(f.as_deref(), insecure)?),
-        (None, None, _, _) => unreachable!("without --server an in-process server runs"),
+        None => (args.connect.edges(), args.connect.trust()?),
     };
     if !(args.radius.is_finite() && args.radius > 0.0 && args.speed.is_finite() && args.speed > 0.0) {
         bail!("--radius and --speed must be positive");
@@ -750,13 +726,13 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     };
     let shared = Arc::new(Shared::default());
     let camera = spec.resolve(&|_, _| 0.0);
-    *lock(&shared.pose) = Pose {
+    *shared.pose.locked() = Pose {
         position: [camera.position.x, camera.position.z],
         yaw: camera.yaw,
         velocity: [0.0; 2],
         altitude: camera.position.y,
     };
-    *lock(&shared.far) = args.far.view(args.height, camera.fov_y, camera.position.y)?;
+    *shared.far.locked() = args.far.view(args.height, camera.fov_y, camera.position.y)?;
     let mut connect = ConnectConfig::new_edges(&server, trust);
     connect.client_name = "canopy walk".into();
     // An editor's keys send their edits through the network thread, which sends them on the connection.
@@ -800,7 +776,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let ran = event_loop.run_app(&mut app);
     shared.stop.store(true, Ordering::Relaxed);
     let elapsed = app.started.elapsed().as_secs_f64();
-    let status = lock(&shared.status).clone();
+    let status = shared.status.locked().clone();
     println!("{}", app.status_line());
     println!(
         "frames presented: {} in {:.1} s ({:.1} fps); instances held {}, species {}/{}, {} bytes received",
@@ -816,7 +792,6 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let _ = net.join();
     if let Some(l) = local {
         l.runtime.block_on(l.server.shutdown(Duration::from_secs(1)));
-        l.edits.stop();
     }
     ran.context("the window's event loop")?;
     if let Some(e) = app.error {

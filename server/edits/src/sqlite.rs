@@ -16,6 +16,7 @@ use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
 use canopy_protocol::CellCoord;
+use canopy_protocol::sync::Locked;
 use rusqlite::{Connection, ErrorCode, OpenFlags, TransactionBehavior, ffi, params};
 
 use crate::log::{CellEdit, StoredEdit};
@@ -85,11 +86,11 @@ impl SqliteEditStore {
 
     fn writer(&self) -> MutexGuard<'_, Connection> {
         // A panic while the lock was held dropped its transaction, which rolled back: the connection is usable.
-        self.writer.lock().unwrap_or_else(|e| e.into_inner())
+        self.writer.locked()
     }
 
     fn reader(&self) -> MutexGuard<'_, Connection> {
-        self.reader.lock().unwrap_or_else(|e| e.into_inner())
+        self.reader.locked()
     }
 }
 

@@ -4,6 +4,7 @@ use std::collections::BTreeMap;
 use std::sync::Mutex;
 
 use canopy_protocol::CellCoord;
+use canopy_protocol::sync::Locked;
 
 use crate::log::StoredEdit;
 
@@ -71,7 +72,7 @@ impl MemoryEditStore {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<(CellCoord, u32), StoredEdit>> {
-        self.log.lock().unwrap_or_else(|e| e.into_inner())
+        self.log.locked()
     }
 }
 

@@ -14,11 +14,11 @@ use canopy_protocol::messages::TerrainDesc;
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, InstanceId, ServerMsg, SpeciesGraph};
 use canopy_server::LiveStore;
-use canopy_server::editing::{CellChange, EditJob, EditService};
-use canopy_server::editors::{Editors, editor_line};
 use canopy_server::edits::{EditStore, MemoryEditStore};
+use canopy_server::session::{Editors, editor_line};
+use canopy_server::session::{PlacedInstance, StoreBuilder, WorldStore};
 use canopy_server::session::{Session, SessionConfig, StreamId};
-use canopy_server::store::{PlacedInstance, StoreBuilder, WorldStore};
+use canopy_server::{CellChange, EditJob, EditService};
 
 pub const CELL: f32 = 32.0;
 pub const ALICE: [u8; 32] = [1; 32];

@@ -48,7 +48,9 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
+use canopy_protocol::lru::Lru;
 use canopy_protocol::summary::{COVER_SIDE, MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover};
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, Expr, Func, Op};
 
 use super::cells::Ground;
@@ -645,14 +647,17 @@ fn node_with(world: &World, model: &Model, key: NodeKey) -> NodeSummary {
 ///
 /// A memo shared between threads is asked through [`Summaries::get_shared`], which computes the leaves outside its
 /// lock. Two threads asking for overlapping nodes at once may compute a block twice; both get the same nodes.
-#[derive(Debug)]
 pub struct Summaries {
     world: Arc<World>,
     model: Arc<Model>,
     capacity: usize,
-    tick: u64,
-    nodes: BTreeMap<NodeKey, (u64, Arc<NodeSummary>)>,
-    used: BTreeMap<u64, NodeKey>,
+    nodes: Lru<NodeKey, Arc<NodeSummary>>,
+}
+
+impl std::fmt::Debug for Summaries {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Summaries").field("capacity", &self.capacity).field("nodes", &self.nodes.len()).finish()
+    }
 }
 
 /// What computing one node needs beyond the cache ([`Summaries::plan`]): the blocks of leaves to compute.
@@ -716,7 +721,7 @@ impl Summaries {
     /// A cache of at most `capacity` nodes (at least 1).
     pub fn with_capacity(world: Arc<World>, capacity: usize) -> Summaries {
         let model = Arc::new(Model::new(&world));
-        Summaries { world, model, capacity: capacity.max(1), tick: 0, nodes: BTreeMap::new(), used: BTreeMap::new() }
+        Summaries { world, model, capacity: capacity.max(1), nodes: Lru::new() }
     }
 
     /// The world.
@@ -736,7 +741,7 @@ impl Summaries {
 
     /// A cached node, computing nothing and leaving the order of use as it is.
     pub fn peek(&self, key: NodeKey) -> Option<&Arc<NodeSummary>> {
-        self.nodes.get(&key).map(|(_, n)| n)
+        self.nodes.peek(&key)
     }
 
     /// The summary of `key`: computed (and cached, with the nodes computed on the way: every node of level ≥ 1 of
@@ -752,7 +757,7 @@ impl Summaries {
     /// under its lock; the leaves are computed outside it, so several threads compute at once. A poisoned lock is
     /// taken as it is (the memo holds only pure results).
     pub fn get_shared(memo: &Mutex<Summaries>, key: NodeKey) -> Arc<NodeSummary> {
-        let lock = || memo.lock().unwrap_or_else(|e| e.into_inner());
+        let lock = || memo.locked();
         let plan = lock().plan(key);
         match plan {
             Ok(hit) => hit,
@@ -827,25 +832,13 @@ impl Summaries {
 
     /// A cached node, marked as just used.
     fn touch(&mut self, key: NodeKey) -> Option<Arc<NodeSummary>> {
-        let (used, node) = self.nodes.get_mut(&key)?;
-        self.tick += 1;
-        self.used.remove(used);
-        *used = self.tick;
-        self.used.insert(self.tick, key);
-        Some(node.clone())
+        self.nodes.get(&key).map(|n| n.clone())
     }
 
     /// Cache a node, evicting the least recently used past the capacity.
     fn insert(&mut self, node: Arc<NodeSummary>) {
-        self.tick += 1;
-        let key = node.key;
-        if let Some((old, _)) = self.nodes.insert(key, (self.tick, node)) {
-            self.used.remove(&old);
-        }
-        self.used.insert(self.tick, key);
-        while self.nodes.len() > self.capacity {
-            let Some((_, oldest)) = self.used.pop_first() else { break };
-            self.nodes.remove(&oldest);
-        }
+        // Each node counts one: the bound is a count of nodes.
+        self.nodes.insert(node.key, node, 1);
+        self.nodes.evict_to(self.capacity, None);
     }
 }

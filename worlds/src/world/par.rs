@@ -4,6 +4,8 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
+use canopy_protocol::sync::Locked;
+
 /// Most threads one map uses.
 const MAX_THREADS: usize = 16;
 
@@ -45,7 +47,7 @@ pub(crate) fn each<J: Send>(jobs: Vec<J>, f: impl Fn(J) + Sync) {
     let queue = std::sync::Mutex::new(jobs);
     let work = || {
         loop {
-            let job = queue.lock().unwrap_or_else(|e| e.into_inner()).pop();
+            let job = queue.locked().pop();
             match job {
                 Some(j) => f(j),
                 None => return,

@@ -7,10 +7,12 @@
 //! Everything here is deterministic: amplification and meshing are bit-exact, meshoptimizer's encoders are
 //! deterministic for the same input, and deflate runs at a fixed level.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 
+use canopy_protocol::lru::Lru;
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, InstanceId};
 use canopy_server::session::GeometrySource;
 use canopy_worlds::amplify::{Budget, Instance, amplify};
@@ -172,13 +174,17 @@ pub fn encode_transforms(world: &World, cell: CellCoord, records: Range<u16>) ->
     deflate(&blob)
 }
 
-/// A byte-bounded cache of encoded blobs by instance, evicting the oldest first.
-#[derive(Debug, Default)]
+/// A byte-bounded cache of encoded blobs by instance, evicting the oldest first (a look-up is not a use).
+#[derive(Default)]
 pub struct BlobCache {
-    map: BTreeMap<InstanceId, Arc<Vec<u8>>>,
-    order: VecDeque<InstanceId>,
-    bytes: usize,
+    blobs: Lru<InstanceId, Arc<Vec<u8>>>,
     limit: usize,
+}
+
+impl std::fmt::Debug for BlobCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BlobCache").field("bytes", &self.blobs.cost()).field("limit", &self.limit).finish()
+    }
 }
 
 impl BlobCache {
@@ -189,38 +195,32 @@ impl BlobCache {
 
     /// The blob for `key`, if cached.
     pub fn get(&self, key: InstanceId) -> Option<Arc<Vec<u8>>> {
-        self.map.get(&key).cloned()
+        self.blobs.peek(&key).cloned()
     }
 
     /// Keep `blob` for `key`, evicting the oldest entries to stay within the limit.
     pub fn insert(&mut self, key: InstanceId, blob: Arc<Vec<u8>>) {
-        if blob.len() > self.limit || self.map.contains_key(&key) {
+        if blob.len() > self.limit || self.blobs.contains(&key) {
             return;
         }
-        while self.bytes + blob.len() > self.limit {
-            let Some(old) = self.order.pop_front() else { break };
-            if let Some(b) = self.map.remove(&old) {
-                self.bytes -= b.len();
-            }
-        }
-        self.bytes += blob.len();
-        self.order.push_back(key);
-        self.map.insert(key, blob);
+        let bytes = blob.len();
+        self.blobs.insert(key, blob, bytes);
+        self.blobs.evict_to(self.limit, Some(&key));
     }
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.bytes
+        self.blobs.cost()
     }
 
     /// Entries held.
     pub fn len(&self) -> usize {
-        self.map.len()
+        self.blobs.len()
     }
 
     /// Whether it holds nothing.
     pub fn is_empty(&self) -> bool {
-        self.map.is_empty()
+        self.blobs.is_empty()
     }
 }
 
@@ -253,10 +253,6 @@ impl std::fmt::Debug for MeshSource {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
 impl MeshSource {
     /// A source for `world` caching at most `cache_bytes` of instance meshes.
     pub fn new(world: Arc<World>, cache_bytes: usize) -> MeshSource {
@@ -270,14 +266,14 @@ impl MeshSource {
 
     /// What it has encoded so far.
     pub fn stats(&self) -> SourceStats {
-        *lock(&self.stats)
+        *self.stats.locked()
     }
 }
 
 impl GeometrySource for MeshSource {
     fn instance_mesh(&self, id: InstanceId) -> Arc<Vec<u8>> {
-        if let Some(b) = lock(&self.instances).get(id) {
-            lock(&self.stats).hits += 1;
+        if let Some(b) = self.instances.locked().get(id) {
+            self.stats.locked().hits += 1;
             return b;
         }
         let Some(index) = self.world.index_of(id) else { return Arc::new(Vec::new()) };
@@ -285,22 +281,22 @@ impl GeometrySource for MeshSource {
         let m = instance_mesh(&self.world, index);
         let blob = Arc::new(encode_mesh(&m).map(|(b, _)| b).unwrap_or_default());
         {
-            let mut s = lock(&self.stats);
+            let mut s = self.stats.locked();
             s.instance_meshes += 1;
             s.instance_bytes += blob.len() as u64;
             s.instance_vertices += m.vertex_count() as u64;
             s.encode_seconds += t.elapsed().as_secs_f64();
         }
-        lock(&self.instances).insert(id, Arc::clone(&blob));
+        self.instances.locked().insert(id, Arc::clone(&blob));
         blob
     }
 
     fn species_mesh(&self, species: u8) -> Arc<Vec<u8>> {
-        if let Some(b) = lock(&self.species).get(&species) {
+        if let Some(b) = self.species.locked().get(&species) {
             return Arc::clone(b);
         }
         let blob = Arc::new(encode_mesh(&species_mesh(&self.world, species)).map(|(b, _)| b).unwrap_or_default());
-        lock(&self.species).insert(species, Arc::clone(&blob));
+        self.species.locked().insert(species, Arc::clone(&blob));
         blob
     }
 

@@ -30,8 +30,8 @@ use std::time::{Duration, Instant};
 
 use canopy_protocol::messages::ByKind;
 use canopy_protocol::summary::FarView;
-use canopy_server::session::{GeometrySource, Payload, PayloadMode, SessionConfig};
-use canopy_server::{CellCache, CellCacheConfig, GridStore, Server, ServerConfig, WorldStore};
+use canopy_server::session::{GeometrySource, GridStore, Payload, PayloadMode, SessionConfig, WorldStore};
+use canopy_server::{CellCacheConfig, ServeError, ServeOptions, Served, ServerConfig, serve, serve_store};
 use canopy_worlds::world::World;
 
 use crate::bots::{BotReport, PathKind};
@@ -221,7 +221,7 @@ impl BandwidthConfig {
 pub enum BandwidthError {
     /// The server did not start.
     #[error("starting the server: {0}")]
-    Server(#[from] canopy_server::StartError),
+    Server(#[from] ServeError),
     /// The world store could not be built.
     #[error("building the world store: {0}")]
     Store(String),
@@ -509,13 +509,17 @@ enum Cells {
 }
 
 impl Cells {
-    fn store(&self, batch_records: usize) -> Result<Arc<dyn WorldStore>, BandwidthError> {
+    /// A server for one scenario, as `canopy-server` would serve these cells.
+    async fn serve(&self, session: SessionConfig) -> Result<Served, ServeError> {
+        let batch_records = session.batch_records;
+        let server = ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), session, ..ServerConfig::default() };
+        let opts = ServeOptions { server, ..ServeOptions::default() };
         match self {
-            Cells::Grid(store) => Ok(Arc::clone(store)),
+            Cells::Grid(store) => serve_store(Arc::clone(store), opts).await,
             Cells::Cache(world) => {
-                let cfg = CellCacheConfig { batch_records, ..CellCacheConfig::default() };
-                let cache = CellCache::new((**world).clone(), cfg).map_err(|e| BandwidthError::Store(e.to_string()))?;
-                Ok(cache.shared())
+                let cells =
+                    canopy_server::Cells::OnDemand(CellCacheConfig { batch_records, ..CellCacheConfig::default() });
+                serve((**world).clone(), ServeOptions { cells, ..opts }).await
             }
         }
     }
@@ -525,7 +529,7 @@ impl Cells {
 /// server it must be the world that server serves), write the report, and return what was measured.
 ///
 /// A world materialised at load is served from a [`GridStore`] shared by the scenarios; any other through a
-/// [`CellCache`], cold in each scenario (a flight's cells are expanded as it asks for them, as by
+/// [`canopy_server::CellCache`], cold in each scenario (a flight's cells are expanded as it asks for them, as by
 /// `canopy-server`). Visible completeness is computed after each scenario's bots are done and its server is shut
 /// down, from what each bot held at each sample, so that expanding the ground truth's cells neither delays the
 /// bots nor takes CPU from the server.
@@ -577,10 +581,7 @@ pub fn run(cfg: &BandwidthConfig, world: Arc<World>) -> Result<Outcome, Bandwidt
                     session.bandwidth = Some(((rate as f64 / 8.0) * cfg.pace).max(1.0) as u64);
                 }
                 session.payload = Payload::new(scenario.mode, Arc::clone(&source) as Arc<dyn GeometrySource>);
-                let store = cells.store(session.batch_records)?;
-                let server_cfg =
-                    ServerConfig { listen: SocketAddr::from(([127, 0, 0, 1], 0)), session, ..ServerConfig::default() };
-                let server = server_rt.block_on(Server::start(store, server_cfg))?;
+                let server = server_rt.block_on(cells.serve(session))?;
                 let trust = Trust::pinned(server.fingerprint())
                     .ok_or_else(|| BandwidthError::Config("the server's fingerprint is not pinnable".into()))?;
                 let addr = server.local_addr();

@@ -87,7 +87,7 @@ pub fn table(world: &World, seeds: u32) -> Vec<SizeRow> {
         .iter()
         .filter_map(|entry| entry.load().ok().map(|g| species_row(entry.name(), &g, seeds)))
         .collect();
-    let desc = canopy_server::terrain::describe(world);
+    let desc = canopy_server::session::terrain_desc(world);
     let encoded = postcard::to_allocvec(&desc).map(|v| v.len() as u64).unwrap_or(0);
     let squares = world.terrain.squares();
     let triangles = world.terrain.triangle_count();

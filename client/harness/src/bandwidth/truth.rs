@@ -10,7 +10,6 @@
 //! hundred map look-ups), and [`evaluate`] computes visible completeness from the snapshots once the bots are done,
 //! expanding only the cells the samples cover, on several threads.
 
-use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
@@ -18,6 +17,8 @@ use std::time::Instant;
 
 use canopy_client::state::ClientState;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::lru::Lru;
+use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, InstanceId};
 use canopy_worlds::world::{CellKey, World};
 
@@ -32,27 +33,25 @@ pub const DEFAULT_MEMO_CELLS: usize = 8192;
 type CellPositions = Arc<[[f32; 2]]>;
 
 /// The cells of a world as functions of the cell, most recently used kept.
-#[derive(Debug)]
 struct Memo {
     capacity: usize,
-    cells: HashMap<CellCoord, (CellPositions, u64)>,
-    by_use: BTreeMap<u64, CellCoord>,
-    clock: u64,
+    cells: Lru<CellCoord, CellPositions>,
+}
+
+impl std::fmt::Debug for Memo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Memo").field("capacity", &self.capacity).field("cells", &self.cells.len()).finish()
+    }
 }
 
 impl Memo {
     fn new(capacity: usize) -> Memo {
-        Memo { capacity: capacity.max(1), cells: HashMap::new(), by_use: BTreeMap::new(), clock: 0 }
+        Memo { capacity: capacity.max(1), cells: Lru::new() }
     }
 
     /// The cell if memoised, now the most recently used.
     fn get(&mut self, c: CellCoord) -> Option<CellPositions> {
-        let (cell, used) = self.cells.get_mut(&c)?;
-        self.by_use.remove(used);
-        self.clock += 1;
-        *used = self.clock;
-        self.by_use.insert(self.clock, c);
-        Some(Arc::clone(cell))
+        self.cells.get(&c).map(|cell| Arc::clone(cell))
     }
 
     /// Keep `cell` (unless another thread memoised it meanwhile: then that one), the least recently used going
@@ -61,13 +60,9 @@ impl Memo {
         if let Some(had) = self.get(c) {
             return had;
         }
-        self.clock += 1;
-        self.cells.insert(c, (Arc::clone(&cell), self.clock));
-        self.by_use.insert(self.clock, c);
-        while self.cells.len() > self.capacity {
-            let Some((_, old)) = self.by_use.pop_first() else { break };
-            self.cells.remove(&old);
-        }
+        // Each cell counts one: the bound is a count of cells.
+        self.cells.insert(c, Arc::clone(&cell), 1);
+        self.cells.evict_to(self.capacity, None);
         cell
     }
 }
@@ -170,7 +165,7 @@ impl GroundTruth {
             seconds: self.nanos.load(Relaxed) as f64 * 1e-9,
             memoised: match &self.source {
                 Source::Instances => 0,
-                Source::Function(m) => m.lock().unwrap_or_else(|e| e.into_inner()).cells.len(),
+                Source::Function(m) => m.locked().cells.len(),
             },
         }
     }
@@ -185,7 +180,7 @@ impl GroundTruth {
     /// A cell from the world's function: memoised, or expanded now (outside the lock, so that threads expand
     /// different cells at once).
     fn function_cell(&self, memo: &Mutex<Memo>, c: CellCoord) -> CellPositions {
-        let lock = || memo.lock().unwrap_or_else(|e| e.into_inner());
+        let lock = || memo.locked();
         if let Some(cell) = lock().get(c) {
             self.hits.fetch_add(1, Relaxed);
             return cell;
@@ -206,8 +201,8 @@ impl GroundTruth {
     pub fn prefetch(&self, cells: &[CellCoord], threads: usize) {
         let Source::Function(memo) = &self.source else { return };
         let missing: Vec<CellCoord> = {
-            let m = memo.lock().unwrap_or_else(|e| e.into_inner());
-            cells.iter().copied().filter(|c| !m.cells.contains_key(c)).collect()
+            let m = memo.locked();
+            cells.iter().copied().filter(|c| !m.cells.contains(c)).collect()
         };
         let threads = threads.clamp(1, missing.len().max(1));
         if threads == 1 {
@@ -343,10 +338,10 @@ mod tests {
         // (1, 0) is the least recently used now: it goes.
         m.insert(c(2), cell(2.0));
         assert!(m.get(c(1)).is_none() && m.get(c(0)).is_some() && m.get(c(2)).is_some());
-        assert_eq!((m.cells.len(), m.by_use.len()), (2, 2));
+        assert_eq!((m.cells.len(), m.cells.cost()), (2, 2));
         // A cell memoised twice keeps the first (another thread's) copy.
         assert_eq!(m.insert(c(2), cell(9.0))[0], [2.0, 2.0]);
-        assert_eq!((m.cells.len(), m.by_use.len()), (2, 2));
+        assert_eq!((m.cells.len(), m.cells.cost()), (2, 2));
     }
 
     /// A small world of 8 m cells: a species and one instance per `(x, z)`, in that order.

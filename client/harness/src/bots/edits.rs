@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 use canopy_client::state::{Event, HeldCell};
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::edit::{EditOp, EditOutcome, EditResult};
+use canopy_protocol::sync::Locked;
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{CellCoord, InstanceId};
 
@@ -311,7 +312,7 @@ impl FanOut {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
-        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+        self.inner.locked()
     }
 
     /// `editor`'s edit sent at `sent` made `cell` `version` (its answer said so).

@@ -23,6 +23,7 @@ use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::edit::EditOp;
 use canopy_protocol::messages::{ByKind, ServerMsgKind};
 use canopy_protocol::summary::FarView;
+use canopy_protocol::sync::Locked;
 use canopy_worlds::world::World;
 use quinn::Endpoint;
 
@@ -320,7 +321,7 @@ pub async fn connect_walking_within(
         }
         let wk = Walker::new(walk.path, walk.speed, lo, hi, walk.seed).with_altitude(walk.altitude);
         let vp = wk.viewpoint(radius);
-        *walker.lock().unwrap_or_else(|e| e.into_inner()) = Some(wk);
+        *walker.locked() = Some(wk);
         vp
     };
     let conn = Connection::connect_any(endpoint, connect, cache, place).await?;

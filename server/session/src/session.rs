@@ -29,7 +29,8 @@ use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
 use canopy_protocol::edit::{EditOp, EditOutcome, EditResult, ResumeCell};
 use canopy_protocol::messages::{
-    ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release, ServerStreaming,
+    ByKind, ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release,
+    ServerMsgKind, ServerStreaming,
 };
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
@@ -38,6 +39,7 @@ use crate::far::{Eye, FarSession};
 pub use crate::pacing::SendBudget;
 use crate::pacing::TokenBucket;
 use crate::store::{CellData, CellState, CellWaker, Changes, WorldStore};
+pub use crate::transmit::{StreamId, Transmit};
 
 /// Most edits of one session handed to the writer and not yet answered; more are denied until answers come.
 pub const MAX_EDITS_IN_FLIGHT: usize = 256;
@@ -93,59 +95,6 @@ impl Default for SessionConfig {
             send_budget: None,
             editors: None,
         }
-    }
-}
-
-/// Which stream a transmit goes on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum StreamId {
-    /// The client-opened bidirectional control stream.
-    Control,
-    /// A server-opened ordered lane; lower is more important.
-    Lane(u8),
-}
-
-use canopy_protocol::messages::ByKind;
-/// A class of server message, for accounting: its kind ([`ServerMsg::kind`]).
-pub use canopy_protocol::messages::ServerMsgKind as MsgClass;
-
-/// One framed message to write: `bytes`, then `body`.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Transmit {
-    /// Where it goes.
-    pub stream: StreamId,
-    /// The framed bytes (shared, not copied, where every session sends the same: the species), or for a cell batch
-    /// sent procedurally the frame's head of this session (length, tags, cell, grant).
-    pub bytes: Bytes,
-    /// The rest of the frame after `bytes`: a cell batch's body, encoded once per cell and shared by every
-    /// session that sends it ([`crate::batch`]); empty otherwise.
-    pub body: Bytes,
-    /// What it is.
-    pub class: MsgClass,
-    /// Instance records it carries.
-    pub records: u32,
-}
-
-impl Transmit {
-    /// The frame's length, bytes.
-    pub fn len(&self) -> usize {
-        self.bytes.len() + self.body.len()
-    }
-
-    /// Whether it carries no bytes (never, for a framed message).
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// The whole frame in one buffer (a copy when it has a body).
-    pub fn frame(&self) -> Bytes {
-        if self.body.is_empty() {
-            return self.bytes.clone();
-        }
-        let mut v = Vec::with_capacity(self.len());
-        v.extend_from_slice(&self.bytes);
-        v.extend_from_slice(&self.body);
-        Bytes::from(v)
     }
 }
 
@@ -205,9 +154,9 @@ impl SessionError {
 /// What a session has sent, for tests, logs and metrics.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct SessionStats {
-    /// Bytes by [`MsgClass`], framing included.
+    /// Bytes by [`ServerMsgKind`], framing included.
     pub bytes: ByKind<u64>,
-    /// Messages by [`MsgClass`].
+    /// Messages by [`ServerMsgKind`].
     pub messages: ByKind<u64>,
     /// Explicit-geometry blobs not sent because they exceed [`netlimits::MAX_GEOMETRY_BYTES`].
     pub oversize: u64,
@@ -509,13 +458,13 @@ impl Session {
                     _ => None,
                 };
                 // The hello moves to `next` (Hello), the welcome sent at once on to the phase after it.
-                self.phase = MsgClass::Welcome.next_phase(next)?;
+                self.phase = ServerMsgKind::Welcome.next_phase(next)?;
                 let bytes = Bytes::from(self.store.welcome_head().framed(&self.cfg.aoi));
                 let t = Transmit {
                     stream: StreamId::Control,
                     bytes,
                     body: Bytes::new(),
-                    class: MsgClass::Welcome,
+                    class: ServerMsgKind::Welcome,
                     records: 0,
                 };
                 self.urgent.push_back(t);
@@ -634,7 +583,7 @@ impl Session {
             && let Some(bytes) = self.store.species_frame(id)
         {
             self.set_species(id);
-            let t = Transmit { stream, bytes, body: Bytes::new(), class: MsgClass::Species, records: 0 };
+            let t = Transmit { stream, bytes, body: Bytes::new(), class: ServerMsgKind::Species, records: 0 };
             self.urgent.push_back(t);
         }
     }
@@ -731,7 +680,7 @@ impl Session {
         }
         if self.staged.is_empty() {
             // Summaries take their turn, or go when no cell is ready.
-            let cell_bytes = self.stats.bytes[MsgClass::Cells];
+            let cell_bytes = self.stats.bytes[ServerMsgKind::Cells];
             if far_work
                 && (self.queue.is_empty() || self.far.as_ref().is_some_and(|f| f.turn(cell_bytes)))
                 && let Some(t) = self.next_far_batch()
@@ -923,7 +872,8 @@ impl Session {
                 }
                 _ => {
                     let bytes = store.species_frame(id).expect("records name species of the table");
-                    let t = Transmit { stream: lane, bytes, body: Bytes::new(), class: MsgClass::Species, records: 0 };
+                    let t =
+                        Transmit { stream: lane, bytes, body: Bytes::new(), class: ServerMsgKind::Species, records: 0 };
                     self.staged.push_back((cell, t));
                 }
             }
@@ -965,7 +915,7 @@ impl Session {
                 stream: lane,
                 bytes: b.head(cell, h.grant),
                 body: b.body.clone(),
-                class: MsgClass::Cells,
+                class: ServerMsgKind::Cells,
                 records: (end - start) as u32,
             },
             None => {

@@ -6,10 +6,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::{ClientHandshake, Hello, ServerHandshake, ServerStreaming};
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, SpeciesGraph};
-use canopy_server::session::{MsgClass, Session, SessionConfig, SessionError, StreamId, Transmit};
-use canopy_server::store::{PlacedInstance, StoreBuilder, WorldStore};
+use canopy_session::{PlacedInstance, StoreBuilder, WorldStore};
+use canopy_session::{Session, SessionConfig, SessionError, StreamId, Transmit};
 
 const CELL: f32 = 32.0;
 
@@ -157,7 +158,7 @@ fn streams_the_area_of_interest_nearest_first_with_each_species_once() {
     let in_view_first: Vec<f32> =
         cells.iter().filter(|c| in_view(c)).map(|c| grid.distance2(*c, vp.position).sqrt()).collect();
     assert!(in_view_first.windows(2).all(|w| w[0] <= w[1]), "{in_view_first:?}");
-    assert_eq!(s.stats().messages[MsgClass::Species], 3);
+    assert_eq!(s.stats().messages[ServerMsgKind::Species], 3);
 }
 
 #[test]
@@ -419,7 +420,7 @@ fn server_memory_per_session_is_bounded_by_the_area_of_interest() {
 /// A geometry source for the payload-mode tests: blobs whose sizes say what they are.
 struct FakeGeometry;
 
-impl canopy_server::session::GeometrySource for FakeGeometry {
+impl canopy_session::GeometrySource for FakeGeometry {
     fn instance_mesh(&self, id: InstanceId) -> Arc<Vec<u8>> {
         // Large enough to need several chunks for every third instance of a cell.
         let index = usize::from(id.index());
@@ -435,14 +436,14 @@ impl canopy_server::session::GeometrySource for FakeGeometry {
     }
 }
 
-fn payload_config(mode: canopy_server::session::PayloadMode) -> SessionConfig {
-    SessionConfig { payload: canopy_server::session::Payload::new(mode, Arc::new(FakeGeometry)), ..config() }
+fn payload_config(mode: canopy_session::PayloadMode) -> SessionConfig {
+    SessionConfig { payload: canopy_session::Payload::new(mode, Arc::new(FakeGeometry)), ..config() }
 }
 
 #[test]
 fn explicit_payloads_go_through_the_same_area_of_interest() {
     use canopy_protocol::messages::GeometryKind;
-    use canopy_server::session::PayloadMode;
+    use canopy_session::PayloadMode;
     let store = store();
     let t0 = Instant::now();
     let vp = Viewpoint::at(0, [10.0, 10.0], 100.0);
@@ -501,14 +502,14 @@ fn explicit_payloads_go_through_the_same_area_of_interest() {
             .filter(|(_, m)| matches!(m, ServerMsg::Streaming(ServerStreaming::Geometry(_))))
             .map(|(_, m)| m.encode().len() as u64 + 4)
             .sum();
-        assert_eq!(s.stats().bytes[MsgClass::Geometry], geometry);
-        assert_eq!(s.stats().bytes[MsgClass::Species], 0);
+        assert_eq!(s.stats().bytes[ServerMsgKind::Geometry], geometry);
+        assert_eq!(s.stats().bytes[ServerMsgKind::Species], 0);
     }
 }
 
 #[test]
 fn a_release_takes_back_staged_geometry() {
-    use canopy_server::session::PayloadMode;
+    use canopy_session::PayloadMode;
     let store = store();
     let t0 = Instant::now();
     let mut s =
@@ -557,15 +558,15 @@ fn a_world_a_client_would_refuse_is_refused_by_the_store() {
     let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(0, 0), max: CellCoord::new(1, 1) };
     let bad = canopy_protocol::messages::TerrainDesc { corners: vec![0.0; 3], ..terrain() };
     let e = StoreBuilder::new("test", 1, grid, bad, &[]).unwrap_err();
-    assert!(matches!(e, canopy_server::store::StoreError::World(_)), "{e:?}");
+    assert!(matches!(e, canopy_session::StoreError::World(_)), "{e:?}");
     let bad_grid = Grid { cell_size: -1.0, ..grid };
     let e = StoreBuilder::new("test", 1, bad_grid, terrain(), &[]).unwrap_err();
-    assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
+    assert!(matches!(e, canopy_session::StoreError::Grid(_)), "{e:?}");
     // A grid reaching past the cells instance ids can name.
     let far = CellCoord::new(InstanceId::CELL_MAX - 1, 0);
     let beyond = Grid { min: far, max: CellCoord::new(far.x + 2, 1), ..grid };
     let e = StoreBuilder::new("test", 1, beyond, terrain(), &[]).unwrap_err();
-    assert!(matches!(e, canopy_server::store::StoreError::Grid(_)), "{e:?}");
+    assert!(matches!(e, canopy_session::StoreError::Grid(_)), "{e:?}");
     let edge = Grid { min: far, max: CellCoord::new(far.x + 1, 1), ..grid };
     assert!(StoreBuilder::new("test", 1, edge, terrain(), &[]).is_ok());
     // An instance that names a species the table lacks is reported by its (cell, index).
@@ -573,7 +574,7 @@ fn a_world_a_client_would_refuse_is_refused_by_the_store() {
     let p = PlacedInstance { species: 0, x: 1.0, z: 1.0, params: vec![] };
     let e = b.add_cell(CellCoord::new(1, 0), &[p]).unwrap_err();
     let id = InstanceId::new(CellCoord::new(1, 0), 0).unwrap();
-    assert_eq!(e, canopy_server::store::StoreError::UnknownSpecies { id, species: 0 });
+    assert_eq!(e, canopy_session::StoreError::UnknownSpecies { id, species: 0 });
 }
 
 #[test]
@@ -623,22 +624,22 @@ fn a_session_never_flushed_stays_within_its_window_through_teleports() {
             s.handle(now, ClientMsg::viewpoint(Viewpoint::at(1 + (i / 10) as u32, corner, 200.0))).unwrap();
         }
         while let Some(t) = s.poll_transmit(now) {
-            if t.class != MsgClass::Release {
+            if t.class != ServerMsgKind::Release {
                 largest = largest.max(t.len());
             }
         }
         most = most.max(s.unflushed());
     }
     // Paced messages stop at the window (one may cross it); releases are small and bounded by the cells held.
-    let releases = s.stats().bytes[MsgClass::Release] as usize;
+    let releases = s.stats().bytes[ServerMsgKind::Release] as usize;
     assert!(most <= cfg.window + largest + releases, "{most}");
     assert!(s.unflushed() <= cfg.window + largest + releases);
-    assert!(s.stats().bytes[MsgClass::Cells] as usize <= cfg.window + largest, "nothing paced past the window");
+    assert!(s.stats().bytes[ServerMsgKind::Cells] as usize <= cfg.window + largest, "nothing paced past the window");
 }
 
 #[test]
 fn the_shared_send_budget_pauses_sessions_until_bytes_are_flushed() {
-    use canopy_server::session::SendBudget;
+    use canopy_session::SendBudget;
     let store = store();
     let t0 = Instant::now();
     let budget = SendBudget::new(6 * 1024);

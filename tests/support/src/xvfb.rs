@@ -1,4 +1,4 @@
-//! Xvfb for the windowed tests (`render_walk.rs`, `editor_window.rs`): a virtual X display started on a free
+//! Xvfb for the windowed tests (`canopy walk`, the species editor): a virtual X display started on a free
 //! display number, and child processes ended when dropped. CI installs `xvfb`, `xauth` and `mesa-vulkan-drivers`.
 
 use std::path::{Path, PathBuf};

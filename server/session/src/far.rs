@@ -24,9 +24,12 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use canopy_protocol::frame::frame;
 use canopy_protocol::summary::{FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, Refine};
+use canopy_protocol::sync::Locked;
 
-use crate::session::{MsgClass, StreamId, Transmit};
+use canopy_protocol::messages::ServerMsgKind;
+
 use crate::store::{CellWaker, EncodedSummary, SummaryState, WorldStore};
+use crate::transmit::{StreamId, Transmit};
 
 /// Most summary nodes a session holds for its client or has queued.
 pub const MAX_SESSION_NODES: usize = 16_384;
@@ -95,7 +98,7 @@ struct NodeWaker {
 impl CellWaker for NodeWaker {
     fn wake(&self) {
         self.ready.store(true, Ordering::Release);
-        let session = self.session.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let session = self.session.locked().clone();
         if let Some(w) = session {
             w.wake();
         }
@@ -177,7 +180,7 @@ impl FarSession {
     /// The waker to register with pending nodes, waking `session` too.
     fn node_waker(&self, session: Option<&Arc<dyn CellWaker>>) -> Arc<dyn CellWaker> {
         if let Some(w) = session {
-            let mut slot = self.waker.session.lock().unwrap_or_else(|e| e.into_inner());
+            let mut slot = self.waker.session.locked();
             if !slot.as_ref().is_some_and(|s| Arc::ptr_eq(s, w)) {
                 *slot = Some(Arc::clone(w));
             }
@@ -342,7 +345,7 @@ impl FarSession {
             stream: StreamId::Lane(lane),
             bytes,
             body: Bytes::new(),
-            class: MsgClass::Summaries,
+            class: ServerMsgKind::Summaries,
             records: 0,
         })
     }

@@ -1,7 +1,7 @@
 //! The world store: species and instance records arranged spatially (seed 001 §4: "the server stores the data for
 //! a very large virtual environment, composed of objects that are arranged spatially"), behind a trait so a
 //! session does not care where they live or whether they exist yet: [`GridStore`] quantises every cell up front,
-//! [`crate::cells::CellCache`] expands cells on demand. Both hold a cell as a [`CellData`], quantised the same way.
+//! the server's cell cache (`canopy_server::CellCache`) expands cells on demand. Both hold a cell as a [`CellData`], quantised the same way.
 
 use std::sync::{Arc, OnceLock};
 
@@ -255,12 +255,12 @@ pub trait WorldStore: Send + Sync + 'static {
         0
     }
     /// The cell cache's counters, for a store that expands cells on demand.
-    fn cache_metrics(&self) -> Option<Arc<crate::metrics::CellMetrics>> {
+    fn cache_metrics(&self) -> Option<Arc<crate::counters::CellMetrics>> {
         None
     }
     /// What changed in cell `c` since version `from`, for a session that holds it at `from` (never waiting, like
     /// [`WorldStore::cell`]). A store without edits is always at version 0, so this default only tells whether the
-    /// session is current; [`crate::live::LiveStore`] composes deltas.
+    /// session is current; the server's live store (`canopy_server::LiveStore`) composes deltas.
     fn changes(&self, c: CellCoord, from: u32, waker: Option<&Arc<dyn CellWaker>>) -> Changes {
         match self.cell(c, waker) {
             CellState::Ready(d) if d.version == from => Changes::Current { total: d.records.len() as u16 },
@@ -381,7 +381,7 @@ pub(crate) fn cell_index(grid: &Grid, c: CellCoord) -> Option<usize> {
 }
 
 /// The eager store: every cell quantised up front, row-major (z, then x). Tests and small worlds use it; a server
-/// of a large world uses [`crate::cells::CellCache`], which quantises cells the same way ([`CellData`]) on demand.
+/// of a large world uses the server's cell cache (`canopy_server::CellCache`), which quantises cells the same way ([`CellData`]) on demand.
 #[derive(Debug)]
 pub struct GridStore {
     head: StoreHead,
@@ -469,7 +469,7 @@ impl StoreBuilder {
             min: CellCoord::new(first.x, first.z),
             max: CellCoord::new(first.x + dims[0] as i32 - 1, first.z + dims[1] as i32 - 1),
         };
-        let terrain = crate::terrain::describe(world);
+        let terrain = crate::terrain::terrain_desc(world);
         let graphs = world.species.iter().map(|s| &s.graph);
         StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)
     }

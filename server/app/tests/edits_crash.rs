@@ -363,7 +363,7 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let token = String::from_utf8(out.stdout).unwrap().trim().to_owned();
     assert_eq!(token.len(), 64, "{token:?}");
-    let token = canopy_server::editors::unhex(&token).expect("a hexadecimal token");
+    let token = canopy_server::session::unhex(&token).expect("a hexadecimal token");
 
     let started = Instant::now();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();

@@ -3,13 +3,14 @@
 //! sessions that found a node pending. Sans-IO: the cache's lock guards it, the workers fill it (and a lookup of a
 //! node the memo already holds, computed with an ancestor, fills it at once: `CellCache::summary`).
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::Arc;
 
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::lru::Lru;
 use canopy_protocol::summary::{MAX_LEVEL, NodeKey};
 
 use crate::store::{CellWaker, EncodedSummary, SummaryState};
+use crate::waiters::Waiters;
 
 /// Edge of a root node at least, metres: the roots are the coarsest nodes whose edge reaches this.
 pub const ROOT_EDGE: f32 = 4096.0;
@@ -38,24 +39,17 @@ pub fn overlaps(grid: &Grid, key: NodeKey) -> bool {
         && z0 + side > i64::from(grid.min.z)
 }
 
-/// A cached node and when it was last used.
-struct Entry {
-    node: Arc<EncodedSummary>,
-    bytes: usize,
-    used: u64,
+/// What a cached node costs the cache: its bytes and its slot's (map entry, recency).
+fn cost(node: &EncodedSummary) -> usize {
+    node.heap_bytes() + std::mem::size_of::<Arc<EncodedSummary>>() + 64
 }
 
 /// Cached, queued and pending summary nodes (see the module docs).
 #[derive(Default)]
 pub struct SummaryLru {
-    cached: HashMap<NodeKey, Entry>,
-    /// Cached nodes by last use, oldest first.
-    lru: BTreeMap<u64, NodeKey>,
-    bytes: usize,
-    clock: u64,
+    cached: Lru<NodeKey, Arc<EncodedSummary>>,
     /// Nodes queued or being computed, with the wakers to wake when each is ready.
-    pending: HashMap<NodeKey, Vec<Arc<dyn CellWaker>>>,
-    queue: VecDeque<NodeKey>,
+    pending: Waiters<NodeKey>,
 }
 
 impl SummaryLru {
@@ -65,32 +59,16 @@ impl SummaryLru {
         if let Some(node) = self.cached(key) {
             return (SummaryState::Ready(node), false);
         }
-        let queued = self.pending.contains_key(&key);
-        if !queued && self.queue.len() >= MAX_QUEUED {
+        if !self.pending.is_waiting(&key) && self.pending.queued() >= MAX_QUEUED {
             return (SummaryState::Pending, false);
         }
-        let wakers = self.pending.entry(key).or_default();
-        if let Some(w) = waker
-            && !wakers.iter().any(|x| std::ptr::addr_eq(Arc::as_ptr(x), Arc::as_ptr(w)))
-        {
-            wakers.push(Arc::clone(w));
-        }
-        if !queued {
-            self.queue.push_back(key);
-        }
-        (SummaryState::Pending, !queued)
+        let queued = self.pending.wait(key, waker);
+        (SummaryState::Pending, queued)
     }
 
     /// The node if cached, marking it used.
     pub fn cached(&mut self, key: NodeKey) -> Option<Arc<EncodedSummary>> {
-        self.clock += 1;
-        let now = self.clock;
-        let e = self.cached.get_mut(&key)?;
-        let before = std::mem::replace(&mut e.used, now);
-        let node = Arc::clone(&e.node);
-        self.lru.remove(&before);
-        self.lru.insert(now, key);
-        Some(node)
+        self.cached.get(&key).map(|n| Arc::clone(n))
     }
 
     /// The next queued node to compute (coarsest first: a finer node's parent is usually wanted first, and
@@ -98,28 +76,19 @@ impl SummaryLru {
     /// the queue.
     pub fn next_queued(&mut self) -> Option<NodeKey> {
         let cached = &self.cached;
-        self.queue.retain(|k| !cached.contains_key(k));
-        let best = self.queue.iter().enumerate().max_by_key(|(i, k)| (k.level, std::cmp::Reverse(*i)))?.0;
-        self.queue.remove(best)
+        let queue = self.pending.queue();
+        queue.retain(|k| !cached.contains(k));
+        let best = queue.iter().enumerate().max_by_key(|(i, k)| (k.level, std::cmp::Reverse(*i)))?.0;
+        queue.remove(best)
     }
 
     /// Cache a computed node, evicting the least recently used past `limit` bytes; the wakers of its waiters.
     pub fn insert(&mut self, key: NodeKey, node: Arc<EncodedSummary>, limit: usize) -> Vec<Arc<dyn CellWaker>> {
-        let bytes = node.heap_bytes() + std::mem::size_of::<Entry>() + 48;
-        while self.bytes + bytes > limit {
-            let Some((_, old)) = self.lru.pop_first() else { break };
-            let e = self.cached.remove(&old).expect("the LRU names cached nodes");
-            self.bytes -= e.bytes;
-        }
-        self.clock += 1;
-        let used = self.clock;
-        if let Some(old) = self.cached.insert(key, Entry { node, bytes, used }) {
-            self.lru.remove(&old.used);
-            self.bytes -= old.bytes;
-        }
-        self.lru.insert(used, key);
-        self.bytes += bytes;
-        self.pending.remove(&key).unwrap_or_default()
+        let bytes = cost(&node);
+        self.cached.insert(key, node, bytes);
+        // The node just computed stays even past the bound (it was asked for).
+        self.cached.evict_to(limit, Some(&key));
+        self.pending.done(&key)
     }
 
     /// Nodes cached.
@@ -134,7 +103,7 @@ impl SummaryLru {
 
     /// Bytes the cached nodes hold.
     pub fn bytes(&self) -> usize {
-        self.bytes
+        self.cached.cost()
     }
 }
 
@@ -171,7 +140,7 @@ mod tests {
         assert!(matches!(lru.lookup(k(0), None), (SummaryState::Pending, true)));
         assert!(matches!(lru.lookup(k(0), None), (SummaryState::Pending, false)), "queued once");
         assert_eq!(lru.next_queued(), Some(k(0)));
-        let one = node(0).heap_bytes() + std::mem::size_of::<Entry>() + 48;
+        let one = cost(&node(0));
         for x in 0..4 {
             lru.insert(k(x), node(x), 3 * one);
         }

@@ -9,13 +9,10 @@ use std::time::Duration;
 
 use anyhow::Context;
 use canopy_protocol::aoi::AoiParams;
-use canopy_server::WorldStore;
-use canopy_server::edits::{EditStore, SqliteEditStore};
-use canopy_server::metrics::resident_bytes;
-use canopy_server::nats::{NatsConfig, NatsEditStore};
+use canopy_server::session::{Editors, SessionConfig};
 use canopy_server::worlds::world::World;
 use canopy_server::{
-    AdmissionConfig, CellCache, CellCacheConfig, EditService, Editors, LiveStore, Server, ServerConfig, SessionConfig,
+    AdmissionConfig, CellCacheConfig, Cells, Edits, NatsConfig, ServeOptions, ServerConfig, resident_bytes, serve,
 };
 use clap::Parser;
 use std::sync::Arc;
@@ -142,8 +139,8 @@ fn add_editor(file: &std::path::Path, name: &str, region: Option<[f32; 4]>, rate
     if file.exists() {
         Editors::load(file)?;
     }
-    let token = canopy_server::editors::new_token()?;
-    let line = canopy_server::editors::editor_line(name, &token, region, rate);
+    let token = canopy_server::session::new_token()?;
+    let line = canopy_server::session::editor_line(name, &token, region, rate);
     let mut options = std::fs::OpenOptions::new();
     options.create(true).append(true);
     #[cfg(unix)]
@@ -153,7 +150,7 @@ fn add_editor(file: &std::path::Path, name: &str, region: Option<[f32; 4]>, rate
     f.sync_all()?;
     Editors::load(file)?;
     eprintln!("added editor {name} to {} (the file keeps only the token's hash)", file.display());
-    println!("{}", canopy_server::editors::hex(&token));
+    println!("{}", canopy_server::session::hex(&token));
     Ok(())
 }
 
@@ -179,7 +176,7 @@ fn main() -> anyhow::Result<()> {
         None => Editors::none(),
     };
     if args.print_fingerprint {
-        let id = canopy_server::tls::Identity::load_or_generate(&args.data_dir)?;
+        let id = canopy_server::Identity::load_or_generate(&args.data_dir)?;
         println!("{}", id.fingerprint());
         return Ok(());
     }
@@ -213,61 +210,48 @@ fn main() -> anyhow::Result<()> {
         ..SessionConfig::default()
     };
     session.aoi.validate().context("area-of-interest options")?;
-    let cache_cfg = CellCacheConfig {
+    let cells = CellCacheConfig {
         limit_bytes: args.cell_cache_mib.saturating_mul(1 << 20),
         workers: args.cell_workers.unwrap_or(CellCacheConfig::default().workers).max(1),
         batch_records: session.batch_records,
         summary_limit_bytes: args.summary_cache_mib.saturating_mul(1 << 20),
     };
-    // The cache expands the world's cells on demand (`World::expand_cell`) and keeps the world's manifest to do so.
-    let base = CellCache::new(world, cache_cfg).context("building the world store")?;
-    // Edits are kept in the data directory and read cell by cell when a cell is first needed: nothing at start.
-    let mut engine = None;
-    let (edit_store, edits_at): (Arc<dyn EditStore>, String) = match &args.edits {
-        Some(servers) => {
-            let cfg = NatsConfig {
-                servers: servers.split(',').map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect(),
-                world: base.head().world().name.clone(),
-                replicas: args.edit_replicas,
-            };
-            let at = format!("NATS JetStream stream {} ({} replicas) at {servers}", cfg.stream(), cfg.replicas);
-            let store = NatsEditStore::connect(cfg)?;
-            engine = Some(Arc::clone(store.metrics()));
-            (Arc::new(store), at)
-        }
-        None => {
-            let store = SqliteEditStore::open(&args.data_dir)?;
-            (Arc::new(store), args.data_dir.join("edits.sqlite").display().to_string())
-        }
+    // Edits are kept in the data directory (or the NATS cluster) and read cell by cell when a cell is first needed.
+    let edits = match &args.edits {
+        Some(servers) => Edits::Nats(NatsConfig {
+            servers: servers.split(',').map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect(),
+            world: world.name.clone(),
+            replicas: args.edit_replicas,
+        }),
+        None => Edits::Sqlite(args.data_dir.clone()),
     };
-    let edit_count = edit_store.count()?;
-    let live = Arc::new(LiveStore::new(base.shared(), edit_store, args.overlay_cache_mib.saturating_mul(1 << 20)));
-    let edits = EditService::start(Arc::clone(&live));
-    let cfg = ServerConfig {
-        listen: args.listen,
-        metrics: (!args.no_metrics).then_some(args.metrics),
-        data_dir: Some(args.data_dir.clone()),
-        session,
-        admission: AdmissionConfig {
-            max_clients: args.max_clients,
-            max_handshakes: args.max_handshakes,
-            retry_above: args.retry_above,
-            max_per_source: args.max_per_source,
+    let opts = ServeOptions {
+        server: ServerConfig {
+            listen: args.listen,
+            metrics: (!args.no_metrics).then_some(args.metrics),
+            data_dir: Some(args.data_dir.clone()),
+            session,
+            admission: AdmissionConfig {
+                max_clients: args.max_clients,
+                max_handshakes: args.max_handshakes,
+                retry_above: args.retry_above,
+                max_per_source: args.max_per_source,
+            },
+            idle_slot: Duration::from_secs(args.idle_slot),
+            send_budget: Some(args.send_budget_mib.saturating_mul(1 << 20)),
+            ..ServerConfig::default()
         },
-        idle_slot: Duration::from_secs(args.idle_slot),
-        send_budget: Some(args.send_budget_mib.saturating_mul(1 << 20)),
-        edits: Some(Arc::clone(&edits)),
-        ..ServerConfig::default()
+        // The cache expands the world's cells on demand, however small the world: what a served world needs.
+        cells: Cells::OnDemand(cells),
+        edits,
+        overlay_cache_bytes: args.overlay_cache_mib.saturating_mul(1 << 20),
     };
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let rss_before = resident_bytes();
-        let server = Server::start(live, cfg).await?;
-        if let Some(engine) = engine {
-            server.metrics().attach_engine(engine);
-        }
+        let server = serve(world, opts).await?;
         print!("{summary}");
-        println!("cells expanded on demand by {} workers, cached up to {} MiB", cache_cfg.workers, args.cell_cache_mib);
+        println!("{}", server.cells());
         println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
         if let Some(m) = server.metrics_addr() {
             println!("metrics on http://{m}/metrics");
@@ -275,7 +259,7 @@ fn main() -> anyhow::Result<()> {
         let how = if server.identity_generated() { "generated" } else { "loaded" };
         println!("certificate {how} in {}", args.data_dir.display());
         let editors_n = session_editors;
-        println!("{edit_count} edits stored in {edits_at}; {editors_n} editors");
+        println!("{} edits stored in {}; {editors_n} editors", server.edit_count(), server.edits_at());
         println!("fingerprint {}", server.fingerprint());
         let (r, s) = server.socket_buffers();
         println!("socket buffers: receive {r} B, send {s} B");
@@ -313,7 +297,6 @@ fn main() -> anyhow::Result<()> {
         println!("shutting down");
         stats.abort();
         server.shutdown(Duration::from_secs(2)).await;
-        edits.stop();
         anyhow::Ok(())
     })
 }

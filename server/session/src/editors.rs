@@ -18,6 +18,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use canopy_protocol::sync::Locked;
 use sha2::{Digest, Sha256};
 
 /// Edits a second an editor may make when its line names no rate.
@@ -49,7 +50,7 @@ impl Editor {
     /// Take one edit from the editor's rate at `now`; `false` when it is spent.
     pub fn take(&self, now: Instant) -> bool {
         let (rate, burst) = (f64::from(self.rate), 2.0 * f64::from(self.rate));
-        let mut b = self.bucket.lock().unwrap_or_else(|e| e.into_inner());
+        let mut b = self.bucket.locked();
         let (tokens, last) = b.get_or_insert((burst, now));
         *tokens = (*tokens + now.saturating_duration_since(*last).as_secs_f64() * rate).min(burst);
         *last = now.max(*last);
