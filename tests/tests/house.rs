@@ -235,3 +235,55 @@ fn no_ignored_test_without_a_reason() {
         .collect();
     assert!(bare.is_empty(), "#[ignore] without a reason (write #[ignore = \"why\"]):\n{}", bare.join("\n"));
 }
+
+/// ARCHITECTURE.md stays a map, short and without numbers (rust-analyzer's `architecture.md`): what it cannot hold
+/// lives in `docs/`, so every page there must be reachable from README.md, and every workspace member must have its
+/// place in the map.
+#[test]
+fn architecture_doc_is_short_and_every_doc_is_linked() {
+    const MAX_ARCHITECTURE_BYTES: u64 = 20 * 1024;
+    let architecture_path = root().join("ARCHITECTURE.md");
+    let size = std::fs::metadata(&architecture_path).expect("ARCHITECTURE.md exists").len();
+    assert!(
+        size <= MAX_ARCHITECTURE_BYTES,
+        "ARCHITECTURE.md is {size} bytes, more than {MAX_ARCHITECTURE_BYTES}: move details and numbers into docs/*.md"
+    );
+    let architecture = std::fs::read_to_string(&architecture_path).expect("ARCHITECTURE.md is UTF-8 text");
+    let readme = std::fs::read_to_string(root().join("README.md")).expect("README.md is UTF-8 text");
+
+    // Every docs/NAME.md is linked from README.md by its relative path.
+    let mut docs: Vec<String> = std::fs::read_dir(root().join("docs"))
+        .expect("docs/ is readable")
+        .map(|e| e.expect("a docs/ entry is readable").path())
+        .filter(|p| p.is_file() && p.extension().is_some_and(|x| x == "md"))
+        .map(|p| format!("docs/{}", p.file_name().expect("a file name").to_string_lossy()))
+        .collect();
+    docs.sort();
+    assert!(!docs.is_empty(), "no docs/*.md found under {}", root().join("docs").display());
+    let unlinked: Vec<&str> = docs.iter().map(String::as_str).filter(|d| !readme.contains(d)).collect();
+    assert!(
+        unlinked.is_empty(),
+        "docs/ pages that README.md does not link (link each by its path, e.g. [docs/x.md](docs/x.md)):\n{}",
+        unlinked.join("\n")
+    );
+
+    // Every workspace member directory is named in ARCHITECTURE.md as a path in backticks: `dir` or `dir/`.
+    let manifest = std::fs::read_to_string(root().join("Cargo.toml")).expect("the root Cargo.toml is readable");
+    let list = manifest
+        .split_once("members = [")
+        .and_then(|(_, rest)| rest.split_once(']'))
+        .map(|(list, _)| list)
+        .expect("the root Cargo.toml has `members = [...]`");
+    let members: Vec<&str> = list.split(',').map(|m| m.trim().trim_matches('"')).filter(|m| !m.is_empty()).collect();
+    assert!(members.len() > 1, "read too few workspace members from the root Cargo.toml: {members:?}");
+    let missing: Vec<&str> = members
+        .iter()
+        .copied()
+        .filter(|m| !architecture.contains(&format!("`{m}`")) && !architecture.contains(&format!("`{m}/`")))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "workspace members that ARCHITECTURE.md does not name (as `dir/` in its code map):\n{}",
+        missing.join("\n")
+    );
+}
