@@ -6,8 +6,9 @@
 //!
 //! A cell never edited costs one look-up in the edit store and a small entry; an edited cell also keeps its records
 //! at the current version ([`CellData`] with its batches encoded once, shared by every session like any cell).
-//! [`crate::editing`] publishes an overlay here after its edit is durable, and this tells the sessions ([`EditHub`]); an overlay only
-//! ever moves forward (the newer version wins), so a log read racing a publish cannot take a cell back.
+//! [`crate::editing`] publishes an overlay here after its edit is durable, and this tells the sessions
+//! ([`EditHub`]); an overlay only ever moves forward (the newer version wins), so a log read racing a publish cannot
+//! take a cell back.
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
