@@ -8,7 +8,7 @@
 //! writer of the same store, or a failed disk) leaves nothing published.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::mpsc;
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
@@ -79,6 +79,8 @@ pub struct EditService {
     thread: Mutex<Option<JoinHandle<()>>>,
     hub: Arc<EditHub>,
     metrics: Arc<EditMetrics>,
+    /// Set by [`EditService::stop`]: requests whose fate cannot be read are left unanswered.
+    stopping: Arc<AtomicBool>,
 }
 
 impl std::fmt::Debug for EditService {
@@ -93,6 +95,7 @@ struct Writer {
     metrics: Arc<EditMetrics>,
     /// Parameters each species declares.
     params: Vec<usize>,
+    stopping: Arc<AtomicBool>,
 }
 
 impl EditService {
@@ -107,12 +110,13 @@ impl EditService {
         let hub = Arc::clone(live.hub());
         let metrics = Arc::new(EditMetrics::default());
         let (tx, rx) = mpsc::sync_channel(MAX_QUEUED);
-        let writer = Writer { live, metrics: Arc::clone(&metrics), params };
+        let stopping = Arc::new(AtomicBool::new(false));
+        let writer = Writer { live, metrics: Arc::clone(&metrics), params, stopping: Arc::clone(&stopping) };
         let thread = std::thread::Builder::new()
             .name("canopy-edits".into())
             .spawn(move || writer.run(rx))
             .expect("spawning the edit writer");
-        Arc::new(EditService { tx: Mutex::new(Some(tx)), thread: Mutex::new(Some(thread)), hub, metrics })
+        Arc::new(EditService { tx: Mutex::new(Some(tx)), thread: Mutex::new(Some(thread)), hub, metrics, stopping })
     }
 
     /// The hub sessions listen on.
@@ -147,6 +151,7 @@ impl EditService {
     /// Stop taking requests, write what is queued, and wait for the writer.
     pub fn stop(&self) {
         self.tx.locked().take();
+        self.stopping.store(true, Relaxed);
         if let Some(t) = self.thread.locked().take() {
             let _ = t.join();
         }
@@ -179,16 +184,39 @@ struct Working {
     overlay: Overlay,
 }
 
+/// A request on its way through the writer, with the edits earlier attempts of it appended: any of them may be in
+/// the store (an append that failed may have kept it), and finding one there is what acknowledges the request, so a
+/// request is never stored twice.
+struct Request {
+    job: EditJob,
+    /// Edits tried for it whose append failed, oldest first.
+    attempts: Vec<StoredEdit>,
+    /// Conflicts it met (another writer took the cell's version first).
+    conflicts: usize,
+}
+
 /// One accepted request of a group (kept whole: a conflict sends it round again).
 struct Accepted {
-    job: EditJob,
+    request: Request,
     id: InstanceId,
     version: u32,
+}
+
+/// The instance an edit of `cell` made or changed.
+fn edit_id(e: &StoredEdit) -> InstanceId {
+    InstanceId::new(e.cell, e.op.index()).expect("a grid cell can be named")
 }
 
 /// How often a request that met a conflict (another writer took the cell's version) is checked and written again
 /// before it is answered `conflict`.
 pub const CONFLICT_RETRIES: usize = 3;
+
+/// The first pause before requests whose fate is not known yet (their cell's log could not be read) are looked at
+/// again; it doubles up to [`UNKNOWN_PAUSE_MAX`].
+const UNKNOWN_PAUSE: Duration = Duration::from_millis(50);
+
+/// The longest pause between two looks at requests whose fate is not known yet.
+const UNKNOWN_PAUSE_MAX: Duration = Duration::from_secs(2);
 
 impl Writer {
     fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
@@ -211,31 +239,70 @@ impl Writer {
     }
 
     fn write_group(&self, jobs: Vec<EditJob>, started: Instant) {
-        let mut jobs = jobs;
-        for attempt in 0..=CONFLICT_RETRIES {
-            jobs = self.try_group(jobs, started, attempt < CONFLICT_RETRIES);
-            if jobs.is_empty() {
+        let mut requests: Vec<Request> =
+            jobs.into_iter().map(|job| Request { job, attempts: Vec::new(), conflicts: 0 }).collect();
+        let mut pause = UNKNOWN_PAUSE;
+        loop {
+            let unknown;
+            (requests, unknown) = self.try_group(requests, started);
+            if requests.is_empty() {
                 return;
             }
+            if self.stopping.load(Relaxed) {
+                // What became of these is not known and the server is going: they stay unanswered (their
+                // sessions end with it), never answered by a guess.
+                warn!(
+                    "{} edits stay unanswered: the store could not be read before the server stopped",
+                    requests.len()
+                );
+                return;
+            }
+            if !unknown {
+                // Only conflicts: try again at once.
+                continue;
+            }
+            std::thread::sleep(pause);
+            pause = (pause * 2).min(UNKNOWN_PAUSE_MAX);
         }
     }
 
-    /// Check, write and answer a group; the requests that met a conflict come back when `retry`.
-    fn try_group(&self, jobs: Vec<EditJob>, started: Instant, retry: bool) -> Vec<EditJob> {
+    /// Check, write and answer a group; the requests that must go round again come back (a conflict, or a store
+    /// that could not be read to tell whether an earlier attempt was kept: then the flag is set).
+    fn try_group(&self, requests: Vec<Request>, started: Instant) -> (Vec<Request>, bool) {
         let mut working: BTreeMap<CellCoord, Working> = BTreeMap::new();
-        let mut edits = Vec::with_capacity(jobs.len());
-        let mut accepted = Vec::with_capacity(jobs.len());
-        for job in jobs {
-            match self.prepare(&job.op, &job.editor, &mut working) {
+        let mut edits = Vec::with_capacity(requests.len());
+        let mut accepted = Vec::with_capacity(requests.len());
+        let mut again = Vec::new();
+        let mut unknown = false;
+        for request in requests {
+            // Tried before: if the store kept an attempt, that is the request's outcome.
+            if let Some(last) = request.attempts.last() {
+                match self.working(last.cell, &mut working) {
+                    Ok(w) => {
+                        if let Some(kept) = request.attempts.iter().find(|a| w.overlay.edit(a.version) == Some(*a)) {
+                            let outcome = EditOutcome::Ok { id: edit_id(kept), version: kept.version };
+                            self.reply(request.job.reply, outcome);
+                            continue;
+                        }
+                    }
+                    // Not known yet: asked again later, never answered by a guess.
+                    Err(_) => {
+                        again.push(request);
+                        unknown = true;
+                        continue;
+                    }
+                }
+            }
+            match self.prepare(&request.job.op, &request.job.editor, &mut working) {
                 Ok((edit, id)) => {
-                    accepted.push(Accepted { job, id, version: edit.version });
+                    accepted.push(Accepted { request, id, version: edit.version });
                     edits.push(edit);
                 }
-                Err(outcome) => self.reply(job.reply, outcome),
+                Err(outcome) => self.reply(request.job.reply, outcome),
             }
         }
         if edits.is_empty() {
-            return Vec::new();
+            return (again, unknown);
         }
         match self.live.edit_store().append(&edits) {
             Ok(()) => {
@@ -247,9 +314,9 @@ impl Writer {
                     }
                 }
                 for a in accepted {
-                    self.reply(a.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
+                    self.reply(a.request.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
                 }
-                Vec::new()
+                (again, unknown)
             }
             Err(e) => {
                 match &e {
@@ -258,23 +325,26 @@ impl Writer {
                     }
                     e => warn!("writing {} edits: {e}", edits.len()),
                 }
-                self.settle_failed(&working, &edits, accepted, &e, retry)
+                let (settled, unread) = self.settle_failed(&working, edits, accepted, &e);
+                again.extend(settled);
+                (again, unknown || unread)
             }
         }
     }
 
     /// After a failed append, answer each edit by what the store holds: a store that is not transactional (or a
-    /// commit that failed after its data reached the disk) may have kept some of the group. Each cell's log is read
-    /// again: an edit found at its version is acknowledged (it is durable), the others are refused; the cells'
-    /// overlays are published from what was read.
+    /// commit that failed after its data reached the disk, or an acknowledgement lost with an engine node) may have
+    /// kept some of the group. Each cell's log is read again: an edit found at its version is acknowledged (it is
+    /// durable); the others go round again after a conflict, and are refused after any other failure. A cell whose
+    /// log cannot be read now leaves its edits pending: they come back, to be looked for when it can be read — an
+    /// edit is never called "not stored" on the strength of a read that failed.
     fn settle_failed(
         &self,
         working: &BTreeMap<CellCoord, Working>,
-        edits: &[StoredEdit],
+        edits: Vec<StoredEdit>,
         accepted: Vec<Accepted>,
         error: &EditStoreError,
-        retry: bool,
-    ) -> Vec<EditJob> {
+    ) -> (Vec<Request>, bool) {
         // Each cell read once again (and watched again, for a shared store): what the sessions get, and what says
         // which edits were stored.
         let mut read: BTreeMap<CellCoord, Arc<Overlay>> = BTreeMap::new();
@@ -283,24 +353,35 @@ impl Writer {
                 Ok(overlay) => {
                     read.insert(*c, overlay);
                 }
-                Err(e) => warn!(?c, "reading the cell's edits again: {e}"),
+                Err(e) => warn!(?c, "reading the cell's edits again (its edits wait until it can be read): {e}"),
             }
         }
         let mut again = Vec::new();
+        let mut unread = false;
         for (a, e) in accepted.into_iter().zip(edits) {
-            let stored = read.get(&e.cell).and_then(|o| o.edit(e.version)).is_some_and(|kept| kept == e);
+            let mut request = a.request;
+            let Some(overlay) = read.get(&e.cell) else {
+                request.attempts.push(e);
+                again.push(request);
+                unread = true;
+                continue;
+            };
+            // This attempt or an earlier one of the request.
+            let kept = std::iter::once(&e).chain(&request.attempts).find(|t| overlay.edit(t.version) == Some(*t));
             let outcome = match error {
-                _ if stored => EditOutcome::Ok { id: a.id, version: a.version },
-                EditStoreError::Conflict { .. } if retry => {
-                    again.push(a.job);
+                _ if let Some(kept) = kept => EditOutcome::Ok { id: edit_id(kept), version: kept.version },
+                EditStoreError::Conflict { .. } if request.conflicts < CONFLICT_RETRIES => {
+                    request.conflicts += 1;
+                    request.attempts.push(e);
+                    again.push(request);
                     continue;
                 }
                 EditStoreError::Conflict { .. } => EditOutcome::Conflict,
                 e => EditOutcome::Denied(format!("the edit could not be stored: {e}")),
             };
-            self.reply(a.job.reply, outcome);
+            self.reply(request.job.reply, outcome);
         }
-        again
+        (again, unread)
     }
 
     /// The cell's working state, read on first need (waiting for its expansion if it is not ready).

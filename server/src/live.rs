@@ -182,6 +182,11 @@ impl Shared {
         let kept = self.with(|o| o.put(c, Arc::new(overlay), self.limit_bytes));
         // Weakly: the store the watch lives in belongs to this, and must not keep it alive.
         self.edits.watch(c, Arc::new(Watcher(Arc::downgrade(self))));
+        // What was read may be newer than what sessions hold (another writer's edit, or one whose append was
+        // answered by a failure but kept): they are told, and those holding the cell catch up.
+        if kept.version() > 0 {
+            self.announce(c, kept.version());
+        }
         Ok(kept)
     }
 
@@ -315,15 +320,11 @@ impl LiveStore {
         &self.shared.hub
     }
 
-    /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it, and
-    /// announce what was read (an edited cell's version) to the sessions.
+    /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it; what
+    /// was read (an edited cell's version) is announced to the sessions, as every read of a log is.
     pub fn reload(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
         self.forget(c);
-        let overlay = self.shared.load(c, base.records.len() as u16)?;
-        if overlay.version() > 0 {
-            self.shared.announce(c, overlay.version());
-        }
-        Ok(overlay)
+        self.shared.load(c, base.records.len() as u16)
     }
 
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).

@@ -333,3 +333,94 @@ fn a_flood_of_refused_edits_ends_the_session_instead_of_queueing_answers() {
     assert!((100..=110).contains(&refused), "{refused} refused before the end");
     assert_eq!(reader.server.stats().edits_denied, refused);
 }
+
+/// A store in an election: an append stores its whole group yet answers a failure (a conflict, or no answer), as an
+/// engine whose leader died after committing does; the reads after it fail for a while.
+#[derive(Default)]
+struct Election {
+    inner: MemoryEditStore,
+    /// Appends still to answer with a failure though they stored (`true`: a conflict; `false`: no answer).
+    lost: std::sync::Mutex<Vec<bool>>,
+    /// Reads still to fail.
+    unreadable: std::sync::atomic::AtomicUsize,
+}
+
+impl EditStore for Election {
+    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+        use canopy_server::edits::EditStoreError;
+        self.inner.append(edits)?;
+        match self.lost.lock().unwrap().pop() {
+            Some(true) => Err(EditStoreError::Conflict { cell: edits[0].cell, version: edits[0].version }),
+            Some(false) => Err(EditStoreError::Io("NATS: no answer within 10s".into())),
+            None => Ok(()),
+        }
+    }
+    fn load(
+        &self,
+        c: CellCoord,
+    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+        let failing = self.unreadable.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok();
+        if failing {
+            return Err(canopy_server::edits::EditStoreError::Io("NATS: no answer within 10s".into()));
+        }
+        self.inner.load(c)
+    }
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
+        self.inner.cells()
+    }
+    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
+        self.inner.count()
+    }
+}
+
+use std::sync::atomic::Ordering::SeqCst;
+
+#[test]
+fn an_edit_stored_by_a_failed_append_is_acknowledged_once_though_the_store_cannot_be_read_for_a_while() {
+    let store = Arc::new(Election::default());
+    let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
+    let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 21);
+    let mut watcher = Pair::connect(&w, ClientState::new(), None, 22);
+    settle(&w, &mut [&mut a, &mut watcher]);
+    let c = CellCoord::new(0, 0);
+    let before = version(&w, c);
+    // Plants whose append is stored but answered as a conflict, then as no answer; the next reads fail.
+    *store.lost.lock().unwrap() = vec![false, true];
+    store.unreadable.store(3, SeqCst);
+    let plants: Vec<u32> =
+        (0..3).map(|i| a.edit(EditOp::Plant { species: 0, x: 4.0 + i as f32, z: 6.0, params: vec![] })).collect();
+    // The writer looks again after a pause while the store cannot be read: wait for the answers.
+    let answered =
+        |asked: Vec<u32>| move |p: &[(&World, &mut Pair)]| asked.iter().all(|r| p[0].1.results.contains_key(r));
+    settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], answered(plants.clone()));
+    // Then a fell the same way.
+    *store.lost.lock().unwrap() = vec![true];
+    store.unreadable.store(2, SeqCst);
+    let fell = a.edit(EditOp::Fell { id: id(0, 0, 0) });
+    settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], answered(vec![fell]));
+
+    // Each acknowledged once, at the version the store holds it, and stored once.
+    let mut versions: Vec<u32> = plants
+        .iter()
+        .chain([&fell])
+        .map(|r| match &a.results[r] {
+            EditOutcome::Ok { version, .. } => *version,
+            other => panic!("a stored edit answered {other:?}"),
+        })
+        .collect();
+    versions.sort_unstable();
+    assert_eq!(versions, (before + 1..=before + 4).collect::<Vec<_>>());
+    let log = store.inner.load(c).unwrap();
+    assert_eq!(log.len(), 4, "each edit stored once: {log:?}");
+    let felled = log.iter().filter(|e| matches!(e.op, canopy_server::edits::CellEdit::Fell { index: 0 })).count();
+    assert_eq!(felled, 1);
+    assert_eq!(version(&w, c), before + 4);
+    // Every client catches up (the overlay loaders pause after a failed read).
+    settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], |p| {
+        p.iter().all(|(_, p)| p.client.cells().get(&c).is_some_and(|h| h.version == before + 4))
+    });
+    let want = expected(&w);
+    for p in [&a, &watcher] {
+        assert_eq!(sorted(p.client.instances(&|_, _| 0.0).collect()), want);
+    }
+}
