@@ -289,13 +289,12 @@ async fn accept_loop(
             metrics.handshakes.fetch_sub(1, Relaxed);
             let code = match handshake {
                 Ok(Ok(conn)) => {
-                    // A completed handshake has proved its address: only now does it take a client slot.
+                    // A completed handshake has proved its address: only now does it take a client slot. The slot
+                    // is returned when the guard drops: when the session ends, and if its task panics too.
                     if lock().handshake_done(peer.ip(), true) {
                         metrics.clients.fetch_add(1, Relaxed);
-                        let code = serve_connection(conn, store, &cfg, &metrics, &admission).await;
-                        metrics.clients.fetch_sub(1, Relaxed);
-                        lock().closed(peer.ip());
-                        code
+                        let _slot = Slot { admission: &admission, metrics: &metrics, peer: peer.ip() };
+                        serve_connection(conn, store, &cfg, &metrics, &admission).await
                     } else {
                         conn.close(VarInt::from_u32(CloseCode::Full as u32), b"the server is full");
                         Some(CloseCode::Full)
@@ -314,6 +313,20 @@ async fn accept_loop(
             };
             metrics.closed(code);
         });
+    }
+}
+
+/// A client slot taken by a session, returned when it drops (however the session's task ends, a panic included).
+struct Slot<'a> {
+    admission: &'a std::sync::Mutex<Admission>,
+    metrics: &'a Metrics,
+    peer: std::net::IpAddr,
+}
+
+impl Drop for Slot<'_> {
+    fn drop(&mut self) {
+        self.metrics.clients.fetch_sub(1, Relaxed);
+        self.admission.locked().closed(self.peer);
     }
 }
 

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use canopy_edits::{CellEdit, EditStoreError, Overlay, StoredEdit};
 use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::sync::Locked;
-use canopy_protocol::{CellCoord, InstanceId, InstanceRecord, SpeciesGraph};
+use canopy_protocol::{CellCoord, InstanceId, InstanceRecord};
 use tracing::{info, warn};
 
 use crate::live::{EditHub, LiveStore};
@@ -29,8 +29,6 @@ use canopy_session::{CellData, CellState, CellWaker, WorldStore};
 pub const MAX_GROUP: usize = 4096;
 /// Most requests waiting for the writer; beyond, new ones are denied at once.
 pub const MAX_QUEUED: usize = 65_536;
-/// Largest magnitude of a parameter value an edit may set (species declare no ranges; this keeps values sane).
-pub const MAX_PARAM_VALUE: f32 = 1.0e4;
 /// How long the writer waits for a cell's expansion before it gives up on an edit of it.
 const CELL_WAIT: Duration = Duration::from_secs(30);
 
@@ -43,6 +41,8 @@ pub struct EditMetrics {
     pub groups: AtomicU64,
     /// Time from a group's first request to its durable commit.
     pub commit_time: Histogram,
+    /// Stored edits skipped because the world cannot take them ([`LiveStore::skipped`]).
+    pub skipped: Arc<AtomicU64>,
 }
 
 impl EditMetrics {
@@ -93,25 +93,17 @@ impl std::fmt::Debug for EditService {
 struct Writer {
     live: Arc<LiveStore>,
     metrics: Arc<EditMetrics>,
-    /// Parameters each species declares.
-    params: Vec<usize>,
     stopping: Arc<AtomicBool>,
 }
 
 impl EditService {
     /// Start the writer thread over `live`.
     pub fn start(live: Arc<LiveStore>) -> Arc<EditService> {
-        let head = live.head();
-        let params = (0..head.species().len())
-            .map(|i| {
-                head.species_graph(i as u8).and_then(|g| SpeciesGraph::decode(g).ok()).map_or(0, |g| g.params.len())
-            })
-            .collect();
         let hub = Arc::clone(live.hub());
-        let metrics = Arc::new(EditMetrics::default());
+        let metrics = Arc::new(EditMetrics { skipped: Arc::clone(live.skipped()), ..EditMetrics::default() });
         let (tx, rx) = mpsc::sync_channel(MAX_QUEUED);
         let stopping = Arc::new(AtomicBool::new(false));
-        let writer = Writer { live, metrics: Arc::clone(&metrics), params, stopping: Arc::clone(&stopping) };
+        let writer = Writer { live, metrics: Arc::clone(&metrics), stopping: Arc::clone(&stopping) };
         let thread = std::thread::Builder::new()
             .name("canopy-edits".into())
             .spawn(move || writer.run(rx))
@@ -431,25 +423,16 @@ impl Writer {
     ) -> Result<(StoredEdit, InstanceId), EditOutcome> {
         let invalid = |why: String| Err(EditOutcome::Invalid(why));
         let grid = *self.live.grid();
-        let check_params = |species: u8, params: &[(u16, f32)]| -> Result<(), EditOutcome> {
-            let declared = self.params.get(usize::from(species)).copied().unwrap_or(0);
-            if let Some((slot, _)) = params.iter().find(|(s, _)| usize::from(*s) >= declared) {
-                return Err(EditOutcome::Invalid(format!("species {species} declares no parameter slot {slot}")));
-            }
-            if let Some((slot, v)) = params.iter().find(|(_, v)| v.abs() > MAX_PARAM_VALUE) {
-                return Err(EditOutcome::Invalid(format!("parameter {slot} = {v} is beyond ±{MAX_PARAM_VALUE}")));
-            }
-            Ok(())
-        };
+        let rules = self.live.rules();
+        let check_params =
+            |species: u8, params: &[(u16, f32)]| rules.check_params(species, params).map_err(EditOutcome::Invalid);
         let (cell, cell_op) = match op {
             EditOp::Plant { species, x, z, params } => {
                 let cell = grid.cell_of(*x, *z);
                 if !grid.contains(cell) {
                     return invalid(format!("({x}, {z}) is outside the world"));
                 }
-                if usize::from(*species) >= self.params.len() {
-                    return invalid(format!("species {species} is not in the world's table"));
-                }
+                rules.check_species(*species).map_err(EditOutcome::Invalid)?;
                 if !editor.may_edit_at(*x, *z) {
                     return Err(EditOutcome::Denied(format!("({x}, {z}) is outside {}'s region", editor.name)));
                 }
@@ -462,6 +445,11 @@ impl Writer {
                 let cell = id.cell();
                 if !grid.contains(cell) {
                     return invalid(format!("instance {} is outside the world", id.0));
+                }
+                // Authorised before any work: a cell wholly outside the editor's region is never built for it.
+                let [x0, z0] = grid.cell_origin(cell);
+                if !editor.may_edit_in([x0, z0, x0 + grid.cell_size, z0 + grid.cell_size]) {
+                    return Err(EditOutcome::Denied(format!("cell {cell:?} is outside {}'s region", editor.name)));
                 }
                 let index = id.index();
                 let op = match op {

@@ -15,12 +15,13 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use canopy_edits::{EditStore, EditStoreError, Overlay};
+use canopy_edits::{EditRules, EditStore, EditStoreError, Overlay};
 use canopy_protocol::CellCoord;
 use canopy_protocol::lru::Lru;
 use canopy_protocol::sync::{Locked, Waited};
-use tracing::error;
+use tracing::{error, warn};
 
+use canopy_protocol::SpeciesGraph;
 use canopy_session::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, Waiters, WorldStore};
 
 /// A cell changed: it is at `version` now.
@@ -112,12 +113,36 @@ impl Overlays {
 /// Threads reading cells' edit logs.
 pub const LOADERS: usize = 2;
 
-/// Cells whose logs are queued or being read (with the cell's world-function record count), and the wakers to wake.
+/// A cell whose log is to be read, with its world-function records (the same cell is the same load).
+#[derive(Clone)]
+struct Load {
+    cell: CellCoord,
+    base: Arc<CellData>,
+}
+
+impl PartialEq for Load {
+    fn eq(&self, other: &Load) -> bool {
+        self.cell == other.cell
+    }
+}
+
+impl Eq for Load {}
+
+impl std::hash::Hash for Load {
+    fn hash<H: std::hash::Hasher>(&self, h: &mut H) {
+        self.cell.hash(h);
+    }
+}
+
+/// Cells whose logs are queued or being read, and the wakers to wake.
 #[derive(Default)]
 struct Loads {
-    waiters: Waiters<(CellCoord, u16)>,
+    waiters: Waiters<Load>,
     stop: bool,
 }
+
+/// Skipped edits named in the log at most this many times (each once); beyond, only counted.
+const SKIPS_REPORTED: usize = 4096;
 
 /// What the store and its loader threads share.
 struct Shared {
@@ -131,6 +156,12 @@ struct Shared {
     /// Where every change is announced: this server's edits ([`LiveStore::publish`]) and other writers' (a shared
     /// store's watch, a reload).
     hub: Arc<EditHub>,
+    /// What the world as loaded accepts; stored edits it refuses are skipped.
+    rules: EditRules,
+    /// Stored edits skipped (counted at every read of their cell).
+    skipped: Arc<AtomicU64>,
+    /// Skipped edits already named in the log, `(cell, version)`.
+    reported: Mutex<std::collections::BTreeSet<(CellCoord, u32)>>,
 }
 
 /// A cell's world-function records and its overlay.
@@ -171,14 +202,17 @@ impl Shared {
         out
     }
 
-    /// Read a cell's log, cache its overlay and watch the cell (`base_total`: its world-function record count).
-    fn load(self: &Arc<Self>, c: CellCoord, base_total: u16) -> Result<Arc<Overlay>, EditStoreError> {
+    /// Read a cell's log, cache its overlay and watch the cell (`base`: its world-function records). Edits the
+    /// world's rules refuse are skipped, counted and named in the log once, with the store.
+    fn load(self: &Arc<Self>, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
         if let Some(e) = self.lock().get(c) {
             return Ok(Arc::clone(&e.overlay));
         }
         let log = self.edits.load(c)?;
-        let overlay =
-            Overlay::from_log(base_total, &log).map_err(|e| EditStoreError::Corrupt(format!("cell {c:?}: {e}")))?;
+        let species = |i: u16| base.records.get(usize::from(i)).map(|r| r.species);
+        let (overlay, skipped) = Overlay::from_log_checked(base.records.len() as u16, species, &self.rules, &log)
+            .map_err(|e| EditStoreError::Corrupt(format!("{}: cell {c:?}: {e}", self.edits.describe())))?;
+        self.report(c, &skipped);
         let kept = self.with(|o| o.put(c, Arc::new(overlay), self.limit_bytes));
         // Weakly: the store the watch lives in belongs to this, and must not keep it alive.
         self.edits.watch(c, Arc::new(Watcher(Arc::downgrade(self))));
@@ -190,6 +224,18 @@ impl Shared {
         Ok(kept)
     }
 
+    /// Count skipped edits and name each in the log once.
+    fn report(&self, c: CellCoord, skipped: &[(u32, String)]) {
+        self.skipped.fetch_add(skipped.len() as u64, Relaxed);
+        for (version, why) in skipped {
+            let mut r = self.reported.locked();
+            if r.len() < SKIPS_REPORTED && r.insert((c, *version)) {
+                drop(r);
+                warn!(store = %self.edits.describe(), cell = ?c, version, "a stored edit the world cannot take is skipped: {why}");
+            }
+        }
+    }
+
     fn announce(&self, cell: CellCoord, version: u32) {
         self.hub.announce(CellChange { cell, version });
     }
@@ -197,7 +243,7 @@ impl Shared {
     /// A loader thread: read queued cells' logs, wake who waits for them.
     fn run_loader(self: &Arc<Self>) {
         loop {
-            let (c, base_total) = {
+            let load = {
                 let mut l = self.loads.locked();
                 loop {
                     if l.stop {
@@ -209,12 +255,12 @@ impl Shared {
                     l = self.work.waited(l);
                 }
             };
-            if let Err(e) = self.load(c, base_total) {
+            if let Err(e) = self.load(load.cell, &load.base) {
                 // Asked again, it is read again; not at once, so a store that is down is not hammered.
-                error!(?c, "reading the cell's edits: {e}");
+                error!(c = ?load.cell, "reading the cell's edits: {e}");
                 std::thread::sleep(Duration::from_millis(100));
             }
-            let wakers = self.loads.locked().waiters.done(&(c, base_total));
+            let wakers = self.loads.locked().waiters.done(&load);
             self.loaded.fetch_add(1, Relaxed);
             for w in wakers {
                 w.wake();
@@ -223,9 +269,9 @@ impl Shared {
     }
 
     /// Queue cell `c`'s log (once however many ask) and have `waker` woken when it is read.
-    fn queue(&self, c: CellCoord, base_total: u16, waker: Option<&Arc<dyn CellWaker>>) {
+    fn queue(&self, c: CellCoord, base: &Arc<CellData>, waker: Option<&Arc<dyn CellWaker>>) {
         let mut l = self.loads.locked();
-        if l.waiters.wait((c, base_total), waker) {
+        if l.waiters.wait(Load { cell: c, base: Arc::clone(base) }, waker) {
             drop(l);
             self.work.notify_one();
         }
@@ -242,6 +288,12 @@ impl LiveStore {
     /// The world of `base` with the edits of `edits`, overlays cached up to `limit_bytes`, logs read by
     /// [`LOADERS`] threads.
     pub fn new(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>, limit_bytes: usize) -> LiveStore {
+        let head = base.head();
+        let params = (0..head.species().len())
+            .map(|i| {
+                head.species_graph(i as u8).and_then(|g| SpeciesGraph::decode(g).ok()).map_or(0, |g| g.params.len())
+            })
+            .collect();
         let shared = Arc::new(Shared {
             edits,
             overlays: Mutex::new(Overlays::default()),
@@ -250,6 +302,9 @@ impl LiveStore {
             work: Condvar::new(),
             loaded: AtomicU64::new(0),
             hub: Arc::new(EditHub::new(HUB_CAPACITY)),
+            rules: EditRules::new(params),
+            skipped: Arc::default(),
+            reported: Mutex::default(),
         });
         let loaders = (0..LOADERS)
             .map(|i| {
@@ -277,6 +332,17 @@ impl LiveStore {
         &self.shared.edits
     }
 
+    /// What the world as loaded accepts in an edit (the writer checks requests with it, and stored edits are
+    /// checked with it when read).
+    pub fn rules(&self) -> &EditRules {
+        &self.shared.rules
+    }
+
+    /// Stored edits skipped because the world cannot take them (counted at every read of their cell).
+    pub fn skipped(&self) -> &Arc<AtomicU64> {
+        &self.shared.skipped
+    }
+
     /// Bytes the overlays hold now.
     pub fn overlay_bytes(&self) -> usize {
         self.lock().lru.cost()
@@ -285,7 +351,7 @@ impl LiveStore {
     /// The overlay of cell `c`, whose world-function records are `base`: cached, or read from the edit store now
     /// (blocking: the edit writer's path; sessions go through [`WorldStore::cell`], which never waits).
     pub fn overlay(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
-        self.shared.load(c, base.records.len() as u16)
+        self.shared.load(c, base)
     }
 
     /// The overlay of cell `c` if it is cached (touched as used); else its log is queued for the loaders and
@@ -293,7 +359,7 @@ impl LiveStore {
     fn cached_or_queue(
         &self,
         c: CellCoord,
-        base: &CellData,
+        base: &Arc<CellData>,
         waker: Option<&Arc<dyn CellWaker>>,
     ) -> Option<Arc<Overlay>> {
         {
@@ -302,7 +368,7 @@ impl LiveStore {
                 return Some(Arc::clone(&e.overlay));
             }
         }
-        self.shared.queue(c, base.records.len() as u16, waker);
+        self.shared.queue(c, base, waker);
         None
     }
 
@@ -324,7 +390,7 @@ impl LiveStore {
     /// was read (an edited cell's version) is announced to the sessions, as every read of a log is.
     pub fn reload(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {
         self.forget(c);
-        self.shared.load(c, base.records.len() as u16)
+        self.shared.load(c, base)
     }
 
     /// Forget cell `c`'s overlay (another writer changed the cell: read its log again on next need).
@@ -401,7 +467,11 @@ impl canopy_edits::EditWatcher for Shared {
                 return false;
             }
             let mut next = (*entry.overlay).clone();
-            if version == current + 1 && next.apply(&e).is_ok() {
+            // An edit the world cannot take is left to the read of the whole log, which skips and reports it.
+            let species =
+                |i: u16| entry.applied.as_ref().and_then(|a| a.records.get(usize::from(i))).map(|r| r.species);
+            let refused = next.refusal(&e, species, &self.rules).is_some();
+            if version == current + 1 && !refused && next.apply(&e).is_ok() {
                 o.put(cell, Arc::new(next), limit);
             } else {
                 o.remove(cell);

@@ -246,6 +246,9 @@ impl Metrics {
             metric("canopy_edits_total", "counter", "Edits answered, by outcome.", &outcomes);
             let help = "Groups of edits written durably (one transaction each: group commit).";
             metric("canopy_edit_groups_total", "counter", help, &one(&e.groups));
+            let help =
+                "Stored edits skipped because the world as loaded cannot take them (at every read of their cell).";
+            metric("canopy_edits_skipped_total", "counter", help, &one(&e.skipped));
         }
         if let Some(e) = self.engine.get() {
             metric("canopy_engine_watched_cells", "gauge", "Cells whose edits this edge watches.", &one(&e.watched));

@@ -578,6 +578,10 @@ impl EditStore for NatsEditStore {
         })
     }
 
+    fn describe(&self) -> String {
+        format!("NATS stream {} at {}", self.inner.cfg.stream(), self.inner.cfg.servers.join(","))
+    }
+
     fn watch(&self, c: CellCoord, watcher: Arc<dyn EditWatcher>) {
         let inner = Arc::clone(&self.inner);
         // The watch starts just after the last edit the read of the log saw; it is set up on the store's runtime,

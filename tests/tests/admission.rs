@@ -1,7 +1,8 @@
 //! Admission over real QUIC on loopback: half-open handshakes from one source (Initials that are never followed
 //! up, as a spoofing flood sends them) hold no client slots and do not stop another source from connecting (it is
 //! asked for a Retry and gets in); a source over its share is refused; a session that holds a slot without
-//! streaming is closed while the server is near capacity, and kept while it is not.
+//! streaming is closed while the server is near capacity, and kept while it is not; a session whose task panics
+//! gives its slot back.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -144,4 +145,60 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     assert!(quiet.is_err(), "not closed: {quiet:?}");
     server.shutdown(Duration::from_secs(1)).await;
     server2.shutdown(Duration::from_secs(1)).await;
+}
+
+/// A store whose cells panic while `armed` (a bug reached by data: the session's task dies mid-stream).
+struct Panicking {
+    inner: Arc<dyn canopy_server::session::WorldStore>,
+    armed: std::sync::atomic::AtomicBool,
+}
+
+impl canopy_server::session::WorldStore for Panicking {
+    fn head(&self) -> &canopy_server::session::StoreHead {
+        self.inner.head()
+    }
+    fn cell(
+        &self,
+        c: canopy_protocol::CellCoord,
+        waker: Option<&Arc<dyn canopy_server::session::CellWaker>>,
+    ) -> canopy_server::session::CellState {
+        assert!(!self.armed.load(Relaxed), "a session met cell {c:?} while the store is armed");
+        self.inner.cell(c, waker)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_session_whose_task_panics_gives_its_slot_back() {
+    let store = Arc::new(Panicking { inner: forest_store(), armed: true.into() });
+    let cfg = ServerConfig {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        admission: AdmissionConfig { max_clients: 1, ..AdmissionConfig::default() },
+        ..ServerConfig::default()
+    };
+    let shared = Arc::clone(&store) as Arc<dyn canopy_server::session::WorldStore>;
+    let server = serve_store(shared, ServeOptions { server: cfg, ..ServeOptions::default() }).await.unwrap();
+    // The one slot's session panics at its first cell; its client sees the connection end.
+    let mut doomed = connect_from(&server, "127.0.0.1:0").await.unwrap();
+    let ended = tokio::time::timeout(Duration::from_secs(10), async {
+        loop {
+            if let Err(e) = doomed.next_event().await {
+                return e;
+            }
+        }
+    })
+    .await
+    .expect("the connection ends within 10 s");
+    assert!(!matches!(ended, ClientError::Closed { code: Some(CloseCode::Full), .. }), "{ended}");
+    tokio::time::timeout(Duration::from_secs(5), async {
+        while server.metrics().clients.load(Relaxed) != 0 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await
+    .expect("the slot is returned");
+    // The slot is free again: the next client gets in and streams its area of interest to the end.
+    store.armed.store(false, Relaxed);
+    let mut next = connect_from(&server, "127.0.0.1:0").await.expect("the freed slot is taken");
+    next.wait_complete(Duration::from_secs(30)).await.unwrap();
+    server.shutdown(Duration::from_secs(1)).await;
 }

@@ -46,6 +46,9 @@ impl EditStore for Flaky {
     fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
         self.inner.count()
     }
+    fn describe(&self) -> String {
+        "flaky".into()
+    }
 }
 
 #[test]
@@ -287,6 +290,9 @@ impl EditStore for Slow {
     fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
         self.0.count()
     }
+    fn describe(&self) -> String {
+        "slow".into()
+    }
 }
 
 #[test]
@@ -371,6 +377,9 @@ impl EditStore for Election {
     fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
         self.inner.count()
     }
+    fn describe(&self) -> String {
+        "election".into()
+    }
 }
 
 use std::sync::atomic::Ordering::SeqCst;
@@ -423,4 +432,94 @@ fn an_edit_stored_by_a_failed_append_is_acknowledged_once_though_the_store_canno
     for p in [&a, &watcher] {
         assert_eq!(sorted(p.client.instances(&|_, _| 0.0).collect()), want);
     }
+}
+
+#[test]
+fn stored_edits_the_world_cannot_take_are_skipped_and_the_cell_is_served_with_the_rest() {
+    use canopy_protocol::InstanceRecord;
+    use canopy_server::edits::{CellEdit, StoredEdit};
+    // A store written by another world (or damaged): a plant of species 9, a parameter slot 99 = 1e30, between
+    // edits this world takes.
+    let store = Arc::new(MemoryEditStore::new());
+    let c = CellCoord::new(1, 1);
+    let plant = |index: u16, species: u8, params: Vec<(u16, f32)>| CellEdit::Plant {
+        index,
+        record: InstanceRecord::new(species, 400, 500),
+        params,
+    };
+    let base_total = base().cell(c, None).ready().unwrap().records.len() as u16;
+    let log = [
+        plant(base_total, 9, vec![]),
+        plant(base_total + 1, 0, vec![(0, 2.0)]),
+        CellEdit::Set { index: 0, params: vec![(99, 1.0e30)] },
+        CellEdit::Fell { index: 1 },
+    ];
+    let log: Vec<StoredEdit> =
+        log.into_iter().enumerate().map(|(i, op)| StoredEdit { cell: c, version: i as u32 + 1, op }).collect();
+    store.append(&log).unwrap();
+    let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
+    let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 31);
+    settle_until(&mut [(&w, &mut a)], |p| p[0].1.client.is_complete());
+    // Served at version 4 with the valid plant and the fell; the skipped plant's index stays a hole.
+    let held = &a.client.cells()[&c];
+    assert_eq!(held.version, 4);
+    let ids: Vec<u16> = a.client.instances(&|_, _| 0.0).filter(|i| i.id.cell() == c).map(|i| i.id.index()).collect();
+    assert!(ids.contains(&(base_total + 1)) && !ids.contains(&base_total) && !ids.contains(&1), "{ids:?}");
+    assert!(a.client.instances(&|_, _| 0.0).all(|i| i.params.iter().all(|p| p.0 < 8 && p.1.abs() < 1.0e4)));
+    assert_eq!(w.live.skipped().load(SeqCst), 2);
+    // Edits go on at the next version.
+    let next = a.edit(EditOp::Plant { species: 1, x: 40.0, z: 40.0, params: vec![] });
+    settle(&w, &mut [&mut a]);
+    assert!(matches!(a.results[&next], EditOutcome::Ok { version: 5, .. }), "{:?}", a.results[&next]);
+}
+
+/// The world function's records, counting the cells asked for.
+struct Counting {
+    inner: Arc<dyn canopy_server::session::WorldStore>,
+    asked: std::sync::Mutex<Vec<CellCoord>>,
+}
+
+impl canopy_server::session::WorldStore for Counting {
+    fn head(&self) -> &canopy_server::session::StoreHead {
+        self.inner.head()
+    }
+    fn cell(
+        &self,
+        c: CellCoord,
+        waker: Option<&Arc<dyn canopy_server::session::CellWaker>>,
+    ) -> canopy_server::session::CellState {
+        self.asked.lock().unwrap().push(c);
+        self.inner.cell(c, waker)
+    }
+}
+
+#[test]
+fn an_edit_outside_the_editors_region_is_refused_before_its_cell_is_built() {
+    let counting = Arc::new(Counting { inner: base(), asked: Default::default() });
+    let w = world_on(Arc::clone(&counting) as _, Arc::new(MemoryEditStore::new()));
+    let carol = w.cfg.editors.as_ref().unwrap().find(&CAROL).unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    // Carol may edit only x ≤ 0: fells and sets in every cell wholly east of that, then one of her own.
+    let mut asked = Vec::new();
+    for x in 1..4 {
+        for z in -4..4 {
+            asked.push(EditOp::Fell { id: id(x, z, 0) });
+            asked.push(EditOp::Set { id: id(x, z, 0), params: vec![(0, 1.0)] });
+        }
+    }
+    asked.push(EditOp::Fell { id: id(-2, 1, 0) });
+    let n = asked.len();
+    for op in asked {
+        let tx = tx.clone();
+        w.service.submit(canopy_server::EditJob {
+            op,
+            editor: Arc::clone(&carol),
+            reply: Box::new(move |o| tx.send(o).unwrap()),
+        });
+    }
+    let outcomes: Vec<EditOutcome> = (0..n).map(|_| rx.recv_timeout(Duration::from_secs(10)).unwrap()).collect();
+    assert_eq!(outcomes.iter().filter(|o| matches!(o, EditOutcome::Denied(_))).count(), n - 1, "{outcomes:?}");
+    assert!(matches!(outcomes.last(), Some(EditOutcome::Ok { .. })), "{outcomes:?}");
+    // Only Carol's own cell was read for her.
+    assert_eq!(*counting.asked.lock().unwrap(), vec![CellCoord::new(-2, 1)]);
 }

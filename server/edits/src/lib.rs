@@ -16,11 +16,13 @@
 
 pub mod log;
 pub mod overlay;
+pub mod rules;
 pub mod sqlite;
 pub mod store;
 pub mod suite;
 
 pub use log::{CellEdit, LogError, StoredEdit};
 pub use overlay::{Overlay, OverlayError};
+pub use rules::{EditRules, MAX_PARAM_VALUE};
 pub use sqlite::SqliteEditStore;
 pub use store::{EditStore, EditStoreError, EditWatcher, MemoryEditStore};

@@ -9,6 +9,7 @@ use canopy_protocol::record::{PackedF32, ParamOverride};
 use canopy_protocol::{InstanceRecord, ServerMsg, netlimits};
 
 use crate::log::{CellEdit, StoredEdit};
+use crate::rules::EditRules;
 
 /// The latest edits an overlay keeps to compose deltas from; a client holding an older version gets the whole cell.
 pub const LOG_KEEP: usize = 1024;
@@ -93,6 +94,74 @@ impl Overlay {
             o.apply(e)?;
         }
         Ok(o)
+    }
+
+    /// A cell's overlay from its whole log as the world can take it: an edit the `rules` refuse (a species the
+    /// world lacks, an undeclared slot, a value out of range) is skipped — it keeps its version, a plant keeps its
+    /// index as a felled instance, and nothing of it is served — and named in the list returned, with why.
+    /// `base_species(i)`: the species of the world function's record `i`. An edit that does not fit the cell at
+    /// all (a version gap, an index that does not exist) is still an error: the log itself is damaged.
+    pub fn from_log_checked<'a>(
+        base_total: u16,
+        base_species: impl Fn(u16) -> Option<u8>,
+        rules: &EditRules,
+        log: impl IntoIterator<Item = &'a StoredEdit>,
+    ) -> Result<(Overlay, Vec<(u32, String)>), OverlayError> {
+        let mut o = Overlay::new(base_total);
+        let mut skipped = Vec::new();
+        for e in log {
+            match o.refusal(e, &base_species, rules) {
+                None => o.apply(e)?,
+                Some(why) => {
+                    o.skip(e)?;
+                    skipped.push((e.version, why));
+                }
+            }
+        }
+        Ok((o, skipped))
+    }
+
+    /// Why the world's `rules` refuse `e` as this cell's next edit (`None`: they take it).
+    pub fn refusal(
+        &self,
+        e: &StoredEdit,
+        base_species: impl Fn(u16) -> Option<u8>,
+        rules: &EditRules,
+    ) -> Option<String> {
+        match &e.op {
+            CellEdit::Plant { record, params, .. } => {
+                rules.check_species(record.species).and_then(|()| rules.check_params(record.species, params)).err()
+            }
+            CellEdit::Set { index, params } => {
+                let species = match index.checked_sub(self.base_total) {
+                    Some(p) => self.planted(p).map(|r| r.species),
+                    None => base_species(*index),
+                };
+                match species {
+                    Some(s) => rules.check_params(s, params).err(),
+                    None => Some(format!("the species of instance {index} is not known")),
+                }
+            }
+            CellEdit::Fell { .. } => None,
+        }
+    }
+
+    /// Take `e` as the cell's next version without applying it (the rules refused it): a plant's index stays
+    /// taken by a felled instance of species 0 without parameters; deltas across it are not composed (a client
+    /// holding an older version gets the whole cell).
+    pub fn skip(&mut self, e: &StoredEdit) -> Result<(), OverlayError> {
+        let expected = self.version + 1;
+        if e.version != expected {
+            return Err(OverlayError::Version { expected, got: e.version });
+        }
+        self.check(&e.op)?;
+        if let CellEdit::Plant { index, record, .. } = &e.op {
+            self.planted.push((InstanceRecord::new(0, record.qx(), record.qz()), Vec::new()));
+            self.felled.insert(*index);
+        }
+        self.version = expected;
+        self.log.clear();
+        Ok(())
     }
 
     /// The cell's version: how many edits it had.
@@ -322,6 +391,39 @@ mod tests {
 
     fn plant(index: u16) -> CellEdit {
         CellEdit::Plant { index, record: InstanceRecord::new(9, index % 4096, index % 4096), params: vec![(0, 1.5)] }
+    }
+
+    #[test]
+    fn edits_the_world_cannot_take_are_skipped_keeping_versions_and_indices() {
+        let (records, overrides) = base();
+        // Species 0..4 of the base; the world has 2 species now, species 0 with 3 slots, species 1 with none.
+        let rules = EditRules::new(vec![3, 0]);
+        let ok_plant = CellEdit::Plant { index: 5, record: InstanceRecord::new(0, 10, 10), params: vec![(2, 1.0)] };
+        let log = [
+            edit(1, plant(4)),                                               // species 9: gone
+            edit(2, ok_plant),                                               // index 5: the skipped plant kept 4
+            edit(3, CellEdit::Set { index: 0, params: vec![(99, 1.0e30)] }), // slot 99 of species 0
+            edit(4, CellEdit::Set { index: 5, params: vec![(1, 2.0)] }),
+            edit(5, CellEdit::Set { index: 1, params: vec![(0, 1.0)] }), // species 1 declares no slot
+        ];
+        let species = |i: u16| records.get(usize::from(i)).map(|r| r.species);
+        let (o, skipped) = Overlay::from_log_checked(4, species, &rules, &log).unwrap();
+        assert_eq!(skipped.iter().map(|s| s.0).collect::<Vec<_>>(), vec![1, 3, 5]);
+        assert!(skipped[0].1.contains("species 9") && skipped[1].1.contains("slot 99"), "{skipped:?}");
+        assert_eq!((o.version(), o.total()), (5, 6));
+        assert!(!o.is_live(4) && o.is_live(5));
+        let a = o.apply_to(&records, &overrides);
+        assert_eq!(a.felled, vec![4]);
+        assert_eq!(a.records[4].species, 0);
+        assert!(a.overrides.iter().all(|p| p.value.abs() < 100.0 && p.slot < 3), "{:?}", a.overrides);
+        // No delta across a skipped edit: the whole cell goes to a client that holds an older version.
+        assert_eq!(o.delta(4), None);
+        assert_eq!(o.oldest_base(), 5);
+        // Unchecked, the same log folds as stored.
+        assert_eq!(Overlay::from_log(4, &log).unwrap().planted(0).unwrap().species, 9);
+        // A log that does not fit the cell is still damaged.
+        let gap = [edit(2, plant(4))];
+        assert!(Overlay::from_log_checked(4, species, &rules, &gap).is_err());
     }
 
     #[test]

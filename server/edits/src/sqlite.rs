@@ -168,6 +168,10 @@ impl EditStore for SqliteEditStore {
         let n: i64 = self.reader().query_row(COUNT, [], |row| row.get(0)).map_err(sql_err(path, "count"))?;
         u64::try_from(n).map_err(|_| EditStoreError::Corrupt(format!("count {n}")))
     }
+
+    fn describe(&self) -> String {
+        self.path.display().to_string()
+    }
 }
 
 /// Create `dir` if it is missing, and make its entry durable in its parent.

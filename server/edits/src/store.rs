@@ -50,6 +50,8 @@ pub trait EditStore: Send + Sync + 'static {
     fn watch(&self, _cell: CellCoord, _watcher: std::sync::Arc<dyn EditWatcher>) {}
     /// Stop telling of `cell`'s edits.
     fn unwatch(&self, _cell: CellCoord) {}
+    /// Where the edits are, for logs: a file's path, an engine's stream and servers.
+    fn describe(&self) -> String;
 }
 
 /// Told of edits stored by any writer of a shared store ([`EditStore::watch`]): its own included, and perhaps
@@ -108,5 +110,9 @@ impl EditStore for MemoryEditStore {
 
     fn count(&self) -> Result<u64, EditStoreError> {
         Ok(self.lock().len() as u64)
+    }
+
+    fn describe(&self) -> String {
+        "the in-memory edit store".into()
     }
 }

@@ -47,6 +47,12 @@ impl Editor {
         self.region.is_none_or(|[x0, z0, x1, z1]| x >= x0 && x <= x1 && z >= z0 && z <= z1)
     }
 
+    /// Whether the editor's region meets the world rectangle `[x0, z0, x1, z1]` (a cell: checked before any of
+    /// its records are built).
+    pub fn may_edit_in(&self, [x0, z0, x1, z1]: [f32; 4]) -> bool {
+        self.region.is_none_or(|[rx0, rz0, rx1, rz1]| x0 <= rx1 && rx0 <= x1 && z0 <= rz1 && rz0 <= z1)
+    }
+
     /// Take one edit from the editor's rate at `now`; `false` when it is spent.
     pub fn take(&self, now: Instant) -> bool {
         let (rate, burst) = (f64::from(self.rate), 2.0 * f64::from(self.rate));
@@ -264,6 +270,9 @@ mod tests {
         assert_eq!((alice.name.as_str(), alice.rate), ("alice", 2));
         assert!(alice.may_edit_at(0.0, 10.0) && !alice.may_edit_at(11.0, 0.0));
         assert!(e.find(&b).unwrap().may_edit_at(1e6, -1e6));
+        assert!(alice.may_edit_in([10.0, -40.0, 42.0, -8.0]) && alice.may_edit_in([-5.0, -5.0, 5.0, 5.0]));
+        assert!(!alice.may_edit_in([10.5, 0.0, 42.0, 32.0]) && !alice.may_edit_in([-9.0, -43.0, -8.0, -11.0]));
+        assert!(e.find(&b).unwrap().may_edit_in([1e6, 1e6, 1e6 + 32.0, 1e6 + 32.0]));
         assert!(e.find(&[1u8; 32]).is_none());
         let t0 = Instant::now();
         let taken = (0..10).filter(|_| alice.take(t0)).count();

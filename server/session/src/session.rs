@@ -870,11 +870,19 @@ impl Session {
                     let blob = g.species_mesh(id);
                     self.stage_geometry(cell, h.lane, GeometryKind::SpeciesMesh, u64::from(id), &blob);
                 }
+                // A live store serves no record of a species the table lacks (stored edits are checked when read);
+                // should one come anyway, the client refuses its cell, and the session goes on.
                 _ => {
-                    let bytes = store.species_frame(id).expect("records name species of the table");
-                    let t =
-                        Transmit { stream: lane, bytes, body: Bytes::new(), class: ServerMsgKind::Species, records: 0 };
-                    self.staged.push_back((cell, t));
+                    if let Some(bytes) = store.species_frame(id) {
+                        let t = Transmit {
+                            stream: lane,
+                            bytes,
+                            body: Bytes::new(),
+                            class: ServerMsgKind::Species,
+                            records: 0,
+                        };
+                        self.staged.push_back((cell, t));
+                    }
                 }
             }
             self.pinned.insert(cell, Arc::clone(data));

@@ -68,7 +68,12 @@ pub fn world() -> World {
 
 /// The world over `edits`.
 pub fn world_over(edits: Arc<dyn EditStore>) -> World {
-    let live = Arc::new(LiveStore::new(base(), Arc::clone(&edits), 1 << 20));
+    world_on(base(), edits)
+}
+
+/// The world of `base` (the world function's records) over `edits`.
+pub fn world_on(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>) -> World {
+    let live = Arc::new(LiveStore::new(base, Arc::clone(&edits), 1 << 20));
     let service = EditService::start(Arc::clone(&live));
     let text = [
         editor_line("alice", &ALICE, None, Some(1000)),
