@@ -105,3 +105,36 @@ fn bake_folds_plants_fells_and_sets_into_a_manifest_that_serves_the_same() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("no edits stored there"));
     assert!(!none.exists());
 }
+
+#[test]
+fn a_manifest_with_species_files_bakes_to_another_directory_and_loads_there() {
+    // The default world's manifest names its species by paths relative to it.
+    let source = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../worlds/forest/forest.world");
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let cell = CellCoord::new(0, 0);
+    let n = World::load(&source).unwrap().expand_cell(CellKey { x: 0, z: 0 }).len() as u16;
+    // A fell, and a plant of a species this world does not have (a store written by another world).
+    let alien = CellEdit::Plant { index: n, record: InstanceRecord::new(99, 10, 10), params: vec![] };
+    let log =
+        [StoredEdit { cell, version: 1, op: CellEdit::Fell { index: 0 } }, StoredEdit { cell, version: 2, op: alien }];
+    SqliteEditStore::open(&data).unwrap().append(&log).unwrap();
+    let out = dir.path().join("a/b/forest-baked.world");
+    let o = Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["world", "bake", source.to_str().unwrap(), "--data", data.to_str().unwrap(), "-o"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(o.status.success(), "{text}");
+    assert!(text.contains("cell 0:0 version 2: the world cannot take it (species 99"), "{text}");
+    let baked_text = std::fs::read_to_string(&out).unwrap();
+    assert!(baked_text.contains("\"../../"), "species paths relative to the baked manifest:\n{baked_text}");
+    let (world, baked) = (World::load(&source).unwrap(), World::load(&out).unwrap());
+    let other = CellKey { x: 3, z: -2 };
+    assert_eq!(baked.expand_cell(other), world.expand_cell(other));
+    assert_eq!(baked.expand_cell(CellKey { x: 0, z: 0 }).len() + 1, world.expand_cell(CellKey { x: 0, z: 0 }).len());
+    // Nothing but the manifest is left in its directory.
+    let names: Vec<_> = std::fs::read_dir(out.parent().unwrap()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("forest-baked.world")]);
+}

@@ -3,7 +3,7 @@
 //! (the world function's placements quantised in the cell, the cell's edit log laid over them). `canopy world bake`
 //! writes them after the source manifest.
 
-use canopy_edits::{EditStore, EditStoreError, Overlay};
+use canopy_edits::{EditRules, EditStore, EditStoreError, Overlay};
 use canopy_protocol::record::dequantize;
 use canopy_session::{CellData, StoreError, StoreHead};
 use canopy_worlds::world::{CellKey, World};
@@ -42,6 +42,9 @@ pub struct Baked {
     pub plants: usize,
     /// Cells with edits that lie outside the world (left out).
     pub outside: Vec<(i32, i32)>,
+    /// Stored edits the world cannot take (a species it lacks, an undeclared slot, a value out of range), left out
+    /// as a server skips them: `(x, z, version, why)`.
+    pub skipped: Vec<(i32, i32, u32, String)>,
 }
 
 /// Bake the edits of `store` over `world`.
@@ -49,6 +52,7 @@ pub fn bake(world: &World, store: &dyn EditStore) -> Result<Baked, BakeError> {
     // The server's grid of the world: cells are quantised exactly as a server holds them.
     let grid = StoreHead::of_world(world)?.world().grid;
     let mut baked = Baked::default();
+    let rules = EditRules::new(world.species.iter().map(|s| s.graph.params.len()).collect());
     let name = |species: u8| world.species[usize::from(species)].name.as_str();
     let params = |species: u8, params: &[(u16, f32)]| -> String {
         let g = &world.species[usize::from(species)].graph;
@@ -64,11 +68,10 @@ pub fn bake(world: &World, store: &dyn EditStore) -> Result<Baked, BakeError> {
         let placements = world.expand_cell(key);
         let base = CellData::from_placements(&grid, cell, world.species.len(), &placements)?;
         let (records, overrides) = (&base.records, &base.overrides);
-        let overlay = Overlay::from_log(records.len() as u16, &store.load(cell)?).map_err(|e| BakeError::Log {
-            x: cell.x,
-            z: cell.z,
-            message: e.to_string(),
-        })?;
+        let species = |i: u16| records.get(usize::from(i)).map(|r| r.species);
+        let (overlay, skipped) = Overlay::from_log_checked(records.len() as u16, species, &rules, &store.load(cell)?)
+            .map_err(|e| BakeError::Log { x: cell.x, z: cell.z, message: e.to_string() })?;
+        baked.skipped.extend(skipped.into_iter().map(|(v, why)| (cell.x, cell.z, v, why)));
         let applied = overlay.apply_to(records, overrides);
         let origin = grid.cell_origin(cell);
         baked.lines.push(format!("# cell {}:{} at version {version}", cell.x, cell.z));

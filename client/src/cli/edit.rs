@@ -275,11 +275,25 @@ pub fn bake(
         bail!("{}: no edits stored there", db.display());
     }
     let store = SqliteEditStore::open(data)?;
-    let canopy_server::Baked { lines, fells, sets, plants, outside } = canopy_server::bake(&world, &store)?;
+    let canopy_server::Baked { lines, fells, sets, plants, outside, skipped } = canopy_server::bake(&world, &store)?;
     for (x, z) in outside {
         eprintln!("warning: cell {x}:{z} has edits but lies outside the world; left out");
     }
-    let mut baked = rebase(&text, &base)?;
+    for (x, z, version, why) in skipped {
+        eprintln!(
+            "warning: {}: cell {x}:{z} version {version}: the world cannot take it ({why}); left out",
+            db.display()
+        );
+    }
+    // The baked manifest's relative paths lead from its own directory.
+    let out_dir = match out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => {
+            std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+            dir.canonicalize()?
+        }
+        None => std::env::current_dir()?,
+    };
+    let mut baked = rebase(&text, &base, &out_dir)?;
     baked.push_str(&format!(
         "\n# Edits baked from {} ({} edits stored): {fells} felled, {sets} set, {plants} planted.\n",
         db.display(),
@@ -289,14 +303,36 @@ pub fn bake(
         baked.push_str(&l);
         baked.push('\n');
     }
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)?;
+    // Written beside its destination and checked there: only a manifest that loads takes the name `out`.
+    let name = out.file_name().context("the output names no file")?.to_string_lossy();
+    let draft = out_dir.join(format!(".{name}.baking"));
+    std::fs::write(&draft, &baked).with_context(|| draft.display().to_string())?;
+    if let Err(d) = canopy_worlds::world::World::load(&draft) {
+        let _ = std::fs::remove_file(&draft);
+        bail!("the baked manifest does not load (nothing written):\n{d}");
     }
-    std::fs::write(out, &baked).with_context(|| out.display().to_string())?;
-    // The baked manifest must load.
-    canopy_worlds::world::World::load(out).map_err(|d| anyhow::anyhow!("the baked manifest does not load:\n{d}"))?;
+    std::fs::rename(&draft, out).with_context(|| out.display().to_string())?;
     println!("{}: {fells} felled, {sets} set, {plants} planted", out.display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// The path of `to` relative to the directory `from` (both canonical: absolute, no `.` or `..`), with `..` where it
+/// climbs; `None` when they share no root (another drive).
+fn relative(from: &std::path::Path, to: &std::path::Path) -> Option<std::path::PathBuf> {
+    use std::path::Component;
+    let (a, b): (Vec<Component>, Vec<Component>) = (from.components().collect(), to.components().collect());
+    if a.first() != b.first() {
+        return None;
+    }
+    let common = a.iter().zip(&b).take_while(|(x, y)| x == y).count();
+    let mut out = std::path::PathBuf::new();
+    for _ in common..a.len() {
+        out.push("..");
+    }
+    for c in &b[common..] {
+        out.push(c);
+    }
+    Some(out)
 }
 
 /// Where a manifest's relative paths lead.
@@ -307,9 +343,9 @@ enum Base {
     Embedded,
 }
 
-/// The manifest text with each quoted `species` or `terrain` path made to load from anywhere: an absolute path, or
-/// for an embedded world, the library name of the species file it names.
-fn rebase(text: &str, base: &Base) -> anyhow::Result<String> {
+/// The manifest text with each quoted `species` or `terrain` path made to load from `out_dir` (a canonical path):
+/// the file's path relative to it, or for an embedded world, the library name of the species file it names.
+fn rebase(text: &str, base: &Base, out_dir: &std::path::Path) -> anyhow::Result<String> {
     let mut out = String::with_capacity(text.len());
     for line in text.lines() {
         let code = line.split('#').next().unwrap_or("");
@@ -321,7 +357,10 @@ fn rebase(text: &str, base: &Base) -> anyhow::Result<String> {
                 let new = match base {
                     Base::Dir(dir) => {
                         let p = dir.join(rel).canonicalize().with_context(|| format!("{rel}: in the manifest"))?;
-                        format!("\"{}\"", p.display())
+                        let rel = relative(out_dir, &p).with_context(|| {
+                            format!("{}: no relative path to it from {}", p.display(), out_dir.display())
+                        })?;
+                        format!("\"{}\"", rel.display())
                     }
                     Base::Embedded => {
                         let file = rel.rsplit(['/', '\\']).next().unwrap_or(rel);
