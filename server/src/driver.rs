@@ -586,14 +586,18 @@ async fn write_loop(
     Ok(())
 }
 
-/// Metrics connections served at once; more wait in the listen backlog.
+/// Metrics connections still sending their request at once; the next one accepted closes the oldest, so idle
+/// sockets cannot keep a scraper out (its request arrives with its connection).
 const MAX_METRICS_CONNECTIONS: usize = 16;
 
+/// How long a metrics connection may take to send its request, and to take the answer.
+const METRICS_TIMEOUT: Duration = Duration::from_secs(5);
+
 async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>) {
-    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_METRICS_CONNECTIONS));
+    // Connections reading their request, oldest first: (number, task).
+    let reading: Arc<std::sync::Mutex<std::collections::VecDeque<(u64, tokio::task::AbortHandle)>>> = Arc::default();
     let mut backoff = AcceptBackoff::default();
-    loop {
-        let Ok(slot) = Arc::clone(&slots).acquire_owned().await else { return };
+    for number in 0u64.. {
         let accepted = tokio::select! {
             a = listener.accept() => a,
             _ = shutdown.changed() => return,
@@ -610,20 +614,25 @@ async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>,
                 if let Some(suppressed) = log {
                     warn!("metrics endpoint: {e} ({suppressed} more since the last report); retrying in {wait:?}");
                 }
-                drop(slot);
                 tokio::select! {
                     _ = tokio::time::sleep(wait) => continue,
                     _ = shutdown.changed() => return,
                 }
             }
         };
-        let metrics = Arc::clone(&metrics);
-        tokio::spawn(async move {
-            let _slot = slot;
+        let (metrics, readers) = (Arc::clone(&metrics), Arc::clone(&reading));
+        // Held until the task is in the list, so it cannot take itself out before it is put in.
+        let mut list = reading.locked();
+        if list.len() >= MAX_METRICS_CONNECTIONS
+            && let Some((_, oldest)) = list.pop_front()
+        {
+            oldest.abort();
+        }
+        let task = tokio::spawn(async move {
             // Read the request head (bounded in size and time); only `GET /metrics` is served.
             let mut buf = vec![0u8; 4096];
             let mut n = 0;
-            let read = tokio::time::timeout(Duration::from_secs(5), async {
+            let read = tokio::time::timeout(METRICS_TIMEOUT, async {
                 while n < buf.len() {
                     match sock.read(&mut buf[n..]).await {
                         Ok(0) | Err(_) => break,
@@ -634,7 +643,9 @@ async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>,
                     }
                 }
             });
-            if read.await.is_err() {
+            let timed_out = read.await.is_err();
+            readers.locked().retain(|(k, _)| *k != number);
+            if timed_out {
                 return;
             }
             let head = String::from_utf8_lossy(&buf[..n]);
@@ -647,9 +658,13 @@ async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>,
             } else {
                 "HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n".to_string()
             };
-            let _ = sock.write_all(response.as_bytes()).await;
-            let _ = sock.shutdown().await;
+            let _ = tokio::time::timeout(METRICS_TIMEOUT, async {
+                let _ = sock.write_all(response.as_bytes()).await;
+                let _ = sock.shutdown().await;
+            })
+            .await;
         });
+        list.push_back((number, task.abort_handle()));
     }
 }
 

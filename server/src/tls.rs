@@ -62,6 +62,10 @@ impl Identity {
             let path = path.to_path_buf();
             move |source| IdentityError::Io { path, source }
         };
+        if dir.exists() && !dir.is_dir() {
+            let source = std::io::Error::other("not a directory (the data directory keeps the certificate and edits)");
+            return Err(IdentityError::Io { path: dir.to_path_buf(), source });
+        }
         let (cert_path, key_path) = (dir.join("cert.der"), dir.join("key.der"));
         if cert_path.exists() && key_path.exists() {
             // A certificate or key is a few KiB; anything but a small regular file is refused.

@@ -214,7 +214,7 @@ async fn the_certificate_is_pinned_by_its_fingerprint() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_metrics_endpoint_serves_prometheus_text() {
+async fn the_metrics_endpoint_serves_prometheus_text_and_idle_sockets_do_not_block_it() {
     let server = start_server().await;
     let c = complete_client(&server, [0.0, 0.0], None).await;
     server.metrics().tick(std::time::Instant::now());
@@ -242,6 +242,22 @@ async fn the_metrics_endpoint_serves_prometheus_text() {
     assert!(value("canopy_cell_expansion_p99_microseconds") >= value("canopy_cell_expansion_p50_microseconds"));
     assert!(body.contains("canopy_cell_expansion_seconds_bucket{le=\"+Inf\"}"), "{body}");
     assert!(body.contains("canopy_cell_expansions_per_second"), "{body}");
+    // Idle sockets that never send a request do not keep a scraper out: 40 held open, then one that asks.
+    let mut idle = Vec::new();
+    for _ in 0..40 {
+        idle.push(tokio::net::TcpStream::connect(server.metrics_addr().unwrap()).await.unwrap());
+    }
+    let scraped = tokio::time::timeout(Duration::from_secs(2), async {
+        let mut sock = tokio::net::TcpStream::connect(server.metrics_addr().unwrap()).await.unwrap();
+        sock.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+        let mut body = String::new();
+        sock.read_to_string(&mut body).await.unwrap();
+        body
+    })
+    .await
+    .expect("answered while 40 idle sockets are open");
+    assert!(scraped.starts_with("HTTP/1.1 200 OK"), "{scraped}");
+    drop(idle);
     c.close();
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -141,6 +141,8 @@ fn add_editor(file: &std::path::Path, name: &str, region: Option<[f32; 4]>, rate
     }
     let token = canopy_server::session::new_token()?;
     let line = canopy_server::session::editor_line(name, &token, region, rate);
+    // The line must parse on its own before it is written (a rate of 0, an empty region).
+    Editors::parse("the new editor's line", &line)?;
     let mut options = std::fs::OpenOptions::new();
     options.create(true).append(true);
     #[cfg(unix)]

@@ -5,6 +5,7 @@
 //! acknowledged with, each cell's versions are exactly 1..=n, every stored edit is a whole op that was sent (an
 //! edit sent but never answered is either wholly there or absent), a fresh client of the restarted server sees
 //! exactly what the store holds, and a client that watched the first round resumes with only the deltas it missed.
+//! A bad setup (an editor rate of 0, a data directory that is a file) is refused in plain words, writing nothing.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::io::{BufRead, BufReader};
@@ -599,4 +600,22 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
         started.elapsed().as_secs_f64()
     );
     assert!(started.elapsed() < Duration::from_secs(50), "the test must stay well under a minute");
+}
+
+#[test]
+fn bad_setups_are_refused_in_plain_words_and_write_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let editors = tmp.path().join("editors");
+    // A rate of 0 is refused before the editors file is touched.
+    let out = server().args(["--add-editor", "x", "--rate", "0", "--editors"]).arg(&editors).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("rate"), "{err}");
+    assert!(!editors.exists(), "nothing written");
+    // A data directory that is a file.
+    let file = tmp.path().join("data");
+    std::fs::write(&file, "not a directory").unwrap();
+    let out = server().arg("--data").arg(&file).args(["--listen", "127.0.0.1:0"]).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("not a directory"), "{err}");
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "not a directory");
 }

@@ -179,6 +179,9 @@ fn create_dir(dir: &Path) -> Result<(), EditStoreError> {
     if dir.is_dir() {
         return Ok(());
     }
+    if dir.exists() {
+        return Err(EditStoreError::Io(format!("{}: not a directory (it would keep {FILE_NAME})", dir.display())));
+    }
     fs::create_dir_all(dir).map_err(|e| EditStoreError::Io(format!("create {}: {e}", dir.display())))?;
     if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
         fs::File::open(parent)
