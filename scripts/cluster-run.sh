@@ -11,10 +11,13 @@
 #
 #   scripts/cluster-run.sh                          # 60 bots, 6 editing at 5 edits/s each, 40 s, kills at 20 s
 #   COUNT=300 EDITING=10 EDIT_RATE=20 scripts/cluster-run.sh
+#   COUNT=12 EDITING=6 EDIT_RATE=20 KILL_NATS=leader KILLS=10 KILL_AT=10 KILL_EVERY=5 DURATION=140 scripts/cluster-run.sh
 #
 # Environment: COUNT, EDITING (how many bots edit), EDIT_RATE (edits/s per editing bot), DURATION (s), KILL_AT (s
 # after the bots start, when the edges are also reported; empty: never), RESTART_AFTER (s after the kill to start the
-# NATS node again), KILL_NATS and KILL_EDGE (which ones; empty: none), PATH_KIND, SPEED, SPREAD (side of the square the bots stay in, m: bots on different
+# NATS node again), KILL_NATS and KILL_EDGE (which ones; empty: none; KILL_NATS=leader: the node leading the edit
+# stream at that moment), KILLS (how many times the NATS node is killed and started again, KILL_EVERY s apart after
+# it is back; the edge dies once), PATH_KIND, SPEED, SPREAD (side of the square the bots stay in, m: bots on different
 # edges hold the same cells), RADIUS, CONNECT_RATE, NATS_PORT, EDGE_PORT, CARGO_TARGET_DIR; EXTRA_BOTS_ARGS goes to
 # `canopy bots` as is; KEEP=1 keeps the logs (edges', NATS nodes', bots'). Numbers and the machine they were measured on: docs/scale-out.md.
 set -euo pipefail
@@ -28,6 +31,8 @@ KILL_AT=${KILL_AT-$((DURATION / 2))}
 RESTART_AFTER=${RESTART_AFTER:-5}
 KILL_NATS=${KILL_NATS-1}
 KILL_EDGE=${KILL_EDGE-1}
+KILLS=${KILLS:-1}
+KILL_EVERY=${KILL_EVERY:-5}
 PATH_KIND=${PATH_KIND:-random}
 SPEED=${SPEED:-1}
 SPREAD=${SPREAD:-64}
@@ -66,8 +71,8 @@ NATS_URLS=${NATS_URLS%,}
 EDGES=$(for j in 0 1 2; do printf '127.0.0.1:%d,' $((EDGE_PORT + j)); done)
 EDGES=${EDGES%,}
 echo "cluster-run: 3 NATS nodes ($NATS_URLS), 3 edges ($EDGES); $COUNT bots, $EDITING editing at $EDIT_RATE edits/s" \
-    "each, ${DURATION} s, path $PATH_KIND at $SPEED m/s in a ${SPREAD} m square; kill NATS node $KILL_NATS and edge" \
-    "$KILL_EDGE at ${KILL_AT:-never} s; bots and edges share this machine's $(nproc) cores"
+    "each, ${DURATION} s, path $PATH_KIND at $SPEED m/s in a ${SPREAD} m square; kill NATS node $KILL_NATS" \
+    "($KILLS times) and edge $KILL_EDGE at ${KILL_AT:-never} s; bots and edges share this machine's $(nproc) cores"
 
 # One line per edge alive: clients now, edits acknowledged, cells watched, edits in from the engine, the engine's
 # round trip, reconnects to NATS, RSS and CPU seconds so far.
@@ -103,14 +108,19 @@ if [ -n "$KILL_AT" ]; then
     sleep "$KILL_AT"
     echo "---- edges at ${KILL_AT} s, before the kill"
     edges_report
-    [ -n "$KILL_NATS" ] && scripts/cluster.sh kill nats "$KILL_NATS"
     [ -n "$KILL_EDGE" ] && scripts/cluster.sh kill edge "$KILL_EDGE"
-    if [ -n "$KILL_NATS" ]; then
+    for ((k = 1; k <= KILLS; k++)); do
+        [ -n "$KILL_NATS" ] || break
+        [ "$k" -gt 1 ] && sleep "$KILL_EVERY"
+        NODE=$KILL_NATS
+        [ "$NODE" = leader ] && NODE=$(scripts/cluster.sh leader)
+        scripts/cluster.sh kill nats "$NODE"
         KILLED=$(date +%s.%N)
         sleep "$RESTART_AFTER"
-        scripts/cluster.sh start nats "$KILL_NATS"
-        awk -v a="$KILLED" -v b="$(date +%s.%N)" 'BEGIN { printf "cluster-run: NATS node started again %.1f s after the kill\n", b - a }'
-    fi
+        scripts/cluster.sh start nats "$NODE"
+        awk -v a="$KILLED" -v b="$(date +%s.%N)" -v k="$k" -v n="$NODE" \
+            'BEGIN { printf "cluster-run: kill %d: NATS node %s started again %.1f s after the kill\n", k, n, b - a }'
+    done
 fi
 
 set +e

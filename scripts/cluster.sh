@@ -7,6 +7,7 @@
 #   scripts/cluster.sh kill nats I     # SIGKILL NATS node I (0..2)
 #   scripts/cluster.sh kill edge J     # SIGKILL edge J
 #   scripts/cluster.sh start nats I    # start NATS node I again (same store directory)
+#   scripts/cluster.sh leader          # the NATS node (0..2) leading the edit stream, as a live node reports it
 #   scripts/cluster.sh down            # stop everything and remove the cluster's directory
 #
 # Environment: CLUSTER_DIR (default: $TMPDIR/canopy-cluster), NATS_PORT (client ports NATS_PORT..+2, routes +100..,
@@ -125,6 +126,25 @@ status() {
     done
 }
 
+# The index of the node leading the edit stream (its Raft group's leader), asked of each live node's monitoring
+# endpoint (bash's /dev/tcp: no curl needed) until one names it.
+leader() {
+    local i json name
+    for i in 0 1 2; do
+        alive "$DIR/nats-$i.pid" || continue
+        json=$( (exec 3<>"/dev/tcp/127.0.0.1/$((NATS_PORT + 200 + i))" &&
+            printf 'GET /jsz?streams=true HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n' >&3 && cat <&3) 2>/dev/null || true)
+        # The first "leader" after the stream details is the stream's (the meta leader comes before them).
+        name=$(printf '%s' "$json" | sed -n '/"stream_detail"/,$p' | grep -m1 '"leader"' | sed 's/.*"leader": *"n\([0-9]\)".*/\1/')
+        if [ -n "$name" ]; then
+            echo "$name"
+            return 0
+        fi
+    done
+    say "no live node names the edit stream's leader"
+    return 1
+}
+
 down() {
     [ -f "$DIR/.canopy-cluster" ] || { say "no cluster in $DIR"; return 0; }
     for f in "$DIR"/edge-*.pid "$DIR"/nats-*.pid; do
@@ -141,6 +161,7 @@ down() {
 case "${1:-}" in
     up) up "${2:-0}" ;;
     status) status ;;
+    leader) leader ;;
     down) down ;;
     kill)
         f="$DIR/${2:?nats or edge}-${3:?which}.pid"
@@ -156,7 +177,7 @@ case "${1:-}" in
         esac
         ;;
     *)
-        sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'
+        sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'
         exit 2
         ;;
 esac
