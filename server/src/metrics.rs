@@ -77,6 +77,8 @@ pub struct EngineMetrics {
     pub reconnects: AtomicU64,
     /// Calls that failed (no answer in time, no quorum).
     pub failures: AtomicU64,
+    /// Messages read from cells' subjects one by one (a cell read again reads only its new ones).
+    pub log_reads: AtomicU64,
 }
 
 impl Default for Metrics {
@@ -260,6 +262,8 @@ impl Metrics {
             metric("canopy_engine_reconnects_total", "counter", help, &one(&e.reconnects));
             let help = "Calls to the engine that failed (no answer in time, no quorum).";
             metric("canopy_engine_failures_total", "counter", help, &one(&e.failures));
+            let help = "Messages read from cells' subjects one by one (a cell read again reads only its new ones).";
+            metric("canopy_engine_log_reads_total", "counter", help, &one(&e.log_reads));
         }
         if let Some(rss) = resident_bytes() {
             metric("canopy_resident_bytes", "gauge", "Resident memory of the server process.", &[(String::new(), rss)]);

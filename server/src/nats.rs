@@ -114,6 +114,18 @@ struct Known {
     sequence: u64,
 }
 
+/// A cell's log as last read: its edits and the stream sequence of the last message read on its subject.
+struct Tail {
+    edits: Vec<StoredEdit>,
+    last: u64,
+}
+
+/// Bytes of cells' logs kept so that reading a cell again reads only what follows ([`Inner::load`]).
+const TAIL_CACHE_BYTES: usize = 32 << 20;
+
+/// What one kept edit costs in the tail cache (the edit and its share of the vector), roughly.
+const TAIL_EDIT_BYTES: usize = 64;
+
 /// What the store's thread holds.
 struct Inner {
     cfg: NatsConfig,
@@ -124,6 +136,9 @@ struct Inner {
     last: Mutex<HashMap<CellCoord, Known>>,
     /// Watched cells and the tasks forwarding their subjects.
     watches: Mutex<HashMap<CellCoord, tokio::task::JoinHandle<()>>>,
+    /// Cells' logs as last read, bounded by [`TAIL_CACHE_BYTES`]: a cell read again (after a conflict, another
+    /// edge's edit) costs a round trip a new message, not one a message of its whole log.
+    tails: Mutex<canopy_protocol::lru::Lru<CellCoord, Tail>>,
 }
 
 /// The edit log on NATS JetStream (see the module docs).
@@ -296,7 +311,15 @@ impl Inner {
                 Err(e) => return Err(io("creating the edit stream", e)),
             }
         };
-        Ok(Inner { cfg, metrics, js, stream, last: Mutex::default(), watches: Mutex::default() })
+        Ok(Inner {
+            cfg,
+            metrics,
+            js,
+            stream,
+            last: Mutex::default(),
+            watches: Mutex::default(),
+            tails: Mutex::new(canopy_protocol::lru::Lru::new()),
+        })
     }
 
     fn last(&self, c: CellCoord) -> Known {
@@ -436,9 +459,13 @@ impl Inner {
         // stream's leader, so a write another edge saw acknowledged is there). Not bounded by the subject's last
         // message as the engine reports it: nats-server 2.9 can answer "no message" for the last message of a
         // subject whose last message was deleted (a lost race's publish, taken out), though earlier ones remain.
-        let mut out = Vec::new();
-        let mut seq = 1;
-        let mut last = 0;
+        // A cell read before is read on from the last message read then: messages only ever join a subject at higher
+        // sequences, and the fold over them (`first_wins`) is the same taken in parts.
+        let (mut out, mut last) = match self.tails.locked().get(&c) {
+            Some(t) => (t.edits.clone(), t.last),
+            None => (Vec::new(), 0),
+        };
+        let mut seq = last + 1;
         loop {
             let m = match self.stream.raw_message_builder().sequence(seq).next_by_subject(subject.clone()).send().await
             {
@@ -446,6 +473,7 @@ impl Inner {
                 Err(e) if e.kind() == stream::RawMessageErrorKind::NoMessageFound => break,
                 Err(e) => return Err(io("reading a cell's edits", e)),
             };
+            self.metrics.log_reads.fetch_add(1, Relaxed);
             let e = StoredEdit::decode(&m.payload)
                 .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
             if e.cell != c {
@@ -460,6 +488,10 @@ impl Inner {
             seq = m.sequence + 1;
         }
         self.learn(c, Known { version: out.len() as u32, sequence: last });
+        let mut tails = self.tails.locked();
+        let cost = TAIL_EDIT_BYTES * (out.len() + 1);
+        tails.insert(c, Tail { edits: out.clone(), last }, cost);
+        tails.evict_to(TAIL_CACHE_BYTES, Some(&c));
         Ok(out)
     }
 }

@@ -320,6 +320,15 @@ fn a_writer_behind_a_watch_never_takes_a_version_twice_the_store_passes_the_suit
     b.append(&[plant(2, 6)]).unwrap();
     let versions: Vec<u32> = a.load(c).unwrap().iter().map(|e| e.version).collect();
     assert_eq!(versions, [1, 2]);
+    // A cell read again reads only its new messages: 20 more edits, then read twice.
+    let reads = || a.metrics().log_reads.load(std::sync::atomic::Ordering::Relaxed);
+    let more: Vec<StoredEdit> = (3..23).map(|v| plant(v, 4 + v as u16)).collect();
+    b.append(&more).unwrap();
+    let before = reads();
+    assert_eq!(a.load(c).unwrap().len(), 22);
+    assert_eq!(reads() - before, 20, "the 20 new messages, not the cell's 22");
+    assert_eq!(a.load(c).unwrap(), b.load(c).unwrap());
+    assert_eq!(reads() - before, 20, "nothing new: nothing read");
 
     // The JetStream store passes the suite every edit store passes (a world of its own: an empty stream).
     let fresh =
