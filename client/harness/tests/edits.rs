@@ -3,7 +3,8 @@
 //! reaches every other bot holding its cell (the fan-out record counts each bot and version once), the check against
 //! the world passes with edited cells compared only where the world's function still decides them, and bots holding
 //! an edited cell at one version hold the same content. A client that planted fails the plain check and passes the
-//! one that expects edits. Real QUIC on loopback.
+//! one that expects edits; bots that do not edit check a cell the server says is edited as edited. Real QUIC on
+//! loopback.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -103,6 +104,18 @@ async fn an_edited_cell_fails_the_plain_check_and_passes_the_one_expecting_edits
     assert!(plain.is_err(), "an edited cell differs from the world's function");
     let with = bots::verify_with(&state, highlands(), true).expect("edits expected");
     assert_eq!((with.edited, with.instances), (1, before.instances + 1));
+    // Bots that do not edit hold the edited cell too: the server says it is edited, and they check it as such.
+    let mut cfg = BotsConfig::new(2, pinned(&server));
+    cfg.path = PathKind::Random;
+    cfg.speed = 1.0;
+    cfg.duration = Duration::from_secs(2);
+    cfg.radius = 96.0;
+    cfg.spread = Some(16.0);
+    cfg.verify = Some(Arc::clone(highlands()));
+    let reports = bots::run(cfg, Arc::new(Progress::default())).await.expect("the bots run");
+    let summary = BotsSummary::new(&reports, Duration::ZERO);
+    assert!(summary.ok() && summary.verified == 2, "{summary}");
+    assert!(summary.edited_checked > 0, "the bots held the edited cell: {summary}");
     server.shutdown(Duration::from_secs(1)).await;
     service.stop();
 }
