@@ -185,6 +185,14 @@ struct Request {
     attempts: Vec<StoredEdit>,
     /// Conflicts it met (another writer took the cell's version first).
     conflicts: usize,
+    /// Whether it came back because its fate is not known yet (its cell could not be read), not for a conflict.
+    unknown: bool,
+}
+
+impl Request {
+    fn new(job: EditJob) -> Request {
+        Request { job, attempts: Vec::new(), conflicts: 0, unknown: false }
+    }
 }
 
 /// One accepted request of a group (kept whole: a conflict sends it round again).
@@ -212,16 +220,50 @@ const UNKNOWN_PAUSE_MAX: Duration = Duration::from_secs(2);
 
 impl Writer {
     fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
-        while let Ok(first) = rx.recv() {
-            let started = first.1;
-            let mut jobs = vec![first.0];
-            while jobs.len() < MAX_GROUP {
-                match rx.try_recv() {
-                    Ok((j, _)) => jobs.push(j),
-                    Err(_) => break,
+        // Requests whose fate is not known yet (their cell could not be read): looked at again with the next group,
+        // or after a pause that grows while they stay unknown. The writer goes on with other requests meanwhile.
+        let mut unknown: Vec<Request> = Vec::new();
+        let mut pause = UNKNOWN_PAUSE;
+        loop {
+            let first = if unknown.is_empty() {
+                rx.recv().ok()
+            } else {
+                match rx.recv_timeout(pause) {
+                    Ok(first) => Some(first),
+                    Err(mpsc::RecvTimeoutError::Timeout) => None,
+                    Err(mpsc::RecvTimeoutError::Disconnected) if self.stopping.load(Relaxed) => {
+                        // What became of these is not known and the server is going: they stay unanswered (their
+                        // sessions end with it), never answered by a guess.
+                        warn!(
+                            "{} edits stay unanswered: their cells could not be read before the server stopped",
+                            unknown.len()
+                        );
+                        return;
+                    }
+                    Err(mpsc::RecvTimeoutError::Disconnected) => {
+                        std::thread::sleep(pause);
+                        None
+                    }
                 }
+            };
+            let started = first.as_ref().map_or_else(Instant::now, |f| f.1);
+            let mut requests = std::mem::take(&mut unknown);
+            let fresh = requests.len();
+            if let Some((job, _)) = first {
+                requests.push(Request::new(job));
+                while requests.len() - fresh < MAX_GROUP {
+                    match rx.try_recv() {
+                        Ok((j, _)) => requests.push(Request::new(j)),
+                        Err(_) => break,
+                    }
+                }
+            } else if requests.is_empty() {
+                // The queue is closed and nothing waits.
+                return;
             }
-            self.write_group(jobs, started);
+            unknown = self.write_group(requests, started);
+            // Longer pauses only while nothing that was unknown became known.
+            pause = if unknown.len() < fresh.max(1) { UNKNOWN_PAUSE } else { (pause * 2).min(UNKNOWN_PAUSE_MAX) };
         }
     }
 
@@ -230,43 +272,29 @@ impl Writer {
         reply(outcome);
     }
 
-    fn write_group(&self, jobs: Vec<EditJob>, started: Instant) {
-        let mut requests: Vec<Request> =
-            jobs.into_iter().map(|job| Request { job, attempts: Vec::new(), conflicts: 0 }).collect();
-        let mut pause = UNKNOWN_PAUSE;
-        loop {
-            let unknown;
-            (requests, unknown) = self.try_group(requests, started);
-            if requests.is_empty() {
-                return;
-            }
-            if self.stopping.load(Relaxed) {
-                // What became of these is not known and the server is going: they stay unanswered (their
-                // sessions end with it), never answered by a guess.
-                warn!(
-                    "{} edits stay unanswered: the store could not be read before the server stopped",
-                    requests.len()
-                );
-                return;
-            }
-            if !unknown {
-                // Only conflicts: try again at once.
-                continue;
-            }
-            std::thread::sleep(pause);
-            pause = (pause * 2).min(UNKNOWN_PAUSE_MAX);
+    /// Write a group, sending requests that met a conflict round again at once; returns those whose fate is not
+    /// known yet.
+    fn write_group(&self, requests: Vec<Request>, started: Instant) -> Vec<Request> {
+        let mut requests = requests;
+        let mut unknown = Vec::new();
+        while !requests.is_empty() {
+            let again = self.try_group(requests, started);
+            let (u, conflicted): (Vec<Request>, Vec<Request>) = again.into_iter().partition(|r| r.unknown);
+            unknown.extend(u);
+            requests = conflicted;
         }
+        unknown
     }
 
     /// Check, write and answer a group; the requests that must go round again come back (a conflict, or a store
-    /// that could not be read to tell whether an earlier attempt was kept: then the flag is set).
-    fn try_group(&self, requests: Vec<Request>, started: Instant) -> (Vec<Request>, bool) {
+    /// that could not be read to tell whether an earlier attempt was kept: [`Request::unknown`]).
+    fn try_group(&self, requests: Vec<Request>, started: Instant) -> Vec<Request> {
         let mut working: BTreeMap<CellCoord, Working> = BTreeMap::new();
         let mut edits = Vec::with_capacity(requests.len());
         let mut accepted = Vec::with_capacity(requests.len());
         let mut again = Vec::new();
-        let mut unknown = false;
-        for request in requests {
+        for mut request in requests {
+            request.unknown = false;
             // Tried before: if the store kept an attempt, that is the request's outcome.
             if let Some(last) = request.attempts.last() {
                 match self.working(last.cell, &mut working) {
@@ -279,8 +307,8 @@ impl Writer {
                     }
                     // Not known yet: asked again later, never answered by a guess.
                     Err(_) => {
+                        request.unknown = true;
                         again.push(request);
-                        unknown = true;
                         continue;
                     }
                 }
@@ -294,7 +322,7 @@ impl Writer {
             }
         }
         if edits.is_empty() {
-            return (again, unknown);
+            return again;
         }
         match self.live.edit_store().append(&edits) {
             Ok(()) => {
@@ -308,7 +336,7 @@ impl Writer {
                 for a in accepted {
                     self.reply(a.request.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
                 }
-                (again, unknown)
+                again
             }
             Err(e) => {
                 match &e {
@@ -317,9 +345,8 @@ impl Writer {
                     }
                     e => warn!("writing {} edits: {e}", edits.len()),
                 }
-                let (settled, unread) = self.settle_failed(&working, edits, accepted, &e);
-                again.extend(settled);
-                (again, unknown || unread)
+                again.extend(self.settle_failed(&working, edits, accepted, &e));
+                again
             }
         }
     }
@@ -336,7 +363,7 @@ impl Writer {
         edits: Vec<StoredEdit>,
         accepted: Vec<Accepted>,
         error: &EditStoreError,
-    ) -> (Vec<Request>, bool) {
+    ) -> Vec<Request> {
         // Each cell read once again (and watched again, for a shared store): what the sessions get, and what says
         // which edits were stored.
         let mut read: BTreeMap<CellCoord, Arc<Overlay>> = BTreeMap::new();
@@ -349,13 +376,12 @@ impl Writer {
             }
         }
         let mut again = Vec::new();
-        let mut unread = false;
         for (a, e) in accepted.into_iter().zip(edits) {
             let mut request = a.request;
             let Some(overlay) = read.get(&e.cell) else {
                 request.attempts.push(e);
+                request.unknown = true;
                 again.push(request);
-                unread = true;
                 continue;
             };
             // This attempt or an earlier one of the request.
@@ -373,7 +399,7 @@ impl Writer {
             };
             self.reply(request.job.reply, outcome);
         }
-        (again, unread)
+        again
     }
 
     /// The cell's working state, read on first need (waiting for its expansion if it is not ready).
@@ -409,6 +435,11 @@ impl Writer {
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
                 *woken = false;
             };
+            if let Some(why) = self.live.damaged(c) {
+                return Err(EditOutcome::Denied(format!(
+                    "the cell's stored edits are damaged ({why}); it takes no edits until the store is repaired"
+                )));
+            }
             slot.insert(Working { base, overlay: (*overlay).clone() });
         }
         Ok(working.get_mut(&c).expect("inserted above"))

@@ -141,6 +141,9 @@ struct Loads {
     stop: bool,
 }
 
+/// How often the same failure to read a cell's log is logged again while it goes on.
+const FAILURE_LOG_EVERY: Duration = Duration::from_secs(10);
+
 /// Skipped edits named in the log at most this many times (each once); beyond, only counted.
 const SKIPS_REPORTED: usize = 4096;
 
@@ -158,10 +161,15 @@ struct Shared {
     hub: Arc<EditHub>,
     /// What the world as loaded accepts; stored edits it refuses are skipped.
     rules: EditRules,
-    /// Stored edits skipped (counted at every read of their cell).
+    /// Stored edits not served (counted at every read of their cell).
     skipped: Arc<AtomicU64>,
     /// Skipped edits already named in the log, `(cell, version)`.
     reported: Mutex<std::collections::BTreeSet<(CellCoord, u32)>>,
+    /// Cells whose logs are damaged, with where and why: served as they were before the damage, and taking no
+    /// edits until a read finds them whole again.
+    damaged: Mutex<std::collections::BTreeMap<CellCoord, String>>,
+    /// The last failure to read a log that was logged, and when, and how many since went unlogged.
+    failures: Mutex<(String, Option<std::time::Instant>, u64)>,
 }
 
 /// A cell's world-function records and its overlay.
@@ -208,11 +216,32 @@ impl Shared {
         if let Some(e) = self.lock().get(c) {
             return Ok(Arc::clone(&e.overlay));
         }
-        let log = self.edits.load(c)?;
+        let (log, damage) = match self.edits.load(c) {
+            Ok(log) => (log, None),
+            // A stored edit that does not decode: the cell is served as it was before it.
+            Err(e @ EditStoreError::Damaged { .. }) => {
+                let why = e.to_string();
+                let EditStoreError::Damaged { version, readable, .. } = e else { unreachable!() };
+                (readable, Some((version, why)))
+            }
+            Err(e) => return Err(e),
+        };
         let species = |i: u16| base.records.get(usize::from(i)).map(|r| r.species);
         let (overlay, skipped) = Overlay::from_log_checked(base.records.len() as u16, species, &self.rules, &log)
             .map_err(|e| EditStoreError::Corrupt(format!("{}: cell {c:?}: {e}", self.edits.describe())))?;
         self.report(c, &skipped);
+        match damage {
+            Some((version, why)) => {
+                self.skipped.fetch_add(1, Relaxed);
+                if self.reported.locked().insert((c, version)) {
+                    error!("{why}: the cell is served as it was at version {}, and takes no edits", version - 1);
+                }
+                self.damaged.locked().insert(c, why);
+            }
+            None => {
+                self.damaged.locked().remove(&c);
+            }
+        }
         let kept = self.with(|o| o.put(c, Arc::new(overlay), self.limit_bytes));
         // Weakly: the store the watch lives in belongs to this, and must not keep it alive.
         self.edits.watch(c, Arc::new(Watcher(Arc::downgrade(self))));
@@ -222,6 +251,23 @@ impl Shared {
             self.announce(c, kept.version());
         }
         Ok(kept)
+    }
+
+    /// Log a failed read of a cell's log: a new failure at once, the same one again at most every
+    /// [`FAILURE_LOG_EVERY`] with how many went unlogged.
+    fn failed(&self, c: CellCoord, e: &EditStoreError) {
+        let now = std::time::Instant::now();
+        let text = e.to_string();
+        let mut f = self.failures.locked();
+        let due = f.0 != text || f.1.is_none_or(|at| now.duration_since(at) >= FAILURE_LOG_EVERY);
+        if due {
+            let more = std::mem::take(&mut f.2);
+            *f = (text, Some(now), 0);
+            drop(f);
+            error!(store = %self.edits.describe(), cell = ?c, "reading the cell's edits: {e} ({more} similar failures since the last report)");
+        } else {
+            f.2 += 1;
+        }
     }
 
     /// Count skipped edits and name each in the log once.
@@ -257,7 +303,7 @@ impl Shared {
             };
             if let Err(e) = self.load(load.cell, &load.base) {
                 // Asked again, it is read again; not at once, so a store that is down is not hammered.
-                error!(c = ?load.cell, "reading the cell's edits: {e}");
+                self.failed(load.cell, &e);
                 std::thread::sleep(Duration::from_millis(100));
             }
             let wakers = self.loads.locked().waiters.done(&load);
@@ -305,6 +351,8 @@ impl LiveStore {
             rules: EditRules::new(params),
             skipped: Arc::default(),
             reported: Mutex::default(),
+            damaged: Mutex::default(),
+            failures: Mutex::new((String::new(), None, 0)),
         });
         let loaders = (0..LOADERS)
             .map(|i| {
@@ -338,9 +386,16 @@ impl LiveStore {
         &self.shared.rules
     }
 
-    /// Stored edits skipped because the world cannot take them (counted at every read of their cell).
+    /// Stored edits not served: the world cannot take them, or a cell's log is damaged from them on (counted at
+    /// every read of their cell).
     pub fn skipped(&self) -> &Arc<AtomicU64> {
         &self.shared.skipped
+    }
+
+    /// Why cell `c`'s stored log is damaged, if it is (as its last read found it): the cell is served as it was
+    /// before the damage and takes no edits.
+    pub fn damaged(&self, c: CellCoord) -> Option<String> {
+        self.shared.damaged.locked().get(&c).cloned()
     }
 
     /// Bytes the overlays hold now.

@@ -248,8 +248,7 @@ impl Metrics {
             metric("canopy_edits_total", "counter", "Edits answered, by outcome.", &outcomes);
             let help = "Groups of edits written durably (one transaction each: group commit).";
             metric("canopy_edit_groups_total", "counter", help, &one(&e.groups));
-            let help =
-                "Stored edits skipped because the world as loaded cannot take them (at every read of their cell).";
+            let help = "Stored edits not served: the world cannot take them, or they do not decode (at every read of their cell).";
             metric("canopy_edits_skipped_total", "counter", help, &one(&e.skipped));
         }
         if let Some(e) = self.engine.get() {

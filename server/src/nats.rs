@@ -474,8 +474,18 @@ impl Inner {
                 Err(e) => return Err(io("reading a cell's edits", e)),
             };
             self.metrics.log_reads.fetch_add(1, Relaxed);
-            let e = StoredEdit::decode(&m.payload)
-                .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
+            let e = match StoredEdit::decode(&m.payload) {
+                Ok(e) => e,
+                Err(e) => {
+                    return Err(EditStoreError::Damaged {
+                        store: format!("NATS stream {} sequence {}", self.cfg.stream(), m.sequence),
+                        cell: c,
+                        version: out.len() as u32 + 1,
+                        why: e.to_string(),
+                        readable: out,
+                    });
+                }
+            };
             if e.cell != c {
                 return Err(EditStoreError::Corrupt(format!("cell {c:?} sequence {} holds {:?}", m.sequence, e.cell)));
             }

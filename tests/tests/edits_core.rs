@@ -523,3 +523,66 @@ fn an_edit_outside_the_editors_region_is_refused_before_its_cell_is_built() {
     // Only Carol's own cell was read for her.
     assert_eq!(*counting.asked.lock().unwrap(), vec![CellCoord::new(-2, 1)]);
 }
+
+/// A store whose cell (1, 1) is damaged at version 3: the two edits before it read, the rest do not.
+struct Damaging(MemoryEditStore);
+
+impl EditStore for Damaging {
+    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+        self.0.append(edits)
+    }
+    fn load(
+        &self,
+        c: CellCoord,
+    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+        let mut log = self.0.load(c)?;
+        if c != CellCoord::new(1, 1) || log.len() < 3 {
+            return Ok(log);
+        }
+        log.truncate(2);
+        Err(canopy_server::edits::EditStoreError::Damaged {
+            store: "damaging.sqlite".into(),
+            cell: c,
+            version: 3,
+            why: "stored edit does not decode".into(),
+            readable: log,
+        })
+    }
+    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
+        self.0.cells()
+    }
+    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
+        self.0.count()
+    }
+    fn describe(&self) -> String {
+        "damaging.sqlite".into()
+    }
+}
+
+#[test]
+fn a_damaged_cell_log_is_served_as_it_was_before_the_damage_and_takes_no_edits() {
+    use canopy_server::edits::{CellEdit, StoredEdit};
+    let store = Arc::new(Damaging(MemoryEditStore::new()));
+    let c = CellCoord::new(1, 1);
+    let log: Vec<StoredEdit> = [CellEdit::Fell { index: 0 }, CellEdit::Fell { index: 1 }, CellEdit::Fell { index: 2 }]
+        .into_iter()
+        .enumerate()
+        .map(|(i, op)| StoredEdit { cell: c, version: i as u32 + 1, op })
+        .collect();
+    store.append(&log).unwrap();
+    let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
+    let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 41);
+    // Served, not left pending: at version 2, instance 2 still standing.
+    settle_until(&mut [(&w, &mut a)], |p| p[0].1.client.is_complete());
+    assert_eq!(a.client.cells()[&c].version, 2);
+    let live: Vec<u16> = a.client.instances(&|_, _| 0.0).filter(|i| i.id.cell() == c).map(|i| i.id.index()).collect();
+    assert_eq!(live, vec![2]);
+    assert!(w.live.damaged(c).is_some_and(|why| why.contains("damaging.sqlite") && why.contains("version 3")));
+    assert_eq!(w.live.skipped().load(SeqCst), 1);
+    // The damaged cell takes no edits; the others do.
+    let refused = a.edit(EditOp::Plant { species: 0, x: 40.0, z: 40.0, params: vec![] });
+    let taken = a.edit(EditOp::Plant { species: 0, x: 8.0, z: 8.0, params: vec![] });
+    settle(&w, &mut [&mut a]);
+    assert!(matches!(&a.results[&refused], EditOutcome::Denied(why) if why.contains("damaged")), "{:?}", a.results);
+    assert!(matches!(a.results[&taken], EditOutcome::Ok { .. }), "{:?}", a.results);
+}

@@ -139,7 +139,8 @@ impl EditStore for SqliteEditStore {
             match op {
                 Ok(op) => out.push(StoredEdit { cell, version, op }),
                 Err(why) => {
-                    return Err(EditStoreError::Corrupt(format!("cell {cell:?} version {version}: {why}")));
+                    let store = path.display().to_string();
+                    return Err(EditStoreError::Damaged { store, cell, version, why, readable: out });
                 }
             }
         }

@@ -23,6 +23,21 @@ pub enum EditStoreError {
     /// A stored edit does not decode or the log of a cell has a gap: the store is damaged.
     #[error("edit store damaged: {0}")]
     Corrupt(String),
+    /// A cell's log is readable up to `version`, whose stored edit does not decode: `readable` holds the edits
+    /// before it (versions 1..`version`), so the cell can be served as it was before the damage.
+    #[error("{store}: cell {cell:?} version {version} is damaged: {why}")]
+    Damaged {
+        /// The store (a file's path, an engine's stream).
+        store: String,
+        /// The cell.
+        cell: CellCoord,
+        /// The first version that cannot be read.
+        version: u32,
+        /// Why it cannot.
+        why: String,
+        /// The edits before it.
+        readable: Vec<StoredEdit>,
+    },
     /// The store's file or database failed (disk full, permissions, not a regular file…).
     #[error("edit store: {0}")]
     Io(String),

@@ -266,7 +266,7 @@ fn refuses_an_unknown_schema_version() {
 }
 
 #[test]
-fn a_row_that_does_not_decode_is_corrupt() {
+fn a_row_that_does_not_decode_is_damage_with_the_readable_edits_before_it() {
     let dir = tempfile::tempdir().unwrap();
     let cell = CellCoord::new(-5, 6);
     let other = CellCoord::new(5, 6);
@@ -280,8 +280,12 @@ fn a_row_that_does_not_decode_is_corrupt() {
     drop(conn);
     let store = SqliteEditStore::open(dir.path()).unwrap();
     match store.load(cell) {
-        Err(EditStoreError::Corrupt(msg)) => {
-            assert!(msg.contains("x: -5") && msg.contains("z: 6") && msg.contains("version 2"), "{msg}")
+        Err(e @ EditStoreError::Damaged { version: 2, .. }) => {
+            let msg = e.to_string();
+            assert!(msg.contains("x: -5") && msg.contains("z: 6") && msg.contains("version 2"), "{msg}");
+            assert!(msg.contains("edits.sqlite"), "the file is named: {msg}");
+            let EditStoreError::Damaged { readable, .. } = e else { unreachable!() };
+            assert_eq!(readable, vec![StoredEdit { cell, version: 1, op: CellEdit::Fell { index: 0 } }]);
         }
         other => panic!("{other:?}"),
     }
@@ -296,7 +300,7 @@ fn a_row_that_does_not_decode_is_corrupt() {
     )
     .unwrap();
     drop(conn);
-    assert!(matches!(store.load(CellCoord::new(1, 1)), Err(EditStoreError::Corrupt(_))));
+    assert!(matches!(store.load(CellCoord::new(1, 1)), Err(EditStoreError::Damaged { version: 1, .. })));
     assert!(matches!(store.load(CellCoord::new(2, 2)), Err(EditStoreError::Corrupt(_))));
 }
 
