@@ -10,7 +10,7 @@
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::mpsc;
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -23,7 +23,7 @@ use tracing::{info, warn};
 use crate::live::{EditHub, LiveStore};
 use canopy_session::Editor;
 use canopy_session::counters::Histogram;
-use canopy_session::{CellData, CellState, CellWaker, WorldStore};
+use canopy_session::{CellData, CellState, WorldStore};
 
 /// Most requests written in one group.
 pub const MAX_GROUP: usize = 4096;
@@ -31,6 +31,8 @@ pub const MAX_GROUP: usize = 4096;
 pub const MAX_QUEUED: usize = 65_536;
 /// How long the writer waits for a cell's expansion before it gives up on an edit of it.
 const CELL_WAIT: Duration = Duration::from_secs(30);
+/// How often the writer looks again at requests whose cells are being expanded.
+const CELL_POLL: Duration = Duration::from_millis(5);
 
 /// Counters of the edit pipeline.
 #[derive(Debug, Default)]
@@ -156,20 +158,6 @@ impl Drop for EditService {
     }
 }
 
-/// A waker the writer blocks on while a cell it needs is expanded.
-#[derive(Default)]
-struct BlockingWaker {
-    woken: Mutex<bool>,
-    cv: Condvar,
-}
-
-impl CellWaker for BlockingWaker {
-    fn wake(&self) {
-        *self.woken.locked() = true;
-        self.cv.notify_all();
-    }
-}
-
 /// A cell's state in the group being written: its world-function records and its overlay with the group's edits.
 struct Working {
     base: Arc<CellData>,
@@ -185,13 +173,38 @@ struct Request {
     attempts: Vec<StoredEdit>,
     /// Conflicts it met (another writer took the cell's version first).
     conflicts: usize,
-    /// Whether it came back because its fate is not known yet (its cell could not be read), not for a conflict.
-    unknown: bool,
+    /// Why it waits, when it came back for another reason than a conflict.
+    waiting: Waiting,
 }
 
 impl Request {
     fn new(job: EditJob) -> Request {
-        Request { job, attempts: Vec::new(), conflicts: 0, unknown: false }
+        Request { job, attempts: Vec::new(), conflicts: 0, waiting: Waiting::No }
+    }
+}
+
+/// Why a request waits beside the writer instead of being answered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Waiting {
+    /// It does not (it is being written, or met a conflict).
+    No,
+    /// Its fate is not known: its cell could not be read after an append that failed.
+    Unknown,
+    /// Its cell is being expanded (since then): the writer goes on with other requests meanwhile.
+    Cell(Instant),
+}
+
+/// Why a request could not be made into an edit now.
+enum Refusal {
+    /// Its answer.
+    Answer(EditOutcome),
+    /// Its cell is not ready yet.
+    Pending,
+}
+
+impl From<EditOutcome> for Refusal {
+    fn from(o: EditOutcome) -> Refusal {
+        Refusal::Answer(o)
     }
 }
 
@@ -220,15 +233,17 @@ const UNKNOWN_PAUSE_MAX: Duration = Duration::from_secs(2);
 
 impl Writer {
     fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
-        // Requests whose fate is not known yet (their cell could not be read): looked at again with the next group,
-        // or after a pause that grows while they stay unknown. The writer goes on with other requests meanwhile.
+        // Requests that wait: whose fate is not known yet (their cell could not be read), looked at again with the
+        // next group or after a pause that grows while they stay unknown; whose cell is being expanded, looked at
+        // every few milliseconds. The writer goes on with other requests meanwhile.
         let mut unknown: Vec<Request> = Vec::new();
         let mut pause = UNKNOWN_PAUSE;
         loop {
             let first = if unknown.is_empty() {
                 rx.recv().ok()
             } else {
-                match rx.recv_timeout(pause) {
+                let cell_pending = unknown.iter().any(|r| matches!(r.waiting, Waiting::Cell(_)));
+                match rx.recv_timeout(if cell_pending { CELL_POLL } else { pause }) {
                     Ok(first) => Some(first),
                     Err(mpsc::RecvTimeoutError::Timeout) => None,
                     Err(mpsc::RecvTimeoutError::Disconnected) if self.stopping.load(Relaxed) => {
@@ -279,7 +294,8 @@ impl Writer {
         let mut unknown = Vec::new();
         while !requests.is_empty() {
             let again = self.try_group(requests, started);
-            let (u, conflicted): (Vec<Request>, Vec<Request>) = again.into_iter().partition(|r| r.unknown);
+            let (u, conflicted): (Vec<Request>, Vec<Request>) =
+                again.into_iter().partition(|r| r.waiting != Waiting::No);
             unknown.extend(u);
             requests = conflicted;
         }
@@ -287,14 +303,14 @@ impl Writer {
     }
 
     /// Check, write and answer a group; the requests that must go round again come back (a conflict, or a store
-    /// that could not be read to tell whether an earlier attempt was kept: [`Request::unknown`]).
+    /// that could not be read to tell whether an earlier attempt was kept, a cell not ready: [`Request::waiting`]).
     fn try_group(&self, requests: Vec<Request>, started: Instant) -> Vec<Request> {
         let mut working: BTreeMap<CellCoord, Working> = BTreeMap::new();
         let mut edits = Vec::with_capacity(requests.len());
         let mut accepted = Vec::with_capacity(requests.len());
         let mut again = Vec::new();
         for mut request in requests {
-            request.unknown = false;
+            let waited = std::mem::replace(&mut request.waiting, Waiting::No);
             // Tried before: if the store kept an attempt, that is the request's outcome.
             if let Some(last) = request.attempts.last() {
                 match self.working(last.cell, &mut working) {
@@ -307,7 +323,7 @@ impl Writer {
                     }
                     // Not known yet: asked again later, never answered by a guess.
                     Err(_) => {
-                        request.unknown = true;
+                        request.waiting = Waiting::Unknown;
                         again.push(request);
                         continue;
                     }
@@ -318,7 +334,19 @@ impl Writer {
                     accepted.push(Accepted { request, id, version: edit.version });
                     edits.push(edit);
                 }
-                Err(outcome) => self.reply(request.job.reply, outcome),
+                Err(Refusal::Answer(outcome)) => self.reply(request.job.reply, outcome),
+                Err(Refusal::Pending) => {
+                    let since = match waited {
+                        Waiting::Cell(since) => since,
+                        _ => Instant::now(),
+                    };
+                    if since.elapsed() >= CELL_WAIT {
+                        self.reply(request.job.reply, EditOutcome::Denied("the cell is not ready; try again".into()));
+                    } else {
+                        request.waiting = Waiting::Cell(since);
+                        again.push(request);
+                    }
+                }
             }
         }
         if edits.is_empty() {
@@ -380,7 +408,7 @@ impl Writer {
             let mut request = a.request;
             let Some(overlay) = read.get(&e.cell) else {
                 request.attempts.push(e);
-                request.unknown = true;
+                request.waiting = Waiting::Unknown;
                 again.push(request);
                 continue;
             };
@@ -402,43 +430,32 @@ impl Writer {
         again
     }
 
-    /// The cell's working state, read on first need (waiting for its expansion if it is not ready).
+    /// The cell's working state, read on first need; [`Refusal::Pending`] while the cell is being expanded (the
+    /// writer never waits for an expansion: it goes on with other requests).
     fn working<'w>(
         &self,
         c: CellCoord,
         working: &'w mut BTreeMap<CellCoord, Working>,
-    ) -> Result<&'w mut Working, EditOutcome> {
+    ) -> Result<&'w mut Working, Refusal> {
         if let std::collections::btree_map::Entry::Vacant(slot) = working.entry(c) {
-            let waker = Arc::new(BlockingWaker::default());
-            let as_waker: Arc<dyn CellWaker> = waker.clone();
-            let deadline = Instant::now() + CELL_WAIT;
-            let (base, overlay) = loop {
-                match self.live.base_and_overlay(c, Some(&as_waker)) {
-                    Ok(Some(found)) => break found,
-                    Ok(None) => {}
-                    Err(e) => return Err(EditOutcome::Denied(format!("the cell's edits could not be read: {e}"))),
+            let (base, overlay) = match self.live.base_and_overlay(c, None) {
+                Ok(Some(found)) => found,
+                Ok(None) => {
+                    return match self.live.base().cell(c, None) {
+                        CellState::Outside => Err(EditOutcome::Invalid("the cell is outside the world".into()).into()),
+                        // Pending, or expanded since the look above: looked at again shortly.
+                        _ => Err(Refusal::Pending),
+                    };
                 }
-                let now = Instant::now();
-                if now >= deadline {
-                    return Err(EditOutcome::Denied("the cell is not ready; try again".into()));
+                Err(e) => {
+                    return Err(EditOutcome::Denied(format!("the cell's edits could not be read: {e}")).into());
                 }
-                match self.live.base().cell(c, None) {
-                    CellState::Pending => {}
-                    // Expanded since the look above: look again.
-                    CellState::Ready(_) => continue,
-                    CellState::Outside => return Err(EditOutcome::Invalid("the cell is outside the world".into())),
-                }
-                let woken = waker.woken.locked();
-                let (mut woken, _) = waker
-                    .cv
-                    .wait_timeout_while(woken, (deadline - now).min(Duration::from_millis(100)), |w| !*w)
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-                *woken = false;
             };
             if let Some(why) = self.live.damaged(c) {
                 return Err(EditOutcome::Denied(format!(
                     "the cell's stored edits are damaged ({why}); it takes no edits until the store is repaired"
-                )));
+                ))
+                .into());
             }
             slot.insert(Working { base, overlay: (*overlay).clone() });
         }
@@ -451,8 +468,8 @@ impl Writer {
         op: &EditOp,
         editor: &Editor,
         working: &mut BTreeMap<CellCoord, Working>,
-    ) -> Result<(StoredEdit, InstanceId), EditOutcome> {
-        let invalid = |why: String| Err(EditOutcome::Invalid(why));
+    ) -> Result<(StoredEdit, InstanceId), Refusal> {
+        let invalid = |why: String| Err(Refusal::Answer(EditOutcome::Invalid(why)));
         let grid = *self.live.grid();
         let rules = self.live.rules();
         let check_params =
@@ -465,7 +482,7 @@ impl Writer {
                 }
                 rules.check_species(*species).map_err(EditOutcome::Invalid)?;
                 if !editor.may_edit_at(*x, *z) {
-                    return Err(EditOutcome::Denied(format!("({x}, {z}) is outside {}'s region", editor.name)));
+                    return Err(EditOutcome::Denied(format!("({x}, {z}) is outside {}'s region", editor.name)).into());
                 }
                 check_params(*species, params)?;
                 let q = grid.steps(cell, (*x).into(), (*z).into());
@@ -480,7 +497,9 @@ impl Writer {
                 // Authorised before any work: a cell wholly outside the editor's region is never built for it.
                 let [x0, z0] = grid.cell_origin(cell);
                 if !editor.may_edit_in([x0, z0, x0 + grid.cell_size, z0 + grid.cell_size]) {
-                    return Err(EditOutcome::Denied(format!("cell {cell:?} is outside {}'s region", editor.name)));
+                    return Err(
+                        EditOutcome::Denied(format!("cell {cell:?} is outside {}'s region", editor.name)).into()
+                    );
                 }
                 let index = id.index();
                 let op = match op {
@@ -505,7 +524,9 @@ impl Writer {
             let step = canopy_protocol::record::position_step(grid.cell_size);
             let (x, z) = (origin[0] + f32::from(record.qx()) * step, origin[1] + f32::from(record.qz()) * step);
             if !editor.may_edit_at(x, z) {
-                return Err(EditOutcome::Denied(format!("instance at ({x}, {z}) is outside {}'s region", editor.name)));
+                return Err(
+                    EditOutcome::Denied(format!("instance at ({x}, {z}) is outside {}'s region", editor.name)).into()
+                );
             }
             if let CellEdit::Set { params, .. } = &cell_op {
                 check_params(record.species, params)?;

@@ -586,3 +586,61 @@ fn a_damaged_cell_log_is_served_as_it_was_before_the_damage_and_takes_no_edits()
     assert!(matches!(&a.results[&refused], EditOutcome::Denied(why) if why.contains("damaged")), "{:?}", a.results);
     assert!(matches!(a.results[&taken], EditOutcome::Ok { .. }), "{:?}", a.results);
 }
+
+/// The world function's records, each cell east of x = 0 expanded only 300 ms after it is first asked for.
+struct SlowEast {
+    inner: Arc<dyn canopy_server::session::WorldStore>,
+    asked: std::sync::Mutex<std::collections::BTreeMap<CellCoord, Instant>>,
+}
+
+impl canopy_server::session::WorldStore for SlowEast {
+    fn head(&self) -> &canopy_server::session::StoreHead {
+        self.inner.head()
+    }
+    fn cell(
+        &self,
+        c: CellCoord,
+        waker: Option<&Arc<dyn canopy_server::session::CellWaker>>,
+    ) -> canopy_server::session::CellState {
+        if c.x > 0 {
+            let first = *self.asked.lock().unwrap().entry(c).or_insert_with(Instant::now);
+            if first.elapsed() < Duration::from_millis(300) {
+                return canopy_server::session::CellState::Pending;
+            }
+        }
+        self.inner.cell(c, waker)
+    }
+}
+
+#[test]
+fn an_editor_whose_cells_are_being_expanded_does_not_hold_up_another() {
+    let slow = Arc::new(SlowEast { inner: base(), asked: Default::default() });
+    let w = world_on(slow as _, Arc::new(MemoryEditStore::new()));
+    let editors = w.cfg.editors.as_ref().unwrap();
+    let (alice, bob) = (editors.find(&ALICE).unwrap(), editors.find(&BOB).unwrap());
+    let (tx, rx) = std::sync::mpsc::channel();
+    let submit = |op: EditOp, editor: &Arc<canopy_server::session::Editor>, who: &'static str| {
+        let tx = tx.clone();
+        w.service.submit(canopy_server::EditJob {
+            op,
+            editor: Arc::clone(editor),
+            reply: Box::new(move |o| tx.send((who, o, Instant::now())).unwrap()),
+        });
+    };
+    // Alice fells in 24 cells none of which is expanded yet; then Bob plants in a cell that is.
+    let asked = Instant::now();
+    for x in 1..4 {
+        for z in -4..4 {
+            submit(EditOp::Fell { id: id(x, z, 0) }, &alice, "alice");
+        }
+    }
+    submit(EditOp::Plant { species: 0, x: -40.0, z: -40.0, params: vec![] }, &bob, "bob");
+    let answers: Vec<_> = (0..25).map(|_| rx.recv_timeout(Duration::from_secs(20)).unwrap()).collect();
+    let (_, bob_answer, bob_at) = answers.iter().find(|a| a.0 == "bob").unwrap();
+    assert!(matches!(bob_answer, EditOutcome::Ok { .. }), "{bob_answer:?}");
+    assert!(bob_at.duration_since(asked) < Duration::from_millis(250), "Bob waited {:?}", bob_at.duration_since(asked));
+    // Alice's fells are all made once their cells are ready.
+    assert!(answers.iter().filter(|a| a.0 == "alice").all(|a| matches!(a.1, EditOutcome::Ok { .. })), "{answers:?}");
+    let last = answers.iter().map(|a| a.2).max().unwrap();
+    assert!(last.duration_since(asked) >= Duration::from_millis(300));
+}
