@@ -477,7 +477,8 @@ impl Writer {
         let (cell, cell_op) = match op {
             EditOp::Plant { species, x, z, params } => {
                 let cell = grid.cell_of(*x, *z);
-                if !grid.contains(cell) {
+                let [x0, z0, x1, z1] = self.live.head().bounds();
+                if !grid.contains(cell) || !(*x >= x0 && *x < x1 && *z >= z0 && *z < z1) {
                     return invalid(format!("({x}, {z}) is outside the world"));
                 }
                 rules.check_species(*species).map_err(EditOutcome::Invalid)?;

@@ -124,6 +124,8 @@ fn denied_and_invalid_edits_leave_no_trace() {
     let invalid = [
         alice.edit(EditOp::Plant { species: 7, x: 5.0, z: 5.0, params: vec![] }),
         alice.edit(EditOp::Plant { species: 0, x: 500.0, z: 5.0, params: vec![] }),
+        // In a cell of the grid, past the world's bounds.
+        alice.edit(EditOp::Plant { species: 0, x: 124.0, z: 5.0, params: vec![] }),
         alice.edit(EditOp::Fell { id: id(0, 0, 40) }),
         alice.edit(EditOp::Fell { id: id(90, 0, 0) }),
         alice.edit(EditOp::Set { id: id(0, 0, 0), params: vec![(60, 1.0)] }),
@@ -142,6 +144,10 @@ fn denied_and_invalid_edits_leave_no_trace() {
         assert_eq!(p.server.stats().deltas, 0);
         assert!(p.client.cells().values().all(|h| h.version == 0));
     }
+    // Just inside the bounds is inside the world.
+    let inside = alice.edit(EditOp::Plant { species: 0, x: 119.5, z: 5.0, params: vec![] });
+    settle(&w, &mut [&mut alice]);
+    assert!(matches!(alice.results[&inside], EditOutcome::Ok { .. }), "{:?}", alice.results[&inside]);
     // Carol's own region works.
     let west = carol.edit(EditOp::Plant { species: 0, x: -60.0, z: 5.0, params: vec![] });
     // Dave's rate: 3 a second, a burst of 6, all asked at one instant: the rest are denied.
@@ -153,7 +159,7 @@ fn denied_and_invalid_edits_leave_no_trace() {
     let ok = mine.iter().filter(|r| matches!(dave.results[r], EditOutcome::Ok { .. })).count();
     assert_eq!(ok, 6);
     assert!(mine.iter().all(|r| !matches!(dave.results[r], EditOutcome::Invalid(_))));
-    assert_eq!(w.edits.count().unwrap(), 7);
+    assert_eq!(w.edits.count().unwrap(), 8);
 }
 
 #[test]

@@ -329,6 +329,7 @@ pub struct StoreHead {
     /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
     species_frames: Vec<Bytes>,
     welcome: WelcomeHead,
+    bounds: [f32; 4],
 }
 
 impl StoreHead {
@@ -336,7 +337,13 @@ impl StoreHead {
     fn new(mut b: StoreBuilder, instances: u32) -> StoreHead {
         b.world.instances = instances;
         let welcome = WelcomeHead::new(&b.world, &b.species);
-        StoreHead { world: b.world, species: b.species, species_frames: b.species_frames, welcome }
+        StoreHead { world: b.world, species: b.species, species_frames: b.species_frames, welcome, bounds: b.bounds }
+    }
+
+    /// The world's bounds `[x0, z0, x1, z1]` (x1 and z1 exclusive): where instances may stand. The cell grid covers
+    /// them and may reach past them (cells are aligned to the origin).
+    pub fn bounds(&self) -> [f32; 4] {
+        self.bounds
     }
 
     /// The head of a loaded world: its name, seed, cell grid, terrain and species, and its instance count (0 for
@@ -411,6 +418,8 @@ pub struct StoreBuilder {
     cells: Vec<Arc<CellData>>,
     /// Instances added so far.
     count: u32,
+    /// Where instances may stand, `[x0, z0, x1, z1]`; the grid's extent unless [`StoreBuilder::bounds`] says less.
+    bounds: [f32; 4],
 }
 
 impl StoreBuilder {
@@ -456,7 +465,15 @@ impl StoreBuilder {
         if !InstanceId::names(grid.min) || !InstanceId::names(grid.max) {
             return Err(StoreError::Grid(canopy_protocol::aoi::GridError::Range { min: grid.min, max: grid.max }));
         }
-        Ok(StoreBuilder { world, species: entries, species_frames, cells: vec![], count: 0 })
+        let [x0, z0] = grid.cell_origin(grid.min);
+        let [x1, z1] = grid.cell_origin(CellCoord::new(grid.max.x + 1, grid.max.z + 1));
+        Ok(StoreBuilder { world, species: entries, species_frames, cells: vec![], count: 0, bounds: [x0, z0, x1, z1] })
+    }
+
+    /// Say where instances may stand, `[x0, z0, x1, z1]` (x1 and z1 exclusive; within the grid's cells).
+    pub fn bounds(mut self, bounds: [f32; 4]) -> StoreBuilder {
+        self.bounds = bounds;
+        self
     }
 
     /// A builder for a loaded world's description (no cells added yet).
@@ -471,7 +488,9 @@ impl StoreBuilder {
         };
         let terrain = crate::terrain::terrain_desc(world);
         let graphs = world.species.iter().map(|s| &s.graph);
-        StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)
+        let [x0, z0] = world.bounds.min;
+        let [x1, z1] = world.bounds.max;
+        Ok(StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?.bounds([x0, z0, x1, z1]))
     }
 
     /// Add one cell's instances, by index in the cell (instance `i` is `(cell, i)`). Positions are quantised to the

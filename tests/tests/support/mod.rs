@@ -28,12 +28,16 @@ pub const CAROL: [u8; 32] = [3; 32];
 /// Dave may make 3 edits a second.
 pub const DAVE: [u8; 32] = [4; 32];
 
-/// A 8 × 8 grid of 32 m cells around the origin, 1 to 5 instances a cell of two species.
+/// A 8 × 8 grid of 32 m cells around the origin (the world's bounds end 8 m short of its high edges), 1 to 5
+/// instances a cell of two species.
 pub fn base() -> Arc<dyn WorldStore> {
     let species: Vec<SpeciesGraph> =
         ["worm", "conifer"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
     let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) };
-    let mut b = StoreBuilder::new("edits", 7, grid, TerrainDesc::flat([-128.0, -128.0], 256.0), &species).unwrap();
+    // Bounds short of the grid's last cells on the high sides: those cells reach past the world.
+    let mut b = StoreBuilder::new("edits", 7, grid, TerrainDesc::flat([-128.0, -128.0], 256.0), &species)
+        .unwrap()
+        .bounds([-128.0, -128.0, 120.0, 120.0]);
     for z in -4i32..4 {
         for x in -4i32..4 {
             let o = grid.cell_origin(CellCoord::new(x, z));
