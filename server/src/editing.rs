@@ -478,7 +478,8 @@ impl Writer {
             EditOp::Plant { species, x, z, params } => {
                 let cell = grid.cell_of(*x, *z);
                 let [x0, z0, x1, z1] = self.live.head().bounds();
-                if !grid.contains(cell) || !(*x >= x0 && *x < x1 && *z >= z0 && *z < z1) {
+                let in_bounds = (x0..x1).contains(x) && (z0..z1).contains(z);
+                if !(grid.contains(cell) && in_bounds) {
                     return invalid(format!("({x}, {z}) is outside the world"));
                 }
                 rules.check_species(*species).map_err(EditOutcome::Invalid)?;
