@@ -423,6 +423,15 @@ impl Writer {
                     continue;
                 }
                 EditStoreError::Conflict { .. } => EditOutcome::Conflict,
+                // Not stored now, but the append may yet land: tried again (the same edit at the same version
+                // where the cell is unchanged, so a store that deduplicates takes it once) after a pause, found
+                // when it lands, never answered by a guess.
+                EditStoreError::Unanswered(_) => {
+                    request.attempts.push(e);
+                    request.waiting = Waiting::Unknown;
+                    again.push(request);
+                    continue;
+                }
                 e => EditOutcome::Denied(format!("the edit could not be stored: {e}")),
             };
             self.reply(request.job.reply, outcome);

@@ -248,7 +248,7 @@ fn run_untimed<T: Send + 'static>(
     handle.spawn(async move {
         let r = match tokio::time::timeout(CALL_TIMEOUT, fut).await {
             Ok(r) => r,
-            Err(_) => Err(EditStoreError::Io(format!("NATS: no answer within {CALL_TIMEOUT:?}"))),
+            Err(_) => Err(EditStoreError::Unanswered(format!("NATS: no answer within {CALL_TIMEOUT:?}"))),
         };
         let _ = tx.send(r);
     });
@@ -411,7 +411,8 @@ impl Inner {
                             .next_by_subject(subject.clone())
                             .send()
                             .await
-                            .map_err(|err| io("checking a publish", err))?;
+                            // Stored, but whether first on the subject is not known.
+                            .map_err(|err| EditStoreError::Unanswered(format!("NATS checking a publish: {err}")))?;
                         if first.sequence != ack.sequence {
                             // Lost: the message is refused, so it is taken out of the stream too — readers skip
                             // it anyway, and the stream then holds exactly the edits acknowledged (its message
@@ -446,7 +447,8 @@ impl Inner {
                         tokio::time::sleep(pause).await;
                         pause = (pause * 2).min(PUBLISH_RETRY_MAX);
                     }
-                    Err(err) => return Err(io("publishing an edit", err)),
+                    // An answer lost with a node: the publish may yet be stored.
+                    Err(err) => return Err(EditStoreError::Unanswered(format!("NATS publishing an edit: {err}"))),
                 }
             }
         }

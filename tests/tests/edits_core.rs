@@ -355,15 +355,20 @@ struct Election {
     lost: std::sync::Mutex<Vec<bool>>,
     /// Reads still to fail.
     unreadable: std::sync::atomic::AtomicUsize,
+    /// Appends still to store nothing and answer nothing (a publish lost with its node).
+    dropped: std::sync::atomic::AtomicUsize,
 }
 
 impl EditStore for Election {
     fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
         use canopy_server::edits::EditStoreError;
+        if self.dropped.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok() {
+            return Err(EditStoreError::Unanswered("NATS publishing an edit: timed out".into()));
+        }
         self.inner.append(edits)?;
         match self.lost.lock().unwrap().pop() {
             Some(true) => Err(EditStoreError::Conflict { cell: edits[0].cell, version: edits[0].version }),
-            Some(false) => Err(EditStoreError::Io("NATS: no answer within 10s".into())),
+            Some(false) => Err(EditStoreError::Unanswered("NATS: no answer within 10s".into())),
             None => Ok(()),
         }
     }
@@ -391,7 +396,7 @@ impl EditStore for Election {
 use std::sync::atomic::Ordering::SeqCst;
 
 #[test]
-fn an_edit_stored_by_a_failed_append_is_acknowledged_once_though_the_store_cannot_be_read_for_a_while() {
+fn edits_whose_appends_failed_are_acknowledged_once_whether_stored_or_not_though_reads_fail_for_a_while() {
     let store = Arc::new(Election::default());
     let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
     let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 21);
@@ -413,26 +418,30 @@ fn an_edit_stored_by_a_failed_append_is_acknowledged_once_though_the_store_canno
     store.unreadable.store(2, SeqCst);
     let fell = a.edit(EditOp::Fell { id: id(0, 0, 0) });
     settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], answered(vec![fell]));
+    // Then a plant whose first two appends store nothing and answer nothing: tried again, stored once.
+    store.dropped.store(2, SeqCst);
+    let late = a.edit(EditOp::Plant { species: 1, x: 20.0, z: 20.0, params: vec![] });
+    settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], answered(vec![late]));
 
     // Each acknowledged once, at the version the store holds it, and stored once.
     let mut versions: Vec<u32> = plants
         .iter()
-        .chain([&fell])
+        .chain([&fell, &late])
         .map(|r| match &a.results[r] {
             EditOutcome::Ok { version, .. } => *version,
             other => panic!("a stored edit answered {other:?}"),
         })
         .collect();
     versions.sort_unstable();
-    assert_eq!(versions, (before + 1..=before + 4).collect::<Vec<_>>());
+    assert_eq!(versions, (before + 1..=before + 5).collect::<Vec<_>>());
     let log = store.inner.load(c).unwrap();
-    assert_eq!(log.len(), 4, "each edit stored once: {log:?}");
+    assert_eq!(log.len(), 5, "each edit stored once: {log:?}");
     let felled = log.iter().filter(|e| matches!(e.op, canopy_server::edits::CellEdit::Fell { index: 0 })).count();
     assert_eq!(felled, 1);
-    assert_eq!(version(&w, c), before + 4);
+    assert_eq!(version(&w, c), before + 5);
     // Every client catches up (the overlay loaders pause after a failed read).
     settle_until(&mut [(&w, &mut a), (&w, &mut watcher)], |p| {
-        p.iter().all(|(_, p)| p.client.cells().get(&c).is_some_and(|h| h.version == before + 4))
+        p.iter().all(|(_, p)| p.client.cells().get(&c).is_some_and(|h| h.version == before + 5))
     });
     let want = expected(&w);
     for p in [&a, &watcher] {

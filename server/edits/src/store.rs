@@ -38,9 +38,14 @@ pub enum EditStoreError {
         /// The edits before it.
         readable: Vec<StoredEdit>,
     },
-    /// The store's file or database failed (disk full, permissions, not a regular file…).
+    /// The store's file or database failed (disk full, permissions, not a regular file…): for an append, nothing
+    /// of the group that failed was stored by it (a read of the cells says what was).
     #[error("edit store: {0}")]
     Io(String),
+    /// The store did not answer (a network store electing a leader, a lost connection): an append's edits may yet be
+    /// stored or not. A writer reads the cells again later and does not answer by a guess.
+    #[error("edit store: no answer: {0}")]
+    Unanswered(String),
 }
 
 /// Where edits are kept durably. Implementations are shared between threads; every call may block (on a disk or a
