@@ -43,7 +43,7 @@ pub struct EditMetrics {
     pub groups: AtomicU64,
     /// Time from a group's first request to its durable commit.
     pub commit_time: Histogram,
-    /// Stored edits skipped because the world cannot take them ([`LiveStore::skipped`]).
+    /// Stored edits not served: the world cannot take them, or they do not decode ([`LiveStore::skipped`]).
     pub skipped: Arc<AtomicU64>,
 }
 

@@ -16,12 +16,11 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use canopy_edits::{EditRules, EditStore, EditStoreError, Overlay};
-use canopy_protocol::CellCoord;
 use canopy_protocol::lru::Lru;
+use canopy_protocol::{CellCoord, SpeciesGraph};
 use canopy_protocol::sync::{Locked, Waited};
 use tracing::{error, warn};
 
-use canopy_protocol::SpeciesGraph;
 use canopy_session::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, Waiters, WorldStore};
 
 /// A cell changed: it is at `version` now.
