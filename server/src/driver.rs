@@ -316,6 +316,22 @@ async fn accept_loop(
     }
 }
 
+/// An edit's answer on its way back to the session that asked; abandoned once the session has ended.
+struct SessionReply {
+    tx: mpsc::UnboundedSender<(u32, EditOutcome)>,
+    request: u32,
+}
+
+impl crate::editing::Reply for SessionReply {
+    fn answer(self: Box<Self>, outcome: EditOutcome) {
+        let _ = self.tx.send((self.request, outcome));
+    }
+
+    fn abandoned(&self) -> bool {
+        self.tx.is_closed()
+    }
+}
+
 /// A client slot taken by a session, returned when it drops (however the session's task ends, a panic included).
 struct Slot<'a> {
     admission: &'a std::sync::Mutex<Admission>,
@@ -410,10 +426,7 @@ async fn run_session(
         while let Some((request, op, editor)) = session.poll_edit() {
             match &cfg.edits {
                 Some(service) => {
-                    let tx = edit_tx.clone();
-                    let reply = Box::new(move |outcome| {
-                        let _ = tx.send((request, outcome));
-                    });
+                    let reply = Box::new(SessionReply { tx: edit_tx.clone(), request });
                     service.submit(EditJob { op, editor, reply });
                 }
                 None => session.on_edit_result(request, EditOutcome::Denied("this server takes no edits".into())),

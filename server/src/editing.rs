@@ -43,6 +43,8 @@ pub struct EditMetrics {
     pub groups: AtomicU64,
     /// Time from a group's first request to its durable commit.
     pub commit_time: Histogram,
+    /// Requests dropped unwritten because their session ended first.
+    pub abandoned: AtomicU64,
     /// Stored edits not served: the world cannot take them, or they do not decode ([`LiveStore::skipped`]).
     pub skipped: Arc<AtomicU64>,
 }
@@ -72,7 +74,24 @@ pub struct EditJob {
     /// Who asks.
     pub editor: Arc<Editor>,
     /// Called once with the outcome (after the edit is durable, for `Ok`).
-    pub reply: Box<dyn FnOnce(EditOutcome) + Send>,
+    pub reply: Box<dyn Reply>,
+}
+
+/// Where an edit's outcome goes: any `FnOnce(EditOutcome)`, or a session that can say it is gone.
+pub trait Reply: Send {
+    /// Give the outcome.
+    fn answer(self: Box<Self>, outcome: EditOutcome);
+    /// Whether nobody waits for the outcome any more (the session ended): a request not yet written is then dropped
+    /// unwritten and unanswered (its client was never told it would be made).
+    fn abandoned(&self) -> bool {
+        false
+    }
+}
+
+impl<F: FnOnce(EditOutcome) + Send> Reply for F {
+    fn answer(self: Box<Self>, outcome: EditOutcome) {
+        (*self)(outcome)
+    }
 }
 
 /// The edit pipeline (see the module docs).
@@ -128,7 +147,7 @@ impl EditService {
     pub fn submit(&self, job: EditJob) {
         let tx = self.tx.locked().clone();
         let Some(tx) = tx else {
-            (job.reply)(EditOutcome::Denied("the server is shutting down".into()));
+            job.reply.answer(EditOutcome::Denied("the server is shutting down".into()));
             return;
         };
         if let Err(e) = tx.try_send((job, Instant::now())) {
@@ -138,7 +157,7 @@ impl EditService {
             };
             let outcome = EditOutcome::Denied(why.into());
             self.metrics.count(&outcome);
-            (job.reply)(outcome);
+            job.reply.answer(outcome);
         }
     }
 
@@ -282,9 +301,9 @@ impl Writer {
         }
     }
 
-    fn reply(&self, reply: Box<dyn FnOnce(EditOutcome) + Send>, outcome: EditOutcome) {
+    fn reply(&self, reply: Box<dyn Reply>, outcome: EditOutcome) {
         self.metrics.count(&outcome);
-        reply(outcome);
+        reply.answer(outcome);
     }
 
     /// Write a group, sending requests that met a conflict round again at once; returns those whose fate is not
@@ -311,6 +330,11 @@ impl Writer {
         let mut again = Vec::new();
         for mut request in requests {
             let waited = std::mem::replace(&mut request.waiting, Waiting::No);
+            // Its session ended before it was written: nobody was told it would be made, so it is not.
+            if request.attempts.is_empty() && request.job.reply.abandoned() {
+                self.metrics.abandoned.fetch_add(1, Relaxed);
+                continue;
+            }
             // Tried before: if the store kept an attempt, that is the request's outcome.
             if let Some(last) = request.attempts.last() {
                 match self.working(last.cell, &mut working) {

@@ -26,7 +26,7 @@ pub use canopy_session as session;
 pub use canopy_worlds as worlds;
 pub use cells::{CellCache, CellCacheConfig};
 pub use driver::{OWED_SLACK, SEND_WINDOW, Server, ServerConfig, StartError};
-pub use editing::{EditJob, EditMetrics, EditService};
+pub use editing::{EditJob, EditMetrics, EditService, Reply};
 pub use live::{CellChange, EditHub, LiveStore};
 pub use metrics::{EngineMetrics, Metrics, resident_bytes};
 pub use nats::{NatsConfig, NatsEditStore};

@@ -17,8 +17,8 @@ use std::time::Duration;
 
 use canopy_edits::{EditRules, EditStore, EditStoreError, Overlay};
 use canopy_protocol::lru::Lru;
-use canopy_protocol::{CellCoord, SpeciesGraph};
 use canopy_protocol::sync::{Locked, Waited};
+use canopy_protocol::{CellCoord, SpeciesGraph};
 use tracing::{error, warn};
 
 use canopy_session::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, Waiters, WorldStore};

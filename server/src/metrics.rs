@@ -250,6 +250,8 @@ impl Metrics {
             metric("canopy_edit_groups_total", "counter", help, &one(&e.groups));
             let help = "Stored edits not served: the world cannot take them, or they do not decode (at every read of their cell).";
             metric("canopy_edits_skipped_total", "counter", help, &one(&e.skipped));
+            let help = "Edits dropped unwritten because their session ended before they were written.";
+            metric("canopy_edits_abandoned_total", "counter", help, &one(&e.abandoned));
         }
         if let Some(e) = self.engine.get() {
             metric("canopy_engine_watched_cells", "gauge", "Cells whose edits this edge watches.", &one(&e.watched));

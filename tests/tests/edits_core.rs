@@ -659,3 +659,32 @@ fn an_editor_whose_cells_are_being_expanded_does_not_hold_up_another() {
     let last = answers.iter().map(|a| a.2).max().unwrap();
     assert!(last.duration_since(asked) >= Duration::from_millis(300));
 }
+
+/// An answer nobody waits for any more (its session ended), or one somebody does.
+struct Gone(bool, std::sync::mpsc::Sender<EditOutcome>);
+
+impl canopy_server::Reply for Gone {
+    fn answer(self: Box<Self>, outcome: EditOutcome) {
+        let _ = self.1.send(outcome);
+    }
+    fn abandoned(&self) -> bool {
+        self.0
+    }
+}
+
+#[test]
+fn an_edit_whose_session_ended_before_it_was_written_is_not_made() {
+    let w = world();
+    let alice = w.cfg.editors.as_ref().unwrap().find(&ALICE).unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    for gone in [true, false] {
+        let op = EditOp::Plant { species: 0, x: 5.0, z: 5.0, params: vec![] };
+        let reply = Box::new(Gone(gone, tx.clone()));
+        w.service.submit(canopy_server::EditJob { op, editor: Arc::clone(&alice), reply });
+    }
+    // Only the one still wanted is answered and stored.
+    assert!(matches!(rx.recv_timeout(Duration::from_secs(10)).unwrap(), EditOutcome::Ok { version: 1, .. }));
+    assert!(rx.recv_timeout(Duration::from_millis(200)).is_err());
+    assert_eq!(w.edits.count().unwrap(), 1);
+    assert_eq!(w.service.metrics().abandoned.load(SeqCst), 1);
+}
