@@ -10,7 +10,8 @@
 //!   serializable on a clustered stream before nats-server 2.9.21 (nats-io/nats-server#4320; Debian ships 2.9.10):
 //!   two publishes naming the same sequence may both be stored. So a version is the *first* message on the subject
 //!   that names it (`first_wins`, the fold every reader applies), and a writer acknowledges its edit only after
-//!   reading that its message is the first on the subject after the one it named; a loser is a conflict. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
+//!   reading that its message is the first of its version on the subject after the one it named (an earlier
+//!   version's lost race, not yet taken out, is passed over); a loser is a conflict. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
 //!   second edit (the id carries a digest of the edit's bytes, so another edit of the same version is no
 //!   duplicate).
 //! - **Durable means replicated.** An append returns once JetStream acknowledged every message, which for a stream
@@ -404,15 +405,26 @@ impl Inner {
                         // may both be taken. The first of a cell's messages with a version is that version (the
                         // fold every reader applies, `first_wins`); this one is the version only if it is the
                         // first message on the subject after the one it named.
-                        let first = self
-                            .stream
-                            .raw_message_builder()
-                            .sequence(known + 1)
-                            .next_by_subject(subject.clone())
-                            .send()
-                            .await
-                            // Stored, but whether first on the subject is not known.
-                            .map_err(|err| EditStoreError::Unanswered(format!("NATS checking a publish: {err}")))?;
+                        // Messages of earlier versions after the one it named are lost races of those versions
+                        // that their writers have not taken out yet: they do not count (counting one made a
+                        // winner take itself out, leaving a version missing).
+                        let mut from = known + 1;
+                        let first = loop {
+                            let m = self
+                                .stream
+                                .raw_message_builder()
+                                .sequence(from)
+                                .next_by_subject(subject.clone())
+                                .send()
+                                .await
+                                // Stored, but whether first on the subject is not known.
+                                .map_err(|err| EditStoreError::Unanswered(format!("NATS checking a publish: {err}")))?;
+                            let other = StoredEdit::decode(&m.payload).ok().map(|o| o.version);
+                            match race_step(e.version, ack.sequence, m.sequence, other) {
+                                Race::Earlier => from = m.sequence + 1,
+                                Race::Decided => break m,
+                            }
+                        };
                         if first.sequence != ack.sequence {
                             // Lost: the message is refused, so it is taken out of the stream too — readers skip
                             // it anyway, and the stream then holds exactly the edits acknowledged (its message
@@ -505,6 +517,24 @@ impl Inner {
         tails.insert(c, Tail { edits: out.clone(), last }, cost);
         tails.evict_to(TAIL_CACHE_BYTES, Some(&c));
         Ok(out)
+    }
+}
+
+/// What a message after the one a publish named says of the publish's race ([`race_step`]).
+#[derive(Debug, PartialEq, Eq)]
+enum Race {
+    /// A lost race of an earlier version its writer has not taken out yet: look at the next message.
+    Earlier,
+    /// The race is decided: won if this message is the publish itself, lost otherwise.
+    Decided,
+}
+
+/// A publish of `version` acknowledged at sequence `ours` meets the message at `sequence` (of `other`'s version,
+/// `None` if it does not decode), the next after the one it named: is that message the race's first, or one to pass?
+fn race_step(version: u32, ours: u64, sequence: u64, other: Option<u32>) -> Race {
+    match other {
+        Some(v) if sequence != ours && v < version => Race::Earlier,
+        _ => Race::Decided,
     }
 }
 
@@ -664,6 +694,16 @@ mod tests {
         // A version skipped is damage.
         assert!(first_wins(5, 7).is_err());
         assert!(first_wins(0, 2).is_err());
+    }
+
+    #[test]
+    fn an_earlier_versions_lost_race_does_not_decide_a_publish() {
+        // Version 5 published at 810 after a version-4 loser at 805 not yet taken out: pass it, then 810 is ours.
+        assert_eq!(race_step(5, 810, 805, Some(4)), Race::Earlier);
+        assert_eq!(race_step(5, 810, 810, Some(5)), Race::Decided);
+        // Another version 5 first: lost; a message that does not decode decides too (it is not passed over).
+        assert_eq!(race_step(5, 810, 807, Some(5)), Race::Decided);
+        assert_eq!(race_step(5, 810, 807, None), Race::Decided);
     }
 
     #[test]
