@@ -658,10 +658,15 @@ impl EditStore for NatsEditStore {
 
     fn watch(&self, c: CellCoord, watcher: Arc<dyn EditWatcher>) {
         let inner = Arc::clone(&self.inner);
-        // The watch starts just after the last edit the read of the log saw; it is set up on the store's runtime,
+        // The watch starts just after the last message the read of the log saw; it is set up on the store's runtime,
         // not here: a cluster electing a leader can take seconds to create a consumer, and neither the writer nor
         // a loader waits for that (nothing is missed: the consumer starts at that sequence whenever it starts).
-        let next = inner.last(c).sequence + 1;
+        // From the last message the read saw, not the last this store knows of the cell: this edge's own
+        // publish may be known (learned) but not yet laid into the overlay the read made, and a watch started past
+        // it would deliver the next message — a lost race of the same version, before its writer takes it out —
+        // as the version's edit.
+        let read = inner.tails.locked().peek(&c).map(|t| t.last);
+        let next = read.unwrap_or_else(|| inner.last(c).sequence) + 1;
         let task = self.handle.spawn(watch_cell(inner, c, next, watcher));
         let mut watches = self.inner.watches.locked();
         if let Some(old) = watches.insert(c, task) {
