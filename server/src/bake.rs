@@ -52,7 +52,7 @@ pub fn bake(world: &World, store: &dyn EditStore) -> Result<Baked, BakeError> {
     // The server's grid of the world: cells are quantised exactly as a server holds them.
     let grid = StoreHead::of_world(world)?.world().grid;
     let mut baked = Baked::default();
-    let rules = EditRules::new(world.species.iter().map(|s| s.graph.params.len()).collect());
+    let rules = EditRules::of_species(world.species.iter().map(|s| &s.graph));
     let name = |species: u8| world.species[usize::from(species)].name.as_str();
     let params = |species: u8, params: &[(u16, f32)]| -> String {
         let g = &world.species[usize::from(species)].graph;

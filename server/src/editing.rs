@@ -200,6 +200,11 @@ impl Request {
     fn new(job: EditJob) -> Request {
         Request { job, attempts: Vec::new(), conflicts: 0, waiting: Waiting::No }
     }
+
+    /// The attempt `overlay` holds at its version, if any: the request's outcome.
+    fn kept<'a>(attempts: impl IntoIterator<Item = &'a StoredEdit>, overlay: &Overlay) -> Option<&'a StoredEdit> {
+        attempts.into_iter().find(|a| overlay.edit(a.version) == Some(*a))
+    }
 }
 
 /// Why a request waits beside the writer instead of being answered.
@@ -339,7 +344,7 @@ impl Writer {
             if let Some(last) = request.attempts.last() {
                 match self.working(last.cell, &mut working) {
                     Ok(w) => {
-                        if let Some(kept) = request.attempts.iter().find(|a| w.overlay.edit(a.version) == Some(*a)) {
+                        if let Some(kept) = Request::kept(&request.attempts, &w.overlay) {
                             let outcome = EditOutcome::Ok { id: edit_id(kept), version: kept.version };
                             self.reply(request.job.reply, outcome);
                             continue;
@@ -437,7 +442,7 @@ impl Writer {
                 continue;
             };
             // This attempt or an earlier one of the request.
-            let kept = std::iter::once(&e).chain(&request.attempts).find(|t| overlay.edit(t.version) == Some(*t));
+            let kept = Request::kept(std::iter::once(&e).chain(&request.attempts), overlay);
             let outcome = match error {
                 _ if let Some(kept) = kept => EditOutcome::Ok { id: edit_id(kept), version: kept.version },
                 EditStoreError::Conflict { .. } if request.conflicts < CONFLICT_RETRIES => {

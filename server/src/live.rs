@@ -232,7 +232,7 @@ impl Shared {
         match damage {
             Some((version, why)) => {
                 self.skipped.fetch_add(1, Relaxed);
-                if self.reported.locked().insert((c, version)) {
+                if self.first_report(c, version) {
                     error!("{why}: the cell is served as it was at version {}, and takes no edits", version - 1);
                 }
                 self.damaged.locked().insert(c, why);
@@ -269,13 +269,18 @@ impl Shared {
         }
     }
 
+    /// Whether the stored edit `(c, version)` is named in the log now: the first time, for the first
+    /// [`SKIPS_REPORTED`] such edits.
+    fn first_report(&self, c: CellCoord, version: u32) -> bool {
+        let mut r = self.reported.locked();
+        r.len() < SKIPS_REPORTED && r.insert((c, version))
+    }
+
     /// Count skipped edits and name each in the log once.
     fn report(&self, c: CellCoord, skipped: &[(u32, String)]) {
         self.skipped.fetch_add(skipped.len() as u64, Relaxed);
         for (version, why) in skipped {
-            let mut r = self.reported.locked();
-            if r.len() < SKIPS_REPORTED && r.insert((c, *version)) {
-                drop(r);
+            if self.first_report(c, *version) {
                 warn!(store = %self.edits.describe(), cell = ?c, version, "a stored edit the world cannot take is skipped: {why}");
             }
         }
@@ -334,9 +339,10 @@ impl LiveStore {
     /// [`LOADERS`] threads.
     pub fn new(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>, limit_bytes: usize) -> LiveStore {
         let head = base.head();
-        let params = (0..head.species().len())
+        let graphs: Vec<SpeciesGraph> = (0..head.species().len())
             .map(|i| {
-                head.species_graph(i as u8).and_then(|g| SpeciesGraph::decode(g).ok()).map_or(0, |g| g.params.len())
+                let bytes = head.species_graph(i as u8).expect("every species of the table has a graph");
+                SpeciesGraph::decode(bytes).expect("a head's graphs decode: it encoded them from validated graphs")
             })
             .collect();
         let shared = Arc::new(Shared {
@@ -347,7 +353,7 @@ impl LiveStore {
             work: Condvar::new(),
             loaded: AtomicU64::new(0),
             hub: Arc::new(EditHub::new(HUB_CAPACITY)),
-            rules: EditRules::new(params),
+            rules: EditRules::of_species(&graphs),
             skipped: Arc::default(),
             reported: Mutex::default(),
             damaged: Mutex::default(),

@@ -13,8 +13,23 @@ use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome};
 use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::ServerStreaming;
 use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
-use canopy_server::edits::{EditStore, MemoryEditStore};
+use canopy_server::edits::{EditStore, EditStoreError, MemoryEditStore, StoredEdit};
 use support::*;
+
+/// The part of a test store that passes through to the memory store it wraps (`self.$inner`).
+macro_rules! passes_through {
+    ($inner:tt) => {
+        fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
+            self.$inner.cells()
+        }
+        fn count(&self) -> Result<u64, EditStoreError> {
+            self.$inner.count()
+        }
+        fn describe(&self) -> String {
+            std::any::type_name::<Self>().into()
+        }
+    };
+}
 
 /// A store that, when `fail` is set, keeps only the first edit of a group and then fails (a commit that failed
 /// after part of it reached the disk, or a store without multi-key transactions).
@@ -26,29 +41,18 @@ struct Flaky {
 }
 
 impl EditStore for Flaky {
-    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         let _held = self.hold.lock().unwrap();
         if self.fail.load(std::sync::atomic::Ordering::SeqCst) {
             self.inner.append(&edits[..1])?;
-            return Err(canopy_server::edits::EditStoreError::Io("the disk failed".into()));
+            return Err(EditStoreError::Io("the disk failed".into()));
         }
         self.inner.append(edits)
     }
-    fn load(
-        &self,
-        c: CellCoord,
-    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         self.inner.load(c)
     }
-    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
-        self.inner.cells()
-    }
-    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
-        self.inner.count()
-    }
-    fn describe(&self) -> String {
-        "flaky".into()
-    }
+    passes_through!(inner);
 }
 
 #[test]
@@ -278,27 +282,16 @@ fn a_failed_write_acknowledges_exactly_what_the_store_kept() {
 struct Slow(Arc<MemoryEditStore>);
 
 impl EditStore for Slow {
-    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         self.0.append(edits)
     }
-    fn load(
-        &self,
-        c: CellCoord,
-    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         if c == CellCoord::new(0, 0) {
             std::thread::sleep(Duration::from_millis(1000));
         }
         self.0.load(c)
     }
-    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
-        self.0.cells()
-    }
-    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
-        self.0.count()
-    }
-    fn describe(&self) -> String {
-        "slow".into()
-    }
+    passes_through!(0);
 }
 
 #[test]
@@ -360,8 +353,7 @@ struct Election {
 }
 
 impl EditStore for Election {
-    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
-        use canopy_server::edits::EditStoreError;
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         if self.dropped.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok() {
             return Err(EditStoreError::Unanswered("NATS publishing an edit: timed out".into()));
         }
@@ -372,25 +364,14 @@ impl EditStore for Election {
             None => Ok(()),
         }
     }
-    fn load(
-        &self,
-        c: CellCoord,
-    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         let failing = self.unreadable.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok();
         if failing {
-            return Err(canopy_server::edits::EditStoreError::Io("NATS: no answer within 10s".into()));
+            return Err(EditStoreError::Io("NATS: no answer within 10s".into()));
         }
         self.inner.load(c)
     }
-    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
-        self.inner.cells()
-    }
-    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
-        self.inner.count()
-    }
-    fn describe(&self) -> String {
-        "election".into()
-    }
+    passes_through!(inner);
 }
 
 use std::sync::atomic::Ordering::SeqCst;
@@ -452,7 +433,7 @@ fn edits_whose_appends_failed_are_acknowledged_once_whether_stored_or_not_though
 #[test]
 fn stored_edits_the_world_cannot_take_are_skipped_and_the_cell_is_served_with_the_rest() {
     use canopy_protocol::InstanceRecord;
-    use canopy_server::edits::{CellEdit, StoredEdit};
+    use canopy_server::edits::CellEdit;
     // A store written by another world (or damaged): a plant of species 9, a parameter slot 99 = 1e30, between
     // edits this world takes.
     let store = Arc::new(MemoryEditStore::new());
@@ -543,19 +524,16 @@ fn an_edit_outside_the_editors_region_is_refused_before_its_cell_is_built() {
 struct Damaging(MemoryEditStore);
 
 impl EditStore for Damaging {
-    fn append(&self, edits: &[canopy_server::edits::StoredEdit]) -> Result<(), canopy_server::edits::EditStoreError> {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         self.0.append(edits)
     }
-    fn load(
-        &self,
-        c: CellCoord,
-    ) -> Result<Vec<canopy_server::edits::StoredEdit>, canopy_server::edits::EditStoreError> {
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         let mut log = self.0.load(c)?;
         if c != CellCoord::new(1, 1) || log.len() < 3 {
             return Ok(log);
         }
         log.truncate(2);
-        Err(canopy_server::edits::EditStoreError::Damaged {
+        Err(EditStoreError::Damaged {
             store: "damaging.sqlite".into(),
             cell: c,
             version: 3,
@@ -563,20 +541,12 @@ impl EditStore for Damaging {
             readable: log,
         })
     }
-    fn cells(&self) -> Result<Vec<(CellCoord, u32)>, canopy_server::edits::EditStoreError> {
-        self.0.cells()
-    }
-    fn count(&self) -> Result<u64, canopy_server::edits::EditStoreError> {
-        self.0.count()
-    }
-    fn describe(&self) -> String {
-        "damaging.sqlite".into()
-    }
+    passes_through!(0);
 }
 
 #[test]
 fn a_damaged_cell_log_is_served_as_it_was_before_the_damage_and_takes_no_edits() {
-    use canopy_server::edits::{CellEdit, StoredEdit};
+    use canopy_server::edits::CellEdit;
     let store = Arc::new(Damaging(MemoryEditStore::new()));
     let c = CellCoord::new(1, 1);
     let log: Vec<StoredEdit> = [CellEdit::Fell { index: 0 }, CellEdit::Fell { index: 1 }, CellEdit::Fell { index: 2 }]

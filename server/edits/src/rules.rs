@@ -19,6 +19,11 @@ impl EditRules {
         EditRules { params }
     }
 
+    /// Rules for a world of these species, in table order.
+    pub fn of_species<'a>(graphs: impl IntoIterator<Item = &'a canopy_protocol::SpeciesGraph>) -> EditRules {
+        EditRules::new(graphs.into_iter().map(|g| g.params.len()).collect())
+    }
+
     /// How many species the world has.
     pub fn species(&self) -> usize {
         self.params.len()
