@@ -35,6 +35,18 @@ async fn connect_from(server: &Server, from: &str) -> Result<Connection, ClientE
     Connection::connect(&ep, &pinned(server), None, |_| Viewpoint::at(0, [0.0, 0.0], 60.0)).await
 }
 
+/// How the connection ends, if it does within `limit` (events until then are taken and dropped).
+async fn ended_within(c: &mut Connection, limit: Duration) -> Result<ClientError, tokio::time::error::Elapsed> {
+    tokio::time::timeout(limit, async {
+        loop {
+            if let Err(e) = c.next_event().await {
+                return e;
+            }
+        }
+    })
+    .await
+}
+
 /// A fresh client Initial packet: a real client connects to a UDP socket that never answers, and its first
 /// datagram is kept.
 async fn initial_packet() -> Vec<u8> {
@@ -117,15 +129,7 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
         }
         true
     });
-    let closed = tokio::time::timeout(Duration::from_secs(10), async {
-        loop {
-            if let Err(e) = idle.next_event().await {
-                return e;
-            }
-        }
-    })
-    .await
-    .expect("closed within 10 s");
+    let closed = ended_within(&mut idle, Duration::from_secs(10)).await.expect("closed within 10 s");
     assert!(matches!(closed, ClientError::Closed { code: Some(CloseCode::Full), .. }), "{closed}");
     assert!(closed.to_string().contains("no viewpoint"), "{closed}");
     assert!(walking.await.unwrap(), "the walking client was kept");
@@ -134,14 +138,7 @@ async fn a_session_that_only_holds_its_slot_is_closed_near_capacity() {
     let server2 = start_server(roomy, Duration::from_secs(1)).await;
     let mut kept = connect_from(&server2, "127.0.0.1:0").await.unwrap();
     kept.wait_complete(Duration::from_secs(30)).await.unwrap();
-    let quiet = tokio::time::timeout(Duration::from_secs(3), async {
-        loop {
-            if let Err(e) = kept.next_event().await {
-                return e;
-            }
-        }
-    })
-    .await;
+    let quiet = ended_within(&mut kept, Duration::from_secs(3)).await;
     assert!(quiet.is_err(), "not closed: {quiet:?}");
     server.shutdown(Duration::from_secs(1)).await;
     server2.shutdown(Duration::from_secs(1)).await;
@@ -179,15 +176,7 @@ async fn a_session_whose_task_panics_gives_its_slot_back() {
     let server = serve_store(shared, ServeOptions { server: cfg, ..ServeOptions::default() }).await.unwrap();
     // The one slot's session panics at its first cell; its client sees the connection end.
     let mut doomed = connect_from(&server, "127.0.0.1:0").await.unwrap();
-    let ended = tokio::time::timeout(Duration::from_secs(10), async {
-        loop {
-            if let Err(e) = doomed.next_event().await {
-                return e;
-            }
-        }
-    })
-    .await
-    .expect("the connection ends within 10 s");
+    let ended = ended_within(&mut doomed, Duration::from_secs(10)).await.expect("the connection ends within 10 s");
     assert!(!matches!(ended, ClientError::Closed { code: Some(CloseCode::Full), .. }), "{ended}");
     tokio::time::timeout(Duration::from_secs(5), async {
         while server.metrics().clients.load(Relaxed) != 0 {

@@ -40,16 +40,23 @@ async fn start_server() -> (Served, Arc<EditService>) {
     (server, service)
 }
 
+/// `count` bots walking slowly at random in a square of side `spread` around the middle, radius 96 m, checked
+/// against the highlands.
+fn walkers(server: &Served, count: usize, duration: Duration, spread: f32) -> BotsConfig {
+    let mut cfg = BotsConfig::new(count, pinned(server));
+    cfg.path = PathKind::Random;
+    cfg.speed = 1.0;
+    cfg.duration = duration;
+    cfg.radius = 96.0;
+    cfg.spread = Some(spread);
+    cfg.verify = Some(Arc::clone(highlands()));
+    cfg
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn editing_bots_reach_every_watcher_and_the_checks_hold_with_edits() {
     let (server, service) = start_server().await;
-    let mut cfg = BotsConfig::new(6, pinned(&server));
-    cfg.path = PathKind::Random;
-    cfg.speed = 1.0;
-    cfg.duration = Duration::from_secs(6);
-    cfg.radius = 96.0;
-    cfg.spread = Some(32.0);
-    cfg.verify = Some(Arc::clone(highlands()));
+    let mut cfg = walkers(&server, 6, Duration::from_secs(6), 32.0);
     let mut plan = EditPlan::new(10.0, 2, TOKEN.to_vec());
     plan.warmup = Duration::from_secs(1);
     plan.grace = Duration::from_millis(1500);
@@ -105,13 +112,7 @@ async fn an_edited_cell_fails_the_plain_check_and_passes_the_one_expecting_edits
     let with = bots::verify_with(&state, highlands(), true).expect("edits expected");
     assert_eq!((with.edited, with.instances), (1, before.instances + 1));
     // Bots that do not edit hold the edited cell too: the server says it is edited, and they check it as such.
-    let mut cfg = BotsConfig::new(2, pinned(&server));
-    cfg.path = PathKind::Random;
-    cfg.speed = 1.0;
-    cfg.duration = Duration::from_secs(2);
-    cfg.radius = 96.0;
-    cfg.spread = Some(16.0);
-    cfg.verify = Some(Arc::clone(highlands()));
+    let cfg = walkers(&server, 2, Duration::from_secs(2), 16.0);
     let reports = bots::run(cfg, Arc::new(Progress::default())).await.expect("the bots run");
     let summary = BotsSummary::new(&reports, Duration::ZERO);
     assert!(summary.ok() && summary.verified == 2, "{summary}");
