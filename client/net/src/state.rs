@@ -14,16 +14,21 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
-use canopy_protocol::edit::{CellDelta, Edit, EditOp, EditResult, Resume, ResumeCell};
+use canopy_protocol::edit::EditResult;
 use canopy_protocol::messages::{
-    ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome, WorldInfo,
+    ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome,
 };
 use canopy_protocol::record::{ParamOverride, dequantize};
-use canopy_protocol::summary::{FarView, NodeKey, NodeSummary, SummaryBatch};
+use canopy_protocol::summary::{FarView, NodeKey, NodeSummary};
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, Phase, ServerMsg, SpeciesGraph, SpeciesHash,
 };
 use canopy_protocol::{DecodeError, PROTOCOL_VERSION};
+
+mod edits;
+mod far;
+
+use edits::Resumable;
 
 /// A cell the client holds: one grant's records at one version of the cell, complete when `records.len() ==
 /// total`. Record `i` is the instance `(cell, i)` ([`InstanceId`]); felled records keep their index.
@@ -196,15 +201,6 @@ pub struct ClientStats {
     pub summaries_released: u64,
 }
 
-/// What a resuming session keeps of an earlier one: its world, species table and graphs, and complete cells.
-#[derive(Clone, Debug)]
-struct Resumable {
-    world: WorldInfo,
-    table: Vec<canopy_protocol::messages::SpeciesEntry>,
-    species: Vec<Option<Arc<SpeciesGraph>>>,
-    cells: HashMap<CellCoord, HeldCell>,
-}
-
 /// The client's view of its session (see the module docs).
 #[derive(Clone, Debug)]
 pub struct ClientState {
@@ -259,110 +255,10 @@ impl ClientState {
         }
     }
 
-    /// A session that resumes `previous` (an earlier session of a server of the same world, say one that went
-    /// away): if the welcome describes the same world, the cells it held in full are named in resume messages
-    /// ([`ClientState::resume`]) and kept, and the server sends only what changed since their versions.
-    pub fn resuming(previous: ClientState) -> ClientState {
-        let mut s = ClientState::new();
-        if let Some(w) = &previous.welcome {
-            let cells = previous.cells.into_iter().filter(|(_, h)| h.is_complete()).collect();
-            let (world, table, species) = (w.world.clone(), w.species.clone(), previous.species);
-            s.resumable = Some(Resumable { world, table, species, cells });
-        }
-        // Edit requests go on numbering where the earlier session stopped: an answer lost with it is never taken
-        // for a new request's.
-        s.next_request = previous.next_request;
-        s
-    }
-
-    /// The resume messages to send after the welcome and before [`ClientState::ready`] (none for a fresh
-    /// session, or when the world differs). The cells named take grants 1, 2, … in cell order, as the server
-    /// numbers them.
-    pub fn resume(&mut self) -> Result<Vec<ClientMsg>, StateError> {
-        let Some(Resumable { world, table, species, mut cells }) = self.resumable.take() else { return Ok(Vec::new()) };
-        let Some(w) = self.welcome.clone() else { return Ok(Vec::new()) };
-        if world != w.world {
-            return Ok(Vec::new());
-        }
-        if table == w.species {
-            // The same species table: the graphs held are the ones it names.
-            for (id, g) in species.into_iter().enumerate() {
-                if let Some(g) = g {
-                    self.preload_species(id as u8, g);
-                }
-            }
-        }
-        let mut order: Vec<CellCoord> = cells.keys().copied().filter(|c| w.world.grid.contains(*c)).collect();
-        order.sort_unstable();
-        order.truncate(canopy_protocol::netlimits::MAX_RESUME_CELLS);
-        let mut msgs = Vec::new();
-        for chunk in order.chunks(canopy_protocol::netlimits::MAX_RESUME_PER_MESSAGE) {
-            let named = chunk.iter().map(|c| ResumeCell { cell: *c, version: cells[c].version }).collect();
-            let msg = ClientMsg::Handshake(canopy_protocol::messages::ClientHandshake::Resume(Resume { cells: named }));
-            self.phase = msg.next_phase(self.phase)?;
-            msgs.push(msg);
-        }
-        for (i, c) in order.iter().enumerate() {
-            let mut h = cells.remove(c).expect("named above");
-            h.grant = i as u32 + 1;
-            self.cells.insert(*c, h);
-        }
-        Ok(msgs)
-    }
-
-    /// The message asking for an edit, and the request number its [`EditResult`] will carry.
-    pub fn edit(&mut self, op: EditOp) -> Result<(u32, ClientMsg), StateError> {
-        let request = self.next_request;
-        self.next_request = self.next_request.wrapping_add(1);
-        let msg = ClientMsg::Streaming(ClientStreaming::Edit(Edit { request, op }));
-        msg.next_phase(self.phase)?;
-        Ok((request, msg))
-    }
-
     /// The message asking for species `id`'s program (sent at most once a session; it arrives as an
     /// [`Event::Species`]).
     pub fn fetch(&mut self, id: u8) -> Result<ClientMsg, StateError> {
         let msg = ClientMsg::Streaming(ClientStreaming::Fetch(id));
-        msg.next_phase(self.phase)?;
-        Ok(msg)
-    }
-
-    /// The message saying how the client wants the far field (summary nodes beyond the records); the server sends
-    /// none before the first. See [`ClientState::far_view_due`] for when to send it again.
-    pub fn set_far_view(&mut self, view: FarView) -> Result<ClientMsg, StateError> {
-        let msg = ClientMsg::Streaming(ClientStreaming::FarView(view));
-        msg.next_phase(self.phase)?;
-        self.far_view = Some(view);
-        Ok(msg)
-    }
-
-    /// Whether `view` differs enough from the far view last sent to send it: the first one, a change of anything
-    /// but the altitude, or the altitude by more than an eighth (and more than 4 m).
-    pub fn far_view_due(&self, view: &FarView) -> bool {
-        let Some(last) = self.far_view else { return true };
-        let same_rest = FarView { altitude: last.altitude, ..*view } == last;
-        let moved = (view.altitude - last.altitude).abs();
-        !same_rest || (moved > 4.0 && moved > last.altitude.abs() / 8.0)
-    }
-
-    /// The far view last sent.
-    pub fn far_view(&self) -> Option<&FarView> {
-        self.far_view.as_ref()
-    }
-
-    /// The far-view summary nodes held, by key.
-    pub fn summaries(&self) -> &BTreeMap<NodeKey, Arc<NodeSummary>> {
-        &self.summaries
-    }
-
-    /// Changes whenever the summary nodes held change.
-    pub fn summaries_generation(&self) -> u64 {
-        self.summaries_generation
-    }
-
-    /// The message asking for held cell `c` again, whole (after a [`Event::Gap`]).
-    pub fn refresh(&mut self, c: CellCoord) -> Result<ClientMsg, StateError> {
-        let msg = ClientMsg::Streaming(ClientStreaming::Refresh(c));
         msg.next_phase(self.phase)?;
         Ok(msg)
     }
@@ -528,27 +424,6 @@ impl ClientState {
         }
     }
 
-    /// Releases first, then the nodes (a batch may release a node and send its replacement).
-    fn on_summaries(&mut self, b: SummaryBatch) -> Result<Event, StateError> {
-        let released = b.released.iter().filter(|k| self.summaries.remove(k).is_some()).count();
-        let added = b.nodes.len();
-        let table = self.species.len();
-        if b.nodes.iter().flat_map(|n| &n.species).any(|s| usize::from(s.species) >= table) {
-            let bad = b.nodes.iter().flat_map(|n| &n.species).map(|s| s.species).max().unwrap_or(0);
-            return Err(StateError::UnknownSpecies(bad.min(255) as u8));
-        }
-        for n in b.nodes {
-            self.summaries.insert(n.key, Arc::new(n));
-        }
-        if self.summaries.len() > MAX_HELD_SUMMARIES {
-            return Err(StateError::TooManySummaries);
-        }
-        self.stats.summaries += added as u64;
-        self.stats.summaries_released += released as u64;
-        self.summaries_generation += 1;
-        Ok(Event::Summaries { added, released })
-    }
-
     fn on_species(&mut self, s: SpeciesData) -> Result<Event, StateError> {
         let w = self.welcome.as_ref().expect("streaming implies welcomed");
         let entry = w.species.get(usize::from(s.id)).ok_or(StateError::UnknownSpecies(s.id))?;
@@ -639,52 +514,6 @@ impl ClientState {
         usize::from(if self.inner.contains(&c) { complete != Some(true) } else { complete == Some(false) })
     }
 
-    fn on_delta(&mut self, d: CellDelta) -> Result<Event, StateError> {
-        let bad = |what| Err(StateError::Edit(d.cell, what));
-        let Some(h) = self.cells.get_mut(&d.cell) else {
-            self.stats.dropped += 1;
-            return Ok(Event::Dropped);
-        };
-        if h.grant != d.grant {
-            // A delta of an older grant (a newer one carries its changes), or of a newer one whose batches have
-            // not come: a newer grant's delta follows its batches on its lane, so that cannot be.
-            if h.grant > d.grant {
-                self.stats.dropped += 1;
-                return Ok(Event::Dropped);
-            }
-            return bad("delta of a grant not held");
-        }
-        if !h.is_complete() {
-            return bad("delta before the grant's batches");
-        }
-        if h.version != d.from_version {
-            self.stats.gaps += 1;
-            return Ok(Event::Gap(d.cell));
-        }
-        if usize::from(d.total) != h.records.len() + d.adds.len() {
-            return bad("delta's total does not follow the cell's");
-        }
-        if let Some(a) = d.adds.iter().find(|a| usize::from(a.record.species) >= self.species.len()) {
-            return Err(StateError::UnknownSpecies(a.record.species));
-        }
-        let first = h.records.len() as u16;
-        for (i, a) in d.adds.iter().enumerate() {
-            let record = first + i as u16;
-            h.records.push(a.record);
-            h.overrides.extend(a.params.iter().map(|&(slot, v)| ParamOverride { record, slot, value: v.0 }));
-        }
-        h.felled.extend(d.removes.iter().copied());
-        for (index, params) in &d.updates {
-            h.overrides.retain(|o| o.record != *index || params.iter().all(|p| p.0 != o.slot));
-            h.overrides.extend(params.iter().map(|&(slot, v)| ParamOverride { record: *index, slot, value: v.0 }));
-        }
-        h.overrides.sort_by_key(|o| (o.record, o.slot));
-        h.total = d.total;
-        h.version = d.to_version;
-        self.stats.deltas += 1;
-        Ok(Event::Changed { cell: d.cell, version: d.to_version })
-    }
-
     fn on_release(&mut self, r: Release) -> Event {
         self.stats.releases += 1;
         if self.tombstones.get(&r.cell) == Some(&r.grant) {
@@ -747,6 +576,7 @@ mod tests {
     use canopy_protocol::POSITION_STEPS;
     use canopy_protocol::aoi::AoiParams;
     use canopy_protocol::messages::{SpeciesEntry, TerrainDesc, WorldInfo};
+    use canopy_protocol::summary::SummaryBatch;
 
     use super::*;
 

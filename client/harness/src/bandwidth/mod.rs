@@ -20,6 +20,7 @@ pub mod link;
 pub mod measure;
 pub mod report;
 pub mod sizes;
+mod tables;
 pub mod truth;
 
 use std::net::SocketAddr;
