@@ -7,10 +7,18 @@
 //! client                                   server
 //!   Hello { version, client }       ──▶                       (control stream, client-opened, bidirectional)
 //!                                   ◀──  Welcome { version, world, species table, AOI rules }
-//!   Ready { have, viewpoint }       ──▶                       (have: species ids its cache already holds)
+//!   Ready { have, viewpoint, cells } ──▶                      (have: species ids its cache already holds)
 //!   Viewpoint …                     ──▶
 //!                                   ◀──  Species, Cells, Release (server-opened lanes: ordered streams by priority)
 //! ```
+//!
+//! Cells travel one of two ways, the client's choice in its ready ([`CellMode`]). **Records**: every record of
+//! every cell, in batches. **Expand** (seed 001: amplify where the result is drawn): the server sends the world
+//! function once ([`WorldFunction`]: the manifest, a few KB, skipped when the client already holds the hash the
+//! welcome names) and every species of the table, then for each cell only a [`CellGrant`]: its version and, for an
+//! edited cell, its overlay as a delta from the world function's records; the client expands the cell itself. A
+//! client may ask for any cell's records instead ([`ClientStreaming::Records`]), and reports digests of some of its
+//! expansions ([`CellDigest`]) so the server can catch one that differs.
 //!
 //! Species are content-addressed: the welcome lists the SHA-256 of every species' encoding, the client answers with
 //! the ids it already holds (from its on-disk cache, across sessions), and the server sends each remaining species
@@ -27,7 +35,7 @@ use crate::summary::{FarView, SummaryBatch, SummaryError};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 4;
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";
@@ -130,6 +138,69 @@ pub enum ClientStreaming {
     Fetch(u8),
     /// How the client wants the far field (summaries beyond the records); none are sent before the first.
     FarView(FarView),
+    /// Send this cell's records from now on, in place of its grant (a client in [`CellMode::Expand`] that cannot
+    /// expand it, or whose expansion was found to differ); the cell is granted again. At most as often as
+    /// viewpoints.
+    Records(CellCoord),
+    /// A digest of the client's expansion of a cell ([`CellMode::Expand`]), for the server to check.
+    Digest(CellDigest),
+}
+
+/// How a client takes its cells (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CellMode {
+    /// Every record of every cell, in batches.
+    Records,
+    /// Cell grants (version and overlay) only: the client expands each cell from the world function, which the
+    /// server sends unless the client says it holds the one the welcome names.
+    Expand {
+        /// The client holds the world function whose hash is [`WorldInfo::function`].
+        have_function: bool,
+    },
+}
+
+/// A client's digest of a cell it expanded: [`cell_digest`] of its records at `version`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CellDigest {
+    /// The cell.
+    pub cell: CellCoord,
+    /// The version the client holds it at.
+    pub version: u32,
+    /// [`cell_digest`] of the records, overrides and felled indices at that version.
+    pub digest: u64,
+}
+
+/// A 64-bit digest of a cell's records at a version: FNV-1a over each record's species and position steps, each
+/// override's `(record, slot, value bits)` and each felled index, in index order. Server and client compute it the
+/// same way from the same records.
+pub fn cell_digest(
+    records: &[crate::record::InstanceRecord],
+    overrides: &[crate::record::ParamOverride],
+    felled: impl IntoIterator<Item = u16>,
+) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h ^= u64::from(b);
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    eat(&(records.len() as u32).to_le_bytes());
+    for r in records {
+        eat(&[r.species]);
+        eat(&r.qx().to_le_bytes());
+        eat(&r.qz().to_le_bytes());
+    }
+    eat(&(overrides.len() as u32).to_le_bytes());
+    for o in overrides {
+        eat(&o.record.to_le_bytes());
+        eat(&o.slot.to_le_bytes());
+        eat(&o.value.to_bits().to_le_bytes());
+    }
+    for i in felled {
+        eat(&i.to_le_bytes());
+    }
+    h
 }
 
 /// The first message of a session. `version` comes first so that any future version still decodes it.
@@ -150,6 +221,8 @@ pub struct Ready {
     pub have: Vec<u8>,
     /// Where the client looks from first.
     pub viewpoint: Viewpoint,
+    /// How the client takes its cells ([`CellMode::Expand`] only where the welcome names a world function).
+    pub cells: CellMode,
 }
 
 // ---------------------------------------------------------------------------------------------------------------
@@ -157,6 +230,8 @@ pub struct Ready {
 
 /// Every message a server sends, grouped by phase.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+// The large variant is the welcome, one a session: boxing it would cost every streaming message a branch for none.
+#[allow(clippy::large_enum_variant)]
 pub enum ServerMsg {
     /// Before streaming (on the control stream).
     Handshake(ServerHandshake),
@@ -189,6 +264,59 @@ pub enum ServerStreaming {
     Delta(CellDelta),
     /// Far-view summary nodes, and nodes to forget (on the last lane).
     Summaries(SummaryBatch),
+    /// A cell granted to a client that expands cells itself: its version and overlay.
+    Grant(CellGrant),
+    /// The world function, for a client that expands cells itself.
+    Function(WorldFunction),
+}
+
+/// A cell granted to a client in [`CellMode::Expand`]: it expands the cell from the world function and applies
+/// `delta` (the cell's edits as a change from version 0), then holds the cell at `version` under `grant`, as if its
+/// records had arrived. Later changes come as deltas, as for records.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellGrant {
+    /// The cell.
+    pub cell: CellCoord,
+    /// Which grant of the cell this is (numbered like a batch's).
+    pub grant: u32,
+    /// The cell's version.
+    pub version: u32,
+    /// From version 0 to `version`; `None` for an unedited cell (version 0).
+    pub delta: Option<CellDelta>,
+}
+
+impl CellGrant {
+    /// Check the cell, and that the delta (if any) takes version 0 to the grant's.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        let bad = |what| Err(MessageError::Edit(what));
+        if !InstanceId::names(self.cell) {
+            return bad("grant of a cell ids cannot name");
+        }
+        match &self.delta {
+            None if self.version != 0 => bad("an edited cell's grant without its delta"),
+            None => Ok(()),
+            Some(d) if d.cell != self.cell || d.from_version != 0 || d.to_version != self.version => {
+                bad("a grant's delta does not take its cell from version 0 to the grant's")
+            }
+            Some(d) => d.validate(),
+        }
+    }
+}
+
+/// The world function: the manifest text the server's world was built from. Its species statements name the
+/// welcome's species table in order (statement `i` is species `i`), and a terrain species is the welcome's terrain
+/// graph, so the client builds the same world without reading a file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorldFunction {
+    /// The manifest (at most [`netlimits::MAX_FUNCTION_BYTES`]).
+    pub manifest: String,
+}
+
+impl WorldFunction {
+    /// The hash a welcome names it by ([`WorldInfo::function`]): SHA-256 of the manifest.
+    pub fn hash(&self) -> SpeciesHash {
+        SpeciesHash::of(self.manifest.as_bytes())
+    }
 }
 
 /// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
@@ -210,11 +338,15 @@ pub enum ServerMsgKind {
     Delta = 6,
     /// Far-view summaries.
     Summaries = 7,
+    /// A cell grant (clients that expand cells).
+    Grant = 8,
+    /// The world function (clients that expand cells).
+    Function = 9,
 }
 
 impl ServerMsgKind {
     /// Every kind, in index order.
-    pub const ALL: [ServerMsgKind; 8] = [
+    pub const ALL: [ServerMsgKind; 10] = [
         ServerMsgKind::Welcome,
         ServerMsgKind::Species,
         ServerMsgKind::Cells,
@@ -223,6 +355,8 @@ impl ServerMsgKind {
         ServerMsgKind::EditResult,
         ServerMsgKind::Delta,
         ServerMsgKind::Summaries,
+        ServerMsgKind::Grant,
+        ServerMsgKind::Function,
     ];
 
     /// The kind's name, for logs, errors and metrics.
@@ -236,6 +370,8 @@ impl ServerMsgKind {
             ServerMsgKind::EditResult => "edit_result",
             ServerMsgKind::Delta => "delta",
             ServerMsgKind::Summaries => "summaries",
+            ServerMsgKind::Grant => "grant",
+            ServerMsgKind::Function => "function",
         }
     }
 
@@ -316,6 +452,9 @@ pub struct WorldInfo {
     pub instances: u32,
     /// The terrain, from which the client computes heights.
     pub terrain: TerrainDesc,
+    /// The hash of the world function ([`WorldFunction::hash`]) for clients that expand cells themselves; `None`
+    /// where the server offers records only.
+    pub function: Option<SpeciesHash>,
 }
 
 impl WorldInfo {
@@ -685,11 +824,18 @@ impl ClientMsg {
             ClientMsg::Streaming(ClientStreaming::Edit(e)) => e.op.validate(),
             ClientMsg::Streaming(ClientStreaming::Fetch(_)) => Ok(()),
             ClientMsg::Streaming(ClientStreaming::FarView(f)) => Ok(f.validate()?),
-            ClientMsg::Streaming(ClientStreaming::Refresh(c)) => {
+            ClientMsg::Streaming(ClientStreaming::Refresh(c) | ClientStreaming::Records(c)) => {
                 if InstanceId::names(*c) {
                     Ok(())
                 } else {
                     Err(MessageError::Edit("refresh of a cell ids cannot name"))
+                }
+            }
+            ClientMsg::Streaming(ClientStreaming::Digest(d)) => {
+                if InstanceId::names(d.cell) {
+                    Ok(())
+                } else {
+                    Err(MessageError::Edit("digest of a cell ids cannot name"))
                 }
             }
         }
@@ -706,6 +852,8 @@ impl ClientMsg {
             ClientMsg::Streaming(ClientStreaming::Refresh(_)) => "refresh",
             ClientMsg::Streaming(ClientStreaming::Fetch(_)) => "fetch",
             ClientMsg::Streaming(ClientStreaming::FarView(_)) => "far_view",
+            ClientMsg::Streaming(ClientStreaming::Records(_)) => "records",
+            ClientMsg::Streaming(ClientStreaming::Digest(_)) => "digest",
         }
     }
 
@@ -765,6 +913,10 @@ impl ServerMsg {
             },
             ServerMsg::Streaming(ServerStreaming::Delta(d)) => d.validate(),
             ServerMsg::Streaming(ServerStreaming::Summaries(b)) => Ok(b.validate()?),
+            ServerMsg::Streaming(ServerStreaming::Grant(g)) => g.validate(),
+            ServerMsg::Streaming(ServerStreaming::Function(f)) => {
+                count("world function", f.manifest.len(), netlimits::MAX_FUNCTION_BYTES)
+            }
             ServerMsg::Streaming(ServerStreaming::Geometry(g)) => {
                 count("geometry chunk", g.bytes.len(), netlimits::MAX_GEOMETRY_CHUNK)?;
                 count("geometry blob", g.total as usize, netlimits::MAX_GEOMETRY_BYTES)?;
@@ -800,6 +952,8 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::EditResult(_)) => ServerMsgKind::EditResult,
             ServerMsg::Streaming(ServerStreaming::Delta(_)) => ServerMsgKind::Delta,
             ServerMsg::Streaming(ServerStreaming::Summaries(_)) => ServerMsgKind::Summaries,
+            ServerMsg::Streaming(ServerStreaming::Grant(_)) => ServerMsgKind::Grant,
+            ServerMsg::Streaming(ServerStreaming::Function(_)) => ServerMsgKind::Function,
         }
     }
 
@@ -866,9 +1020,9 @@ impl ClientMsg {
         }))
     }
 
-    /// `ClientMsg::Handshake(ClientHandshake::Ready(..))`.
+    /// `ClientMsg::Handshake(ClientHandshake::Ready(..))`, taking records.
     pub fn ready(have: Vec<u8>, viewpoint: Viewpoint) -> ClientMsg {
-        ClientMsg::Handshake(ClientHandshake::Ready(Ready { have, viewpoint }))
+        ClientMsg::Handshake(ClientHandshake::Ready(Ready { have, viewpoint, cells: CellMode::Records }))
     }
 
     /// `ClientMsg::Streaming(ClientStreaming::Viewpoint(..))`.
@@ -895,8 +1049,15 @@ mod tests {
             fractal: None,
         };
         let grid = Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-2, -2), max: CellCoord::new(1, 1) };
-        let world =
-            WorldInfo { name: "wörld".into(), seed: 7, grid, position_steps: POSITION_STEPS, instances: 12, terrain };
+        let world = WorldInfo {
+            name: "wörld".into(),
+            seed: 7,
+            grid,
+            position_steps: POSITION_STEPS,
+            instances: 12,
+            terrain,
+            function: Some(SpeciesHash::of(b"world")),
+        };
         let species = vec![SpeciesEntry { hash: SpeciesHash::of(b"a"), size: 300 }; 3];
         Welcome {
             version: PROTOCOL_VERSION,

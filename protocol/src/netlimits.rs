@@ -58,3 +58,6 @@ pub const MAX_EDIT_REASON: usize = 256;
 pub const MAX_FAR_RANGE: f32 = 65_536.0;
 /// Smallest screen-space error threshold a client may ask for, pixels (finer would ask for every leaf in range).
 pub const MIN_FAR_ERROR_PX: f32 = 0.5;
+/// Largest world function (its manifest) a server sends to clients that expand cells; a larger world is served
+/// as records.
+pub const MAX_FUNCTION_BYTES: usize = 128 * 1024;

@@ -4,10 +4,11 @@
 mod wire;
 
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
+use canopy_protocol::edit::CellDelta;
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{
-    ClientHandshake, FractalDesc, Hello, Release, ServerHandshake, ServerStreaming, SpeciesData, SpeciesEntry,
-    TerrainDesc, Welcome, WorldInfo,
+    CellDigest, CellGrant, ClientHandshake, ClientStreaming, FractalDesc, Hello, Release, ServerHandshake,
+    ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome, WorldFunction, WorldInfo, cell_digest,
 };
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
 use canopy_protocol::xorshift::XorShift64;
@@ -57,6 +58,7 @@ fn welcome() -> Welcome {
                 params: vec![(4, 2.2)],
                 fractal: None,
             },
+            function: Some(SpeciesHash::of(b"forest.world")),
         },
         species: vec![SpeciesEntry { hash: SpeciesHash([0xab; 32]), size: 1234 }],
         aoi: AoiParams::default(),
@@ -65,14 +67,14 @@ fn welcome() -> Welcome {
 
 #[test]
 fn hello_is_pinned() {
-    check_client(&ClientMsg::hello("bot-1"), "00000405626f742d3100");
+    check_client(&ClientMsg::hello("bot-1"), "00000505626f742d3100");
 }
 
 #[test]
 fn ready_is_pinned() {
     check_client(
         &ClientMsg::ready(vec![0, 3], viewpoint()),
-        "0001020003070000c9420000a2c10000c03f00004040000080c000002043",
+        "0001020003070000c9420000a2c10000c03f00004040000080c00000204300",
     );
 }
 
@@ -85,9 +87,10 @@ fn viewpoint_is_pinned() {
 fn welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
-        "00000406666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
-         0107040000803f0000004000004040000080400104cdcc0c400001abababababababababababababababababababababababababababab\
-         ababababd20900000044000000420000004000000043",
+        "00000506666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
+         0107040000803f0000004000004040000080400104cdcc0c4000010610c39861ffddeaf018d1930586a354855feaa7de91b94b69e710\
+         4ad5e7dc9701ababababababababababababababababababababababababababababababababd2090000004400000042000000400000\
+         0043",
     );
 }
 
@@ -114,10 +117,10 @@ fn fractal_welcome() -> Welcome {
 fn fractal_welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(fractal_welcome())),
-        "00000406666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
-         0000000000000000000000000000000001c88ea5c204000000000000e9c0000000000000e9c0000000000000c9400b0000104000008243\
-         0202040000964300001644000048430000e14301ababababababababababababababababababababababababababababababababd20900\
-         000044000000420000004000000043",
+        "00000506666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
+         0000000000000000000000000000000001c88ea5c204000000000000e9c0000000000000e9c0000000000000c9400b00001040000082\
+         430202040000964300001644000048430000e143010610c39861ffddeaf018d1930586a354855feaa7de91b94b69e7104ad5e7dc9701\
+         ababababababababababababababababababababababababababababababababd20900000044000000420000004000000043",
     );
 }
 
@@ -452,6 +455,8 @@ fn server_messages() -> Vec<ServerMsg> {
         ServerMsg::Streaming(ServerStreaming::Species(SpeciesData { id: 1, graph: vec![1, 2, 3, 4] })),
         ServerMsg::Streaming(ServerStreaming::Cells(batch())),
         ServerMsg::Streaming(ServerStreaming::Release(Release { cell: CellCoord::new(1, 2), grant: 3 })),
+        grant(2, Some(felled(0, 2))),
+        ServerMsg::Streaming(ServerStreaming::Function(WorldFunction { manifest: "seed 1".into() })),
     ]
 }
 
@@ -539,4 +544,56 @@ fn geometry_is_pinned_and_bounded() {
     let g = GeometryChunk { kind: GeometryKind::SpeciesMesh, id: 255, offset: 0, total: 1, bytes: vec![1] };
     assert_eq!(g.instance(), None);
     assert!(ServerMsg::decode(&ServerMsg::Streaming(ServerStreaming::Geometry(g)).encode()).is_ok());
+}
+
+fn grant(version: u32, delta: Option<CellDelta>) -> ServerMsg {
+    ServerMsg::Streaming(ServerStreaming::Grant(CellGrant { cell: CellCoord::new(-3, 5), grant: 9, version, delta }))
+}
+
+fn felled(from_version: u32, to_version: u32) -> CellDelta {
+    CellDelta {
+        cell: CellCoord::new(-3, 5),
+        grant: 9,
+        from_version,
+        to_version,
+        total: 12,
+        adds: vec![],
+        removes: vec![4],
+        updates: vec![],
+    }
+}
+
+#[test]
+fn grants_functions_digests_and_record_asks_are_pinned_and_checked() {
+    // An unedited cell's grant: the cell, the grant, version 0, no delta: five bytes after the kind.
+    check_server(&grant(0, None), "0107050a090000");
+    check_server(&grant(2, Some(felled(0, 2))), "0107050a090201050a0900020c00010400");
+    let function = ServerMsg::Streaming(ServerStreaming::Function(WorldFunction { manifest: "seed 1".into() }));
+    check_server(&function, "010806736565642031");
+    let ask = ClientMsg::Streaming(ClientStreaming::Records(CellCoord::new(1, -1)));
+    check_client(&ask, "01050201");
+    let digest = CellDigest { cell: CellCoord::new(1, -1), version: 3, digest: 0x0123_4567_89ab_cdef };
+    check_client(&ClientMsg::Streaming(ClientStreaming::Digest(digest)), "0106020103ef9bafcdf8acd19101");
+    // A grant must say what its delta does: from version 0 to the grant's version, of its own cell.
+    for bad in [grant(2, None), grant(2, Some(felled(1, 2))), grant(3, Some(felled(0, 2)))] {
+        assert!(matches!(ServerMsg::decode(&bad.encode()), Err(MessageError::Edit(_))), "{bad:?}");
+    }
+    let huge = WorldFunction { manifest: "#".repeat(netlimits::MAX_FUNCTION_BYTES + 1) };
+    let huge = ServerMsg::Streaming(ServerStreaming::Function(huge));
+    assert!(matches!(ServerMsg::decode(&huge.encode()), Err(MessageError::Count { .. })));
+    // The function's hash is the SHA-256 of its manifest: what a welcome names.
+    assert_eq!(WorldFunction { manifest: "seed 1".into() }.hash(), SpeciesHash::of(b"seed 1"));
+}
+
+#[test]
+fn cell_digests_see_every_record_override_and_felled_index() {
+    let records = [InstanceRecord::new(1, 10, 20), InstanceRecord::new(2, 30, 40)];
+    let overrides = [ParamOverride { record: 1, slot: 2, value: 3.5 }];
+    let d = cell_digest(&records, &overrides, [0]);
+    assert_eq!(d, cell_digest(&records, &overrides, [0]));
+    assert_ne!(d, cell_digest(&records, &overrides, []));
+    assert_ne!(d, cell_digest(&records[..1], &overrides, [0]));
+    assert_ne!(d, cell_digest(&[records[1], records[0]], &overrides, [0]));
+    assert_ne!(d, cell_digest(&records, &[ParamOverride { value: 3.25, ..overrides[0] }], [0]));
+    assert_ne!(d, cell_digest(&records, &[], [0]));
 }

@@ -30,7 +30,9 @@ use canopy_worlds::world::{CellKey, World};
 use tracing::{error, warn};
 
 use crate::metrics::CellMetrics;
-use canopy_session::{CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, WorldStore};
+use canopy_session::{
+    CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, VersionState, WorldStore,
+};
 use canopy_session::{SummaryLru, Waiters};
 
 /// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
@@ -397,6 +399,12 @@ impl WorldStore for CellCache {
             self.shared.work.notify_one();
         }
         CellState::Pending
+    }
+
+    // The world function's cells are never edited: every cell in the grid is at version 0, known without
+    // expanding it.
+    fn version(&self, c: CellCoord, _waker: Option<&Arc<dyn CellWaker>>) -> VersionState {
+        if self.shared.grid.contains(c) { VersionState::Unedited } else { VersionState::Outside }
     }
 
     fn generation(&self) -> u64 {

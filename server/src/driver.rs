@@ -432,12 +432,15 @@ async fn run_session(
                 None => session.on_edit_result(request, EditOutcome::Denied("this server takes no edits".into())),
             }
         }
+        let digests = (session.stats().digests_checked, session.stats().digest_mismatches);
         while let Some(t) = session.poll_transmit(now) {
             metrics.sent(t.class, t.len(), t.records);
             if tx.send(t).is_err() {
                 break;
             }
         }
+        metrics.digests_checked.fetch_add(session.stats().digests_checked - digests.0, Relaxed);
+        metrics.digest_mismatches.fetch_add(session.stats().digest_mismatches - digests.1, Relaxed);
         if !streaming && session.phase() == Phase::Streaming {
             streaming = true;
             metrics.sessions.fetch_add(1, Relaxed);

@@ -21,7 +21,9 @@ use canopy_protocol::sync::{Locked, Waited};
 use canopy_protocol::{CellCoord, SpeciesGraph};
 use tracing::{error, warn};
 
-use canopy_session::{CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, Waiters, WorldStore};
+use canopy_session::{
+    CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, VersionState, Waiters, WorldStore,
+};
 
 /// A cell changed: it is at `version` now.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -72,9 +74,16 @@ struct Entry {
 #[derive(Default)]
 struct Overlays {
     lru: Lru<CellCoord, Entry>,
+    /// Cells whose log was read without their records (for clients that expand cells): `false` for an empty log
+    /// (watched, so another writer's first edit is announced), `true` for an edited one. Bounded by count
+    /// ([`KNOWN_PER_BYTE`]); a cell with an overlay in `lru` is not here.
+    known: Lru<CellCoord, bool>,
     /// Cells whose overlays left the cache since the last look (their watches end).
     dropped: Vec<CellCoord>,
 }
+
+/// Cells whose edit state is known without an overlay: one per this many bytes of the overlay cache's bound.
+const KNOWN_PER_BYTE: usize = 64;
 
 impl Overlays {
     fn get(&self, c: CellCoord) -> Option<&Entry> {
@@ -82,9 +91,28 @@ impl Overlays {
     }
 
     fn remove(&mut self, c: CellCoord) {
-        if self.lru.remove(&c).is_some() {
+        if self.lru.remove(&c).is_some() | self.known.remove(&c).is_some() {
             self.dropped.push(c);
         }
+    }
+
+    /// Whether cell `c` is edited, if known (touched as used).
+    fn edited(&mut self, c: CellCoord) -> Option<bool> {
+        match self.lru.get(&c) {
+            Some(e) => Some(e.overlay.version() > 0),
+            None => self.known.get(&c).copied(),
+        }
+    }
+
+    /// Remember whether cell `c`'s log holds edits (read without its records), within `limit` bytes' worth.
+    fn set_known(&mut self, c: CellCoord, edited: bool, limit: usize) {
+        if self.lru.peek(&c).is_some() {
+            return;
+        }
+        self.known.insert(c, edited, 1);
+        self.dropped.retain(|d| *d != c);
+        let gone = self.known.evict_to((limit / KNOWN_PER_BYTE).max(1), Some(&c));
+        self.dropped.extend(gone.into_iter().filter(|(_, edited)| !edited).map(|(c, _)| c));
     }
 
     /// Put `overlay` for `c` unless a newer one is there; then evict beyond `limit`.
@@ -95,6 +123,7 @@ impl Overlays {
             return Arc::clone(&e.overlay);
         }
         self.lru.remove(&c);
+        self.known.remove(&c);
         self.dropped.retain(|d| *d != c);
         let bytes = overlay.heap_bytes() + ENTRY_OVERHEAD;
         self.lru.insert(c, Entry { overlay: Arc::clone(&overlay), applied: None }, bytes);
@@ -112,11 +141,12 @@ impl Overlays {
 /// Threads reading cells' edit logs.
 pub const LOADERS: usize = 2;
 
-/// A cell whose log is to be read, with its world-function records (the same cell is the same load).
+/// A cell whose log is to be read, with its world-function records, or without them only to tell whether it is
+/// edited (the same cell is the same load).
 #[derive(Clone)]
 struct Load {
     cell: CellCoord,
-    base: Arc<CellData>,
+    base: Option<Arc<CellData>>,
 }
 
 impl PartialEq for Load {
@@ -305,7 +335,11 @@ impl Shared {
                     l = self.work.waited(l);
                 }
             };
-            if let Err(e) = self.load(load.cell, &load.base) {
+            let read = match &load.base {
+                Some(base) => self.load(load.cell, base).map(drop),
+                None => self.probe(load.cell),
+            };
+            if let Err(e) = read {
                 // Asked again, it is read again; not at once, so a store that is down is not hammered.
                 self.failed(load.cell, &e);
                 std::thread::sleep(Duration::from_millis(100));
@@ -318,10 +352,30 @@ impl Shared {
         }
     }
 
-    /// Queue cell `c`'s log (once however many ask) and have `waker` woken when it is read.
-    fn queue(&self, c: CellCoord, base: &Arc<CellData>, waker: Option<&Arc<dyn CellWaker>>) {
+    /// Read cell `c`'s log only to tell whether it is edited (for clients that expand cells: its records are not
+    /// needed, nor expanded, unless it is). An empty log is watched, so another writer's first edit is announced.
+    fn probe(self: &Arc<Self>, c: CellCoord) -> Result<(), EditStoreError> {
+        if self.lock().edited(c).is_some() {
+            return Ok(());
+        }
+        let edited = match self.edits.load(c) {
+            Ok(log) => !log.is_empty(),
+            // The read with its records skips and reports the damage.
+            Err(EditStoreError::Damaged { .. }) => true,
+            Err(e) => return Err(e),
+        };
+        self.with(|o| o.set_known(c, edited, self.limit_bytes));
+        if !edited {
+            self.edits.watch(c, Arc::new(Watcher(Arc::downgrade(self))));
+        }
+        Ok(())
+    }
+
+    /// Queue cell `c`'s log (once however many ask) and have `waker` woken when it is read; without `base`, only
+    /// to tell whether it is edited ([`Shared::probe`]).
+    fn queue(&self, c: CellCoord, base: Option<&Arc<CellData>>, waker: Option<&Arc<dyn CellWaker>>) {
         let mut l = self.loads.locked();
-        if l.waiters.wait(Load { cell: c, base: Arc::clone(base) }, waker) {
+        if l.waiters.wait(Load { cell: c, base: base.cloned() }, waker) {
             drop(l);
             self.work.notify_one();
         }
@@ -428,7 +482,7 @@ impl LiveStore {
                 return Some(Arc::clone(&e.overlay));
             }
         }
-        self.shared.queue(c, base, waker);
+        self.shared.queue(c, Some(base), waker);
         None
     }
 
@@ -521,6 +575,11 @@ impl canopy_edits::EditWatcher for Shared {
         let version = e.version;
         let limit = self.limit_bytes;
         let changed = self.with(|o| {
+            // A cell known to be unedited (a client expands it) is edited now: its overlay is read on next need.
+            if o.known.peek(&cell) == Some(&false) {
+                o.known.insert(cell, true, 1);
+                return true;
+            }
             let Some(entry) = o.get(cell) else { return false };
             let current = entry.overlay.version();
             if version <= current {
@@ -561,6 +620,21 @@ impl WorldStore for LiveStore {
 
     fn generation(&self) -> u64 {
         self.base.generation().wrapping_add(self.shared.loaded.load(Relaxed))
+    }
+
+    // Whether a cell is edited takes a read of its log, not its records: a cell nobody edited is never expanded
+    // for a client that expands it.
+    fn version(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> VersionState {
+        if self.base.version(c, None) == VersionState::Outside {
+            return VersionState::Outside;
+        }
+        match self.lock().edited(c) {
+            Some(false) => return VersionState::Unedited,
+            Some(true) => return VersionState::Edited,
+            None => {}
+        }
+        self.shared.queue(c, None, waker);
+        VersionState::Pending
     }
 
     fn cache_metrics(&self) -> Option<Arc<canopy_session::counters::CellMetrics>> {

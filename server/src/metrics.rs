@@ -44,6 +44,10 @@ pub struct Metrics {
     pub bytes_in: AtomicU64,
     /// Viewpoints received.
     pub viewpoints: AtomicU64,
+    /// Digests of clients' own expansions checked against the server's cells.
+    pub digests_checked: AtomicU64,
+    /// Digests that differed (each such cell is sent to that client as records from then on).
+    pub digest_mismatches: AtomicU64,
     /// Connections closed, by [`CloseCode`] (index = code), plus one last slot for transport errors.
     pub closed: [AtomicU64; TRANSPORT + 1],
     /// Records per second over the last completed second (updated by [`Metrics::tick`]).
@@ -107,6 +111,8 @@ impl Metrics {
             records: AtomicU64::new(0),
             bytes_in: AtomicU64::new(0),
             viewpoints: AtomicU64::new(0),
+            digests_checked: AtomicU64::new(0),
+            digest_mismatches: AtomicU64::new(0),
             closed: Default::default(),
             records_per_second: AtomicU64::new(0),
             expansions_per_second: AtomicU64::new(0),
@@ -203,6 +209,10 @@ impl Metrics {
         );
         metric("canopy_received_bytes_total", "counter", "Bytes received from clients.", &one(&self.bytes_in));
         metric("canopy_viewpoints_total", "counter", "Viewpoints received.", &one(&self.viewpoints));
+        let help = "Digests of clients' own cell expansions checked.";
+        metric("canopy_digests_checked_total", "counter", help, &one(&self.digests_checked));
+        let help = "Clients' cell expansions found to differ (served as records since).";
+        metric("canopy_digest_mismatches_total", "counter", help, &one(&self.digest_mismatches));
         let labels = CloseCode::ALL.iter().map(|c| c.label()).chain(["transport"]);
         let closed: Vec<_> =
             labels.zip(&self.closed).map(|(l, n)| (format!("{{reason=\"{l}\"}}"), n.load(Relaxed))).collect();

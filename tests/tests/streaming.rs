@@ -9,16 +9,19 @@ use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use canopy_client::cache::{CacheLimits, SpeciesCache};
+use canopy_client::expand::{ExpandWorld, Expander};
 use canopy_client::net::{endpoint, tls};
+use canopy_client::state::ClientState;
 use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
 use canopy_harness::bots::{self, BotsConfig, BotsSummary, PathKind, Progress};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::frame;
-use canopy_protocol::messages::{ClientHandshake, Hello, ServerMsgKind};
-use canopy_protocol::{ClientMsg, CloseCode};
+use canopy_protocol::messages::{CellMode, ClientHandshake, Hello, ServerMsgKind, Welcome};
+use canopy_protocol::{ClientMsg, CloseCode, SpeciesGraph};
 use canopy_server::session::{SessionConfig, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig, ServeOptions, Served, Server, ServerConfig, serve_store};
 use canopy_test_support::{forest, pinned};
+use canopy_worlds::world::World;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// The server's store as `canopy-server` runs it: cells expanded on demand by worker threads, here into a cache
@@ -258,6 +261,86 @@ async fn the_metrics_endpoint_serves_prometheus_text_and_idle_sockets_do_not_blo
     .expect("answered while 40 idle sockets are open");
     assert!(scraped.starts_with("HTTP/1.1 200 OK"), "{scraped}");
     drop(idle);
+    c.close();
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+/// A server on a cell cache of its own (nothing expanded yet), and its store, whose counters tell how many cells
+/// the server expanded.
+async fn server_on_own_cache() -> (Served, Arc<dyn WorldStore>) {
+    let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 2, ..CellCacheConfig::default() };
+    let store = CellCache::new((**forest()).clone(), cfg).expect("the default world builds a store").shared();
+    let server_cfg = ServerConfig { listen: local(), ..ServerConfig::default() };
+    let served = serve_store(Arc::clone(&store), ServeOptions { server: server_cfg, ..ServeOptions::default() })
+        .await
+        .expect("server starts");
+    (served, store)
+}
+
+/// A client that expands its cells, with `expander`, complete at `position`.
+async fn expanding_client(server: &Server, expander: &Arc<Expander>, state: ClientState) -> Connection {
+    let ep = endpoint(local()).unwrap();
+    let mut cfg = pinned(server);
+    cfg.expander = Some(Arc::clone(expander));
+    let place = |_: &Welcome| Viewpoint::at(0, [0.0, 0.0], 100.0);
+    let mut c = Connection::connect_resuming(&ep, &cfg, None, state, place).await.unwrap();
+    c.wait_complete(Duration::from_secs(60)).await.unwrap();
+    c
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_expands_its_cells_is_sent_no_records_and_holds_exactly_the_world() {
+    let (server, store) = server_on_own_cache().await;
+    let expander = Expander::new(2, 8 << 20);
+    let c = expanding_client(&server, &expander, ClientState::new()).await;
+    assert_eq!(c.state().cell_mode(), CellMode::Expand { have_function: false });
+    bots::verify(c.state(), forest()).unwrap();
+    let frames = c.frame_bytes_received();
+    assert_eq!(frames[ServerMsgKind::Cells], 0, "records were sent to a client that expands");
+    assert!(frames[ServerMsgKind::Grant] > 0 && frames[ServerMsgKind::Function] > 0);
+    let stats = c.state().stats().clone();
+    assert!(stats.grants >= 4 && stats.records_expanded > 100, "{stats:?}");
+    assert_eq!(stats.species_received as usize, c.state().species_held());
+    // The server expanded a cell only to check a digest.
+    let expanded = store.cache_metrics().unwrap().misses.load(Relaxed);
+    assert!(expanded <= stats.digests, "the server expanded {expanded} cells for {} digests", stats.digests);
+    c.close();
+    // A second client of the same process holds the world function already: it is not sent again.
+    let again = expanding_client(&server, &expander, ClientState::new()).await;
+    assert_eq!(again.state().cell_mode(), CellMode::Expand { have_function: true });
+    assert_eq!(again.frame_bytes_received()[ServerMsgKind::Function], 0);
+    bots::verify(again.state(), forest()).unwrap();
+    again.close();
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_whose_expansion_differs_is_caught_by_its_digests_and_served_records() {
+    let (server, _store) = server_on_own_cache().await;
+    let expander = Expander::new(2, 8 << 20);
+    // The server's world function with another seed, adopted under the server's hash: this client's trees stand
+    // elsewhere.
+    let plain = complete_client(&server, [0.0, 0.0], None).await;
+    let w = Arc::clone(plain.welcome());
+    plain.close();
+    let manifest = forest().function.replace("seed 0x5eed_f0e5", "seed 0x5eed_f0e6");
+    assert_ne!(&*forest().function, manifest, "the forest's seed statement changed");
+    let species: Vec<_> = forest().species.iter().map(|s| s.graph.clone()).collect();
+    let terrain = SpeciesGraph::decode(w.world.terrain.graph.as_ref().unwrap()).unwrap();
+    let world = World::from_function("forest", &manifest, &species, Some(&terrain)).unwrap();
+    expander.adopt(ExpandWorld { hash: w.world.function.unwrap(), world, grid: w.world.grid });
+    let mut state = ClientState::new();
+    state.set_digest_every(1);
+    let c = expanding_client(&server, &expander, state).await;
+    // Every cell was reported; those that differ came again as records, and the client ends holding the world.
+    let mut c = c;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while bots::verify(c.state(), forest()).is_err() {
+        assert!(tokio::time::Instant::now() < deadline, "the differing cells were never served as records");
+        let _ = tokio::time::timeout(Duration::from_millis(200), c.next_event()).await;
+    }
+    assert!(server.metrics().digest_mismatches.load(Relaxed) > 0);
+    assert!(c.frame_bytes_received()[ServerMsgKind::Cells] > 0);
     c.close();
     server.shutdown(Duration::from_secs(1)).await;
 }

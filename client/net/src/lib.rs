@@ -13,6 +13,7 @@
 //! canopy-server (a test in `tests/tests/house.rs` holds that).
 
 pub mod cache;
+pub mod expand;
 pub mod fit;
 pub mod net;
 pub mod state;

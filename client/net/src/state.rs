@@ -16,7 +16,8 @@ use std::time::Duration;
 use canopy_protocol::aoi::{Aoi, Grid, Viewpoint};
 use canopy_protocol::edit::EditResult;
 use canopy_protocol::messages::{
-    ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome,
+    CellDigest, CellMode, ClientStreaming, PhaseError, Release, ServerHandshake, ServerStreaming, SpeciesData, Welcome,
+    WorldFunction,
 };
 use canopy_protocol::record::{ParamOverride, dequantize};
 use canopy_protocol::summary::{FarView, NodeKey, NodeSummary};
@@ -26,7 +27,10 @@ use canopy_protocol::{
 use canopy_protocol::{DecodeError, PROTOCOL_VERSION};
 
 mod edits;
+mod expand;
 mod far;
+
+pub use expand::{DIGEST_EVERY, MAX_DEFERRED_DELTAS};
 
 use edits::Resumable;
 
@@ -46,12 +50,14 @@ pub struct HeldCell {
     pub version: u32,
     /// Indices felled by edits (skipped by [`ClientState::instances`]).
     pub felled: BTreeSet<u16>,
+    /// Granted to expand, and not expanded yet (no records).
+    pub expanding: bool,
 }
 
 impl HeldCell {
-    /// Whether every record of the cell has arrived.
+    /// Whether every record of the cell has arrived (or been expanded).
     pub fn is_complete(&self) -> bool {
-        self.records.len() == usize::from(self.total)
+        !self.expanding && self.records.len() == usize::from(self.total)
     }
 }
 
@@ -104,6 +110,20 @@ pub enum Event {
     },
     /// A delta did not start at the version held: the cell must be sent again ([`ClientState::refresh`]).
     Gap(CellCoord),
+    /// A cell was granted to expand here (the driver expands it and calls [`ClientState::on_expanded`]).
+    Granted {
+        /// The cell.
+        cell: CellCoord,
+        /// The grant.
+        grant: u32,
+    },
+    /// The world function arrived.
+    Function,
+    /// A delta for a cell still being expanded: applied after the expansion.
+    Deferred(CellCoord),
+    /// This client's expansion of a cell does not fit the server's overlay: it must take the cell's records
+    /// ([`ClientState::records`]).
+    Differs(CellCoord),
     /// The server answered an edit.
     EditResult(EditResult),
     /// A chunk of explicit geometry arrived (bandwidth baselines; counted and discarded).
@@ -169,6 +189,9 @@ pub enum StateError {
     /// The server sent more summary nodes than a client holds.
     #[error("more than {MAX_HELD_SUMMARIES} summary nodes held")]
     TooManySummaries,
+    /// The world function is not the one the welcome names, or cannot be built.
+    #[error("world function: {0}")]
+    Function(&'static str),
 }
 
 /// Counters of what the client received.
@@ -199,6 +222,14 @@ pub struct ClientStats {
     pub summaries: u64,
     /// Far-view summary nodes released.
     pub summaries_released: u64,
+    /// Cells granted to expand here.
+    pub grants: u64,
+    /// Records this client expanded itself.
+    pub records_expanded: u64,
+    /// Expanded cells whose overlay did not fit (each asked for as records).
+    pub mismatches: u64,
+    /// Digests of expanded cells reported to the server.
+    pub digests: u64,
 }
 
 /// The client's view of its session (see the module docs).
@@ -225,6 +256,15 @@ pub struct ClientState {
     summaries_generation: u64,
     /// The far view last sent.
     far_view: Option<FarView>,
+    /// How cells come in this session.
+    cell_mode: CellMode,
+    /// The world function, for a client that expands cells.
+    function: Option<Arc<WorldFunction>>,
+    /// Granted cells waiting for their expansion.
+    expanding: HashMap<CellCoord, expand::Awaiting>,
+    /// Digests due, and one expanded cell in how many is reported.
+    digests: Vec<CellDigest>,
+    digest_every: u32,
 }
 
 impl Default for ClientState {
@@ -252,6 +292,11 @@ impl ClientState {
             summaries: BTreeMap::new(),
             summaries_generation: 0,
             far_view: None,
+            cell_mode: CellMode::Records,
+            function: None,
+            expanding: HashMap::new(),
+            digests: Vec::new(),
+            digest_every: DIGEST_EVERY,
         }
     }
 
@@ -392,6 +437,7 @@ impl ClientState {
         let aoi = Aoi::new(&vp, &w.aoi);
         let gone: Vec<CellCoord> = self.cells.keys().filter(|c| !aoi.is_kept(grid, **c)).copied().collect();
         for c in gone {
+            self.expanding.remove(&c);
             if let Some(h) = self.cells.remove(&c) {
                 self.tombstones.insert(c, h.grant);
                 self.stats.evicted += 1;
@@ -414,6 +460,8 @@ impl ClientState {
             ServerStreaming::Release(r) => Ok(self.on_release(r)),
             ServerStreaming::Delta(d) => self.on_delta(d),
             ServerStreaming::Summaries(b) => self.on_summaries(b),
+            ServerStreaming::Grant(g) => self.on_grant(g),
+            ServerStreaming::Function(f) => self.on_function(f),
             ServerStreaming::EditResult(r) => Ok(Event::EditResult(r)),
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what
@@ -477,6 +525,7 @@ impl ClientState {
                 if !kept {
                     // Granted for an older viewpoint and already out of range: the release will follow.
                     self.cells.remove(&b.cell);
+                    self.expanding.remove(&b.cell);
                     self.missing = self.missing + self.missing_at(b.cell) - before;
                     self.tombstones.insert(b.cell, b.grant);
                     self.stats.dropped += 1;
@@ -489,8 +538,10 @@ impl ClientState {
                     overrides: Vec::new(),
                     version: b.version,
                     felled: BTreeSet::new(),
+                    expanding: false,
                 };
                 self.cells.insert(b.cell, cell);
+                self.expanding.remove(&b.cell);
             }
         }
         let h = self.cells.get_mut(&b.cell).expect("inserted or present");
@@ -523,6 +574,7 @@ impl ClientState {
             Some(h) if h.grant == r.grant => {
                 let before = self.missing_at(r.cell);
                 self.cells.remove(&r.cell);
+                self.expanding.remove(&r.cell);
                 self.missing = self.missing + self.missing_at(r.cell) - before;
                 Event::Released(r.cell)
             }
@@ -597,6 +649,7 @@ mod tests {
                 position_steps: POSITION_STEPS,
                 instances: 100,
                 terrain,
+                function: None,
             },
             species: vec![SpeciesEntry { hash: SpeciesHash::of(&worm()), size: worm().len() as u32 }],
             aoi: AoiParams { max_radius: 100.0, hysteresis: 10.0, lookahead_s: 0.0, max_lookahead: 0.0 },

@@ -97,6 +97,7 @@ mod tests {
                 position_steps: canopy_protocol::POSITION_STEPS,
                 instances: 0,
                 terrain: desc,
+                function: None,
             },
             species: Vec::new(),
             aoi: canopy_protocol::aoi::AoiParams::default(),

@@ -30,7 +30,7 @@ pub use payload::{GeometrySource, Payload, PayloadMode};
 pub use session::{MAX_EDITS_IN_FLIGHT, OUT_OF_VIEW_FACTOR, Session, SessionConfig, SessionError, SessionStats};
 pub use store::{
     CellData, CellState, CellWaker, Changes, EncodedSummary, GridStore, PlacedInstance, StoreBuilder, StoreError,
-    StoreHead, SummaryState, WorldStore,
+    StoreHead, SummaryState, VersionState, WorldStore,
 };
 pub use summaries::{SummaryLru, overlaps, root_level};
 pub use terrain::terrain_desc;

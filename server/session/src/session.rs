@@ -27,10 +27,10 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
-use canopy_protocol::edit::{EditOp, EditOutcome, EditResult, ResumeCell};
+use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome, EditResult, ResumeCell};
 use canopy_protocol::messages::{
-    ByKind, ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release,
-    ServerMsgKind, ServerStreaming,
+    ByKind, CellDigest, CellGrant, CellMode, ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind,
+    MessageError, PhaseError, Release, ServerMsgKind, ServerStreaming, cell_digest,
 };
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
@@ -38,11 +38,19 @@ use crate::editors::{Editor, Editors};
 use crate::far::{Eye, FarSession};
 pub use crate::pacing::SendBudget;
 use crate::pacing::TokenBucket;
-use crate::store::{CellData, CellState, CellWaker, Changes, WorldStore};
+use crate::store::{CellData, CellState, CellWaker, Changes, VersionState, WorldStore};
 pub use crate::transmit::{StreamId, Transmit};
 
 /// Most edits of one session handed to the writer and not yet answered; more are denied until answers come.
 pub const MAX_EDITS_IN_FLIGHT: usize = 256;
+
+/// Most digests of a session waiting to be checked; more are not checked (the client samples, the server need not
+/// keep up with a flood).
+pub const MAX_DIGESTS_WAITING: usize = 16;
+
+/// Most cells a client that expands cells may ask records for in one session (beyond, its asks are ignored and it
+/// keeps its grants).
+pub const MAX_RECORD_CELLS: usize = 4096;
 
 /// A cell out of view is scheduled as if it were this many times farther away.
 pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
@@ -172,6 +180,12 @@ pub struct SessionStats {
     pub deltas: u64,
     /// Edits the session denied itself (read-only, over the editor's rate, too many waiting), before the writer.
     pub edits_denied: u64,
+    /// Cells granted to the client to expand itself (no records sent).
+    pub expand_grants: u64,
+    /// Digests of the client's expansions checked against the server's.
+    pub digests_checked: u64,
+    /// Digests that differed: the cell is sent as records from then on.
+    pub digest_mismatches: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -182,6 +196,8 @@ struct Held {
     total: u16,
     /// The cell's version the client holds (or is being sent).
     version: u32,
+    /// Granted to expand (no records sent).
+    expanded: bool,
 }
 
 /// One client's session (see the module docs).
@@ -231,6 +247,12 @@ pub struct Session {
     resume: Vec<ResumeCell>,
     /// The far view, once the client asked for one: summary nodes beyond the records.
     far: Option<FarSession>,
+    /// The client expands cells itself ([`CellMode::Expand`]): it gets grants, not records.
+    expand: bool,
+    /// Cells this client takes as records although it expands cells (it asked, or its digest differed).
+    record_cells: HashSet<CellCoord>,
+    /// Digests to check, and the store generation they were last looked at.
+    digests: (VecDeque<CellDigest>, Option<u64>),
 }
 
 impl Drop for Session {
@@ -290,6 +312,9 @@ impl Session {
             changed: (BTreeSet::new(), None),
             resume: Vec::new(),
             far: None,
+            expand: false,
+            record_cells: HashSet::new(),
+            digests: (VecDeque::new(), None),
         }
     }
 
@@ -478,6 +503,23 @@ impl Session {
                     self.set_species(id);
                 }
                 self.phase = next;
+                // A client that expands cells gets the world function (unless it holds it) and every species, first.
+                if let (CellMode::Expand { have_function }, Some(function)) = (r.cells, self.store.function_frame()) {
+                    self.expand = true;
+                    if !have_function {
+                        let t = Transmit {
+                            stream: StreamId::Lane(0),
+                            bytes: function,
+                            body: Bytes::new(),
+                            class: ServerMsgKind::Function,
+                            records: 0,
+                        };
+                        self.urgent.push_back(t);
+                    }
+                    for id in 0..table {
+                        self.send_species_once(id as u8, StreamId::Lane(0));
+                    }
+                }
                 // Resumed cells take grants 1, 2, … in the order named; what changed since their version is sent
                 // once the store knows (those the viewpoint does not keep are released at once).
                 let grid = *self.store.grid();
@@ -485,7 +527,7 @@ impl Session {
                     let grant = self.next_grant;
                     self.next_grant += 1;
                     if grid.contains(rc.cell) {
-                        let h = Held { grant, lane: 0, sent: 0, total: 0, version: rc.version };
+                        let h = Held { grant, lane: 0, sent: 0, total: 0, version: rc.version, expanded: false };
                         self.held.insert(rc.cell, h);
                         self.changed.0.insert(rc.cell);
                     } else {
@@ -544,6 +586,23 @@ impl Session {
                 if self.held.contains_key(&c) {
                     self.release(c);
                     self.dirty = true;
+                }
+            }
+            ClientMsg::Streaming(ClientStreaming::Records(c)) => {
+                // A cell granted again as records: at most as often as viewpoints.
+                self.take_request(now)?;
+                if self.expand && self.record_cells.len() < MAX_RECORD_CELLS && self.record_cells.insert(c) {
+                    self.release(c);
+                    self.dirty = true;
+                }
+            }
+            ClientMsg::Streaming(ClientStreaming::Digest(d)) => {
+                // Each digest may cost the server a cell's expansion: the same budget as viewpoints.
+                self.take_request(now)?;
+                let held = self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version);
+                if held && self.digests.0.len() < MAX_DIGESTS_WAITING {
+                    self.digests.0.push_back(d);
+                    self.digests.1 = None;
                 }
             }
             ClientMsg::Streaming(ClientStreaming::FarView(f)) => {
@@ -659,6 +718,7 @@ impl Session {
             self.update_aoi();
         }
         self.send_changes();
+        self.check_digests();
         self.update_far(now);
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
@@ -818,6 +878,22 @@ impl Session {
             if self.waiting.1.contains(&cell) {
                 continue;
             }
+            if self.expand && !self.pinned.contains_key(&cell) && !self.record_cells.contains(&cell) {
+                match self.grant(&*store, cell, key) {
+                    Some(true) => {
+                        self.queue.remove(i);
+                        return true;
+                    }
+                    Some(false) => {
+                        self.waiting.1.insert(cell);
+                        continue;
+                    }
+                    // No delta from version 0 can be made: this cell goes as records.
+                    None => {
+                        self.record_cells.insert(cell);
+                    }
+                }
+            }
             let data = match self.pinned.get(&cell) {
                 Some(d) => Arc::clone(d),
                 None => match store.cell(cell, self.waker.as_ref()) {
@@ -835,6 +911,73 @@ impl Session {
         false
     }
 
+    /// Grant queued cell `cell` to a client that expands it: its version, and for an edited cell the delta from
+    /// version 0. `Some(true)`: granted (the grant is urgent: a few bytes, paced like a release); `Some(false)`: the
+    /// store does not know yet (the waker is registered); `None`: no delta can be made, send records.
+    fn grant(&mut self, store: &dyn WorldStore, cell: CellCoord, key: f32) -> Option<bool> {
+        let delta = match store.version(cell, self.waker.as_ref()) {
+            VersionState::Pending => return Some(false),
+            VersionState::Unedited => None,
+            VersionState::Edited => match store.changes(cell, 0, self.waker.as_ref()) {
+                Changes::Pending => return Some(false),
+                Changes::Current { .. } => None,
+                Changes::Delta(d) => Some(d),
+                Changes::Whole => return None,
+            },
+            VersionState::Outside => unreachable!("queued cells are in the grid"),
+        };
+        let grant = self.next_grant;
+        self.next_grant = self.next_grant.wrapping_add(1).max(1);
+        self.stats.grants += 1;
+        self.stats.expand_grants += 1;
+        let lane = self.lane_for(key);
+        let (version, total) = delta.as_ref().map_or((0, 0), |d| (d.to_version, d.total));
+        self.held.insert(cell, Held { grant, lane, sent: total, total, version, expanded: true });
+        let delta = delta.map(|d| CellDelta { grant, ..d });
+        let msg = ServerMsg::Streaming(ServerStreaming::Grant(CellGrant { cell, grant, version, delta }));
+        self.staged.push_back((cell, Self::transmit(StreamId::Lane(lane), &msg)));
+        Some(true)
+    }
+
+    /// Check the client's digests of its expansions against the store's cells (expanded for it where they are not
+    /// already): a cell that differs is counted and granted again as records.
+    fn check_digests(&mut self) {
+        let store = Arc::clone(&self.store);
+        let generation = store.generation();
+        if self.digests.0.is_empty() || self.digests.1 == Some(generation) {
+            return;
+        }
+        self.digests.1 = Some(generation);
+        let mut waiting = VecDeque::new();
+        while let Some(d) = self.digests.0.pop_front() {
+            // A digest of a grant since released, or of an older version, is stale.
+            if !self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version) {
+                continue;
+            }
+            let data = match store.cell(d.cell, self.waker.as_ref()) {
+                CellState::Ready(data) => data,
+                CellState::Pending => {
+                    waiting.push_back(d);
+                    continue;
+                }
+                CellState::Outside => continue,
+            };
+            if data.version != d.version {
+                continue;
+            }
+            self.stats.digests_checked += 1;
+            if cell_digest(&data.records, &data.overrides, data.felled.iter().copied()) != d.digest {
+                self.stats.digest_mismatches += 1;
+                if self.record_cells.len() < MAX_RECORD_CELLS {
+                    self.record_cells.insert(d.cell);
+                    self.release(d.cell);
+                    self.dirty = true;
+                }
+            }
+        }
+        self.digests.0 = waiting;
+    }
+
     /// Stage the next unit of queued cell `i` (see [`Session::stage_next_unit`]), its records `data`.
     fn stage_cell(&mut self, i: usize, key: f32, data: &Arc<CellData>) {
         let (store, cell) = (Arc::clone(&self.store), data.cell);
@@ -842,8 +985,8 @@ impl Session {
         let h = match self.held.get(&cell) {
             Some(h) => *h,
             None => {
-                let h =
-                    Held { grant: self.next_grant, lane: self.lane_for(key), sent: 0, total, version: data.version };
+                let lane = self.lane_for(key);
+                let h = Held { grant: self.next_grant, lane, sent: 0, total, version: data.version, expanded: false };
                 self.next_grant = self.next_grant.wrapping_add(1).max(1);
                 self.stats.grants += 1;
                 self.held.insert(cell, h);

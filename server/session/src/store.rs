@@ -8,7 +8,7 @@ use std::sync::{Arc, OnceLock};
 use bytes::Bytes;
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::messages::{
-    MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldInfo,
+    MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldFunction, WorldInfo,
 };
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::summary::{NodeKey, NodeSummary};
@@ -231,6 +231,20 @@ pub trait WorldStore: Send + Sync + 'static {
     fn welcome_head(&self) -> &WelcomeHead {
         self.head().welcome_head()
     }
+    /// The framed world function for clients that expand cells themselves (`None`: records only).
+    fn function_frame(&self) -> Option<Bytes> {
+        self.head().function_frame()
+    }
+    /// A cell's version, never waiting, for a client that expands the cell itself: a cell nobody edited is known
+    /// at version 0 without expanding it wherever the store can tell. This default asks [`WorldStore::cell`].
+    fn version(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> VersionState {
+        match self.cell(c, waker) {
+            CellState::Ready(d) if d.version == 0 => VersionState::Unedited,
+            CellState::Ready(_) => VersionState::Edited,
+            CellState::Pending => VersionState::Pending,
+            CellState::Outside => VersionState::Outside,
+        }
+    }
     /// A cell's records, never waiting: ready, pending (its expansion is queued, once however many ask, and
     /// `waker`, if any, is woken when it is ready), or outside the grid. A cell inside the grid without instances is
     /// ready and empty.
@@ -268,6 +282,19 @@ pub trait WorldStore: Send + Sync + 'static {
             CellState::Pending => Changes::Pending,
         }
     }
+}
+
+/// A cell's version as [`WorldStore::version`] finds it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VersionState {
+    /// At version 0: the world function's records alone.
+    Unedited,
+    /// Edited: [`WorldStore::changes`] from version 0 gives its overlay.
+    Edited,
+    /// Not known yet (ask again when the waker fires).
+    Pending,
+    /// Outside the grid.
+    Outside,
 }
 
 /// What changed in a cell since a version a session holds ([`WorldStore::changes`]).
@@ -328,6 +355,8 @@ pub struct StoreHead {
     species: Vec<SpeciesEntry>,
     /// Per species, its framed [`ServerStreaming::Species`] message; the graph is the frame's last `size` bytes.
     species_frames: Vec<Bytes>,
+    /// The framed [`ServerStreaming::Function`] message, for a world offered to clients that expand cells.
+    function_frame: Option<Bytes>,
     welcome: WelcomeHead,
     bounds: [f32; 4],
 }
@@ -336,8 +365,25 @@ impl StoreHead {
     /// The head of a world with `instances` instances, from a builder's description.
     fn new(mut b: StoreBuilder, instances: u32) -> StoreHead {
         b.world.instances = instances;
+        let function_frame = b.function.map(|f| {
+            b.world.function = Some(f.hash());
+            Bytes::from(ServerMsg::Streaming(ServerStreaming::Function(f)).encode_framed())
+        });
         let welcome = WelcomeHead::new(&b.world, &b.species);
-        StoreHead { world: b.world, species: b.species, species_frames: b.species_frames, welcome, bounds: b.bounds }
+        StoreHead {
+            world: b.world,
+            species: b.species,
+            species_frames: b.species_frames,
+            function_frame,
+            welcome,
+            bounds: b.bounds,
+        }
+    }
+
+    /// The framed world function, for a world offered to clients that expand cells themselves (its hash is the
+    /// welcome's [`WorldInfo::function`]).
+    pub fn function_frame(&self) -> Option<Bytes> {
+        self.function_frame.clone()
     }
 
     /// The world's bounds `[x0, z0, x1, z1]` (x1 and z1 exclusive): where instances may stand. The cell grid covers
@@ -415,6 +461,8 @@ pub struct StoreBuilder {
     world: WorldInfo,
     species: Vec<SpeciesEntry>,
     species_frames: Vec<Bytes>,
+    /// The world function offered to clients that expand cells ([`StoreBuilder::function`]).
+    function: Option<WorldFunction>,
     cells: Vec<Arc<CellData>>,
     /// Instances added so far.
     count: u32,
@@ -457,6 +505,7 @@ impl StoreBuilder {
             position_steps: POSITION_STEPS,
             instances: 0,
             terrain,
+            function: None,
         };
         world.validate().map_err(|e| match e {
             MessageError::Grid(e) => StoreError::Grid(e),
@@ -467,7 +516,15 @@ impl StoreBuilder {
         }
         let [x0, z0] = grid.cell_origin(grid.min);
         let [x1, z1] = grid.cell_origin(CellCoord::new(grid.max.x + 1, grid.max.z + 1));
-        Ok(StoreBuilder { world, species: entries, species_frames, cells: vec![], count: 0, bounds: [x0, z0, x1, z1] })
+        Ok(StoreBuilder {
+            world,
+            species: entries,
+            species_frames,
+            function: None,
+            cells: vec![],
+            count: 0,
+            bounds: [x0, z0, x1, z1],
+        })
     }
 
     /// Say where instances may stand, `[x0, z0, x1, z1]` (x1 and z1 exclusive; within the grid's cells).
@@ -490,7 +547,16 @@ impl StoreBuilder {
         let graphs = world.species.iter().map(|s| &s.graph);
         let [x0, z0] = world.bounds.min;
         let [x1, z1] = world.bounds.max;
-        Ok(StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?.bounds([x0, z0, x1, z1]))
+        let builder = StoreBuilder::new(&world.name, world.seed, grid, terrain, graphs)?.bounds([x0, z0, x1, z1]);
+        Ok(builder.function(&world.function))
+    }
+
+    /// Offer the world to clients that expand cells themselves, by this world function (the manifest its cells
+    /// are the expansion of); a manifest over [`netlimits::MAX_FUNCTION_BYTES`], or none, offers records only.
+    pub fn function(mut self, manifest: &str) -> StoreBuilder {
+        let fits = !manifest.is_empty() && manifest.len() <= netlimits::MAX_FUNCTION_BYTES;
+        self.function = fits.then(|| WorldFunction { manifest: manifest.to_owned() });
+        self
     }
 
     /// Add one cell's instances, by index in the cell (instance `i` is `(cell, i)`). Positions are quantised to the

@@ -121,6 +121,7 @@ mod terrain;
 
 use std::ops::Range;
 use std::path::Path;
+use std::sync::Arc;
 
 use canopy_protocol::SpeciesGraph;
 
@@ -256,6 +257,9 @@ pub struct World {
     pub rules: Vec<ScatterRule>,
     /// Number of `instance` statements.
     pub explicit_instances: u32,
+    /// The manifest text the world was parsed from: its world function, which a client holding the species table
+    /// builds the same world from ([`World::from_function`]).
+    pub function: Arc<str>,
     /// The first cell in bounds (smallest x and z).
     cell_min: CellKey,
     /// Cells in bounds per axis.
@@ -282,9 +286,22 @@ impl World {
     /// Parse a manifest. Species paths resolve against `base_dir`; without one, only library names are allowed.
     pub fn parse(src: &SourceFile, base_dir: Option<&Path>) -> Result<World, Diagnostics> {
         match base_dir {
-            Some(dir) => World::parse_with(src, &source::Files { base: dir }),
-            None => World::parse_with(src, &source::NoFiles),
+            Some(dir) => World::parse_with(src, &source::Files { base: dir }, true),
+            None => World::parse_with(src, &source::NoFiles, true),
         }
+    }
+
+    /// The world of a world function (the manifest a server sends clients that expand cells themselves): its
+    /// species statements are `species` in order (the welcome's table, by id) and its terrain species, if any,
+    /// `terrain`; no file is read. Never materialised: cells are expanded as they are asked for.
+    pub fn from_function(
+        name: &str,
+        manifest: &str,
+        species: &[SpeciesGraph],
+        terrain: Option<&SpeciesGraph>,
+    ) -> Result<World, Diagnostics> {
+        let src = SourceFile::new(format!("{name}.world"), manifest);
+        World::parse_with(&src, &source::Table { species, terrain }, false)
     }
 
     /// The embedded default world, `worlds/forest/` (compiled in: touches no filesystem).
@@ -297,12 +314,13 @@ impl World {
     pub fn embedded(name: &str) -> Option<World> {
         let (dir, text) = EMBEDDED_WORLDS.iter().find(|(n, _)| *n == name)?;
         let src = SourceFile::new(format!("worlds/{dir}/{dir}.world"), *text);
-        let world = World::parse_with(&src, &source::Embedded { dir })
+        let world = World::parse_with(&src, &source::Embedded { dir }, true)
             .unwrap_or_else(|d| panic!("the embedded world `{name}` is tested to load:\n{d}"));
         Some(world)
     }
 
-    fn parse_with(src: &SourceFile, files: &dyn source::Resolver) -> Result<World, Diagnostics> {
+    /// Parse with species from `files`; `eager`: materialise a small world ([`EAGER_CELLS`]) at once.
+    fn parse_with(src: &SourceFile, files: &dyn source::Resolver, eager: bool) -> Result<World, Diagnostics> {
         let mut diags = Vec::new();
         let m = manifest::parse(src, &mut diags);
         let world = populate::build(src, &m, files, &mut diags);
@@ -312,7 +330,10 @@ impl World {
             key(a).cmp(&key(b))
         });
         match world {
-            Some(w) if diags.is_empty() => Ok(w),
+            Some(mut w) if diags.is_empty() => {
+                w.function = Arc::from(src.text.as_str());
+                Ok(if eager { w.materialise() } else { w })
+            }
             _ => {
                 if diags.is_empty() {
                     diags.push(src.diag(0..0, "the world could not be built"));
@@ -355,6 +376,7 @@ impl World {
             populations,
             rules,
             explicit_instances,
+            function: Arc::from(""),
             cell_min,
             cell_dims,
             cell_starts: Vec::new(),

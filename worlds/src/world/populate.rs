@@ -7,7 +7,7 @@ use canopy_protocol::SpeciesGraph;
 use super::cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations};
 use super::fractal::Fractal;
 use super::manifest::{Manifest, Population, SourceRef, Span};
-use super::source::Resolver;
+use super::source::{Resolver, Statement};
 use super::terrain::{TILE_PARAMS, Terrain, slope_degrees};
 use super::{
     Bounds, CellKey, MAX_CELL_COORD, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
@@ -251,8 +251,12 @@ fn load_species(
     source: &SourceRef,
     span: &Span,
     files: &dyn Resolver,
+    statement: Statement,
     diags: &mut Vec<Diagnostic>,
 ) -> Option<(SpeciesGraph, String)> {
+    if let Some(compiled) = files.compiled(statement) {
+        return Some(compiled);
+    }
     let (file, text, shown) = match source {
         SourceRef::Library(name) => match crate::library::find(name) {
             Some(e) => (e.file.to_string(), e.text.to_string(), format!("library:{}", e.name())),
@@ -384,8 +388,8 @@ pub(crate) fn build(
         diags.push(src.diag(m.species[MAX_SPECIES].name_span.clone(), format!("more than {MAX_SPECIES} species")));
     }
     let mut table: Vec<Entry> = Vec::new();
-    for decl in m.species.iter().take(MAX_SPECIES) {
-        let loaded = load_species(src, &decl.source, &decl.source_span, files, diags);
+    for (i, decl) in m.species.iter().take(MAX_SPECIES).enumerate() {
+        let loaded = load_species(src, &decl.source, &decl.source_span, files, Statement::Species(i), diags);
         let (graph, source) = match loaded {
             Some((g, s)) => (Some(g), s),
             None => (None, String::new()),
@@ -430,7 +434,7 @@ pub(crate) fn build(
             }
         }
     } else if let Some(t) = &m.terrain {
-        let loaded = load_species(src, &t.source, &t.source_span, files, diags);
+        let loaded = load_species(src, &t.source, &t.source_span, files, Statement::Terrain, diags);
         let mut ok = true;
         let mut params = Vec::new();
         if let Some((graph, _)) = &loaded {
@@ -677,7 +681,7 @@ pub(crate) fn build(
         diags.push(src.diag(spans.first().cloned().unwrap_or(0..0), msg));
         return None;
     }
-    Some(world.materialise())
+    Some(world)
 }
 
 #[cfg(test)]

@@ -4,12 +4,52 @@
 
 use std::path::Path;
 
+use canopy_protocol::SpeciesGraph;
+
 use crate::load::read_source;
 
 /// Reads the files a manifest names by relative path.
 pub(crate) trait Resolver {
     /// The display name and text of the file at `rel`, relative to the manifest, or why not.
     fn read(&self, rel: &str) -> Result<(String, String), String>;
+
+    /// A graph already compiled for this statement, used in place of its source (a world function's species
+    /// come from the welcome's table); `None` to load the source.
+    fn compiled(&self, statement: Statement) -> Option<(SpeciesGraph, String)> {
+        let _ = statement;
+        None
+    }
+}
+
+/// A statement of a manifest that names a species.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Statement {
+    /// The `i`-th `species` statement (species id `i`).
+    Species(usize),
+    /// The `terrain` statement.
+    Terrain,
+}
+
+/// A world function's species: statement `i` is the table's species `i`, the terrain the welcome's terrain graph;
+/// no file is read.
+pub(crate) struct Table<'a> {
+    /// The species table, by id.
+    pub species: &'a [SpeciesGraph],
+    /// The terrain species, if the world has one.
+    pub terrain: Option<&'a SpeciesGraph>,
+}
+
+impl Resolver for Table<'_> {
+    fn read(&self, rel: &str) -> Result<(String, String), String> {
+        Err(format!("cannot read `{rel}`: a world function takes its species from the species table"))
+    }
+
+    fn compiled(&self, statement: Statement) -> Option<(SpeciesGraph, String)> {
+        match statement {
+            Statement::Species(i) => self.species.get(i).map(|g| (g.clone(), format!("table:{i}"))),
+            Statement::Terrain => self.terrain.map(|g| (g.clone(), "table:terrain".to_string())),
+        }
+    }
 }
 
 /// Files relative to a directory on disk.

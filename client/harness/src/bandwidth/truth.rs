@@ -503,6 +503,7 @@ mod tests {
                 position_steps: POSITION_STEPS,
                 instances: 14,
                 terrain,
+                function: None,
             },
             species: vec![SpeciesEntry { hash: SpeciesHash::of(&worm), size: worm.len() as u32 }],
             aoi: AoiParams { max_radius: 100.0, hysteresis: 10.0, lookahead_s: 0.0, max_lookahead: 0.0 },

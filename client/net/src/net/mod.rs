@@ -5,6 +5,7 @@
 //! state is changed by whoever owns the connection (a bot's task, the app's loop), so there is no lock on it.
 //! Anything wrong from the server closes the connection with a [`CloseCode`] and a reason.
 
+mod expanding;
 mod failover;
 pub mod tls;
 
@@ -21,6 +22,7 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 
 use crate::cache::{CacheError, SpeciesCache};
+use crate::expand::Expander;
 use crate::state::{ClientState, Event, StateError};
 pub use failover::{Edges, FAILOVER_IDLE, FAILOVER_TIMEOUT};
 pub use tls::Trust;
@@ -49,6 +51,9 @@ pub struct ConnectConfig {
     /// How long the connection may hear nothing before it counts as lost (keep-alives go at a quarter of it). With
     /// edges to fail over to it is [`FAILOVER_IDLE`], so a dead edge is noticed in seconds.
     pub idle_timeout: Duration,
+    /// Where cells are expanded when the client expands them itself (the default where the server offers a
+    /// world function); `None`: the client takes records.
+    pub expander: Option<Arc<Expander>>,
     /// The QUIC client configuration built for `trust` and `idle_timeout`, shared by this configuration's clones.
     quic: Arc<OnceLock<((Trust, Duration), quinn::ClientConfig)>>,
 }
@@ -65,6 +70,7 @@ impl ConnectConfig {
             token: None,
             edges: Vec::new(),
             idle_timeout: tls::IDLE_TIMEOUT,
+            expander: None,
             quic: Arc::default(),
         }
     }
@@ -143,6 +149,9 @@ pub enum ClientError {
     /// The UDP socket could not be set up.
     #[error("socket: {0}")]
     Socket(#[from] std::io::Error),
+    /// The server's world function did not build into a world.
+    #[error("the server's world function does not build: {0}")]
+    Function(String),
 }
 
 impl ClientError {
@@ -188,7 +197,7 @@ impl ClientError {
             ClientError::Frame(_) => Some(CloseCode::Malformed),
             ClientError::Message(e) => Some(e.close_code()),
             ClientError::State(StateError::Phase(_)) => Some(CloseCode::OutOfOrder),
-            ClientError::State(_) => Some(CloseCode::Invalid),
+            ClientError::State(_) | ClientError::Function(_) => Some(CloseCode::Invalid),
             ClientError::Timeout(_) => Some(CloseCode::Timeout),
             _ => None,
         }
@@ -239,6 +248,8 @@ pub struct Connection {
     seq: u32,
     /// Cells to ask for again (after a [`Event::Gap`]), sent before the next wait.
     refresh: Vec<canopy_protocol::CellCoord>,
+    /// Cells this client expands itself: the expander, the world, the jobs in flight and their results.
+    expanding: expanding::Expanding,
     bytes_out: u64,
     frame_bytes: ByKind<u64>,
     _tasks: AbortOnDrop,
@@ -343,7 +354,9 @@ impl Connection {
         for msg in state.resume()? {
             ready.extend_from_slice(&frame(&msg.encode()));
         }
-        ready.extend_from_slice(&frame(&state.ready(viewpoint)?.encode()));
+        let expanding = expanding::Expanding::new(cfg.expander.clone());
+        let mode = expanding.mode(&mut state);
+        ready.extend_from_slice(&frame(&state.ready_with(viewpoint, mode)?.encode()));
         control.write_all(&ready).await.map_err(ClientError::from_write)?;
         let (tx, inbox) = mpsc::channel(256);
         let mut tasks = Vec::new();
@@ -408,6 +421,7 @@ impl Connection {
             cache,
             seq: viewpoint.seq,
             refresh: Vec::new(),
+            expanding,
             bytes_out: (hello.len() + ready.len()) as u64,
             frame_bytes: {
                 let mut b = ByKind::default();
@@ -453,6 +467,7 @@ impl Connection {
         self.seq += 1;
         vp.seq = self.seq;
         let msg = self.state.set_viewpoint(vp)?;
+        self.expanding.sweep(&self.state);
         let bytes = frame(&msg.encode());
         self.bytes_out += bytes.len() as u64;
         self.control.write_all(&bytes).await.map_err(ClientError::from_write)
@@ -505,10 +520,14 @@ impl Connection {
         self.control.write_all(&bytes).await.map_err(ClientError::from_write)
     }
 
-    /// Ask again for the cells whose deltas did not follow the version held.
+    /// Ask again for the cells whose deltas did not follow the version held; send the digests and requests for
+    /// records that expanding cells gave.
     async fn send_refreshes(&mut self) -> Result<(), ClientError> {
         for c in std::mem::take(&mut self.refresh) {
             let msg = self.state.refresh(c)?;
+            self.write(&msg).await?;
+        }
+        for msg in self.expanding.outbox(&mut self.state)? {
             self.write(&msg).await?;
         }
         Ok(())
@@ -529,6 +548,10 @@ impl Connection {
                 if let Ok(Event::Gap(c)) = &ev {
                     self.refresh.push(*c);
                 }
+                let ev = match ev {
+                    Ok(e) => self.expanding.on_event(&mut self.state, &e).map(|()| e),
+                    e => e,
+                };
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
                     && let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g))
@@ -546,17 +569,32 @@ impl Connection {
         result
     }
 
-    /// Wait for the next message from the server and apply it.
+    /// Wait for the next message from the server, or the next cell this client expanded, and apply it.
     pub async fn next_event(&mut self) -> Result<Event, ClientError> {
         self.send_refreshes().await?;
-        match self.inbox.recv().await {
-            Some(i) => self.apply(i),
-            None => Err(self.closed_error()),
+        tokio::select! {
+            biased;
+            Some(e) = self.expanding.next() => self.apply_expanded(e),
+            i = self.inbox.recv() => match i {
+                Some(i) => self.apply(i),
+                None => Err(self.closed_error()),
+            },
         }
     }
 
-    /// Apply a message that has already arrived, without waiting (`None`: nothing pending).
+    fn apply_expanded(&mut self, e: expanding::Done) -> Result<Event, ClientError> {
+        let ev = self.expanding.on_expanded(&mut self.state, e);
+        if let Ok(Event::Gap(c)) = &ev {
+            self.refresh.push(*c);
+        }
+        ev
+    }
+
+    /// Apply a message (or an expanded cell) that has already arrived, without waiting (`None`: nothing pending).
     pub fn try_next_event(&mut self) -> Option<Result<Event, ClientError>> {
+        if let Some(e) = self.expanding.try_next() {
+            return Some(self.apply_expanded(e));
+        }
         match self.inbox.try_recv() {
             Ok(i) => Some(self.apply(i)),
             Err(mpsc::error::TryRecvError::Empty) => None,

@@ -104,6 +104,16 @@ impl ClientState {
             }
             return bad("delta of a grant not held");
         }
+        if let Some(later) = self.expanding.get_mut(&d.cell) {
+            // The cell is still being expanded here: its changes wait for it (a client too slow to keep up asks
+            // for it again).
+            if later.deltas.len() >= super::expand::MAX_DEFERRED_DELTAS {
+                self.stats.gaps += 1;
+                return Ok(Event::Gap(d.cell));
+            }
+            later.deltas.push(d);
+            return Ok(Event::Deferred(later.cell));
+        }
         if !h.is_complete() {
             return bad("delta before the grant's batches");
         }
@@ -111,10 +121,20 @@ impl ClientState {
             self.stats.gaps += 1;
             return Ok(Event::Gap(d.cell));
         }
+        apply_delta(h, &d, self.species.len())?;
+        self.stats.deltas += 1;
+        Ok(Event::Changed { cell: d.cell, version: d.to_version })
+    }
+}
+
+/// Apply delta `d` to held cell `h` (at `d.from_version`, checked by the caller); `species`: the table's size.
+pub(super) fn apply_delta(h: &mut HeldCell, d: &CellDelta, species: usize) -> Result<(), StateError> {
+    let bad = |what| Err(StateError::Edit(d.cell, what));
+    {
         if usize::from(d.total) != h.records.len() + d.adds.len() {
             return bad("delta's total does not follow the cell's");
         }
-        if let Some(a) = d.adds.iter().find(|a| usize::from(a.record.species) >= self.species.len()) {
+        if let Some(a) = d.adds.iter().find(|a| usize::from(a.record.species) >= species) {
             return Err(StateError::UnknownSpecies(a.record.species));
         }
         let first = h.records.len() as u16;
@@ -131,7 +151,6 @@ impl ClientState {
         h.overrides.sort_by_key(|o| (o.record, o.slot));
         h.total = d.total;
         h.version = d.to_version;
-        self.stats.deltas += 1;
-        Ok(Event::Changed { cell: d.cell, version: d.to_version })
     }
+    Ok(())
 }

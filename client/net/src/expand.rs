@@ -1,0 +1,314 @@
+//! Cells amplified where they are drawn: a worker pool that expands granted cells from the world function,
+//! nearest first, with a byte-bounded cache of expanded cells. One [`Expander`] serves one client, or every bot of
+//! a process (they share its cache: the same world function gives the same cells).
+//!
+//! A job is dropped unexpanded when its grant is no longer wanted ([`Job::cancel`]: the cell was released or left
+//! the area of interest). Worlds are built once per world function ([`Expander::world`]) from the manifest and the
+//! species table, and expanded with the same function the server uses ([`World::expand_cell`]); records are
+//! quantised on the welcome's grid, as the server quantises them.
+
+use std::collections::BinaryHeap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+
+use canopy_protocol::aoi::Grid;
+use canopy_protocol::lru::Lru;
+use canopy_protocol::messages::WorldFunction;
+use canopy_protocol::record::ParamOverride;
+use canopy_protocol::sync::{Locked, Waited};
+use canopy_protocol::{CellCoord, InstanceRecord, SpeciesGraph, SpeciesHash};
+use canopy_worlds::world::{CellKey, Placement, World};
+
+/// The default bound of the expanded-cell cache, bytes.
+pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
+
+/// Worlds kept built, by world function (a process rarely serves more than one).
+const WORLDS_KEPT: usize = 4;
+
+/// A world function built into a world, with the grid its records are quantised on.
+#[derive(Debug)]
+pub struct ExpandWorld {
+    /// The world function's hash.
+    pub hash: SpeciesHash,
+    /// The world.
+    pub world: World,
+    /// The welcome's cell grid.
+    pub grid: Grid,
+}
+
+/// One cell's records as the world function places them: record `i` is instance `(cell, i)`; overrides by index
+/// in the cell, sorted by `(record, slot)`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Expanded {
+    /// The records.
+    pub records: Vec<InstanceRecord>,
+    /// Parameter overrides.
+    pub overrides: Vec<ParamOverride>,
+}
+
+impl Expanded {
+    /// Quantise a cell's placements on `grid` (as the server's store does).
+    pub fn of_placements(grid: &Grid, cell: CellCoord, placements: &[Placement]) -> Expanded {
+        let mut out = Expanded { records: Vec::with_capacity(placements.len()), overrides: Vec::new() };
+        for (i, p) in placements.iter().enumerate() {
+            let [qx, qz] = grid.steps(cell, p.x, p.z);
+            out.records.push(InstanceRecord::new(p.species as u8, qx, qz));
+            let record = i as u16;
+            out.overrides.extend(p.params.iter().map(|&(slot, value)| ParamOverride { record, slot, value }));
+        }
+        out.overrides.sort_by_key(|o| (o.record, o.slot));
+        out
+    }
+
+    fn bytes(&self) -> usize {
+        64 + self.records.len() * size_of::<InstanceRecord>() + self.overrides.len() * size_of::<ParamOverride>()
+    }
+}
+
+/// A cell to expand, for whoever asked: `done` is called with the records on a worker thread, unless the job was
+/// cancelled first.
+pub struct Job {
+    /// The world to expand it in.
+    pub world: Arc<ExpandWorld>,
+    /// The cell.
+    pub cell: CellCoord,
+    /// Smaller first: the cell's distance from the viewer that asked.
+    pub priority: f32,
+    /// Set when the cell is no longer wanted.
+    pub cancelled: Arc<AtomicBool>,
+    /// Called with the records.
+    pub done: Box<dyn FnOnce(Arc<Expanded>) + Send>,
+}
+
+impl Job {
+    /// Cancel the job (a no-op once it ran).
+    pub fn cancel(flag: &AtomicBool) {
+        flag.store(true, Relaxed);
+    }
+}
+
+struct Queued(Job, u64);
+
+impl PartialEq for Queued {
+    fn eq(&self, other: &Queued) -> bool {
+        self.cmp(other).is_eq()
+    }
+}
+impl Eq for Queued {}
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, other: &Queued) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Queued {
+    // The heap pops the largest: the nearest, then the oldest.
+    fn cmp(&self, other: &Queued) -> std::cmp::Ordering {
+        other.0.priority.total_cmp(&self.0.priority).then(other.1.cmp(&self.1))
+    }
+}
+
+#[derive(Default)]
+struct Queue {
+    jobs: BinaryHeap<Queued>,
+    next: u64,
+    stop: bool,
+}
+
+/// Counters of an expander.
+#[derive(Debug, Default)]
+pub struct ExpandStats {
+    /// Cells expanded.
+    pub expanded: AtomicU64,
+    /// Jobs answered from the cache.
+    pub hits: AtomicU64,
+    /// Jobs dropped because they were cancelled before a worker took them.
+    pub cancelled: AtomicU64,
+    /// Nanoseconds spent expanding.
+    pub nanos: AtomicU64,
+}
+
+struct Inner {
+    queue: Mutex<Queue>,
+    work: Condvar,
+    cache: Mutex<Lru<(SpeciesHash, CellCoord), Arc<Expanded>>>,
+    cache_bytes: usize,
+    worlds: Mutex<Vec<Arc<ExpandWorld>>>,
+    functions: Mutex<Vec<Arc<WorldFunction>>>,
+    stats: ExpandStats,
+}
+
+/// The worker pool (see the module docs). Dropping it stops its workers; queued jobs are dropped.
+pub struct Expander {
+    inner: Arc<Inner>,
+    workers: Vec<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Expander {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Expander").field("workers", &self.workers.len()).finish()
+    }
+}
+
+impl Expander {
+    /// A pool of `workers` threads (at least one) and a cache of `cache_bytes`.
+    pub fn new(workers: usize, cache_bytes: usize) -> Arc<Expander> {
+        let inner = Arc::new(Inner {
+            queue: Mutex::new(Queue::default()),
+            work: Condvar::new(),
+            cache: Mutex::new(Lru::new()),
+            cache_bytes,
+            worlds: Mutex::new(Vec::new()),
+            functions: Mutex::new(Vec::new()),
+            stats: ExpandStats::default(),
+        });
+        let workers = (0..workers.max(1))
+            .map(|i| {
+                let inner = Arc::clone(&inner);
+                std::thread::Builder::new()
+                    .name(format!("canopy-expand-{i}"))
+                    .spawn(move || inner.run())
+                    .expect("spawning an expansion worker")
+            })
+            .collect();
+        Arc::new(Expander { inner, workers })
+    }
+
+    /// A pool with a worker per available core (one fewer, at least one, so the driver keeps a core) and the
+    /// default cache.
+    pub fn default_pool() -> Arc<Expander> {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        Expander::new(cores.saturating_sub(1).max(1), DEFAULT_CACHE_BYTES)
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &ExpandStats {
+        &self.inner.stats
+    }
+
+    /// A world function this process already holds, by hash.
+    pub fn function(&self, hash: &SpeciesHash) -> Option<Arc<WorldFunction>> {
+        self.inner.functions.locked().iter().find(|f| f.hash() == *hash).cloned()
+    }
+
+    /// The world of a world function, built once per function: from its manifest with `species` (the welcome's
+    /// table, by id) and the terrain species, quantised on `grid`. The error is the manifest's diagnostics.
+    pub fn world(
+        &self,
+        name: &str,
+        function: &Arc<WorldFunction>,
+        species: &[SpeciesGraph],
+        terrain: Option<&SpeciesGraph>,
+        grid: Grid,
+    ) -> Result<Arc<ExpandWorld>, String> {
+        let hash = function.hash();
+        if let Some(w) = self.inner.worlds.locked().iter().find(|w| w.hash == hash) {
+            return Ok(Arc::clone(w));
+        }
+        let world = World::from_function(name, &function.manifest, species, terrain).map_err(|d| d.to_string())?;
+        let built = Arc::new(ExpandWorld { hash, world, grid });
+        let mut worlds = self.inner.worlds.locked();
+        if let Some(w) = worlds.iter().find(|w| w.hash == hash) {
+            return Ok(Arc::clone(w));
+        }
+        if worlds.len() >= WORLDS_KEPT {
+            worlds.remove(0);
+        }
+        worlds.push(Arc::clone(&built));
+        let mut functions = self.inner.functions.locked();
+        if !functions.iter().any(|f| f.hash() == hash) {
+            if functions.len() >= WORLDS_KEPT {
+                functions.remove(0);
+            }
+            functions.push(Arc::clone(function));
+        }
+        Ok(built)
+    }
+
+    /// Use `world` for its hash from now on, in place of building it from the world function (a world built
+    /// elsewhere; tests use it to make a client whose expansion differs from the server's).
+    pub fn adopt(&self, world: ExpandWorld) {
+        let mut worlds = self.inner.worlds.locked();
+        worlds.retain(|w| w.hash != world.hash);
+        worlds.push(Arc::new(world));
+    }
+
+    /// Queue a job (answered at once from the cache when the cell is there).
+    pub fn submit(&self, job: Job) {
+        let cached = self.inner.cache.locked().get(&(job.world.hash, job.cell)).cloned();
+        if let Some(e) = cached {
+            self.inner.stats.hits.fetch_add(1, Relaxed);
+            (job.done)(e);
+            return;
+        }
+        let mut q = self.inner.queue.locked();
+        let n = q.next;
+        q.next += 1;
+        q.jobs.push(Queued(job, n));
+        drop(q);
+        self.inner.work.notify_one();
+    }
+
+    /// Jobs queued and not taken by a worker yet (cancelled ones included until a worker passes them).
+    pub fn queued(&self) -> usize {
+        self.inner.queue.locked().jobs.len()
+    }
+}
+
+impl Drop for Expander {
+    fn drop(&mut self) {
+        {
+            let mut q = self.inner.queue.locked();
+            q.stop = true;
+            q.jobs.clear();
+        }
+        self.inner.work.notify_all();
+        for w in self.workers.drain(..) {
+            let _ = w.join();
+        }
+    }
+}
+
+impl Inner {
+    fn run(&self) {
+        loop {
+            let job = {
+                let mut q = self.queue.locked();
+                loop {
+                    if q.stop {
+                        return;
+                    }
+                    if let Some(Queued(job, _)) = q.jobs.pop() {
+                        break job;
+                    }
+                    q = self.work.waited(q);
+                }
+            };
+            if job.cancelled.load(Relaxed) {
+                self.stats.cancelled.fetch_add(1, Relaxed);
+                continue;
+            }
+            let key = (job.world.hash, job.cell);
+            let cached = self.cache.locked().get(&key).cloned();
+            let expanded = match cached {
+                Some(e) => {
+                    self.stats.hits.fetch_add(1, Relaxed);
+                    e
+                }
+                None => {
+                    let t = std::time::Instant::now();
+                    let w = &job.world;
+                    let placements = w.world.expand_cell(CellKey { x: job.cell.x, z: job.cell.z });
+                    let e = Arc::new(Expanded::of_placements(&w.grid, job.cell, &placements));
+                    self.stats.nanos.fetch_add(t.elapsed().as_nanos() as u64, Relaxed);
+                    self.stats.expanded.fetch_add(1, Relaxed);
+                    let mut cache = self.cache.locked();
+                    cache.insert(key, Arc::clone(&e), e.bytes());
+                    cache.evict_to(self.cache_bytes, Some(&key));
+                    e
+                }
+            };
+            (job.done)(expanded);
+        }
+    }
+}
