@@ -12,6 +12,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::Duration;
 
+use canopy_client::expand::Expander;
 use canopy_client::net::endpoint;
 use canopy_client::state::{ClientState, Event, InstanceView};
 use canopy_client::{ConnectConfig, Connection, Trust};
@@ -22,7 +23,7 @@ use canopy_protocol::record::position_step;
 use canopy_protocol::{CellCoord, InstanceId};
 use canopy_server::edits::{EditStore, MemoryEditStore};
 use canopy_server::session::editor_line;
-use canopy_server::session::{Editors, SessionConfig};
+use canopy_server::session::{Editors, GridStore, SessionConfig, WorldStore};
 use canopy_server::{EditService, Edits, ServeOptions, Served, ServerConfig, serve_store};
 use support::{ALICE, BOB, CELL, base};
 
@@ -40,6 +41,11 @@ struct Fixture {
 
 impl Fixture {
     async fn start() -> Fixture {
+        Fixture::start_on(base()).await
+    }
+
+    /// [`Fixture::start`] over another world.
+    async fn start_on(store: Arc<dyn WorldStore>) -> Fixture {
         let edits = Arc::new(MemoryEditStore::new());
         let text = [editor_line("alice", &ALICE, None, Some(1000)), editor_line("bob", &BOB, None, Some(1000))];
         let cfg = ServerConfig {
@@ -58,7 +64,7 @@ impl Fixture {
             overlay_cache_bytes: 1 << 20,
             ..ServeOptions::default()
         };
-        let server = serve_store(base(), opts).await.expect("server starts");
+        let server = serve_store(store, opts).await.expect("server starts");
         let service = Arc::clone(server.edits().expect("a server taking edits"));
         Fixture { server, edits, service }
     }
@@ -81,8 +87,12 @@ impl Fixture {
 
     /// A client (resuming `state`) at `viewpoint`, complete.
     async fn client_at(&self, token: Option<[u8; 32]>, state: ClientState, viewpoint: Viewpoint) -> Connection {
+        self.client_with(self.config(token), state, viewpoint).await
+    }
+
+    /// A client of configuration `cfg` (resuming `state`) at `viewpoint`, complete.
+    async fn client_with(&self, cfg: ConnectConfig, state: ClientState, viewpoint: Viewpoint) -> Connection {
         let ep = endpoint(local()).unwrap();
-        let cfg = self.config(token);
         let connect = Connection::connect_resuming(&ep, &cfg, None, state, |_| viewpoint);
         let mut c = within("connecting", connect).await.expect("connects");
         c.wait_complete(WAIT).await.expect("the area of interest fills");
@@ -335,6 +345,49 @@ async fn read_only_sessions_and_unknown_tokens_are_denied_and_change_nothing() {
     let outcomes: Vec<u64> = f.service.metrics().outcomes.iter().map(|o| o.load(Relaxed)).collect();
     assert_eq!(outcomes, vec![0, 6, 0, 0], "ok, denied, invalid, conflict");
     for c in [reader, stranger, watcher, fresh] {
+        c.close();
+    }
+    f.stop().await;
+}
+
+/// A small world as a function (the same 8 × 8 grid of 32 m cells as [`base`]): clients may expand it themselves.
+fn function_world() -> Arc<dyn WorldStore> {
+    let text = "world tiny\nseed 7\nbounds -128 -128 128 128\ncell 32\nspecies worm worm\nspecies conifer conifer\n\
+                scatter conifer {\n  spacing 9\n  param height = 8 .. 12 step 0.5\n}\n";
+    let world = canopy_worlds::world::World::parse(&canopy_worlds::diag::SourceFile::new("tiny.world", text), None)
+        .expect("the test world parses");
+    GridStore::from_world(&world).unwrap().shared()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_expands_its_cells_holds_edited_cells_exactly_and_follows_their_changes() {
+    let f = Fixture::start_on(function_world()).await;
+    let mut alice = f.client(Some(ALICE)).await;
+    // Edits before the expanding client comes: a plant, a fell and a set in three cells.
+    let (planted, _) = edit_ok(&mut alice, EditOp::Plant { species: 1, x: 37.3, z: 45.9, params: vec![] }).await;
+    let some = |c: &Connection, cell: CellCoord| by_id(c).into_keys().filter(|id| id.cell() == cell).min().unwrap();
+    let felled = some(&alice, CellCoord::new(-2, 0));
+    edit_ok(&mut alice, EditOp::Fell { id: felled }).await;
+    let set = some(&alice, CellCoord::new(0, -3));
+    edit_ok(&mut alice, EditOp::Set { id: set, params: vec![(0, 11.75)] }).await;
+    let mut cfg = f.config(None);
+    cfg.expander = Some(Expander::new(2, 1 << 20));
+    let mut expanding = f.client_with(cfg, ClientState::new(), Viewpoint::at(0, [0.0, 0.0], EVERYWHERE)).await;
+    let frames = expanding.frame_bytes_received();
+    assert_eq!(frames[ServerMsgKind::Cells], 0, "records were sent");
+    assert!(frames[ServerMsgKind::Grant] > 0);
+    let mut records = f.client(None).await;
+    let want = sorted(&records);
+    assert_eq!(sorted(&expanding), want, "the expanding client holds what the store holds");
+    assert!(by_id(&expanding).contains_key(&planted) && !by_id(&expanding).contains_key(&felled));
+    // A change after the grant comes as a delta, as for records.
+    let (again, v) = edit_ok(&mut alice, EditOp::Plant { species: 0, x: 40.5, z: 50.25, params: vec![] }).await;
+    until_version(&mut expanding, again.cell(), v).await;
+    until_version(&mut records, again.cell(), v).await;
+    assert_eq!(sorted(&expanding), sorted(&records));
+    assert!(by_id(&expanding).contains_key(&again));
+    assert_eq!(expanding.frame_bytes_received()[ServerMsgKind::Cells], 0);
+    for c in [alice, expanding, records] {
         c.close();
     }
     f.stop().await;

@@ -61,9 +61,15 @@ async fn bots_on_every_path_end_holding_exactly_their_area_of_interest() {
     let server = start_server().await;
     let progress = Arc::new(Progress::default());
     let mut runs = vec![];
-    // 20 bots (the CI-sized load run): five on each kind of path.
+    // 20 bots (the CI-sized load run): five on each kind of path; those walking a line or teleporting expand their
+    // cells themselves (one expander for them all, as in `canopy bots`), the others take records.
+    let expander = Expander::new(2, 8 << 20);
     for (i, path) in [PathKind::Line, PathKind::Circle, PathKind::Random, PathKind::Teleport].into_iter().enumerate() {
-        let mut cfg = BotsConfig::new(5, pinned(&server));
+        let mut connect = pinned(&server);
+        if matches!(path, PathKind::Line | PathKind::Teleport) {
+            connect.expander = Some(Arc::clone(&expander));
+        }
+        let mut cfg = BotsConfig::new(5, connect);
         cfg.path = path;
         cfg.speed = 25.0;
         cfg.duration = Duration::from_secs(if path == PathKind::Teleport { 10 } else { 5 });

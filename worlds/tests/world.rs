@@ -853,3 +853,27 @@ fn the_manifest_on_disk_is_the_embedded_world() {
     // Loading again gives the same world.
     assert_eq!(placement_hash(&World::default_world()), placement_hash(embedded));
 }
+
+/// A world function (the manifest a server sends clients that expand cells) builds, with the species table in
+/// statement order and the terrain species, a world whose cells are the server's bit for bit; without the table
+/// it is refused with the manifest's diagnostics, not a panic.
+#[test]
+fn a_world_function_with_its_species_table_expands_to_the_same_cells() {
+    for name in ["forest", "highlands"] {
+        let w = World::embedded(name).unwrap();
+        let species: Vec<_> = w.species.iter().map(|s| s.graph.clone()).collect();
+        let terrain = canopy_worlds::library::find("terrain").map(|e| e.load().unwrap());
+        let f = World::from_function(name, &w.function, &species, terrain.as_ref()).unwrap();
+        assert!(!f.is_materialised(), "a world function is expanded cell by cell");
+        assert_eq!((f.name.as_str(), f.seed, f.cell_size), (w.name.as_str(), w.seed, w.cell_size));
+        let first = w.first_cell();
+        for dz in 0..3 {
+            for dx in 0..3 {
+                let c = canopy_worlds::world::CellKey { x: first.x + 7 * dx + 5, z: first.z + 5 * dz + 9 };
+                assert_eq!(f.expand_cell(c), w.expand_cell(c), "{name} cell {c:?}");
+            }
+        }
+        let short = World::from_function(name, &w.function, &species[..1], terrain.as_ref()).unwrap_err();
+        assert!(short.to_string().contains("species table"), "{short}");
+    }
+}

@@ -165,7 +165,10 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
         _ => None,
     };
     let verify = if args.no_verify { None } else { world };
-    let mut cfg = BotsConfig::new(args.count, ConnectConfig::new_edges(&args.connect.edges(), trust));
+    let mut connect = ConnectConfig::new_edges(&args.connect.edges(), trust);
+    // One expander for every bot of the process: they share its cache, as they would share a world's cells.
+    connect.expander = args.connect.expander();
+    let mut cfg = BotsConfig::new(args.count, connect);
     cfg.path = args.path;
     cfg.speed = args.speed;
     cfg.altitude = args.altitude;

@@ -66,6 +66,9 @@ pub struct DemoArgs {
     /// Do not open the walkthrough window even where there is a display.
     #[arg(long)]
     no_window: bool,
+    /// The bots and the window take every cell's records from the server instead of expanding cells themselves.
+    #[arg(long)]
+    records: bool,
 }
 
 /// Whether a window can be opened here.
@@ -89,11 +92,12 @@ fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (In
     let cells = b(ServerMsgKind::Cells);
     let per = if records > 0 { cells as f64 / records as f64 } else { 0.0 };
     format!(
-        "{:>5.1}s  clients {:>3}  AOI complete {}/{}  records {records} ({rate:.0}/s)  sent: cells {} ({per:.2} B/record), species {}, releases {}",
+        "{:>5.1}s  clients {:>3}  AOI complete {}/{}  records {records} ({rate:.0}/s)  grants {}  sent: cells {} ({per:.2} B/record), species {}, releases {}",
         t.as_secs_f64(),
         m.clients.load(Relaxed),
         p.complete.load(Relaxed),
         bots,
+        m.messages[ServerMsgKind::Grant].load(Relaxed),
         kib(cells),
         kib(b(ServerMsgKind::Species)),
         kib(b(ServerMsgKind::Release)),
@@ -109,6 +113,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     // winit wants the main thread: the server and the bots run on another, the window here.
     let (addr_tx, addr_rx) = std::sync::mpsc::channel();
     let duration = args.duration.max(0.0);
+    let records = args.records;
     let started = Instant::now();
     let headless = std::thread::spawn(move || demo(args, Some(addr_tx), stop_rx));
     let walked = match addr_rx.recv() {
@@ -118,6 +123,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
             walk.connect.server = Some(canopy_client::net::Edges::one(addr));
             walk.connect.cert_fingerprint = Some(fingerprint);
             walk.exit_after = duration;
+            walk.connect.records = records;
             Some(super::walk::run(walk))
         }
         // The demo failed before its server was up; its error is the one to report.
@@ -175,7 +181,9 @@ fn demo(
             let _ = tx.send((server.local_addr(), server.fingerprint().to_string()));
         }
         let trust = Trust::pinned(server.fingerprint()).context("the server's fingerprint")?;
-        let mut cfg = BotsConfig::new(args.bots, ConnectConfig::new(server.local_addr(), trust));
+        let mut connect = ConnectConfig::new(server.local_addr(), trust);
+        connect.expander = (!args.records).then(canopy_client::expand::Expander::default_pool);
+        let mut cfg = BotsConfig::new(args.bots, connect);
         cfg.path = args.path;
         cfg.speed = args.speed;
         cfg.altitude = args.altitude;

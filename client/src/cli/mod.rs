@@ -81,6 +81,10 @@ pub struct ConnectArgs {
     /// Accept any server certificate (local use only).
     #[arg(long)]
     pub insecure: bool,
+    /// Take every cell's instance records from the server, instead of expanding cells here from the world function
+    /// (the default where the server offers one).
+    #[arg(long)]
+    pub records: bool,
 }
 
 impl ConnectArgs {
@@ -95,6 +99,12 @@ impl ConnectArgs {
     /// How to trust the server's certificate (one of the two flags is needed).
     pub fn trust(&self) -> anyhow::Result<canopy_client::Trust> {
         Ok(canopy_client::Trust::from_flags(self.cert_fingerprint.as_deref(), self.insecure)?)
+    }
+
+    /// Where cells are expanded: a pool with a worker per core and the default cache, shared by every connection
+    /// of the process; `None` with `--records`.
+    pub fn expander(&self) -> Option<std::sync::Arc<canopy_client::expand::Expander>> {
+        (!self.records).then(canopy_client::expand::Expander::default_pool)
     }
 
     /// Whether any flag was given (the commands with a server in process refuse trust flags without `--server`).
