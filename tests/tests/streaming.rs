@@ -316,6 +316,16 @@ async fn a_client_that_expands_its_cells_is_sent_no_records_and_holds_exactly_th
     assert_eq!(again.state().cell_mode(), CellMode::Expand { have_function: true });
     assert_eq!(again.frame_bytes_received()[ServerMsgKind::Function], 0);
     bots::verify(again.state(), forest()).unwrap();
+    // A load generator's client takes the same grants and expands nothing: complete at once, no records held.
+    let ep = endpoint(local()).unwrap();
+    let mut thin = pinned(&server);
+    thin.grants_only = true;
+    let place = |_: &Welcome| Viewpoint::at(0, [0.0, 0.0], 100.0);
+    let mut thin = Connection::connect(&ep, &thin, None, place).await.unwrap();
+    thin.wait_complete(Duration::from_secs(60)).await.unwrap();
+    assert_eq!(thin.state().cells().len(), again.state().cells().len());
+    assert_eq!((thin.state().record_count(), thin.frame_bytes_received()[ServerMsgKind::Cells]), (0, 0));
+    thin.close();
     again.close();
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -265,6 +265,8 @@ pub struct ClientState {
     /// Digests due, and one expanded cell in how many is reported.
     digests: Vec<CellDigest>,
     digest_every: u32,
+    /// Take grants and expand nothing (a load generator's client): see [`ClientState::set_grants_only`].
+    grants_only: bool,
 }
 
 impl Default for ClientState {
@@ -297,6 +299,7 @@ impl ClientState {
             expanding: HashMap::new(),
             digests: Vec::new(),
             digest_every: DIGEST_EVERY,
+            grants_only: false,
         }
     }
 

@@ -74,6 +74,11 @@ pub struct BotsArgs {
     /// Do not check the final state against the world.
     #[arg(long)]
     no_verify: bool,
+    /// Only the first N bots expand their cells (and are checked against the world); the others take the cells'
+    /// grants and overlays and expand nothing: the server sees the traffic of every bot, this machine does the
+    /// work of N (default: every bot expands).
+    #[arg(long, value_name = "N", conflicts_with = "records")]
+    expanding: Option<usize>,
     /// How often each bot moves and decides whether to send a viewpoint, milliseconds.
     #[arg(long, default_value_t = 100)]
     tick_ms: u64,
@@ -169,6 +174,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     // One expander for every bot of the process: they share its cache, as they would share a world's cells.
     connect.expander = args.connect.expander();
     let mut cfg = BotsConfig::new(args.count, connect);
+    cfg.expanding = args.expanding;
     cfg.path = args.path;
     cfg.speed = args.speed;
     cfg.altitude = args.altitude;

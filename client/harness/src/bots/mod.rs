@@ -77,6 +77,10 @@ pub struct BotsConfig {
     pub tick: Duration,
     /// The world to check the bots' final state against (`None`: no check).
     pub verify: Option<Arc<World>>,
+    /// Where bots expand cells (`connect.expander`): only the first this many do; the others take grants and
+    /// expand nothing (`ConnectConfig::grants_only`: the server sees the same traffic, the bots' machine none of
+    /// the work) and are not checked against the world. `None`: every bot.
+    pub expanding: Option<usize>,
     /// Set to `true` to stop walking early (the bots then settle and check as at the end of `duration`).
     pub stop: tokio::sync::watch::Receiver<bool>,
     /// Keep every walk inside a square of this side, metres, around the middle of the world (`None`: the whole
@@ -109,6 +113,7 @@ impl BotsConfig {
             endpoints: 1,
             tick: Duration::from_millis(100),
             verify: None,
+            expanding: None,
             stop: tokio::sync::watch::channel(false).1,
             spread: None,
             edits: None,
@@ -586,6 +591,11 @@ async fn bot_session(
 ) -> Result<(), ClientError> {
     let mut connect = cfg.connect.clone();
     connect.client_name = format!("bot-{}", report.id);
+    let thin = connect.expander.is_some() && cfg.expanding.is_some_and(|n| report.id >= n);
+    if thin {
+        connect.expander = None;
+        connect.grants_only = true;
+    }
     spread_over_edges(&mut connect, report.id);
     let editor = cfg.edits.as_ref().filter(|e| report.id < e.editors && e.rate > 0.0);
     // Editors connect with the token; the other bots watch, read-only.
@@ -665,7 +675,9 @@ async fn bot_session(
             .map(|(c, h)| (*c, h.version, edits::cell_digest(h)))
             .collect();
     }
+    let thin = cfg.connect.expander.is_some() && cfg.expanding.is_some_and(|n| report.id >= n);
     if result.is_ok()
+        && !thin
         && let Some(world) = &cfg.verify
     {
         // Checking thousands of records is CPU work: keep it off the runtime's workers, which carry the other

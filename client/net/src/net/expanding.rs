@@ -20,6 +20,8 @@ pub(super) type Done = (CellCoord, u32, Arc<Expanded>);
 /// See the module docs.
 pub(super) struct Expanding {
     expander: Option<Arc<Expander>>,
+    /// Take grants and expand nothing.
+    grants_only: bool,
     world: Option<Arc<ExpandWorld>>,
     /// Grants whose jobs were submitted, with their cancel flags.
     jobs: HashMap<CellCoord, (u32, Arc<AtomicBool>)>,
@@ -32,16 +34,22 @@ pub(super) struct Expanding {
 }
 
 impl Expanding {
-    pub(super) fn new(expander: Option<Arc<Expander>>) -> Expanding {
+    pub(super) fn new(expander: Option<Arc<Expander>>, grants_only: bool) -> Expanding {
         let (tx, rx) = mpsc::unbounded_channel();
-        Expanding { expander, world: None, jobs: HashMap::new(), deferred: Vec::new(), records: Vec::new(), tx, rx }
+        let (jobs, deferred, records) = (HashMap::new(), Vec::new(), Vec::new());
+        Expanding { expander, grants_only, world: None, jobs, deferred, records, tx, rx }
     }
 
     /// The cell mode to ask for (between the welcome and the ready): expand where there is an expander and the
     /// server offers a world function, preloading the function if this process holds it.
     pub(super) fn mode(&self, state: &mut ClientState) -> CellMode {
-        let Some(expander) = &self.expander else { return CellMode::Records };
         let Some(hash) = state.welcome().and_then(|w| w.world.function) else { return CellMode::Records };
+        if self.grants_only {
+            state.set_grants_only(true);
+            state.set_digest_every(0);
+            return CellMode::Expand { have_function: false };
+        }
+        let Some(expander) = &self.expander else { return CellMode::Records };
         let have_function = expander.function(&hash).is_some_and(|f| state.preload_function(f));
         CellMode::Expand { have_function }
     }

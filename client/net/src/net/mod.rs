@@ -54,6 +54,8 @@ pub struct ConnectConfig {
     /// Where cells are expanded when the client expands them itself (the default where the server offers a
     /// world function); `None`: the client takes records.
     pub expander: Option<Arc<Expander>>,
+    /// Ask for grants and expand nothing ([`ClientState::set_grants_only`]): a load generator's client.
+    pub grants_only: bool,
     /// The QUIC client configuration built for `trust` and `idle_timeout`, shared by this configuration's clones.
     quic: Arc<OnceLock<((Trust, Duration), quinn::ClientConfig)>>,
 }
@@ -71,6 +73,7 @@ impl ConnectConfig {
             edges: Vec::new(),
             idle_timeout: tls::IDLE_TIMEOUT,
             expander: None,
+            grants_only: false,
             quic: Arc::default(),
         }
     }
@@ -354,7 +357,7 @@ impl Connection {
         for msg in state.resume()? {
             ready.extend_from_slice(&frame(&msg.encode()));
         }
-        let expanding = expanding::Expanding::new(cfg.expander.clone());
+        let expanding = expanding::Expanding::new(cfg.expander.clone(), cfg.grants_only);
         let mode = expanding.mode(&mut state);
         ready.extend_from_slice(&frame(&state.ready_with(viewpoint, mode)?.encode()));
         control.write_all(&ready).await.map_err(ClientError::from_write)?;

@@ -104,6 +104,12 @@ impl ClientState {
             }
             return bad("delta of a grant not held");
         }
+        if self.grants_only {
+            // Nothing held to change: the version moves.
+            h.version = d.to_version;
+            self.stats.deltas += 1;
+            return Ok(Event::Changed { cell: d.cell, version: d.to_version });
+        }
         if let Some(later) = self.expanding.get_mut(&d.cell) {
             // The cell is still being expanded here: its changes wait for it (a client too slow to keep up asks
             // for it again).

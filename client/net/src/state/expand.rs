@@ -71,6 +71,18 @@ impl ClientState {
         self.function.as_ref()
     }
 
+    /// Take grants and expand nothing: a granted cell counts as held in full with no records, and deltas only move
+    /// its version. For load generators (the server sees the traffic of clients that expand, at none of their
+    /// cost); such a client holds no instances.
+    pub fn set_grants_only(&mut self, on: bool) {
+        self.grants_only = on;
+    }
+
+    /// Whether this client takes grants and expands nothing.
+    pub fn grants_only(&self) -> bool {
+        self.grants_only
+    }
+
     /// Report one expanded cell in `every` by digest (0: none).
     pub fn set_digest_every(&mut self, every: u32) {
         self.digest_every = every;
@@ -113,9 +125,14 @@ impl ClientState {
             overrides: Vec::new(),
             version: g.version,
             felled: Default::default(),
-            expanding: true,
+            expanding: !self.grants_only,
         };
         self.cells.insert(g.cell, held);
+        if self.grants_only {
+            self.stats.grants += 1;
+            self.missing = self.missing + self.missing_at(g.cell) - before;
+            return Ok(Event::Records { cell: g.cell, count: 0, complete: true });
+        }
         let awaiting = Awaiting { cell: g.cell, grant: g.grant, delta: g.delta, deltas: Vec::new() };
         self.expanding.insert(g.cell, awaiting);
         self.stats.grants += 1;
