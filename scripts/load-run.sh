@@ -69,6 +69,8 @@ echo "load-run: server pid $SERVER, world loaded, VmRSS ${RSS0} KiB before any c
 ) &
 SAMPLER=$!
 
+cpu_ticks() { awk '{print $14 + $15}' "/proc/$SERVER/stat"; }
+CPU0=$(cpu_ticks)
 START=$(date +%s.%N)
 set +e
 "$TARGET/release/canopy" bots --count "$COUNT" --path "$PATH_KIND" --speed "$SPEED" --duration "$DURATION" \
@@ -77,6 +79,7 @@ set +e
 BOTS_STATUS=$?
 set -e
 END=$(date +%s.%N)
+CPU1=$(cpu_ticks)
 sleep 1.5
 kill "$SAMPLER" 2>/dev/null || true
 
@@ -86,17 +89,23 @@ SPECIES=$(metric 'canopy_sent_bytes_total{class="species"}')
 RELEASES=$(metric 'canopy_sent_bytes_total{class="release"}')
 WELCOME=$(metric 'canopy_sent_bytes_total{class="welcome"}')
 RECORDS=$(metric canopy_records_sent_total)
+GRANTS=$(metric 'canopy_sent_messages_total{class="grant"}')
+GRANT_BYTES=$(metric 'canopy_sent_bytes_total{class="grant"}')
 SPECIES_MSGS=$(metric 'canopy_sent_messages_total{class="species"}')
 SESSIONS=$(metric canopy_sessions_total)
 echo "---- server side"
 awk -v c="$CELLS" -v s="$SPECIES" -v rl="$RELEASES" -v w="$WELCOME" -v r="$RECORDS" -v sm="$SPECIES_MSGS" -v n="$SESSIONS" 'BEGIN {
     printf "sessions %d; records sent %d; species sent %d times (%.1f per session)\n", n, r, sm, sm / (n > 0 ? n : 1);
-    printf "bytes per record: %.2f in cell batches; %.2f with species, releases and welcomes (frames, before QUIC)\n", c / r, (c + s + rl + w) / r;
+    if (r > 0) printf "bytes per record: %.2f in cell batches; %.2f with species, releases and welcomes (frames, before QUIC)\n", c / r, (c + s + rl + w) / r;
 }'
 awk -v r0="$RSS0" -v r1="$PEAK_RSS" -v c="$PEAK_CLIENTS" 'BEGIN {
     printf "server memory: VmRSS %.1f MiB before clients, %.1f MiB with %d clients: %.1f KiB per client\n", r0 / 1024, r1 / 1024, c, (r1 - r0) / (c > 0 ? c : 1);
 }'
 echo "cell cache: hits $(metric canopy_cell_cache_hits_total), misses $(metric canopy_cell_cache_misses_total), expansions $(metric canopy_cell_expansions_total) (p50 $(metric canopy_cell_expansion_p50_microseconds) µs, p99 $(metric canopy_cell_expansion_p99_microseconds) µs), $(metric canopy_cell_cache_cells) cells in $(metric canopy_cell_cache_bytes) bytes, $(metric canopy_cell_evictions_total) evicted"
 awk -v a="$START" -v b="$END" 'BEGIN { printf "bots process wall time %.1f s\n", b - a }'
+echo "grants (cells the clients expanded themselves): ${GRANTS:-0} in ${GRANT_BYTES:-0} bytes"
+awk -v t0="$CPU0" -v t1="$CPU1" -v hz="$(getconf CLK_TCK)" -v a="$START" -v b="$END" 'BEGIN {
+    printf "server CPU while the bots ran: %.1f s in %.1f s of wall time (%.2f cores)\n", (t1 - t0) / hz, b - a, (t1 - t0) / hz / (b - a);
+}'
 grep -E "stats" "$SERVER_LOG" | tail -n 3 || true
 exit "$BOTS_STATUS"

@@ -256,16 +256,10 @@ impl Shared {
             {
                 return Some(Work::Summary(k));
             }
-            if let Some(c) = st.pending.queue().pop_front() {
+            if let Some(c) = st.pending.next() {
                 let block = |c: CellCoord| (c.x.div_euclid(BLOCK), c.z.div_euclid(BLOCK));
                 let mut cells = vec![c];
-                st.pending.queue().retain(|&q| {
-                    let same = block(q) == block(c);
-                    if same {
-                        cells.push(q);
-                    }
-                    !same
-                });
+                cells.extend(st.pending.take_if(|&q| block(q) == block(c)));
                 self.metrics.queued.store(st.pending.queued() as u64, Relaxed);
                 return Some(Work::Cells(cells));
             }
@@ -399,6 +393,14 @@ impl WorldStore for CellCache {
             self.shared.work.notify_one();
         }
         CellState::Pending
+    }
+
+    fn unwait(&self, c: CellCoord, waker: &Arc<dyn CellWaker>) {
+        let mut st = self.shared.lock();
+        if st.pending.unwait(&c, waker) {
+            self.shared.metrics.cancelled.fetch_add(1, Relaxed);
+            self.shared.metrics.queued.store(st.pending.queued() as u64, Relaxed);
+        }
     }
 
     // The world function's cells are never edited: every cell in the grid is at version 0, known without

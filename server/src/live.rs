@@ -329,7 +329,7 @@ impl Shared {
                     if l.stop {
                         return;
                     }
-                    if let Some(next) = l.waiters.queue().pop_front() {
+                    if let Some(next) = l.waiters.next() {
                         break next;
                     }
                     l = self.work.waited(l);
@@ -620,6 +620,10 @@ impl WorldStore for LiveStore {
 
     fn generation(&self) -> u64 {
         self.base.generation().wrapping_add(self.shared.loaded.load(Relaxed))
+    }
+
+    fn unwait(&self, c: CellCoord, waker: &Arc<dyn CellWaker>) {
+        self.base.unwait(c, waker);
     }
 
     // Whether a cell is edited takes a read of its log, not its records: a cell nobody edited is never expanded

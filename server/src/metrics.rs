@@ -236,6 +236,8 @@ impl Metrics {
             metric("canopy_cell_cache_limit_bytes", "gauge", "The cell cache's bound.", &one(&c.limit));
             metric("canopy_cell_cache_cells", "gauge", "Cells cached.", &one(&c.cells));
             metric("canopy_cell_expansions_queued", "gauge", "Cells waiting for a worker.", &one(&c.queued));
+            let help = "Queued cells dropped unexpanded: every session that wanted them moved on or left.";
+            metric("canopy_cell_expansions_cancelled_total", "counter", help, &one(&c.cancelled));
             metric("canopy_summaries_total", "counter", "Far-view summary nodes computed.", &one(&c.summaries));
             metric(
                 "canopy_summary_cache_bytes",

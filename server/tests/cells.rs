@@ -472,3 +472,37 @@ fn a_session_teleporting_over_a_world_of_a_million_metres_square_stays_within_th
     use std::sync::atomic::Ordering::Relaxed;
     assert!(cache.metrics().evictions.load(Relaxed) > 0);
 }
+
+/// Work no longer wanted is dropped: cells queued for a session that moved on, or left, are never expanded; a
+/// cell another session still wants is.
+#[test]
+fn cells_queued_for_sessions_that_moved_on_or_left_are_never_expanded() {
+    let cache = cache(64 * MIB, 0);
+    let t0 = Instant::now();
+    let here = Viewpoint::at(1, [-600.0, -600.0], 150.0);
+    let mut a = session(as_store(&cache), here, t0);
+    a.set_cell_waker(Arc::new(CountingWaker::default()) as Arc<dyn CellWaker>);
+    let mut b = session(as_store(&cache), Viewpoint::at(1, [600.0, 600.0], 150.0), t0);
+    b.set_cell_waker(Arc::new(CountingWaker::default()) as Arc<dyn CellWaker>);
+    assert!(drain(&mut a, t0).iter().all(|t| batch_of(t).is_none()) && drain(&mut b, t0).is_empty());
+    let grid = *cache.grid();
+    let mine = Aoi::new(&here, &SessionConfig::default().aoi).inner_cells(&grid).len();
+    let both = cache.pending();
+    assert!(both > mine, "both sessions' cells are queued ({both})");
+    // `a` moves across the world: what it asked for here is dropped, what it asks for there is queued.
+    let there = Viewpoint::at(2, [-600.0, 600.0], 150.0);
+    a.handle(t0, ClientMsg::viewpoint(there)).unwrap();
+    drain(&mut a, t0);
+    let cancelled = || cache.metrics().cancelled.load(std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(cancelled() as usize, mine);
+    // `b` leaves: its cells too.
+    let b_cells = cache.pending() - Aoi::new(&there, &SessionConfig::default().aoi).inner_cells(&grid).len();
+    drop(b);
+    assert_eq!(cancelled() as usize, mine + b_cells);
+    // Only what `a` still wants is expanded.
+    let expanded = cache.run_queued();
+    assert_eq!(expanded, Aoi::new(&there, &SessionConfig::default().aoi).inner_cells(&grid).len());
+    assert_eq!(cache.pending(), 0);
+    drain(&mut a, t0);
+    assert!(a.is_complete());
+}

@@ -92,6 +92,8 @@ pub struct CellMetrics {
     pub limit: AtomicU64,
     /// Cells queued for expansion now.
     pub queued: AtomicU64,
+    /// Queued cells dropped unexpanded: every session that wanted them moved on or left.
+    pub cancelled: AtomicU64,
     /// How long expansions took (expanding, quantising and encoding a cell).
     pub expansion_time: Histogram,
     /// Far-view summary nodes computed.

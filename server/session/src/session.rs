@@ -220,6 +220,8 @@ pub struct Session {
     waker: Option<Arc<dyn CellWaker>>,
     /// Cells found pending at store generation `waiting.0`: not asked again until the generation changes.
     waiting: (u64, HashSet<CellCoord>),
+    /// Cells this session's waker waits for in the store: told to the store when no longer wanted.
+    registered: HashSet<CellCoord>,
     /// Cells to send (or finish), least important first, so the next is at the end.
     queue: Vec<(f32, CellCoord)>,
     urgent: VecDeque<Transmit>,
@@ -261,6 +263,12 @@ impl Drop for Session {
         if let Some(b) = &self.cfg.send_budget {
             b.sub(self.unflushed);
         }
+        // Cells queued for this session alone are not expanded after it.
+        if let Some(w) = &self.waker {
+            for c in self.registered.drain() {
+                self.store.unwait(c, w);
+            }
+        }
     }
 }
 
@@ -297,6 +305,7 @@ impl Session {
             pinned: HashMap::new(),
             waker: None,
             waiting: (0, HashSet::new()),
+            registered: HashSet::new(),
             queue: Vec::new(),
             urgent: VecDeque::new(),
             staged: VecDeque::new(),
@@ -834,6 +843,17 @@ impl Session {
         self.queue.extend(band.into_iter().map(|c| (key(c), c)));
         // Least important first; ties by cell so the order is deterministic.
         self.queue.sort_unstable_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+        // Cells waited for that the area of interest no longer holds: the store need not expand them for us.
+        if let Some(w) = &self.waker
+            && !self.registered.is_empty()
+        {
+            let queued: HashSet<CellCoord> = self.queue.iter().map(|q| q.1).collect();
+            let gone: Vec<CellCoord> = self.registered.iter().filter(|c| !queued.contains(c)).copied().collect();
+            for c in gone {
+                self.registered.remove(&c);
+                store.unwait(c, w);
+            }
+        }
     }
 
     fn lane_for(&self, key: f32) -> u8 {
@@ -897,9 +917,13 @@ impl Session {
             let data = match self.pinned.get(&cell) {
                 Some(d) => Arc::clone(d),
                 None => match store.cell(cell, self.waker.as_ref()) {
-                    CellState::Ready(d) => d,
+                    CellState::Ready(d) => {
+                        self.registered.remove(&cell);
+                        d
+                    }
                     CellState::Pending => {
                         self.waiting.1.insert(cell);
+                        self.registered.insert(cell);
                         continue;
                     }
                     CellState::Outside => unreachable!("queued cells are in the grid"),

@@ -249,6 +249,11 @@ pub trait WorldStore: Send + Sync + 'static {
     /// `waker`, if any, is woken when it is ready), or outside the grid. A cell inside the grid without instances is
     /// ready and empty.
     fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn CellWaker>>) -> CellState;
+    /// `waker` no longer wants cell `c` (its session moved on or ended): a cell queued for expansion that nobody
+    /// wants any more leaves the queue unexpanded. A store that never queues ignores it.
+    fn unwait(&self, c: CellCoord, waker: &Arc<dyn CellWaker>) {
+        let _ = (c, waker);
+    }
     /// A number that changes whenever a pending cell becomes ready: while it is unchanged, a cell found pending
     /// is still pending, so a session need not ask again (a store whose cells are always ready keeps it at 0).
     fn generation(&self) -> u64 {
