@@ -256,7 +256,7 @@ impl Shared {
             {
                 return Some(Work::Summary(k));
             }
-            if let Some(c) = st.pending.next() {
+            if let Some(c) = st.pending.take() {
                 let block = |c: CellCoord| (c.x.div_euclid(BLOCK), c.z.div_euclid(BLOCK));
                 let mut cells = vec![c];
                 cells.extend(st.pending.take_if(|&q| block(q) == block(c)));

@@ -329,7 +329,7 @@ impl Shared {
                     if l.stop {
                         return;
                     }
-                    if let Some(next) = l.waiters.next() {
+                    if let Some(next) = l.waiters.take() {
                         break next;
                     }
                     l = self.work.waited(l);

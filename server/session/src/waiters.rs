@@ -15,7 +15,7 @@ pub struct Waiters<K> {
     queue: VecDeque<K>,
     /// Keys in the queue that nobody waits for any more ([`Waiters::unwait`]): skipped when taken.
     cancelled: HashSet<K>,
-    /// Keys taken by [`Waiters::next`] or [`Waiters::take_if`] and not done.
+    /// Keys taken by [`Waiters::take`] or [`Waiters::take_if`] and not done.
     taken: HashSet<K>,
 }
 
@@ -69,7 +69,7 @@ impl<K: Hash + Eq + Clone> Waiters<K> {
     }
 
     /// Take the oldest queued key that is still wanted (it stays waiting until [`Waiters::done`]).
-    pub fn next(&mut self) -> Option<K> {
+    pub fn take(&mut self) -> Option<K> {
         while let Some(k) = self.queue.pop_front() {
             if !self.cancelled.remove(&k) {
                 self.taken.insert(k.clone());
@@ -161,7 +161,7 @@ mod tests {
         assert!(w.unwait(&1, &a), "1 had only a");
         assert!(!w.unwait(&2, &a), "b still waits for 2");
         assert_eq!(w.queued(), 2);
-        assert_eq!(w.next(), Some(2), "1 is skipped");
+        assert_eq!(w.take(), Some(2), "1 is skipped");
         assert!(!w.unwait(&2, &b), "2 is being worked on: it is finished");
         assert_eq!(w.done(&2).len(), 0);
         // Wanted again while its cancelled copy is still queued: the copy is revived, not doubled.
@@ -169,7 +169,7 @@ mod tests {
         assert!(!w.wait(3, Some(&b)));
         assert_eq!(w.queued(), 1);
         assert_eq!(w.take_if(|_| true), vec![3]);
-        assert_eq!((w.next(), w.queued()), (None, 0));
+        assert_eq!((w.take(), w.queued()), (None, 0));
         assert_eq!(w.done(&3).len(), 1);
     }
 }
