@@ -12,7 +12,9 @@
 #
 # Environment: COUNT, DURATION (s), PATH_KIND (line|circle|random|teleport|…), SPEED (m/s), RADIUS (m),
 # CONNECT_RATE (bots/s), TICK_MS (how often a bot moves), WORLD (a manifest; default: the embedded default world),
-# CELL_CACHE_MIB, PORT, METRICS_PORT, CARGO_TARGET_DIR; EXTRA_BOTS_ARGS is passed to `canopy bots` as is.
+# CELL_CACHE_MIB, PORT, METRICS_PORT, CARGO_TARGET_DIR, AFTER (s: the server's memory that long after the bots
+# left); EXTRA_BOTS_ARGS is passed to `canopy bots` as is, EXTRA_SERVER_ARGS to `canopy-server` (all bots come from
+# one address: past 4,096 of them, `--max-per-source`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -31,6 +33,8 @@ CELL_CACHE_MIB=${CELL_CACHE_MIB:-256}
 WORLD_ARGS=()
 [ -n "$WORLD" ] && WORLD_ARGS=(--world "$WORLD")
 # shellcheck disable=SC2206
+SERVER_ARGS=(${EXTRA_SERVER_ARGS:-})
+# shellcheck disable=SC2206
 EXTRA=(${EXTRA_BOTS_ARGS:-})
 
 cargo build --release -q -p canopy-server-app -p canopy-app
@@ -38,7 +42,7 @@ WORK=$(mktemp -d)
 SERVER_LOG="$WORK/server.log"
 
 "$TARGET/release/canopy-server" --listen "127.0.0.1:$PORT" --metrics "127.0.0.1:$METRICS_PORT" \
-    --data-dir "$WORK/data" --stats-every 5 --cell-cache-mib "$CELL_CACHE_MIB" "${WORLD_ARGS[@]}" >"$SERVER_LOG" 2>&1 &
+    --data-dir "$WORK/data" --stats-every 5 --cell-cache-mib "$CELL_CACHE_MIB" "${WORLD_ARGS[@]}" "${SERVER_ARGS[@]}" >"$SERVER_LOG" 2>&1 &
 SERVER=$!
 trap 'kill "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true' EXIT
 
@@ -104,8 +108,18 @@ awk -v r0="$RSS0" -v r1="$PEAK_RSS" -v c="$PEAK_CLIENTS" 'BEGIN {
 echo "cell cache: hits $(metric canopy_cell_cache_hits_total), misses $(metric canopy_cell_cache_misses_total), expansions $(metric canopy_cell_expansions_total) (p50 $(metric canopy_cell_expansion_p50_microseconds) µs, p99 $(metric canopy_cell_expansion_p99_microseconds) µs), $(metric canopy_cell_cache_cells) cells in $(metric canopy_cell_cache_bytes) bytes, $(metric canopy_cell_evictions_total) evicted"
 awk -v a="$START" -v b="$END" 'BEGIN { printf "bots process wall time %.1f s\n", b - a }'
 echo "grants (cells the clients expanded themselves): ${GRANTS:-0} in ${GRANT_BYTES:-0} bytes"
+SENT=$(curl -s "http://127.0.0.1:$METRICS_PORT/metrics" | awk '$1 ~ /^canopy_sent_bytes_total/ {s += $2} END {print s + 0}')
+awk -v b="$SENT" -v n="$SESSIONS" -v d="$DURATION" 'BEGIN {
+    printf "server sent %.1f MiB (frames): %.1f KiB a session, %.0f B a session a second of the walk\n", b / 1048576, b / 1024 / (n > 0 ? n : 1), b / (n > 0 ? n : 1) / d;
+}'
 awk -v t0="$CPU0" -v t1="$CPU1" -v hz="$(getconf CLK_TCK)" -v a="$START" -v b="$END" 'BEGIN {
     printf "server CPU while the bots ran: %.1f s in %.1f s of wall time (%.2f cores)\n", (t1 - t0) / hz, b - a, (t1 - t0) / hz / (b - a);
 }'
 grep -E "stats" "$SERVER_LOG" | tail -n 3 || true
+if [ -n "${AFTER:-}" ]; then
+    sleep "$AFTER"
+    awk -v r0="$RSS0" -v r1="$(rss_kib)" -v a="$AFTER" -v q="$(metric canopy_cell_expansions_queued)" 'BEGIN {
+        printf "%s s after the bots left: VmRSS %.1f MiB (%.1f MiB before any client), %d cells still queued\n", a, r1 / 1024, r0 / 1024, q;
+    }'
+fi
 exit "$BOTS_STATUS"

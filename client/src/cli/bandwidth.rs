@@ -19,8 +19,10 @@ use clap::{Args, ValueEnum};
 /// A payload mode on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 enum Mode {
-    /// Species programs once, then instance records (Canopy).
+    /// Species programs once, then instance records (Canopy with `--records`).
     Procedural,
+    /// Species programs and the world function once, then cell grants: the bots expand cells themselves (Canopy).
+    Expanded,
     /// Baseline 1: every instance's own mesh, meshopt-compressed.
     UniqueMesh,
     /// Baseline 2: one meshopt-compressed mesh per species plus per-instance transforms.
@@ -45,20 +47,22 @@ impl From<Path> for PathKind {
     }
 }
 
-impl From<Mode> for PayloadMode {
-    fn from(m: Mode) -> PayloadMode {
-        match m {
-            Mode::Procedural => PayloadMode::Procedural,
-            Mode::UniqueMesh => PayloadMode::UniqueMesh,
-            Mode::Instanced => PayloadMode::Instanced,
+impl Mode {
+    /// The scenario of this mode over `link`.
+    fn scenario(self, link: LinkSpec) -> Scenario {
+        match self {
+            Mode::Procedural => Scenario::new(PayloadMode::Procedural, link),
+            Mode::Expanded => Scenario::expanded(link),
+            Mode::UniqueMesh => Scenario::new(PayloadMode::UniqueMesh, link),
+            Mode::Instanced => Scenario::new(PayloadMode::Instanced, link),
         }
     }
 }
 
-/// Options of `canopy bandwidth`. With no options: the default walkthrough (all three payloads over 1 Mbit/s,
-/// procedural over 56 kbit/s and over 10 Mbit/s with 1 % loss; 2 bots, 30 s at 10 m/s with a teleport). With
-/// `--path flight`: the flight (procedural over 1 Mbit/s and 10 Mbit/s; 2 bots, 30 s at 250 m/s, 1,500 m above
-/// the highlands, asking for the far view).
+/// Options of `canopy bandwidth`. With no options: the default walkthrough (every payload over 1 Mbit/s, records and
+/// expanded cells side by side; procedural over 56 kbit/s and over 10 Mbit/s with 1 % loss; 2 bots, 30 s at 10 m/s
+/// with a teleport). With `--path flight`: the flight (records and expanded cells over 1 Mbit/s and 10 Mbit/s; 2
+/// bots, 30 s at 250 m/s, 1,500 m above the highlands, asking for the far view).
 #[derive(Args, Debug)]
 pub struct BandwidthArgs {
     /// The bots' path: walk lines (the default walkthrough) or fly (the flight scenario: procedural only, far view
@@ -190,10 +194,14 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
     cfg.command = std::iter::once("canopy".to_string()).chain(std::env::args().skip(1)).collect::<Vec<_>>().join(" ");
     let external = args.connect.server.is_some();
     if !args.modes.is_empty() || !args.rate.is_empty() || external {
-        let modes: Vec<PayloadMode> = if args.modes.is_empty() {
-            if external || flying { vec![PayloadMode::Procedural] } else { PayloadMode::ALL.to_vec() }
+        let modes: Vec<Mode> = if args.modes.is_empty() {
+            if external || flying {
+                vec![Mode::Procedural, Mode::Expanded]
+            } else {
+                vec![Mode::Procedural, Mode::Expanded, Mode::UniqueMesh, Mode::Instanced]
+            }
         } else {
-            args.modes.iter().map(|&m| m.into()).collect()
+            args.modes.clone()
         };
         let rates: Vec<Option<u64>> = if args.rate.is_empty() {
             vec![Some(1_000_000)]
@@ -202,9 +210,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
         };
         cfg.scenarios = rates
             .iter()
-            .flat_map(|&rate| {
-                modes.iter().map(move |&m| Scenario::new(m, LinkSpec::new(rate, args.latency_ms, args.loss)))
-            })
+            .flat_map(|&rate| modes.iter().map(move |&m| m.scenario(LinkSpec::new(rate, args.latency_ms, args.loss))))
             .map(|s| if flying { s.prefixed("flight") } else { s })
             .collect();
     }

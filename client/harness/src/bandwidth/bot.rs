@@ -260,7 +260,11 @@ pub(super) async fn run_scenario(
     let live = Arc::clone(&params.live);
     let t0 = params.t0;
     // One TLS configuration for all the bots: each one's clone only changes the address (its relay's).
-    let base = ConnectConfig::new(server, trust);
+    let mut base = ConnectConfig::new(server, trust);
+    if scenario.expand {
+        // The bots of the scenario share one expander, as the bots of a process do.
+        base.expander = Some(canopy_client::expand::Expander::default_pool());
+    }
     let mut tasks = Vec::new();
     for id in 0..cfg.bots {
         let (relay, addr) = if scenario.link.is_shaped() {

@@ -51,6 +51,8 @@ pub struct Scenario {
     pub mode: PayloadMode,
     /// The link every bot is behind.
     pub link: LinkSpec,
+    /// The bots expand cells themselves (procedural only): the server sends grants, not records.
+    pub expand: bool,
 }
 
 impl Scenario {
@@ -62,7 +64,18 @@ impl Scenario {
             Some(r) => format!("{}k", r as f64 / 1e3),
         };
         let loss = if link.loss > 0.0 { format!("-loss{}", link.loss * 100.0) } else { String::new() };
-        Scenario { name: format!("{}-{rate}{loss}", mode.label()), mode, link }
+        Scenario { name: format!("{}-{rate}{loss}", mode.label()), mode, link, expand: false }
+    }
+
+    /// Procedural over `link`, the bots expanding cells themselves from the world function (`expanded-1M`).
+    pub fn expanded(link: LinkSpec) -> Scenario {
+        let s = Scenario::new(PayloadMode::Procedural, link);
+        Scenario { name: s.name.replacen("procedural", "expanded", 1), expand: true, ..s }
+    }
+
+    /// What the bots take: the payload mode's label, or `expanded`.
+    pub fn label(&self) -> &'static str {
+        if self.expand { "expanded" } else { self.mode.label() }
     }
 
     /// The same scenario, its name prefixed (`flight-procedural-1M`).
@@ -142,7 +155,8 @@ pub struct BandwidthConfig {
 
 impl BandwidthConfig {
     /// The default walkthrough: 2 bots, 30 s at 10 m/s with a teleport, AOI and view 160 m; the three payload
-    /// modes over 1 Mbit/s with 20 ms latency, and procedural over 56 kbit/s (100 ms) and 10 Mbit/s with 1 % loss.
+    /// modes and the bots expanding cells themselves over 1 Mbit/s with 20 ms latency, and procedural over 56
+    /// kbit/s (100 ms) and 10 Mbit/s with 1 % loss.
     pub fn default_run() -> BandwidthConfig {
         let one = LinkSpec::new(Some(1_000_000), 20, 0.0);
         BandwidthConfig {
@@ -161,6 +175,7 @@ impl BandwidthConfig {
             sample: Duration::from_millis(250),
             scenarios: vec![
                 Scenario::new(PayloadMode::Procedural, one),
+                Scenario::expanded(one),
                 Scenario::new(PayloadMode::UniqueMesh, one),
                 Scenario::new(PayloadMode::Instanced, one),
                 Scenario::new(PayloadMode::Procedural, LinkSpec::new(Some(56_000), 100, 0.0)),
@@ -180,8 +195,8 @@ impl BandwidthConfig {
 
     /// The default flight (issues 15 and 18): 2 bots flying 30 s at 250 m/s, 1,500 m above the terrain, without a
     /// teleport, asking for the radius their altitude and speed give (capped by the server) and for the far view
-    /// (16 px on a 1080-pixel 60° view, 20 km), the view distance that radius; procedural over 1 Mbit/s and over
-    /// 10 Mbit/s (20 ms). Meant for a world never materialised (`highlands`); no size table, no mesh sample. Seed
+    /// (16 px on a 1080-pixel 60° view, 20 km), the view distance that radius; records and expanded cells over 1
+    /// Mbit/s and over 10 Mbit/s (20 ms). Meant for a world never materialised (`highlands`); no size table, no mesh sample. Seed
     /// 6: over the highlands, bots 0 and 1 fly over forest nearly all the way (seeds 1 and 2 cross bare rock above
     /// the tree line, where there are no records to measure).
     pub fn flight_run() -> BandwidthConfig {
@@ -202,8 +217,10 @@ impl BandwidthConfig {
             teleport: false,
             seed: 6,
             scenarios: [1_000_000, 10_000_000]
-                .map(|rate| Scenario::new(PayloadMode::Procedural, link(rate)).prefixed("flight"))
-                .to_vec(),
+                .into_iter()
+                .flat_map(|rate| [Scenario::new(PayloadMode::Procedural, link(rate)), Scenario::expanded(link(rate))])
+                .map(|s| s.prefixed("flight"))
+                .collect(),
             size_seeds: 0,
             mesh_sample: 0,
             command: "canopy bandwidth --path flight".into(),
@@ -339,9 +356,9 @@ impl ScenarioResult {
         b
     }
 
-    /// All bots' records received.
+    /// Instance records the bots obtained: received, or expanded themselves from grants.
     pub fn records(&self) -> u64 {
-        self.bots.iter().map(|b| b.bot.records).sum()
+        self.bots.iter().map(|b| b.bot.records + b.bot.expanded).sum()
     }
 
     /// Wire bytes per instance record received (all bytes, both directions).

@@ -55,7 +55,7 @@ pub fn scenario_line(r: &ScenarioResult) -> String {
 /// The procedural scenario and the two baselines over the same link, if the run has all three.
 pub fn comparisons(o: &Outcome) -> Vec<[&ScenarioResult; 3]> {
     let mut out = Vec::new();
-    for p in o.scenarios.iter().filter(|s| s.scenario.mode == PayloadMode::Procedural) {
+    for p in o.scenarios.iter().filter(|s| s.scenario.mode == PayloadMode::Procedural && !s.scenario.expand) {
         let find = |m| o.scenarios.iter().find(|s| s.scenario.mode == m && s.scenario.link == p.scenario.link);
         if let (Some(u), Some(i)) = (find(PayloadMode::UniqueMesh), find(PayloadMode::Instanced)) {
             out.push([p, u, i]);
@@ -292,7 +292,7 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
             s,
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} ({}; {}/{}) | {} | {} | {} | {}/{} |",
             r.scenario.name,
-            r.scenario.mode.label(),
+            r.scenario.label(),
             r.scenario.link.label(),
             group(b.total()),
             group(b.species),
@@ -402,13 +402,13 @@ fn markdown(cfg: &BandwidthConfig, o: &Outcome) -> String {
         let base = proj[0].as_ref().map_or(1.0, |x| x.bytes(n).max(1.0));
         for (r, x) in c.iter().zip(&proj) {
             let Some(x) = x else {
-                let _ = writeln!(s, "| {} | {} | - | - | - | - | - | - |", r.scenario.mode.label(), r.records());
+                let _ = writeln!(s, "| {} | {} | - | - | - | - | - | - |", r.scenario.label(), r.records());
                 continue;
             };
             let _ = writeln!(
                 s,
                 "| {} | {} | {} | {} | {} | {:.0}× | {} | {:.0}× |",
-                r.scenario.mode.label(),
+                r.scenario.label(),
                 r.records(),
                 human(x.fixed),
                 if x.per_instance < 1000.0 { format!("{:.1}", x.per_instance) } else { group(x.per_instance as u64) },

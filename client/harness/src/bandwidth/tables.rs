@@ -54,7 +54,7 @@ pub(super) fn csv_scenarios(o: &Outcome) -> String {
         let sc = &r.scenario;
         let head = [
             sc.name.clone(),
-            sc.mode.label().to_string(),
+            sc.label().to_string(),
             sc.link.rate.map_or(String::new(), |v| v.to_string()),
             sc.link.latency.as_millis().to_string(),
             sc.link.loss.to_string(),

@@ -157,6 +157,8 @@ pub struct BotReport {
     pub complete: bool,
     /// Records received.
     pub records: u64,
+    /// Records the bot expanded itself (cells granted to expand).
+    pub expanded: u64,
     /// Records held at the end.
     pub held: usize,
     /// All frame bytes received by class (welcome, species, cells, release, geometry).
@@ -251,6 +253,7 @@ impl BotReport {
         let state = conn.state();
         let stats = state.stats();
         self.records += stats.records;
+        self.expanded += stats.records_expanded;
         self.species_received += stats.species_received;
         self.summaries += stats.summaries;
         self.species_duplicates += stats.species_duplicates;
