@@ -186,6 +186,8 @@ pub struct SessionStats {
     pub digests_checked: u64,
     /// Digests that differed: the cell is sent as records from then on.
     pub digest_mismatches: u64,
+    /// Digests of cells not held at that version (released or changed since): not checked.
+    pub digests_stale: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -608,6 +610,12 @@ impl Session {
             ClientMsg::Streaming(ClientStreaming::Digest(d)) => {
                 // Each digest may cost the server a cell's expansion: the same budget as viewpoints.
                 self.take_request(now)?;
+                if !self.store.grid().contains(d.cell) {
+                    return Err(SessionError::Message(MessageError::Edit("digest of a cell outside the world")));
+                }
+                // A digest of a cell not held at that version (released since, or changed) is stale: not checked.
+                self.stats.digests_stale +=
+                    u64::from(!self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version));
                 let held = self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version);
                 if held && self.digests.0.len() < MAX_DIGESTS_WAITING {
                     self.digests.0.push_back(d);
@@ -906,6 +914,7 @@ impl Session {
                     }
                     Some(false) => {
                         self.waiting.1.insert(cell);
+                        self.registered.insert(cell);
                         continue;
                     }
                     // No delta from version 0 can be made: this cell goes as records.
@@ -936,8 +945,8 @@ impl Session {
     }
 
     /// Grant queued cell `cell` to a client that expands it: its version, and for an edited cell the delta from
-    /// version 0. `Some(true)`: granted (the grant is urgent: a few bytes, paced like a release); `Some(false)`: the
-    /// store does not know yet (the waker is registered); `None`: no delta can be made, send records.
+    /// version 0. `Some(true)`: granted (staged on the cell's lane and paced like a batch); `Some(false)`: the store
+    /// does not know yet (the waker is registered); `None`: no delta can be made, send records.
     fn grant(&mut self, store: &dyn WorldStore, cell: CellCoord, key: f32) -> Option<bool> {
         let delta = match store.version(cell, self.waker.as_ref()) {
             VersionState::Pending => return Some(false),

@@ -664,3 +664,69 @@ fn the_shared_send_budget_pauses_sessions_until_bytes_are_flushed() {
     drop(b);
     assert_eq!(budget.used(), a.unflushed());
 }
+
+/// A small world as a function (its manifest offered to clients that expand cells), in a store of its cells.
+fn function_store() -> (Arc<dyn WorldStore>, canopy_worlds::world::World) {
+    let text = "world tiny\nseed 7\nbounds -128 -128 128 128\ncell 32\nspecies worm worm\nspecies conifer conifer\n\
+                scatter conifer {\n  spacing 9\n}\n";
+    let src = canopy_worlds::diag::SourceFile::new("tiny.world", text);
+    let world = canopy_worlds::world::World::parse(&src, None).unwrap();
+    (canopy_session::GridStore::from_world(&world).unwrap().shared(), world)
+}
+
+fn expanding(store: &Arc<dyn WorldStore>, vp: Viewpoint, t0: Instant) -> Session {
+    use canopy_protocol::messages::{CellMode, Ready};
+    let mut s = Session::new(Arc::clone(store), config(), t0);
+    s.handle(t0, ClientMsg::hello("test")).unwrap();
+    let w = s.poll_transmit(t0).unwrap();
+    let ServerMsg::Handshake(ServerHandshake::Welcome(w)) = decode(&w) else { panic!("a welcome") };
+    assert!(w.world.function.is_some(), "a world function is offered");
+    let ready = Ready { have: vec![], viewpoint: vp, cells: CellMode::Expand { have_function: false } };
+    s.handle(t0, ClientMsg::Handshake(ClientHandshake::Ready(ready))).unwrap();
+    s
+}
+
+#[test]
+fn a_client_that_expands_gets_the_function_every_species_and_grants_and_its_digests_are_checked() {
+    use canopy_protocol::messages::{CellDigest, ClientStreaming, cell_digest};
+    let (store, _world) = function_store();
+    let t0 = Instant::now();
+    let vp = Viewpoint::at(1, [0.0, 0.0], 60.0);
+    let mut s = expanding(&store, vp, t0);
+    let sent = drain(&mut s, t0);
+    let kinds: Vec<ServerMsgKind> = sent.iter().map(|(_, m)| m.kind()).collect();
+    assert_eq!(kinds[0], ServerMsgKind::Function);
+    assert_eq!(kinds.iter().filter(|k| **k == ServerMsgKind::Species).count(), 2, "every species, once");
+    assert!(!kinds.contains(&ServerMsgKind::Cells), "no records");
+    let granted: Vec<CellCoord> = sent
+        .iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::Grant(g)) => Some(g.cell),
+            _ => None,
+        })
+        .collect();
+    assert!(granted.len() >= 9 && s.is_complete(), "{granted:?}");
+    assert_eq!(s.stats().expand_grants as usize, granted.len());
+    // The right digest is checked and passes; a wrong one is caught and the cell comes as records.
+    let data = |c: CellCoord| store.cell(c, None).ready().unwrap();
+    let (good, bad) = (granted[0], granted[1]);
+    let digest = |c: CellCoord| {
+        let d = data(c);
+        cell_digest(&d.records, &d.overrides, d.felled.iter().copied())
+    };
+    let report = |c: CellCoord, digest: u64| {
+        ClientMsg::Streaming(ClientStreaming::Digest(CellDigest { cell: c, version: 0, digest }))
+    };
+    s.handle(t0, report(good, digest(good))).unwrap();
+    s.handle(t0, report(bad, digest(bad) ^ 1)).unwrap();
+    let again = drain(&mut s, t0);
+    assert_eq!((s.stats().digests_checked, s.stats().digest_mismatches), (2, 1));
+    assert_eq!(cells_of(&again), vec![bad], "the cell whose digest differed comes again as records");
+    assert!(s.is_complete());
+    // A client that asks for a cell's records gets them.
+    s.handle(t0, ClientMsg::Streaming(ClientStreaming::Records(good))).unwrap();
+    assert_eq!(cells_of(&drain(&mut s, t0)), vec![good]);
+    // A digest of a cell outside the world ends the session.
+    let outside = report(CellCoord::new(1000, 0), 0);
+    assert_eq!(s.handle(t0, outside).unwrap_err().close_code(), CloseCode::Invalid);
+}
