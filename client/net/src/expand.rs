@@ -312,3 +312,70 @@ impl Inner {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use canopy_protocol::aoi::Grid;
+
+    fn grid() -> Grid {
+        Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) }
+    }
+
+    #[test]
+    fn a_world_function_that_does_not_build_is_refused_with_its_line_and_column() {
+        let expander = Expander::new(1, 1 << 20);
+        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
+        let bad = Arc::new(WorldFunction {
+            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nscatter a {\n  spacing -3\n}\n"
+                .into(),
+        });
+        let err = expander.world("bad", &bad, std::slice::from_ref(&worm), None, grid()).unwrap_err();
+        assert!(err.contains("bad.world:6:"), "{err}");
+        // A function naming more species than the table holds says so, and names no file it could not read.
+        let two = Arc::new(WorldFunction {
+            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nspecies b worm\n".into(),
+        });
+        let err = expander.world("two", &two, std::slice::from_ref(&worm), None, grid()).unwrap_err();
+        assert!(err.contains("species table"), "{err}");
+    }
+
+    #[test]
+    fn cancelled_jobs_are_dropped_and_the_rest_expand_nearest_first_once_each() {
+        let expander = Expander::new(1, 1 << 20);
+        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
+        let f = Arc::new(WorldFunction {
+            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nscatter a {\n  spacing 4\n}\n".into(),
+        });
+        let world = expander.world("t", &f, std::slice::from_ref(&worm), None, grid()).unwrap();
+        assert!(Arc::ptr_eq(&world, &expander.world("t", &f, &[worm], None, grid()).unwrap()), "built once");
+        assert_eq!(expander.function(&f.hash()).as_deref(), Some(&*f));
+        let (tx, rx) = std::sync::mpsc::channel();
+        let job = |cell: CellCoord, priority: f32, cancelled: bool| Job {
+            world: Arc::clone(&world),
+            cell,
+            priority,
+            cancelled: Arc::new(AtomicBool::new(cancelled)),
+            done: {
+                let tx = tx.clone();
+                Box::new(move |e| tx.send((cell, e)).unwrap())
+            },
+        };
+        let cells = [CellCoord::new(0, 0), CellCoord::new(1, 0), CellCoord::new(2, 0)];
+        expander.submit(job(cells[0], 2.0, false));
+        expander.submit(job(cells[1], 1.0, true));
+        expander.submit(job(cells[2], 3.0, false));
+        let got: Vec<(CellCoord, Arc<Expanded>)> = (0..2).map(|_| rx.recv().unwrap()).collect();
+        assert!(got.iter().all(|(c, _)| *c != cells[1]), "the cancelled job never ran");
+        for (c, e) in &got {
+            let want = world.world.expand_cell(CellKey { x: c.x, z: c.z });
+            assert_eq!(**e, Expanded::of_placements(&grid(), *c, &want));
+            assert!(!e.records.is_empty());
+        }
+        // Asked again, a cell comes from the cache.
+        expander.submit(job(cells[0], 0.0, false));
+        assert_eq!(rx.recv().unwrap().1, got.iter().find(|(c, _)| *c == cells[0]).unwrap().1);
+        assert_eq!(expander.stats().expanded.load(Relaxed), 2);
+        assert!(expander.stats().hits.load(Relaxed) >= 1);
+    }
+}

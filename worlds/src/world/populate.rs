@@ -257,6 +257,14 @@ fn load_species(
     if let Some(compiled) = files.compiled(statement) {
         return Some(compiled);
     }
+    if files.compiled_only() {
+        let msg = match statement {
+            Statement::Species(i) => format!("species {i} is not in the species table this world function came with"),
+            Statement::Terrain => "the terrain species did not come with this world function".to_string(),
+        };
+        diags.push(src.diag(span.clone(), msg));
+        return None;
+    }
     let (file, text, shown) = match source {
         SourceRef::Library(name) => match crate::library::find(name) {
             Some(e) => (e.file.to_string(), e.text.to_string(), format!("library:{}", e.name())),

@@ -19,6 +19,11 @@ pub(crate) trait Resolver {
         let _ = statement;
         None
     }
+
+    /// Whether every species must come from [`Resolver::compiled`] (a world function: no file, no library).
+    fn compiled_only(&self) -> bool {
+        false
+    }
 }
 
 /// A statement of a manifest that names a species.
@@ -49,6 +54,10 @@ impl Resolver for Table<'_> {
             Statement::Species(i) => self.species.get(i).map(|g| (g.clone(), format!("table:{i}"))),
             Statement::Terrain => self.terrain.map(|g| (g.clone(), "table:terrain".to_string())),
         }
+    }
+
+    fn compiled_only(&self) -> bool {
+        true
     }
 }
 
