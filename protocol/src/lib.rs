@@ -8,6 +8,7 @@ pub mod aoi;
 pub mod edit;
 pub mod expr;
 pub mod frame;
+pub mod grant;
 pub mod hypertree;
 pub mod limits;
 pub mod lru;

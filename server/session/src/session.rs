@@ -27,10 +27,10 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::{Aoi, AoiParams, Viewpoint};
-use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome, EditResult, ResumeCell};
+use canopy_protocol::edit::{EditOp, EditOutcome, EditResult, ResumeCell};
 use canopy_protocol::messages::{
-    ByKind, CellDigest, CellGrant, CellMode, ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind,
-    MessageError, PhaseError, Release, ServerMsgKind, ServerStreaming, cell_digest,
+    CellDigest, ClientHandshake, ClientStreaming, GeometryChunk, GeometryKind, MessageError, PhaseError, Release,
+    ServerMsgKind, ServerStreaming,
 };
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERSION, Phase, ServerMsg, netlimits};
 
@@ -38,8 +38,13 @@ use crate::editors::{Editor, Editors};
 use crate::far::{Eye, FarSession};
 pub use crate::pacing::SendBudget;
 use crate::pacing::TokenBucket;
-use crate::store::{CellData, CellState, CellWaker, Changes, VersionState, WorldStore};
+use crate::store::{CellData, CellState, CellWaker, Changes, WorldStore};
 pub use crate::transmit::{StreamId, Transmit};
+
+mod expand;
+mod stats;
+
+pub use stats::SessionStats;
 
 /// Most edits of one session handed to the writer and not yet answered; more are denied until answers come.
 pub const MAX_EDITS_IN_FLIGHT: usize = 256;
@@ -157,37 +162,6 @@ impl SessionError {
             SessionError::ViewpointFlood(_) | SessionError::Resume(_) => CloseCode::Invalid,
         }
     }
-}
-
-/// What a session has sent, for tests, logs and metrics.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct SessionStats {
-    /// Bytes by [`ServerMsgKind`], framing included.
-    pub bytes: ByKind<u64>,
-    /// Messages by [`ServerMsgKind`].
-    pub messages: ByKind<u64>,
-    /// Explicit-geometry blobs not sent because they exceed [`netlimits::MAX_GEOMETRY_BYTES`].
-    pub oversize: u64,
-    /// Instance records sent.
-    pub records: u64,
-    /// Viewpoints received.
-    pub viewpoints: u64,
-    /// Grants opened.
-    pub grants: u64,
-    /// Edits received.
-    pub edits: u64,
-    /// Deltas sent.
-    pub deltas: u64,
-    /// Edits the session denied itself (read-only, over the editor's rate, too many waiting), before the writer.
-    pub edits_denied: u64,
-    /// Cells granted to the client to expand itself (no records sent).
-    pub expand_grants: u64,
-    /// Digests of the client's expansions checked against the server's.
-    pub digests_checked: u64,
-    /// Digests that differed: the cell is sent as records from then on.
-    pub digest_mismatches: u64,
-    /// Digests of cells not held at that version (released or changed since): not checked.
-    pub digests_stale: u64,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -514,23 +488,7 @@ impl Session {
                     self.set_species(id);
                 }
                 self.phase = next;
-                // A client that expands cells gets the world function (unless it holds it) and every species, first.
-                if let (CellMode::Expand { have_function }, Some(function)) = (r.cells, self.store.function_frame()) {
-                    self.expand = true;
-                    if !have_function {
-                        let t = Transmit {
-                            stream: StreamId::Lane(0),
-                            bytes: function,
-                            body: Bytes::new(),
-                            class: ServerMsgKind::Function,
-                            records: 0,
-                        };
-                        self.urgent.push_back(t);
-                    }
-                    for id in 0..table {
-                        self.send_species_once(id as u8, StreamId::Lane(0));
-                    }
-                }
+                self.start_expanding(r.cells);
                 // Resumed cells take grants 1, 2, … in the order named; what changed since their version is sent
                 // once the store knows (those the viewpoint does not keep are released at once).
                 let grid = *self.store.grid();
@@ -599,29 +557,8 @@ impl Session {
                     self.dirty = true;
                 }
             }
-            ClientMsg::Streaming(ClientStreaming::Records(c)) => {
-                // A cell granted again as records: at most as often as viewpoints.
-                self.take_request(now)?;
-                if self.expand && self.record_cells.len() < MAX_RECORD_CELLS && self.record_cells.insert(c) {
-                    self.release(c);
-                    self.dirty = true;
-                }
-            }
-            ClientMsg::Streaming(ClientStreaming::Digest(d)) => {
-                // Each digest may cost the server a cell's expansion: the same budget as viewpoints.
-                self.take_request(now)?;
-                if !self.store.grid().contains(d.cell) {
-                    return Err(SessionError::Message(MessageError::Edit("digest of a cell outside the world")));
-                }
-                // A digest of a cell not held at that version (released since, or changed) is stale: not checked.
-                self.stats.digests_stale +=
-                    u64::from(!self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version));
-                let held = self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version);
-                if held && self.digests.0.len() < MAX_DIGESTS_WAITING {
-                    self.digests.0.push_back(d);
-                    self.digests.1 = None;
-                }
-            }
+            ClientMsg::Streaming(ClientStreaming::Records(c)) => self.on_records(now, c)?,
+            ClientMsg::Streaming(ClientStreaming::Digest(d)) => self.on_digest(now, d)?,
             ClientMsg::Streaming(ClientStreaming::FarView(f)) => {
                 // Each far view costs a rebuild: the same budget as viewpoints.
                 self.take_request(now)?;
@@ -942,73 +879,6 @@ impl Session {
             return true;
         }
         false
-    }
-
-    /// Grant queued cell `cell` to a client that expands it: its version, and for an edited cell the delta from
-    /// version 0. `Some(true)`: granted (staged on the cell's lane and paced like a batch); `Some(false)`: the store
-    /// does not know yet (the waker is registered); `None`: no delta can be made, send records.
-    fn grant(&mut self, store: &dyn WorldStore, cell: CellCoord, key: f32) -> Option<bool> {
-        let delta = match store.version(cell, self.waker.as_ref()) {
-            VersionState::Pending => return Some(false),
-            VersionState::Unedited => None,
-            VersionState::Edited => match store.changes(cell, 0, self.waker.as_ref()) {
-                Changes::Pending => return Some(false),
-                Changes::Current { .. } => None,
-                Changes::Delta(d) => Some(d),
-                Changes::Whole => return None,
-            },
-            VersionState::Outside => unreachable!("queued cells are in the grid"),
-        };
-        let grant = self.next_grant;
-        self.next_grant = self.next_grant.wrapping_add(1).max(1);
-        self.stats.grants += 1;
-        self.stats.expand_grants += 1;
-        let lane = self.lane_for(key);
-        let (version, total) = delta.as_ref().map_or((0, 0), |d| (d.to_version, d.total));
-        self.held.insert(cell, Held { grant, lane, sent: total, total, version, expanded: true });
-        let delta = delta.map(|d| CellDelta { grant, ..d });
-        let msg = ServerMsg::Streaming(ServerStreaming::Grant(CellGrant { cell, grant, version, delta }));
-        self.staged.push_back((cell, Self::transmit(StreamId::Lane(lane), &msg)));
-        Some(true)
-    }
-
-    /// Check the client's digests of its expansions against the store's cells (expanded for it where they are not
-    /// already): a cell that differs is counted and granted again as records.
-    fn check_digests(&mut self) {
-        let store = Arc::clone(&self.store);
-        let generation = store.generation();
-        if self.digests.0.is_empty() || self.digests.1 == Some(generation) {
-            return;
-        }
-        self.digests.1 = Some(generation);
-        let mut waiting = VecDeque::new();
-        while let Some(d) = self.digests.0.pop_front() {
-            // A digest of a grant since released, or of an older version, is stale.
-            if !self.held.get(&d.cell).is_some_and(|h| h.expanded && h.version == d.version) {
-                continue;
-            }
-            let data = match store.cell(d.cell, self.waker.as_ref()) {
-                CellState::Ready(data) => data,
-                CellState::Pending => {
-                    waiting.push_back(d);
-                    continue;
-                }
-                CellState::Outside => continue,
-            };
-            if data.version != d.version {
-                continue;
-            }
-            self.stats.digests_checked += 1;
-            if cell_digest(&data.records, &data.overrides, data.felled.iter().copied()) != d.digest {
-                self.stats.digest_mismatches += 1;
-                if self.record_cells.len() < MAX_RECORD_CELLS {
-                    self.record_cells.insert(d.cell);
-                    self.release(d.cell);
-                    self.dirty = true;
-                }
-            }
-        }
-        self.digests.0 = waiting;
     }
 
     /// Stage the next unit of queued cell `i` (see [`Session::stage_next_unit`]), its records `data`.
