@@ -18,6 +18,7 @@ pub mod record;
 pub mod species;
 pub mod summary;
 pub mod sync;
+pub mod world;
 pub mod xorshift;
 
 pub use expr::{Expr, Func, Op};
