@@ -154,7 +154,7 @@ fn demo_streams_the_default_world_to_bots_and_checks_them() {
         .expect("canopy runs");
     let out = text(&o);
     assert!(o.status.success(), "{out}");
-    assert!(out.contains("instances: 194353"), "{out}");
+    assert!(out.contains("instances: 177241"), "{out}");
     assert!(out.contains("the walkthrough window failed"), "{out}");
     assert!(out.contains("AOI complete 3/3"), "{out}");
     assert!(out.contains("checked against the world: 3 of 3 exact"), "{out}");

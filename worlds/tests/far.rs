@@ -279,6 +279,7 @@ fn an_avoiding_rule_is_estimated_within_tolerance() {
             l.iter().for_each(|p| exact[usize::from(p.species)] += 1);
         }
         for (e, x) in est.iter().zip(&exact) {
+            eprintln!("{e} estimated, {x} placed ({:+.1} %)", (*e as f64 / *x as f64 - 1.0) * 100.0);
             assert!((*e as f64 / *x as f64 - 1.0).abs() < 0.08, "{e} estimated, {x} placed:\n{text}");
         }
     }

@@ -7,32 +7,26 @@ use std::collections::BTreeMap;
 use std::ops::Range;
 
 use super::fractal::Patch;
-use super::{Bounds, CellKey, Placement, ScatterRule, World, par};
+use super::tiles::MARGIN;
+use super::{Bounds, CellKey, Placement, ScatterRule, World};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
+
+/// A dart's stream (`child_key(child_key(R, 1), x steps)` then `z steps`): its keep draw is word 0, its `n`-th
+/// parameter word `1 + n`.
+const WORD_KEEP: u64 = 0;
+const WORD_PARAMS: u64 = 1;
 
 /// Rounds of the priority Poisson-disk process: each round lets every empty background cell propose one more
 /// dart.
 pub const ROUNDS: u32 = 3;
-/// Most background cells (summed over rules and rounds) one cell's expansion may visit; a manifest whose rules and
-/// `avoid` chains need more is refused at load.
+/// Most background cells (summed over rules and rounds) one cell's expansion may visit, the tile variants it may
+/// compute included; a manifest whose rules and `avoid` chains need more is refused at load.
 pub const MAX_CELL_WORK: f64 = 16_777_216.0;
 /// Most instances in one cell: an index in a cell fits 16 bits.
 pub const MAX_CELL_INSTANCES: usize = 65_535;
 /// Cells per side of the blocks a large region is expanded in (bounds the memory of one expansion).
 pub const REGION_BLOCK: i32 = 32;
-
-/// Positions an empty background cell tries per round before it gives up proposing in that round.
-pub const ATTEMPTS: u32 = 7;
-
-/// Words of a background cell's stream: round `r` reads words `8r .. 8r + ATTEMPTS` for its positions and word
-/// `8r + 7` for its priority (block 0 is read for every background cell, block 1 only for those still empty in the
-/// last round); a placed dart's keep draw is word 24 and its parameters words 25, 26, ….
-const WORDS_PER_ROUND: u64 = 8;
-const ROUND_WORDS: usize = (WORDS_PER_ROUND * ROUNDS as u64) as usize;
-const _: () = assert!(ROUND_WORDS == 24, "rounds 0 and 1 read block 0, round 2 block 1");
-const WORD_KEEP: u64 = ROUND_WORDS as u64;
-const WORD_PARAMS: u64 = WORD_KEEP + 1;
 
 /// The populations of a manifest in the form expansion reads them: explicit instances indexed by cell, and the
 /// file position of every population (a rule avoids only what was placed before it).
@@ -90,21 +84,9 @@ impl Rect {
     }
 }
 
-/// The background cell edge of a rule, `spacing / √2`.
-fn background(rule: &ScatterRule) -> f64 {
-    f64::from(rule.spacing) / std::f64::consts::SQRT_2
-}
-
-/// How far outside its output a rule must be computed for the output to be exact: the first round's decision at a
-/// dart depends on proposals within `spacing`, every later round's on what the previous rounds placed within
-/// `2 · spacing`; and a dart lies anywhere in its background cell.
-fn halo(rule: &ScatterRule) -> f64 {
-    f64::from(2 * ROUNDS - 1) * f64::from(rule.spacing) + 2.0 * background(rule)
-}
-
-/// The rectangle each rule must be exact over for `target` to be: its own output, grown by the halo and `avoid`
-/// distance of every later rule that avoids its species, clipped to the rule's region. `None` where a rule
-/// contributes nothing.
+/// The rectangle each rule must be exact over for `target` to be: its own output, grown by the `avoid` distance
+/// of every later rule that avoids its species, clipped to the rule's region. `None` where a rule contributes
+/// nothing.
 fn plan(world: &World, target: Rect) -> Vec<Option<Rect>> {
     let need = plan_unclipped(world, target);
     need.into_iter()
@@ -123,7 +105,7 @@ fn plan_unclipped(world: &World, target: Rect) -> Vec<Rect> {
         for &(species, d) in &rules[n].avoid {
             for m in 0..n {
                 if rules[m].species == species {
-                    need[m] = need[m].union(out.grow(halo(&rules[n]) + f64::from(d) + 1.0));
+                    need[m] = need[m].union(out.grow(f64::from(d) + 1.0));
                 }
             }
         }
@@ -131,15 +113,20 @@ fn plan_unclipped(world: &World, target: Rect) -> Vec<Rect> {
     need
 }
 
-/// Background cells and rounds one cell's expansion costs at most, wherever the cell lies (the load-time bound).
+/// Background cells and rounds one cell's expansion costs at most, wherever the cell lies (the load-time bound):
+/// every tile a rule's rectangle touches, each computed from its window of `(4 · MARGIN)²` background cells.
 pub(crate) fn cell_work(world: &World) -> f64 {
     let s = f64::from(world.cell_size);
+    let (step, _) = super::populate::position_step(world.cell_size);
     let target = Rect { lo: [0.0, 0.0], hi: [s, s] };
+    let window = (4 * MARGIN * 4 * MARGIN) as f64 * f64::from(ROUNDS);
     plan_unclipped(world, target)
         .iter()
         .zip(&world.rules)
-        .map(|(r, rule)| (r.grow(halo(rule)), background(rule)))
-        .map(|(r, g)| ((r.hi[0] - r.lo[0]) / g + 2.0) * ((r.hi[1] - r.lo[1]) / g + 2.0) * f64::from(ROUNDS))
+        .map(|(r, rule)| {
+            let t = rule.tiles.side() as f64 * step;
+            ((r.hi[0] - r.lo[0]) / t + 2.0) * ((r.hi[1] - r.lo[1]) / t + 2.0) * window
+        })
         .sum()
 }
 
@@ -223,97 +210,8 @@ impl Buckets {
     }
 }
 
-/// A window of background cells, row-major, with a border of two empty cells on every side so that every
-/// neighbour of a window cell has an index.
-struct Field {
-    lo: [i64; 2],
-    dims: [i64; 2],
-    /// Index offsets of the cells that can hold a dart closer than `spacing = g·√2` to one in a cell: those within
-    /// two, less the four corners (their nearest points are exactly `2·g·√2 − g·√2 = spacing` apart) and itself.
-    near: [isize; 20],
-}
-
-impl Field {
-    fn new(lo: [i64; 2], hi: [i64; 2]) -> Field {
-        let dims = [hi[0] - lo[0] + 5, hi[1] - lo[1] + 5];
-        // Nearest first: a conflict, when there is one, is found after a few comparisons.
-        let mut offsets: Vec<(i64, i64)> = (-2i64..=2)
-            .flat_map(|b| (-2i64..=2).map(move |a| (a, b)))
-            .filter(|&(a, b)| !(a.abs() == 2 && b.abs() == 2) && (a, b) != (0, 0))
-            .collect();
-        offsets.sort_by_key(|&(a, b)| (a * a + b * b, b, a));
-        let near = std::array::from_fn(|n| (offsets[n].1 * dims[0] + offsets[n].0) as isize);
-        Field { lo, dims, near }
-    }
-
-    fn len(&self) -> usize {
-        (self.dims[0] * self.dims[1]) as usize
-    }
-
-    /// The index of window cell (i, j).
-    fn at(&self, i: i64, j: i64) -> usize {
-        ((j - self.lo[1] + 2) * self.dims[0] + (i - self.lo[0] + 2)) as usize
-    }
-
-    fn neighbours(&self, k: usize) -> impl Iterator<Item = usize> + '_ {
-        self.near.iter().map(move |&o| (k as isize + o) as usize)
-    }
-}
-
-/// Windows of at least this many background cells are worked on in bands of rows on the available cores.
-const PARALLEL_CELLS: usize = 1 << 16;
-
-/// Bands of a field's rows for [`par::each`]: one band for a small window.
-struct Bands {
-    /// Per band: its first and last row (background cell coordinates) and its first padded row.
-    rows: Vec<(i64, i64, usize)>,
-    /// Padded row width.
-    width: usize,
-}
-
-impl Bands {
-    fn new(field: &Field, lo: i64, hi: i64) -> Bands {
-        let count = if field.len() >= PARALLEL_CELLS { 8 } else { 1 };
-        let per = ((hi - lo + count) / count).max(1);
-        let rows = (0..count)
-            .map(|b| (lo + b * per, (lo + (b + 1) * per - 1).min(hi)))
-            .filter(|(a, b)| a <= b)
-            .map(|(a, b)| (a, b, (a - lo + 2) as usize))
-            .collect();
-        Bands { rows, width: field.dims[0] as usize }
-    }
-
-    /// The jobs of one phase writing `out`: per band, its rows of `out`, the index of their first slot and the
-    /// band's first and last row.
-    fn jobs<'a, T>(&self, out: &'a mut [T]) -> Vec<(&'a mut [T], usize, (i64, i64))> {
-        let first = self.rows.first().map_or(0, |r| r.2 * self.width);
-        let mut lengths = vec![first];
-        lengths.extend(self.rows.iter().map(|&(a, b, _)| (b - a + 1) as usize * self.width));
-        let mut runs = par::split_runs(out, &lengths).into_iter().skip(1);
-        self.rows
-            .iter()
-            .map(|&(a, b, start)| (runs.next().expect("one run per band"), start * self.width, (a, b)))
-            .collect()
-    }
-}
-
-/// No dart: x is NaN.
-const EMPTY: [f64; 2] = [f64::NAN, f64::NAN];
-
-/// Whether a dart at `d` lies closer than `√r2` to (x, z) (an empty slot never does).
-#[inline]
-fn closer(d: [f64; 2], x: f64, z: f64, r2: f64) -> bool {
-    let (dx, dz) = (d[0] - x, d[1] - z);
-    dx * dx + dz * dz < r2
-}
-
-/// The ChaCha8 stream of background cell (i, j) of a rule.
-fn cell_stream(rule: &ScatterRule, i: i64, j: i64) -> u64 {
-    child_key(child_key(rule.key, 0), (u64::from(i as u32) << 32) | u64::from(j as u32))
-}
-
-/// Expand one rule over `exact` (computing over it grown by the halo): the kept darts inside `exact`, in
-/// row-major order of their background cells, with their parameter values.
+/// Expand one rule over `exact`: the darts of its tiles inside `exact` and its region, far enough from what it
+/// avoids, kept by density, row-major by position, with their parameter values.
 fn scatter(
     world: &World,
     rule: &ScatterRule,
@@ -322,130 +220,45 @@ fn scatter(
     avoid: Option<&Buckets>,
     rng: &mut InstanceRng,
 ) -> Vec<Placement> {
-    let g = background(rule);
-    let area = exact.grow(halo(rule)).clip(&rule.region);
-    let lo = [(area.lo[0] / g).floor() as i64, (area.lo[1] / g).floor() as i64];
-    let hi = [(area.hi[0] / g).floor() as i64, (area.hi[1] / g).floor() as i64];
-    let field = Field::new(lo, hi);
-    let n = field.len();
-    let mut placed = vec![EMPTY; n];
-    let (step, inv_step) = super::populate::position_step(world.cell_size);
-    let r2 = f64::from(rule.spacing) * f64::from(rule.spacing);
-    let region = Rect { lo: rule.region.min.map(f64::from), hi: rule.region.max.map(f64::from) };
-    // Grid positions `k · step` inside background cell `i`: `(first k, count)`.
-    let positions = |i: i64| {
-        let first = ((i as f64 * g) * inv_step).ceil() as i64;
-        (first, (((i + 1) as f64 * g) * inv_step).ceil() as i64 - first)
-    };
     // Where the rule's density is 0 over the whole area, it places nothing (its darts would all be thinned out).
     if let Ground::Patch(p) = ground
         && rule.altitude.max_over(p.height_range()) <= 0.0
     {
         return Vec::new();
     }
-    // Every phase below is independent per background cell: it writes the cell's own slot and reads only what the
-    // phase before wrote. A large window runs in bands of rows on the available cores, with the same result.
-    let bands = Bands::new(&field, lo[1], hi[1]);
-    let seed = world.seed;
-    // Block 0 of every background cell's stream (rounds 0 and 1); block 1 (round 2) only for the cells still
-    // empty when it begins.
-    let mut words = vec![[0u32; ROUND_WORDS]; n];
-    let fill = |words: &mut [[u32; ROUND_WORDS]], offset: usize, rows: (i64, i64), placed: &[[f64; 2]], part: usize| {
-        let mut rng = InstanceRng::new(seed);
-        for j in rows.0..=rows.1 {
-            for i in lo[0]..=hi[0] {
-                let k = field.at(i, j);
-                if part == 1 && !placed[k][0].is_nan() {
-                    continue;
-                }
-                let stream = cell_stream(rule, i, j);
-                let range = if part == 0 { 0..16 } else { 16..ROUND_WORDS };
-                for w in range {
-                    words[k - offset][w] = rng.word(stream, w as u64);
-                }
-            }
-        }
-    };
-    par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 0));
-    // Per background cell: this round's proposal (NaN for none) and its priority.
-    let mut proposals = vec![(EMPTY, 0u32); n];
-    for round in 0..ROUNDS as usize {
-        if round * WORDS_PER_ROUND as usize == 16 {
-            par::each(bands.jobs(&mut words), |(slice, offset, rows)| fill(slice, offset, rows, &placed, 1));
-        }
-        // Proposals: every empty background cell tries up to ATTEMPTS positions and proposes the first that keeps
-        // `spacing` from the placed darts and the `avoid` distances.
-        let base = round * WORDS_PER_ROUND as usize;
-        let propose = |out: &mut [([f64; 2], u32)], offset: usize, rows: (i64, i64)| {
-            for j in rows.0..=rows.1 {
-                let (kz, cz) = positions(j);
-                for i in lo[0]..=hi[0] {
-                    let k = field.at(i, j);
-                    out[k - offset] = (EMPTY, 0);
-                    let (kx, cx) = positions(i);
-                    if !placed[k][0].is_nan() || cx < 1 || cz < 1 {
-                        continue;
-                    }
-                    let block = &words[k];
-                    let proposal = block[base..base + ATTEMPTS as usize].iter().find_map(|&w| {
-                        let x = (kx + ((i64::from(w & 0xffff) * cx) >> 16)) as f64 * step;
-                        let z = (kz + ((i64::from(w >> 16) * cz) >> 16)) as f64 * step;
-                        let inside = region.contains(x, z) && area.contains(x, z);
-                        let clear = inside && !field.neighbours(k).any(|q| closer(placed[q], x, z, r2));
-                        (clear && !avoid.is_some_and(|b| b.near(x, z))).then_some([x, z])
-                    });
-                    if let Some(p) = proposal {
-                        out[k - offset] = (p, block[base + WORDS_PER_ROUND as usize - 1]);
-                    }
-                }
-            }
-        };
-        par::each(bands.jobs(&mut proposals), |(slice, offset, rows)| propose(slice, offset, rows));
-        // Acceptance: a proposal is placed if it outranks every proposal within `spacing` (priority, then the
-        // background cell in row-major order: a strict order, so two darts closer than `spacing` are never both
-        // placed).
-        let accept = |out: &mut [[f64; 2]], offset: usize, rows: (i64, i64)| {
-            for j in rows.0..=rows.1 {
-                for i in lo[0]..=hi[0] {
-                    let k = field.at(i, j);
-                    let (d, priority) = proposals[k];
-                    if d[0].is_nan() {
-                        continue;
-                    }
-                    let wins = field.neighbours(k).all(|q| {
-                        let (o, other) = proposals[q];
-                        !closer(o, d[0], d[1], r2) || (priority, k) > (other, q)
-                    });
-                    if wins {
-                        out[k - offset] = d;
-                    }
-                }
-            }
-        };
-        par::each(bands.jobs(&mut placed), |(slice, offset, rows)| accept(slice, offset, rows));
+    let (step, inv_step) = super::populate::position_step(world.cell_size);
+    // The position steps `k` with `k · step` in `[lo, hi)` (the step is a power of two: exact).
+    let first = |v: f64| (v * inv_step).ceil() as i64;
+    let lo = [first(exact.lo[0]), first(exact.lo[1])];
+    let hi = [first(exact.hi[0]) - 1, first(exact.hi[1]) - 1];
+    if lo[0] > hi[0] || lo[1] > hi[1] {
+        return Vec::new();
     }
-    // Thinning and parameters, inside the exact rectangle only.
-    let mut kept = Vec::new();
+    let region = Rect { lo: rule.region.min.map(f64::from), hi: rule.region.max.map(f64::from) };
     let graph = &world.species[usize::from(rule.species)].graph;
-    for j in lo[1]..=hi[1] {
-        for i in lo[0]..=hi[0] {
-            let [x, z] = placed[field.at(i, j)];
-            if x.is_nan() || !exact.contains(x, z) {
-                continue;
-            }
-            let stream = cell_stream(rule, i, j);
-            if unit_f32(rng.word(stream, WORD_KEEP)) >= ground.density(rule, x, z) {
-                continue;
-            }
-            let mut params = Vec::new();
-            for (m, &(slot, value)) in rule.params.iter().enumerate() {
-                let v = value.value(rng.word(stream, WORD_PARAMS + m as u64));
-                if !super::populate::is_default(graph, slot, v) {
-                    params.push((slot, v));
-                }
-            }
-            kept.push(Placement { species: rule.species, x, z, params });
+    let darts = child_key(rule.key, 1);
+    let mut kept = Vec::new();
+    for [kx, kz] in rule.tiles.darts(lo, hi) {
+        let (x, z) = (kx as f64 * step, kz as f64 * step);
+        if !region.contains(x, z) || !exact.contains(x, z) || avoid.is_some_and(|b| b.near(x, z)) {
+            continue;
         }
+        let density = ground.density(rule, x, z);
+        if density <= 0.0 {
+            continue;
+        }
+        let stream = child_key(child_key(darts, kx as u64), kz as u64);
+        if unit_f32(rng.word(stream, WORD_KEEP)) >= density {
+            continue;
+        }
+        let mut params = Vec::new();
+        for (m, &(slot, value)) in rule.params.iter().enumerate() {
+            let v = value.value(rng.word(stream, WORD_PARAMS + m as u64));
+            if !super::populate::is_default(graph, slot, v) {
+                params.push((slot, v));
+            }
+        }
+        kept.push(Placement { species: rule.species, x, z, params });
     }
     kept
 }
@@ -497,8 +310,7 @@ fn expand_block(world: &World, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Pl
     if !target.is_empty() {
         let need = plan(world, target);
         // One ground patch over everything any rule computes.
-        let all = need.iter().zip(&world.rules).filter_map(|(r, rule)| r.map(|r| r.grow(halo(rule))));
-        let ground = match (&world.fractal, all.reduce(Rect::union)) {
+        let ground = match (&world.fractal, need.iter().flatten().copied().reduce(Rect::union)) {
             (Some(f), Some(r)) => Ground::Patch(f.patch(r.lo, r.hi, f.depth)),
             _ => Ground::World(world),
         };
@@ -513,7 +325,7 @@ fn expand_block(world: &World, c0: CellKey, c1: CellKey) -> Vec<(CellKey, Vec<Pl
             };
             let order = pops.rule_order[n];
             let avoid = (!rule.avoid.is_empty()).then(|| {
-                let area = exact.grow(halo(rule));
+                let area = exact;
                 let distance = |sp: u16| rule.avoid.iter().filter(|a| a.0 == sp).map(|a| a.1).reduce(f32::max);
                 let earlier_rules = placed.iter().filter(|(o, _)| *o < order).flat_map(|(_, v)| v.iter());
                 let reach = f64::from(rule.avoid.iter().map(|a| a.1).fold(0.0, f32::max)) + 1.0;

@@ -17,11 +17,11 @@
 //! — the keep probability of [`ScatterRule::density_at`] (heights and slopes bit-equal to
 //! [`World::height_and_slope`], read through one fractal [`Patch`] per block of 16 × 16 cells), the darts a full
 //! Poisson-disk packing holds ([`PACKING`]), and, per species `B` the rule avoids (at its largest distance `d`), a
-//! thinning factor of `λ_B`, the expected density of `B` from earlier rules at this sample. Where `B` stood at
-//! random that factor would be `exp(−λ_B π d²)`; measured on pairs of rules it is far milder (a Poisson-disk
-//! pattern's discs overlap less than random ones, and an empty background cell tries several positions, finding the
-//! free ground between them), so `F_B` is the free fraction of a Poisson-disk pattern, `f = (1 − λπd²/n)ⁿ`, raised
-//! to a power `γ < 1` (`Avoid::log_factor` gives the model and its fitted constants; `libm` for `log1p` and `exp`).
+//! thinning factor of `λ_B`, the expected density of `B` from earlier rules at this sample: the fraction of ground
+//! farther than `d` from every instance of `B`, where a dart of the rule survives (a rule's darts do not depend on
+//! what it avoids). Where `B` stood at random that fraction would be `exp(−λ_B π d²)`; a Poisson-disk pattern's
+//! discs overlap less, so `F_B = (1 − λπd²/n)ⁿ` with `n` growing from 1 as the discs can overlap
+//! (`Avoid::log_factor` gives the model and its measured constants; `libm` for `log1p` and `pow`).
 //! A sub-square's expected count is `ρ ·` its area. A species' count in the cell is `floor(Σ expected + u)`, `u` a
 //! ChaCha8 draw in [0, 1) addressed by (world seed, cell, species) — stochastic rounding, unbiased and deterministic
 //! — plus its explicit `instance` lines in the cell, exactly. Its height is the expected-count weighted mixture of
@@ -125,43 +125,35 @@ struct Avoid {
     species: usize,
     /// `π · d²` at the rule's largest distance from that species.
     area: f64,
-    /// Effective "trials" of the avoided pattern within `d`: 1 while its discs cannot overlap, more as they can.
-    trials: f64,
-    /// The dart-finding exponent before the regularity term: `r² / (r² + GAMMA_C)`, `r = d / spacing`.
-    gamma: f64,
+    /// How far the avoided pattern's discs can overlap: `(d / s_B − 0.55)^1.5`, 0 while they cannot.
+    overlap: f64,
     /// `s_B² / PACKING`: the keep fraction of the avoided species is `λ · s_B² / PACKING`.
     keep_per_lambda: f64,
 }
 
-/// The avoid model's constants, fitted to the measured densities of 135 synthetic pairs of rules (spacings 2.6 to
-/// 6.5 m, distances 1.5 to 5 m, keep fractions 0.3 to 1; `an_avoiding_rule_is_estimated_within_tolerance` in
-/// `worlds/tests/far.rs` checks a few): root-mean-square error 0.023 in the density factor, largest 0.08.
+/// The avoid model's constants (`an_avoiding_rule_is_estimated_within_tolerance` in `worlds/tests/far.rs` checks
+/// them on pairs and triples of rules like the embedded worlds').
 const TRIALS_FROM: f64 = 0.55;
 const TRIALS_SCALE: f64 = 4.0;
-const GAMMA_C: f64 = 0.85;
-const GAMMA_REGULAR: f64 = 0.3;
-/// `ln 0.05`: below this free fraction the factor is linear in it.
-const LOG_FREE_TAIL: f64 = -2.995_732_273_553_991;
+const TRIALS_THINNED: f64 = 1.5;
 
 impl Avoid {
-    /// `ln` of the factor by which the avoided species' expected density `lambda` (per m²) thins the rule.
+    /// `ln` of the factor by which the avoided species' expected density `lambda` (per m²) thins the rule: the
+    /// fraction of ground farther than `d` from every instance of the avoided species, where a dart of the rule
+    /// survives (the rule's pattern does not depend on the avoided one).
     ///
-    /// The fraction of ground farther than `d` from every instance of the avoided species is
-    /// `f = (1 − λπd² / n)ⁿ`: exactly `1 − λπd²` while a Poisson-disk pattern's discs of radius `d` cannot overlap
-    /// (`d ≤ 0.55 · s_B`, n = 1), tending to the Poisson `exp(−λπd²)` as `n = 1 + 4 (d / s_B − 0.55)^1.5` grows.
-    /// A Poisson-disk rule keeps more than `f` of its darts, since each empty background cell tries several
-    /// positions: the factor is `f^γ` with `γ = r² / (r² + 0.85) · (1 − 0.3 · p)` (`r = d / spacing`, `p` the
-    /// avoided pattern's keep fraction: a regular pattern leaves its free ground spread out, easy to find), and
-    /// linear in `f` below `f = 0.05` (no free ground, no darts).
+    /// That fraction is `f = (1 − λπd² / n)ⁿ`: exactly `1 − λπd²` while a Poisson-disk pattern's discs of radius
+    /// `d` cannot overlap (`d ≤ 0.55 · s_B`, n = 1), tending to the Poisson `exp(−λπd²)` as
+    /// `n = 1 + (4 + 1.5 (1 − p)) (d / s_B − 0.55)^1.5` grows (`p` the avoided pattern's keep fraction: a
+    /// thinned pattern is less regular). Measured on patterns of `s_B` = 4 m, `d / s_B` 0.3 to 1.5, `p` 0.3 to 1.
     fn log_factor(&self, lambda: f64) -> f64 {
         let x = lambda * self.area;
-        if x >= self.trials {
+        let thinned = 1.0 - (lambda * self.keep_per_lambda).min(1.0);
+        let trials = 1.0 + (TRIALS_SCALE + TRIALS_THINNED * thinned) * self.overlap;
+        if x >= trials {
             return f64::NEG_INFINITY;
         }
-        let log_free = self.trials * libm::log1p(-x / self.trials);
-        let regular = (lambda * self.keep_per_lambda).min(1.0);
-        let gamma = self.gamma * (1.0 - GAMMA_REGULAR * regular);
-        if log_free >= LOG_FREE_TAIL { gamma * log_free } else { (gamma - 1.0) * LOG_FREE_TAIL + log_free }
+        trials * libm::log1p(-x / trials)
     }
 }
 
@@ -211,12 +203,10 @@ impl Model {
                     let earlier = world.rules[..n].iter().filter(|e| usize::from(e.species) == b);
                     let Some(sb) = earlier.map(|e| f64::from(e.spacing)).reduce(f64::min) else { continue };
                     let d = f64::from(d);
-                    let ratio = d / spacing;
                     let entry = Avoid {
                         species: b,
                         area: std::f64::consts::PI * d * d,
-                        trials: 1.0 + TRIALS_SCALE * libm::pow((d / sb - TRIALS_FROM).max(0.0), 1.5),
-                        gamma: ratio * ratio / (ratio * ratio + GAMMA_C),
+                        overlap: libm::pow((d / sb - TRIALS_FROM).max(0.0), 1.5),
                         keep_per_lambda: sb * sb / PACKING,
                     };
                     match avoid.iter_mut().find(|a| a.species == b) {

@@ -71,33 +71,42 @@
 //! Within a cell, placements come in file order of their statements: `instance` lines (indexed by cell at load),
 //! then each `scatter` rule's darts in row-major order of their background cells.
 //!
-//! A `scatter` rule is a Poisson-disk process on a background grid of cells of `g = spacing / √2` anchored at the
-//! world's origin (so every expansion sees the same grid), run in [`ROUNDS`] rounds of proposals and priorities —
-//! a local rule, so a bounded neighbourhood decides every dart:
+//! A `scatter` rule is a Poisson-disk process on a background grid of cells of `g = ⌈spacing / √2⌉` (rounded up
+//! to the position grid) anchored at the world's origin, run in [`ROUNDS`] rounds of proposals and priorities — a
+//! local rule, so a bounded neighbourhood (its halo, at most [`MARGIN`] background cells) decides every dart:
 //! - in each round, every background cell without a dart tries up to [`ATTEMPTS`] positions on the position grid
-//!   inside it and proposes the first that keeps `spacing` from every placed dart and each `avoid` distance from
-//!   the instances of earlier statements;
+//!   inside it and proposes the first that keeps `spacing` from every placed dart;
 //! - a proposal is placed if it outranks every other proposal closer than `spacing` (by a 32-bit priority, then
 //!   by background cell in row-major order), so two placed darts are never closer than `spacing`.
 //!
-//! Every dart is then kept with probability `density · altitude(height) · slope(slope)` — a thinned-out dart still
-//! spaced its neighbours, so the density is the fraction of a full packing kept (about 0.63 darts per spacing² on
-//! open ground). A rule whose density is 0 over all the ground it could reach places nothing.
+//! The process is read through corner-coloured tiles (Lagae & Dutré's procedural object distribution function):
+//! tiles of `2 · MARGIN` background cells whose corners get one of [`COLOURS`] colours from a hash of the corner's
+//! lattice position; the random words of the background cells in the square of one tile side centred on a corner
+//! depend only on its colour, so a tile's darts are a function of its four corner colours — `COLOURS⁴` variants
+//! per rule, each computed once, on first use, over the 2 × 2 corner squares around it. Neighbouring tiles read
+//! the same corner squares: one process over the whole plane, spacing across every tile border. Expanding a
+//! rectangle looks its darts up, with no halo.
 //!
-//! The decision at a dart depends on proposals within `spacing` in the first round and on darts placed within
-//! `2 · spacing` in every later one, so expanding a rectangle computes each rule over the rectangle grown by its
-//! halo `(2 · ROUNDS − 1) · spacing + 2 · g`, and every rule an `avoid` names over the area grown again by that
-//! distance (the chain is followed back through the file). One cell's work is bounded at load
-//! ([`MAX_CELL_WORK`] background cells), and so is the number of instances a cell can hold
+//! Each dart inside a rule's region is then dropped if it lies closer than an `avoid` distance to an instance of
+//! an earlier statement, and kept with probability `density · altitude(height) · slope(slope)` — a dropped or
+//! thinned-out dart still spaced its neighbours, so the density is the fraction of a full packing kept (about 0.62
+//! darts per spacing² on open ground). A rule whose density is 0 over all the ground it could reach places nothing.
+//! Expanding a rectangle computes every rule an `avoid` names over the rectangle grown by that distance (the chain
+//! is followed back through the file). One cell's work is bounded at load ([`MAX_CELL_WORK`] background cells, the
+//! tile variants it may compute included), and so is the number of instances a cell can hold
 //! ([`MAX_CELL_INSTANCES`]).
 //!
 //! Randomness is ChaCha8 keyed by the world seed ([`crate::rng::InstanceRng`]) and read by address: rule key
 //! `R = child_key(fnv1a64(species name), n)` for the `n`-th rule of that species (editing a rule moves no other
-//! rule's instances, except through `avoid`); background cell `(i, j)` reads stream
-//! `child_key(child_key(R, 0), (i as u32) << 32 | (j as u32))`: round `r`'s positions are words `8r .. 8r + 7`
-//! (low and high 16 bits pick one of the `n` grid positions per axis: `(bits · n) >> 16`), its priority word
-//! `8r + 7`; a placed dart's keep draw is word 24 and its `n`-th parameter rule word `25 + n`. Floats come from
-//! words by [`crate::eval::unit_f32`]. Parameter values equal to a constant species default are not stored.
+//! rule's instances, except through `avoid`). Corner `(a, b)` has colour
+//! `mix64(child_key(child_key(R, 2), a) ^ b) mod COLOURS`; background cell `(i, j)` of a corner square of colour `c`
+//! reads stream `child_key(child_key(child_key(R, 0), c), i << 32 | j)`: round `r`'s positions are words
+//! `8r .. 8r + 7` (low and high 16 bits pick one of the `g` grid positions per axis: `(bits · g) >> 16`), its
+//! priority word `8r + 7`. A dart at steps `(x, z)` reads stream `child_key(child_key(child_key(R, 1), x), z)`: its
+//! keep draw is word 0 and its `n`-th parameter rule word `1 + n`. Floats come from words by
+//! [`crate::eval::unit_f32`]. Parameter values equal to a constant species default are not stored. (Until issue 30
+//! the process ran over every expansion's halo, and `avoid` moved a dart instead of dropping it: a cell cost ~11
+//! ms, and the embedded worlds' understory `avoid` distances were longer.)
 //!
 //! # Terrain
 //!
@@ -118,6 +127,7 @@ mod populate;
 mod source;
 mod summary;
 mod terrain;
+mod tiles;
 
 use std::ops::Range;
 use std::path::Path;
@@ -128,13 +138,14 @@ use canopy_protocol::SpeciesGraph;
 use crate::amplify::Instance;
 use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
-pub use cells::{ATTEMPTS, MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
+pub use cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
 pub use far::{DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, PACKING, Summaries, aggregate, summary_bytes};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use ground::Ground;
 pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule, SlopeRamp};
 pub use summary::Estimate;
 pub use terrain::{STEPS_PER_SQUARE, TILE_PARAMS, Terrain, TerrainError, slope_degrees};
+pub use tiles::{ATTEMPTS, COLOURS, MARGIN};
 
 /// Most entries in the species table (ids fit a byte): the protocol's per-world species limit.
 pub use canopy_protocol::netlimits::MAX_SPECIES;

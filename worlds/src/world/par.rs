@@ -4,8 +4,6 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use canopy_protocol::sync::Locked;
-
 /// Most threads one map uses.
 const MAX_THREADS: usize = 16;
 
@@ -38,41 +36,6 @@ pub(crate) fn map<T: Sync, S, R: Send>(
     });
     results.sort_by_key(|(k, _)| *k);
     results.into_iter().map(|(_, r)| r).collect()
-}
-
-/// Run `f` on every job, on up to [`MAX_THREADS`] threads (the calling one included). The jobs must not depend on
-/// each other (each typically owns a disjoint `&mut` part of the output), so the result is the same in any order.
-pub(crate) fn each<J: Send>(jobs: Vec<J>, f: impl Fn(J) + Sync) {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(jobs.len()).min(MAX_THREADS);
-    let queue = std::sync::Mutex::new(jobs);
-    let work = || {
-        loop {
-            let job = queue.locked().pop();
-            match job {
-                Some(j) => f(j),
-                None => return,
-            }
-        }
-    };
-    std::thread::scope(|scope| {
-        let helpers: Vec<_> =
-            (1..threads).filter_map(|_| std::thread::Builder::new().spawn_scoped(scope, work).ok()).collect();
-        work();
-        for h in helpers {
-            h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
-        }
-    });
-}
-
-/// `v` split into consecutive runs of `lengths` (which must sum to at most `v.len()`).
-pub(crate) fn split_runs<'a, T>(mut v: &'a mut [T], lengths: &[usize]) -> Vec<&'a mut [T]> {
-    let mut out = Vec::with_capacity(lengths.len());
-    for &n in lengths {
-        let (head, tail) = std::mem::take(&mut v).split_at_mut(n);
-        out.push(head);
-        v = tail;
-    }
-    out
 }
 
 #[cfg(test)]

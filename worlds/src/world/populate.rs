@@ -9,6 +9,7 @@ use super::fractal::Fractal;
 use super::manifest::{Manifest, Population, SourceRef, Span};
 use super::source::{Resolver, Statement};
 use super::terrain::{TILE_PARAMS, Terrain, slope_degrees};
+use super::tiles::Tiles;
 use super::{
     Bounds, CellKey, MAX_CELL_COORD, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
     Placement, World, WorldSpecies,
@@ -209,6 +210,8 @@ pub struct ScatterRule {
     pub params: Vec<(u16, ParamValue)>,
     /// The rule's random stream key `R` (see [`crate::world`]).
     pub key: u64,
+    /// Its Poisson-disk pattern, tile by tile.
+    pub(crate) tiles: Tiles,
 }
 
 impl ScatterRule {
@@ -587,7 +590,7 @@ pub(crate) fn build(
                     }
                     params.sort_by_key(|&(s, _)| s);
                 }
-                let Some((bounds, _)) = geometry else { continue };
+                let Some((bounds, cell)) = geometry else { continue };
                 let region = match &r.region {
                     Some((q, span)) => {
                         let region = Bounds { min: [q[0], q[1]], max: [q[2], q[3]] };
@@ -606,6 +609,7 @@ pub(crate) fn build(
                 let Some((spacing, spacing_span)) = r.spacing.clone() else { continue };
                 let mut h = Fnv::new();
                 h.bytes(r.species.as_bytes());
+                let key = child_key(h.finish(), ordinals[id as usize]);
                 let rule = ScatterRule {
                     species: id,
                     spacing,
@@ -615,7 +619,8 @@ pub(crate) fn build(
                     region,
                     avoid,
                     params,
-                    key: child_key(h.finish(), ordinals[id as usize]),
+                    key,
+                    tiles: Tiles::new(seed, key, spacing, position_step(cell).0),
                 };
                 ordinals[id as usize] += 1;
                 let spacing = f64::from(spacing);
