@@ -124,8 +124,15 @@ impl Tiles {
     fn compute(&self, v: usize) -> Variant {
         let c = COLOURS as usize;
         let colours = [v % c, (v / c) % c, (v / (c * c)) % c, v / (c * c * c)];
+        let window = self.process(&colours, 2);
+        window.tile(MARGIN, self.g)
+    }
+
+    /// The priority process over `squares × squares` corner squares of these colours (row-major), exact inside it away from
+    /// its border by the halo.
+    fn process(&self, colours: &[usize], squares: i64) -> Window {
         let (g, side) = (self.g, 2 * MARGIN);
-        let n = 2 * side;
+        let n = squares * side;
         let words = self.words.get_or_init(|| self.words());
         let square = (side * side) as usize;
         // A window of n × n background cells with a border of two empty cells on every side.
@@ -154,7 +161,7 @@ impl Tiles {
                     if placed[k] != EMPTY {
                         continue;
                     }
-                    let colour = colours[((j / side) * 2 + i / side) as usize];
+                    let colour = colours[((j / side) * squares + i / side) as usize];
                     let block = &words[colour * square + ((j % side) * side + i % side) as usize];
                     let clear = |x: i64, z: i64| {
                         round == 0 || !near.iter().any(|&o| closer(placed[(k as isize + o) as usize], x, z))
@@ -190,18 +197,7 @@ impl Tiles {
                 }
             }
         }
-        // The tile: the window's middle, background cells MARGIN .. 3·MARGIN.
-        let origin = MARGIN * g;
-        let mut out = Vec::new();
-        for j in MARGIN..3 * MARGIN {
-            for i in MARGIN..3 * MARGIN {
-                let d = placed[at(i, j)];
-                if d != EMPTY {
-                    out.push([(d[0] - origin) as u32, (d[1] - origin) as u32]);
-                }
-            }
-        }
-        out.into_boxed_slice()
+        Window { placed, dims }
     }
 
     /// The words of every background cell of every corner square: cell `(i, j)` of the square of colour `c`
@@ -217,6 +213,30 @@ impl Tiles {
             let stream = child_key(child_key(root, colour as u64), (i as u64) << 32 | j as u64);
             for (w, word) in block.iter_mut().enumerate() {
                 *word = rng.word(stream, w as u64);
+            }
+        }
+        out.into_boxed_slice()
+    }
+}
+
+/// The darts of a window of background cells, with a border of two empty cells on every side.
+struct Window {
+    placed: Vec<[i64; 2]>,
+    dims: i64,
+}
+
+impl Window {
+    /// The darts of the tile whose first background cell is `(first, first)`, in steps from its corner
+    /// (background cells of `g` steps).
+    fn tile(&self, first: i64, g: i64) -> Variant {
+        let origin = first * g;
+        let mut out = Vec::new();
+        for j in first..first + 2 * MARGIN {
+            for i in first..first + 2 * MARGIN {
+                let d = self.placed[((j + 2) * self.dims + i + 2) as usize];
+                if d != EMPTY {
+                    out.push([(d[0] - origin) as u32, (d[1] - origin) as u32]);
+                }
             }
         }
         out.into_boxed_slice()
@@ -241,5 +261,48 @@ impl std::fmt::Debug for Tiles {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let computed = self.variants.iter().filter(|v| v.get().is_some()).count();
         f.debug_struct("Tiles").field("cell", &self.g).field("r2", &self.r2).field("computed", &computed).finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The invariant the tiles rest on: the process decides every dart of a tile from the 2 × 2 corner squares
+    /// around it. Computed over 4 × 4 corner squares (a margin of one more square on every side), the middle tile
+    /// has the same darts as its variant.
+    #[test]
+    fn a_tile_is_decided_by_its_four_corners() {
+        for (spacing, step) in [(2.6f32, 1.0 / 64.0), (3.0, 1.0 / 64.0), (5.0, 1.0 / 16.0), (0.7, 1.0 / 256.0)] {
+            let tiles = Tiles::new(7, 0x5eed ^ u64::from(spacing.to_bits()), spacing, step);
+            for seed in 0..6u64 {
+                let colours: Vec<usize> =
+                    (0..16).map(|q| (mix64(seed * 16 + q) % u64::from(COLOURS)) as usize).collect();
+                let wide = tiles.process(&colours, 4);
+                // The tile between corners 1 and 2 of the wide window: its first cell is one square and a margin in.
+                let got = wide.tile(2 * MARGIN + MARGIN, tiles.g);
+                let c = COLOURS as usize;
+                let corners = [colours[5], colours[6], colours[9], colours[10]];
+                let v = corners.iter().rev().fold(0, |v, &k| v * c + k);
+                assert_eq!(got, tiles.compute(v), "spacing {spacing}, corners {corners:?}");
+                assert!(got.len() > 50, "a tile holds darts: {}", got.len());
+            }
+        }
+    }
+
+    #[test]
+    fn darts_keep_their_spacing_across_tile_borders() {
+        let tiles = Tiles::new(3, 11, 2.0, 1.0 / 64.0);
+        let side = tiles.side();
+        let darts = tiles.darts([-2 * side, -2 * side], [3 * side - 1, 3 * side - 1]);
+        for (n, a) in darts.iter().enumerate() {
+            for b in &darts[n + 1..] {
+                let d2 = (a[0] - b[0]).pow(2) + (a[1] - b[1]).pow(2);
+                assert!(d2 >= tiles.r2, "{a:?} and {b:?} closer than the spacing");
+            }
+        }
+        // Row-major by position, inside the rectangle.
+        assert!(darts.windows(2).all(|w| (w[0][1], w[0][0]) < (w[1][1], w[1][0])));
+        assert!(darts.len() > 25 * 100, "{} darts", darts.len());
     }
 }
