@@ -492,6 +492,17 @@ impl ClientState {
         Ok(Event::Species { id: s.id, hash })
     }
 
+    /// A cell granted for an older viewpoint and already out of range (the release will follow): forgotten, and
+    /// later messages of that grant dropped. `before` is what the cell counted missing before the message.
+    fn drop_out_of_range(&mut self, cell: CellCoord, grant: u32, before: usize) -> Event {
+        self.cells.remove(&cell);
+        self.expanding.remove(&cell);
+        self.missing = self.missing + self.missing_at(cell) - before;
+        self.tombstones.insert(cell, grant);
+        self.stats.dropped += 1;
+        Event::Dropped
+    }
+
     fn on_batch(&mut self, b: CellBatch) -> Result<Event, StateError> {
         self.stats.batches += 1;
         let w = Arc::clone(self.welcome.as_ref().expect("streaming implies welcomed"));
@@ -524,15 +535,8 @@ impl ClientState {
                 if b.start != 0 {
                     return Err(order(0));
                 }
-                let kept = self.aoi.is_some_and(|a| a.is_kept(&w.world.grid, b.cell));
-                if !kept {
-                    // Granted for an older viewpoint and already out of range: the release will follow.
-                    self.cells.remove(&b.cell);
-                    self.expanding.remove(&b.cell);
-                    self.missing = self.missing + self.missing_at(b.cell) - before;
-                    self.tombstones.insert(b.cell, b.grant);
-                    self.stats.dropped += 1;
-                    return Ok(Event::Dropped);
+                if !self.aoi.is_some_and(|a| a.is_kept(&w.world.grid, b.cell)) {
+                    return Ok(self.drop_out_of_range(b.cell, b.grant, before));
                 }
                 let cell = HeldCell {
                     grant: b.grant,

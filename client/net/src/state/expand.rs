@@ -110,13 +110,7 @@ impl ClientState {
         }
         let before = self.missing_at(g.cell);
         if !self.aoi.is_some_and(|a| a.is_kept(&w.world.grid, g.cell)) {
-            // Granted for an older viewpoint and already out of range: the release will follow.
-            self.cells.remove(&g.cell);
-            self.expanding.remove(&g.cell);
-            self.missing = self.missing + self.missing_at(g.cell) - before;
-            self.tombstones.insert(g.cell, g.grant);
-            self.stats.dropped += 1;
-            return Ok(Event::Dropped);
+            return Ok(self.drop_out_of_range(g.cell, g.grant, before));
         }
         let held = HeldCell {
             grant: g.grant,
