@@ -2,6 +2,8 @@
 //! instances and `scatter` rules expanded by grid-accelerated Poisson-disk dart throwing, thinned by density over
 //! altitude and slope (the algorithm and its random streams are described in [`crate::world`]).
 
+use std::sync::Arc;
+
 use canopy_protocol::SpeciesGraph;
 
 use super::cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations};
@@ -528,6 +530,8 @@ pub(crate) fn build(
         }
     };
     let mut ordinals: Vec<u64> = vec![0; table.len()];
+    // One budget for the tile caches of every rule of the world.
+    let tile_budget = Tiles::budget();
     for pop in &m.populations {
         match pop {
             Population::Instance(inst) => {
@@ -620,7 +624,7 @@ pub(crate) fn build(
                     avoid,
                     params,
                     key,
-                    tiles: Tiles::new(seed, key, spacing, position_step(cell).0),
+                    tiles: Tiles::new(seed, key, spacing, position_step(cell).0, Arc::clone(&tile_budget)),
                 };
                 ordinals[id as usize] += 1;
                 let spacing = f64::from(spacing);

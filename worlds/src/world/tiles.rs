@@ -9,9 +9,13 @@
 //! process decides a dart from the words within its halo, which is at most `MARGIN` background cells, so the darts
 //! of a tile are a function of its four corner colours: `COLOURS⁴` variants, each computed once, on first use, from
 //! the 2 × 2 corner squares around it. Neighbouring tiles share the corner squares they both read, so the pattern is
-//! one Poisson-disk process over the whole plane: spacing holds across every tile border.
+//! one Poisson-disk process over the whole plane: spacing holds across every tile border. The caches of a world's
+//! rules share one bound ([`TILE_CACHE_BYTES`]): a world function from the network cannot make them grow past it.
 
-use std::sync::OnceLock;
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, OnceLock};
 
 use super::{ROUNDS, par};
 use crate::rng::{InstanceRng, child_key, mix64};
@@ -33,11 +37,21 @@ const WORDS_PER_ROUND: usize = 8;
 const ROUND_WORDS: usize = WORDS_PER_ROUND * ROUNDS as usize;
 const _: () = assert!(ROUND_WORDS == 24, "rounds 0 and 1 read block 0, round 2 block 1");
 
+/// Most bytes the tile caches of one world keep, over all its rules (the words and the variants; a few rules
+/// take about 0.4 MiB each). Past it, a variant or a rule's words are computed for the expansion that needs them
+/// and not kept: a world function with many rules costs time, not memory.
+pub const TILE_CACHE_BYTES: usize = 32 << 20;
+
 /// Variants computed on all cores at once when one lookup needs at least this many.
 const PARALLEL_VARIANTS: usize = 4;
 
 /// The darts of one tile variant: positions in the tile, steps.
 type Variant = Box<[[u32; 2]]>;
+
+/// What a cached variant costs.
+fn variant_bytes(v: &Variant) -> usize {
+    std::mem::size_of_val(&**v) + std::mem::size_of::<Variant>()
+}
 
 /// No dart.
 const EMPTY: [i64; 2] = [i64::MIN, i64::MIN];
@@ -59,16 +73,23 @@ pub(crate) struct Tiles {
     /// Per variant (corner colours `c00 + C·c10 + C²·c01 + C³·c11`), its darts' positions in the tile, steps,
     /// row-major by background cell.
     variants: Box<[OnceLock<Variant>]>,
+    /// Bytes the world's tile caches may still take (shared by its rules; see [`TILE_CACHE_BYTES`]).
+    budget: Arc<AtomicUsize>,
 }
 
 impl Tiles {
-    /// The tiles of a rule of `spacing` metres keyed `key`, on a grid of `step` metres.
-    pub(crate) fn new(seed: u64, key: u64, spacing: f32, step: f64) -> Tiles {
+    /// A world's budget for its tile caches: [`TILE_CACHE_BYTES`].
+    pub(crate) fn budget() -> Arc<AtomicUsize> {
+        Arc::new(AtomicUsize::new(TILE_CACHE_BYTES))
+    }
+
+    /// The tiles of a rule of `spacing` metres keyed `key`, on a grid of `step` metres, caching within `budget`.
+    pub(crate) fn new(seed: u64, key: u64, spacing: f32, step: f64, budget: Arc<AtomicUsize>) -> Tiles {
         let s = f64::from(spacing) / step;
         let g = (s / std::f64::consts::SQRT_2).ceil().max(1.0) as i64;
         let r2 = (s * s).ceil() as i64;
         let variants = (0..COLOURS.pow(4)).map(|_| OnceLock::new()).collect();
-        Tiles { key, seed, g, r2, words: OnceLock::new(), variants }
+        Tiles { key, seed, g, r2, words: OnceLock::new(), variants, budget }
     }
 
     /// Tile edge, steps.
@@ -95,20 +116,27 @@ impl Tiles {
         let (b0, b1) = (lo[1].div_euclid(t), hi[1].div_euclid(t));
         let tiles: Vec<(i64, i64, usize)> =
             (b0..=b1).flat_map(|b| (a0..=a1).map(move |a| (a, b))).map(|(a, b)| (a, b, self.variant(a, b))).collect();
-        // Variants not yet computed: on all cores when there are several.
+        // Variants not yet computed, on all cores when there are several: kept within the budget, else held here
+        // for this expansion only.
         let mut missing: Vec<usize> = tiles.iter().map(|t| t.2).filter(|&v| self.variants[v].get().is_none()).collect();
         missing.sort_unstable();
         missing.dedup();
-        if missing.len() >= PARALLEL_VARIANTS {
-            let computed = par::map(&missing, || (), |_, &v| self.compute(v));
-            for (v, darts) in missing.into_iter().zip(computed) {
-                let _ = self.variants[v].set(darts);
+        let computed = if missing.len() >= PARALLEL_VARIANTS {
+            par::map(&missing, || (), |_, &v| self.compute(v))
+        } else {
+            missing.iter().map(|&v| self.compute(v)).collect()
+        };
+        let mut local = BTreeMap::new();
+        for (v, darts) in missing.into_iter().zip(computed) {
+            if let Err(darts) = self.keep(&self.variants[v], darts, variant_bytes) {
+                local.insert(v, darts);
             }
         }
         let mut out = Vec::new();
         for (a, b, v) in tiles {
             let origin = [a * t, b * t];
-            for d in self.variants[v].get_or_init(|| self.compute(v)).iter() {
+            let darts = self.variants[v].get().or_else(|| local.get(&v)).expect("computed above");
+            for d in darts.iter() {
                 let p = [origin[0] + i64::from(d[0]), origin[1] + i64::from(d[1])];
                 if p[0] >= lo[0] && p[0] <= hi[0] && p[1] >= lo[1] && p[1] <= hi[1] {
                     out.push(p);
@@ -133,7 +161,7 @@ impl Tiles {
     fn process(&self, colours: &[usize], squares: i64) -> Window {
         let (g, side) = (self.g, 2 * MARGIN);
         let n = squares * side;
-        let words = self.words.get_or_init(|| self.words());
+        let words = self.words();
         let square = (side * side) as usize;
         // A window of n × n background cells with a border of two empty cells on every side.
         let dims = n + 4;
@@ -200,9 +228,33 @@ impl Tiles {
         Window { placed, dims }
     }
 
+    /// Cache `value` in `slot` if the world's budget has its bytes; else hand it back.
+    fn keep<T>(&self, slot: &OnceLock<T>, value: T, bytes: fn(&T) -> usize) -> Result<(), T> {
+        let n = bytes(&value);
+        if self.budget.fetch_update(Ordering::AcqRel, Ordering::Acquire, |left| left.checked_sub(n)).is_err() {
+            return Err(value);
+        }
+        if slot.set(value).is_err() {
+            // Another thread cached it first.
+            self.budget.fetch_add(n, Ordering::AcqRel);
+        }
+        Ok(())
+    }
+
+    /// The words of every corner square: cached, computed and cached within the budget, or computed for this use.
+    fn words(&self) -> Cow<'_, [[u32; ROUND_WORDS]]> {
+        if let Some(w) = self.words.get() {
+            return Cow::Borrowed(w);
+        }
+        match self.keep(&self.words, self.compute_words(), |w| std::mem::size_of_val(&**w)) {
+            Ok(()) => Cow::Borrowed(self.words.get().expect("just set")),
+            Err(w) => Cow::Owned(w.into_vec()),
+        }
+    }
+
     /// The words of every background cell of every corner square: cell `(i, j)` of the square of colour `c`
     /// reads stream `child_key(child_key(child_key(R, 0), c), i << 32 | j)`.
-    fn words(&self) -> Box<[[u32; ROUND_WORDS]]> {
+    fn compute_words(&self) -> Box<[[u32; ROUND_WORDS]]> {
         let side = 2 * MARGIN;
         let mut rng = InstanceRng::new(self.seed);
         let root = child_key(self.key, 0);
@@ -245,7 +297,7 @@ impl Window {
 
 impl Clone for Tiles {
     fn clone(&self) -> Tiles {
-        Tiles { words: self.words.clone(), variants: self.variants.clone(), ..*self }
+        Tiles { words: self.words.clone(), variants: self.variants.clone(), budget: Arc::clone(&self.budget), ..*self }
     }
 }
 
@@ -274,7 +326,7 @@ mod tests {
     #[test]
     fn a_tile_is_decided_by_its_four_corners() {
         for (spacing, step) in [(2.6f32, 1.0 / 64.0), (3.0, 1.0 / 64.0), (5.0, 1.0 / 16.0), (0.7, 1.0 / 256.0)] {
-            let tiles = Tiles::new(7, 0x5eed ^ u64::from(spacing.to_bits()), spacing, step);
+            let tiles = Tiles::new(7, 0x5eed ^ u64::from(spacing.to_bits()), spacing, step, Tiles::budget());
             for seed in 0..6u64 {
                 let colours: Vec<usize> =
                     (0..16).map(|q| (mix64(seed * 16 + q) % u64::from(COLOURS)) as usize).collect();
@@ -292,7 +344,7 @@ mod tests {
 
     #[test]
     fn darts_keep_their_spacing_across_tile_borders() {
-        let tiles = Tiles::new(3, 11, 2.0, 1.0 / 64.0);
+        let tiles = Tiles::new(3, 11, 2.0, 1.0 / 64.0, Tiles::budget());
         let side = tiles.side();
         let darts = tiles.darts([-2 * side, -2 * side], [3 * side - 1, 3 * side - 1]);
         for (n, a) in darts.iter().enumerate() {
@@ -304,5 +356,17 @@ mod tests {
         // Row-major by position, inside the rectangle.
         assert!(darts.windows(2).all(|w| (w[0][1], w[0][0]) < (w[1][1], w[1][0])));
         assert!(darts.len() > 25 * 100, "{} darts", darts.len());
+    }
+
+    #[test]
+    fn past_the_budget_tiles_are_computed_not_kept() {
+        let (lo, hi) = ([-3000, -2000], [9000, 7000]);
+        let kept = Tiles::new(5, 9, 2.6, 1.0 / 64.0, Tiles::budget());
+        let none = Tiles::new(5, 9, 2.6, 1.0 / 64.0, Arc::new(AtomicUsize::new(0)));
+        assert_eq!(kept.darts(lo, hi), none.darts(lo, hi));
+        assert!(none.words.get().is_none() && none.variants.iter().all(|v| v.get().is_none()), "nothing kept");
+        let cached = kept.variants.iter().filter(|v| v.get().is_some()).count();
+        assert!(kept.words.get().is_some() && cached > 4, "{cached} variants kept");
+        assert!(kept.budget.load(Ordering::Relaxed) < TILE_CACHE_BYTES);
     }
 }
