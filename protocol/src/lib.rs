@@ -7,6 +7,7 @@
 pub mod aoi;
 pub mod edit;
 pub mod expr;
+pub mod farview;
 pub mod frame;
 pub mod grant;
 pub mod hypertree;

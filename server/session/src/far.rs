@@ -2,26 +2,25 @@
 //! must forget. Sans-IO like the session that owns it: `now` is an argument.
 //!
 //! The client says how it wants the far field ([`FarView`]: a screen-space error threshold, its viewport and
-//! range, its altitude); the rule both sides know is [`Refine`]: from the roots within range, a node's children are
-//! wanted while its geometric error projects larger than the threshold. The session walks that tree over the
-//! store's nodes (a node not computed yet is asked for and its subtree waits: coarse first), queues the nodes the
-//! client does not hold by projected error (the most visible first; a node out of the view cone counts half), and
-//! sends a node only after its parent. Held nodes are released under the looser keep rule (hysteresis), coarse
-//! before fine, in the same messages. Records keep priority: summaries take at most a quarter of the bytes while
-//! cells are queued ([`FarSession::turn`]), under the session's pacing.
+//! range, its altitude); the selection is the one both sides run ([`Selection`]: the rule [`Refine`], coarse
+//! first, the most visible first, a node after its parent, releases under the looser keep rule) over the store's
+//! nodes (a node not computed yet is asked for and wakes the session when it is). Records keep priority:
+//! summaries take at most a quarter of the bytes while cells are queued ([`FarSession::turn`]), under the
+//! session's pacing.
 //!
-//! Memory and work per session are bounded: at most [`MAX_SESSION_NODES`] nodes held or queued, a rebuild visits at
-//! most [`MAX_VISITS`] nodes, at most every [`REBUILD_INTERVAL`] (between rebuilds, nodes it waited for walk on
-//! from themselves once ready, at most every [`NODE_REBUILD_INTERVAL`]: the work of the new nodes only), and
-//! whatever a client asks, its range is at most [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the
-//! nodes it can make the cache compute).
+//! Memory and work per session are bounded: at most [`canopy_protocol::farview::MAX_SESSION_NODES`] nodes held or
+//! queued, a walk visits at most [`canopy_protocol::farview::MAX_VISITS`] nodes, a rebuild happens at most every
+//! [`REBUILD_INTERVAL`] (between rebuilds, nodes it waited for walk on from themselves once ready, at most every
+//! [`NODE_REBUILD_INTERVAL`]: the work of the new nodes only), and whatever a client asks, its range is at most
+//! [`MAX_RANGE`] and its threshold at least [`MIN_ERROR_PX`] (the nodes it can make the cache compute).
 
-use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+pub(crate) use canopy_protocol::farview::Eye;
+use canopy_protocol::farview::{NodeState, Selection, Take};
 use canopy_protocol::frame::frame;
 use canopy_protocol::summary::{FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, Refine};
 use canopy_protocol::sync::Locked;
@@ -31,10 +30,6 @@ use canopy_protocol::messages::ServerMsgKind;
 use crate::store::{CellWaker, EncodedSummary, SummaryState, WorldStore};
 use crate::transmit::{StreamId, Transmit};
 
-/// Most summary nodes a session holds for its client or has queued.
-pub const MAX_SESSION_NODES: usize = 16_384;
-/// Most nodes one rebuild visits.
-pub const MAX_VISITS: usize = 65_536;
 /// A rebuild happens at most this often (viewpoints come up to 50 a second).
 pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
 /// Once a node the session waits for is ready, the walk goes on from the nodes it waits for at most this often:
@@ -48,38 +43,16 @@ pub const MAX_RANGE: f32 = 32_768.0;
 /// The finest screen-space error threshold a session applies, pixels.
 pub const MIN_ERROR_PX: f32 = 2.0;
 
-/// A node whose centre lies outside the view cone is queued as if its projected error were this much smaller.
-pub const OUT_OF_VIEW_FACTOR: f32 = 0.5;
-
-/// Where the client stands, as the far view needs it.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Eye {
-    /// Position on the ground plane (x, z).
-    pub position: [f32; 2],
-    /// Unit heading on the ground plane.
-    pub heading: [f32; 2],
-    /// Cosine of half the view cone's angle.
-    pub cos_half_fov: f32,
-    /// Radius the records cover.
-    pub record_radius: f32,
-}
-
 /// One session's far view (see the module docs).
 #[derive(Debug)]
 pub struct FarSession {
     view: FarView,
-    /// Nodes the client holds, with their geometric errors.
-    held: BTreeMap<NodeKey, f32>,
-    /// Nodes to send, least important first (the next at the end).
-    queue: Vec<(f32, NodeKey)>,
-    /// Nodes to tell the client to forget.
-    releases: Vec<NodeKey>,
+    /// What the client holds, wants and must forget.
+    selection: Selection,
     dirty: bool,
     rebuilt: Option<Instant>,
     /// When the tree was last walked, whole or from the nodes it waited for.
     walked: Option<Instant>,
-    /// Nodes the last walks found pending (wanted, not computed yet): a walk goes on from them once they are ready.
-    waiting: Vec<NodeKey>,
     generation: u64,
     /// Bytes of summaries messages built.
     bytes: u64,
@@ -116,13 +89,10 @@ impl FarSession {
     pub fn new(view: FarView) -> FarSession {
         FarSession {
             view: bounded(view),
-            held: BTreeMap::new(),
-            queue: Vec::new(),
-            releases: Vec::new(),
+            selection: Selection::default(),
             dirty: true,
             rebuilt: None,
             walked: None,
-            waiting: Vec::new(),
             generation: 0,
             waker: Arc::default(),
             bytes: 0,
@@ -147,17 +117,17 @@ impl FarSession {
 
     /// Nodes the client holds.
     pub fn held(&self) -> impl Iterator<Item = NodeKey> + '_ {
-        self.held.keys().copied()
+        self.selection.held()
     }
 
     /// Nodes queued to send.
     pub fn queued(&self) -> usize {
-        self.queue.len()
+        self.selection.queued()
     }
 
     /// Whether there is something to send.
     pub fn has_work(&self) -> bool {
-        !self.queue.is_empty() || !self.releases.is_empty()
+        self.selection.has_work()
     }
 
     /// When a rebuild held back by [`REBUILD_INTERVAL`], or a walk from ready nodes held back by
@@ -174,7 +144,7 @@ impl FarSession {
 
     /// Whether a node the session waits for became ready.
     fn waiting_ready(&self) -> bool {
-        !self.waiting.is_empty() && self.waker.ready.load(Ordering::Acquire)
+        self.selection.is_waiting() && self.waker.ready.load(Ordering::Acquire)
     }
 
     /// The waker to register with pending nodes, waking `session` too.
@@ -191,7 +161,7 @@ impl FarSession {
     /// Whether summaries go next rather than records: releases always do; nodes while their bytes are under a
     /// third of the records' (a quarter of the total while cells are queued).
     pub fn turn(&self, cell_bytes: u64) -> bool {
-        !self.releases.is_empty() || self.bytes.saturating_mul(3) <= cell_bytes
+        self.selection.has_releases() || self.bytes.saturating_mul(3) <= cell_bytes
     }
 
     fn refine(&self, store: &dyn WorldStore, eye: &Eye) -> Refine {
@@ -222,85 +192,19 @@ impl FarSession {
         self.waker.ready.store(false, Ordering::Release);
         self.walked = Some(now);
         let refine = self.refine(store, eye);
+        let state = |k| match store.summary(k, Some(&waker)) {
+            SummaryState::Ready(n) => NodeState::Ready(n.node.error),
+            SummaryState::Pending => NodeState::Pending,
+            SummaryState::Unavailable => NodeState::Unavailable,
+        };
         if partial {
-            let from = std::mem::take(&mut self.waiting);
-            self.walk(from, &refine, eye, store, &waker);
+            self.selection.walk_on(&refine, eye, state);
             return;
         }
         self.dirty = false;
         self.rebuilt = Some(now);
         self.generation = generation;
-        // Releases, coarse first; a node whose parent goes goes too.
-        let mut by_level: Vec<NodeKey> = self.held.keys().copied().collect();
-        by_level.sort_unstable_by(|a, b| b.level.cmp(&a.level).then(a.cmp(b)));
-        let mut gone = BTreeSet::new();
-        for k in by_level {
-            let parent_gone = k.parent().is_some_and(|p| gone.contains(&p));
-            if parent_gone || !refine.selects(k, true, |p| self.held.get(&p).copied()) {
-                gone.insert(k);
-            }
-        }
-        for k in &gone {
-            self.held.remove(k);
-            self.releases.push(*k);
-        }
-        // What is wanted and not held, from the roots down to where the error is small enough or unknown.
-        self.queue.clear();
-        self.waiting.clear();
-        self.walk(refine.roots(false), &refine, eye, store, &waker);
-    }
-
-    /// Queue what is wanted and not held from `stack` down, noting the nodes found pending, then order the queue.
-    fn walk(
-        &mut self,
-        mut stack: Vec<NodeKey>,
-        refine: &Refine,
-        eye: &Eye,
-        store: &dyn WorldStore,
-        waker: &Arc<dyn CellWaker>,
-    ) {
-        let mut visits = 0;
-        while let Some(k) = stack.pop() {
-            visits += 1;
-            if visits > MAX_VISITS {
-                break;
-            }
-            let error = match self.held.get(&k) {
-                Some(&e) => e,
-                None => match store.summary(k, Some(waker)) {
-                    SummaryState::Ready(n) => {
-                        if self.held.len() + self.queue.len() < MAX_SESSION_NODES {
-                            self.queue.push((self.priority(refine, eye, k), k));
-                        }
-                        n.node.error
-                    }
-                    SummaryState::Pending => {
-                        if self.waiting.len() < MAX_SESSION_NODES {
-                            self.waiting.push(k);
-                        }
-                        continue;
-                    }
-                    SummaryState::Unavailable => continue,
-                },
-            };
-            if refine.refines(k, error, false) {
-                stack.extend(k.children().into_iter().flatten().filter(|c| refine.in_range(*c, false)));
-            }
-        }
-        // Least important first; ties by key, so the order is deterministic.
-        self.queue.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
-    }
-
-    /// How visible a node is: its nominal error (an eighth of its edge) projected, halved out of the view cone.
-    fn priority(&self, refine: &Refine, eye: &Eye, k: NodeKey) -> f32 {
-        let [x0, z0, x1, z1] = refine.rect(k);
-        let (dx, dz) = ((x0 + x1) * 0.5 - eye.position[0], (z0 + z1) * 0.5 - eye.position[1]);
-        let len = (dx * dx + dz * dz).sqrt();
-        let inside = refine.ground_distance(k) == 0.0;
-        let in_view = inside || len == 0.0 || dx * eye.heading[0] + dz * eye.heading[1] >= eye.cos_half_fov * len;
-        let nominal = (x1 - x0) / canopy_protocol::summary::COVER_SIDE as f32;
-        let sse = refine.screen_error(k, nominal);
-        if in_view { sse } else { sse * OUT_OF_VIEW_FACTOR }
+        self.selection.rebuild(&refine, eye, state);
     }
 
     /// The next summaries message, on `lane`: releases, then the most visible queued nodes whose parents the client
@@ -316,29 +220,24 @@ impl FarSession {
         let waker = Some(&waker);
         let mut nodes: Vec<Arc<EncodedSummary>> = Vec::new();
         let mut size = 0;
-        let mut deferred = Vec::new();
-        while nodes.len() < MAX_BATCH_NODES && size < BATCH_BYTES && self.held.len() < MAX_SESSION_NODES {
-            let Some((p, k)) = self.queue.pop() else { break };
-            if self.held.contains_key(&k) {
-                continue;
+        self.selection.next(root, |k| {
+            if nodes.len() >= MAX_BATCH_NODES || size >= BATCH_BYTES {
+                return Take::Stop;
             }
-            let parent_held = k.level >= root || k.parent().is_some_and(|p| self.held.contains_key(&p));
-            if !parent_held {
-                deferred.push((p, k));
-                continue;
+            match store.summary(k, waker) {
+                SummaryState::Ready(n) => {
+                    size += n.bytes.len();
+                    let error = n.node.error;
+                    nodes.push(n);
+                    Take::Node(error)
+                }
+                _ => Take::Skip,
             }
-            if let SummaryState::Ready(n) = store.summary(k, waker) {
-                self.held.insert(k, n.node.error);
-                size += n.bytes.len();
-                nodes.push(n);
-            }
-        }
-        self.queue.extend(deferred.into_iter().rev());
-        let n_releases = self.releases.len().min(MAX_BATCH_RELEASES);
-        if nodes.is_empty() && n_releases == 0 {
+        });
+        let released = self.selection.releases(MAX_BATCH_RELEASES);
+        if nodes.is_empty() && released.is_empty() {
             return None;
         }
-        let released: Vec<NodeKey> = self.releases.drain(..n_releases).collect();
         let bytes = Bytes::from(frame(&encode_batch(&nodes, &released)));
         self.bytes += bytes.len() as u64;
         Some(Transmit {
