@@ -19,6 +19,8 @@ use crate::summary::{COVER_SIDE, NodeKey, Refine};
 pub const MAX_SESSION_NODES: usize = 16_384;
 /// Most nodes one walk visits.
 pub const MAX_VISITS: usize = 65_536;
+/// The view cone's angle a viewer is taken to have, degrees (what orders the queue, not what is selected).
+pub const DEFAULT_FOV_DEG: f32 = 120.0;
 /// A node whose centre lies outside the view cone is queued as if its projected error were this much smaller.
 pub const OUT_OF_VIEW_FACTOR: f32 = 0.5;
 

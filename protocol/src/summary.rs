@@ -15,6 +15,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::aoi::Grid;
 use crate::netlimits;
 use crate::record::{CellCoord, InstanceId};
 
@@ -232,6 +233,29 @@ pub struct Refine {
     pub root_level: u8,
     /// Records cover the disc of this radius around the eye.
     pub record_radius: f32,
+}
+
+/// Edge of a root node at least, metres: the roots are the coarsest nodes whose edge reaches this.
+pub const ROOT_EDGE: f32 = 4096.0;
+
+/// The level whose nodes first reach [`ROOT_EDGE`] for cells of `cell_size` metres.
+pub fn root_level(cell_size: f32) -> u8 {
+    let mut level = 0u8;
+    while level < MAX_LEVEL && f64::from(cell_size) * f64::from(1u32 << level) < f64::from(ROOT_EDGE) {
+        level += 1;
+    }
+    level
+}
+
+/// Whether node `key` covers at least one cell of the grid.
+pub fn overlaps(grid: &Grid, key: NodeKey) -> bool {
+    let c = key.first_cell();
+    let side = i64::from(key.side());
+    let (x0, z0) = (i64::from(c.x), i64::from(c.z));
+    x0 <= i64::from(grid.max.x)
+        && x0 + side > i64::from(grid.min.x)
+        && z0 <= i64::from(grid.max.z)
+        && z0 + side > i64::from(grid.min.z)
 }
 
 /// The threshold is multiplied by this for keeping a node (hysteresis: a node goes when its parent's error
@@ -477,5 +501,24 @@ mod tests {
         assert!(wanted > 0 && kept_only > 0, "{wanted} {kept_only}");
         let (wanted_roots, kept_roots) = (r.roots(false), r.roots(true));
         assert!(!wanted_roots.is_empty() && wanted_roots.iter().all(|k| kept_roots.contains(k)));
+    }
+
+    #[test]
+    fn roots_reach_four_kilometres() {
+        assert_eq!(root_level(64.0), 6);
+        assert_eq!(root_level(128.0), 5);
+        assert_eq!(root_level(4096.0), 0);
+        assert_eq!(root_level(0.001), MAX_LEVEL);
+    }
+
+    #[test]
+    fn overlap_with_the_grid() {
+        let grid =
+            Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-16, -16), max: CellCoord::new(15, 15) };
+        assert!(overlaps(&grid, NodeKey { level: 6, x: 0, z: 0 }));
+        assert!(overlaps(&grid, NodeKey { level: 6, x: -1, z: -1 }));
+        assert!(!overlaps(&grid, NodeKey { level: 6, x: 1, z: 0 }));
+        assert!(!overlaps(&grid, NodeKey { level: 2, x: 4, z: 0 }));
+        assert!(overlaps(&grid, NodeKey { level: 2, x: 3, z: -4 }));
     }
 }

@@ -18,6 +18,7 @@ use canopy_protocol::messages::WorldFunction;
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::sync::{Locked, Waited};
 use canopy_protocol::{CellCoord, InstanceRecord, SpeciesGraph, SpeciesHash};
+use canopy_worlds::world::far::Summaries;
 use canopy_worlds::world::{CellKey, Placement, World};
 
 /// The default bound of the expanded-cell cache, bytes.
@@ -32,7 +33,7 @@ pub struct ExpandWorld {
     /// The world function's hash.
     pub hash: SpeciesHash,
     /// The world.
-    pub world: World,
+    pub world: Arc<World>,
     /// The welcome's cell grid.
     pub grid: Grid,
 }
@@ -135,6 +136,8 @@ struct Inner {
     cache_bytes: usize,
     worlds: Mutex<Vec<Arc<ExpandWorld>>>,
     functions: Mutex<Vec<Arc<WorldFunction>>>,
+    /// Far-view summary memos, by world function (shared like the cells: the same function, the same nodes).
+    summaries: Mutex<Vec<(SpeciesHash, Arc<Mutex<Summaries>>)>>,
     stats: ExpandStats,
 }
 
@@ -160,6 +163,7 @@ impl Expander {
             cache_bytes,
             worlds: Mutex::new(Vec::new()),
             functions: Mutex::new(Vec::new()),
+            summaries: Mutex::new(Vec::new()),
             stats: ExpandStats::default(),
         });
         let workers = (0..workers.max(1))
@@ -206,7 +210,7 @@ impl Expander {
             return Ok(Arc::clone(w));
         }
         let world = World::from_function(name, &function.manifest, species, terrain).map_err(|d| d.to_string())?;
-        let built = Arc::new(ExpandWorld { hash, world, grid });
+        let built = Arc::new(ExpandWorld { hash, world: Arc::new(world), grid });
         let mut worlds = self.inner.worlds.locked();
         if let Some(w) = worlds.iter().find(|w| w.hash == hash) {
             return Ok(Arc::clone(w));
@@ -223,6 +227,20 @@ impl Expander {
             functions.push(Arc::clone(function));
         }
         Ok(built)
+    }
+
+    /// The far-view summary memo of `world`, one per world function (bounded: [`Summaries::new`]).
+    pub fn summaries(&self, world: &ExpandWorld) -> Arc<Mutex<Summaries>> {
+        let mut memos = self.inner.summaries.locked();
+        if let Some((_, m)) = memos.iter().find(|(h, _)| *h == world.hash) {
+            return Arc::clone(m);
+        }
+        if memos.len() >= WORLDS_KEPT {
+            memos.remove(0);
+        }
+        let memo = Arc::new(Mutex::new(Summaries::new(Arc::clone(&world.world))));
+        memos.push((world.hash, Arc::clone(&memo)));
+        memo
     }
 
     /// Use `world` for its hash from now on, in place of building it from the world function (a world built

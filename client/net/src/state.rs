@@ -326,6 +326,11 @@ impl ClientState {
         &self.stats
     }
 
+    /// The area of interest of the latest viewpoint.
+    pub fn aoi(&self) -> Option<&Aoi> {
+        self.aoi.as_ref()
+    }
+
     /// The latest viewpoint.
     pub fn viewpoint(&self) -> Option<&Viewpoint> {
         self.viewpoint.as_ref()

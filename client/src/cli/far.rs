@@ -85,11 +85,6 @@ impl BotFarArgs {
     }
 }
 
-/// The root level of a world's summary hierarchy: the coarsest nodes reach 4 km (as a server's).
-pub fn root_level(cell_size: f32) -> u8 {
-    canopy_server::session::root_level(cell_size)
-}
-
 /// The summary nodes the far view wants around `eye` (x, z), records covering `record_radius`, computed through
 /// `summaries` (which keeps what it computed for the next call).
 pub fn wanted_nodes(
@@ -104,7 +99,7 @@ pub fn wanted_nodes(
         eye,
         origin: [0.0, 0.0],
         cell_size: world.cell_size,
-        root_level: root_level(world.cell_size),
+        root_level: canopy_protocol::summary::root_level(world.cell_size),
         record_radius,
     };
     let mut out = Vec::new();

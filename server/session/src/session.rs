@@ -102,7 +102,7 @@ impl Default for SessionConfig {
             burst: 16 * 1024,
             window: 64 * 1024,
             lanes: 4,
-            fov_deg: 120.0,
+            fov_deg: canopy_protocol::farview::DEFAULT_FOV_DEG,
             handshake_timeout: Duration::from_secs(10),
             payload: Payload::default(),
             viewpoint_rate: (50, 100),

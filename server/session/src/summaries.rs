@@ -5,39 +5,16 @@
 
 use std::sync::Arc;
 
-use canopy_protocol::aoi::Grid;
 use canopy_protocol::lru::Lru;
-use canopy_protocol::summary::{MAX_LEVEL, NodeKey};
+use canopy_protocol::summary::NodeKey;
+pub use canopy_protocol::summary::{overlaps, root_level};
 
 use crate::store::{CellWaker, EncodedSummary, SummaryState};
 use crate::waiters::Waiters;
 
-/// Edge of a root node at least, metres: the roots are the coarsest nodes whose edge reaches this.
-pub const ROOT_EDGE: f32 = 4096.0;
-
 /// Most summary nodes queued for computing; a lookup past it answers pending without queueing (the session asks
 /// again later), so a flood of far views cannot grow the queue.
 pub const MAX_QUEUED: usize = 16_384;
-
-/// The level whose nodes first reach [`ROOT_EDGE`] for cells of `cell_size` metres.
-pub fn root_level(cell_size: f32) -> u8 {
-    let mut level = 0u8;
-    while level < MAX_LEVEL && f64::from(cell_size) * f64::from(1u32 << level) < f64::from(ROOT_EDGE) {
-        level += 1;
-    }
-    level
-}
-
-/// Whether node `key` covers at least one cell of the grid.
-pub fn overlaps(grid: &Grid, key: NodeKey) -> bool {
-    let c = key.first_cell();
-    let side = i64::from(key.side());
-    let (x0, z0) = (i64::from(c.x), i64::from(c.z));
-    x0 <= i64::from(grid.max.x)
-        && x0 + side > i64::from(grid.min.x)
-        && z0 <= i64::from(grid.max.z)
-        && z0 + side > i64::from(grid.min.z)
-}
 
 /// What a cached node costs the cache: its bytes and its slot's (map entry, recency).
 fn cost(node: &EncodedSummary) -> usize {
@@ -110,27 +87,7 @@ impl SummaryLru {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use canopy_protocol::CellCoord;
     use canopy_protocol::summary::NodeSummary;
-
-    #[test]
-    fn roots_reach_four_kilometres() {
-        assert_eq!(root_level(64.0), 6);
-        assert_eq!(root_level(128.0), 5);
-        assert_eq!(root_level(4096.0), 0);
-        assert_eq!(root_level(0.001), MAX_LEVEL);
-    }
-
-    #[test]
-    fn overlap_with_the_grid() {
-        let grid =
-            Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-16, -16), max: CellCoord::new(15, 15) };
-        assert!(overlaps(&grid, NodeKey { level: 6, x: 0, z: 0 }));
-        assert!(overlaps(&grid, NodeKey { level: 6, x: -1, z: -1 }));
-        assert!(!overlaps(&grid, NodeKey { level: 6, x: 1, z: 0 }));
-        assert!(!overlaps(&grid, NodeKey { level: 2, x: 4, z: 0 }));
-        assert!(overlaps(&grid, NodeKey { level: 2, x: 3, z: -4 }));
-    }
 
     #[test]
     fn bounded_by_bytes_least_recently_used_first_and_queued_once() {

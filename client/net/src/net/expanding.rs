@@ -29,6 +29,8 @@ pub(super) struct Expanding {
     deferred: Vec<(CellCoord, u32)>,
     /// Cells to ask records for.
     records: Vec<CellCoord>,
+    /// Whether this connection expands its cells (it asked for [`CellMode::Expand`] with an expander).
+    expands: bool,
     tx: mpsc::UnboundedSender<Done>,
     rx: mpsc::UnboundedReceiver<Done>,
 }
@@ -37,12 +39,12 @@ impl Expanding {
     pub(super) fn new(expander: Option<Arc<Expander>>, grants_only: bool) -> Expanding {
         let (tx, rx) = mpsc::unbounded_channel();
         let (jobs, deferred, records) = (HashMap::new(), Vec::new(), Vec::new());
-        Expanding { expander, grants_only, world: None, jobs, deferred, records, tx, rx }
+        Expanding { expander, grants_only, world: None, jobs, deferred, records, expands: false, tx, rx }
     }
 
     /// The cell mode to ask for (between the welcome and the ready): expand where there is an expander and the
     /// server offers a world function, preloading the function if this process holds it.
-    pub(super) fn mode(&self, state: &mut ClientState) -> CellMode {
+    pub(super) fn mode(&mut self, state: &mut ClientState) -> CellMode {
         let Some(hash) = state.welcome().and_then(|w| w.world.function) else { return CellMode::Records };
         if self.grants_only {
             state.set_grants_only(true);
@@ -51,7 +53,21 @@ impl Expanding {
         }
         let Some(expander) = &self.expander else { return CellMode::Records };
         let have_function = expander.function(&hash).is_some_and(|f| state.preload_function(f));
+        self.expands = true;
         CellMode::Expand { have_function }
+    }
+
+    /// Whether this connection expands its cells (and so computes its far field too).
+    pub(super) fn expands(&self) -> bool {
+        self.expands
+    }
+
+    /// The world and the far-view memo, once the world is built.
+    pub(super) fn far_source(
+        &self,
+    ) -> Option<(&Arc<ExpandWorld>, Arc<std::sync::Mutex<canopy_worlds::world::far::Summaries>>)> {
+        let (world, expander) = (self.world.as_ref()?, self.expander.as_ref()?);
+        Some((world, expander.summaries(world)))
     }
 
     /// Follow an event the state gave: expand granted cells, build the world when the function and species are

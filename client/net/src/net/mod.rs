@@ -7,6 +7,7 @@
 
 mod expanding;
 mod failover;
+mod farfield;
 pub mod tls;
 
 use std::net::SocketAddr;
@@ -253,6 +254,8 @@ pub struct Connection {
     refresh: Vec<canopy_protocol::CellCoord>,
     /// Cells this client expands itself: the expander, the world, the jobs in flight and their results.
     expanding: expanding::Expanding,
+    /// The far field this client computes itself, where it expands its cells.
+    far: farfield::FarField,
     bytes_out: u64,
     frame_bytes: ByKind<u64>,
     _tasks: AbortOnDrop,
@@ -357,7 +360,7 @@ impl Connection {
         for msg in state.resume()? {
             ready.extend_from_slice(&frame(&msg.encode()));
         }
-        let expanding = expanding::Expanding::new(cfg.expander.clone(), cfg.grants_only);
+        let mut expanding = expanding::Expanding::new(cfg.expander.clone(), cfg.grants_only);
         let mode = expanding.mode(&mut state);
         ready.extend_from_slice(&frame(&state.ready_with(viewpoint, mode)?.encode()));
         control.write_all(&ready).await.map_err(ClientError::from_write)?;
@@ -425,6 +428,7 @@ impl Connection {
             seq: viewpoint.seq,
             refresh: Vec::new(),
             expanding,
+            far: farfield::FarField::new(),
             bytes_out: (hello.len() + ready.len()) as u64,
             frame_bytes: {
                 let mut b = ByKind::default();
@@ -471,20 +475,26 @@ impl Connection {
         vp.seq = self.seq;
         let msg = self.state.set_viewpoint(vp)?;
         self.expanding.sweep(&self.state);
+        self.far.moved();
         let bytes = frame(&msg.encode());
         self.bytes_out += bytes.len() as u64;
         self.control.write_all(&bytes).await.map_err(ClientError::from_write)
     }
 
     /// Say how the client wants the far field (summary nodes beyond the records), if it differs enough from the
-    /// far view last sent ([`ClientState::far_view_due`]); `true` when it was sent. It costs the server a request
-    /// like a viewpoint does.
+    /// far view last sent ([`ClientState::far_view_due`]); `true` when it was taken. A client that expands its
+    /// cells computes the nodes itself from the world function; one that takes records asks the server (it costs
+    /// the server a request like a viewpoint does).
     pub async fn set_far_view(&mut self, view: canopy_protocol::summary::FarView) -> Result<bool, ClientError> {
         if !self.state.far_view_due(&view) {
             return Ok(false);
         }
         let msg = self.state.set_far_view(view)?;
-        self.write(&msg).await?;
+        if self.expanding.expands() {
+            self.far.set_view(view);
+        } else {
+            self.write(&msg).await?;
+        }
         Ok(true)
     }
 
@@ -555,6 +565,12 @@ impl Connection {
                     Ok(e) => self.expanding.on_event(&mut self.state, &e).map(|()| e),
                     e => e,
                 };
+                if self.expanding.expands()
+                    && !self.far.has_source()
+                    && let Some((world, memo)) = self.expanding.far_source()
+                {
+                    self.far.set_world(world, memo);
+                }
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
                     && let Err(e) = cache.insert(*hash, &bytes, Arc::clone(g))
@@ -575,13 +591,20 @@ impl Connection {
     /// Wait for the next message from the server, or the next cell this client expanded, and apply it.
     pub async fn next_event(&mut self) -> Result<Event, ClientError> {
         self.send_refreshes().await?;
-        tokio::select! {
-            biased;
-            Some(e) = self.expanding.next() => self.apply_expanded(e),
-            i = self.inbox.recv() => match i {
-                Some(i) => self.apply(i),
-                None => Err(self.closed_error()),
-            },
+        loop {
+            tokio::select! {
+                biased;
+                Some(e) = self.expanding.next() => return self.apply_expanded(e),
+                i = self.inbox.recv() => return match i {
+                    Some(i) => self.apply(i),
+                    None => Err(self.closed_error()),
+                },
+                Some(()) = self.far.next() => {
+                    if let Some(ev) = self.far.advance(&mut self.state, std::time::Instant::now()) {
+                        return ev.map_err(ClientError::from);
+                    }
+                }
+            }
         }
     }
 
@@ -597,6 +620,11 @@ impl Connection {
     pub fn try_next_event(&mut self) -> Option<Result<Event, ClientError>> {
         if let Some(e) = self.expanding.try_next() {
             return Some(self.apply_expanded(e));
+        }
+        while self.far.try_next() {
+            if let Some(ev) = self.far.advance(&mut self.state, std::time::Instant::now()) {
+                return Some(ev.map_err(ClientError::from));
+            }
         }
         match self.inbox.try_recv() {
             Ok(i) => Some(self.apply(i)),

@@ -43,8 +43,9 @@ impl ClientState {
         self.summaries_generation
     }
 
-    /// Releases first, then the nodes (a batch may release a node and send its replacement).
-    pub(super) fn on_summaries(&mut self, b: SummaryBatch) -> Result<Event, StateError> {
+    /// Releases first, then the nodes (a batch may release a node and send its replacement); a batch from the
+    /// server, or one this client computed itself.
+    pub(crate) fn on_summaries(&mut self, b: SummaryBatch) -> Result<Event, StateError> {
         let released = b.released.iter().filter(|k| self.summaries.remove(k).is_some()).count();
         let added = b.nodes.len();
         let table = self.species.len();

@@ -1,0 +1,81 @@
+//! The far field a client computes itself (issue 30, item 5), over real QUIC on loopback: a client that expands
+//! its cells computes the far view's summary nodes from the world function, and ends holding exactly the nodes,
+//! bit for bit, that the server sends a client that takes records from the same place; the server sends it none.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use canopy_client::expand::Expander;
+use canopy_client::net::endpoint;
+use canopy_client::{ConnectConfig, Connection};
+use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::messages::{CellMode, ServerMsgKind, Welcome};
+use canopy_protocol::summary::FarView;
+use canopy_server::{CellCache, CellCacheConfig, ServeOptions, ServerConfig, serve_store};
+use canopy_test_support::{forest, pinned};
+
+/// Connect with `cfg` at (300, −200), ask for `view` and wait until the area of interest is complete and no
+/// summary node has come for a while.
+async fn settled(cfg: &ConnectConfig, view: FarView) -> Connection {
+    let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+    let place = |_: &Welcome| Viewpoint::at(0, [300.0, -200.0], 100.0);
+    let mut c = Connection::connect(&ep, cfg, None, place).await.unwrap();
+    assert!(c.set_far_view(view).await.unwrap());
+    c.wait_complete(Duration::from_secs(60)).await.unwrap();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
+    let mut quiet = 0;
+    while quiet < 3 && tokio::time::Instant::now() < deadline {
+        let generation = c.state().summaries_generation();
+        if let Ok(r) = tokio::time::timeout(Duration::from_millis(700), c.next_event()).await {
+            r.unwrap();
+        }
+        quiet = if c.state().summaries_generation() == generation { quiet + 1 } else { 0 };
+    }
+    c
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
+    let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 2, ..CellCacheConfig::default() };
+    let store = CellCache::new((**forest()).clone(), cfg).expect("the default world builds a store").shared();
+    let server_cfg = ServerConfig { listen: "127.0.0.1:0".parse().unwrap(), ..ServerConfig::default() };
+    let server =
+        serve_store(store, ServeOptions { server: server_cfg, ..ServeOptions::default() }).await.expect("starts");
+    let view = FarView { error_px: 8.0, height_px: 720, fov_y: 1.0, range: 2500.0, altitude: 120.0 };
+
+    let records = settled(&pinned(&server), view).await;
+    assert_eq!(records.state().cell_mode(), CellMode::Records);
+    let mut cfg = pinned(&server);
+    cfg.expander = Some(Expander::new(2, 8 << 20));
+    let expands = settled(&cfg, view).await;
+    assert!(matches!(expands.state().cell_mode(), CellMode::Expand { .. }));
+
+    let (sent, computed) = (records.state().summaries(), expands.state().summaries());
+    assert!(sent.len() > 20, "the server sent {} nodes", sent.len());
+    assert!(sent.keys().any(|k| k.level == 0) && sent.keys().any(|k| k.level >= 4), "coarse and fine nodes");
+    assert_eq!(sent.keys().collect::<Vec<_>>(), computed.keys().collect::<Vec<_>>(), "the same nodes");
+    for (k, n) in sent {
+        assert_eq!(**n, *computed[k], "node {k:?}");
+    }
+    assert!(records.frame_bytes_received()[ServerMsgKind::Summaries] > 0);
+    assert_eq!(expands.frame_bytes_received()[ServerMsgKind::Summaries], 0, "the server sent summaries");
+    records.close();
+    expands.close();
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[test]
+fn the_memo_is_shared_by_the_clients_of_one_process() {
+    let expander = Expander::new(1, 1 << 20);
+    let w = canopy_client::expand::ExpandWorld {
+        hash: canopy_protocol::SpeciesHash([7; 32]),
+        world: Arc::clone(forest()),
+        grid: canopy_protocol::aoi::Grid {
+            origin: [0.0, 0.0],
+            cell_size: 64.0,
+            min: canopy_protocol::CellCoord::new(-16, -16),
+            max: canopy_protocol::CellCoord::new(15, 15),
+        },
+    };
+    assert!(Arc::ptr_eq(&expander.summaries(&w), &expander.summaries(&w)));
+}
