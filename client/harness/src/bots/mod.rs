@@ -151,6 +151,9 @@ pub struct BotReport {
     pub error: Option<String>,
     /// Time from starting to connect to the first complete area of interest.
     pub first_complete: Option<Duration>,
+    /// Connect → the last far-view summary node this bot received or computed: for a bot at rest, the time to
+    /// its full horizon.
+    pub far_settled: Option<Duration>,
     /// Area-of-interest change → complete latencies while walking and at the end.
     pub latencies: Vec<Duration>,
     /// Whether it ended with a complete area of interest.
@@ -500,6 +503,11 @@ impl Completion {
         Completion { started, pending: Some(Instant::now()), complete: false }
     }
 
+    /// Time since the bot started to connect.
+    pub fn since_start(&self) -> Duration {
+        self.started.elapsed()
+    }
+
     /// Note the connection's state into `report` (latencies, first complete). Returns whether the area of
     /// interest became complete (`Some(true)`) or incomplete (`Some(false)`).
     pub fn note(&mut self, conn: &Connection, report: &mut BotReport) -> Option<bool> {
@@ -536,6 +544,9 @@ impl DriveHooks for BotHooks<'_> {
         let now = Instant::now();
         match ev {
             Event::Records { count, .. } => drop(self.progress.records.fetch_add(*count as u64, Relaxed)),
+            Event::Summaries { added, .. } if *added > 0 => {
+                self.report.far_settled = Some(self.completion.since_start())
+            }
             Event::EditResult(r) => {
                 if let Some(e) = &mut self.editing {
                     let ok = e.stats.outcomes[0];

@@ -29,6 +29,8 @@ pub struct BotsSummary {
     pub latency: Option<[Duration; 4]>,
     /// Latency percentiles of connect → first complete area of interest.
     pub first_complete: Option<[Duration; 4]>,
+    /// Connect → the last far-view node a bot got (p50, p90, p99, max): at rest, the time to a full horizon.
+    pub far_settled: Option<[Duration; 4]>,
     /// Latency samples.
     pub samples: usize,
     /// Records received by all bots.
@@ -116,6 +118,7 @@ impl BotsSummary {
             errors,
             latency: percentiles(reports.iter().flat_map(|r| r.latencies.iter().copied()).collect()),
             first_complete: percentiles(reports.iter().filter_map(|r| r.first_complete).collect()),
+            far_settled: percentiles(reports.iter().filter_map(|r| r.far_settled).collect()),
             samples: reports.iter().map(|r| r.latencies.len()).sum(),
             records,
             batch_bytes_per_record: per(batch),
@@ -232,6 +235,9 @@ impl std::fmt::Display for BotsSummary {
             self.records, self.batch_bytes_per_record, self.udp_bytes_per_record
         )?;
         writeln!(f, "species: {} received, {} received twice", self.species_received, self.species_duplicates)?;
+        if let Some([p50, _, p99, max]) = self.far_settled {
+            writeln!(f, "connect → last far-view node: p50 {} p99 {} max {}", ms(p50), ms(p99), ms(max))?;
+        }
         if self.summary_nodes > 0 {
             let per_bot = |b: u64| b as f64 / self.bots.max(1) as f64 / 1024.0;
             writeln!(
