@@ -3,16 +3,20 @@
 //! longer wanted) and their results, and the digests and requests for records to send.
 
 use std::collections::HashMap;
-use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
 
 use canopy_protocol::messages::CellMode;
 use canopy_protocol::{CellCoord, ClientMsg, SpeciesGraph};
+use canopy_worlds::world::far::Summaries;
 use tokio::sync::mpsc;
 
 use super::ClientError;
 use crate::expand::{ExpandWorld, Expanded, Expander, Job};
 use crate::state::{ClientState, Event};
+
+/// What a far field computes from: the world, its summary memo, the expander whose cells go first.
+pub(super) type FarSource<'a> = (&'a Arc<ExpandWorld>, Arc<Mutex<Summaries>>, Arc<Expander>);
 
 /// An expanded cell coming back: `(cell, grant, records)`.
 pub(super) type Done = (CellCoord, u32, Arc<Expanded>);
@@ -62,12 +66,10 @@ impl Expanding {
         self.expands
     }
 
-    /// The world and the far-view memo, once the world is built.
-    pub(super) fn far_source(
-        &self,
-    ) -> Option<(&Arc<ExpandWorld>, Arc<std::sync::Mutex<canopy_worlds::world::far::Summaries>>)> {
+    /// The world, the far-view memo and the expander (whose cells go first), once the world is built.
+    pub(super) fn far_source(&self) -> Option<FarSource<'_>> {
         let (world, expander) = (self.world.as_ref()?, self.expander.as_ref()?);
-        Some((world, expander.summaries(world)))
+        Some((world, expander.summaries(world), Arc::clone(expander)))
     }
 
     /// Follow an event the state gave: expand granted cells, build the world when the function and species are

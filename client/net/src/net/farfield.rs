@@ -2,7 +2,8 @@
 //! far-view summary nodes it wants from the same world function, instead of asking the server for them. The
 //! selection is the server session's ([`Selection`]: the same nodes, coarse first, a node after its parent), over
 //! a memo of nodes computed on a thread of this connection (coarsest request first; a root computes the subtree it
-//! covers, so its descendants follow from the memo); the nodes reach the state as the server's batches would
+//! covers, so its descendants follow from the memo; cells go first: it computes only while no cell waits for the
+//! expander, as a server's cache does); the nodes reach the state as the server's batches would
 //! ([`ClientState::on_summaries`]). A connection that takes records asks the server, as before.
 
 use std::cmp::Reverse;
@@ -18,7 +19,7 @@ use canopy_protocol::sync::{Locked, Waited};
 use canopy_worlds::world::far::Summaries;
 use tokio::sync::mpsc;
 
-use crate::expand::ExpandWorld;
+use crate::expand::{ExpandWorld, Expander};
 use crate::state::{ClientState, Event, StateError};
 
 /// The walk is redone for a new viewpoint or far view at most this often (as a server session does).
@@ -90,14 +91,14 @@ impl FarField {
     }
 
     /// Compute from `world` from now on (once the connection has built it), sharing `memo` with whoever computes
-    /// the same world.
-    pub(super) fn set_world(&mut self, world: &Arc<ExpandWorld>, memo: Arc<Mutex<Summaries>>) {
+    /// the same world, whenever no cell waits for `cells`.
+    pub(super) fn set_world(&mut self, world: &Arc<ExpandWorld>, memo: Arc<Mutex<Summaries>>, cells: Arc<Expander>) {
         if self.source.as_ref().is_some_and(|s| Arc::ptr_eq(&s.world, world)) {
             return;
         }
         let requests = Arc::new(Requests::default());
         let (r, m, tx) = (Arc::clone(&requests), Arc::clone(&memo), self.tx.clone());
-        let spawned = std::thread::Builder::new().name("canopy-far".into()).spawn(move || compute(&r, &m, &tx));
+        let spawned = std::thread::Builder::new().name("canopy-far".into()).spawn(move || compute(&r, &m, &cells, &tx));
         if spawned.is_err() {
             return;
         }
@@ -183,9 +184,19 @@ impl FarField {
     }
 }
 
-/// The computing thread: the coarsest node asked for, into the memo, until the connection is gone.
-fn compute(requests: &Requests, memo: &Mutex<Summaries>, tx: &mpsc::UnboundedSender<()>) {
+/// How long the computing thread waits for the expander's queue to empty before it looks again.
+const CELLS_FIRST: Duration = Duration::from_millis(2);
+
+/// The computing thread: the coarsest node asked for, into the memo, once no cell waits, until the connection is
+/// gone.
+fn compute(requests: &Requests, memo: &Mutex<Summaries>, cells: &Expander, tx: &mpsc::UnboundedSender<()>) {
     loop {
+        while cells.queued() > 0 {
+            if requests.queue.locked().1 {
+                return;
+            }
+            std::thread::sleep(CELLS_FIRST);
+        }
         let key = {
             let mut q = requests.queue.locked();
             loop {

@@ -567,9 +567,9 @@ impl Connection {
                 };
                 if self.expanding.expands()
                     && !self.far.has_source()
-                    && let Some((world, memo)) = self.expanding.far_source()
+                    && let Some((world, memo, cells)) = self.expanding.far_source()
                 {
-                    self.far.set_world(world, memo);
+                    self.far.set_world(world, memo, cells);
                 }
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
