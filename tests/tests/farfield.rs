@@ -1,6 +1,7 @@
 //! The far field a client computes itself (issue 30, item 5), over real QUIC on loopback: a client that expands
 //! its cells computes the far view's summary nodes from the world function, and ends holding exactly the nodes,
-//! bit for bit, that the server sends a client that takes records from the same place; the server sends it none.
+//! bit for bit, that the server sends a client that takes records from the same place, after moves too; the server
+//! sends it none.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -21,6 +22,12 @@ async fn settled(cfg: &ConnectConfig, view: FarView) -> Connection {
     let place = |_: &Welcome| Viewpoint::at(0, [300.0, -200.0], 100.0);
     let mut c = Connection::connect(&ep, cfg, None, place).await.unwrap();
     assert!(c.set_far_view(view).await.unwrap());
+    settle(&mut c).await;
+    c
+}
+
+/// Wait until the area of interest is complete and no summary node has come for a while.
+async fn settle(c: &mut Connection) {
     c.wait_complete(Duration::from_secs(60)).await.unwrap();
     let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
     let mut quiet = 0;
@@ -31,7 +38,15 @@ async fn settled(cfg: &ConnectConfig, view: FarView) -> Connection {
         }
         quiet = if c.state().summaries_generation() == generation { quiet + 1 } else { 0 };
     }
-    c
+}
+
+/// Both clients' far fields hold the same nodes, bit for bit.
+fn same_nodes(records: &Connection, expands: &Connection) {
+    let (sent, computed) = (records.state().summaries(), expands.state().summaries());
+    assert_eq!(sent.keys().collect::<Vec<_>>(), computed.keys().collect::<Vec<_>>(), "the same nodes");
+    for (k, n) in sent {
+        assert_eq!(**n, *computed[k], "node {k:?}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -50,13 +65,30 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     let expands = settled(&cfg, view).await;
     assert!(matches!(expands.state().cell_mode(), CellMode::Expand { .. }));
 
-    let (sent, computed) = (records.state().summaries(), expands.state().summaries());
+    let sent = records.state().summaries();
     assert!(sent.len() > 20, "the server sent {} nodes", sent.len());
     assert!(sent.keys().any(|k| k.level == 0) && sent.keys().any(|k| k.level >= 4), "coarse and fine nodes");
-    assert_eq!(sent.keys().collect::<Vec<_>>(), computed.keys().collect::<Vec<_>>(), "the same nodes");
-    for (k, n) in sent {
-        assert_eq!(**n, *computed[k], "node {k:?}");
+    same_nodes(&records, &expands);
+    // A move, then two in quick succession (back, and again: the second inside the walks' rate limit, every node
+    // already computed, so nothing but the held-back walk wakes the client), then rest: both follow to the end.
+    let (mut records, mut expands) = (records, expands);
+    let there = Viewpoint::at(1, [-700.0, 500.0], 100.0);
+    for c in [&mut records, &mut expands] {
+        c.set_viewpoint(there).await.unwrap();
+        settle(c).await;
     }
+    for c in [&mut records, &mut expands] {
+        c.set_viewpoint(Viewpoint::at(2, [300.0, -200.0], 100.0)).await.unwrap();
+        // What has arrived is applied (the expanding client walks for the first move now), then the second.
+        while let Some(r) = c.try_next_event() {
+            r.unwrap();
+        }
+        c.set_viewpoint(Viewpoint { seq: 3, ..there }).await.unwrap();
+    }
+    settle(&mut records).await;
+    settle(&mut expands).await;
+    assert!(records.state().summaries().keys().any(|k| k.level == 0));
+    same_nodes(&records, &expands);
     assert!(records.frame_bytes_received()[ServerMsgKind::Summaries] > 0);
     assert_eq!(expands.frame_bytes_received()[ServerMsgKind::Summaries], 0, "the server sent summaries");
     records.close();

@@ -108,9 +108,20 @@ impl FarField {
         let _ = self.tx.send(());
     }
 
-    /// Wait until there may be something to do (pending forever before a far view and a world).
+    /// Wait until there may be something to do: a wake-up, or the moment a walk held back by
+    /// [`REBUILD_INTERVAL`] is due (pending forever before a far view and a world).
     pub(super) async fn next(&mut self) -> Option<()> {
-        self.rx.recv().await
+        let held_back = self.dirty && self.view.is_some() && self.source.is_some();
+        match self.rebuilt.filter(|_| held_back) {
+            Some(t) => {
+                let due = tokio::time::Instant::from_std(t + REBUILD_INTERVAL);
+                tokio::select! {
+                    r = self.rx.recv() => r,
+                    () = tokio::time::sleep_until(due) => Some(()),
+                }
+            }
+            None => self.rx.recv().await,
+        }
     }
 
     /// Whether a wake-up is already there.
