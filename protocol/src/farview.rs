@@ -12,13 +12,18 @@
 //! at most [`MAX_VISITS`] nodes.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::time::Duration;
 
-use crate::summary::{COVER_SIDE, NodeKey, Refine};
+use crate::aoi::{Aoi, Grid};
+use crate::summary::{COVER_SIDE, FarView, NodeKey, Refine};
 
 /// Most summary nodes a viewer holds or has queued.
 pub const MAX_SESSION_NODES: usize = 16_384;
 /// Most nodes one walk visits.
 pub const MAX_VISITS: usize = 65_536;
+/// A whole walk ([`Selection::rebuild`]) happens at most this often for one viewer (viewpoints come up to 50 a
+/// second).
+pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
 /// The view cone's angle a viewer is taken to have, degrees (what orders the queue, not what is selected).
 pub const DEFAULT_FOV_DEG: f32 = 120.0;
 /// A node whose centre lies outside the view cone is queued as if its projected error were this much smaller.
@@ -35,6 +40,32 @@ pub struct Eye {
     pub cos_half_fov: f32,
     /// Radius the records cover.
     pub record_radius: f32,
+}
+
+impl Eye {
+    /// The eye of a viewer whose area of interest is `aoi`, heading along `heading`, with a view cone of `fov_deg`
+    /// degrees: at the area's centre, its records covering the area's radius.
+    pub fn new(aoi: &Aoi, heading: [f32; 2], fov_deg: f32) -> Eye {
+        Eye {
+            position: aoi.position,
+            heading,
+            cos_half_fov: (fov_deg.to_radians() * 0.5).cos(),
+            record_radius: aoi.radius,
+        }
+    }
+
+    /// The rule for `view` from this eye over `grid`, whose roots are at `root_level`: what a server session and
+    /// a client computing its own nodes both walk, so they select the same nodes.
+    pub fn refine(&self, view: FarView, grid: &Grid, root_level: u8) -> Refine {
+        Refine {
+            view,
+            eye: self.position,
+            origin: grid.origin,
+            cell_size: grid.cell_size,
+            root_level,
+            record_radius: self.record_radius,
+        }
+    }
 }
 
 /// What the source of nodes says about one.
@@ -65,11 +96,6 @@ impl Selection {
     /// Nodes the viewer holds.
     pub fn held(&self) -> impl Iterator<Item = NodeKey> + '_ {
         self.held.keys().copied()
-    }
-
-    /// Whether the viewer holds `key`.
-    pub fn holds(&self, key: NodeKey) -> bool {
-        self.held.contains_key(&key)
     }
 
     /// Nodes queued to hand out.
@@ -159,9 +185,9 @@ impl Selection {
         self.queue.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)));
     }
 
-    /// The most visible queued nodes whose parents the viewer holds (or roots of `root_level`), while `take`
-    /// accepts them: it gets each node and answers its geometric error, `None` to skip it (no longer available)
-    /// or stops the batch by returning [`Take::Stop`]. The nodes taken are held from now on.
+    /// The most visible queued nodes whose parents the viewer holds (or roots of `root_level`), as `take` answers
+    /// for each ([`Take`]: hand it out with its geometric error, skip it, or stop the batch). The nodes handed out
+    /// are held from now on; returns how many.
     pub fn next(&mut self, root_level: u8, mut take: impl FnMut(NodeKey) -> Take) -> usize {
         let mut deferred = Vec::new();
         let mut taken = 0;

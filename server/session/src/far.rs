@@ -2,11 +2,11 @@
 //! must forget. Sans-IO like the session that owns it: `now` is an argument.
 //!
 //! The client says how it wants the far field ([`FarView`]: a screen-space error threshold, its viewport and
-//! range, its altitude); the selection is the one both sides run ([`Selection`]: the rule [`Refine`], coarse
-//! first, the most visible first, a node after its parent, releases under the looser keep rule) over the store's
-//! nodes (a node not computed yet is asked for and wakes the session when it is). Records keep priority:
-//! summaries take at most a quarter of the bytes while cells are queued ([`FarSession::turn`]), under the
-//! session's pacing.
+//! range, its altitude); the selection is the one both sides run ([`Selection`]: the rule
+//! [`canopy_protocol::summary::Refine`] from the client's [`Eye`], coarse first, the most visible first, a node
+//! after its parent, releases under the looser keep rule) over the store's nodes (a node not computed yet is asked
+//! for and wakes the session when it is). Records keep priority: summaries take at most a quarter of the bytes
+//! while cells are queued ([`FarSession::turn`]), under the session's pacing.
 //!
 //! Memory and work per session are bounded: at most [`canopy_protocol::farview::MAX_SESSION_NODES`] nodes held or
 //! queued, a walk visits at most [`canopy_protocol::farview::MAX_VISITS`] nodes, a rebuild happens at most every
@@ -20,9 +20,10 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 pub(crate) use canopy_protocol::farview::Eye;
+pub use canopy_protocol::farview::REBUILD_INTERVAL;
 use canopy_protocol::farview::{NodeState, Selection, Take};
 use canopy_protocol::frame::frame;
-use canopy_protocol::summary::{FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, Refine};
+use canopy_protocol::summary::{FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey};
 use canopy_protocol::sync::Locked;
 
 use canopy_protocol::messages::ServerMsgKind;
@@ -30,8 +31,6 @@ use canopy_protocol::messages::ServerMsgKind;
 use crate::store::{CellWaker, EncodedSummary, SummaryState, WorldStore};
 use crate::transmit::{StreamId, Transmit};
 
-/// A rebuild happens at most this often (viewpoints come up to 50 a second).
-pub const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
 /// Once a node the session waits for is ready, the walk goes on from the nodes it waits for at most this often:
 /// down a computed subtree at once instead of a level per [`REBUILD_INTERVAL`].
 pub const NODE_REBUILD_INTERVAL: Duration = Duration::from_millis(20);
@@ -164,18 +163,6 @@ impl FarSession {
         self.selection.has_releases() || self.bytes.saturating_mul(3) <= cell_bytes
     }
 
-    fn refine(&self, store: &dyn WorldStore, eye: &Eye) -> Refine {
-        let grid = store.grid();
-        Refine {
-            view: self.view,
-            eye: eye.position,
-            origin: grid.origin,
-            cell_size: grid.cell_size,
-            root_level: store.summary_root_level(),
-            record_radius: eye.record_radius,
-        }
-    }
-
     /// Rebuild the queue and the releases for where the client stands, if anything changed (a far view, the
     /// viewpoint, a node computed) and the last rebuild is [`REBUILD_INTERVAL`] old; between rebuilds, once a node
     /// it waits for is ready and the last walk is [`NODE_REBUILD_INTERVAL`] old, walk on from the nodes it waits
@@ -191,7 +178,7 @@ impl FarSession {
         let waker = self.node_waker(waker);
         self.waker.ready.store(false, Ordering::Release);
         self.walked = Some(now);
-        let refine = self.refine(store, eye);
+        let refine = eye.refine(self.view, store.grid(), store.summary_root_level());
         let state = |k| match store.summary(k, Some(&waker)) {
             SummaryState::Ready(n) => NodeState::Ready(n.node.error),
             SummaryState::Pending => NodeState::Pending,

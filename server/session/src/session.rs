@@ -634,12 +634,7 @@ impl Session {
     /// Rebuild the far view's queue if due (see [`FarSession::update`]).
     fn update_far(&mut self, now: Instant) {
         let (Some(far), Some(vp), Some(aoi)) = (&mut self.far, self.viewpoint, self.aoi) else { return };
-        let eye = Eye {
-            position: aoi.position,
-            heading: vp.heading(),
-            cos_half_fov: (self.cfg.fov_deg.to_radians() * 0.5).cos(),
-            record_radius: aoi.radius,
-        };
+        let eye = Eye::new(&aoi, vp.heading(), self.cfg.fov_deg);
         far.update(now, &*self.store, self.waker.as_ref(), &eye);
     }
 

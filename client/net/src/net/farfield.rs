@@ -11,9 +11,9 @@ use std::collections::BTreeSet;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use canopy_protocol::farview::{DEFAULT_FOV_DEG, Eye, MAX_SESSION_NODES, NodeState, Selection, Take};
+use canopy_protocol::farview::{DEFAULT_FOV_DEG, Eye, MAX_SESSION_NODES, NodeState, REBUILD_INTERVAL, Selection, Take};
 use canopy_protocol::summary::{
-    FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, Refine, SummaryBatch, overlaps, root_level,
+    FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, SummaryBatch, overlaps, root_level,
 };
 use canopy_protocol::sync::{Locked, Waited};
 use canopy_worlds::world::far::Summaries;
@@ -21,9 +21,6 @@ use tokio::sync::mpsc;
 
 use crate::expand::{ExpandWorld, Expander};
 use crate::state::{ClientState, Event, StateError};
-
-/// The walk is redone for a new viewpoint or far view at most this often (as a server session does).
-const REBUILD_INTERVAL: Duration = Duration::from_millis(200);
 
 /// See the module docs.
 pub(super) struct FarField {
@@ -135,20 +132,8 @@ impl FarField {
         let (Some(view), Some(source)) = (self.view, &self.source) else { return None };
         let (Some(vp), Some(aoi)) = (state.viewpoint(), state.aoi()) else { return None };
         let grid = source.world.grid;
-        let refine = Refine {
-            view,
-            eye: aoi.position,
-            origin: grid.origin,
-            cell_size: grid.cell_size,
-            root_level: source.root_level,
-            record_radius: aoi.radius,
-        };
-        let eye = Eye {
-            position: aoi.position,
-            heading: vp.heading(),
-            cos_half_fov: (DEFAULT_FOV_DEG.to_radians() * 0.5).cos(),
-            record_radius: aoi.radius,
-        };
+        let eye = Eye::new(aoi, vp.heading(), DEFAULT_FOV_DEG);
+        let refine = eye.refine(view, &grid, source.root_level);
         let node_state = |k: NodeKey| {
             if !k.is_valid() || k.level > source.root_level || !overlaps(&grid, k) {
                 return NodeState::Unavailable;
