@@ -1,9 +1,10 @@
 //! The far field a client computes itself (issue 30, item 5), over real QUIC on loopback: a client that expands
 //! its cells computes the far view's summary nodes from the world function, and ends holding exactly the nodes,
 //! bit for bit, that the server sends a client that takes records from the same place, after moves too; the server
-//! sends it none.
+//! sends it none, and a second client of the same process computes none again.
 
 use std::sync::Arc;
+use std::sync::atomic::Ordering::Relaxed;
 use std::time::Duration;
 
 use canopy_client::expand::Expander;
@@ -61,7 +62,8 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     let records = settled(&pinned(&server), view).await;
     assert_eq!(records.state().cell_mode(), CellMode::Records);
     let mut cfg = pinned(&server);
-    cfg.expander = Some(Expander::new(2, 8 << 20));
+    let expander = Expander::new(2, 8 << 20);
+    cfg.expander = Some(Arc::clone(&expander));
     let expands = settled(&cfg, view).await;
     assert!(matches!(expands.state().cell_mode(), CellMode::Expand { .. }));
 
@@ -69,6 +71,13 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     assert!(sent.len() > 20, "the server sent {} nodes", sent.len());
     assert!(sent.keys().any(|k| k.level == 0) && sent.keys().any(|k| k.level >= 4), "coarse and fine nodes");
     same_nodes(&records, &expands);
+    // The memo is shared by the clients of one process: a second client there computes no node again.
+    let far_jobs = expander.stats().far_jobs.load(Relaxed);
+    assert!(far_jobs > 0, "the expander computed the far field");
+    let again = settled(&cfg, view).await;
+    same_nodes(&records, &again);
+    assert_eq!(expander.stats().far_jobs.load(Relaxed), far_jobs, "nodes computed again");
+    again.close();
     // A move, then two in quick succession (back, and again: the second inside the walks' rate limit, every node
     // already computed, so nothing but the held-back walk wakes the client), then rest: both follow to the end.
     let (mut records, mut expands) = (records, expands);
@@ -94,20 +103,4 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     records.close();
     expands.close();
     server.shutdown(Duration::from_secs(1)).await;
-}
-
-#[test]
-fn the_memo_is_shared_by_the_clients_of_one_process() {
-    let expander = Expander::new(1, 1 << 20);
-    let w = canopy_client::expand::ExpandWorld {
-        hash: canopy_protocol::SpeciesHash([7; 32]),
-        world: Arc::clone(forest()),
-        grid: canopy_protocol::aoi::Grid {
-            origin: [0.0, 0.0],
-            cell_size: 64.0,
-            min: canopy_protocol::CellCoord::new(-16, -16),
-            max: canopy_protocol::CellCoord::new(15, 15),
-        },
-    };
-    assert!(Arc::ptr_eq(&expander.summaries(&w), &expander.summaries(&w)));
 }

@@ -344,7 +344,7 @@ async fn a_client_whose_expansion_differs_is_caught_by_its_digests_and_served_re
     let species: Vec<_> = forest().species.iter().map(|s| s.graph.clone()).collect();
     let terrain = SpeciesGraph::decode(w.world.terrain.graph.as_ref().unwrap()).unwrap();
     let world = World::from_function("forest", &manifest, &species, Some(&terrain)).unwrap();
-    expander.adopt(ExpandWorld { hash: w.world.function.unwrap(), world: Arc::new(world), grid: w.world.grid });
+    expander.adopt(ExpandWorld::new(w.world.function.unwrap(), Arc::new(world), w.world.grid));
     let mut state = ClientState::new();
     state.set_digest_every(1);
     let c = expanding_client(&server, &expander, state).await;

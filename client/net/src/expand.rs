@@ -2,20 +2,25 @@
 //! nearest first, with a byte-bounded cache of expanded cells. One [`Expander`] serves one client, or every bot of
 //! a process (they share its cache: the same world function gives the same cells).
 //!
+//! Far-view summary nodes ([`FarJob`]) are computed by the same workers into their world's memo, coarsest first,
+//! and only while no cell waits: cells go first.
+//!
 //! A job is dropped unexpanded when its grant is no longer wanted ([`Job::cancel`]: the cell was released or left
 //! the area of interest). Worlds are built once per world function ([`Expander::world`]) from the manifest and the
 //! species table, and expanded with the same function the server uses ([`World::expand_cell`]); records are
 //! quantised on the welcome's grid, as the server quantises them.
 
-use std::collections::BinaryHeap;
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BinaryHeap};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, OnceLock};
 use std::thread::JoinHandle;
 
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::lru::Lru;
 use canopy_protocol::messages::WorldFunction;
 use canopy_protocol::record::ParamOverride;
+use canopy_protocol::summary::NodeKey;
 use canopy_protocol::sync::{Locked, Waited};
 use canopy_protocol::{CellCoord, InstanceRecord, SpeciesGraph, SpeciesHash};
 use canopy_worlds::world::far::Summaries;
@@ -27,7 +32,8 @@ pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
 /// Worlds kept built, by world function (a process rarely serves more than one).
 const WORLDS_KEPT: usize = 4;
 
-/// A world function built into a world, with the grid its records are quantised on.
+/// A world function built into a world, with the grid its records are quantised on and the memo of its far-view
+/// summary nodes (shared, like the world, by every client of the process).
 #[derive(Debug)]
 pub struct ExpandWorld {
     /// The world function's hash.
@@ -36,6 +42,19 @@ pub struct ExpandWorld {
     pub world: Arc<World>,
     /// The welcome's cell grid.
     pub grid: Grid,
+    summaries: OnceLock<Mutex<Summaries>>,
+}
+
+impl ExpandWorld {
+    /// The world `world` of the world function `hash`, quantised on `grid`.
+    pub fn new(hash: SpeciesHash, world: Arc<World>, grid: Grid) -> ExpandWorld {
+        ExpandWorld { hash, world, grid, summaries: OnceLock::new() }
+    }
+
+    /// The memo of its far-view summary nodes (bounded: [`Summaries::new`]).
+    pub fn summaries(&self) -> &Mutex<Summaries> {
+        self.summaries.get_or_init(|| Mutex::new(Summaries::new(Arc::clone(&self.world))))
+    }
 }
 
 /// One cell's records as the world function places them: record `i` is instance `(cell, i)`; overrides by index
@@ -82,6 +101,19 @@ pub struct Job {
     pub done: Box<dyn FnOnce(Arc<Expanded>) + Send>,
 }
 
+/// A far-view summary node to compute into its world's memo ([`ExpandWorld::summaries`]), for whoever asked:
+/// `done` is called on a worker thread once the node is there, unless the job was cancelled first.
+pub struct FarJob {
+    /// The world.
+    pub world: Arc<ExpandWorld>,
+    /// The node.
+    pub node: NodeKey,
+    /// Set when the node is no longer wanted.
+    pub cancelled: Arc<AtomicBool>,
+    /// Called once the node is in the memo.
+    pub done: Box<dyn FnOnce() + Send>,
+}
+
 impl Job {
     /// Cancel the job (a no-op once it ran).
     pub fn cancel(flag: &AtomicBool) {
@@ -112,6 +144,8 @@ impl Ord for Queued {
 #[derive(Default)]
 struct Queue {
     jobs: BinaryHeap<Queued>,
+    /// Far-view nodes, coarsest first, then the oldest; taken only while `jobs` is empty.
+    far: BTreeMap<(Reverse<u8>, u64), FarJob>,
     next: u64,
     stop: bool,
 }
@@ -127,6 +161,8 @@ pub struct ExpandStats {
     pub cancelled: AtomicU64,
     /// Nanoseconds spent expanding.
     pub nanos: AtomicU64,
+    /// Far-view node jobs run.
+    pub far_jobs: AtomicU64,
 }
 
 struct Inner {
@@ -136,8 +172,6 @@ struct Inner {
     cache_bytes: usize,
     worlds: Mutex<Vec<Arc<ExpandWorld>>>,
     functions: Mutex<Vec<Arc<WorldFunction>>>,
-    /// Far-view summary memos, by world function (shared like the cells: the same function, the same nodes).
-    summaries: Mutex<Vec<(SpeciesHash, Arc<Mutex<Summaries>>)>>,
     stats: ExpandStats,
 }
 
@@ -163,7 +197,6 @@ impl Expander {
             cache_bytes,
             worlds: Mutex::new(Vec::new()),
             functions: Mutex::new(Vec::new()),
-            summaries: Mutex::new(Vec::new()),
             stats: ExpandStats::default(),
         });
         let workers = (0..workers.max(1))
@@ -210,7 +243,7 @@ impl Expander {
             return Ok(Arc::clone(w));
         }
         let world = World::from_function(name, &function.manifest, species, terrain).map_err(|d| d.to_string())?;
-        let built = Arc::new(ExpandWorld { hash, world: Arc::new(world), grid });
+        let built = Arc::new(ExpandWorld::new(hash, Arc::new(world), grid));
         let mut worlds = self.inner.worlds.locked();
         if let Some(w) = worlds.iter().find(|w| w.hash == hash) {
             return Ok(Arc::clone(w));
@@ -227,20 +260,6 @@ impl Expander {
             functions.push(Arc::clone(function));
         }
         Ok(built)
-    }
-
-    /// The far-view summary memo of `world`, one per world function (bounded: [`Summaries::new`]).
-    pub fn summaries(&self, world: &ExpandWorld) -> Arc<Mutex<Summaries>> {
-        let mut memos = self.inner.summaries.locked();
-        if let Some((_, m)) = memos.iter().find(|(h, _)| *h == world.hash) {
-            return Arc::clone(m);
-        }
-        if memos.len() >= WORLDS_KEPT {
-            memos.remove(0);
-        }
-        let memo = Arc::new(Mutex::new(Summaries::new(Arc::clone(&world.world))));
-        memos.push((world.hash, Arc::clone(&memo)));
-        memo
     }
 
     /// Use `world` for its hash from now on, in place of building it from the world function (a world built
@@ -267,6 +286,16 @@ impl Expander {
         self.inner.work.notify_one();
     }
 
+    /// Queue a far-view node (computed once no cell waits).
+    pub fn submit_far(&self, job: FarJob) {
+        let mut q = self.inner.queue.locked();
+        let n = q.next;
+        q.next += 1;
+        q.far.insert((Reverse(job.node.level), n), job);
+        drop(q);
+        self.inner.work.notify_one();
+    }
+
     /// Jobs queued and not taken by a worker yet (cancelled ones included until a worker passes them).
     pub fn queued(&self) -> usize {
         self.inner.queue.locked().jobs.len()
@@ -279,6 +308,7 @@ impl Drop for Expander {
             let mut q = self.inner.queue.locked();
             q.stop = true;
             q.jobs.clear();
+            q.far.clear();
         }
         self.inner.work.notify_all();
         for w in self.workers.drain(..) {
@@ -288,6 +318,15 @@ impl Drop for Expander {
 }
 
 impl Inner {
+    fn run_far(&self, job: FarJob) {
+        if job.cancelled.load(Relaxed) {
+            return;
+        }
+        self.stats.far_jobs.fetch_add(1, Relaxed);
+        Summaries::get_shared(job.world.summaries(), job.node);
+        (job.done)();
+    }
+
     fn run(&self) {
         loop {
             let job = {
@@ -298,6 +337,12 @@ impl Inner {
                     }
                     if let Some(Queued(job, _)) = q.jobs.pop() {
                         break job;
+                    }
+                    if let Some((_, far)) = q.far.pop_first() {
+                        drop(q);
+                        self.run_far(far);
+                        q = self.queue.locked();
+                        continue;
                     }
                     q = self.work.waited(q);
                 }

@@ -3,20 +3,16 @@
 //! longer wanted) and their results, and the digests and requests for records to send.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, Mutex};
 
 use canopy_protocol::messages::CellMode;
 use canopy_protocol::{CellCoord, ClientMsg, SpeciesGraph};
-use canopy_worlds::world::far::Summaries;
 use tokio::sync::mpsc;
 
 use super::ClientError;
 use crate::expand::{ExpandWorld, Expanded, Expander, Job};
 use crate::state::{ClientState, Event};
-
-/// What a far field computes from: the world, its summary memo, the expander whose cells go first.
-pub(super) type FarSource<'a> = (&'a Arc<ExpandWorld>, Arc<Mutex<Summaries>>, Arc<Expander>);
 
 /// An expanded cell coming back: `(cell, grant, records)`.
 pub(super) type Done = (CellCoord, u32, Arc<Expanded>);
@@ -33,8 +29,6 @@ pub(super) struct Expanding {
     deferred: Vec<(CellCoord, u32)>,
     /// Cells to ask records for.
     records: Vec<CellCoord>,
-    /// Whether this connection expands its cells (it asked for [`CellMode::Expand`] with an expander).
-    expands: bool,
     tx: mpsc::UnboundedSender<Done>,
     rx: mpsc::UnboundedReceiver<Done>,
 }
@@ -43,12 +37,12 @@ impl Expanding {
     pub(super) fn new(expander: Option<Arc<Expander>>, grants_only: bool) -> Expanding {
         let (tx, rx) = mpsc::unbounded_channel();
         let (jobs, deferred, records) = (HashMap::new(), Vec::new(), Vec::new());
-        Expanding { expander, grants_only, world: None, jobs, deferred, records, expands: false, tx, rx }
+        Expanding { expander, grants_only, world: None, jobs, deferred, records, tx, rx }
     }
 
     /// The cell mode to ask for (between the welcome and the ready): expand where there is an expander and the
     /// server offers a world function, preloading the function if this process holds it.
-    pub(super) fn mode(&mut self, state: &mut ClientState) -> CellMode {
+    pub(super) fn mode(&self, state: &mut ClientState) -> CellMode {
         let Some(hash) = state.welcome().and_then(|w| w.world.function) else { return CellMode::Records };
         if self.grants_only {
             state.set_grants_only(true);
@@ -57,19 +51,18 @@ impl Expanding {
         }
         let Some(expander) = &self.expander else { return CellMode::Records };
         let have_function = expander.function(&hash).is_some_and(|f| state.preload_function(f));
-        self.expands = true;
         CellMode::Expand { have_function }
     }
 
-    /// Whether this connection expands its cells (and so computes its far field too).
-    pub(super) fn expands(&self) -> bool {
-        self.expands
+    /// Whether this connection expands its cells (and so computes its far field too): it has an expander and asked
+    /// for [`CellMode::Expand`] to use it.
+    pub(super) fn expands(&self, state: &ClientState) -> bool {
+        self.expander.is_some() && !self.grants_only && matches!(state.cell_mode(), CellMode::Expand { .. })
     }
 
-    /// The world, the far-view memo and the expander (whose cells go first), once the world is built.
-    pub(super) fn far_source(&self) -> Option<FarSource<'_>> {
-        let (world, expander) = (self.world.as_ref()?, self.expander.as_ref()?);
-        Some((world, expander.summaries(world), Arc::clone(expander)))
+    /// The world and the expander, once the world is built.
+    pub(super) fn built(&self) -> Option<(&Arc<ExpandWorld>, &Arc<Expander>)> {
+        Some((self.world.as_ref()?, self.expander.as_ref()?))
     }
 
     /// Follow an event the state gave: expand granted cells, build the world when the function and species are

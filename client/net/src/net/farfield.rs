@@ -1,25 +1,24 @@
 //! The far field computed on this client (issue 30, item 5): a connection that expands its cells computes the
 //! far-view summary nodes it wants from the same world function, instead of asking the server for them. The
 //! selection is the server session's ([`Selection`]: the same nodes, coarse first, a node after its parent), over
-//! a memo of nodes computed on a thread of this connection (coarsest request first; a root computes the subtree it
-//! covers, so its descendants follow from the memo; cells go first: it computes only while no cell waits for the
-//! expander, as a server's cache does); the nodes reach the state as the server's batches would
-//! ([`ClientState::on_summaries`]). A connection that takes records asks the server, as before.
+//! the world's memo of nodes ([`ExpandWorld::summaries`]), which the expander's workers fill ([`FarJob`]: the
+//! coarsest first, a root's subtree with it, and only while no cell waits, as a server's cache does); the nodes
+//! reach the state as the server's batches would ([`ClientState::on_summaries`]). A connection that takes records
+//! asks the server, as before.
 
-use std::cmp::Reverse;
 use std::collections::BTreeSet;
-use std::sync::{Arc, Condvar, Mutex};
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
 
 use canopy_protocol::farview::{DEFAULT_FOV_DEG, Eye, MAX_SESSION_NODES, NodeState, REBUILD_INTERVAL, Selection, Take};
 use canopy_protocol::summary::{
     FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, SummaryBatch, overlaps, root_level,
 };
-use canopy_protocol::sync::{Locked, Waited};
-use canopy_worlds::world::far::Summaries;
+use canopy_protocol::sync::Locked;
 use tokio::sync::mpsc;
 
-use crate::expand::{ExpandWorld, Expander};
+use crate::expand::{ExpandWorld, Expander, FarJob};
 use crate::state::{ClientState, Event, StateError};
 
 /// See the module docs.
@@ -31,33 +30,25 @@ pub(super) struct FarField {
     /// The viewpoint or the far view changed since the last walk.
     dirty: bool,
     rebuilt: Option<Instant>,
-    /// Says that a node was computed (or that the selection has nodes to hand out).
-    tx: mpsc::UnboundedSender<()>,
-    rx: mpsc::UnboundedReceiver<()>,
+    /// Wake-ups: a node computed (`Some`), or the selection has nodes to hand out (`None`).
+    tx: mpsc::UnboundedSender<Option<NodeKey>>,
+    rx: mpsc::UnboundedReceiver<Option<NodeKey>>,
 }
 
-/// Where the nodes come from: the world and its memo, and the thread computing what the walks ask for.
+/// Where the nodes come from: the world (and its memo), the expander computing them, and what was asked.
 struct Source {
     world: Arc<ExpandWorld>,
-    memo: Arc<Mutex<Summaries>>,
+    expander: Arc<Expander>,
     root_level: u8,
-    requests: Arc<Requests>,
+    /// Nodes asked for and not computed yet (at most [`MAX_SESSION_NODES`]).
+    asked: BTreeSet<NodeKey>,
+    /// Set when this source is dropped: its queued nodes are no longer wanted.
+    cancelled: Arc<AtomicBool>,
 }
-
-/// Nodes asked for, coarsest first, and whether the connection is gone.
-#[derive(Default)]
-struct Requests {
-    queue: Mutex<Asked>,
-    ready: Condvar,
-}
-
-/// The nodes asked for (coarsest first) and whether the connection is gone.
-type Asked = (BTreeSet<(Reverse<u8>, NodeKey)>, bool);
 
 impl Drop for Source {
     fn drop(&mut self) {
-        self.requests.queue.locked().1 = true;
-        self.requests.ready.notify_all();
+        self.cancelled.store(true, Ordering::Relaxed);
     }
 }
 
@@ -71,14 +62,14 @@ impl FarField {
     pub(super) fn set_view(&mut self, view: FarView) {
         self.view = Some(view);
         self.dirty = true;
-        let _ = self.tx.send(());
+        let _ = self.tx.send(None);
     }
 
     /// The viewpoint moved.
     pub(super) fn moved(&mut self) {
         if self.view.is_some() {
             self.dirty = true;
-            let _ = self.tx.send(());
+            let _ = self.tx.send(None);
         }
     }
 
@@ -87,64 +78,76 @@ impl FarField {
         self.source.is_some()
     }
 
-    /// Compute from `world` from now on (once the connection has built it), sharing `memo` with whoever computes
-    /// the same world, whenever no cell waits for `cells`.
-    pub(super) fn set_world(&mut self, world: &Arc<ExpandWorld>, memo: Arc<Mutex<Summaries>>, cells: Arc<Expander>) {
+    /// Compute from `world` from now on (once the connection has built it), with `expander`'s workers.
+    pub(super) fn set_world(&mut self, world: &Arc<ExpandWorld>, expander: &Arc<Expander>) {
         if self.source.as_ref().is_some_and(|s| Arc::ptr_eq(&s.world, world)) {
             return;
         }
-        let requests = Arc::new(Requests::default());
-        let (r, m, tx) = (Arc::clone(&requests), Arc::clone(&memo), self.tx.clone());
-        let spawned = std::thread::Builder::new().name("canopy-far".into()).spawn(move || compute(&r, &m, &cells, &tx));
-        if spawned.is_err() {
-            return;
-        }
-        let root_level = root_level(world.grid.cell_size);
-        self.source = Some(Source { world: Arc::clone(world), memo, root_level, requests });
+        self.source = Some(Source {
+            world: Arc::clone(world),
+            expander: Arc::clone(expander),
+            root_level: root_level(world.grid.cell_size),
+            asked: BTreeSet::new(),
+            cancelled: Arc::new(AtomicBool::new(false)),
+        });
         self.dirty = true;
-        let _ = self.tx.send(());
+        let _ = self.tx.send(None);
     }
 
     /// Wait until there may be something to do: a wake-up, or the moment a walk held back by
     /// [`REBUILD_INTERVAL`] is due (pending forever before a far view and a world).
     pub(super) async fn next(&mut self) -> Option<()> {
         let held_back = self.dirty && self.view.is_some() && self.source.is_some();
-        match self.rebuilt.filter(|_| held_back) {
+        let wake = match self.rebuilt.filter(|_| held_back) {
             Some(t) => {
                 let due = tokio::time::Instant::from_std(t + REBUILD_INTERVAL);
                 tokio::select! {
                     r = self.rx.recv() => r,
-                    () = tokio::time::sleep_until(due) => Some(()),
+                    () = tokio::time::sleep_until(due) => Some(None),
                 }
             }
             None => self.rx.recv().await,
-        }
+        };
+        wake.map(|w| self.woken(w))
     }
 
     /// Whether a wake-up is already there.
     pub(super) fn try_next(&mut self) -> bool {
-        self.rx.try_recv().is_ok()
+        self.rx.try_recv().map(|w| self.woken(w)).is_ok()
+    }
+
+    fn woken(&mut self, computed: Option<NodeKey>) {
+        if let (Some(k), Some(source)) = (computed, &mut self.source) {
+            source.asked.remove(&k);
+        }
     }
 
     /// Walk (again, for a move; on, for computed nodes) and lay the nodes that can go into the state: `None`
     /// when nothing changed.
     pub(super) fn advance(&mut self, state: &mut ClientState, now: Instant) -> Option<Result<Event, StateError>> {
-        let (Some(view), Some(source)) = (self.view, &self.source) else { return None };
+        let (Some(view), Some(source)) = (self.view, &mut self.source) else { return None };
         let (Some(vp), Some(aoi)) = (state.viewpoint(), state.aoi()) else { return None };
         let grid = source.world.grid;
         let eye = Eye::new(aoi, vp.heading(), DEFAULT_FOV_DEG);
         let refine = eye.refine(view, &grid, source.root_level);
+        let tx = &self.tx;
         let node_state = |k: NodeKey| {
             if !k.is_valid() || k.level > source.root_level || !overlaps(&grid, k) {
                 return NodeState::Unavailable;
             }
-            if let Some(n) = source.memo.locked().peek(k) {
+            if let Some(n) = source.world.summaries().locked().peek(k) {
                 return NodeState::Ready(n.error);
             }
-            let mut q = source.requests.queue.locked();
-            if q.0.len() < MAX_SESSION_NODES {
-                q.0.insert((Reverse(k.level), k));
-                source.requests.ready.notify_one();
+            if source.asked.len() < MAX_SESSION_NODES && source.asked.insert(k) {
+                let tx = tx.clone();
+                source.expander.submit_far(FarJob {
+                    world: Arc::clone(&source.world),
+                    node: k,
+                    cancelled: Arc::clone(&source.cancelled),
+                    done: Box::new(move || {
+                        let _ = tx.send(Some(k));
+                    }),
+                });
             }
             NodeState::Pending
         };
@@ -160,7 +163,7 @@ impl FarField {
             if nodes.len() >= MAX_BATCH_NODES {
                 return Take::Stop;
             }
-            match source.memo.locked().peek(k) {
+            match source.world.summaries().locked().peek(k) {
                 Some(n) => {
                     nodes.push((**n).clone());
                     Take::Node(n.error)
@@ -171,45 +174,11 @@ impl FarField {
         let released = self.selection.releases(MAX_BATCH_RELEASES);
         if self.selection.has_work() {
             // More than one batch: come back.
-            let _ = self.tx.send(());
+            let _ = self.tx.send(None);
         }
         if nodes.is_empty() && released.is_empty() {
             return None;
         }
         Some(state.on_summaries(SummaryBatch { nodes, released }))
-    }
-}
-
-/// How long the computing thread waits for the expander's queue to empty before it looks again.
-const CELLS_FIRST: Duration = Duration::from_millis(2);
-
-/// The computing thread: the coarsest node asked for, into the memo, once no cell waits, until the connection is
-/// gone.
-fn compute(requests: &Requests, memo: &Mutex<Summaries>, cells: &Expander, tx: &mpsc::UnboundedSender<()>) {
-    loop {
-        while cells.queued() > 0 {
-            if requests.queue.locked().1 {
-                return;
-            }
-            std::thread::sleep(CELLS_FIRST);
-        }
-        let key = {
-            let mut q = requests.queue.locked();
-            loop {
-                if q.1 {
-                    return;
-                }
-                if let Some((_, k)) = q.0.pop_first() {
-                    break k;
-                }
-                q = requests.ready.waited(q);
-            }
-        };
-        if memo.locked().peek(key).is_none() {
-            Summaries::get_shared(memo, key);
-        }
-        if tx.send(()).is_err() {
-            return;
-        }
     }
 }

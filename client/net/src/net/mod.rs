@@ -360,7 +360,7 @@ impl Connection {
         for msg in state.resume()? {
             ready.extend_from_slice(&frame(&msg.encode()));
         }
-        let mut expanding = expanding::Expanding::new(cfg.expander.clone(), cfg.grants_only);
+        let expanding = expanding::Expanding::new(cfg.expander.clone(), cfg.grants_only);
         let mode = expanding.mode(&mut state);
         ready.extend_from_slice(&frame(&state.ready_with(viewpoint, mode)?.encode()));
         control.write_all(&ready).await.map_err(ClientError::from_write)?;
@@ -490,7 +490,7 @@ impl Connection {
             return Ok(false);
         }
         let msg = self.state.set_far_view(view)?;
-        if self.expanding.expands() {
+        if self.expanding.expands(&self.state) {
             self.far.set_view(view);
         } else {
             self.write(&msg).await?;
@@ -565,11 +565,11 @@ impl Connection {
                     Ok(e) => self.expanding.on_event(&mut self.state, &e).map(|()| e),
                     e => e,
                 };
-                if self.expanding.expands()
+                if self.expanding.expands(&self.state)
                     && !self.far.has_source()
-                    && let Some((world, memo, cells)) = self.expanding.far_source()
+                    && let Some((world, expander)) = self.expanding.built()
                 {
-                    self.far.set_world(world, memo, cells);
+                    self.far.set_world(world, expander);
                 }
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)
