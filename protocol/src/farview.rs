@@ -187,10 +187,9 @@ impl Selection {
 
     /// The most visible queued nodes whose parents the viewer holds (or roots of `root_level`), as `take` answers
     /// for each ([`Take`]: hand it out with its geometric error, skip it, or stop the batch). The nodes handed out
-    /// are held from now on; returns how many.
-    pub fn next(&mut self, root_level: u8, mut take: impl FnMut(NodeKey) -> Take) -> usize {
+    /// are held from now on.
+    pub fn next(&mut self, root_level: u8, mut take: impl FnMut(NodeKey) -> Take) {
         let mut deferred = Vec::new();
-        let mut taken = 0;
         while self.held.len() < MAX_SESSION_NODES {
             let Some((p, k)) = self.queue.pop() else { break };
             if self.held.contains_key(&k) {
@@ -204,7 +203,6 @@ impl Selection {
             match take(k) {
                 Take::Node(error) => {
                     self.held.insert(k, error);
-                    taken += 1;
                 }
                 Take::Skip => {}
                 Take::Stop => {
@@ -214,7 +212,6 @@ impl Selection {
             }
         }
         self.queue.extend(deferred.into_iter().rev());
-        taken
     }
 
     /// At most `max` releases, coarse first.

@@ -167,7 +167,8 @@ fn sample(world: &World, n: u32) {
     let start = Instant::now();
     let mut times = Vec::new();
     let mut lists = Vec::new();
-    for c in world.sample_cells(n) {
+    let cells = world.sample_cells(n);
+    for &c in &cells {
         let t = Instant::now();
         lists.push(world.expand_cell(c));
         times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -176,10 +177,9 @@ fn sample(world: &World, n: u32) {
     let total = start.elapsed().as_secs_f64();
     times.sort_by(f64::total_cmp);
     // Again, with every tile variant those cells touch already computed: what a long-running client or server pays.
-    let mut warm: Vec<f64> = world
-        .sample_cells(n)
-        .into_iter()
-        .map(|c| {
+    let mut warm: Vec<f64> = cells
+        .iter()
+        .map(|&c| {
             let t = Instant::now();
             std::hint::black_box(world.expand_cell(c));
             t.elapsed().as_secs_f64() * 1e3

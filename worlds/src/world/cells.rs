@@ -234,13 +234,13 @@ fn scatter(
     if lo[0] > hi[0] || lo[1] > hi[1] {
         return Vec::new();
     }
-    let region = Rect { lo: rule.region.min.map(f64::from), hi: rule.region.max.map(f64::from) };
     let graph = &world.species[usize::from(rule.species)].graph;
     let darts = child_key(rule.key, 1);
     let mut kept = Vec::new();
     for [kx, kz] in rule.tiles.darts(lo, hi) {
         let (x, z) = (kx as f64 * step, kz as f64 * step);
-        if !region.contains(x, z) || !exact.contains(x, z) || avoid.is_some_and(|b| b.near(x, z)) {
+        // Inside `exact` by the step range, so inside the rule's region too (`exact` is clipped to it).
+        if avoid.is_some_and(|b| b.near(x, z)) {
             continue;
         }
         let density = ground.density(rule, x, z);

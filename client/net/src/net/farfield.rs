@@ -78,11 +78,9 @@ impl FarField {
         self.source.is_some()
     }
 
-    /// Compute from `world` from now on (once the connection has built it), with `expander`'s workers.
+    /// Compute from `world` from now on (once the connection has built it; a connection builds one), with
+    /// `expander`'s workers.
     pub(super) fn set_world(&mut self, world: &Arc<ExpandWorld>, expander: &Arc<Expander>) {
-        if self.source.as_ref().is_some_and(|s| Arc::ptr_eq(&s.world, world)) {
-            return;
-        }
         self.source = Some(Source {
             world: Arc::clone(world),
             expander: Arc::clone(expander),
