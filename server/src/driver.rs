@@ -1,11 +1,18 @@
-//! The quinn/tokio driver: a small loop per connection around the sans-IO [`Session`], the UDP socket with
+//! The quinn/tokio driver: a small loop per connection around the sans-IO [`Session`], the UDP sockets with
 //! buffers sized for many clients, the metrics endpoint, and graceful shutdown.
+//!
+//! A server listens on one UDP port with [`ServerConfig::endpoints`] sockets (`SO_REUSEPORT`: the kernel spreads
+//! clients over them by their address and port, so a connection's packets always reach the same socket). Each
+//! socket has its own quinn endpoint, whose driver task does that socket's I/O and demultiplexing, and its own
+//! accept loop; the endpoints share one TLS identity, Retry token key and stateless-reset key, one admission (client
+//! slots, handshakes and per-source caps count for the whole server) and one set of counters.
 //!
 //! Per connection: the client opens one bidirectional control stream (hello, ready, viewpoints up; the welcome
 //! down); the server opens up to [`SessionConfig::lanes`] unidirectional lanes, ordered streams whose QUIC priority
-//! falls with the lane number, and writes each [`Transmit`] to the stream the session names. A writer task does
-//! the writes and reports flushed bytes back, which reopens the session's window. Anything wrong in what a client
-//! sends closes that one connection with a [`CloseCode`] and a reason; the server carries on.
+//! falls with the lane number, and writes each [`Transmit`](canopy_session::Transmit) to the stream the session
+//! names. A writer task does the writes (taken from the session's [`Outbox`]) and reports flushed bytes back, which
+//! reopens the session's window. Anything wrong in what a client sends closes that one connection with a
+//! [`CloseCode`] and a reason; the server carries on.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -25,10 +32,11 @@ use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::editing::{EditJob, EditService};
 use crate::live::CellChange;
 use crate::metrics::Metrics;
+use crate::outbox::Outbox;
 use crate::tls::{Identity, IdentityError};
 use canopy_protocol::edit::EditOutcome;
 use canopy_session::{CellWaker, WorldStore};
-use canopy_session::{SendBudget, Session, SessionConfig, StreamId, Transmit};
+use canopy_session::{SendBudget, Session, SessionConfig, StreamId};
 
 /// UDP socket buffer size: 1,000 concurrent handshakes on loopback overflow the default buffers.
 pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
@@ -67,6 +75,12 @@ pub struct ServerConfig {
     /// The edit pipeline (`None`: the world cannot change; every edit is denied). [`crate::serve`] sets it from
     /// [`crate::ServeOptions::edits`].
     pub edits: Option<Arc<EditService>>,
+    /// UDP sockets on the listening port, each with its own QUIC endpoint (0: one per core). More than one needs
+    /// `SO_REUSEPORT` (Unix); elsewhere the server opens one.
+    pub endpoints: usize,
+    /// Send a connection's datagrams in batches of up to ten through one system call (GSO, where the kernel has
+    /// it), at the cost of a ~16 KiB buffer kept per connection. Received datagrams are batched (GRO) either way.
+    pub segmentation_offload: bool,
 }
 
 impl Default for ServerConfig {
@@ -82,6 +96,8 @@ impl Default for ServerConfig {
             idle_timeout: Duration::from_secs(30),
             idle_slot: Duration::from_secs(120),
             edits: None,
+            endpoints: 1,
+            segmentation_offload: false,
         }
     }
 }
@@ -105,16 +121,16 @@ pub enum StartError {
     Quic(String),
 }
 
-/// A running server: the endpoint, its accept loop and the metrics endpoint.
+/// A running server: its endpoints, their accept loops and the metrics endpoint.
 pub struct Server {
-    endpoint: Endpoint,
+    endpoints: Vec<Endpoint>,
     local_addr: SocketAddr,
     metrics_addr: Option<SocketAddr>,
     fingerprint: String,
     identity_generated: bool,
     metrics: Arc<Metrics>,
     shutdown: watch::Sender<bool>,
-    accept: tokio::task::JoinHandle<()>,
+    accept: Vec<tokio::task::JoinHandle<()>>,
     socket_buffers: (usize, usize),
 }
 
@@ -124,20 +140,55 @@ impl std::fmt::Debug for Server {
     }
 }
 
-/// A UDP socket bound to `addr` with send and receive buffers of `size` bytes (as far as the OS allows).
-fn udp_socket(addr: SocketAddr, size: usize) -> std::io::Result<(std::net::UdpSocket, (usize, usize))> {
+/// `n` UDP sockets bound to `addr` (port 0: one free port for all of them), with send and receive buffers of `size`
+/// bytes (as far as the OS allows): more than one share the port through `SO_REUSEPORT`.
+///
+/// The address is first bound alone, without `SO_REUSEPORT`: that fails as it always did where anything holds the
+/// port (another server's reuse-port sockets included), so a second server cannot silently share this one's port.
+fn udp_sockets(addr: SocketAddr, size: usize, n: usize) -> std::io::Result<(Vec<std::net::UdpSocket>, (usize, usize))> {
     use socket2::{Domain, Protocol, Socket, Type};
-    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
-    if let Err(e) = socket.set_recv_buffer_size(size) {
-        warn!("cannot set the UDP receive buffer to {size} bytes: {e}");
+    let open = |reuse: bool| -> std::io::Result<Socket> {
+        let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+        if let Err(e) = socket.set_recv_buffer_size(size) {
+            warn!("cannot set the UDP receive buffer to {size} bytes: {e}");
+        }
+        if let Err(e) = socket.set_send_buffer_size(size) {
+            warn!("cannot set the UDP send buffer to {size} bytes: {e}");
+        }
+        #[cfg(unix)]
+        if reuse {
+            socket.set_reuse_port(true)?;
+        }
+        #[cfg(not(unix))]
+        let _ = reuse;
+        Ok(socket)
+    };
+    let probe = open(false)?;
+    probe.bind(&addr.into())?;
+    let got = (probe.recv_buffer_size().unwrap_or(0), probe.send_buffer_size().unwrap_or(0));
+    if n <= 1 || cfg!(not(unix)) {
+        return Ok((vec![probe.into()], got));
     }
-    if let Err(e) = socket.set_send_buffer_size(size) {
-        warn!("cannot set the UDP send buffer to {size} bytes: {e}");
-    }
-    socket.bind(&addr.into())?;
-    let got = (socket.recv_buffer_size().unwrap_or(0), socket.send_buffer_size().unwrap_or(0));
-    Ok((socket.into(), got))
+    let bound = probe.local_addr()?;
+    drop(probe);
+    let sockets = (0..n)
+        .map(|_| {
+            let s = open(true)?;
+            s.bind(&bound)?;
+            Ok(s.into())
+        })
+        .collect::<std::io::Result<Vec<_>>>()?;
+    Ok((sockets, got))
 }
+
+/// How many endpoints `asked` means here: 0 is one per core; more than one only where `SO_REUSEPORT` is.
+pub fn endpoint_count(asked: usize) -> usize {
+    let n = if asked == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { asked };
+    if cfg!(unix) { n.clamp(1, MAX_ENDPOINTS) } else { 1 }
+}
+
+/// The most endpoints one server opens.
+pub const MAX_ENDPOINTS: usize = 256;
 
 fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
     let mut t = quinn::TransportConfig::default();
@@ -149,6 +200,9 @@ fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
         // handed to the writer (`SessionConfig::window`) this bounds what a client that never acknowledges pins.
         .send_window(SEND_WINDOW)
         .max_idle_timeout(cfg.idle_timeout.try_into().ok());
+    // With segmentation offload each connection keeps a buffer of ten datagrams (~16 KiB) from its first burst on;
+    // a session sends a few KB a second, so that buffer is most of what it costs in memory and saves little CPU.
+    t.enable_segmentation_offload(cfg.segmentation_offload);
     t
 }
 
@@ -168,12 +222,21 @@ impl Server {
         let mut server_config = quinn::ServerConfig::with_crypto(Arc::new(crypto));
         server_config.transport_config(Arc::new(transport(&cfg)));
         let bind = |source| StartError::Bind { addr: cfg.listen, source };
-        let (socket, socket_buffers) = udp_socket(cfg.listen, cfg.socket_buffer).map_err(bind)?;
-        let runtime = Arc::new(quinn::TokioRuntime);
-        let endpoint =
-            Endpoint::new(quinn::EndpointConfig::default(), Some(server_config), socket, runtime).map_err(bind)?;
-        let local_addr = endpoint.local_addr().map_err(bind)?;
-        let metrics = Arc::new(Metrics::new());
+        cfg.endpoints = endpoint_count(cfg.endpoints);
+        let (sockets, socket_buffers) = udp_sockets(cfg.listen, cfg.socket_buffer, cfg.endpoints).map_err(bind)?;
+        // One endpoint configuration (its stateless-reset key) and one server configuration (its Retry token key)
+        // for every endpoint: a token or reset made by one is good at all of them.
+        let endpoint_config = quinn::EndpointConfig::default();
+        let endpoints = sockets
+            .into_iter()
+            .map(|socket| {
+                let runtime = Arc::new(quinn::TokioRuntime);
+                Endpoint::new(endpoint_config.clone(), Some(server_config.clone()), socket, runtime)
+            })
+            .collect::<std::io::Result<Vec<_>>>()
+            .map_err(bind)?;
+        let local_addr = endpoints[0].local_addr().map_err(bind)?;
+        let metrics = Arc::new(Metrics::new(endpoints.len()));
         if let Some(cells) = store.cache_metrics() {
             metrics.attach_cells(cells);
         }
@@ -192,10 +255,25 @@ impl Server {
             None => None,
         };
         tokio::spawn(tick_metrics(Arc::clone(&metrics), shutdown_rx.clone()));
-        let accept = tokio::spawn(accept_loop(endpoint.clone(), store, cfg, Arc::clone(&metrics), shutdown_rx));
-        info!(%local_addr, ?socket_buffers, "canopy-server listening");
+        let admission = Arc::new(std::sync::Mutex::new(Admission::new(cfg.admission.clone())));
+        let cfg = Arc::new(cfg);
+        let accept = endpoints
+            .iter()
+            .enumerate()
+            .map(|(at, endpoint)| {
+                let shared = Shared {
+                    store: Arc::clone(&store),
+                    cfg: Arc::clone(&cfg),
+                    metrics: Arc::clone(&metrics),
+                    admission: Arc::clone(&admission),
+                    endpoint: at,
+                };
+                tokio::spawn(accept_loop(endpoint.clone(), shared, shutdown_rx.clone()))
+            })
+            .collect();
+        info!(%local_addr, endpoints = endpoints.len(), ?socket_buffers, "canopy-server listening");
         Ok(Server {
-            endpoint,
+            endpoints,
             local_addr,
             metrics_addr,
             fingerprint: identity.fingerprint(),
@@ -237,24 +315,39 @@ impl Server {
         self.socket_buffers
     }
 
+    /// How many UDP sockets (QUIC endpoints) the server listens with on its port.
+    pub fn endpoints(&self) -> usize {
+        self.endpoints.len()
+    }
+
     /// Close every connection with [`CloseCode::Shutdown`] and wait (up to `grace`) for them to go.
     pub async fn shutdown(self, grace: Duration) {
         let _ = self.shutdown.send(true);
-        self.accept.abort();
-        self.endpoint.close(VarInt::from_u32(CloseCode::Shutdown as u32), b"server shutting down");
-        let _ = tokio::time::timeout(grace, self.endpoint.wait_idle()).await;
+        for (accept, endpoint) in self.accept.iter().zip(&self.endpoints) {
+            accept.abort();
+            endpoint.close(VarInt::from_u32(CloseCode::Shutdown as u32), b"server shutting down");
+        }
+        let idle = async {
+            for endpoint in &self.endpoints {
+                endpoint.wait_idle().await;
+            }
+        };
+        let _ = tokio::time::timeout(grace, idle).await;
     }
 }
 
-async fn accept_loop(
-    endpoint: Endpoint,
+/// What every connection of a server shares, and which endpoint accepted it.
+#[derive(Clone)]
+struct Shared {
     store: Arc<dyn WorldStore>,
-    cfg: ServerConfig,
+    cfg: Arc<ServerConfig>,
     metrics: Arc<Metrics>,
-    mut shutdown: watch::Receiver<bool>,
-) {
-    let admission = Arc::new(std::sync::Mutex::new(Admission::new(cfg.admission.clone())));
-    let cfg = Arc::new(cfg);
+    admission: Arc<std::sync::Mutex<Admission>>,
+    endpoint: usize,
+}
+
+async fn accept_loop(endpoint: Endpoint, shared: Shared, mut shutdown: watch::Receiver<bool>) {
+    let Shared { metrics, admission, .. } = &shared;
     loop {
         let incoming = tokio::select! {
             i = endpoint.accept() => match i { Some(i) => i, None => break },
@@ -281,9 +374,9 @@ async fn accept_loop(
         }
         metrics.connections.fetch_add(1, Relaxed);
         metrics.handshakes.fetch_add(1, Relaxed);
-        let (store, cfg, metrics, admission) =
-            (Arc::clone(&store), Arc::clone(&cfg), Arc::clone(&metrics), Arc::clone(&admission));
+        let shared = shared.clone();
         tokio::spawn(async move {
+            let Shared { store, cfg, metrics, admission, endpoint } = shared;
             let lock = || admission.locked();
             let handshake = tokio::time::timeout(cfg.session.handshake_timeout, incoming).await;
             metrics.handshakes.fetch_sub(1, Relaxed);
@@ -292,8 +385,7 @@ async fn accept_loop(
                     // A completed handshake has proved its address: only now does it take a client slot. The slot
                     // is returned when the guard drops: when the session ends, and if its task panics too.
                     if lock().handshake_done(peer.ip(), true) {
-                        metrics.clients.fetch_add(1, Relaxed);
-                        let _slot = Slot { admission: &admission, metrics: &metrics, peer: peer.ip() };
+                        let _slot = Slot::take(&admission, &metrics, peer.ip(), endpoint);
                         serve_connection(conn, store, &cfg, &metrics, &admission).await
                     } else {
                         conn.close(VarInt::from_u32(CloseCode::Full as u32), b"the server is full");
@@ -337,11 +429,27 @@ struct Slot<'a> {
     admission: &'a std::sync::Mutex<Admission>,
     metrics: &'a Metrics,
     peer: std::net::IpAddr,
+    endpoint: usize,
+}
+
+impl<'a> Slot<'a> {
+    /// Count a client of `endpoint` from `peer`, whose handshake admission has let through.
+    fn take(
+        admission: &'a std::sync::Mutex<Admission>,
+        metrics: &'a Metrics,
+        peer: std::net::IpAddr,
+        endpoint: usize,
+    ) -> Self {
+        metrics.clients.fetch_add(1, Relaxed);
+        metrics.endpoint_clients[endpoint].fetch_add(1, Relaxed);
+        Slot { admission, metrics, peer, endpoint }
+    }
 }
 
 impl Drop for Slot<'_> {
     fn drop(&mut self) {
         self.metrics.clients.fetch_sub(1, Relaxed);
+        self.metrics.endpoint_clients[self.endpoint].fetch_sub(1, Relaxed);
         self.admission.locked().closed(self.peer);
     }
 }
@@ -413,20 +521,22 @@ async fn run_session(
         Ok(Err(e)) => return Err(lost(e)),
         Err(_) => return Err(Closing::new(CloseCode::Timeout, "no control stream opened in time")),
     };
-    let (tx, rx) = mpsc::unbounded_channel::<Transmit>();
-    let (flushed_tx, mut flushed_rx) = mpsc::unbounded_channel::<usize>();
-    let mut writer = tokio::spawn(write_loop(conn.clone(), ctl_send, rx, flushed_tx));
+    let outbox = Arc::new(Outbox::default());
+    // Aborted when this function ends, however it ends (a panic included): the writer holds the connection open.
+    let mut writer = AbortOnDrop(tokio::spawn(write_loop(conn.clone(), ctl_send, Arc::clone(&outbox))));
     let mut decoder = FrameDecoder::new(netlimits::MAX_CLIENT_FRAME);
     let mut streaming = false;
-    // Edits go to the writer; its answers come back here. Changed cells are announced to every session.
-    let (edit_tx, mut edit_rx) = mpsc::unbounded_channel::<(u32, EditOutcome)>();
+    // Edits go to the edit writer; its answers come back here (on a channel made at the session's first edit).
+    // Changed cells are announced to every session.
+    let mut answers: Option<(AnswerTx, mpsc::UnboundedReceiver<(u32, EditOutcome)>)> = None;
     let mut changes = cfg.edits.as_ref().map(|e| e.hub().subscribe());
-    let result = loop {
+    loop {
         let now = Instant::now();
         while let Some((request, op, editor)) = session.poll_edit() {
             match &cfg.edits {
                 Some(service) => {
-                    let reply = Box::new(SessionReply { tx: edit_tx.clone(), request });
+                    let (tx, _) = answers.get_or_insert_with(mpsc::unbounded_channel);
+                    let reply = Box::new(SessionReply { tx: tx.clone(), request });
                     service.submit(EditJob { op, editor, reply });
                 }
                 None => session.on_edit_result(request, EditOutcome::Denied("this server takes no edits".into())),
@@ -435,9 +545,7 @@ async fn run_session(
         let digests = (session.stats().digests_checked, session.stats().digest_mismatches);
         while let Some(t) = session.poll_transmit(now) {
             metrics.sent(t.class, t.len(), t.records);
-            if tx.send(t).is_err() {
-                break;
-            }
+            outbox.push(t);
         }
         metrics.digests_checked.fetch_add(session.stats().digests_checked - digests.0, Relaxed);
         metrics.digest_mismatches.fetch_add(session.stats().digest_mismatches - digests.1, Relaxed);
@@ -480,15 +588,9 @@ async fn run_session(
                 Err(quinn::ReadError::ConnectionLost(e)) => break Err(lost(e)),
                 Err(e) => break Err(Closing::new(CloseCode::Malformed, format!("control stream: {e}"))),
             },
-            n = flushed_rx.recv() => {
-                let mut n = n.unwrap_or(0);
-                while let Ok(m) = flushed_rx.try_recv() {
-                    n += m;
-                }
-                session.on_flushed(n);
-            }
+            n = outbox.take_flushed() => session.on_flushed(n),
             _ = cells_ready.0.notified() => {}
-            answer = edit_rx.recv() => {
+            answer = next_answer(&mut answers) => {
                 if let Some((request, outcome)) = answer {
                     session.on_edit_result(request, outcome);
                 }
@@ -513,16 +615,23 @@ async fn run_session(
                 let next = (last_viewpoint + cfg.idle_slot).max(now + Duration::from_secs(1));
                 idle_check = tokio::time::Instant::from_std(next);
             }
-            w = &mut writer => {
+            w = &mut writer.0 => {
                 break Err(match w {
                     Ok(Err(e)) => e,
                     _ => Closing { code: Some(CloseCode::Internal), reason: "writer stopped".into() },
                 });
             }
         }
-    };
-    writer.abort();
-    result
+    }
+}
+
+/// A task aborted when its handle is dropped.
+struct AbortOnDrop<T>(tokio::task::JoinHandle<T>);
+
+impl<T> Drop for AbortOnDrop<T> {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
 }
 
 /// A session's [`CellWaker`]: wakes its connection's loop.
@@ -531,6 +640,19 @@ struct NotifyWaker(tokio::sync::Notify);
 impl CellWaker for NotifyWaker {
     fn wake(&self) {
         self.0.notify_one();
+    }
+}
+
+/// Where a session's edit answers are sent from.
+type AnswerTx = mpsc::UnboundedSender<(u32, EditOutcome)>;
+
+/// The next answer to an edit of this session, or never (it has not edited).
+async fn next_answer(
+    answers: &mut Option<(AnswerTx, mpsc::UnboundedReceiver<(u32, EditOutcome)>)>,
+) -> Option<(u32, EditOutcome)> {
+    match answers {
+        Some((_, rx)) => rx.recv().await,
+        None => std::future::pending().await,
     }
 }
 
@@ -565,19 +687,15 @@ fn handle_frames(decoder: &mut FrameDecoder, session: &mut Session, now: Instant
 }
 
 /// Writes transmits in order to the stream each names, opening lanes on first use; reports flushed bytes.
-async fn write_loop(
-    conn: Connection,
-    mut control: SendStream,
-    mut rx: mpsc::UnboundedReceiver<Transmit>,
-    flushed: mpsc::UnboundedSender<usize>,
-) -> Result<(), Closing> {
+async fn write_loop(conn: Connection, mut control: SendStream, outbox: Arc<Outbox>) -> Result<(), Closing> {
     let _ = control.set_priority(1);
     let mut lanes: Vec<Option<SendStream>> = (0..8).map(|_| None).collect();
     let write_err = |e: quinn::WriteError| match e {
         quinn::WriteError::ConnectionLost(e) => lost(e),
         e => Closing { code: Some(CloseCode::Normal), reason: format!("client stopped a stream: {e}") },
     };
-    while let Some(t) = rx.recv().await {
+    loop {
+        let t = outbox.next().await;
         let stream = match t.stream {
             StreamId::Control => &mut control,
             StreamId::Lane(i) => {
@@ -597,9 +715,8 @@ async fn write_loop(
             // The session's head, then the body shared with every other session sending the cell.
             stream.write_all_chunks(&mut [t.bytes, t.body]).await.map_err(write_err)?;
         }
-        let _ = flushed.send(len);
+        outbox.flushed(len);
     }
-    Ok(())
 }
 
 /// Metrics connections still sending their request at once; the next one accepted closes the oldest, so idle

@@ -24,6 +24,8 @@ pub struct Metrics {
     started: Instant,
     /// Clients connected now (handshake completed: holding a client slot).
     pub clients: AtomicU64,
+    /// Of those, the clients of each of the server's endpoints (its UDP sockets on the one port).
+    pub endpoint_clients: Box<[AtomicU64]>,
     /// QUIC handshakes in flight now.
     pub handshakes: AtomicU64,
     /// Incoming connections answered with a QUIC Retry (address validation).
@@ -87,7 +89,7 @@ pub struct EngineMetrics {
 
 impl Default for Metrics {
     fn default() -> Self {
-        Metrics::new()
+        Metrics::new(1)
     }
 }
 
@@ -95,12 +97,13 @@ impl Default for Metrics {
 const TRANSPORT: usize = CloseCode::ALL.len();
 
 impl Metrics {
-    /// All counters at zero.
-    pub fn new() -> Metrics {
+    /// All counters at zero, for a server with `endpoints` endpoints.
+    pub fn new(endpoints: usize) -> Metrics {
         let now = Instant::now();
         Metrics {
             started: now,
             clients: AtomicU64::new(0),
+            endpoint_clients: (0..endpoints.max(1)).map(|_| AtomicU64::new(0)).collect(),
             handshakes: AtomicU64::new(0),
             retries: AtomicU64::new(0),
             refused: Default::default(),
@@ -186,6 +189,11 @@ impl Metrics {
         };
         let one = |v: &AtomicU64| vec![(String::new(), v.load(Relaxed))];
         metric("canopy_clients", "gauge", "Clients connected now.", &one(&self.clients));
+        let per_endpoint: Vec<(String, u64)> = (self.endpoint_clients.iter().enumerate())
+            .map(|(i, n)| (format!("{{endpoint=\"{i}\"}}"), n.load(Relaxed)))
+            .collect();
+        let help = "Clients connected now, by the endpoint (UDP socket) that accepted them.";
+        metric("canopy_endpoint_clients", "gauge", help, &per_endpoint);
         metric("canopy_handshakes", "gauge", "QUIC handshakes in flight now.", &one(&self.handshakes));
         metric("canopy_retries_total", "counter", "Incoming connections sent a QUIC Retry.", &one(&self.retries));
         let refused: Vec<(String, u64)> = Refusal::ALL
@@ -312,7 +320,8 @@ mod tests {
 
     #[test]
     fn exposition_has_every_family_and_counts() {
-        let m = Metrics::new();
+        let m = Metrics::new(2);
+        m.endpoint_clients[1].fetch_add(3, Relaxed);
         m.sent(ServerMsgKind::Cells, 100, 20);
         m.sent(ServerMsgKind::Species, 900, 0);
         m.closed(Some(CloseCode::Malformed));
@@ -322,12 +331,14 @@ mod tests {
         assert!(text.contains("canopy_records_sent_total 20"), "{text}");
         assert!(text.contains("canopy_closed_total{reason=\"malformed\"} 1"), "{text}");
         assert!(text.contains("# TYPE canopy_clients gauge"), "{text}");
+        assert!(text.contains("canopy_endpoint_clients{endpoint=\"0\"} 0"), "{text}");
+        assert!(text.contains("canopy_endpoint_clients{endpoint=\"1\"} 3"), "{text}");
         assert!(!text.contains("canopy_cell_"), "no cache, no cache families");
     }
 
     #[test]
     fn the_cell_cache_families_and_expansion_percentiles() {
-        let m = Metrics::new();
+        let m = Metrics::new(1);
         let cells = Arc::new(CellMetrics::default());
         m.attach_cells(Arc::clone(&cells));
         // 98 fast expansions (≤ 64 µs), 2 slow ones (≤ 8 ms).

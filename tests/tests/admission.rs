@@ -2,7 +2,8 @@
 //! up, as a spoofing flood sends them) hold no client slots and do not stop another source from connecting (it is
 //! asked for a Retry and gets in); a source over its share is refused; a session that holds a slot without
 //! streaming is closed while the server is near capacity, and kept while it is not; a session whose task panics
-//! gives its slot back.
+//! gives its slot back. A server with two endpoints (UDP sockets on one port) carries sessions on both, counts its
+//! handshakes and client slots for the whole server, and a second server cannot take its port.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -19,14 +20,25 @@ use canopy_server::{AdmissionConfig, ServeOptions, Served, Server, ServerConfig,
 use canopy_test_support::{forest_store, pinned};
 
 async fn start_server(admission: AdmissionConfig, idle_slot: Duration) -> Served {
+    start_on("127.0.0.1:0", 1, admission, idle_slot).await.expect("server starts")
+}
+
+/// A server of the default world on `listen` with `endpoints` UDP sockets.
+async fn start_on(
+    listen: &str,
+    endpoints: usize,
+    admission: AdmissionConfig,
+    idle_slot: Duration,
+) -> Result<Served, canopy_server::ServeError> {
     let cfg = ServerConfig {
-        listen: "127.0.0.1:0".parse().unwrap(),
+        listen: listen.parse().unwrap(),
+        endpoints,
         session: SessionConfig { handshake_timeout: Duration::from_secs(5), ..SessionConfig::default() },
         admission,
         idle_slot,
         ..ServerConfig::default()
     };
-    serve_store(forest_store(), ServeOptions { server: cfg, ..ServeOptions::default() }).await.expect("server starts")
+    serve_store(forest_store(), ServeOptions { server: cfg, ..ServeOptions::default() }).await
 }
 
 /// A client bound to `from` (any loopback address), connected with a small area of interest.
@@ -66,7 +78,9 @@ async fn initial_packet() -> Vec<u8> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
     let admission = AdmissionConfig { max_clients: 4, max_handshakes: 16, retry_above: 3, max_per_source: 6 };
-    let server = start_server(admission, Duration::from_secs(120)).await;
+    // Two endpoints: the flood lands on both, and the handshake and client limits count for the whole server.
+    let server = start_on("127.0.0.1:0", 2, admission, Duration::from_secs(120)).await.expect("server starts");
+    assert_eq!(server.endpoints(), 2);
     // Twelve half-open handshakes from 127.0.0.1: each Initial sent once from its own port, never followed up.
     let mut flood = Vec::new();
     for _ in 0..12 {
@@ -96,6 +110,39 @@ async fn half_open_handshakes_from_one_source_do_not_lock_out_another() {
     assert!(connect_from(&server, "127.0.0.6:0").await.is_err());
     assert!(m.refused[Refusal::Full as usize].load(Relaxed) >= 1, "refused as full");
     drop(flood);
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_endpoints_of_one_server_both_carry_sessions() {
+    let admission = AdmissionConfig { max_clients: 64, max_handshakes: 64, retry_above: 64, max_per_source: 64 };
+    let server = start_on("127.0.0.1:0", 2, admission, Duration::from_secs(120)).await.expect("server starts");
+    // The kernel spreads clients over the sockets by source port: 16 clients all on one of two has odds 2⁻¹⁵.
+    let mut clients = Vec::new();
+    for _ in 0..16 {
+        let mut c = connect_from(&server, "127.0.0.1:0").await.expect("connects");
+        c.wait_complete(Duration::from_secs(30)).await.expect("its area of interest completes");
+        clients.push(c);
+    }
+    let m = Arc::clone(server.metrics());
+    let per: Vec<u64> = m.endpoint_clients.iter().map(|n| n.load(Relaxed)).collect();
+    assert_eq!(per.len(), 2);
+    assert_eq!(per.iter().sum::<u64>(), 16, "{per:?}");
+    assert!(per.iter().all(|&n| n > 0), "both endpoints carry sessions: {per:?}");
+    assert!(m.render().contains("canopy_endpoint_clients{endpoint=\"1\"}"));
+    // Sessions on both sockets go on streaming: every client still answers with a complete area of interest after
+    // a move.
+    for c in &mut clients {
+        c.set_viewpoint(Viewpoint::at(1, [200.0, 150.0], 60.0)).await.expect("a viewpoint");
+    }
+    for c in &mut clients {
+        c.wait_complete(Duration::from_secs(30)).await.expect("complete after the move");
+    }
+    // Another server cannot share the port (its reuse-port sockets included).
+    let taken = server.local_addr().to_string();
+    let again = start_on(&taken, 2, AdmissionConfig::default(), Duration::from_secs(120)).await;
+    assert!(again.is_err(), "a second server bound {taken}");
+    drop(clients);
     server.shutdown(Duration::from_secs(1)).await;
 }
 

@@ -35,6 +35,14 @@ struct Args {
     /// UDP address to listen on.
     #[arg(long, default_value = "127.0.0.1:4433")]
     listen: SocketAddr,
+    /// UDP sockets on the listening port, each with its own QUIC endpoint and I/O task (`SO_REUSEPORT`; the kernel
+    /// spreads clients over them by address and port); 0: one per core.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=canopy_server::MAX_ENDPOINTS as i64))]
+    endpoints: u16,
+    /// Send each connection's datagrams in batches through one system call (GSO): less CPU for bulk senders, a
+    /// ~16 KiB buffer kept per connection.
+    #[arg(long)]
+    gso: bool,
     /// TCP address of the Prometheus metrics endpoint (`GET /metrics`).
     #[arg(long, default_value = "127.0.0.1:9433")]
     metrics: SocketAddr,
@@ -241,6 +249,8 @@ fn main() -> anyhow::Result<()> {
             },
             idle_slot: Duration::from_secs(args.idle_slot),
             send_budget: Some(args.send_budget_mib.saturating_mul(1 << 20)),
+            endpoints: usize::from(args.endpoints),
+            segmentation_offload: args.gso,
             ..ServerConfig::default()
         },
         // The cache expands the world's cells on demand, however small the world: what a served world needs.
@@ -254,7 +264,7 @@ fn main() -> anyhow::Result<()> {
         let server = serve(world, opts).await?;
         print!("{summary}");
         println!("{}", server.cells());
-        println!("listening on {} (QUIC, ALPN canopy/1)", server.local_addr());
+        println!("listening on {} (QUIC, ALPN canopy/1; {} endpoints)", server.local_addr(), server.endpoints());
         if let Some(m) = server.metrics_addr() {
             println!("metrics on http://{m}/metrics");
         }
