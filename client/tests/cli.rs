@@ -240,6 +240,57 @@ fn bots_that_edit_need_a_token() {
     assert!(text(&o).contains("--token: expected hexadecimal digits"), "{}", text(&o));
 }
 
+/// `canopy bots --processes 2` (issue 31): six bots in two processes of the command against a server in this process
+/// on the default world, and one summary over both: every bot run, complete and exact against the world. What
+/// cannot be split over processes is refused, and a process that fails fails the run, named.
+#[test]
+fn bots_in_two_processes_sum_up_to_one_run() {
+    use canopy_server::{ServeOptions, ServerConfig, serve};
+    let refused = |extra: &[&str], why: &str| {
+        let o = canopy(&[&["bots", "--server", "127.0.0.1:9", "--insecure"], extra].concat());
+        assert!(!o.status.success() && text(&o).contains(why), "{extra:?}: {}", text(&o));
+    };
+    refused(&["--processes", "0"], "--processes must be at least 1");
+    refused(&["--processes", "2", "--edit-rate", "1", "--token", "00"], "not with --edit-rate or --check-edits");
+    refused(&["--processes", "2", "--check-edits", "nats://127.0.0.1:9"], "not with --edit-rate or --check-edits");
+    refused(&["--processes", "2", "--count", "2", "--world", "atlantis"], "2 of 2 bot processes failed");
+    refused(&["--processes", "2", "--count", "2", "--world", "atlantis"], "bot process 2 of 2 (bots 1..2): exit");
+
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
+    let server = ServerConfig { listen: "127.0.0.1:0".parse().unwrap(), ..ServerConfig::default() };
+    let opts = ServeOptions { server, ..ServeOptions::default() };
+    let served = rt.block_on(serve(canopy_worlds::world::World::default_world(), opts)).expect("server starts");
+    let (addr, fingerprint) = (served.local_addr().to_string(), served.fingerprint().to_string());
+    let o = canopy(&[
+        "bots",
+        "--processes",
+        "2",
+        "--count",
+        "6",
+        "--duration",
+        "2",
+        "--radius",
+        "120",
+        "--path",
+        "random",
+        "--server",
+        &addr,
+        "--cert-fingerprint",
+        &fingerprint,
+    ]);
+    let out = text(&o);
+    eprintln!("--- canopy bots --processes 2\n{out}");
+    assert!(o.status.success(), "{out}");
+    assert!(
+        out.contains("process 1 of 2 (bots 0..3) ended") && out.contains("process 2 of 2 (bots 3..6) ended"),
+        "{out}"
+    );
+    assert!(out.contains("bots: 6 run, 6 complete at the end, 0 failed"), "{out}");
+    assert!(out.contains("checked against the world: 6 of 6 exact"), "{out}");
+    assert!(out.contains("connect → first complete AOI: p50 "), "{out}");
+    rt.block_on(served.shutdown(std::time::Duration::from_secs(1)));
+}
+
 /// `canopy species edit --screenshot` renders the editor window offscreen (lavapipe is enough) and exits; a file of
 /// no known format is refused; `species stats` prints the LOD levels the editor shows.
 #[test]

@@ -4,7 +4,12 @@
 //!
 //! With `--edit-rate` the first `--editors` bots also edit the world as they walk (an editor token is needed), and
 //! the summary adds the edits' answers and how soon they reached the other bots (fan-out).
+//!
+//! With `--processes N` the bots run in N processes of this command ([`processes`]), and the summary is over all.
 
+mod processes;
+
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
@@ -13,7 +18,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use canopy_client::ConnectConfig;
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, check_ledger};
+use canopy_harness::bots::{
+    self, BotReport, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, Shard, check_ledger,
+};
 use canopy_protocol::aoi::Grid;
 use canopy_server::edits::{EditStore, SqliteEditStore};
 use canopy_server::session::StoreHead;
@@ -22,7 +29,10 @@ use canopy_worlds::world::World;
 use clap::Args;
 
 /// Options of `canopy bots`.
+// An option given twice takes the last value: `--processes` starts this command again with the parent's options
+// and, after them, each process's own (`--count`, `--first-id`, `--connect-rate`, …).
 #[derive(Args, Debug)]
+#[command(args_override_self = true)]
 pub struct BotsArgs {
     /// How many bots.
     #[arg(long, default_value_t = 10)]
@@ -103,6 +113,20 @@ pub struct BotsArgs {
     /// …, reconnects R`, and a lost or duplicated edit fails the run. The world (`--world`) names the stream.
     #[arg(long, value_name = "nats://…|DIR")]
     check_edits: Option<String>,
+    /// Run the bots in N processes: this command started again N times, each with its share of the bots (the
+    /// same bots, paths and seeds as in one process) and of `--connect-rate`, and one summary over all of them,
+    /// its percentiles over every process's samples. At 10,000 bots and more one process is itself the
+    /// bottleneck; spread over processes, the server is what is measured. Not with `--edit-rate` or
+    /// `--check-edits` (fan-out and the edit ledger are measured within one process).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    processes: usize,
+    /// The first bot's id: this process runs bots `--first-id` to `--first-id + --count` of a `--processes` run.
+    #[arg(long, hide = true, default_value_t = 0)]
+    first_id: usize,
+    /// Write the bots' raw results (a `Shard`) to standard output for a `--processes` parent, and nothing else;
+    /// exit with success whatever the bots did (the parent judges).
+    #[arg(long, hide = true)]
+    shard_out: bool,
     /// No progress bar (for logs).
     #[arg(long)]
     quiet: bool,
@@ -143,6 +167,23 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     if args.spread.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
         bail!("--spread must be a positive number of metres");
     }
+    if args.processes == 0 {
+        bail!("--processes must be at least 1");
+    }
+    if (args.processes > 1 || args.shard_out) && (args.edit_rate > 0.0 || args.check_edits.is_some()) {
+        bail!(
+            "--processes runs the bots in several processes: not with --edit-rate or --check-edits (fan-out and the \
+             edit ledger are measured within one process)"
+        );
+    }
+    if args.processes > 1 {
+        // What would fail in every process fails once, here; the world is loaded where it is checked against.
+        args.connect.trust()?;
+        args.far.view(args.path == PathKind::Flight, args.altitude)?;
+        let summary = processes::run(args.count, args.processes, args.connect_rate)?;
+        print!("{summary}");
+        return Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE });
+    }
     let edits = if args.edit_rate > 0.0 {
         let Some(token) = &args.token else {
             bail!(
@@ -174,6 +215,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     // One expander for every bot of the process: they share its cache, as they would share a world's cells.
     connect.expander = args.connect.expander();
     let mut cfg = BotsConfig::new(args.count, connect);
+    cfg.first_id = args.first_id;
     cfg.expanding = args.expanding;
     cfg.path = args.path;
     cfg.speed = args.speed;
@@ -191,6 +233,12 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     cfg.spread = args.spread;
     cfg.edits = edits;
     cfg.far = args.far.view(args.path == PathKind::Flight, args.altitude)?;
+    if args.shard_out {
+        let (reports, _) = walk_bots(cfg, true)?;
+        let mut out = std::io::stdout().lock();
+        out.write_all(&Shard::new(&reports).encode()).and_then(|()| out.flush()).context("writing the shard")?;
+        return Ok(ExitCode::SUCCESS);
+    }
     let summary = run_bots(cfg, args.quiet, ledger)?;
     print!("{summary}");
     Ok(if summary.ok() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
@@ -203,10 +251,29 @@ pub fn run_bots(
     quiet: bool,
     ledger: Option<(Arc<dyn EditStore>, Grid)>,
 ) -> anyhow::Result<BotsSummary> {
+    let fanout = cfg.edits.as_ref().map(|e| Arc::clone(&e.fanout));
+    let (reports, wall) = walk_bots(cfg, quiet)?;
+    let summary = BotsSummary::new(&reports, wall);
+    let summary = match fanout {
+        Some(f) => summary.with_fanout(f.report()),
+        None => summary,
+    };
+    Ok(match ledger {
+        Some((store, grid)) => {
+            let checked = check_ledger(store.as_ref(), &grid, BotsSummary::acknowledged(&reports))
+                .context("reading the acknowledged edits back from the store")?;
+            summary.with_ledger(checked)
+        }
+        None => summary,
+    })
+}
+
+/// Run bots on a fresh runtime with a progress display (none when `quiet`); returns every bot's report and the
+/// wall time of the run.
+fn walk_bots(cfg: BotsConfig, quiet: bool) -> anyhow::Result<(Vec<BotReport>, Duration)> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let progress = Arc::new(Progress::default());
     let total = cfg.count as u64;
-    let fanout = cfg.edits.as_ref().map(|e| Arc::clone(&e.fanout));
     let started = Instant::now();
     let reports = rt.block_on(async {
         let show = {
@@ -254,19 +321,7 @@ pub fn run_bots(
         let _ = show.await;
         reports
     })?;
-    let summary = BotsSummary::new(&reports, started.elapsed());
-    let summary = match fanout {
-        Some(f) => summary.with_fanout(f.report()),
-        None => summary,
-    };
-    Ok(match ledger {
-        Some((store, grid)) => {
-            let checked = check_ledger(store.as_ref(), &grid, BotsSummary::acknowledged(&reports))
-                .context("reading the acknowledged edits back from the store")?;
-            summary.with_ledger(checked)
-        }
-        None => summary,
-    })
+    Ok((reports, started.elapsed()))
 }
 
 /// A link rate for `--link`: a number of bits a second, not "unlimited".

@@ -40,7 +40,7 @@ pub mod walker;
 pub use canopy_client::fit::LinkFit;
 pub use edits::{Acknowledged, EditPlan, EditStats, EditsSummary, FanOut, FanOutReport};
 pub use ledger::{EditLedger, check_ledger};
-pub use summary::BotsSummary;
+pub use summary::{BotsSummary, Shard};
 pub use verify::{VerifySummary, expected_cells, verify, verify_with};
 pub(crate) use walker::Rng;
 pub use walker::{PathKind, Walker, grid_rect};
@@ -50,6 +50,11 @@ pub use walker::{PathKind, Walker, grid_rect};
 pub struct BotsConfig {
     /// How many bots.
     pub count: usize,
+    /// The first bot's id: this group runs bots `first_id..first_id + count` of a larger run (`canopy bots
+    /// --processes`: a group a process). The id is the bot's everywhere: its path's seed, its name, whether it is
+    /// one of the first bots that expand ([`BotsConfig::expanding`]) or edit ([`EditPlan::editors`]), so the groups
+    /// together run exactly the bots one group of them all would.
+    pub first_id: usize,
     /// Their path.
     pub path: PathKind,
     /// Walking speed, metres per second.
@@ -62,7 +67,7 @@ pub struct BotsConfig {
     pub altitude: f32,
     /// Where to connect and how to trust the server.
     pub connect: ConnectConfig,
-    /// Seeds the paths (bot `i` uses `seed + i`).
+    /// Seeds the paths (bot `id` uses `seed + id`).
     pub seed: u64,
     /// New connections per second while ramping up.
     pub connect_rate: f64,
@@ -100,6 +105,7 @@ impl BotsConfig {
     pub fn new(count: usize, connect: ConnectConfig) -> BotsConfig {
         BotsConfig {
             count,
+            first_id: 0,
             path: PathKind::Line,
             speed: 5.0,
             duration: Duration::from_secs(20),
@@ -194,7 +200,7 @@ pub struct BotReport {
 pub const SAMPLE_EVERY: Duration = Duration::from_millis(250);
 
 /// Samples of a moving bot's area of interest: how much of it was held in full.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct AoiSamples {
     /// Samples taken.
     pub samples: u64,
@@ -631,7 +637,7 @@ async fn bot_session(
     };
     // Edits start once the last bot of the ramp has had `warmup` to connect and fill its area of interest, and stop
     // `grace` before the walk ends.
-    let ramp_left = (cfg.count - report.id - 1) as f64 / cfg.connect_rate.max(0.001);
+    let ramp_left = (cfg.count - (report.id - cfg.first_id) - 1) as f64 / cfg.connect_rate.max(0.001);
     let edit_window = match editor {
         Some(e) => (started + Duration::from_secs_f64(ramp_left) + e.warmup, plan.walk_until - e.grace),
         None => (started, started),
@@ -729,7 +735,8 @@ pub async fn join<T>(tasks: Vec<tokio::task::JoinHandle<T>>, failed: impl Fn(usi
     out
 }
 
-/// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report.
+/// Run a group of bots to the end: ramp up at `connect_rate`, walk, settle, check. Returns every bot's report, in
+/// the order of their ids (`first_id` on).
 pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotReport>, ClientError> {
     let bind = canopy_client::net::loopback_for(cfg.connect.server);
     let endpoints: Vec<Endpoint> =
@@ -741,16 +748,17 @@ pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotRepo
     let cfg = Arc::new(cfg);
     let mut tasks = Vec::with_capacity(cfg.count);
     let start = tokio::time::Instant::now();
-    for id in 0..cfg.count {
-        let at = start + Duration::from_secs_f64(id as f64 / cfg.connect_rate.max(0.001));
+    for i in 0..cfg.count {
+        let (id, at) = (cfg.first_id + i, start + Duration::from_secs_f64(i as f64 / cfg.connect_rate.max(0.001)));
         let (endpoint, cfg, cache, progress) =
-            (endpoints[id % endpoints.len()].clone(), Arc::clone(&cfg), cache.clone(), Arc::clone(&progress));
+            (endpoints[i % endpoints.len()].clone(), Arc::clone(&cfg), cache.clone(), Arc::clone(&progress));
         tasks.push(tokio::spawn(async move {
             tokio::time::sleep_until(at).await;
             run_bot(id, endpoint, cfg, cache, progress).await
         }));
     }
-    let reports = join(tasks, |id, error| BotReport { id, error: Some(error), ..Default::default() }).await;
+    let first = cfg.first_id;
+    let reports = join(tasks, |i, error| BotReport { id: first + i, error: Some(error), ..Default::default() }).await;
     for e in &endpoints {
         e.wait_idle().await;
     }
