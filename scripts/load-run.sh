@@ -9,12 +9,16 @@
 #   COUNT=10000 DURATION=60 scripts/load-run.sh
 #   COUNT=20 DURATION=10 scripts/load-run.sh # the CI-sized version
 #   WORLD=worlds/highlands/highlands.world COUNT=1000 scripts/load-run.sh   # bots spread over the large world
+#   COUNT=50000 PROCESSES=8 SERVER_CORES=0-7 BOTS_CORES=8-15 scripts/load-run.sh   # a many-core server
 #
 # Environment: COUNT, DURATION (s), PATH_KIND (line|circle|random|teleport|…), SPEED (m/s), RADIUS (m),
 # CONNECT_RATE (bots/s), TICK_MS (how often a bot moves), WORLD (a manifest; default: the embedded default world),
 # CELL_CACHE_MIB, PORT, METRICS_PORT, CARGO_TARGET_DIR, AFTER (s: the server's memory that long after the bots
 # left); EXTRA_BOTS_ARGS is passed to `canopy bots` as is, EXTRA_SERVER_ARGS to `canopy-server` (all bots come from
-# one address: past 4,096 of them, `--max-per-source`).
+# one address: past 4,096 of them, `--max-per-source`). For many cores: ENDPOINTS (the server's UDP sockets; default
+# one per core it may use), PROCESSES (bot processes), SERVER_CORES and BOTS_CORES (`taskset -c` lists: the server's
+# cores and the bots' apart, so neither is measured starved by the other), BIN (a folder holding release
+# `canopy-server` and `canopy` built beforehand: nothing is built).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,6 +34,13 @@ METRICS_PORT=${METRICS_PORT:-9433}
 TARGET=${CARGO_TARGET_DIR:-target}
 WORLD=${WORLD:-}
 CELL_CACHE_MIB=${CELL_CACHE_MIB:-256}
+PROCESSES=${PROCESSES:-1}
+ENDPOINTS=${ENDPOINTS:-0}
+BIN=${BIN:-}
+PIN_SERVER=()
+[ -n "${SERVER_CORES:-}" ] && PIN_SERVER=(taskset -c "$SERVER_CORES")
+PIN_BOTS=()
+[ -n "${BOTS_CORES:-}" ] && PIN_BOTS=(taskset -c "$BOTS_CORES")
 WORLD_ARGS=()
 [ -n "$WORLD" ] && WORLD_ARGS=(--world "$WORLD")
 # shellcheck disable=SC2206
@@ -37,12 +48,15 @@ SERVER_ARGS=(${EXTRA_SERVER_ARGS:-})
 # shellcheck disable=SC2206
 EXTRA=(${EXTRA_BOTS_ARGS:-})
 
-cargo build --release -q -p canopy-server-app -p canopy-app
+if [ -z "$BIN" ]; then
+    cargo build --release -q -p canopy-server-app -p canopy-app
+    BIN="$TARGET/release"
+fi
 WORK=$(mktemp -d)
 SERVER_LOG="$WORK/server.log"
 
-"$TARGET/release/canopy-server" --listen "127.0.0.1:$PORT" --metrics "127.0.0.1:$METRICS_PORT" \
-    --data-dir "$WORK/data" --stats-every 5 --cell-cache-mib "$CELL_CACHE_MIB" "${WORLD_ARGS[@]}" "${SERVER_ARGS[@]}" >"$SERVER_LOG" 2>&1 &
+"${PIN_SERVER[@]}" "$BIN/canopy-server" --listen "127.0.0.1:$PORT" --metrics "127.0.0.1:$METRICS_PORT" \
+    --endpoints "$ENDPOINTS" --data-dir "$WORK/data" --stats-every 5 --cell-cache-mib "$CELL_CACHE_MIB" "${WORLD_ARGS[@]}" "${SERVER_ARGS[@]}" >"$SERVER_LOG" 2>&1 &
 SERVER=$!
 trap 'kill "$SERVER" 2>/dev/null || true; wait "$SERVER" 2>/dev/null || true' EXIT
 
@@ -54,9 +68,24 @@ done
 FINGERPRINT=$(awk '/^fingerprint /{print $2}' "$SERVER_LOG")
 [ -n "$FINGERPRINT" ] || { cat "$SERVER_LOG"; echo "load-run: no fingerprint" >&2; exit 1; }
 rss_kib() { awk '/^VmRSS:/{print $2}' "/proc/$SERVER/status"; }
-metric() { curl -s "http://127.0.0.1:$METRICS_PORT/metrics" | awk -v m="$1" '$1==m{print $2}'; }
+# The metrics page over bash's own TCP (no curl needed).
+scrape() {
+    exec 3<>"/dev/tcp/127.0.0.1/$METRICS_PORT" || return 0
+    printf 'GET /metrics HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n' >&3
+    cat <&3
+    exec 3<&-
+}
+metric() { scrape | awk -v m="$1" '$1==m{print $2}'; }
+# The baseline once the world's start has settled (memory freed at start goes back to the OS over seconds).
 RSS0=$(rss_kib)
+for _ in $(seq 1 15); do
+    sleep 1
+    r=$(rss_kib)
+    [ $((r > RSS0 ? r - RSS0 : RSS0 - r)) -lt 1024 ] && { RSS0=$r; break; }
+    RSS0=$r
+done
 echo "load-run: server pid $SERVER, world loaded, VmRSS ${RSS0} KiB before any client"
+grep -E '^(listening on|socket buffers)|granted UDP buffers' "$SERVER_LOG" || true
 
 # Sample the server's memory and clients while the bots run; keep the sample with the most clients.
 (
@@ -77,7 +106,7 @@ cpu_ticks() { awk '{print $14 + $15}' "/proc/$SERVER/stat"; }
 CPU0=$(cpu_ticks)
 START=$(date +%s.%N)
 set +e
-"$TARGET/release/canopy" bots --count "$COUNT" --path "$PATH_KIND" --speed "$SPEED" --duration "$DURATION" \
+"${PIN_BOTS[@]}" "$BIN/canopy" bots --processes "$PROCESSES" --count "$COUNT" --path "$PATH_KIND" --speed "$SPEED" --duration "$DURATION" \
     --radius "$RADIUS" --connect-rate "$CONNECT_RATE" --tick-ms "$TICK_MS" --server "127.0.0.1:$PORT" \
     --cert-fingerprint "$FINGERPRINT" --quiet "${WORLD_ARGS[@]}" "${EXTRA[@]}"
 BOTS_STATUS=$?
@@ -108,13 +137,17 @@ awk -v r0="$RSS0" -v r1="$PEAK_RSS" -v c="$PEAK_CLIENTS" 'BEGIN {
 echo "cell cache: hits $(metric canopy_cell_cache_hits_total), misses $(metric canopy_cell_cache_misses_total), expansions $(metric canopy_cell_expansions_total) (p50 $(metric canopy_cell_expansion_p50_microseconds) µs, p99 $(metric canopy_cell_expansion_p99_microseconds) µs), $(metric canopy_cell_cache_cells) cells in $(metric canopy_cell_cache_bytes) bytes, $(metric canopy_cell_evictions_total) evicted"
 awk -v a="$START" -v b="$END" 'BEGIN { printf "bots process wall time %.1f s\n", b - a }'
 echo "grants (cells the clients expanded themselves): ${GRANTS:-0} in ${GRANT_BYTES:-0} bytes"
-SENT=$(curl -s "http://127.0.0.1:$METRICS_PORT/metrics" | awk '$1 ~ /^canopy_sent_bytes_total/ {s += $2} END {print s + 0}')
+SENT=$(scrape | awk '$1 ~ /^canopy_sent_bytes_total/ {s += $2} END {print s + 0}')
 awk -v b="$SENT" -v n="$SESSIONS" -v d="$DURATION" 'BEGIN {
     printf "server sent %.1f MiB (frames): %.1f KiB a session, %.0f B a session a second of the walk\n", b / 1048576, b / 1024 / (n > 0 ? n : 1), b / (n > 0 ? n : 1) / d;
 }'
 awk -v t0="$CPU0" -v t1="$CPU1" -v hz="$(getconf CLK_TCK)" -v a="$START" -v b="$END" 'BEGIN {
     printf "server CPU while the bots ran: %.1f s in %.1f s of wall time (%.2f cores)\n", (t1 - t0) / hz, b - a, (t1 - t0) / hz / (b - a);
 }'
+awk -v t0="$CPU0" -v t1="$CPU1" -v hz="$(getconf CLK_TCK)" -v n="$COUNT" -v d="$DURATION" 'BEGIN {
+    printf "server CPU per thousand client-seconds of the walk: %.3f s\n", (t1 - t0) / hz / (n * d / 1000);
+}'
+echo "server peak memory: VmHWM $(awk '/^VmHWM:/{print $2}' "/proc/$SERVER/status") KiB; endpoints: $(scrape | grep -c '^canopy_endpoint_clients{')"
 grep -E "stats" "$SERVER_LOG" | tail -n 3 || true
 if [ -n "${AFTER:-}" ]; then
     sleep "$AFTER"

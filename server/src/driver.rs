@@ -166,6 +166,15 @@ fn udp_sockets(addr: SocketAddr, size: usize, n: usize) -> std::io::Result<(Vec<
     let probe = open(false)?;
     probe.bind(&addr.into())?;
     let got = (probe.recv_buffer_size().unwrap_or(0), probe.send_buffer_size().unwrap_or(0));
+    if got.0 < size || got.1 < size {
+        // Linux caps what a socket may ask for at net.core.rmem_max and wmem_max (208 KiB by default): thousands of
+        // clients' handshakes then overflow the buffer, and their packets are lost.
+        warn!(
+            "the OS granted UDP buffers of {} B (receive) and {} B (send) of the {size} B asked for; with many \
+             clients raise net.core.rmem_max and net.core.wmem_max",
+            got.0, got.1
+        );
+    }
     if n <= 1 || cfg!(not(unix)) {
         return Ok((vec![probe.into()], got));
     }
