@@ -3,7 +3,8 @@
 //! asked for a Retry and gets in); a source over its share is refused; a session that holds a slot without
 //! streaming is closed while the server is near capacity, and kept while it is not; a session whose task panics
 //! gives its slot back. A server with two endpoints (UDP sockets on one port) carries sessions on both, counts its
-//! handshakes and client slots for the whole server, and a second server cannot take its port.
+//! handshakes and client slots for the whole server, and a second server cannot take its port. A client refused as
+//! full asks again after a pause and gets the slot once it is free.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -143,6 +144,30 @@ async fn two_endpoints_of_one_server_both_carry_sessions() {
     let again = start_on(&taken, 2, AdmissionConfig::default(), Duration::from_secs(120)).await;
     assert!(again.is_err(), "a second server bound {taken}");
     drop(clients);
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_refused_as_full_asks_again_and_gets_the_freed_slot() {
+    let admission = AdmissionConfig { max_clients: 1, ..AdmissionConfig::default() };
+    let server = start_server(admission, Duration::from_secs(120)).await;
+    let holder = connect_from(&server, "127.0.0.1:0").await.expect("the one slot");
+    // The slot frees in 1.5 s; meanwhile the second client is refused as full and asks again.
+    let release = tokio::spawn(async move {
+        tokio::time::sleep(Duration::from_millis(1500)).await;
+        drop(holder);
+    });
+    let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+    let started = std::time::Instant::now();
+    let refused = Connection::connect(&ep, &pinned(&server), None, |_| Viewpoint::at(0, [0.0, 0.0], 60.0)).await;
+    assert!(refused.as_ref().is_err_and(ClientError::busy), "a full server says it is busy: {:?}", refused.err());
+    let mut c = Connection::connect_any(&ep, &pinned(&server), None, |_| Viewpoint::at(0, [0.0, 0.0], 60.0))
+        .await
+        .expect("connect_any asks again until the slot is free");
+    assert!(started.elapsed() >= Duration::from_millis(1400), "in after {:?}", started.elapsed());
+    c.wait_complete(Duration::from_secs(30)).await.unwrap();
+    assert!(server.metrics().refused[Refusal::Full as usize].load(Relaxed) >= 2, "refused as full, then asked again");
+    release.await.unwrap();
     server.shutdown(Duration::from_secs(1)).await;
 }
 

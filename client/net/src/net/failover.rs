@@ -1,6 +1,7 @@
 //! Clients across edges (issue 17): a world served by several stateless edges, a client that moves to another
 //! edge when its own dies or closes, and resumes there with what it held — its species and its complete cells at
-//! their versions — so only what is missing or changed travels.
+//! their versions — so only what is missing or changed travels. A server that says it is busy is asked again after
+//! a pause that doubles each time.
 
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -23,6 +24,16 @@ const ATTEMPT_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// The pause after a round in which no edge answered.
 const ROUND_PAUSE: Duration = Duration::from_millis(500);
+
+/// How long [`Connection::connect_any`] keeps asking one server that says it is busy ([`ClientError::busy`]).
+pub const BUSY_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// The first pause after a busy answer; each next one doubles, up to [`BUSY_PAUSE_MAX`], and each is drawn between
+/// half and one and a half of it, so that clients refused together do not come back together.
+const BUSY_PAUSE: Duration = Duration::from_millis(250);
+
+/// The longest pause between two attempts at a busy server.
+const BUSY_PAUSE_MAX: Duration = Duration::from_secs(4);
 
 /// The edges of one world, as given on a command line: `HOST:PORT[,HOST:PORT…]` (at least one, no address twice).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -109,7 +120,9 @@ fn order(cfg: &ConnectConfig, lost: SocketAddr) -> Vec<SocketAddr> {
 
 impl Connection {
     /// Connect to the first of `cfg`'s edges that answers (`cfg.server` first, then the others in turn, rounds
-    /// until `cfg.timeout`), as [`Connection::connect`].
+    /// until `cfg.timeout`), as [`Connection::connect`]. With one edge, a server that says it is busy (it refused
+    /// the connection, is full, or cut the handshake at its timeout) is asked again after a pause, until
+    /// [`BUSY_TIMEOUT`]: a refusal under load means "later", not "never".
     pub async fn connect_any(
         endpoint: &Endpoint,
         cfg: &ConnectConfig,
@@ -117,7 +130,19 @@ impl Connection {
         viewpoint: impl Fn(&canopy_protocol::messages::Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
         if cfg.edges.len() <= 1 {
-            return Connection::connect(endpoint, cfg, cache, viewpoint).await;
+            let deadline = tokio::time::Instant::now() + BUSY_TIMEOUT;
+            let mut pause = BUSY_PAUSE;
+            loop {
+                match Connection::connect(endpoint, cfg, cache.clone(), &viewpoint).await {
+                    Err(e) if e.busy() && tokio::time::Instant::now() + pause < deadline => {
+                        let wait = jittered(pause);
+                        tracing::debug!("{}: {e}; asking again in {wait:?}", cfg.server);
+                        tokio::time::sleep(wait).await;
+                        pause = (pause * 2).min(BUSY_PAUSE_MAX);
+                    }
+                    done => return done,
+                }
+            }
         }
         let mut edges = order(cfg, cfg.server);
         edges.rotate_right(1);
@@ -160,6 +185,13 @@ impl Connection {
 }
 
 /// Try `attempt` on each of `edges` in turn, rounds with a pause between, until one succeeds or `limit` passed.
+/// `pause` times a factor between 0.5 and 1.5 taken from the clock's nanoseconds (spread, not reproducible: no
+/// result depends on it).
+fn jittered(pause: Duration) -> Duration {
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+    pause.mul_f64(0.5 + f64::from(nanos % 1024) / 1024.0)
+}
+
 async fn try_edges<F, Fut>(edges: &[SocketAddr], limit: Duration, mut attempt: F) -> Result<Connection, ClientError>
 where
     F: FnMut(SocketAddr) -> Fut,

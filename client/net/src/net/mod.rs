@@ -194,6 +194,20 @@ impl ClientError {
         }
     }
 
+    /// Whether the server said it is too busy for this connection now: it refused it (its handshakes or clients at
+    /// their limit), closed it as full, cut its handshake at its timeout, or closed the session's handshake as
+    /// timed out. Worth asking again after a pause ([`Connection::connect_any`] does).
+    pub fn busy(&self) -> bool {
+        use quinn::TransportErrorCode as T;
+        match self {
+            ClientError::Closed { code: Some(CloseCode::Full | CloseCode::Timeout), .. } => true,
+            ClientError::Lost(quinn::ConnectionError::ConnectionClosed(c)) => {
+                c.error_code == T::CONNECTION_REFUSED || c.error_code == T::APPLICATION_ERROR
+            }
+            _ => false,
+        }
+    }
+
     /// The close code the client sends for this error, if it is the server's fault.
     fn close_code(&self) -> Option<CloseCode> {
         match self {
