@@ -195,14 +195,15 @@ impl ClientError {
     }
 
     /// Whether the server said it is too busy for this connection now: it refused it (its handshakes or clients at
-    /// their limit), closed it as full, cut its handshake at its timeout, or closed the session's handshake as
-    /// timed out. Worth asking again after a pause ([`Connection::connect_any`] does).
+    /// their limit), closed it as full, cut its handshake at its timeout, closed the session's handshake as timed
+    /// out, or found the address-validation (Retry) token it gave expired by the time the client answered. Worth
+    /// asking again after a pause ([`Connection::connect_any`] does).
     pub fn busy(&self) -> bool {
         use quinn::TransportErrorCode as T;
         match self {
             ClientError::Closed { code: Some(CloseCode::Full | CloseCode::Timeout), .. } => true,
             ClientError::Lost(quinn::ConnectionError::ConnectionClosed(c)) => {
-                c.error_code == T::CONNECTION_REFUSED || c.error_code == T::APPLICATION_ERROR
+                [T::CONNECTION_REFUSED, T::APPLICATION_ERROR, T::INVALID_TOKEN].contains(&c.error_code)
             }
             _ => false,
         }
