@@ -30,7 +30,6 @@ use tracing::{debug, info, warn};
 
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::editing::{EditJob, EditService};
-use crate::live::CellChange;
 use crate::metrics::Metrics;
 use crate::outbox::Outbox;
 use crate::tls::{Identity, IdentityError};
@@ -191,7 +190,7 @@ fn udp_sockets(addr: SocketAddr, size: usize, n: usize) -> std::io::Result<(Vec<
 }
 
 /// How many endpoints `asked` means here: 0 is one per core; more than one only where `SO_REUSEPORT` is.
-pub fn endpoint_count(asked: usize) -> usize {
+fn endpoint_count(asked: usize) -> usize {
     let n = if asked == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { asked };
     if cfg!(unix) { n.clamp(1, MAX_ENDPOINTS) } else { 1 }
 }
@@ -209,8 +208,8 @@ fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
         // handed to the writer (`SessionConfig::window`) this bounds what a client that never acknowledges pins.
         .send_window(SEND_WINDOW)
         .max_idle_timeout(cfg.idle_timeout.try_into().ok());
-    // With segmentation offload each connection keeps a buffer of ten datagrams (~16 KiB) from its first burst on;
-    // a session sends a few KB a second, so that buffer is most of what it costs in memory and saves little CPU.
+    // With segmentation offload each connection keeps a buffer of ten datagrams (~16 KiB) from its first burst on: a
+    // third of what it costs in memory, for lower latency under load at the same CPU (docs/streaming.md).
     t.enable_segmentation_offload(cfg.segmentation_offload);
     t
 }
@@ -599,17 +598,17 @@ async fn run_session(
             },
             n = outbox.take_flushed() => session.on_flushed(n),
             _ = cells_ready.0.notified() => {}
-            answer = next_answer(&mut answers) => {
+            answer = or_never(answers.as_mut().map(|(_, rx)| rx.recv())) => {
                 if let Some((request, outcome)) = answer {
                     session.on_edit_result(request, outcome);
                 }
             }
-            change = next_change(&mut changes) => match change {
+            change = or_never(changes.as_mut().map(|rx| rx.recv())) => match change {
                 Ok(c) => session.on_cell_changed(c.cell),
                 Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => session.on_changes_missed(),
                 Err(tokio::sync::broadcast::error::RecvError::Closed) => changes = None,
             },
-            _ = sleep_until(wake) => {
+            _ = or_never(wake.map(tokio::time::sleep_until)) => {
                 if let Err(e) = session.handle_timeout(Instant::now()) {
                     break Err(Closing::new(e.close_code(), e));
                 }
@@ -655,29 +654,11 @@ impl CellWaker for NotifyWaker {
 /// Where a session's edit answers are sent from.
 type AnswerTx = mpsc::UnboundedSender<(u32, EditOutcome)>;
 
-/// The next answer to an edit of this session, or never (it has not edited).
-async fn next_answer(
-    answers: &mut Option<(AnswerTx, mpsc::UnboundedReceiver<(u32, EditOutcome)>)>,
-) -> Option<(u32, EditOutcome)> {
-    match answers {
-        Some((_, rx)) => rx.recv().await,
-        None => std::future::pending().await,
-    }
-}
-
-/// The next cell change announced, or never (a server without edits).
-async fn next_change(
-    rx: &mut Option<tokio::sync::broadcast::Receiver<CellChange>>,
-) -> Result<CellChange, tokio::sync::broadcast::error::RecvError> {
-    match rx {
-        Some(rx) => rx.recv().await,
-        None => std::future::pending().await,
-    }
-}
-
-async fn sleep_until(at: Option<tokio::time::Instant>) {
-    match at {
-        Some(at) => tokio::time::sleep_until(at).await,
+/// `f`'s output, or never when there is nothing to wait for (a session that has not edited, a server without edits,
+/// no timer set).
+async fn or_never<F: std::future::Future>(f: Option<F>) -> F::Output {
+    match f {
+        Some(f) => f.await,
         None => std::future::pending().await,
     }
 }

@@ -26,7 +26,7 @@ pub use canopy_edits as edits;
 pub use canopy_session as session;
 pub use canopy_worlds as worlds;
 pub use cells::{CellCache, CellCacheConfig};
-pub use driver::{MAX_ENDPOINTS, OWED_SLACK, SEND_WINDOW, Server, ServerConfig, StartError, endpoint_count};
+pub use driver::{MAX_ENDPOINTS, OWED_SLACK, SEND_WINDOW, Server, ServerConfig, StartError};
 pub use editing::{EditJob, EditMetrics, EditService, Reply};
 pub use live::{CellChange, EditHub, LiveStore};
 pub use metrics::{EngineMetrics, Metrics, resident_bytes};
