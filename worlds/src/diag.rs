@@ -79,6 +79,67 @@ impl fmt::Display for Diagnostic {
     }
 }
 
+/// Most diagnostics reported for one file: past it, one last line says how many more there are (a file that is not
+/// in the format at all would otherwise bury its first error under hundreds).
+pub const MAX_DIAGNOSTICS: usize = 20;
+
+/// Keep the first [`MAX_DIAGNOSTICS`] of `diags` (in line order) and, when there were more, a last diagnostic at the
+/// next one's place that says "and N more".
+pub fn cap(mut diags: Vec<Diagnostic>) -> Vec<Diagnostic> {
+    if diags.len() > MAX_DIAGNOSTICS {
+        let more = diags.len() - MAX_DIAGNOSTICS;
+        let mut last = diags.swap_remove(MAX_DIAGNOSTICS);
+        diags.truncate(MAX_DIAGNOSTICS);
+        last.message = format!("and {more} more error(s) not shown; fix the ones above first");
+        diags.push(last);
+    }
+    diags
+}
+
+/// The candidate a mistyped `name` most likely meant: the nearest by edit distance (a swap of two neighbours counts
+/// one), within one edit for names of 3 or 4 characters and two beyond (none for shorter names: any one-letter name
+/// is one edit from any other); the first of equals.
+pub fn did_you_mean<'a>(name: &str, candidates: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
+    let limit = match name.chars().count() {
+        0..=2 => return None,
+        3 | 4 => 1,
+        _ => 2,
+    };
+    let mut best: Option<(usize, &str)> = None;
+    for c in candidates {
+        let d = edit_distance(name, c);
+        if d > 0 && d <= limit && best.is_none_or(|(b, _)| d < b) {
+            best = Some((d, c));
+        }
+    }
+    best.map(|(_, c)| c)
+}
+
+/// Optimal string alignment distance: insertions, deletions, substitutions and swaps of neighbours, each one.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+    if a.len().abs_diff(b.len()) > 2 {
+        return 3;
+    }
+    let w = b.len() + 1;
+    let mut d = vec![0usize; (a.len() + 1) * w];
+    for i in 0..=a.len() {
+        for j in 0..=b.len() {
+            d[i * w + j] = if i == 0 || j == 0 {
+                i + j
+            } else {
+                let sub = d[(i - 1) * w + j - 1] + usize::from(a[i - 1] != b[j - 1]);
+                let mut v = sub.min(d[(i - 1) * w + j] + 1).min(d[i * w + j - 1] + 1);
+                if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                    v = v.min(d[(i - 2) * w + j - 2] + 1);
+                }
+                v
+            };
+        }
+    }
+    d[a.len() * w + b.len()]
+}
+
 /// Diagnostics collected while loading one or more files; an error type for callers that want `Result`.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{}", render(.0))]
@@ -101,6 +162,29 @@ mod tests {
             d.to_string(),
             "a.species:2:11: error: unknown function `sine`\n  |\n2 | param y = sine(x)\n  |           ^^^^"
         );
+    }
+
+    #[test]
+    fn near_names_are_suggested() {
+        let names = ["height", "branch_length", "r", "s"];
+        assert_eq!(did_you_mean("heigth", names), Some("height"));
+        assert_eq!(did_you_mean("branch_lenght", names), Some("branch_length"));
+        assert_eq!(did_you_mean("hieght", names), Some("height"));
+        assert_eq!(did_you_mean("q", names), None, "one letter is near every other");
+        assert_eq!(did_you_mean("cnoe", ["cone", "sphere"]), Some("cone"));
+        assert_eq!(did_you_mean("width", names), None);
+        assert_eq!(did_you_mean("height", names), None, "the name itself is no suggestion");
+    }
+
+    #[test]
+    fn diagnostics_are_capped_with_a_count() {
+        let src = SourceFile::new("c", "x\n".repeat(30));
+        let diags: Vec<Diagnostic> = (0..30).map(|i| src.diag(2 * i..2 * i + 1, "bad")).collect();
+        let capped = cap(diags);
+        assert_eq!(capped.len(), MAX_DIAGNOSTICS + 1);
+        assert_eq!(capped[MAX_DIAGNOSTICS].line, MAX_DIAGNOSTICS + 1);
+        assert!(capped[MAX_DIAGNOSTICS].message.starts_with("and 10 more"), "{:?}", capped[MAX_DIAGNOSTICS]);
+        assert_eq!(cap(capped[..3].to_vec()).len(), 3);
     }
 
     #[test]

@@ -391,7 +391,9 @@ impl Parser<'_, '_> {
                 return Ok(Ast::Choose(args));
             }
             let Some(f) = Func::from_name(name) else {
-                return Err(ParseError::new(span, format!("unknown function `{name}`")));
+                let names = Func::ALL.iter().map(|f| f.name()).chain(["choose"]);
+                let hint = crate::diag::did_you_mean(name, names).map(|n| format!("; did you mean `{n}`?"));
+                return Err(ParseError::new(span, format!("unknown function `{name}`{}", hint.unwrap_or_default())));
             };
             if args.len() != f.arity() {
                 return Err(ParseError::new(
@@ -572,7 +574,7 @@ mod tests {
     #[test]
     fn errors_point_at_the_problem() {
         let err = parse_str("1 + sine(2)").unwrap_err();
-        assert_eq!((err.span, err.message.as_str()), (4..8, "unknown function `sine`"));
+        assert_eq!((err.span, err.message.as_str()), (4..8, "unknown function `sine`; did you mean `sin`?"));
         let err = parse_str("max(1)").unwrap_err();
         assert_eq!(err.message, "`max` takes 2 argument(s), got 1");
         let err = parse_str("1 +").unwrap_err();

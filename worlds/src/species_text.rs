@@ -19,30 +19,41 @@
 //! Containers: `group`, `separator`, `recurse`, `select(expr)`, `lod` take `{ nodes }`; `defs { … }` holds
 //! named nodes that are only reached through `use`; `calc { a = e, b = e }`
 //! assigns simultaneously; the transformation, material and primitive calls are those of [`crate::nodes`].
-//! The top-level nodes form the root group. Parameters must be declared before the nodes that use them.
+//! The top-level nodes form the root group. Parameters must be declared before the nodes that use them. An
+//! expression ends with its line (a node call's arguments may span lines).
+//!
+//! Errors recover (rust-analyzer's "parsing never fails"): one diagnostic per mistake. A name used but not declared
+//! is reported once, at its first use, with a near name if the file has one; a misspelt keyword or node is read as
+//! the word it is nearest to; a construct cut off at the end of its line is reported there; a broken construct is
+//! skipped to the end of its line and of the blocks it opened, and a `def` inside it is not missed again by its uses.
 
 use std::collections::BTreeMap;
 use std::ops::Range;
 
 use canopy_protocol::{Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, limits};
 
-use crate::diag::{Diagnostic, SourceFile};
+use crate::diag::{Diagnostic, SourceFile, did_you_mean};
 use crate::expr::{compile, parse_expr};
 use crate::nodes::parse_node_call;
-use crate::text::{Cursor, ParseError};
+use crate::text::{Cursor, ParseError, last_token_end};
 
 /// Deepest nesting of `{ }` blocks accepted.
 pub const MAX_BLOCK_NESTING: usize = 256;
 
-/// Parse a species text file. Returns the graph if there were no errors, and every diagnostic found.
+/// Parse a species text file. Returns the graph if there were no errors, and every diagnostic found: one per
+/// mistake (a name that is not known is reported once, at its first use, with how many more uses it has; a
+/// construct cut off at the end of its line is reported there, not at the next line's first token).
 pub fn parse_species(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
     let mut p = Parser {
         cur: Cursor::new(&src.text, true),
         params: Vec::new(),
+        param_spans: Vec::new(),
         nodes: Vec::new(),
         defs: BTreeMap::new(),
         uses: Vec::new(),
         errors: Vec::new(),
+        unknown: Vec::new(),
+        broken_defs: Vec::new(),
         name: None,
     };
     let root_children = p.node_list(0, true);
@@ -56,13 +67,26 @@ struct Use {
     span: Range<usize>,
 }
 
+/// A name used but not declared: where first, and how many uses in all.
+struct Unknown {
+    name: String,
+    span: Range<usize>,
+    uses: usize,
+}
+
 struct Parser<'a> {
     cur: Cursor<'a>,
     params: Vec<ParamDecl>,
+    /// Where each parameter is declared.
+    param_spans: Vec<Range<usize>>,
     nodes: Vec<Node>,
     defs: BTreeMap<String, (NodeId, Range<usize>)>,
     uses: Vec<Use>,
     errors: Vec<ParseError>,
+    /// Parameter names used but not declared before the use, in order of first use.
+    unknown: Vec<Unknown>,
+    /// Names of `def`s in text skipped by recovery: a `use` of one is not a mistake of its own.
+    broken_defs: Vec<String>,
     name: Option<String>,
 }
 
@@ -73,6 +97,10 @@ enum Child {
 }
 
 const PLACEHOLDER: NodeId = NodeId::MAX;
+
+/// The slot an unknown parameter name compiles to: the graph is never built when there is one, so any slot serves
+/// to go on parsing (and find the file's other mistakes).
+const UNKNOWN_SLOT: u16 = 0;
 
 impl Parser<'_> {
     fn push(&mut self, node: Node, span: Range<usize>) -> Result<NodeId, ParseError> {
@@ -102,8 +130,8 @@ impl Parser<'_> {
         }
     }
 
-    /// Parse nodes until `}` (or end of file at top level). Errors are recorded and parsing resumes on the next
-    /// line, so one mistake does not hide the rest.
+    /// Parse nodes until `}` (or end of file at top level). A syntax error is recorded and parsing resumes after
+    /// the broken construct (see [`Parser::recover`]), so one mistake does not hide the rest.
     fn node_list(&mut self, depth: usize, top: bool) -> Vec<Child> {
         let mut out = Vec::new();
         loop {
@@ -127,27 +155,66 @@ impl Parser<'_> {
             if out.len() == limits::MAX_CHILDREN {
                 let p = self.cur.pos;
                 self.errors.push(ParseError::new(p..p + 1, format!("more than {} children", limits::MAX_CHILDREN)));
-                self.recover();
+                self.recover(p);
                 continue;
             }
+            let start = self.cur.pos;
             match self.item(depth, top) {
                 Ok(Some(c)) => out.push(c),
                 Ok(None) => {}
                 Err(e) => {
+                    // Cut off at the end of a line: said there, and the next line parsed as what it is.
+                    let end = last_token_end(self.cur.src, start, e.span.start);
+                    let e = match e.at_line_end(end) {
+                        Some(at_end) if end > start && self.cur.src[end..e.span.start].contains('\n') => {
+                            self.cur.pos = end;
+                            at_end
+                        }
+                        _ => e,
+                    };
                     self.errors.push(e);
-                    self.recover();
+                    self.recover(start);
                 }
             }
         }
     }
 
-    /// Skip the rest of the line and any block opened on it, stopping before a `}` that closes the current block.
-    fn recover(&mut self) {
-        let mut open = 0i64;
+    /// Skip what is left of the construct that began at `start` and failed ([`Parser::skip_construct`]); the
+    /// `def`s in the skipped text are remembered, so their uses elsewhere are not reported as mistakes of their own.
+    fn recover(&mut self, start: usize) {
+        self.skip_construct(start);
+        let skipped = &self.cur.src[start..self.cur.pos.max(start)];
+        let mut cur = Cursor::new(skipped, true);
+        while !cur.at_end() {
+            if cur.eat_keyword("def")
+                && let Some((name, _)) = cur.ident()
+            {
+                self.broken_defs.push(name.to_string());
+            } else if cur.ident().is_none() {
+                cur.pos += cur.rest().chars().next().map_or(0, char::len_utf8);
+            }
+        }
+    }
+
+    /// Skip the rest of the construct's line and every block it opened (before or after the mistake), stopping
+    /// before a `}` that closes the enclosing block. A block of the construct that closes ends the skip too
+    /// (`calc { a = ) } sphere(1)` goes on at `sphere`).
+    fn skip_construct(&mut self, start: usize) {
+        let mut open = open_blocks(&self.cur.src[start..self.cur.pos.max(start)]);
         while let Some(c) = self.cur.rest().chars().next() {
             match c {
+                '#' => {
+                    self.cur.skip_trivia();
+                    continue;
+                }
                 '}' if open == 0 => return,
-                '}' => open -= 1,
+                '}' => {
+                    open -= 1;
+                    if open == 0 {
+                        self.cur.pos += 1;
+                        return;
+                    }
+                }
                 '{' => open += 1,
                 '\n' if open == 0 => {
                     self.cur.pos += 1;
@@ -164,11 +231,22 @@ impl Parser<'_> {
         let Some((word, span)) = self.cur.ident() else {
             return Err(self.cur.unexpected("a node"));
         };
+        self.item_word(word, span, depth, top)
+    }
+
+    /// The item that starts with `word`.
+    fn item_word(
+        &mut self,
+        word: &str,
+        span: Range<usize>,
+        depth: usize,
+        top: bool,
+    ) -> Result<Option<Child>, ParseError> {
         match word {
             "species" if top => {
                 let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a species name"))?;
                 if self.name.is_some() {
-                    return Err(ParseError::new(span.start..nspan.end, "species named twice"));
+                    self.errors.push(ParseError::new(span.start..nspan.end, "species named twice"));
                 }
                 self.name = Some(name.to_string());
                 Ok(None)
@@ -192,15 +270,20 @@ impl Parser<'_> {
             }
             "def" => {
                 let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a name after `def`"))?;
-                let id = match self.item(depth, false)? {
-                    Some(Child::Node(id)) => id,
-                    _ => return Err(ParseError::new(nspan, "`def` must name a node, not a `use`")),
+                let child = self.item(depth, false)?;
+                let Some(Child::Node(id)) = child else {
+                    self.errors.push(ParseError::new(nspan, "`def` must name a node, not a `use`"));
+                    return Ok(child);
                 };
-                if let Some((_, first)) = self.defs.get(name) {
-                    let (l, c) = line_col(self.cur.src, first.start);
-                    return Err(ParseError::new(nspan, format!("`{name}` is already defined at {l}:{c}")));
+                match self.defs.get(name) {
+                    Some((_, first)) => {
+                        let (l, c) = line_col(self.cur.src, first.start);
+                        self.errors.push(ParseError::new(nspan, format!("`{name}` is already defined at {l}:{c}")));
+                    }
+                    None => {
+                        self.defs.insert(name.to_string(), (id, nspan));
+                    }
                 }
-                self.defs.insert(name.to_string(), (id, nspan));
                 Ok(Some(Child::Node(id)))
             }
             "group" | "separator" | "recurse" | "lod" | "select" => {
@@ -214,9 +297,8 @@ impl Parser<'_> {
                     "lod" => Node::Lod(vec![]),
                     _ => {
                         self.cur.expect("(")?;
-                        let ast = parse_expr(&mut self.cur)?;
+                        let expr = self.expr()?;
                         self.cur.expect(")")?;
-                        let expr = self.compile(&ast)?;
                         Node::Selection { expr, children: vec![] }
                     }
                 };
@@ -224,7 +306,7 @@ impl Parser<'_> {
                 let id = self.push(node, span.clone())?;
                 let children = self.node_list(depth + 1, false);
                 if children.is_empty() && matches!(word, "select" | "lod") {
-                    return Err(ParseError::new(span, format!("`{word}` needs at least one child")));
+                    self.errors.push(ParseError::new(span, format!("`{word}` needs at least one child")));
                 }
                 self.set_children(id, children);
                 Ok(Some(Child::Node(id)))
@@ -235,32 +317,55 @@ impl Parser<'_> {
                 while !self.cur.eat("}") {
                     let (name, nspan) =
                         self.cur.ident().ok_or_else(|| self.cur.unexpected("a parameter name or `}`"))?;
-                    let slot = self
-                        .slot(name)
-                        .ok_or_else(|| ParseError::new(nspan.clone(), format!("unknown parameter `{name}`")))?;
+                    let slot = self.slot(name).unwrap_or_else(|| {
+                        self.unknown_uses(&[name.to_string()], nspan.clone());
+                        UNKNOWN_SLOT
+                    });
                     self.cur.expect("=")?;
-                    let ast = parse_expr(&mut self.cur)?;
+                    let value = self.expr()?;
                     if assignments.len() == limits::MAX_ASSIGNMENTS {
                         return Err(ParseError::new(
                             nspan,
                             format!("more than {} assignments", limits::MAX_ASSIGNMENTS),
                         ));
                     }
-                    assignments.push((slot, self.compile(&ast)?));
+                    assignments.push((slot, value));
                     let _ = self.cur.eat(",") || self.cur.eat(";");
                 }
                 let id = self.push(Node::Calculation(assignments), span)?;
                 Ok(Some(Child::Node(id)))
             }
             _ => {
+                let start = self.cur.pos;
                 let params = &self.params;
-                let mut resolve = |n: &str| params.iter().position(|p| p.name == n).map(|i| i as u16);
-                match parse_node_call(word, span.clone(), &mut self.cur, &mut resolve) {
+                let mut missing = Vec::new();
+                let mut resolve = |n: &str| {
+                    Some(params.iter().position(|p| p.name == n).map_or_else(
+                        || {
+                            missing.push(n.to_string());
+                            UNKNOWN_SLOT
+                        },
+                        |i| i as u16,
+                    ))
+                };
+                let call = parse_node_call(word, span.clone(), &mut self.cur, &mut resolve);
+                self.unknown_uses(&missing, start..self.cur.pos);
+                match call {
                     Some(node) => {
                         let id = self.push(node?, span)?;
                         Ok(Some(Child::Node(id)))
                     }
-                    None => Err(ParseError::new(span, format!("unknown node `{word}`"))),
+                    None => {
+                        // A misspelt keyword or node: said once, and the item read as the word it is nearest to,
+                        // so what it declares or holds is not lost (`pram x = 1`, `gruop { … }`).
+                        let words = crate::nodes::NODE_CALLS.iter().copied().chain(KEYWORDS);
+                        let Some(near) = did_you_mean(word, words) else {
+                            return Err(ParseError::new(span, format!("unknown node `{word}`")));
+                        };
+                        let e = format!("unknown node `{word}`; did you mean `{near}`?");
+                        self.errors.push(ParseError::new(span.clone(), e));
+                        self.item_word(near, span, depth, top)
+                    }
                 }
             }
         }
@@ -270,8 +375,41 @@ impl Parser<'_> {
         self.params.iter().position(|p| p.name == name).map(|i| i as u16)
     }
 
-    fn compile(&self, ast: &crate::expr::Ast) -> Result<canopy_protocol::Expr, ParseError> {
-        compile(ast, &mut |n| self.slot(n))
+    /// An expression at the cursor, compiled; a name that is not a parameter (yet) is recorded, not fatal.
+    fn expr(&mut self) -> Result<canopy_protocol::Expr, ParseError> {
+        let start = self.cur.pos;
+        // An expression ends with its line (outside a node call's arguments): `param c = 4 +` then `def …` is a
+        // trailing `+`, not a sum with a parameter named `def`.
+        self.cur.newlines_are_space = false;
+        let ast = parse_expr(&mut self.cur);
+        self.cur.newlines_are_space = true;
+        let ast = ast?;
+        let mut missing = Vec::new();
+        let compiled = compile(&ast, &mut |n| {
+            Some(self.slot(n).unwrap_or_else(|| {
+                missing.push(n.to_string());
+                UNKNOWN_SLOT
+            }))
+        });
+        self.unknown_uses(&missing, start..self.cur.pos);
+        compiled
+    }
+
+    /// Record the uses of `names` (not declared) found in `within`, each name's uses counted once.
+    fn unknown_uses(&mut self, names: &[String], within: Range<usize>) {
+        let mut seen: Vec<&String> = Vec::new();
+        for name in names {
+            if seen.contains(&name) {
+                continue;
+            }
+            seen.push(name);
+            let spans = ident_spans(self.cur.src, within.clone(), name);
+            let Some(first) = spans.first().cloned() else { continue };
+            match self.unknown.iter_mut().find(|u| u.name == *name) {
+                Some(u) => u.uses += spans.len(),
+                None => self.unknown.push(Unknown { name: name.clone(), span: first, uses: spans.len() }),
+            }
+        }
     }
 
     fn param(&mut self, word: &str, span: Range<usize>) -> Result<(), ParseError> {
@@ -285,15 +423,39 @@ impl Parser<'_> {
         if self.params.len() == limits::MAX_PARAMS {
             return Err(ParseError::new(span, format!("more than {} parameters", limits::MAX_PARAMS)));
         }
-        self.cur.expect("=")?;
-        let ast = parse_expr(&mut self.cur)?;
-        let default = self.compile(&ast)?;
         let scope = if word == "state" { ParamScope::Turtle } else { ParamScope::Local };
-        self.params.push(ParamDecl { name: name.to_string(), default, scope });
-        Ok(())
+        // Declared even when its default is broken, so its uses further on are not mistakes of their own.
+        let default = self.cur.expect("=").and_then(|_| self.expr());
+        let decl = |default| ParamDecl { name: name.to_string(), default, scope };
+        self.params.push(decl(default.clone().unwrap_or_else(|_| canopy_protocol::Expr::constant(0.0))));
+        self.param_spans.push(nspan);
+        default.map(|_| ())
+    }
+
+    /// Names used but never declared, one diagnostic each: at the first use, with a near name the file has and how
+    /// many other uses there are; a name declared only after its use is said to be.
+    fn unknown_errors(&mut self) {
+        for u in std::mem::take(&mut self.unknown) {
+            let more = match u.uses {
+                1 => String::new(),
+                n => format!(" ({} more use(s))", n - 1),
+            };
+            let message = match self.slot(&u.name) {
+                Some(slot) => {
+                    let (l, c) = line_col(self.cur.src, self.param_spans[usize::from(slot)].start);
+                    format!("parameter `{}` is used before its declaration at {l}:{c}{more}", u.name)
+                }
+                None => {
+                    let names = self.params.iter().map(|p| p.name.as_str());
+                    format!("unknown parameter `{}`{}{more}", u.name, hint(did_you_mean(&u.name, names)))
+                }
+            };
+            self.errors.push(ParseError::new(u.span, message));
+        }
     }
 
     fn finish(mut self, src: &SourceFile, root_children: Vec<Child>) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
+        self.unknown_errors();
         // The root: the single top-level node, or a group of them.
         let root = match root_children.as_slice() {
             [] => {
@@ -314,6 +476,8 @@ impl Parser<'_> {
                 }
             },
         };
+        // A `use` of a name no `def` gives: one diagnostic a name, at its first use.
+        let mut missing: BTreeMap<String, (Range<usize>, usize)> = BTreeMap::new();
         for u in std::mem::take(&mut self.uses) {
             match self.defs.get(&u.name) {
                 Some(&(id, _)) => match &mut self.nodes[u.node] {
@@ -321,8 +485,18 @@ impl Parser<'_> {
                     Node::Selection { children, .. } => children[u.index] = id,
                     _ => unreachable!("uses are recorded for containers only"),
                 },
-                None => self.errors.push(ParseError::new(u.span, format!("`use {}` names no `def`", u.name))),
+                None if self.broken_defs.contains(&u.name) => {}
+                None => {
+                    let m = missing.entry(u.name).or_insert((u.span.clone(), 0));
+                    m.0 = if u.span.start < m.0.start { u.span } else { m.0.clone() };
+                    m.1 += 1;
+                }
             }
+        }
+        for (name, (span, uses)) in missing {
+            let near = hint(did_you_mean(&name, self.defs.keys().map(String::as_str)));
+            let more = if uses > 1 { format!(" ({} more use(s))", uses - 1) } else { String::new() };
+            self.errors.push(ParseError::new(span, format!("`use {name}` names no `def`{near}{more}")));
         }
         let mut diags: Vec<Diagnostic> =
             self.errors.iter().map(|e| src.diag(e.span.clone(), e.message.clone())).collect();
@@ -333,6 +507,54 @@ impl Parser<'_> {
         match graph.validate() {
             Ok(()) => (Some(graph), diags),
             Err(e) => (None, vec![src.diag(0..0, format!("invalid species graph: {e}"))]),
+        }
+    }
+}
+
+/// The words that start a species item besides the node calls (for "did you mean").
+const KEYWORDS: [&str; 11] =
+    ["species", "param", "state", "defs", "use", "def", "group", "separator", "recurse", "lod", "select"];
+
+/// "; did you mean `x`?" for a suggestion, nothing without one.
+fn hint(near: Option<&str>) -> String {
+    near.map(|n| format!("; did you mean `{n}`?")).unwrap_or_default()
+}
+
+/// `{` opened and not closed in `text` (comments skipped).
+fn open_blocks(text: &str) -> usize {
+    let mut cur = Cursor::new(text, true);
+    let mut open = 0usize;
+    loop {
+        cur.skip_trivia();
+        let Some(c) = cur.rest().chars().next() else { return open };
+        match c {
+            '{' => open += 1,
+            '}' => open = open.saturating_sub(1),
+            _ => {}
+        }
+        cur.pos += c.len_utf8();
+    }
+}
+
+/// The spans of the identifier `name` in `src[within]`, comments skipped.
+fn ident_spans(src: &str, within: Range<usize>, name: &str) -> Vec<Range<usize>> {
+    let mut cur = Cursor::new(&src[..within.end.min(src.len())], true);
+    cur.pos = within.start.min(cur.src.len());
+    let mut out = Vec::new();
+    loop {
+        cur.skip_trivia();
+        let Some(c) = cur.rest().chars().next() else { return out };
+        match cur.ident() {
+            Some((w, span)) if w == name => out.push(span),
+            Some(_) => {}
+            // Numbers such as `2e3` are skipped whole, so their letters are never names.
+            None if c.is_ascii_digit() || c == '.' => {
+                let _ = cur.number();
+                if cur.rest().starts_with(c) {
+                    cur.pos += c.len_utf8();
+                }
+            }
+            None => cur.pos += c.len_utf8(),
         }
     }
 }
