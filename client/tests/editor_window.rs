@@ -41,6 +41,7 @@ fn the_editor_window_runs_under_xvfb_and_exits_by_itself_having_drawn_frames() {
             .args(["--width", "640", "--height", "400", "--param", "height=12", "--exit-after", "8"])
             .env("DISPLAY", &display)
             .env("XDG_RUNTIME_DIR", &xdg)
+            .env("XDG_STATE_HOME", dir.path().join("state"))
             .env("WGPU_BACKEND", std::env::var("WGPU_BACKEND").unwrap_or_else(|_| "vulkan".into()))
             .env_remove("WAYLAND_DISPLAY")
             .stdout(Stdio::piped())
@@ -67,4 +68,7 @@ fn the_editor_window_runs_under_xvfb_and_exits_by_itself_having_drawn_frames() {
     assert!(out.contains("frames, preview settled"), "the preview did not settle in the window");
     assert!(started.elapsed() >= Duration::from_secs(8), "it stayed open for --exit-after");
     assert_eq!(std::fs::read_to_string(&file).unwrap(), source, "the file is left alone");
+    // The file parsed, so the editor kept it as its last good version, in the user's state directory only.
+    let kept: Vec<_> = std::fs::read_dir(dir.path().join("state/canopy/last-good")).expect("the state dir").collect();
+    assert_eq!(kept.len(), 1, "one last good version kept");
 }

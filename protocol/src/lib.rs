@@ -25,4 +25,6 @@ pub mod xorshift;
 pub use expr::{Expr, Func, Op};
 pub use messages::{ALPN, ClientMsg, CloseCode, MessageError, PROTOCOL_VERSION, Phase, ServerMsg, SpeciesHash};
 pub use record::{CellBatch, CellCoord, InstanceId, InstanceRecord, POSITION_STEPS};
-pub use species::{DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, ValidateError};
+pub use species::{
+    DecodeError, LeafTopology, Node, NodeId, ParamDecl, ParamRole, ParamScope, SpeciesGraph, ValidateError,
+};

@@ -31,7 +31,7 @@ pub use crate::world::{FractalDesc, TerrainDesc, WorldInfo};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 5;
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";

@@ -35,6 +35,19 @@ pub struct ParamDecl {
     pub default: Expr,
     /// Which separators restore the parameter.
     pub scope: ParamScope,
+    /// Whether it is one of the species' parameters or a working value of its program.
+    pub role: ParamRole,
+}
+
+/// What a declared value is to the species' users.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ParamRole {
+    /// A parameter of the species (seed 001 §3.4: "user-specified general appearance"): what an instance, a
+    /// world's population rule, an edit or the editor's slider may set.
+    Parameter,
+    /// A working value of the program (a counter, a radius carried down a branch, an L-system module's argument):
+    /// computed by the species itself; nothing outside it sets one.
+    Working,
 }
 
 /// Which separators save and restore a parameter.
@@ -353,9 +366,28 @@ impl Node {
 }
 
 impl SpeciesGraph {
-    /// Find a parameter slot by name.
+    /// Find a declared value's slot by name (a parameter or a working value).
     pub fn param_slot(&self, name: &str) -> Option<u16> {
         self.params.iter().position(|p| p.name == name).map(|i| i as u16)
+    }
+
+    /// Whether `slot` is one of the species' parameters ([`ParamRole::Parameter`]).
+    pub fn is_parameter(&self, slot: u16) -> bool {
+        self.params.get(usize::from(slot)).is_some_and(|p| p.role == ParamRole::Parameter)
+    }
+
+    /// The slot of the parameter `name` (not a working value): what an instance may set. The error says why not
+    /// and names the species' parameters.
+    pub fn parameter_slot(&self, name: &str) -> Result<u16, String> {
+        let names: Vec<&str> =
+            self.params.iter().filter(|p| p.role == ParamRole::Parameter).map(|p| p.name.as_str()).collect();
+        let list =
+            if names.is_empty() { "it has none".to_string() } else { format!("its parameters: {}", names.join(", ")) };
+        match self.param_slot(name) {
+            Some(slot) if self.is_parameter(slot) => Ok(slot),
+            Some(_) => Err(format!("`{name}` is a working value of species `{}`, not a parameter ({list})", self.name)),
+            None => Err(format!("species `{}` has no parameter `{name}` ({list})", self.name)),
+        }
     }
 
     /// Check every limit and every index (see the module docs). Decoders call this; so should builders.

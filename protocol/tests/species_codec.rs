@@ -1,13 +1,20 @@
 //! The species graph encoding: byte snapshot, round trip, and rejection of malformed or hostile bytes.
 
 use canopy_protocol::expr::ExprError;
-use canopy_protocol::{DecodeError, Expr, Node, Op, ParamDecl, ParamScope, SpeciesGraph, ValidateError, limits};
+use canopy_protocol::{
+    DecodeError, Expr, Node, Op, ParamDecl, ParamRole, ParamScope, SpeciesGraph, ValidateError, limits,
+};
 
 /// Worm(4) of seed 001 Figure 2, built by hand.
 fn worm() -> SpeciesGraph {
     let g = SpeciesGraph {
         name: "Worm".into(),
-        params: vec![ParamDecl { name: "c".into(), default: Expr::constant(4.0), scope: ParamScope::Local }],
+        params: vec![ParamDecl {
+            name: "c".into(),
+            default: Expr::constant(4.0),
+            scope: ParamScope::Local,
+            role: ParamRole::Parameter,
+        }],
         nodes: vec![
             Node::Selection { expr: Expr { ops: vec![Op::Param(0), Op::Const(0.0), Op::Gt] }, children: vec![1, 2] },
             Node::Cone { bottom: Expr::constant(0.5), top: Expr::constant(0.0), height: Expr::constant(1.0) },
@@ -43,6 +50,7 @@ fn every_node_kind_round_trips() {
             name: "w".into(),
             default: Expr { ops: vec![Op::Call(canopy_protocol::Func::Rand)] },
             scope: ParamScope::Turtle,
+            role: ParamRole::Working,
         }],
         nodes: vec![
             Node::Group((1..=15).collect()),

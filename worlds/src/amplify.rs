@@ -414,16 +414,8 @@ fn constant_transform(node: &Node) -> Option<Transform> {
     }
 }
 
-/// Resolve `name=value` parameter settings against a species, for command lines and world files.
+/// Resolve `name=value` parameter settings against a species, for command lines and world files: parameters only
+/// (a working value is the species' own, [`SpeciesGraph::parameter_slot`] says so).
 pub fn resolve_params(graph: &SpeciesGraph, settings: &[(String, f32)]) -> Result<Vec<(u16, f32)>, String> {
-    settings
-        .iter()
-        .map(|(name, v)| graph.param_slot(name).map(|s| (s, *v)).ok_or_else(|| unknown_param(graph, name)))
-        .collect()
-}
-
-/// The message for a parameter `name` that `graph` does not have, listing the ones it has.
-pub fn unknown_param(graph: &SpeciesGraph, name: &str) -> String {
-    let known: Vec<&str> = graph.params.iter().map(|p| p.name.as_str()).collect();
-    format!("species `{}` has no parameter `{name}` (it has: {})", graph.name, known.join(", "))
+    settings.iter().map(|(name, v)| graph.parameter_slot(name).map(|s| (s, *v))).collect()
 }

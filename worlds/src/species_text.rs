@@ -30,7 +30,7 @@
 use std::collections::BTreeMap;
 use std::ops::Range;
 
-use canopy_protocol::{Node, NodeId, ParamDecl, ParamScope, SpeciesGraph, limits};
+use canopy_protocol::{Node, NodeId, ParamDecl, ParamRole, ParamScope, SpeciesGraph, limits};
 
 use crate::diag::{Diagnostic, SourceFile, did_you_mean};
 use crate::expr::{compile, parse_expr};
@@ -251,11 +251,11 @@ impl Parser<'_> {
                 self.name = Some(name.to_string());
                 Ok(None)
             }
-            "param" | "state" if top => {
+            "param" | "state" | "let" if top => {
                 self.param(word, span)?;
                 Ok(None)
             }
-            "param" | "state" | "species" => {
+            "param" | "state" | "let" | "species" => {
                 Err(ParseError::new(span, format!("`{word}` is only allowed at the top level")))
             }
             "defs" => {
@@ -412,8 +412,11 @@ impl Parser<'_> {
         }
     }
 
+    /// `param NAME = e`, `state NAME = e` (a parameter), `let NAME = e` or `let state NAME = e` (a working value).
     fn param(&mut self, word: &str, span: Range<usize>) -> Result<(), ParseError> {
-        let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a parameter name"))?;
+        let role = if word == "let" { ParamRole::Working } else { ParamRole::Parameter };
+        let turtle = word == "state" || word == "let" && self.cur.eat_keyword("state");
+        let (name, nspan) = self.cur.ident().ok_or_else(|| self.cur.unexpected("a name"))?;
         if matches!(name, "detail" | "pi" | "true" | "false") {
             return Err(ParseError::new(nspan, format!("`{name}` is reserved")));
         }
@@ -423,10 +426,10 @@ impl Parser<'_> {
         if self.params.len() == limits::MAX_PARAMS {
             return Err(ParseError::new(span, format!("more than {} parameters", limits::MAX_PARAMS)));
         }
-        let scope = if word == "state" { ParamScope::Turtle } else { ParamScope::Local };
+        let scope = if turtle { ParamScope::Turtle } else { ParamScope::Local };
         // Declared even when its default is broken, so its uses further on are not mistakes of their own.
         let default = self.cur.expect("=").and_then(|_| self.expr());
-        let decl = |default| ParamDecl { name: name.to_string(), default, scope };
+        let decl = |default| ParamDecl { name: name.to_string(), default, scope, role };
         self.params.push(decl(default.clone().unwrap_or_else(|_| canopy_protocol::Expr::constant(0.0))));
         self.param_spans.push(nspan);
         default.map(|_| ())
@@ -512,8 +515,8 @@ impl Parser<'_> {
 }
 
 /// The words that start a species item besides the node calls (for "did you mean").
-const KEYWORDS: [&str; 11] =
-    ["species", "param", "state", "defs", "use", "def", "group", "separator", "recurse", "lod", "select"];
+const KEYWORDS: [&str; 12] =
+    ["species", "param", "state", "let", "defs", "use", "def", "group", "separator", "recurse", "lod", "select"];
 
 /// "; did you mean `x`?" for a suggestion, nothing without one.
 fn hint(near: Option<&str>) -> String {
@@ -606,6 +609,34 @@ mod tests {
                 (5, 1, "unknown node `foo`"),
             ]
         );
+    }
+
+    /// `param`/`state` declare the species' parameters, `let`/`let state` its working values: same evaluation,
+    /// but nothing outside the species may set a working value.
+    #[test]
+    fn let_declares_a_working_value() {
+        let (g, d) =
+            parse("param height = 2\nlet n = height * 2\nlet state w = 1\nstate colour = 0\ncone(n, w, colour)\n");
+        assert!(d.is_empty(), "{d:?}");
+        let g = g.unwrap();
+        let roles: Vec<(&str, ParamRole, ParamScope)> =
+            g.params.iter().map(|p| (p.name.as_str(), p.role, p.scope)).collect();
+        assert_eq!(
+            roles,
+            vec![
+                ("height", ParamRole::Parameter, ParamScope::Local),
+                ("n", ParamRole::Working, ParamScope::Local),
+                ("w", ParamRole::Working, ParamScope::Turtle),
+                ("colour", ParamRole::Parameter, ParamScope::Turtle),
+            ]
+        );
+        let set = |name: &str| crate::amplify::resolve_params(&g, &[(name.to_string(), 1.0)]);
+        assert_eq!(set("height"), Ok(vec![(0, 1.0)]));
+        assert_eq!(
+            set("n").unwrap_err(),
+            "`n` is a working value of species `t`, not a parameter (its parameters: height, colour)"
+        );
+        assert!(set("nope").unwrap_err().starts_with("species `t` has no parameter `nope`"));
     }
 
     #[test]

@@ -91,7 +91,7 @@ fn a_misspelt_word_is_one_diagnostic_on_its_line() {
     let tried = each_variant(|line, idents, words| {
         let mut out = Vec::new();
         for (i, r) in idents.iter().enumerate() {
-            if i > 0 && matches!(&line[idents[i - 1].clone()], "param" | "state" | "def" | "species") {
+            if i > 0 && matches!(&line[idents[i - 1].clone()], "param" | "state" | "let" | "def" | "species") {
                 continue;
             }
             let wrong = misspell(&line[r.clone()]);

@@ -10,6 +10,7 @@
 
 pub mod grid;
 pub mod hyp;
+pub mod last_good;
 pub mod model;
 pub mod preview;
 pub mod save;
@@ -45,6 +46,8 @@ pub struct EditConfig {
     pub view: ui::View,
     /// Close the window by itself after this long (tests, demos); `None` runs until it is closed.
     pub exit_after: Option<std::time::Duration>,
+    /// Where the last good version of each opened file is kept ([`last_good`]); `None` keeps none.
+    pub last_good: Option<last_good::LastGood>,
 }
 
 impl Default for EditConfig {
@@ -58,6 +61,7 @@ impl Default for EditConfig {
             size: (1280, 800),
             view: ui::View::Tree,
             exit_after: None,
+            last_good: None,
         }
     }
 }

@@ -19,6 +19,7 @@ use canopy_worlds::rng::InstanceRng;
 
 use crate::EditorError;
 use crate::hyp::HypertreeModel;
+use crate::last_good::LastGood;
 use crate::species::Species;
 
 /// How long typing must pause before the text is parsed and amplified again, seconds (times are the UI's clock:
@@ -114,6 +115,10 @@ pub struct Editor {
     revision: u64,
     edited_at: Option<f64>,
     budget: Budget,
+    /// Where the last good version of the file is kept, if anywhere.
+    last_good: Option<LastGood>,
+    /// Whether the model shown is the file's last good version, not anything its current text gave.
+    from_last_good: bool,
 }
 
 impl Editor {
@@ -137,9 +142,56 @@ impl Editor {
             revision: 0,
             edited_at: None,
             budget: Budget::default(),
+            last_good: None,
+            from_last_good: false,
         };
         e.reparse();
         Ok(e)
+    }
+
+    /// [`Editor::open`], keeping the file's last good version in `last_good`: a file that parses is remembered
+    /// there (and again on every save that parses); one that does not shows, beside its diagnostics, the model its
+    /// last good version gives, if one was kept.
+    pub fn open_keeping(path: &Path, last_good: Option<LastGood>) -> Result<Editor, EditorError> {
+        let mut e = Editor::open(path)?;
+        e.last_good = last_good;
+        if !path.exists() {
+            return Ok(e);
+        }
+        if e.has_model() {
+            e.remember();
+        } else if let Some(text) = e.last_good.as_ref().and_then(|lg| lg.recall(path)) {
+            let old = Editor::from_source(&e.name, &text)?;
+            if old.has_model() {
+                e.species = old.species;
+                e.hypertree = old.hypertree;
+                e.amplified = old.amplified;
+                e.from_last_good = true;
+                e.revision += 1;
+            }
+        }
+        Ok(e)
+    }
+
+    /// Whether the current text gave a model (a species that amplifies, or a hypertree definition) with no
+    /// diagnostic.
+    fn has_model(&self) -> bool {
+        self.diagnostics.is_empty() && (self.species.is_some() || self.hypertree.is_some())
+    }
+
+    /// Keep the text as the file's last good version (a failure only logged: the edit itself is not at stake).
+    fn remember(&self) {
+        if let (Some(lg), Some(path)) = (&self.last_good, &self.path)
+            && let Err(e) = lg.remember(path, &self.text)
+        {
+            tracing::warn!("keeping the last good version of {}: {e}", path.display());
+        }
+    }
+
+    /// Whether the model shown is the file's last good version (kept from an earlier session), because its text
+    /// as opened does not parse.
+    pub fn showing_last_good(&self) -> bool {
+        self.from_last_good
     }
 
     /// Open a file (read through `canopy_worlds::fsread`: regular files only, bounded); a path that does not exist
@@ -289,6 +341,7 @@ impl Editor {
                         Some(m) => m.replace(def),
                         None => self.hypertree = Some(HypertreeModel::new(def)),
                     }
+                    self.from_last_good = false;
                     self.revision += 1;
                 }
             }
@@ -300,6 +353,7 @@ impl Editor {
                             self.amplified = Some(a);
                             self.amplify_error = None;
                             self.species = Some(species);
+                            self.from_last_good = false;
                             self.revision += 1;
                         }
                         Err(e) => diags.push(src.diag(
@@ -354,9 +408,7 @@ impl Editor {
     /// Override a parameter by name (an unknown name is refused with the parameters the species has).
     pub fn set_param(&mut self, name: &str, value: f32) -> Result<(), EditorError> {
         let Some(species) = &self.species else { return Err(EditorError::NoModel) };
-        if species.graph.param_slot(name).is_none() {
-            return Err(EditorError::Param(canopy_worlds::amplify::unknown_param(&species.graph, name)));
-        }
+        species.graph.parameter_slot(name).map_err(EditorError::Param)?;
         if !value.is_finite() {
             return Err(EditorError::Param(format!("`{value}` is not finite")));
         }
@@ -433,6 +485,18 @@ impl Editor {
             .collect()
     }
 
+    /// The species' working values (not sliders: its program computes them) and their values at the start of the
+    /// previewed instance, in declaration order.
+    pub fn working_values(&self) -> Vec<(String, f32)> {
+        let Some(species) = &self.species else { return Vec::new() };
+        let rng = &mut InstanceRng::new(self.seed);
+        let Ok((values, _)) = instance_params(&species.graph, &self.instance_for(species), rng) else {
+            return Vec::new();
+        };
+        let named = species.working_values().into_iter();
+        named.map(|(slot, name)| (name.to_string(), values[usize::from(slot)])).collect()
+    }
+
     /// A world manifest's `instance` line for the previewed instance: the species by its file's stem, at the
     /// origin, with the overridden parameters (a manifest's instances take their seeds from their ids).
     pub fn instance_line(&self) -> String {
@@ -451,6 +515,9 @@ impl Editor {
         let path = self.path.clone().ok_or(EditorError::NoPath)?;
         crate::save::write_file(&path, self.text.as_bytes())?;
         self.saved_text = self.text.clone();
+        if self.edited_at.is_none() && self.has_model() {
+            self.remember();
+        }
         Ok(path)
     }
 
@@ -496,6 +563,68 @@ fn around(v: f32) -> (f32, f32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Only a species' parameters are sliders: its working values (`let`) and an L-system's module arguments are
+    /// listed apart, and cannot be set.
+    #[test]
+    fn only_parameters_are_sliders() {
+        let cases: [(&str, &[&str]); 4] = [
+            ("monopodial", &["height", "branch_length", "branching"]),
+            ("conifer", &["height", "spread", "radius"]),
+            ("worm", &["c"]),
+            ("bush", &["angle", "len", "leaf"]),
+        ];
+        for (name, want) in cases {
+            let e = library::find(name).expect("library");
+            let ed = Editor::from_source(e.file, e.text).expect("format");
+            let names: Vec<String> = ed.params().into_iter().map(|p| p.name).collect();
+            assert_eq!(names, want, "{name}");
+        }
+        let mut ed = monopodial();
+        let working: Vec<String> = ed.working_values().into_iter().map(|(n, _)| n).collect();
+        assert_eq!(working.join(" "), "n s r c w m t u d p g h e k");
+        let err = ed.set_param("m", 1.0).unwrap_err().to_string();
+        assert!(err.contains("`m` is a working value of species `monopodial`"), "{err}");
+        assert!(ed.set_param("height", 12.0).is_ok());
+    }
+
+    /// A file broken when it is opened shows its last good version (kept when it was last opened or saved whole)
+    /// beside its diagnostics; without one it shows nothing, and a later good parse replaces the kept model.
+    #[test]
+    fn a_broken_file_opens_on_its_last_good_version() {
+        let dir = tempfile::tempdir().unwrap();
+        let lg = LastGood::in_dir(dir.path().join("state"));
+        let path = dir.path().join("tree.species");
+        let good = library::find("worm").expect("library").text;
+        std::fs::write(&path, good).unwrap();
+        let opened = Editor::open_keeping(&path, Some(lg.clone())).unwrap();
+        assert!(opened.species().is_some() && !opened.showing_last_good());
+        assert_eq!(lg.recall(&path).as_deref(), Some(good), "a file that parses is remembered");
+
+        let broken = good.replacen("cone(", "cnoe(", 1);
+        std::fs::write(&path, &broken).unwrap();
+        let mut ed = Editor::open_keeping(&path, Some(lg.clone())).unwrap();
+        assert_eq!(ed.diagnostics().len(), 1, "{:?}", ed.diagnostics());
+        assert!(ed.species().is_some(), "the last good tree is shown");
+        assert!(ed.showing_last_good());
+        assert_eq!(ed.text(), broken, "the buffer is the file as it is");
+        assert_eq!(lg.recall(&path).as_deref(), Some(good), "a broken file is not remembered");
+        // Saving it broken keeps the good copy; fixing and saving replaces it.
+        ed.save().unwrap();
+        assert_eq!(lg.recall(&path).as_deref(), Some(good));
+        let fixed = good.replacen("sphere(0.5)", "sphere(0.6)", 1);
+        ed.set_text(&fixed);
+        assert!(ed.diagnostics().is_empty() && !ed.showing_last_good());
+        ed.save().unwrap();
+        assert_eq!(lg.recall(&path).as_deref(), Some(fixed.as_str()));
+
+        // No kept version: nothing to show.
+        let other = dir.path().join("other.species");
+        std::fs::write(&other, &broken).unwrap();
+        let ed = Editor::open_keeping(&other, Some(lg)).unwrap();
+        assert!(ed.species().is_none() && !ed.showing_last_good());
+        assert_eq!(ed.diagnostics().len(), 1);
+    }
 
     fn monopodial() -> Editor {
         let e = library::find("monopodial").expect("library");

@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use canopy_protocol::SpeciesGraph;
+use canopy_protocol::{ParamRole, SpeciesGraph};
 use canopy_worlds::amplify::{AmplifyError, Budget, DEPTH_PARAM, Instance, amplify};
 use canopy_worlds::diag::{Diagnostic, SourceFile};
 use canopy_worlds::load::{Format, parse_source};
@@ -64,15 +64,23 @@ impl Species {
         })
     }
 
-    /// The parameters a person declared (an L-system's internal ones, `_d`, `_w`, `_c`, `_maxdepth`, left out):
-    /// their slots and names, in declaration order.
+    /// The species' parameters (not its working values: `let` values, an L-system's module arguments and
+    /// internal values): their slots and names, in declaration order.
     pub fn declared_params(&self) -> Vec<(u16, &str)> {
-        self.graph
-            .params
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| !p.name.starts_with('_') && p.name != DEPTH_PARAM)
-            .map(|(i, p)| (i as u16, p.name.as_str()))
+        self.declared(ParamRole::Parameter)
+    }
+
+    /// The working values a person declared (`let` in a species file; an L-system's internal ones, named `_…`, and
+    /// its depth limit left out): slots and names, in declaration order.
+    pub fn working_values(&self) -> Vec<(u16, &str)> {
+        self.declared(ParamRole::Working)
+            .into_iter()
+            .filter(|(_, name)| !name.starts_with('_') && *name != DEPTH_PARAM)
             .collect()
+    }
+
+    fn declared(&self, role: ParamRole) -> Vec<(u16, &str)> {
+        let of_role = self.graph.params.iter().enumerate().filter(|(_, p)| p.role == role);
+        of_role.map(|(i, p)| (i as u16, p.name.as_str())).collect()
     }
 }

@@ -31,8 +31,10 @@ pub struct SpeciesStats {
     pub name: String,
     /// Nodes in its graph.
     pub nodes: usize,
-    /// Parameters it declares (an L-system's internal ones included).
+    /// Parameters it declares (what an instance may set).
     pub params: usize,
+    /// Working values its program declares (`let`, an L-system's module arguments and internal values).
+    pub working: usize,
     /// The instance's seed.
     pub seed: u64,
     /// The instance's detail level.
@@ -86,7 +88,8 @@ pub fn measure(
     let stats = SpeciesStats {
         name: g.name.clone(),
         nodes: g.nodes.len(),
-        params: g.params.len(),
+        params: (0..g.params.len() as u16).filter(|&s| g.is_parameter(s)).count(),
+        working: (0..g.params.len() as u16).filter(|&s| !g.is_parameter(s)).count(),
         seed: instance.seed,
         detail: instance.detail,
         counts: stream.counts(),
@@ -225,7 +228,10 @@ impl SpeciesStats {
             .collect::<Vec<_>>()
             .join(", ");
         vec![
-            format!("species     {} ({} nodes, {} parameters)", self.name, self.nodes, self.params),
+            format!(
+                "species     {} ({} nodes, {} parameter(s), {} working value(s))",
+                self.name, self.nodes, self.params, self.working
+            ),
             format!("instance    seed {}, detail {}", self.seed, self.detail),
             format!("primitives  {}  ({})", thousands(n as u64), self.counts_line()),
             format!("encoded     {} bytes (postcard species graph)", thousands(self.encoded as u64)),
@@ -304,7 +310,8 @@ mod tests {
         assert_eq!(st.primitives, stream.primitives.len());
         let lines = st.lines();
         assert_eq!(lines[2], "primitives  7  (cone 1  cylinder 0  sphere 6  box 0  leaf 0)");
-        assert!(lines[3].starts_with("encoded     165 bytes"), "{lines:?}");
+        assert_eq!(lines[0], "species     Worm (11 nodes, 1 parameter(s), 0 working value(s))");
+        assert!(lines[3].starts_with("encoded     166 bytes"), "{lines:?}");
         assert!(lines[7].starts_with("lod         1 level(s): detail 0 7"), "{lines:?}");
         assert_eq!((thousands(1234567), ratio(0.1388), ratio(3.46)), ("1,234,567".into(), "0.14".into(), "3.5".into()));
     }

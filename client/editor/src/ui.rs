@@ -183,7 +183,7 @@ impl EditorUi {
     /// Open what the configuration names, with its settings applied.
     pub fn open(cfg: &EditConfig) -> Result<EditorUi, EditorError> {
         let mut model = match &cfg.file {
-            Some(f) => Editor::open(f)?,
+            Some(f) => Editor::open_keeping(f, cfg.last_good.clone())?,
             None => Editor::from_source("new.species", crate::model::TEMPLATE)?,
         };
         model.set_seed(cfg.seed);
@@ -410,6 +410,13 @@ impl EditorUi {
                 ui.label(RichText::new(&self.status).small());
             })
         });
+        // The problems under everything else, as tall as the user drags them (they are what an author reads first
+        // when the tree does not come).
+        egui::Panel::bottom("problems")
+            .resizable(true)
+            .default_size(120.0)
+            .min_size(40.0)
+            .show(ui, |ui| self.problems(ui));
         egui::Panel::left("source").default_size(ui.available_width() * 0.36).resizable(true).show(ui, |ui| {
             let mut text = self.model.text().to_string();
             if crate::ui_source::show(ui, &mut text, self.model.diagnostics()) {
@@ -480,16 +487,33 @@ impl EditorUi {
             SourceKind::Hypertree => self.hyp_controls(ui),
             _ => self.species_controls(ui),
         }
-        ui.separator();
+    }
+
+    /// The problem list: one line a diagnostic (`line:col: message`, the whole diagnostic with its caret on hover),
+    /// and what the preview shows meanwhile.
+    fn problems(&mut self, ui: &mut Ui) {
         let n = self.model.diagnostics().len();
-        let heading = if n == 0 { "no problems".to_string() } else { format!("{n} problem(s)") };
-        ui.label(RichText::new(heading).strong().color(if n == 0 { Color32::GRAY } else { crate::ui_source::ERROR }));
-        for d in self.model.diagnostics() {
-            ui.label(RichText::new(format!("{}:{}: {}", d.line, d.col, d.message)).monospace().small());
-        }
-        if n > 0 && (self.model.species().is_some() || self.model.hypertree().is_some()) {
-            ui.label(RichText::new("showing the last good model").italics().small());
-        }
+        let has_model = self.model.species().is_some() || self.model.hypertree().is_some();
+        ui.horizontal(|ui| {
+            let heading = if n == 0 { "no problems".to_string() } else { format!("{n} problem(s)") };
+            let colour = if n == 0 { Color32::GRAY } else { crate::ui_source::ERROR };
+            ui.label(RichText::new(heading).strong().color(colour));
+            let showing = match (n, has_model, self.model.showing_last_good()) {
+                (0, _, _) => None,
+                (_, true, true) => Some("showing the file's last good version, as the editor kept it"),
+                (_, true, false) => Some("showing the last good model"),
+                (_, false, _) => Some("nothing to show until the file parses"),
+            };
+            if let Some(s) = showing {
+                ui.label(RichText::new(s).italics());
+            }
+        });
+        egui::ScrollArea::vertical().id_salt("problems-scroll").auto_shrink([false, false]).show(ui, |ui| {
+            for d in self.model.diagnostics() {
+                ui.label(RichText::new(format!("{}:{}: {}", d.line, d.col, d.message)).monospace())
+                    .on_hover_text(RichText::new(d.to_string()).monospace());
+            }
+        });
     }
 
     fn species_controls(&mut self, ui: &mut Ui) {
@@ -519,6 +543,18 @@ impl EditorUi {
                     self.model.reset_param(&p.name);
                 }
             });
+        }
+        let working = self.model.working_values();
+        if !working.is_empty() {
+            egui::CollapsingHeader::new(format!("Working values ({})", working.len())).default_open(false).show(
+                ui,
+                |ui| {
+                    ui.label(RichText::new("the program's own, at the start of this instance").italics().small());
+                    for (name, v) in working {
+                        ui.label(RichText::new(format!("{name} = {v}")).monospace().small());
+                    }
+                },
+            );
         }
         if let Some(e) = self.model.amplify_error() {
             ui.colored_label(crate::ui_source::ERROR, e);
@@ -612,9 +648,22 @@ impl EditorUi {
             if !hyp {
                 let rect_size = egui::vec2(near_w, size.y);
                 let r = match preview {
-                    Some(id) => ui.add(egui::Image::from_texture((id, rect_size)).sense(egui::Sense::click_and_drag())),
-                    None => ui.allocate_response(rect_size, egui::Sense::click_and_drag()),
+                    Some(id) if self.model.species().is_some() => {
+                        ui.add(egui::Image::from_texture((id, rect_size)).sense(egui::Sense::click_and_drag()))
+                    }
+                    _ => ui.allocate_response(rect_size, egui::Sense::click_and_drag()),
                 };
+                if self.model.species().is_none() {
+                    // No tree yet (the file has never parsed here): say so instead of an empty scene.
+                    let n = self.model.diagnostics().len();
+                    ui.painter().text(
+                        r.rect.center(),
+                        egui::Align2::CENTER_CENTER,
+                        format!("no tree: {n} problem(s) in the file, listed below"),
+                        egui::FontId::proportional(18.0),
+                        crate::ui_source::ERROR,
+                    );
+                }
                 self.orbit.input(&r, ui);
             }
             if split {

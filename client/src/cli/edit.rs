@@ -122,15 +122,10 @@ impl Client {
         let g = self.species(species);
         let mut out = Vec::new();
         for (k, v) in params {
-            let slot = match g.param_slot(k) {
-                Some(s) => s,
-                None => match k.parse::<u16>() {
-                    Ok(s) if usize::from(s) < g.params.len() => s,
-                    _ => {
-                        let names: Vec<&str> = g.params.iter().map(|p| p.name.as_str()).collect();
-                        bail!("species {} has no parameter `{k}`; it has {}", g.name, names.join(", "))
-                    }
-                },
+            // A slot number must be a parameter's too: working values are the species' own.
+            let slot = match k.parse::<u16>() {
+                Ok(s) if g.is_parameter(s) => s,
+                _ => g.parameter_slot(k).map_err(|why| anyhow::anyhow!(why))?,
             };
             out.retain(|(s, _)| *s != slot);
             out.push((slot, *v));

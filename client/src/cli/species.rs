@@ -246,6 +246,7 @@ fn edit(args: EditArgs) -> anyhow::Result<ExitCode> {
         size: (args.width, args.height),
         view: args.view,
         exit_after,
+        last_good: canopy_editor::last_good::LastGood::from_env(),
     };
     canopy_editor::run(&cfg)?;
     if let Some(out) = args.screenshot {

@@ -397,7 +397,7 @@ mod tests {
     fn edits_the_world_cannot_take_are_skipped_keeping_versions_and_indices() {
         let (records, overrides) = base();
         // Species 0..4 of the base; the world has 2 species now, species 0 with 3 slots, species 1 with none.
-        let rules = EditRules::new(vec![3, 0]);
+        let rules = EditRules::new(vec![vec![0, 1, 2], vec![]]);
         let ok_plant = CellEdit::Plant { index: 5, record: InstanceRecord::new(0, 10, 10), params: vec![(2, 1.0)] };
         let log = [
             edit(1, plant(4)),                                               // species 9: gone

@@ -9,19 +9,22 @@ pub const MAX_PARAM_VALUE: f32 = 1.0e4;
 /// The world's rules for edits (see the module docs).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct EditRules {
-    /// Parameter slots each species declares, by species id; the table's length is the species count.
-    params: Vec<usize>,
+    /// The slots an edit may set (the species' parameters, not its working values), by species id; the table's
+    /// length is the species count.
+    params: Vec<Vec<u16>>,
 }
 
 impl EditRules {
-    /// Rules for a world whose species `i` declares `params[i]` parameters.
-    pub fn new(params: Vec<usize>) -> EditRules {
+    /// Rules for a world whose species `i` has the parameter slots `params[i]`.
+    pub fn new(params: Vec<Vec<u16>>) -> EditRules {
         EditRules { params }
     }
 
     /// Rules for a world of these species, in table order.
     pub fn of_species<'a>(graphs: impl IntoIterator<Item = &'a canopy_protocol::SpeciesGraph>) -> EditRules {
-        EditRules::new(graphs.into_iter().map(|g| g.params.len()).collect())
+        let slots =
+            |g: &canopy_protocol::SpeciesGraph| (0..g.params.len() as u16).filter(|&s| g.is_parameter(s)).collect();
+        EditRules::new(graphs.into_iter().map(slots).collect())
     }
 
     /// How many species the world has.
@@ -38,11 +41,11 @@ impl EditRules {
         }
     }
 
-    /// Whether `params` (`(slot, value)`) fit species `species`: declared slots, values within
-    /// ±[`MAX_PARAM_VALUE`].
+    /// Whether `params` (`(slot, value)`) fit species `species`: its parameters' slots (never a working value's),
+    /// values within ±[`MAX_PARAM_VALUE`].
     pub fn check_params(&self, species: u8, params: &[(u16, f32)]) -> Result<(), String> {
-        let declared = self.params.get(usize::from(species)).copied().unwrap_or(0);
-        if let Some((slot, _)) = params.iter().find(|(s, _)| usize::from(*s) >= declared) {
+        let declared = self.params.get(usize::from(species)).map_or(&[][..], Vec::as_slice);
+        if let Some((slot, _)) = params.iter().find(|(s, _)| !declared.contains(s)) {
             return Err(format!("species {species} declares no parameter slot {slot}"));
         }
         if let Some((slot, v)) = params.iter().find(|(_, v)| v.is_nan() || v.abs() > MAX_PARAM_VALUE) {
@@ -58,7 +61,7 @@ mod tests {
 
     #[test]
     fn species_slots_and_values_are_checked() {
-        let r = EditRules::new(vec![2, 0]);
+        let r = EditRules::new(vec![vec![0, 1], vec![]]);
         assert_eq!(r.species(), 2);
         assert!(r.check_species(1).is_ok());
         assert!(r.check_species(2).unwrap_err().contains("species 2"));
@@ -68,5 +71,21 @@ mod tests {
         assert!(r.check_params(0, &[(1, 1.0e30)]).unwrap_err().contains("beyond"));
         assert!(r.check_params(0, &[(1, f32::NAN)]).is_err());
         assert!(r.check_params(9, &[]).is_ok());
+    }
+
+    #[test]
+    fn a_working_value_is_not_for_an_edit_to_set() {
+        use canopy_protocol::{Expr, Node, ParamDecl, ParamRole, ParamScope, SpeciesGraph};
+        let decl = |name: &str, role| ParamDecl {
+            name: name.into(),
+            default: Expr::constant(1.0),
+            scope: ParamScope::Local,
+            role,
+        };
+        let params = vec![decl("height", ParamRole::Parameter), decl("n", ParamRole::Working)];
+        let g = SpeciesGraph { name: "t".into(), params, nodes: vec![Node::Group(vec![])], root: 0 };
+        let r = EditRules::of_species([&g]);
+        assert!(r.check_params(0, &[(0, 2.0)]).is_ok());
+        assert!(r.check_params(0, &[(1, 2.0)]).unwrap_err().contains("slot 1"));
     }
 }

@@ -4,7 +4,7 @@
 use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 
-use canopy_protocol::{Expr, Node, NodeId, Op, ParamDecl, ParamScope, SpeciesGraph, limits};
+use canopy_protocol::{Expr, Node, NodeId, Op, ParamDecl, ParamRole, ParamScope, SpeciesGraph, limits};
 
 use crate::amplify::{DEPTH_PARAM, MAX_DEPTH_LIMIT};
 use crate::diag::SourceFile;
@@ -257,7 +257,12 @@ impl Compiler<'_> {
             match r {
                 Ok(default) => {
                     self.names.params.insert(n.clone(), self.params.len() as u16);
-                    self.params.push(ParamDecl { name: n.clone(), default, scope: ParamScope::Local });
+                    self.params.push(ParamDecl {
+                        name: n.clone(),
+                        default,
+                        scope: ParamScope::Local,
+                        role: ParamRole::Parameter,
+                    });
                 }
                 Err(e) => {
                     self.errors.push(e);
@@ -265,7 +270,12 @@ impl Compiler<'_> {
                 }
             }
         }
-        let hidden = |name: &str, scope| ParamDecl { name: name.to_string(), default: Expr::constant(0.0), scope };
+        let hidden = |name: &str, scope| ParamDecl {
+            name: name.to_string(),
+            default: Expr::constant(0.0),
+            scope,
+            role: ParamRole::Working,
+        };
         self.d = self.params.len() as u16;
         self.params.push(hidden("_d", ParamScope::Local));
         self.w = self.params.len() as u16;
@@ -285,7 +295,12 @@ impl Compiler<'_> {
                 let (col, row) = (k / 3, k % 3);
                 let name = format!("_{}.{}", ["X", "Y", "Z"][col], ["x", "y", "z"][row]);
                 let one = if col == row { 1.0 } else { 0.0 };
-                self.params.push(ParamDecl { name, default: Expr::constant(one), scope: ParamScope::Turtle });
+                self.params.push(ParamDecl {
+                    name,
+                    default: Expr::constant(one),
+                    scope: ParamScope::Turtle,
+                    role: ParamRole::Working,
+                });
             }
             self.frame = Some(slots);
         }
@@ -557,7 +572,12 @@ impl Compiler<'_> {
     }
 
     fn new_slot(&mut self, name: String) -> u16 {
-        self.params.push(ParamDecl { name, default: Expr::constant(0.0), scope: ParamScope::Local });
+        self.params.push(ParamDecl {
+            name,
+            default: Expr::constant(0.0),
+            scope: ParamScope::Local,
+            role: ParamRole::Working,
+        });
         (self.params.len() - 1) as u16
     }
 
@@ -665,6 +685,7 @@ impl Compiler<'_> {
                         name: DEPTH_PARAM.to_string(),
                         default: Expr::constant(v),
                         scope: ParamScope::Local,
+                        role: ParamRole::Working,
                     };
                     self.params.push(decl);
                 }

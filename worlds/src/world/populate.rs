@@ -16,7 +16,6 @@ use super::{
     Bounds, CellKey, MAX_CELL_COORD, MAX_CELLS, MAX_RULES, MAX_SPECIES, MAX_TERRAIN_VERTICES, POSITION_STEPS,
     Placement, World, WorldSpecies,
 };
-use crate::amplify::unknown_param;
 use crate::diag::{Diagnostic, SourceFile};
 use crate::eval::unit_f32;
 use crate::load::parse_source;
@@ -322,12 +321,12 @@ fn resolve_settings(
 ) -> Vec<(u16, f32)> {
     let mut out = Vec::new();
     for s in settings {
-        match graph.param_slot(&s.name) {
-            Some(slot) if out.iter().any(|&(o, _)| o == slot) => {
+        match graph.parameter_slot(&s.name) {
+            Ok(slot) if out.iter().any(|&(o, _)| o == slot) => {
                 diags.push(src.diag(s.span.clone(), format!("parameter `{}` set twice", s.name)));
             }
-            Some(slot) => out.push((slot, s.value)),
-            None => diags.push(src.diag(s.span.clone(), unknown_param(graph, &s.name))),
+            Ok(slot) => out.push((slot, s.value)),
+            Err(why) => diags.push(src.diag(s.span.clone(), why)),
         }
     }
     out.sort_by_key(|&(s, _)| s);
@@ -456,11 +455,14 @@ pub(crate) fn build(
                     let msg = format!("`{}` is set by the world for every tile (tile, depth, corners)", s.name);
                     diags.push(src.diag(s.span.clone(), msg));
                     ok = false;
-                } else if let Some(slot) = graph.param_slot(&s.name) {
-                    params.push((slot, s.value));
                 } else {
-                    diags.push(src.diag(s.span.clone(), unknown_param(graph, &s.name)));
-                    ok = false;
+                    match graph.parameter_slot(&s.name) {
+                        Ok(slot) => params.push((slot, s.value)),
+                        Err(why) => {
+                            diags.push(src.diag(s.span.clone(), why));
+                            ok = false;
+                        }
+                    }
                 }
             }
         }
@@ -578,10 +580,10 @@ pub(crate) fn build(
                 let mut params = Vec::new();
                 if let Some(g) = graph {
                     for p in &r.params {
-                        match g.param_slot(&p.name) {
-                            Some(slot) => params.push((slot, p.value)),
-                            None => {
-                                diags.push(src.diag(p.span.clone(), unknown_param(g, &p.name)));
+                        match g.parameter_slot(&p.name) {
+                            Ok(slot) => params.push((slot, p.value)),
+                            Err(why) => {
+                                diags.push(src.diag(p.span.clone(), why));
                                 ok = false;
                             }
                         }
