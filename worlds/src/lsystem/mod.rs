@@ -105,9 +105,11 @@ use crate::diag::{Diagnostic, SourceFile};
 use crate::primitive::PrimitiveStream;
 
 mod compile;
+mod lpy;
 mod parse;
 mod reference;
 
+pub use lpy::{LPY_DEFAULT_ANGLE, LPY_MATERIALS, LPY_START_COLOR};
 pub use reference::{ModuleOcc, RewriteError, interpret, reference_stream, rewrite};
 
 /// Most user symbols (non-terminals and modules) in one L-system.
@@ -357,6 +359,9 @@ pub struct LSystem {
     pub color_slot: u16,
     /// Slot of `_x`, set by `%` until the branch ends (only if the L-system uses `%`).
     pub cut_slot: Option<u16>,
+    /// Whether `;`, `,` and `'` take L-Py's materials ([`LPY_MATERIALS`], there is no `palette`): then the turtle
+    /// starts at material [`LPY_START_COLOR`], as L-Py's does.
+    pub lpy_colors: bool,
     /// The nesting of separators and calls the traversal allows this species: the `maxdepth` directive (stored in
     /// the graph as the parameter [`crate::amplify::DEPTH_PARAM`], see [`crate::amplify`]) or the default budget's.
     pub max_depth: u32,

@@ -155,7 +155,20 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
     if pred.len() > MAX_IDENT_LEN {
         return Err(ParseError::new(pred_span, format!("name of {} bytes (at most {MAX_IDENT_LEN})", pred.len())));
     }
-    let formals = if cur.peek() == Some('(') { formal_list(cur)? } else { Vec::new() };
+    let formals = if cur.peek() == Some('(') {
+        let open = cur.pos;
+        cur.pos += 1;
+        if cur.peek().is_some_and(|c| c.is_ascii_digit() || c == '.') {
+            return Err(cur.unexpected(
+                "a parameter name (a probability goes on the arrow, `A --> (0.3) B`, or after the successor, \
+                 `A --> B : 0.3`)",
+            ));
+        }
+        cur.pos = open;
+        formal_list(cur)?
+    } else {
+        Vec::new()
+    };
     if let Some(c @ ('<' | '>')) = cur.peek() {
         let at = cur.pos..cur.pos + 1;
         let side = if c == '<' { "left" } else { "right" };
@@ -168,7 +181,8 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
             ),
         ));
     }
-    let cond = if cur.eat(":") { Some(parse_expr(cur)?) } else { None };
+    // `: *` is the condition "always" (ABOP's and cpfg's `*`): the same as none.
+    let cond = if cur.eat(":") && !cur.eat("*") { Some(parse_expr(cur)?) } else { None };
     cur.skip_trivia();
     let arrow = cur.pos..cur.pos + 2;
     // `-->` is L-Py's spelling of `->`.
@@ -182,17 +196,30 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
     if terminal && cond.is_some() {
         return Err(ParseError::new(arrow, "a terminal production (`=>`) takes no condition"));
     }
+    // `(p)` on the arrow: the probability where ABOP writes it (a successor cannot start with `(`).
+    let mut weight = None;
+    if cur.peek() == Some('(') {
+        let open = cur.pos;
+        cur.pos += 1;
+        let p = parse_expr(cur)?;
+        cur.expect(")")?;
+        if terminal {
+            return Err(ParseError::new(open..cur.pos, "a terminal production (`=>`) takes no probability"));
+        }
+        weight = Some(p);
+    }
     let succ = successors(cur)?;
     cur.skip_trivia();
     let colon = cur.pos..cur.pos + 1;
-    let weight = if cur.eat(":") {
+    if cur.eat(":") {
         if terminal {
             return Err(ParseError::new(colon, "a terminal production (`=>`) takes no probability"));
         }
-        Some(parse_expr(cur)?)
-    } else {
-        None
-    };
+        if weight.is_some() {
+            return Err(ParseError::new(colon, "the probability is given twice: on the arrow and after the successor"));
+        }
+        weight = Some(parse_expr(cur)?);
+    }
     Ok(Item::Production(Production { pred: pred.to_string(), pred_span, formals, cond, terminal, succ, weight }))
 }
 
