@@ -1,5 +1,6 @@
 //! L-Py's forms in `.lsys` files (`endlsystem`, `ignore:`, `: *`, `(p)` probabilities, the default angle and
-//! materials, Python refused), each against the string-rewriting reference.
+//! materials, Python refused), each against the string-rewriting reference; and error recovery: one typo in a
+//! library file gives exactly one diagnostic, on the typo's line.
 
 use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::{Diagnostic, SourceFile};
@@ -219,4 +220,214 @@ fn lsystem_python_is_refused_once() {
     one_error("derive 2\naxiom: I\nI : produce F(2)\n", 3, &["Python body"]);
     // Our own lines are not taken for Python.
     lsys("#define R 1.5\nparam S = 2\nderive 1\naxiom: A(R)\nA(x) : x == S -> F\nA(x) => F(x)\n");
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Error recovery: one typo, one diagnostic, on its line.
+
+/// The library's `.lsys` files and the format doc's example.
+fn library() -> Vec<(String, String)> {
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/species");
+    let mut out: Vec<(String, String)> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "lsys"))
+        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read_to_string(&p).unwrap()))
+        .collect();
+    out.sort();
+    assert!(out.len() >= 2);
+    let src = include_str!("../src/lsystem/mod.rs");
+    let start = src.find("//! ```text\n").unwrap() + "//! ```text\n".len();
+    let end = start + src[start..].find("//! ```\n").unwrap();
+    let doc: String =
+        src[start..end].lines().map(|l| format!("{}\n", l.trim_start_matches("//!").trim_start())).collect();
+    out.push(("format doc example".to_string(), doc));
+    out
+}
+
+/// Where a line's code ends: before its `#` comment (`#define` is code).
+fn code_end(line: &str) -> usize {
+    let skip = if line.trim_start().starts_with("#define") { line.find("#define").unwrap() + 1 } else { 0 };
+    line[skip..].find('#').map_or(line.trim_end().len(), |i| line[..skip + i].trim_end().len())
+}
+
+/// The identifiers of a line's code, with their byte offsets.
+fn words(code: &str) -> Vec<(usize, &str)> {
+    let mut out = Vec::new();
+    let mut i = 0;
+    let b = code.as_bytes();
+    while i < b.len() {
+        let c = b[i] as char;
+        if c.is_ascii_alphabetic() || c == '_' {
+            let start = i;
+            while i < b.len() && ((b[i] as char).is_ascii_alphanumeric() || b[i] == b'_') {
+                i += 1;
+            }
+            out.push((start, &code[start..i]));
+        } else if c.is_ascii_digit() || c == '.' {
+            // Numbers, with exponents (`2e-3`), are not names.
+            while i < b.len() && ((b[i] as char).is_ascii_alphanumeric() || b[i] == b'.') {
+                i += 1;
+            }
+        } else {
+            i += 1;
+        }
+    }
+    out
+}
+
+/// The names a file declares: parameters (`param`, `#define`, `angle`), modules, and rewritten symbols.
+fn declared(text: &str) -> Vec<String> {
+    let mut out = vec!["angle".to_string()];
+    for line in text.lines() {
+        let code = &line[..code_end(line)];
+        let w = words(code);
+        match w.first().map(|w| w.1) {
+            Some("param" | "module" | "define") => out.extend(w.get(1).map(|w| w.1.to_string())),
+            Some(first) if code.contains("->") || code.contains("=>") => out.push(first.to_string()),
+            _ => {}
+        }
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+/// The words that start directives and section headers (a misspelt `#define` is a comment, as in cpfg).
+const KEYWORDS: [&str; 13] = [
+    "lsystem",
+    "derive",
+    "angle",
+    "width",
+    "param",
+    "palette",
+    "module",
+    "axiom",
+    "maxdepth",
+    "derivation",
+    "production",
+    "interpretation",
+    "homomorphism",
+];
+
+/// The first two adjacent different letters of `name` swapped.
+fn swapped(name: &str) -> Option<String> {
+    let c: Vec<char> = name.chars().collect();
+    let i = (0..c.len().saturating_sub(1))
+        .find(|&i| c[i] != c[i + 1] && c[i].is_alphabetic() && c[i + 1].is_alphabetic())?;
+    let mut s = c.clone();
+    s.swap(i, i + 1);
+    Some(s.into_iter().collect())
+}
+
+/// Every single-typo variant of `text`: (1-based line, 1-based column of the wrong token, what was done, the
+/// changed text).
+fn typos(text: &str) -> Vec<(usize, usize, String, String)> {
+    let names = declared(text);
+    let lines: Vec<&str> = text.split('\n').collect();
+    let mut out = Vec::new();
+    let offset = |n: usize| lines[..n].iter().map(|l| l.len() + 1).sum::<usize>();
+    for (n, line) in lines.iter().enumerate() {
+        let code = &line[..code_end(line)];
+        let w = words(code);
+        // The declaration itself is not a reference: the name after `param`/`module`/`#define`, a production's
+        // predecessor and its formals (up to the arrow's `:` or `-`).
+        let head_end = if code.contains("->") || code.contains("=>") {
+            code.find([':', '-', '=']).unwrap_or(0)
+        } else if matches!(w.first().map(|w| w.1), Some("param" | "module" | "define")) {
+            w.get(1).map_or(0, |w| w.0 + w.1.len())
+        } else if w.first().map(|w| w.1) == Some("angle") {
+            w[0].0 + "angle".len()
+        } else {
+            0
+        };
+        let module_formals = if w.first().map(|w| w.1) == Some("module") { code.find('=').unwrap_or(0) } else { 0 };
+        for &(at, word) in &w {
+            if at < head_end.max(module_formals) || !names.iter().any(|d| d == word) {
+                continue;
+            }
+            let Some(typo) = swapped(word) else { continue };
+            if names.contains(&typo) {
+                continue;
+            }
+            let pos = offset(n) + at;
+            let changed = format!("{}{typo}{}", &text[..pos], &text[pos + word.len()..]);
+            out.push((n + 1, at + 1, format!("`{word}` → `{typo}`"), changed));
+        }
+        // A misspelt directive or section header.
+        if let Some(&(at, word)) = w.first().filter(|w| KEYWORDS.contains(&w.1) && !code.contains("->"))
+            && let Some(typo) = swapped(word)
+        {
+            let pos = offset(n) + at;
+            let changed = format!("{}{typo}{}", &text[..pos], &text[pos + word.len()..]);
+            out.push((n + 1, at + 1, format!("keyword `{word}` → `{typo}`"), changed));
+        }
+        // A trailing `+` (where it is an error: not in a successor).
+        if !code.trim().is_empty() {
+            let pos = offset(n) + code.len();
+            let changed = format!("{} +{}", &text[..pos], &text[pos..]);
+            out.push((n + 1, code.len() + 2, "a trailing `+`".to_string(), changed));
+        }
+    }
+    out
+}
+
+#[test]
+fn lsystem_one_typo_gives_one_diagnostic_on_its_line() {
+    let mut failures = Vec::new();
+    let (mut misspelt, mut keywords, mut plus_errors) = (0, 0, 0);
+    for (name, text) in library() {
+        let (l, d) = LSystem::parse(&SourceFile::new(&name, text.as_str()));
+        assert!(l.is_some() && d.is_empty(), "{name}: {}", render(&d));
+        for (line, col, what, changed) in typos(&text) {
+            let (_, d) = LSystem::parse(&SourceFile::new(&name, changed));
+            if what.contains("trailing") {
+                if d.is_empty() {
+                    continue; // a turn at the end of a successor
+                }
+                plus_errors += 1;
+            } else if what.starts_with("keyword") {
+                keywords += 1;
+            } else {
+                misspelt += 1;
+            }
+            // At the wrong token; for a trailing `+`, at it or at the end of the line after it.
+            let at_token =
+                d.first().is_some_and(|d| if what.contains("trailing") { d.col >= col } else { d.col == col });
+            if d.len() != 1 || d[0].line != line || !at_token {
+                failures.push(format!("{name}:{line}:{col}: {what}: {} diagnostic(s)\n{}", d.len(), render(&d)));
+            }
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} typo(s) not reported once on their line:\n{}",
+        failures.len(),
+        failures.join("\n\n")
+    );
+    let counts =
+        format!("{misspelt} misspelt names, {keywords} misspelt keywords, {plus_errors} erroneous trailing `+`");
+    println!("{counts}");
+    assert!(misspelt >= 15 && keywords >= 20 && plus_errors >= 25, "{counts}");
+}
+
+#[test]
+fn lsystem_misspelt_directives_are_named_and_recovered() {
+    // The word is wrong, not what follows it; what the directive declares still counts.
+    let d = one_error("edrive 3\naxiom: A\nA -> F A\n", 1, &["unknown directive `edrive`: did you mean `derive`?"]);
+    assert_eq!((d.col, d.width), (1, 6));
+    one_error("derive 1\nparma len = 2\naxiom: F(len)\n", 2, &["did you mean `param`?"]);
+    one_error("derive 1\nModule L = sphere(1)\naxiom: L F\n", 2, &["did you mean `module`?"]);
+    one_error("derive 1\naxoim: F\n", 2, &["did you mean `axiom`?"]);
+    // A misspelt section header still switches the section: `B` keeps its interpretation rule.
+    let head = "derive 2\naxiom: A B\nA -> F A\n";
+    one_error(&format!("{head}intrepretation:\nB -> F(0.5)\n"), 4, &["did you mean `interpretation:`?"]);
+    one_error(&format!("{head}interpretation: +\nB -> F(0.5)\n"), 4, &["expected end of line, found `+`"]);
+    let l = lsys(&format!("{head}interpretation:\nB -> F(0.5)\n"));
+    assert!(l.symbols[l.symbol("B").unwrap() as usize].interpretation.is_some());
+    // A misspelt `endlsystem` still ends the rules: the Python after it is not reported.
+    let end = "derive 2\naxiom: A\nA -> F A\nendlsytem\n__lpy_code_version__ = 1.1\ndef f():\n  pass\n";
+    one_error(end, 4, &["did you mean `endlsystem`?"]);
+    // Productions whose predecessor looks like a directive are productions.
+    lsys("derive 2\naxiom: Angle(1) Width\nAngle(x) -> F(x) Angle(x)\nWidth -> f\n");
 }

@@ -150,7 +150,10 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
         let end = text[pos..].find('\n').map_or(text.len(), |i| pos + i);
         // L-Py's lines that are not rules: the end of the rules, context filters and Python.
         match lpy::classify(text, pos) {
-            Some(LpyLine::End) => break,
+            Some(LpyLine::End(error)) => {
+                errors.extend(error);
+                break;
+            }
             Some(LpyLine::ContextFilter { end }) => {
                 pos = end + 1;
                 continue;
@@ -181,7 +184,10 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             }
             // The rules of an unsupported section: their symbols count as declared, so no follow-up errors.
             Ok(Some(Item::Production(p))) if section == Section::Decomposition => ghosts.push(Ghost::Symbol(p.pred)),
-            Err(_) if section == Section::Decomposition => ghosts.extend(ghost(text, pos)),
+            Err(_) if section == Section::Decomposition => match ghost(text, pos) {
+                Some(Ghost::Section(kind)) => section = kind,
+                g => ghosts.extend(g),
+            },
             Ok(Some(Item::Production(p))) if section == Section::Interpretation => {
                 items.push(Item::Interpretation(p));
             }
@@ -189,7 +195,10 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             Ok(None) => {}
             Err(e) => {
                 errors.push(e);
-                ghosts.extend(ghost(text, pos));
+                match ghost(text, pos) {
+                    Some(Ghost::Section(kind)) => section = kind,
+                    g => ghosts.extend(g),
+                }
             }
         }
         pos = end + 1;
@@ -228,6 +237,7 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             Ghost::Directive(d) => {
                 broken_directives.insert(d);
             }
+            Ghost::Section(_) => {}
         }
     }
     c.palette_broken = broken_directives.contains("palette");

@@ -6,7 +6,7 @@ use std::ops::Range;
 
 use crate::text::{ParseError, is_ident_continue, is_ident_start};
 
-use super::parse::KEYWORDS;
+use super::parse::{KEYWORDS, misspelt_directive};
 
 /// The turning angle of `+ - & ^ \ /` without an argument when the file sets no `angle`: L-Py's turtle's
 /// `angle_increment` (PlantGL), in degrees.
@@ -31,8 +31,8 @@ pub const LPY_START_COLOR: usize = 1;
 /// What an L-Py line that is not an L-system rule is.
 pub(super) enum LpyLine {
     /// `endlsystem`: the rules end; the rest of the file is L-Py's Python (usually the editor's
-    /// `__initialiseContext__`) and is not read.
-    End,
+    /// `__initialiseContext__`) and is not read. Misspelt, it still ends the rules, with an error.
+    End(Option<ParseError>),
     /// `ignore: …` or `consider: …`: they only change which modules context matching skips, and a DCG matches no
     /// context (context-sensitive productions are refused), so they have no effect. Ends at `end`.
     ContextFilter { end: usize },
@@ -129,13 +129,17 @@ pub(super) fn classify(text: &str, pos: usize) -> Option<LpyLine> {
         return Some(python(text, pos, span, python_message(statement), None));
     }
     let (word, after) = first_word(line)?;
-    if word == "endlsystem" && after.trim().is_empty() {
-        return Some(LpyLine::End);
+    if after.trim().is_empty() && (word == "endlsystem" || misspelt_directive(word) == Some("endlsystem")) {
+        let error = (word != "endlsystem").then(|| {
+            let at = pos + indent(line);
+            ParseError::new(at..at + word.len(), format!("unknown directive `{word}`: did you mean `endlsystem`?"))
+        });
+        return Some(LpyLine::End(error));
     }
     if (word == "ignore" || word == "consider") && after.trim_start().starts_with(':') {
         return Some(LpyLine::ContextFilter { end });
     }
-    if KEYWORDS.contains(&word) || OWN_WORDS.contains(&word) {
+    if KEYWORDS.contains(&word) || OWN_WORDS.contains(&word) || misspelt_directive(word).is_some() {
         return None;
     }
     let arrow = line.contains("->") || line.contains("=>");
@@ -318,7 +322,8 @@ mod tests {
         {
             assert!(!matches!(classify(not_python, 0), Some(LpyLine::Python { .. })), "{not_python}");
         }
-        assert!(matches!(classify("endlsystem  # done", 0), Some(LpyLine::End)));
+        assert!(matches!(classify("endlsystem  # done", 0), Some(LpyLine::End(None))));
+        assert!(matches!(classify("endlsytem", 0), Some(LpyLine::End(Some(_)))));
         assert!(matches!(classify("ignore: +-/", 0), Some(LpyLine::ContextFilter { end: 11 })));
         assert!(matches!(classify("a, b = 1, 2", 0), Some(LpyLine::Python { declares: None, .. })));
         assert!(matches!(classify("x += 1", 0), Some(LpyLine::Python { declares: Some(Declared::Value(_)), .. })));
