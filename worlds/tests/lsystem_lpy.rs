@@ -432,3 +432,17 @@ fn lsystem_misspelt_directives_are_named_and_recovered() {
     // Productions whose predecessor looks like a directive are productions.
     lsys("derive 2\naxiom: Angle(1) Width\nAngle(x) -> F(x) Angle(x)\nWidth -> f\n");
 }
+
+#[test]
+fn lsystem_mangled_lpy_never_panics() {
+    // The L-Py forms with one character removed, and cut short at every character: diagnostics or an L-system.
+    let python = "R = [1,\n  2]\ndef f(x):\n  return x\nA(x) :\n\tproduce F\nAxiom: A(1)\nA(x) --> (0.5) F : *\n";
+    let typos = "edrive 2\nintrepretation: +\nendlsytem\n";
+    for text in [LPY_FILE, python, typos] {
+        for (i, c) in text.char_indices() {
+            let removed = format!("{}{}", &text[..i], &text[i + c.len_utf8()..]);
+            let _ = parse(&removed);
+            let _ = parse(&text[..i]);
+        }
+    }
+}
