@@ -407,8 +407,8 @@ fn lsystem_other_mistakes_are_diagnosed() {
     };
     one("axiom: F\n", "missing `derive");
     one("derive 1\n", "missing `axiom");
-    one("derive 1\naxiom: +\n", "needs an `angle` directive");
-    one("derive 1\naxiom: '\n", "needs a `palette`");
+    // (`+` without an `angle` and `;` without a `palette` take L-Py's defaults: see tests/lsystem_lpy.rs.)
+    one("derive 1\naxiom: ;(1, 2)\n", "`;` takes 0 or 1 argument(s), got 2");
     one("derive 1\naxiom: A\nA(x) -> F\n", "`A` takes 1 argument(s), got 0");
     one("derive 1\naxiom: A(1)\nA(x) -> F\nA(x, y) -> F\n", "parameter(s) in its first production (line 3)");
     one("derive 1\naxiom: A\nA -> F\nA => F\nA => f\n", "second terminal production");

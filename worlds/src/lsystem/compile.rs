@@ -15,6 +15,7 @@ use crate::text::{Cursor, ParseError};
 mod productions;
 mod turtle;
 
+use super::lpy::{self, Declared, LPY_DEFAULT_ANGLE, LPY_MATERIALS, LPY_START_COLOR, LpyLine};
 use super::parse::{Ghost, Item, KEYWORDS, Production, RESERVED, RawSucc, Section, at_line_end, ghost, parse_line};
 use super::{
     DEFAULT_WIDTH, LSystem, MAX_CHOOSE, MAX_PRODUCTIONS, MAX_SOURCE_LEN, MAX_SPECIES_PARAMS, MAX_SYMBOLS, Successor,
@@ -106,6 +107,8 @@ struct Compiler<'s> {
     ghost_symbols: HashSet<String>,
     palette: Option<Vec<[Ast; 3]>>,
     palette_broken: bool,
+    /// Whether `;`, `,` or `'` use L-Py's materials (there is no `palette`).
+    lpy_colors: bool,
     d: u16,
     w: u16,
     c: u16,
@@ -145,6 +148,27 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
     let mut section = Section::Productions;
     while pos < text.len() {
         let end = text[pos..].find('\n').map_or(text.len(), |i| pos + i);
+        // L-Py's lines that are not rules: the end of the rules, context filters and Python.
+        match lpy::classify(text, pos) {
+            Some(LpyLine::End(error)) => {
+                errors.extend(error);
+                break;
+            }
+            Some(LpyLine::ContextFilter { end }) => {
+                pos = end + 1;
+                continue;
+            }
+            Some(LpyLine::Python { error, end, declares }) => {
+                errors.push(error);
+                ghosts.extend(declares.map(|d| match d {
+                    Declared::Value(name) => Ghost::Param(name),
+                    Declared::Module(name) => Ghost::Symbol(name),
+                }));
+                pos = end + 1;
+                continue;
+            }
+            None => {}
+        }
         let mut cur = Cursor { src: text, pos, newlines_are_space: false };
         match parse_line(&mut cur) {
             Ok(Some(Item::Section(kind, span))) => {
@@ -160,7 +184,10 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             }
             // The rules of an unsupported section: their symbols count as declared, so no follow-up errors.
             Ok(Some(Item::Production(p))) if section == Section::Decomposition => ghosts.push(Ghost::Symbol(p.pred)),
-            Err(_) if section == Section::Decomposition => ghosts.extend(ghost(text, pos)),
+            Err(_) if section == Section::Decomposition => match ghost(text, pos) {
+                Some(Ghost::Section(kind)) => section = kind,
+                g => ghosts.extend(g),
+            },
             Ok(Some(Item::Production(p))) if section == Section::Interpretation => {
                 items.push(Item::Interpretation(p));
             }
@@ -168,7 +195,10 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             Ok(None) => {}
             Err(e) => {
                 errors.push(e);
-                ghosts.extend(ghost(text, pos));
+                match ghost(text, pos) {
+                    Some(Ghost::Section(kind)) => section = kind,
+                    g => ghosts.extend(g),
+                }
             }
         }
         pos = end + 1;
@@ -185,6 +215,7 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
         ghost_symbols: HashSet::new(),
         palette: None,
         palette_broken: false,
+        lpy_colors: false,
         d: 0,
         w: 0,
         c: 0,
@@ -206,6 +237,7 @@ pub(super) fn parse_inner(src: &SourceFile, errors: &mut Vec<ParseError>) -> Opt
             Ghost::Directive(d) => {
                 broken_directives.insert(d);
             }
+            Ghost::Section(_) => {}
         }
     }
     c.palette_broken = broken_directives.contains("palette");
@@ -505,8 +537,15 @@ impl Compiler<'_> {
         }
         let (derive, axiom) = (derive?, axiom?);
         let width = width.unwrap_or(Expr::constant(DEFAULT_WIDTH));
-        let init = self.b.calc(vec![(self.d, derive.clone()), (self.w, width.clone()), (self.c, Expr::constant(0.0))]);
+        // L-Py's turtle starts at its material 1 when its materials are in use.
+        let color = if self.lpy_colors { LPY_START_COLOR as f32 } else { 0.0 };
+        let init =
+            self.b.calc(vec![(self.d, derive.clone()), (self.w, width.clone()), (self.c, Expr::constant(color))]);
         let mut children = vec![init];
+        if self.lpy_colors {
+            let m = LPY_MATERIALS[LPY_START_COLOR].map(Expr::constant);
+            children.push(self.b.push(Node::Material(m)));
+        }
         children.extend(self.emit(&axiom));
         let root = self.b.container(Node::Group, children);
 
@@ -525,6 +564,7 @@ impl Compiler<'_> {
             width_slot: self.w,
             color_slot: self.c,
             cut_slot: self.cut,
+            lpy_colors: self.lpy_colors,
             max_depth: self.max_depth,
         })
     }
@@ -806,20 +846,13 @@ impl Compiler<'_> {
             } else if let SymbolKind::Turtle(t) = sym.kind
                 && t.formals().len() == 1
             {
-                // The default argument: a length of 1, or the `angle` parameter.
+                // The default argument: a length of 1, or the `angle` parameter, or L-Py's default angle.
                 if matches!(t, Turtle::Forward | Turtle::Move) {
                     args.push(Expr::constant(1.0));
                 } else {
                     let angle = self.names.params.get("angle").copied();
                     let angle = angle.or_else(|| self.names.ghost_params.contains("angle").then_some(0));
-                    match angle {
-                        Some(slot) => args.push(Expr::param(slot)),
-                        None => {
-                            let msg = format!("`{}` without an argument needs an `angle` directive", r.name);
-                            self.err(r.span.clone(), msg);
-                            ok = false;
-                        }
-                    }
+                    args.push(angle.map_or(Expr::constant(LPY_DEFAULT_ANGLE), Expr::param));
                 }
             }
             if ok {

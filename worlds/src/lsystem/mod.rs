@@ -19,17 +19,41 @@
 //! A(x) : x > 0.5 -> F(x) [ +(angle) A(x*0.7) ] [ -(angle) A(x*0.7) ]    # condition after `:`
 //! A(x) -> F(x) L(1)
 //! B -> F B : 0.3               # stochastic: weight after the successor
-//! B -> f B : 0.7
+//! B --> (0.7) f B              # or on the arrow, as ABOP writes it
 //! A(x) => L(x)                 # terminal production, used once the depth is reached
 //! interpretation:              # (or `homomorphism:`) rules applied only when the final string is drawn
 //! B --> F(0.1) $ ;             # `-->` is L-Py's `->`
 //! production:                  # back to productions
+//! ignore: + -                  # L-Py's; no effect here (no context is matched)
+//! endlsystem                   # L-Py's end of the rules: nothing after it is read
 //! ```
 //!
 //! * L-Py's spellings `Axiom:`, `derivation length: N`, `-->` and the section headers `production:`,
 //!   `interpretation:`, `homomorphism:` are accepted. What a DCG cannot express is an error that says why:
 //!   context-sensitive productions (`A < B > C -> …`: the traversal sees no neighbours, seed 001 §3.2 compiles
 //!   context-free L-systems) and `decomposition:` sections (rules applied again and again within one step).
+//! * **L-Py files.** `endlsystem` ends the rules: what follows is L-Py's Python (the editor's
+//!   `__initialiseContext__` with its materials and options) and is not read. `ignore: …` and `consider: …` are
+//!   accepted and have no effect: they only choose which modules L-Py's context matching skips, and no context is
+//!   matched here (the diagnostics have no warning level to say so at the line). `A(x) : * -> …` (cpfg's and
+//!   ABOP's `*`, "always") is a production without a condition. Python is not run: an assignment such as
+//!   `R = 1.456`, `import`, `from`, `def`, `class`, `if`, `extern(…)` and the like (with their indented bodies and
+//!   bracketed continuation lines), and a production with a Python body (`A(x) :` followed by `produce …` or
+//!   indented lines) are each one error that says so and points to `#define R 1.456` / `param R = 1.456` (or to
+//!   productions with conditions and probabilities); the name they would define is not reported again where it
+//!   is used. L-Py writes a random choice in Python (`if random() < p: produce …`); here it is several
+//!   productions of one module with probabilities.
+//! * **L-Py's defaults.** Without `angle` (or `param angle`), `+ - & ^ \ /` without an argument turn by
+//!   [`LPY_DEFAULT_ANGLE`] (60°, the `angle_increment` of L-Py's turtle), a constant rather than a parameter.
+//!   Without a `palette`, `;`, `,`, `'` and `;(i)`/`,(i)` use L-Py's materials [`LPY_MATERIALS`] (PlantGL's
+//!   `Color_0` … `Color_6`: grey, brown, green, red, yellow, blue, purple, as diffuse colours ambient × diffuse)
+//!   as L-Py's turtle does: it starts at material [`LPY_START_COLOR`] (brown, set at the root), `;` and `'` go up
+//!   to 6 at most, `,` down to 0 at least, `;(i)` sets `i` if it is from 0 to 6 and is ignored otherwise. A file
+//!   that uses none of them keeps the species' default colour.
+//! * **Diagnostics.** One per mistake, at the token that is wrong (`file:line:col`): a line that fails still
+//!   declares what it names (a `param`, `#define` or `module`, a rewritten symbol, `derive`, `axiom`, a section),
+//!   so its uses are not reported again; a misspelt directive or section header (one edit from one) is named as
+//!   such ("unknown directive `edrive`: did you mean `derive`?") and declares what the directive would have.
 //! * **Non-terminals** are the symbols with productions (`->` or `=>`); **terminals** are the turtle symbols,
 //!   `module`-defined symbols and symbols with only an interpretation rule. A symbol that is used but neither
 //!   defined nor produced is an error, and so is a non-terminal in a terminal production (`=>`). A non-terminal
@@ -39,23 +63,24 @@
 //!   symbol with an interpretation rule of its own) and draws no random numbers; no condition, weight or `=>`.
 //!   A symbol with only an interpretation rule is a terminal; a non-terminal with one (and no `=>`) keeps the
 //!   occurrences left when the depth is reached, and they are drawn by the rule.
-//! * Successor modules are names (`A`, `Apex(x, 2)`, separated by spaces or punctuation) or the turtle symbols
-//!   (heading = local +Y, the primitives' axis): `F(l)` cylinder of radius = width and height `l`, then move `l`
-//!   (default 1); `f(l)` move; `+(a)`/`-(a)` rotate ±a about Z; `&(a)`/`^(a)` ±a about X; `\(a)`/`/(a)` ±a about
-//!   Y (default `angle`); `|` turn 180° about Z; `[` `]` push/pop the turtle; `!(w)` set the width, `!` multiply
+//! * Successor modules are names (`A`, `Apex(x, 2)`, separated by spaces or punctuation) or the turtle symbols (heading
+//!   = local +Y, the primitives' axis): `F(l)` cylinder of radius = width and height `l`, then move `l` (default 1);
+//!   `f(l)` move; `+(a)`/`-(a)` rotate ±a about Z; `&(a)`/`^(a)` ±a about X; `\(a)`/`/(a)` ±a about Y (default `angle`,
+//!   or L-Py's 60° without one); `|` turn 180° about Z; `[` `]` push/pop the turtle; `!(w)` set the width, `!` multiply
 //!   it by 0.7; `'(r,g,b)` set the colour, `'` advance the colour index (starting at 0) and take that palette entry
-//!   (1-based, clamped to the last); `;` is the same as `'`, `,` lowers the index (not below 1) and takes that
-//!   entry, `;(i)` and `,(i)` set it to `i`. Width and colour index are turtle state: `]` restores them. `$` rolls
-//!   the turtle about its heading so that its left vector (-X) is horizontal (ABOP §1.6; up = the species' +Y;
-//!   no roll while the heading is vertical). `%` cuts the branch: what follows it up to the `]` that closes its
-//!   branch (or the end of the string) is removed (the cut of cpfg and L-Py).
+//!   (1-based, clamped to the last); `;` is the same as `'`, `,` lowers the index (not below 1) and takes that entry,
+//!   `;(i)` and `,(i)` set it to `i` (without a `palette`: L-Py's materials, see below). Width and colour index are
+//!   turtle state: `]` restores them. `$` rolls the turtle about its heading so that its left vector (-X) is horizontal
+//!   (ABOP §1.6; up = the species' +Y; no roll while the heading is vertical). `%` cuts the branch: what follows it up
+//!   to the `]` that closes its branch (or the end of the string) is removed (the cut of cpfg and L-Py).
 //! * A `module` body is a list of the node calls of [`crate::nodes`] (`material`, `translate`, `cone`, `leaf`, …)
 //!   whose expressions read the module's formals and the species params. It is drawn in the turtle's frame and
 //!   leaves the turtle unchanged (it is a separator). Module bodies may not draw random numbers: randomness
 //!   belongs in the arguments, where it is drawn in the derivation's RNG context.
 //! * Productions of one symbol are tried in order: the first whose condition holds applies, or — if any of them
-//!   carries a weight — one is chosen among those whose condition holds with probability proportional to its
-//!   weight (default 1). If none applies the module is left unchanged.
+//!   carries a weight (`A -> succ : w`, or on the arrow, `A -> (w) succ`) — one is chosen among those whose
+//!   condition holds with probability proportional to its weight (default 1). If none applies the module is left
+//!   unchanged.
 //! * Expressions are those of [`crate::expr`]: the predecessor's formals, the species params, `detail`.
 //! * Limits: [`MAX_SYMBOLS`] symbols, [`MAX_PRODUCTIONS`] productions and interpretation rules, [`MAX_FORMALS`]
 //!   formals per module, [`MAX_SUCCESSOR_LEN`] modules per successor, [`MAX_BRACKET_NESTING`] nested brackets,
@@ -105,9 +130,11 @@ use crate::diag::{Diagnostic, SourceFile};
 use crate::primitive::PrimitiveStream;
 
 mod compile;
+mod lpy;
 mod parse;
 mod reference;
 
+pub use lpy::{LPY_DEFAULT_ANGLE, LPY_MATERIALS, LPY_START_COLOR};
 pub use reference::{ModuleOcc, RewriteError, interpret, reference_stream, rewrite};
 
 /// Most user symbols (non-terminals and modules) in one L-system.
@@ -357,6 +384,9 @@ pub struct LSystem {
     pub color_slot: u16,
     /// Slot of `_x`, set by `%` until the branch ends (only if the L-system uses `%`).
     pub cut_slot: Option<u16>,
+    /// Whether `;`, `,` and `'` take L-Py's materials ([`LPY_MATERIALS`], there is no `palette`): then the turtle
+    /// starts at material [`LPY_START_COLOR`], as L-Py's does.
+    pub lpy_colors: bool,
     /// The nesting of separators and calls the traversal allows this species: the `maxdepth` directive (stored in
     /// the graph as the parameter [`crate::amplify::DEPTH_PARAM`], see [`crate::amplify`]) or the default budget's.
     pub max_depth: u32,

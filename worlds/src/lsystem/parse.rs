@@ -155,7 +155,20 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
     if pred.len() > MAX_IDENT_LEN {
         return Err(ParseError::new(pred_span, format!("name of {} bytes (at most {MAX_IDENT_LEN})", pred.len())));
     }
-    let formals = if cur.peek() == Some('(') { formal_list(cur)? } else { Vec::new() };
+    let formals = if cur.peek() == Some('(') {
+        let open = cur.pos;
+        cur.pos += 1;
+        if cur.peek().is_some_and(|c| c.is_ascii_digit() || c == '.') {
+            return Err(cur.unexpected(
+                "a parameter name (a probability goes on the arrow, `A --> (0.3) B`, or after the successor, \
+                 `A --> B : 0.3`)",
+            ));
+        }
+        cur.pos = open;
+        formal_list(cur)?
+    } else {
+        Vec::new()
+    };
     if let Some(c @ ('<' | '>')) = cur.peek() {
         let at = cur.pos..cur.pos + 1;
         let side = if c == '<' { "left" } else { "right" };
@@ -168,7 +181,8 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
             ),
         ));
     }
-    let cond = if cur.eat(":") { Some(parse_expr(cur)?) } else { None };
+    // `: *` is the condition "always" (ABOP's and cpfg's `*`): the same as none.
+    let cond = if cur.eat(":") && !cur.eat("*") { Some(parse_expr(cur)?) } else { None };
     cur.skip_trivia();
     let arrow = cur.pos..cur.pos + 2;
     // `-->` is L-Py's spelling of `->`.
@@ -182,17 +196,30 @@ fn production(pred: &str, pred_span: Range<usize>, cur: &mut Cursor<'_>) -> Resu
     if terminal && cond.is_some() {
         return Err(ParseError::new(arrow, "a terminal production (`=>`) takes no condition"));
     }
+    // `(p)` on the arrow: the probability where ABOP writes it (a successor cannot start with `(`).
+    let mut weight = None;
+    if cur.peek() == Some('(') {
+        let open = cur.pos;
+        cur.pos += 1;
+        let p = parse_expr(cur)?;
+        cur.expect(")")?;
+        if terminal {
+            return Err(ParseError::new(open..cur.pos, "a terminal production (`=>`) takes no probability"));
+        }
+        weight = Some(p);
+    }
     let succ = successors(cur)?;
     cur.skip_trivia();
     let colon = cur.pos..cur.pos + 1;
-    let weight = if cur.eat(":") {
+    if cur.eat(":") {
         if terminal {
             return Err(ParseError::new(colon, "a terminal production (`=>`) takes no probability"));
         }
-        Some(parse_expr(cur)?)
-    } else {
-        None
-    };
+        if weight.is_some() {
+            return Err(ParseError::new(colon, "the probability is given twice: on the arrow and after the successor"));
+        }
+        weight = Some(parse_expr(cur)?);
+    }
     Ok(Item::Production(Production { pred: pred.to_string(), pred_span, formals, cond, terminal, succ, weight }))
 }
 
@@ -204,20 +231,87 @@ fn define(cur: &Cursor<'_>) -> Option<usize> {
     after.starts_with([' ', '\t']).then(|| cur.pos + (rest.len() - after.len()))
 }
 
-/// A section header (`interpretation:` …) if the line is one.
-fn section(word: &str, span: &Range<usize>, cur: &mut Cursor<'_>) -> Option<Item> {
-    let kind = match word {
+/// The section a header word names.
+fn section_kind(word: &str) -> Option<Section> {
+    Some(match word {
         "production" | "productions" => Section::Productions,
         "interpretation" | "homomorphism" => Section::Interpretation,
         "decomposition" => Section::Decomposition,
         _ => return None,
-    };
+    })
+}
+
+/// A section header (`interpretation:` …) if the line is one; one with more after its `:` (and no arrow, which
+/// would make it a production) is an error at what follows.
+fn section(word: &str, span: &Range<usize>, cur: &mut Cursor<'_>) -> Option<Result<Item, ParseError>> {
+    let kind = section_kind(word)?;
     let save = cur.pos;
-    if cur.eat(":") && at_line_end(cur) {
-        return Some(Item::Section(kind, span.start..cur.pos));
+    if cur.eat(":") {
+        if at_line_end(cur) {
+            return Some(Ok(Item::Section(kind, span.start..cur.pos)));
+        }
+        let line = cur.rest().split('\n').next().unwrap_or("");
+        if !line.contains("->") && !line.contains("=>") {
+            return Some(Err(cur.unexpected("end of line")));
+        }
     }
     cur.pos = save;
     None
+}
+
+/// The words that start directives and section headers: what a misspelt first word is checked against.
+const DIRECTIVES: [&str; 18] = [
+    "lsystem",
+    "derive",
+    "derivation",
+    "angle",
+    "width",
+    "param",
+    "palette",
+    "module",
+    "axiom",
+    "maxdepth",
+    "production",
+    "productions",
+    "interpretation",
+    "homomorphism",
+    "decomposition",
+    "endlsystem",
+    "ignore",
+    "consider",
+];
+
+/// The directive or section header `word` misspells: one edit away from it (a letter changed, added or dropped,
+/// two neighbours swapped, or only the case differing), ignoring case; not for words shorter than 4 letters.
+pub(super) fn misspelt_directive(word: &str) -> Option<&'static str> {
+    let w: Vec<char> = word.to_lowercase().chars().collect();
+    if w.len() < 4 || DIRECTIVES.contains(&word) || word == "Axiom" {
+        return None;
+    }
+    DIRECTIVES.into_iter().find(|d| {
+        let d: Vec<char> = d.chars().collect();
+        edit_distance(&w, &d) <= 1
+    })
+}
+
+/// The optimal-string-alignment distance: insertions, deletions, substitutions and swaps of neighbours.
+fn edit_distance(a: &[char], b: &[char]) -> usize {
+    let mut d = vec![vec![0usize; b.len() + 1]; a.len() + 1];
+    for (i, row) in d.iter_mut().enumerate() {
+        row[0] = i;
+    }
+    d[0] = (0..=b.len()).collect();
+    for i in 1..=a.len() {
+        for j in 1..=b.len() {
+            let cost = usize::from(a[i - 1] != b[j - 1]);
+            let mut v = (d[i - 1][j] + 1).min(d[i][j - 1] + 1).min(d[i - 1][j - 1] + cost);
+            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                v = v.min(d[i - 2][j - 2] + 1);
+            }
+            d[i][j] = v;
+        }
+    }
+    d[a.len()][b.len()]
 }
 
 pub(super) fn parse_line(cur: &mut Cursor<'_>) -> Result<Option<Item>, ParseError> {
@@ -235,7 +329,15 @@ pub(super) fn parse_line(cur: &mut Cursor<'_>) -> Result<Option<Item>, ParseErro
         return Err(cur.unexpected("a directive (`lsystem`, `derive`, `angle`, `width`, `param`, `palette`, `module`, `axiom:`) or a production `A(x) -> …`"));
     };
     if let Some(item) = section(word, &span, cur) {
-        return Ok(Some(item));
+        return item.map(Some);
+    }
+    // A misspelt directive: the word is wrong, not what follows it (a production line has an arrow).
+    if let Some(meant) = misspelt_directive(word) {
+        let line = cur.rest().split('\n').next().unwrap_or("");
+        if !line.contains("->") && !line.contains("=>") {
+            let shown = if section_kind(meant).is_some() { format!("{meant}:") } else { meant.to_string() };
+            return Err(ParseError::new(span, format!("unknown directive `{word}`: did you mean `{shown}`?")));
+        }
     }
     let item = match word {
         "lsystem" => {
@@ -304,6 +406,8 @@ pub(super) enum Ghost {
     Symbol(String),
     Param(String),
     Directive(&'static str),
+    /// A section header: the lines after it are in that section.
+    Section(Section),
 }
 
 pub(super) fn ghost(src: &str, pos: usize) -> Option<Ghost> {
@@ -313,6 +417,13 @@ pub(super) fn ghost(src: &str, pos: usize) -> Option<Ghost> {
         return Some(Ghost::Param(cur.ident()?.0.to_string()));
     }
     let (word, _) = cur.ident()?;
+    // A misspelt directive declares what the directive would have (unless the line is a production).
+    let line = cur.rest().split('\n').next().unwrap_or("");
+    let arrow = line.contains("->") || line.contains("=>");
+    let word = misspelt_directive(word).filter(|_| !arrow).unwrap_or(word);
+    if let Some(kind) = section_kind(word).filter(|_| line.trim_start().starts_with(':') && !arrow) {
+        return Some(Ghost::Section(kind));
+    }
     Some(match word {
         "module" => Ghost::Symbol(cur.ident()?.0.to_string()),
         "param" => Ghost::Param(cur.ident()?.0.to_string()),

@@ -11,7 +11,9 @@ use crate::primitive::PrimitiveStream;
 use crate::rng::{Context, InstanceRng, ROOT_KEY, child_key};
 
 use super::compile::Builder;
-use super::{LSystem, MAX_REWRITE_STEPS, MAX_STRING_LEN, Successor, SymbolId, SymbolKind, Turtle};
+use super::{
+    LPY_MATERIALS, LPY_START_COLOR, LSystem, MAX_REWRITE_STEPS, MAX_STRING_LEN, Successor, SymbolId, SymbolKind, Turtle,
+};
 
 /// One module occurrence of a derived string.
 #[derive(Clone, Debug, PartialEq)]
@@ -121,7 +123,7 @@ pub fn rewrite(ls: &LSystem, instance: &Instance, steps: Option<u32>) -> Result<
     let mut d = steps.map_or(derive, |s| s as f32);
     r.env[ls.depth_slot as usize] = d;
     r.env[ls.width_slot as usize] = width;
-    r.env[ls.color_slot as usize] = 0.0;
+    r.env[ls.color_slot as usize] = start_color(ls).0;
     let mut string = Vec::new();
     let mut counter = counter;
     r.expand(&ls.axiom, ROOT_KEY, &mut counter, &mut string)?;
@@ -239,12 +241,17 @@ pub fn interpret(
     }
     let string = &drawn;
     let mut b = Builder { nodes: ls.graph.nodes.clone(), calcs: HashMap::new() };
+    let (color, material) = start_color(ls);
     let init = b.push(Node::Calculation(vec![
         (ls.depth_slot, Expr::constant(r.derive)),
         (ls.width_slot, Expr::constant(r.width)),
-        (ls.color_slot, Expr::constant(0.0)),
+        (ls.color_slot, Expr::constant(color)),
     ]));
     let mut stack: Vec<Vec<NodeId>> = vec![vec![init]];
+    if let Some(m) = material {
+        let m = b.push(Node::Material(m.map(Expr::constant)));
+        stack[0].push(m);
+    }
     for m in string {
         let sym = ls
             .symbols
@@ -288,6 +295,12 @@ pub fn interpret(
     let flat =
         SpeciesGraph { name: ls.graph.name.clone(), params: ls.graph.params.clone(), nodes: b.nodes, root: root_id };
     Ok(amplify(&flat, instance, budget)?)
+}
+
+/// The colour index the turtle starts at, and the material it starts with if it is not the default: L-Py's turtle
+/// starts at its material 1 (see [`LPY_MATERIALS`]).
+fn start_color(ls: &LSystem) -> (f32, Option<[f32; 3]>) {
+    if ls.lpy_colors { (LPY_START_COLOR as f32, Some(LPY_MATERIALS[LPY_START_COLOR])) } else { (0.0, None) }
 }
 
 /// The reference primitive stream: [`rewrite`] with the `derive` depth, then [`interpret`].

@@ -36,20 +36,8 @@ impl Compiler<'_> {
                 Node::Material([expr_param(formals[0]), expr_param(formals[1]), expr_param(formals[2])])
             }
             Turtle::NextColor | Turtle::ColorUp | Turtle::ColorDown | Turtle::SetColorIndex => {
-                let index = match t {
-                    Turtle::SetColorIndex => expr_param(formals[0]),
-                    Turtle::ColorDown => Expr {
-                        ops: vec![
-                            Op::Param(c),
-                            Op::Const(1.0),
-                            Op::Sub,
-                            Op::Const(1.0),
-                            Op::Call(canopy_protocol::Func::Max),
-                        ],
-                    },
-                    _ => Expr { ops: vec![Op::Param(c), Op::Const(1.0), Op::Add] },
-                };
-                let channels = self.palette_channels(t, span)?;
+                let channels = self.palette_channels(span)?;
+                let index = self.color_index(t, c, formals.first().copied(), span)?;
                 let calc = self.b.push(Node::Calculation(vec![(c, index)]));
                 let mat = self.b.push(Node::Material(channels));
                 Node::Group(vec![calc, mat])
@@ -105,20 +93,56 @@ impl Compiler<'_> {
         }
     }
 
-    /// The palette entry `_c` selects, per channel: `_c <= 1 ? p1 : _c <= 2 ? p2 : … : p_last`.
-    pub(super) fn palette_channels(&mut self, t: Turtle, span: &Range<usize>) -> Option<[Expr; 3]> {
-        let Some(palette) = self.palette.clone() else {
-            if !self.palette_broken {
-                let written = if t == Turtle::SetColorIndex { "with an index" } else { "without arguments" };
-                self.err(span.clone(), format!("`{}` {written} needs a `palette`", &self.src[span.clone()]));
+    /// The new colour index of `;`, `,`, `'` or `;(i)` (`i` in slot `arg`). With a `palette`: one up, one down
+    /// (not below 1) or `i`. With L-Py's materials, as L-Py's turtle: an index outside `0..=6` leaves it unchanged.
+    fn color_index(&mut self, t: Turtle, c: u16, arg: Option<u16>, span: &Range<usize>) -> Option<Expr> {
+        let (low, high) = if self.lpy_colors { (0.0, (LPY_MATERIALS.len() - 1) as f32) } else { (1.0, f32::MAX) };
+        let ast = match t {
+            Turtle::SetColorIndex if self.lpy_colors => {
+                let i = Ast::var("$i");
+                let inside = Ast::And(
+                    Box::new(Ast::bin(BinOp::Ge, i.clone(), Ast::Num(low))),
+                    Box::new(Ast::bin(BinOp::Le, i.clone(), Ast::Num(high))),
+                );
+                Ast::cond(inside, i, Ast::var("$c"))
             }
-            return None;
+            Turtle::SetColorIndex => Ast::var("$i"),
+            Turtle::ColorDown => Ast::Call(
+                canopy_protocol::Func::Max,
+                vec![Ast::bin(BinOp::Sub, Ast::var("$c"), Ast::Num(1.0)), Ast::Num(low)],
+            ),
+            _ if self.lpy_colors => Ast::Call(
+                canopy_protocol::Func::Min,
+                vec![Ast::bin(BinOp::Add, Ast::var("$c"), Ast::Num(1.0)), Ast::Num(high)],
+            ),
+            _ => Ast::bin(BinOp::Add, Ast::var("$c"), Ast::Num(1.0)),
+        };
+        let internal = [("$c", c), ("$i", arg.unwrap_or(c))];
+        match compile_at(&ast, &mut self.names.resolver(&[], &internal), span) {
+            Ok(e) => Some(e),
+            Err(e) => {
+                self.errors.push(e);
+                None
+            }
+        }
+    }
+
+    /// The palette entry `_c` selects, per channel: `_c <= 1 ? p1 : _c <= 2 ? p2 : … : p_last`; without a
+    /// `palette`, L-Py's materials, 0-based: `_c <= 0 ? m0 : _c <= 1 ? m1 : … : m6`.
+    pub(super) fn palette_channels(&mut self, span: &Range<usize>) -> Option<[Expr; 3]> {
+        let (palette, base) = match self.palette.clone() {
+            Some(p) => (p, 1),
+            None if self.palette_broken => return None,
+            None => {
+                self.lpy_colors = true;
+                (LPY_MATERIALS.iter().map(|m| m.map(Ast::Num)).collect(), 0)
+            }
         };
         let mut channels = Vec::new();
         for k in 0..3 {
             let mut ast = palette[palette.len() - 1][k].clone();
             for i in (0..palette.len() - 1).rev() {
-                let test = Ast::bin(BinOp::Le, Ast::var("$c"), Ast::Num((i + 1) as f32));
+                let test = Ast::bin(BinOp::Le, Ast::var("$c"), Ast::Num((i + base) as f32));
                 ast = Ast::cond(test, palette[i][k].clone(), ast);
             }
             let internal = [("$c", self.c)];
