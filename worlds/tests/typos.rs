@@ -117,7 +117,7 @@ fn a_line_cut_off_after_an_operator_is_reported_on_that_line() {
 #[test]
 fn the_reported_typo_gives_one_diagnostic_with_a_suggestion() {
     let text = SPECIES.iter().find(|e| e.file == "monopodial.species").expect("in the library").text;
-    let line = text.lines().position(|l| l.starts_with("param r = height")).expect("r's declaration");
+    let line = text.lines().position(|l| l.starts_with("let r = height")).expect("r's declaration");
     let typo: Vec<String> = text
         .lines()
         .enumerate()
@@ -125,7 +125,7 @@ fn the_reported_typo_gives_one_diagnostic_with_a_suggestion() {
         .collect();
     let d = parse("m.species", &typo.join("\n"));
     assert_eq!(d.len(), 1, "{}", show(&d));
-    assert_eq!((d[0].line, d[0].col), (line + 1, 11));
+    assert_eq!((d[0].line, d[0].col), (line + 1, 9));
     assert_eq!(d[0].message, "unknown parameter `heigth`; did you mean `height`?");
 }
 
