@@ -6,6 +6,7 @@
 //! species Worm                      # optional; defaults to the file name
 //! param c = 4                       # a Local parameter and its default (may draw: uniform(3, 5))
 //! state w = 0.1                     # a Turtle-scope parameter (flows across recursion separators)
+//! let r = c * 0.1                   # a working value: evaluated like a parameter, never set from outside
 //! def Worm select(c > 0) {          # traverses child `c > 0` (0 or 1)
 //!   cone(0.5, 0, 1)                 # child 0: terminal
 //!   separator {                     # child 1: recursive branch
@@ -19,7 +20,9 @@
 //! Containers: `group`, `separator`, `recurse`, `select(expr)`, `lod` take `{ nodes }`; `defs { … }` holds
 //! named nodes that are only reached through `use`; `calc { a = e, b = e }`
 //! assigns simultaneously; the transformation, material and primitive calls are those of [`crate::nodes`].
-//! The top-level nodes form the root group. Parameters must be declared before the nodes that use them. An
+//! The top-level nodes form the root group. Parameters must be declared before the nodes that use them. A species'
+//! *parameters* (`param`, `state`) are what an instance, a world or an edit may set; its *working values* (`let`,
+//! `let state`: counters, radii carried down a branch) are its program's own ([`canopy_protocol::ParamRole`]). An
 //! expression ends with its line (a node call's arguments may span lines).
 //!
 //! Errors recover (rust-analyzer's "parsing never fails"): one diagnostic per mistake. A name used but not declared
