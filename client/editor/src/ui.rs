@@ -61,13 +61,17 @@ impl Orbit {
         [t[0] + self.distance * cp * sy, t[1] + self.distance * sp, t[2] + self.distance * cp * cy]
     }
 
-    /// Frame a box: look at its centre from far enough to see it whole with a 45° field of view.
-    pub fn frame(&mut self, lo: [f32; 3], hi: [f32; 3]) {
+    /// Frame a box: look at its centre from far enough to see it whole with the preview's 45° vertical field of
+    /// view in a picture `aspect` (width / height) wide — narrower than tall, the horizontal field is what limits.
+    pub fn frame(&mut self, lo: [f32; 3], hi: [f32; 3], aspect: f32) {
         let c = [(lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, (lo[2] + hi[2]) / 2.0];
         let r = ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2) + (hi[2] - lo[2]).powi(2)).sqrt() / 2.0;
+        let half_v = 22.5f32.to_radians();
+        let aspect = if aspect.is_finite() && aspect > 0.0 { aspect } else { 1.0 };
+        let half = half_v.min((half_v.tan() * aspect).atan());
         if c.iter().all(|v| v.is_finite()) && r.is_finite() {
             self.target = c;
-            self.distance = (r.max(0.5) / (22.5f32.to_radians()).sin()) * 1.05;
+            self.distance = (r.max(0.5) / half.sin()) * 1.05;
         }
     }
 
@@ -200,7 +204,8 @@ impl EditorUi {
     /// Point the camera at the model (the whole grove in the grove view).
     pub fn frame_model(&mut self) {
         if let Some((lo, hi)) = self.model_bounds() {
-            self.orbit.frame(lo, hi);
+            let [w, h] = self.preview_px;
+            self.orbit.frame(lo, hi, w as f32 / h.max(1) as f32);
         }
     }
 
@@ -642,7 +647,15 @@ impl EditorUi {
         };
         if !hyp {
             let px = ui.ctx().pixels_per_point();
-            self.preview_px = [((near_w * px) as u32).max(16), ((size.y * px) as u32).max(16)];
+            let was = std::mem::replace(
+                &mut self.preview_px,
+                [((near_w * px) as u32).max(16), ((size.y * px) as u32).max(16)],
+            );
+            // The picture changed shape (a split view, a resized window): framed again for it, unless the user has
+            // moved the camera.
+            if was != self.preview_px && self.orbit.auto_frame {
+                self.frame_model();
+            }
         }
         ui.horizontal(|ui| {
             if !hyp {

@@ -157,3 +157,23 @@ fn the_stats_panel_measures_off_the_ui_thread_and_drops_stale_results() {
     assert_eq!(stats.primitives, 10, "9 spheres and a cone");
     assert!(!s.stats_pending());
 }
+
+/// The far view splits the preview in two: the tree is framed again for its half-width picture, so its bounding
+/// sphere fits the narrower horizontal field of view (it was cropped, framed for the full width).
+#[test]
+fn the_split_far_view_frames_the_tree_for_its_narrower_picture() {
+    let mut h = harness();
+    h.run();
+    let full = h.state().orbit.distance;
+    h.state_mut().view = canopy_editor::ui::View::FarField;
+    h.run();
+    let ui = h.state();
+    let [w, ht] = ui.preview_px;
+    let aspect = w as f32 / ht as f32;
+    assert!(aspect < 1.0, "the split picture is narrower than tall here ({w} x {ht})");
+    let (lo, hi) = ui.model_bounds().expect("a model");
+    let r = (0..3).map(|i| (hi[i] - lo[i]).powi(2)).sum::<f32>().sqrt() / 2.0;
+    let half_h = (22.5f32.to_radians().tan() * aspect).atan();
+    assert!(r.max(0.5) / ui.orbit.distance <= half_h.sin(), "the sphere fits the horizontal field");
+    assert!(ui.orbit.distance > full, "farther than for the full-width picture ({} vs {full})", ui.orbit.distance);
+}
