@@ -28,16 +28,10 @@ fn errors(text: &str) -> Vec<Diagnostic> {
     d
 }
 
+/// The library's `.lsys` files (every `.lsys` file of `worlds/species/` is embedded).
 fn species_files() -> Vec<(String, String)> {
-    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/species");
-    let mut out: Vec<(String, String)> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "lsys"))
-        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read_to_string(&p).unwrap()))
-        .collect();
-    out.sort();
-    out
+    let lsys = canopy_worlds::library::SPECIES.iter().filter(|e| e.file.ends_with(".lsys"));
+    lsys.map(|e| (e.file.to_string(), e.text.to_string())).collect()
 }
 
 fn dcg(l: &LSystem, inst: &Instance) -> PrimitiveStream {

@@ -228,14 +228,8 @@ fn lsystem_python_is_refused_once() {
 
 /// The library's `.lsys` files and the format doc's example.
 fn library() -> Vec<(String, String)> {
-    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/species");
-    let mut out: Vec<(String, String)> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "lsys"))
-        .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read_to_string(&p).unwrap()))
-        .collect();
-    out.sort();
+    let lsys = canopy_worlds::library::SPECIES.iter().filter(|e| e.file.ends_with(".lsys"));
+    let mut out: Vec<(String, String)> = lsys.map(|e| (e.file.to_string(), e.text.to_string())).collect();
     assert!(out.len() >= 2);
     let src = include_str!("../src/lsystem/mod.rs");
     let start = src.find("//! ```text\n").unwrap() + "//! ```text\n".len();
