@@ -317,6 +317,12 @@ fn species_edit_screenshot_writes_the_window() {
     assert!(text(&bad).contains("unknown format"), "{}", text(&bad));
     let o = canopy(&["species", "stats", "conifer", "--repeat", "1"]);
     assert!(text(&o).contains("lod         4 level(s): detail 0 "), "{}", text(&o));
+    assert!(text(&o).contains("(77 nodes, 3 parameter(s), 11 working value(s))"), "{}", text(&o));
+    // A working value is the species' own: not for --param.
+    let o = canopy(&["species", "stats", "monopodial", "--param", "m=2"]);
+    assert!(!o.status.success());
+    let want = "`m` is a working value of species `monopodial`, not a parameter (its parameters: height, branch_length, branching)";
+    assert!(text(&o).contains(want), "{}", text(&o));
 }
 
 /// `canopy render --world highlands` from altitude (issue 15): the records around the camera expanded from the world
