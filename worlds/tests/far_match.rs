@@ -91,10 +91,8 @@ fn both(species: &str, seed: u64) -> Pair {
     Pair { near: measure(&near.rgb, &sky.rgb), far: measure(&far.pixels, &far_sky(&opts)) }
 }
 
-/// What the far field must reach (issue 35.3): coverage within ±15 % (relative) of the near tree's, mean colour of
-/// the covered pixels within 0.1 (Euclidean, RGB in 0..1).
-const TARGET: (f64, f64) = (0.15, 0.10);
-/// What it reaches today (measured 2026-11-27: monopodial +21 % / 0.74, conifer +45 % / 0.79 — the far tree is
+/// The goal (issue 35.3, not reached yet): coverage within ±15 % (relative) of the near tree's, mean colour of the
+/// covered pixels within 0.1 (Euclidean, RGB in 0..1). What it reaches today (measured 2026-11-27: monopodial +21 % / 0.74, conifer +45 % / 0.79 — the far tree is
 /// far darker: the rasteriser lights linear colours and encodes them with gamma 2.2, the raymarcher writes its
 /// lit colours unencoded and self-shadows): a guard that it gets no worse until it is calibrated. The raymarcher's
 /// `density_scale` is not the lever for coverage: from 1 down to 0.1 it moves monopodial's from +21 % to +19 % and
@@ -128,16 +126,4 @@ fn monopodial_far_field_is_no_further_from_the_near_tree_than_today() {
 #[test]
 fn conifer_far_field_is_no_further_from_the_near_tree_than_today() {
     check("conifer", TODAY);
-}
-
-#[test]
-#[ignore = "issue 35.3: the far field's density and colour are not calibrated yet"]
-fn monopodial_far_field_matches_the_near_tree_at_the_switch_distance() {
-    check("monopodial", TARGET);
-}
-
-#[test]
-#[ignore = "issue 35.3: the far field's density and colour are not calibrated yet"]
-fn conifer_far_field_matches_the_near_tree_at_the_switch_distance() {
-    check("conifer", TARGET);
 }
