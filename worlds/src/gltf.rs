@@ -440,6 +440,26 @@ mod tests {
         assert_eq!(glb_within(&entries, bytes.len() as u64).unwrap(), bytes);
     }
 
+    /// The bytes of a small grove, pinned: the writer's output is the format, so a change to it must be deliberate.
+    /// (Recorded from the in-memory writer before the streaming one replaced its body.)
+    #[test]
+    fn the_bytes_of_a_small_grove_are_pinned() {
+        let worm = crate::library::find("worm").expect("worm").load().expect("loads");
+        let stream = crate::amplify::amplify(&worm, &crate::amplify::Instance::new(2), &Default::default()).unwrap();
+        let (a, b) = (mesh(&sample(), &MeshOptions::default()), mesh(&sample(), &MeshOptions::for_detail(3)));
+        let (w, empty) = (mesh(&stream, &MeshOptions::default()), crate::mesh::Mesh::default());
+        let bytes = glb(&[
+            ("a".to_string(), &a, [0.0; 3]),
+            ("empty".to_string(), &empty, [1.0; 3]),
+            ("b".to_string(), &b, [3.0, 0.0, 0.0]),
+            ("worm-2".to_string(), &w, [1.5, 0.0, -2.25]),
+        ])
+        .unwrap();
+        let mut h = crate::primitive::Fnv::new();
+        h.bytes(&bytes);
+        assert_eq!((bytes.len(), h.finish()), (27_048, 10_378_403_515_207_617_838));
+    }
+
     #[test]
     fn parse_rejects_malformed_containers() {
         let m = mesh(&sample(), &MeshOptions::default());
