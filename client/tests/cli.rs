@@ -95,6 +95,35 @@ fn export_over_the_size_limit_fails_before_writing() {
 }
 
 #[test]
+fn export_refuses_a_grove_estimated_too_large_at_once_and_keeps_the_old_file() {
+    let dir = temp("export-keep");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("grove.glb");
+    std::fs::write(&out, b"the old file").unwrap();
+    let o = out.to_str().unwrap();
+    // A worm is about 16 kB of mesh data: 100 of them are estimated far over 200 kB after the first.
+    let r = canopy(&["species", "export", "worm", "--grove", "100", "--max-bytes", "200000", "-o", o]);
+    let msg = text(&r);
+    assert!(!r.status.success(), "{msg}");
+    assert!(msg.contains("estimated from the first of 100 instances") && msg.contains("--no-estimate"), "{msg}");
+    // Counting exactly, it stops at the first instance over the limit.
+    let r = canopy(&["species", "export", "worm", "--grove", "100", "--max-bytes", "200000", "--no-estimate", "-o", o]);
+    let msg = text(&r);
+    assert!(!r.status.success(), "{msg}");
+    assert!(msg.contains("the first ") && msg.contains(" of 100 instances") && !msg.contains("estimated"), "{msg}");
+    assert_eq!(std::fs::read(&out).unwrap(), b"the old file", "the old file is untouched");
+    let names: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names, ["grove.glb"], "no temporary file is left");
+    // What fits replaces it; a directory is refused.
+    let r = canopy(&["species", "export", "worm", "--grove", "9", "-o", o]);
+    assert!(r.status.success(), "{}", text(&r));
+    let (json, _) = canopy_worlds::gltf::parse_glb_header(&std::fs::read(&out).unwrap()).unwrap();
+    assert_eq!(json["nodes"].as_array().unwrap().len(), 9);
+    let r = canopy(&["species", "export", "worm", "-o", dir.to_str().unwrap()]);
+    assert!(!r.status.success() && text(&r).contains("a directory: refusing to write over it"), "{}", text(&r));
+}
+
+#[test]
 fn check_reports_non_finite_constants_and_species_that_cannot_finish() {
     let nan = temp("nan.species");
     std::fs::write(&nan, "species Nan\nparam c = 0/0\nsphere(c)\n").unwrap();

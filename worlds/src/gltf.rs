@@ -14,10 +14,20 @@
 //! A GLB's lengths are `u32` (glTF 2.0 §4.4, "GLB file format specification"), so a file holds at most
 //! [`MAX_GLB_BYTES`], 4 GiB − 1. [`glb`] computes the file's length before it writes a byte of the BIN chunk and
 //! returns [`GlbError::TooLarge`] instead of a file whose header has wrapped around.
+//!
+//! The writer streams ([`stream`]): a first pass over the meshes lays the file out (the JSON needs every mesh's
+//! counts and bounds before any data), a second writes it mesh by mesh, so a grove of any size is never in memory
+//! at once. [`glb`] and [`glb_within`] are that writer over a slice of meshes, into memory.
 
-use serde_json::{Map, Value, json};
+use std::convert::Infallible;
+
+use serde_json::Value;
 
 use crate::mesh::Mesh;
+
+pub mod stream;
+
+pub use stream::{GlbLayout, GlbStreamError, Node, SizeCheck, lay_out};
 
 /// `glTF` in little-endian.
 const MAGIC: u32 = 0x4654_6C67;
@@ -56,6 +66,25 @@ pub enum GlbError {
         /// The limit it exceeds.
         limit: u64,
     },
+    /// `items` items like the first, whose mesh data is `first` bytes, would make a file of about `bytes` bytes:
+    /// more than [`stream::ESTIMATE_MARGIN_PERCENT`] over `limit` ([`SizeCheck::Estimate`]).
+    #[error(
+        "the .glb would be about {bytes} bytes ({items} × the first's {first} bytes of mesh data), more than \
+         {margin}% over the limit of {limit} bytes (a GLB file holds at most 4 GiB − 1 = {MAX_GLB_BYTES} bytes: its \
+         lengths are u32, glTF 2.0 §4.4); export fewer trees, coarser meshes (a higher detail level) or the \
+         continuous/LOD mesh",
+        margin = stream::ESTIMATE_MARGIN_PERCENT
+    )]
+    Estimated {
+        /// The estimated length.
+        bytes: u64,
+        /// The first item's bytes of mesh data.
+        first: u64,
+        /// The number of items.
+        items: u64,
+        /// The limit it exceeds.
+        limit: u64,
+    },
 }
 
 /// The bytes one mesh adds to the BIN chunk: positions, normals and colours (3 floats each) per vertex, three `u32`
@@ -73,10 +102,15 @@ pub fn mesh_bin_bytes(mesh: &Mesh) -> u64 {
 /// header, the JSON chunk padded to 4 bytes and, when there is data, the BIN chunk; an error when it is over
 /// `limit` (capped at [`MAX_GLB_BYTES`]).
 pub fn glb_len(json: u64, bin: u64, limit: u64) -> Result<u64, GlbError> {
+    let bytes = total_len(json, bin);
     let limit = limit.min(MAX_GLB_BYTES);
-    let chunk = |len: u64| len.div_ceil(4).saturating_mul(4).saturating_add(8);
-    let bytes = 12u64.saturating_add(chunk(json)).saturating_add(if bin == 0 { 0 } else { chunk(bin) });
     if bytes > limit { Err(GlbError::TooLarge { bytes, limit }) } else { Ok(bytes) }
+}
+
+/// The length of a GLB file with `json` bytes of JSON and `bin` bytes of BIN data, however long (saturating).
+fn total_len(json: u64, bin: u64) -> u64 {
+    let chunk = |len: u64| len.div_ceil(4).saturating_mul(4).saturating_add(8);
+    12u64.saturating_add(chunk(json)).saturating_add(if bin == 0 { 0 } else { chunk(bin) })
 }
 
 /// Why bytes are not a well-formed GLB container (checked by [`parse_glb_header`]).
@@ -126,125 +160,32 @@ pub fn glb(meshes: &[(String, &Mesh, [f32; 3])]) -> Result<Vec<u8>, GlbError> {
     glb_within(meshes, MAX_GLB_BYTES)
 }
 
-/// [`glb`] with a lower size limit: a file longer than `limit` bytes (or [`MAX_GLB_BYTES`]) is an error.
+/// [`glb`] with a lower size limit: a file longer than `limit` bytes (or [`MAX_GLB_BYTES`]) is an error. The
+/// streaming writer ([`stream`]) with every mesh given by reference, into memory.
 pub fn glb_within(meshes: &[(String, &Mesh, [f32; 3])], limit: u64) -> Result<Vec<u8>, GlbError> {
-    // First the layout and the JSON, with the BIN offsets computed; then the length check; then the data.
-    let mut bin_len: u64 = 0;
-    let (mut nodes, mut gl_meshes, mut accessors, mut views) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    let mut written: Vec<&Mesh> = Vec::new();
-
-    for (name, mesh, translation) in meshes {
-        if mesh.triangle_count() == 0 {
-            continue;
-        }
-        written.push(mesh);
-        let vertices = mesh.positions.len();
-        let vec3s = |n: usize| 12 * vertices.min(n) as u64;
-        let pos_view = push_view(&mut bin_len, &mut views, vec3s(vertices), ARRAY_BUFFER);
-        let normal_view = push_view(&mut bin_len, &mut views, vec3s(mesh.normals.len()), ARRAY_BUFFER);
-        let color_view = push_view(&mut bin_len, &mut views, vec3s(mesh.colors.len()), ARRAY_BUFFER);
-        let index_view = push_view(&mut bin_len, &mut views, 12 * mesh.triangle_count() as u64, ELEMENT_ARRAY_BUFFER);
-
-        let (lo, hi) = mesh.bounds();
-        // f32 → f64 is exact, so the JSON numbers are exactly the stored floats.
-        let exact = |v: [f32; 3]| json!([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
-        let first = accessors.len();
-        accessors.push(json!({
-            "bufferView": pos_view, "componentType": FLOAT, "count": vertices, "type": "VEC3",
-            "min": exact(lo), "max": exact(hi),
-        }));
-        accessors.push(json!({ "bufferView": normal_view, "componentType": FLOAT, "count": vertices, "type": "VEC3" }));
-        accessors.push(json!({ "bufferView": color_view, "componentType": FLOAT, "count": vertices, "type": "VEC3" }));
-        accessors.push(json!({
-            "bufferView": index_view, "componentType": UNSIGNED_INT, "count": mesh.triangle_count() * 3,
-            "type": "SCALAR",
-        }));
-
-        let m = gl_meshes.len();
-        gl_meshes.push(json!({
-            "name": name,
-            "primitives": [{
-                "attributes": { "POSITION": first, "NORMAL": first + 1, "COLOR_0": first + 2 },
-                "indices": first + 3,
-                "material": 0,
-                "mode": TRIANGLES,
-            }],
-        }));
-        let t = translation.map(|x| if x.is_finite() { f64::from(x) } else { 0.0 });
-        let mut node = Map::new();
-        node.insert("name".into(), json!(name));
-        node.insert("mesh".into(), json!(m));
-        if t != [0.0; 3] {
-            node.insert("translation".into(), json!(t));
-        }
-        nodes.push(Value::Object(node));
-    }
-
-    let mut scene = Map::new();
-    scene.insert("name".into(), json!("canopy"));
-    if !nodes.is_empty() {
-        scene.insert("nodes".into(), json!((0..nodes.len()).collect::<Vec<_>>()));
-    }
-    let mut root = Map::new();
-    root.insert("asset".into(), json!({ "version": "2.0", "generator": "canopy" }));
-    root.insert("scene".into(), json!(0));
-    root.insert("scenes".into(), json!([Value::Object(scene)]));
-    if !nodes.is_empty() {
-        root.insert("nodes".into(), Value::Array(nodes));
-        root.insert("meshes".into(), Value::Array(gl_meshes));
-        root.insert(
-            "materials".into(),
-            json!([{
-                "name": "canopy",
-                "doubleSided": true,
-                "pbrMetallicRoughness": {
-                    "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
-                    "metallicFactor": 0.0,
-                    "roughnessFactor": 1.0,
-                },
-            }]),
-        );
-        root.insert("accessors".into(), Value::Array(accessors));
-        root.insert("bufferViews".into(), Value::Array(views));
-        root.insert("buffers".into(), json!([{ "byteLength": bin_len }]));
-    }
-
-    let mut json_bytes = serde_json::to_vec(&Value::Object(root)).unwrap_or_default();
-    let total = glb_len(json_bytes.len() as u64, bin_len, limit)?;
-    while !json_bytes.len().is_multiple_of(4) {
-        json_bytes.push(b' ');
-    }
-    // The check above bounds every length by `u32::MAX`.
-    let mut out = Vec::with_capacity(total as usize);
-    for word in [MAGIC, VERSION, total as u32, json_bytes.len() as u32, CHUNK_JSON] {
-        out.extend_from_slice(&word.to_le_bytes());
-    }
-    out.extend_from_slice(&json_bytes);
-    if bin_len > 0 {
-        out.extend_from_slice(&(bin_len as u32).to_le_bytes());
-        out.extend_from_slice(&CHUNK_BIN.to_le_bytes());
-        let floats = |out: &mut Vec<u8>, data: &[[f32; 3]]| {
-            out.extend(data.iter().flatten().flat_map(|x| x.to_le_bytes()));
-        };
-        // In the order of the buffer views above.
-        for mesh in written {
-            let vertices = mesh.positions.len();
-            floats(&mut out, &mesh.positions);
-            floats(&mut out, &mesh.normals[..vertices.min(mesh.normals.len())]);
-            floats(&mut out, &mesh.colors[..vertices.min(mesh.colors.len())]);
-            out.extend(mesh.indices[..mesh.triangle_count() * 3].iter().flat_map(|i| i.to_le_bytes()));
-        }
-    }
-    debug_assert_eq!(out.len() as u64, total);
+    let item = |i: u64| -> Result<Vec<Node<'_>>, Infallible> {
+        Ok(meshes
+            .get(i as usize)
+            .map(|(name, mesh, at)| Node::borrowed(name.as_str(), mesh, *at))
+            .into_iter()
+            .collect())
+    };
+    let layout = lay_out(meshes.len() as u64, limit, SizeCheck::Exact, item).map_err(in_memory)?;
+    let mut out = Vec::with_capacity(layout.bytes() as usize);
+    layout.write(&mut out, item).map_err(in_memory)?;
+    debug_assert_eq!(out.len() as u64, layout.bytes());
     Ok(out)
 }
 
-/// Reserve `len` bytes of the buffer as a new buffer view at offset `bin_len`; returns the view's index.
-fn push_view(bin_len: &mut u64, views: &mut Vec<Value>, len: u64, target: u32) -> usize {
-    views.push(json!({ "buffer": 0, "byteOffset": *bin_len, "byteLength": len, "target": target }));
-    // Everything is 4-byte data, so views stay 4-byte aligned without padding.
-    *bin_len = bin_len.saturating_add(len);
-    views.len() - 1
+/// The error of a GLB streamed into memory from a slice: only the size can be wrong.
+fn in_memory(e: GlbStreamError<Infallible>) -> GlbError {
+    match e {
+        GlbStreamError::TooLarge { error, .. } => error,
+        GlbStreamError::Source { error, .. } => match error {},
+        // A `Vec<u8>` takes every write, and the same slice gives the same meshes twice.
+        GlbStreamError::Write(e) => unreachable!("writing a .glb into memory failed: {e}"),
+        GlbStreamError::Changed { node, .. } => unreachable!("mesh `{node}` of a slice changed between two reads"),
+    }
 }
 
 /// Check a `.glb` container — magic, version, total length, a JSON chunk first and at most one BIN chunk after
@@ -299,6 +240,7 @@ mod tests {
     use crate::primitive::{Primitive, PrimitiveStream, Shape};
     use crate::transform::Transform;
     use canopy_protocol::LeafTopology;
+    use serde_json::json;
 
     fn sample() -> PrimitiveStream {
         let mut s = PrimitiveStream::default();
@@ -438,6 +380,26 @@ mod tests {
         let short = bytes.len() as u64 - 1;
         assert_eq!(glb_within(&entries, short), Err(GlbError::TooLarge { bytes: bytes.len() as u64, limit: short }));
         assert_eq!(glb_within(&entries, bytes.len() as u64).unwrap(), bytes);
+    }
+
+    /// The bytes of a small grove, pinned: the writer's output is the format, so a change to it must be deliberate.
+    /// (Recorded from the in-memory writer before the streaming one replaced its body.)
+    #[test]
+    fn the_bytes_of_a_small_grove_are_pinned() {
+        let worm = crate::library::find("worm").expect("worm").load().expect("loads");
+        let stream = crate::amplify::amplify(&worm, &crate::amplify::Instance::new(2), &Default::default()).unwrap();
+        let (a, b) = (mesh(&sample(), &MeshOptions::default()), mesh(&sample(), &MeshOptions::for_detail(3)));
+        let (w, empty) = (mesh(&stream, &MeshOptions::default()), crate::mesh::Mesh::default());
+        let bytes = glb(&[
+            ("a".to_string(), &a, [0.0; 3]),
+            ("empty".to_string(), &empty, [1.0; 3]),
+            ("b".to_string(), &b, [3.0, 0.0, 0.0]),
+            ("worm-2".to_string(), &w, [1.5, 0.0, -2.25]),
+        ])
+        .unwrap();
+        let mut h = crate::primitive::Fnv::new();
+        h.bytes(&bytes);
+        assert_eq!((bytes.len(), h.finish()), (27_048, 10_378_403_515_207_617_838));
     }
 
     #[test]

@@ -9,8 +9,8 @@ use std::path::Path;
 
 use crate::EditorError;
 
-/// What kind of thing a path is, for [`EditorError::NotAFile`].
-fn kind(t: std::fs::FileType) -> &'static str {
+/// What kind of thing a path is, for [`EditorError::NotAFile`] (and `canopy species export`'s refusal).
+pub fn kind(t: std::fs::FileType) -> &'static str {
     if t.is_dir() {
         "a directory"
     } else if t.is_symlink() {

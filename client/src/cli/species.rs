@@ -10,7 +10,7 @@ use canopy_harness::numbers::group;
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{Budget, Instance, amplify, resolve_params};
 use canopy_worlds::diag::SourceFile;
-use canopy_worlds::gltf::{GlbError, MAX_GLB_BYTES, glb, glb_within, mesh_bin_bytes};
+use canopy_worlds::gltf::{MAX_GLB_BYTES, SizeCheck, glb};
 use canopy_worlds::library;
 use canopy_worlds::load::{CHECK_SEED, check_file, load, read_source};
 use canopy_worlds::lsystem::LSystem;
@@ -18,6 +18,8 @@ use canopy_worlds::mesh::{Mesh, MeshOptions, explicit_bytes, mesh};
 use canopy_worlds::primitive::PrimitiveStream;
 use clap::{Args, Subcommand};
 
+#[path = "export.rs"]
+mod export;
 #[path = "nearfield.rs"]
 mod nearfield;
 
@@ -46,7 +48,8 @@ pub enum SpeciesCommand {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Export one instance, or a grove of instances, as glTF 2.0 binary (.glb).
+    /// Export one instance, or a grove of instances, as glTF 2.0 binary (.glb), streamed: each instance is made
+    /// twice (to lay the file out, then to write it), so memory holds one instance's meshes whatever the grove.
     Export {
         #[command(flatten)]
         instance: InstanceArgs,
@@ -63,6 +66,10 @@ pub enum SpeciesCommand {
         /// the GLB limit: its lengths are u32).
         #[arg(long, default_value_t = MAX_GLB_BYTES)]
         max_bytes: u64,
+        /// Mesh every instance to check the size exactly, instead of refusing at once a grove that the first
+        /// instance's size times --grove puts more than 10% over the limit (the trees of a grove differ in size).
+        #[arg(long)]
+        no_estimate: bool,
         #[command(flatten)]
         near: nearfield::NearFieldArgs,
     },
@@ -270,8 +277,9 @@ pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
         SpeciesCommand::Check { files } => Ok(check(&files)),
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
         SpeciesCommand::Amplify { instance, out } => amplify_cmd(&instance.config()?, out),
-        SpeciesCommand::Export { instance, out, grove, spacing, max_bytes, near } => {
-            export(&instance.config()?, &out, grove, spacing, max_bytes, &near)
+        SpeciesCommand::Export { instance, out, grove, spacing, max_bytes, no_estimate, near } => {
+            let check = if no_estimate { SizeCheck::Exact } else { SizeCheck::Estimate };
+            export::export(&instance.config()?, &out, grove, spacing, max_bytes, check, &near)
         }
         SpeciesCommand::Nearfield { instance, levels, error } => {
             let cfg = instance.config()?;
@@ -387,68 +395,6 @@ fn write_stream(w: &mut dyn Write, s: &PrimitiveStream) -> std::io::Result<()> {
         writeln!(w)?;
     }
     Ok(())
-}
-
-fn export(
-    cfg: &InstanceConfig,
-    out: &Path,
-    grove: u32,
-    spacing: f32,
-    max_bytes: u64,
-    near: &nearfield::NearFieldArgs,
-) -> anyhow::Result<ExitCode> {
-    if grove == 0 || grove > 10_000 {
-        bail!("--grove must be between 1 and 10000, got {grove}");
-    }
-    let side = (f64::from(grove)).sqrt().ceil() as u32;
-    let opts = MeshOptions::for_detail(cfg.instance.detail);
-    let mut meshes: Vec<(String, Mesh, [f32; 3])> = Vec::new();
-    // The BIN data of the meshes made so far: once it alone is over the limit, stop before making (and holding)
-    // the rest. `glb_within` checks the exact length, JSON included, before writing.
-    let limit = max_bytes.min(MAX_GLB_BYTES);
-    let (mut bin_bytes, mut counted) = (0u64, 0usize);
-    for i in 0..grove {
-        bin_bytes += meshes[counted..].iter().map(|m| mesh_bin_bytes(&m.1)).sum::<u64>();
-        counted = meshes.len();
-        if bin_bytes > limit {
-            let err = GlbError::TooLarge { bytes: bin_bytes, limit };
-            return Err(too_large(out, err, &format!("the first {i} of {grove} instances")));
-        }
-        let inst = Instance { seed: cfg.instance.seed.wrapping_add(u64::from(i)), ..cfg.instance.clone() };
-        let stream = cfg.amplify(&inst)?;
-        let at = [(i % side) as f32 * spacing, 0.0, (i / side) as f32 * spacing];
-        let plan = near.plan(&cfg.graph, &inst)?;
-        if matches!(plan.mode, nearfield::Mode::Primitives) && plan.bark.is_none() {
-            meshes.push((format!("{}-{}", cfg.graph.name, inst.seed), mesh(&stream, &opts), at));
-            continue;
-        }
-        // Near-field parts; LOD levels stand beside the tree along +X, coarser further out.
-        let nearfield::InstanceMeshes { parts, not_one_body } =
-            nearfield::instance_meshes(&plan, &stream, inst.detail)?;
-        if let Some(why) = not_one_body {
-            eprintln!("note: {}-{}: not one body: {why}", cfg.graph.name, inst.seed);
-        }
-        let width = parts.first().map(|(_, m)| m.bounds()).map_or(1.0, |(lo, hi)| (hi[0] - lo[0]).max(1.0));
-        for (part, m) in parts {
-            let level = part.strip_prefix("lod").and_then(|k| k.parse::<f32>().ok()).unwrap_or(0.0);
-            let offset = [at[0] + level * width * 1.2, at[1], at[2]];
-            meshes.push((format!("{}-{}-{part}", cfg.graph.name, inst.seed), m, offset));
-        }
-    }
-    let refs: Vec<(String, &Mesh, [f32; 3])> = meshes.iter().map(|(n, m, t)| (n.clone(), m, *t)).collect();
-    let bytes = glb_within(&refs, limit).map_err(|e| too_large(out, e, &format!("{grove} instance(s)")))?;
-    super::write_file(out, &bytes)?;
-    let tris: usize = meshes.iter().map(|m| m.1.triangle_count()).sum();
-    println!("wrote {} ({} instance(s), {} triangles)", out.display(), grove, group(tris as u64));
-    Ok(ExitCode::SUCCESS)
-}
-
-/// The error for an export over the size limit: what was too large, and the flags that make it smaller.
-fn too_large(out: &Path, err: GlbError, what: &str) -> anyhow::Error {
-    anyhow::anyhow!(
-        "not writing {}: {what}: {err} (flags: a smaller --grove, a higher --detail, --continuous --lod N)",
-        out.display()
-    )
 }
 
 fn write_glb(out: &Path, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<()> {
