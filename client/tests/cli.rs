@@ -40,7 +40,7 @@ fn stats_reports_counts_sizes_and_time() {
     let out = text(&o);
     assert!(o.status.success(), "{out}");
     assert!(out.contains("primitives  7  (cone 1  cylinder 0  sphere 6  box 0  leaf 0)"), "{out}");
-    assert!(out.contains("encoded     165 bytes"), "{out}");
+    assert!(out.contains("encoded     166 bytes"), "{out}");
     assert!(out.contains("traversal"), "{out}");
     let o = canopy(&["species", "stats", "worm", "--param", "nope=1"]);
     assert!(!o.status.success());
