@@ -17,11 +17,29 @@ if (files.length === 0) {
   process.exit(2);
 }
 
+// The whole file, read a GiB at a time: readFileSync stops at 2 GiB, a typed array holds up to 4 GiB (all a GLB
+// can be: its lengths are u32).
+function readAll(file) {
+  const fd = fs.openSync(file, 'r');
+  try {
+    const size = fs.fstatSync(fd).size;
+    const bytes = new Uint8Array(size);
+    for (let at = 0; at < size; ) {
+      const n = fs.readSync(fd, bytes, at, Math.min(size - at, 1 << 30), at);
+      if (n === 0) throw new Error(`the file ended at ${at} of ${size} bytes`);
+      at += n;
+    }
+    return bytes;
+  } finally {
+    fs.closeSync(fd);
+  }
+}
+
 let failed = false;
 for (const file of files) {
   let bytes;
   try {
-    bytes = new Uint8Array(fs.readFileSync(file));
+    bytes = readAll(file);
   } catch (e) {
     console.error(`${file}: cannot read: ${e.message}`);
     process.exit(2);
