@@ -33,15 +33,13 @@ impl Format {
     }
 }
 
-/// Parse a source in the format its name's extension names; at most [`crate::diag::MAX_DIAGNOSTICS`] diagnostics
-/// and a count of the rest ([`crate::diag::cap`]).
+/// Parse a source in the format its name's extension names.
 pub fn parse_source(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
-    let (graph, diags) = match Format::of(&src.name) {
+    match Format::of(&src.name) {
         Some(Format::Species) => parse_species(src),
         Some(Format::LSystem) => parse_lsystem(src),
         None => (None, vec![src.diag(0..0, "unknown species format: expected a `.species` or `.lsys` file")]),
-    };
-    (graph, crate::diag::cap(diags))
+    }
 }
 
 /// Bytes of source text accepted in one file of any text format (species, L-system, world manifest, hypertree,

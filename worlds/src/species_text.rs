@@ -38,13 +38,13 @@ use canopy_protocol::{Node, NodeId, ParamDecl, ParamRole, ParamScope, SpeciesGra
 use crate::diag::{Diagnostic, SourceFile, did_you_mean};
 use crate::expr::{compile, parse_expr};
 use crate::nodes::parse_node_call;
-use crate::text::{Cursor, ParseError, last_token_end};
+use crate::text::{Cursor, ParseError};
 
 /// Deepest nesting of `{ }` blocks accepted.
 pub const MAX_BLOCK_NESTING: usize = 256;
 
-/// Parse a species text file. Returns the graph if there were no errors, and every diagnostic found: one per
-/// mistake (a name that is not known is reported once, at its first use, with how many more uses it has; a
+/// Parse a species text file. Returns the graph if there were no errors, and the diagnostics found (at most
+/// [`crate::diag::MAX_DIAGNOSTICS`], then one with a count of the rest): one per mistake (a name that is not known is reported once, at its first use, with how many more uses it has; a
 /// construct cut off at the end of its line is reported there, not at the next line's first token).
 pub fn parse_species(src: &SourceFile) -> (Option<SpeciesGraph>, Vec<Diagnostic>) {
     let mut p = Parser {
@@ -166,15 +166,6 @@ impl Parser<'_> {
                 Ok(Some(c)) => out.push(c),
                 Ok(None) => {}
                 Err(e) => {
-                    // Cut off at the end of a line: said there, and the next line parsed as what it is.
-                    let end = last_token_end(self.cur.src, start, e.span.start);
-                    let e = match e.at_line_end(end) {
-                        Some(at_end) if end > start && self.cur.src[end..e.span.start].contains('\n') => {
-                            self.cur.pos = end;
-                            at_end
-                        }
-                        _ => e,
-                    };
                     self.errors.push(e);
                     self.recover(start);
                 }
@@ -507,7 +498,7 @@ impl Parser<'_> {
         let mut diags: Vec<Diagnostic> =
             self.errors.iter().map(|e| src.diag(e.span.clone(), e.message.clone())).collect();
         diags.sort_by_key(|d| (d.line, d.col));
-        let Some(root) = root.filter(|_| diags.is_empty()) else { return (None, diags) };
+        let Some(root) = root.filter(|_| diags.is_empty()) else { return (None, crate::diag::cap(diags)) };
         let name = self.name.unwrap_or_else(|| file_stem(&src.name));
         let graph = SpeciesGraph { name, params: self.params, nodes: self.nodes, root };
         match graph.validate() {

@@ -10,40 +10,12 @@ pub struct ParseError {
     pub span: Range<usize>,
     /// What, lowercase without a trailing period.
     pub message: String,
-    /// What was expected, for an error made by [`Cursor::unexpected`] (see [`ParseError::at_line_end`]).
-    pub expected: Option<String>,
 }
 
 impl ParseError {
     /// A parse error at `span`.
     pub fn new(span: Range<usize>, message: impl Into<String>) -> ParseError {
-        ParseError { span, message: message.into(), expected: None }
-    }
-
-    /// The same "expected …" error said where a construct's line ended (`at`, just past its last token): the token
-    /// found instead starts a later line, so it is not the mistake (`param s = height / 40 +` and then
-    /// `param r = …` is a trailing `+`, not a misplaced `param`). `None` for other errors.
-    pub fn at_line_end(&self, at: usize) -> Option<ParseError> {
-        let what = self.expected.as_ref()?;
-        Some(ParseError {
-            span: at..at,
-            message: format!("expected {what}, found end of line"),
-            expected: self.expected.clone(),
-        })
-    }
-}
-
-/// Just past the last token of `src[from..to]`: trailing whitespace and `#` comments skipped (`from` when there is
-/// no token).
-pub fn last_token_end(src: &str, from: usize, to: usize) -> usize {
-    let mut end = from;
-    let mut cur = Cursor::new(&src[..to], true);
-    cur.pos = from;
-    loop {
-        cur.skip_trivia();
-        let Some(c) = cur.rest().chars().next() else { return end };
-        cur.pos += c.len_utf8();
-        end = cur.pos;
+        ParseError { span, message: message.into() }
     }
 }
 
@@ -119,7 +91,7 @@ impl<'a> Cursor<'a> {
     pub fn unexpected(&mut self, what: &str) -> ParseError {
         self.skip_trivia();
         let rest = self.rest();
-        let mut e = match rest.chars().next() {
+        match rest.chars().next() {
             None => ParseError::new(self.pos..self.pos, format!("expected {what}, found end of file")),
             Some('\n') => ParseError::new(self.pos..self.pos + 1, format!("expected {what}, found end of line")),
             Some(c) => {
@@ -130,9 +102,7 @@ impl<'a> Cursor<'a> {
                 };
                 ParseError::new(self.pos..self.pos + len, format!("expected {what}, found `{}`", &rest[..len]))
             }
-        };
-        e.expected = Some(what.to_string());
-        e
+        }
     }
 
     /// An identifier `[A-Za-z_][A-Za-z0-9_]*` after trivia, with its span.

@@ -144,3 +144,18 @@ fn a_misspelt_declaration_is_one_diagnostic_at_the_first_use() {
     assert_eq!(d.len(), 1, "{}", show(&d));
     assert_eq!(d[0].message, "`use Leaf` names no `def`; did you mean `Lef`? (1 more use(s))");
 }
+
+/// A file that is not in the format at all gets at most 20 diagnostics and a count of the rest, in both formats.
+#[test]
+fn a_file_full_of_mistakes_is_capped_with_a_count() {
+    use canopy_worlds::diag::MAX_DIAGNOSTICS;
+    use canopy_worlds::load::parse_source;
+    let files =
+        [("many.species", String::new(), "frobnicate(1)\n"), ("many.lsys", "derive 1\naxiom: A\n".into(), "A -> B(\n")];
+    for (name, head, line) in files {
+        let (g, d) = parse_source(&SourceFile::new(name, head + &line.repeat(30)));
+        assert!(g.is_none());
+        assert_eq!(d.len(), MAX_DIAGNOSTICS + 1, "{name}: {}", show(&d));
+        assert!(d[MAX_DIAGNOSTICS].message.starts_with("and 10 more"), "{name}: {}", show(&d));
+    }
+}

@@ -393,13 +393,14 @@ pub struct LSystem {
 }
 
 impl LSystem {
-    /// Parse and compile an L-system. Returns it if there were no errors, and every diagnostic found.
+    /// Parse and compile an L-system. Returns it if there were no errors, and the diagnostics found (at most
+    /// [`crate::diag::MAX_DIAGNOSTICS`], then one with a count of the rest).
     pub fn parse(src: &SourceFile) -> (Option<LSystem>, Vec<Diagnostic>) {
         let mut errors = Vec::new();
         let lsys = compile::parse_inner(src, &mut errors);
         errors.sort_by_key(|e| (e.span.start, e.span.end));
         let diags: Vec<Diagnostic> = errors.into_iter().map(|e| src.diag(e.span, e.message)).collect();
-        if diags.is_empty() { (lsys, diags) } else { (None, diags) }
+        if diags.is_empty() { (lsys, diags) } else { (None, crate::diag::cap(diags)) }
     }
 
     /// The id of a user symbol (module or non-terminal) by name.
