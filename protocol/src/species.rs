@@ -376,11 +376,15 @@ impl SpeciesGraph {
         self.params.get(usize::from(slot)).is_some_and(|p| p.role == ParamRole::Parameter)
     }
 
+    /// The declared values of one role with their slots, in declaration order.
+    pub fn of_role(&self, role: ParamRole) -> impl Iterator<Item = (u16, &ParamDecl)> {
+        self.params.iter().enumerate().filter(move |(_, p)| p.role == role).map(|(i, p)| (i as u16, p))
+    }
+
     /// The slot of the parameter `name` (not a working value): what an instance may set. The error says why not
     /// and names the species' parameters.
     pub fn parameter_slot(&self, name: &str) -> Result<u16, String> {
-        let names: Vec<&str> =
-            self.params.iter().filter(|p| p.role == ParamRole::Parameter).map(|p| p.name.as_str()).collect();
+        let names: Vec<&str> = self.of_role(ParamRole::Parameter).map(|(_, p)| p.name.as_str()).collect();
         let list =
             if names.is_empty() { "it has none".to_string() } else { format!("its parameters: {}", names.join(", ")) };
         match self.param_slot(name) {

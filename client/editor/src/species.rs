@@ -67,20 +67,13 @@ impl Species {
     /// The species' parameters (not its working values: `let` values, an L-system's module arguments and
     /// internal values): their slots and names, in declaration order.
     pub fn declared_params(&self) -> Vec<(u16, &str)> {
-        self.declared(ParamRole::Parameter)
+        self.graph.of_role(ParamRole::Parameter).map(|(s, p)| (s, p.name.as_str())).collect()
     }
 
     /// The working values a person declared (`let` in a species file; an L-system's internal ones, named `_…`, and
     /// its depth limit left out): slots and names, in declaration order.
     pub fn working_values(&self) -> Vec<(u16, &str)> {
-        self.declared(ParamRole::Working)
-            .into_iter()
-            .filter(|(_, name)| !name.starts_with('_') && *name != DEPTH_PARAM)
-            .collect()
-    }
-
-    fn declared(&self, role: ParamRole) -> Vec<(u16, &str)> {
-        let of_role = self.graph.params.iter().enumerate().filter(|(_, p)| p.role == role);
-        of_role.map(|(i, p)| (i as u16, p.name.as_str())).collect()
+        let working = self.graph.of_role(ParamRole::Working).map(|(s, p)| (s, p.name.as_str()));
+        working.filter(|(_, name)| !name.starts_with('_') && *name != DEPTH_PARAM).collect()
     }
 }

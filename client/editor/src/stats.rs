@@ -6,6 +6,7 @@
 use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::time::{Duration, Instant};
 
+use canopy_protocol::ParamRole;
 use canopy_worlds::amplify::{Budget, Instance};
 use canopy_worlds::mesh::{MeshOptions, explicit_bytes, mesh};
 use canopy_worlds::primitive::{PrimitiveKind, PrimitiveStream};
@@ -88,8 +89,8 @@ pub fn measure(
     let stats = SpeciesStats {
         name: g.name.clone(),
         nodes: g.nodes.len(),
-        params: (0..g.params.len() as u16).filter(|&s| g.is_parameter(s)).count(),
-        working: (0..g.params.len() as u16).filter(|&s| !g.is_parameter(s)).count(),
+        params: g.of_role(ParamRole::Parameter).count(),
+        working: g.of_role(ParamRole::Working).count(),
         seed: instance.seed,
         detail: instance.detail,
         counts: stream.counts(),

@@ -3,6 +3,8 @@
 //! same rules ([`crate::Overlay::from_log_checked`]): a store may hold what the world as loaded cannot take (a
 //! species removed from the manifest since, a damaged row), and such an edit is skipped, never served.
 
+use canopy_protocol::ParamRole;
+
 /// Largest magnitude of a parameter value an edit may set (species declare no ranges; this keeps values sane).
 pub const MAX_PARAM_VALUE: f32 = 1.0e4;
 
@@ -22,8 +24,7 @@ impl EditRules {
 
     /// Rules for a world of these species, in table order.
     pub fn of_species<'a>(graphs: impl IntoIterator<Item = &'a canopy_protocol::SpeciesGraph>) -> EditRules {
-        let slots =
-            |g: &canopy_protocol::SpeciesGraph| (0..g.params.len() as u16).filter(|&s| g.is_parameter(s)).collect();
+        let slots = |g: &'a canopy_protocol::SpeciesGraph| g.of_role(ParamRole::Parameter).map(|(s, _)| s).collect();
         EditRules::new(graphs.into_iter().map(slots).collect())
     }
 
