@@ -9,8 +9,8 @@ use std::path::Path;
 
 use crate::EditorError;
 
-/// What kind of thing a path is, for [`EditorError::NotAFile`] (and `canopy species export`'s refusal).
-pub fn kind(t: std::fs::FileType) -> &'static str {
+/// What kind of thing a path is, for [`EditorError::NotAFile`].
+fn kind(t: std::fs::FileType) -> &'static str {
     if t.is_dir() {
         "a directory"
     } else if t.is_symlink() {
@@ -29,12 +29,7 @@ pub fn write_file(path: &Path, bytes: &[u8]) -> Result<(), EditorError> {
 /// fails, the temporary file is removed and `path` is untouched.
 pub fn replace_with(path: &Path, write: impl FnOnce(&mut File) -> std::io::Result<()>) -> Result<(), EditorError> {
     let err = |reason: String| EditorError::Write { path: path.display().to_string(), reason };
-    let keep: Option<Permissions> = match std::fs::symlink_metadata(path) {
-        Ok(m) if m.file_type().is_file() => Some(m.permissions()),
-        Ok(m) => return Err(EditorError::NotAFile { path: path.display().to_string(), kind: kind(m.file_type()) }),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
-        Err(e) => return Err(err(e.to_string())),
-    };
+    let keep = check_target(path)?;
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -56,6 +51,18 @@ pub fn replace_with(path: &Path, write: impl FnOnce(&mut File) -> std::io::Resul
         let _ = d.sync_all();
     }
     Ok(())
+}
+
+/// Whether [`replace_with`] may replace `path`: it does not exist yet (`None`), or it is a regular file (its
+/// permissions, which the new file keeps); anything else is refused. A writer that works long before it writes
+/// (an export) asks first, so it refuses before the work.
+pub fn check_target(path: &Path) -> Result<Option<Permissions>, EditorError> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_file() => Ok(Some(m.permissions())),
+        Ok(m) => Err(EditorError::NotAFile { path: path.display().to_string(), kind: kind(m.file_type()) }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(EditorError::Write { path: path.display().to_string(), reason: e.to_string() }),
+    }
 }
 
 /// A new file's permissions: readable by everyone, writable by its owner (a temporary file starts private); `None`

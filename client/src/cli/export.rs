@@ -10,7 +10,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 use canopy_editor::EditorError;
-use canopy_editor::save::{kind, replace_with};
+use canopy_editor::save::{check_target, replace_with};
 use canopy_harness::numbers::group;
 use canopy_worlds::amplify::Instance;
 use canopy_worlds::gltf::{GlbError, GlbLayout, GlbStreamError, MAX_GLB_BYTES, Node, SizeCheck, lay_out};
@@ -95,24 +95,23 @@ fn export_grove(
     check: SizeCheck,
     mut instance: impl FnMut(u64, bool) -> anyhow::Result<Vec<Node<'static>>>,
 ) -> anyhow::Result<GlbLayout> {
-    refuse_non_file(out)?;
+    // Refused before anything is made: the file is written beside it and renamed over it, which would replace a
+    // directory, a link or a device, not write into it.
+    check_target(out).map_err(|e| refused(out, e))?;
     let limit = max_bytes.min(MAX_GLB_BYTES);
     let layout = lay_out(u64::from(grove), limit, check, |i| instance(i, true)).map_err(|e| failed(out, grove, e))?;
     write_streamed(out, grove, &layout, |i| instance(i, false))?;
     Ok(layout)
 }
 
-/// Refuse an output that exists and is not a regular file (a directory, a symbolic link, a device, a pipe) before
-/// making anything: the file is written beside it and renamed over it, which would replace it, not write into it.
-fn refuse_non_file(out: &Path) -> anyhow::Result<()> {
-    match std::fs::symlink_metadata(out) {
-        Ok(m) if !m.file_type().is_file() => Err(not_a_file(out, kind(m.file_type()))),
-        _ => Ok(()),
+/// A failure to write `out`, in the command's terms.
+fn refused(out: &Path, e: EditorError) -> anyhow::Error {
+    match e {
+        EditorError::NotAFile { kind, .. } => {
+            anyhow::anyhow!("{}: {kind}: refusing to write over it (export writes regular files only)", out.display())
+        }
+        e => e.into(),
     }
-}
-
-fn not_a_file(out: &Path, kind: &str) -> anyhow::Error {
-    anyhow::anyhow!("{}: {kind}: refusing to write over it (export writes regular files only)", out.display())
 }
 
 /// Write `layout` to `out` through a temporary file in its directory, renamed over `out` once complete (and
@@ -141,8 +140,7 @@ fn write_streamed(
     });
     match (written, failure) {
         (_, Some(e)) => Err(failed(out, grove, e)),
-        (Err(EditorError::NotAFile { kind, .. }), None) => Err(not_a_file(out, kind)),
-        (Err(e), None) => Err(e.into()),
+        (Err(e), None) => Err(refused(out, e)),
         (Ok(()), None) => Ok(()),
     }
 }
