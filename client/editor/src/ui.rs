@@ -549,17 +549,15 @@ impl EditorUi {
                 }
             });
         }
-        let working = self.model.working_values();
-        if !working.is_empty() {
-            egui::CollapsingHeader::new(format!("Working values ({})", working.len())).default_open(false).show(
-                ui,
-                |ui| {
-                    ui.label(RichText::new("the program's own, at the start of this instance").italics().small());
-                    for (name, v) in working {
-                        ui.label(RichText::new(format!("{name} = {v}")).monospace().small());
-                    }
-                },
-            );
+        // Counted every frame; evaluated (the instance's parameters) only while the section is open.
+        let working = self.model.species().map_or(0, |s| s.working_values().len());
+        if working > 0 {
+            egui::CollapsingHeader::new(format!("Working values ({working})")).default_open(false).show(ui, |ui| {
+                ui.label(RichText::new("the program's own, at the start of this instance").italics().small());
+                for (name, v) in self.model.working_values() {
+                    ui.label(RichText::new(format!("{name} = {v}")).monospace().small());
+                }
+            });
         }
         if let Some(e) = self.model.amplify_error() {
             ui.colored_label(crate::ui_source::ERROR, e);
