@@ -161,9 +161,9 @@ fn push_step<'a>(owner: &str, step: &'a mut Elementary, out: &mut Vec<LevelValue
 }
 
 /// Raymarch a hypertree with the CPU reference renderer (seed 000 §8) into a `width × height` image, seen from
-/// `azimuth` degrees.
-pub fn raymarch(tree: &Hypertree, width: u32, height: u32, azimuth: f32) -> Result<Image, String> {
-    let opts = RenderOptions { width, height, azimuth, ..RenderOptions::default() };
+/// `azimuth` degrees, lit as `lit` says.
+pub fn raymarch(tree: &Hypertree, lit: &RenderOptions, width: u32, height: u32, azimuth: f32) -> Result<Image, String> {
+    let opts = RenderOptions { width, height, azimuth, ..lit.clone() };
     render(tree, &opts, &mut |_, _| {}).map(|(img, _)| img).map_err(|e| e.to_string())
 }
 
@@ -216,13 +216,19 @@ impl VolumeJob {
     /// Generate (or voxelise) and raymarch.
     pub fn run(&self) -> Result<VolumeImage, String> {
         let t = std::time::Instant::now();
-        let (tree, azimuth, what) = match self {
-            VolumeJob::Hypertree(h, a) => (h.generate()?, *a, "generated"),
-            VolumeJob::Species(s, i, b, a) => (species_volume(s, i, b, FAR_RESOLUTION)?, *a, "voxelised"),
+        // A `.hyp` in the paper's shading model; a species' far field as the walkthrough shades it.
+        let (tree, lit, azimuth, what) = match self {
+            VolumeJob::Hypertree(h, a) => (h.generate()?, RenderOptions::default(), *a, "generated"),
+            VolumeJob::Species(s, i, b, a) => (
+                species_volume(s, i, b, FAR_RESOLUTION)?,
+                canopy_render::Lighting::default().reference_options(),
+                *a,
+                "voxelised",
+            ),
         };
         let made = t.elapsed().as_secs_f64() * 1e3;
         let t = std::time::Instant::now();
-        let image = raymarch(&tree, IMAGE_SIDE, IMAGE_SIDE, azimuth)?;
+        let image = raymarch(&tree, &lit, IMAGE_SIDE, IMAGE_SIDE, azimuth)?;
         let marched = t.elapsed().as_secs_f64() * 1e3;
         let r = tree.volume.resolution;
         Ok(VolumeImage {
@@ -253,7 +259,7 @@ mod tests {
         *v.value = 10.0;
         let b = m.generate().expect("generates");
         assert_ne!(a.hash(), b.hash(), "a slider changes the tree");
-        let img = raymarch(&b, 32, 32, 0.0).expect("renders");
+        let img = raymarch(&b, &RenderOptions::default(), 32, 32, 0.0).expect("renders");
         assert_eq!(img.pixels.len(), 32 * 32 * 3);
     }
 }

@@ -46,8 +46,8 @@ fn with_fog(c: vec3<f32>, world: vec3<f32>) -> vec3<f32> {
 // Lambert with the sun plus ambient light, the same model the far field's baked shading uses.
 fn shade(base: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     let lambert = max(dot(n, g.sun_dir.xyz), 0.0);
-    // A little sky light from above so that faces turned from the sun keep their shape.
-    let sky = 0.12 * (0.5 + 0.5 * n.y);
+    // A little sky light from above so that faces turned from the sun keep their shape (`Lighting::sky_light`).
+    let sky = g.sky_horizon.w * (0.5 + 0.5 * n.y);
     return base * (g.sun_dir.w + sky + g.sun_color.w * lambert * g.sun_color.rgb);
 }
 

@@ -105,6 +105,8 @@ pub struct Lighting {
     pub ambient: f32,
     /// Diffuse coefficient.
     pub diffuse: f32,
+    /// Light from the sky, `sky_light · (½ + ½ n_y)`, on meshes and in the far field's baked shading.
+    pub sky_light: f32,
     /// Exponential falloff of ambient light toward a crown's interior (hypertrees, Reeves; 0 = constant).
     pub ambient_falloff: f32,
     /// The opacity coefficient `k` of `α = 1 − (1 − µ)^(k·Δs)` for hypertrees.
@@ -121,7 +123,9 @@ pub struct Lighting {
 
 impl Default for Lighting {
     fn default() -> Self {
-        // Sun, ambient, diffuse and opacity are the CPU reference renderer's defaults.
+        // Sun, ambient, diffuse and opacity are the CPU reference renderer's defaults. The far field is lit as the
+        // near meshes are, so that a tree does not change where it becomes a volume (issue 35.3): the sky's light
+        // of the meshes, no darkening toward the crown's interior and no self-shadowing (the meshes cast none).
         let r = RenderOptions::default();
         let sun = r.lights[0];
         Lighting {
@@ -129,9 +133,10 @@ impl Default for Lighting {
             sun_color: sun.color,
             ambient: r.ambient,
             diffuse: r.diffuse,
-            ambient_falloff: r.ambient_falloff,
+            sky_light: 0.12,
+            ambient_falloff: 0.0,
             density_scale: r.density_scale,
-            volume_shadows: r.shadows,
+            volume_shadows: false,
             sky_zenith: [0.42, 0.6, 0.85],
             sky_horizon: [0.78, 0.85, 0.92],
             fog_density: 0.0007,
@@ -148,6 +153,7 @@ impl Lighting {
             ambient: self.ambient,
             ambient_falloff: self.ambient_falloff,
             diffuse: self.diffuse,
+            sky_light: self.sky_light,
             density_scale: self.density_scale,
             shadows: self.volume_shadows,
             shading: Shading::Diffuse,
@@ -288,6 +294,7 @@ impl RenderConfig {
             ((0.0..=100.0).contains(&l.ambient), "ambient"),
             ((0.0..=100.0).contains(&l.diffuse), "diffuse"),
             ((0.0..=100.0).contains(&l.ambient_falloff), "ambient falloff"),
+            ((0.0..=100.0).contains(&l.sky_light), "sky light"),
             ((0.0..=1000.0).contains(&l.density_scale), "density scale"),
             (fin(&l.sky_zenith) && fin(&l.sky_horizon), "sky colour"),
             ((0.0..=1.0).contains(&l.fog_density), "fog density"),

@@ -645,7 +645,7 @@ impl Renderer {
             sun_dir: sun.extend(l.ambient).to_array(),
             sun_color: [l.sun_color[0], l.sun_color[1], l.sun_color[2], l.diffuse],
             sky_zenith: [l.sky_zenith[0], l.sky_zenith[1], l.sky_zenith[2], l.fog_density],
-            sky_horizon: [l.sky_horizon[0], l.sky_horizon[1], l.sky_horizon[2], 0.0],
+            sky_horizon: [l.sky_horizon[0], l.sky_horizon[1], l.sky_horizon[2], l.sky_light],
             viewport: [w as f32, h as f32, 1.0 / w as f32, 1.0 / h as f32],
         };
         self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));

@@ -548,7 +548,8 @@ mod tests {
         let full = cover(&tile.mips[0], DENSITY_CLASSES);
         let thinned: Vec<f32> = (0..=DENSITY_CLASSES).map(|k| cover(&tile.mips[0], k)).collect();
         eprintln!("cover from above keeping 0..=8 classes: {thinned:?}");
-        assert!(full > 0.9, "a closed canopy from above: {full}");
+        // Crowns as open as the trees they stand for (issue 35.3): about 0.82 of the ground hidden from above.
+        assert!(full > 0.75, "a closed canopy from above: {full}");
         assert!(thinned.windows(2).all(|w| w[0] < w[1]), "each class kept adds cover: {thinned:?}");
         assert!(thinned[1] < 0.4 * full, "an eighth of the trees leaves most ground open: {thinned:?}");
         assert_eq!(thinned[0], 0.0);

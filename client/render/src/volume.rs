@@ -388,7 +388,7 @@ mod tests {
         let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).unwrap();
         let (w, h) = (64u32, 64u32);
         let bg = [0.5f32, 0.6, 0.7];
-        let ro = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
+        let ro = RenderOptions { width: w, height: h, background: [bg, bg], ..Lighting::default().reference_options() };
         let (img, _) = render(&tree, &ro, &mut |_, _| {}).unwrap();
         let v = volumes_of(&tree, [0.0; 3], 1.0, 64, &Lighting::default()).unwrap().full;
         let cam = ReferenceCamera::new(&tree.aabb().unwrap(), &ro);

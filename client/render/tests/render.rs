@@ -1,7 +1,8 @@
 //! Image tests of the renderer, offscreen on whatever wgpu adapter is present (CI: Mesa lavapipe, no GPU): fixed
 //! scenes compared with committed reference PNGs in `tests/reference/` within a tolerance (on failure
 //! `NAME-actual.png` and `NAME-difference.png` are written beside them; `CANOPY_BLESS=1` writes missing references),
-//! and the far field compared with the CPU reference raymarcher of `canopy_worlds::hypertree::render`.
+//! the far field compared with the CPU reference raymarcher of `canopy_worlds::hypertree::render`, and with the
+//! near tree it stands for.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -10,7 +11,9 @@ use std::time::Duration;
 use canopy_render::compare::{Tolerance, check_reference, compare};
 use canopy_render::offscreen::{RenderedImage, render_still};
 use canopy_render::scene::SceneVolume;
+use canopy_render::volume::REPRESENTATIVE_SEED;
 use canopy_render::{Camera, FarPath, FrameStats, LodConfig, NearMode, RenderConfig, Scene, SceneFar, SceneInstance};
+use canopy_worlds::amplify::{Budget, Instance, amplify};
 use canopy_worlds::diag::SourceFile;
 use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
 use canopy_worlds::hypertree::render::{ReferenceCamera, RenderOptions, render as cpu_render};
@@ -149,7 +152,12 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
     let (tree, _) = generate(&def, 3, &opts, &mut |_, _| {}).expect("generates");
     let bg = [0.78f32, 0.85, 0.92];
     let (w, h) = (128u32, 128u32);
-    let cpu_opts = RenderOptions { width: w, height: h, background: [bg, bg], ..RenderOptions::default() };
+    let cpu_opts = RenderOptions {
+        width: w,
+        height: h,
+        background: [bg, bg],
+        ..RenderConfig::default().lighting.reference_options()
+    };
     let (cpu, _) = cpu_render(&tree, &cpu_opts, &mut |_, _| {}).expect("CPU render");
     let cpu = RenderedImage {
         width: w,
@@ -213,4 +221,113 @@ fn volume_matches_the_cpu_reference(far_path: FarPath, gpu: &RenderedImage, stat
         );
     }
     check_reference(gpu, &reference("hypertree-apple.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+}
+
+// The far field matches the near tree where it takes over (issue 35.3): one tree of the library drawn where its
+// bounding sphere is `LodConfig::far_px` pixels tall, once at full detail and once as its hypertree volume (the
+// representative instance, so both are the same tree), each over a black and a white sky; the fraction of the image
+// the tree covers and its mean colour are compared.
+
+const SIDE: u32 = 192;
+const FOV: f32 = 35.0;
+
+/// One instance of `species` (the representative), no ground in view, and a camera 8° above the horizon at the
+/// distance where the tree's bounding sphere is just under the far threshold.
+fn lone_tree(species: &str) -> (Scene, Camera) {
+    let graph = canopy_worlds::library::find(species).expect("library species").load().expect("parses");
+    let stream = amplify(&graph, &Instance::new(REPRESENTATIVE_SEED), &Budget::default()).expect("amplifies");
+    let (lo, hi) = stream.bounds();
+    let centre = Vec3::from(lo).lerp(Vec3::from(hi), 0.5);
+    let radius = 0.5 * (Vec3::from(hi) - Vec3::from(lo)).length();
+    // A sphere of radius r at distance d is r·H / (d·tan(fov/2)) pixels tall.
+    let px = 0.97 * LodConfig::default().far_px;
+    let distance = radius * SIDE as f32 / (px * (FOV.to_radians() / 2.0).tan());
+    let el = 8f32.to_radians();
+    let eye = centre + distance * Vec3::new(0.0, el.sin(), el.cos());
+    let scene = Scene {
+        species: vec![Some(Arc::new(graph))],
+        volumes: vec![None],
+        instances: vec![SceneInstance {
+            id: InstanceId(0),
+            species: 0,
+            position: [0.0; 3],
+            seed: REPRESENTATIVE_SEED,
+            params: Vec::new(),
+        }],
+        ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),
+        generation: 1,
+        far: SceneFar::default(),
+    };
+    (scene, Camera::looking_at(eye, centre, FOV))
+}
+
+/// The tree at the level `lod` forces, over a black and over a white sky, fog off, the default lighting.
+fn shoot_lone(species: &str, lod: &LodConfig) -> [RenderedImage; 2] {
+    let (scene, camera) = lone_tree(species);
+    [[0.0; 3], [1.0; 3]].map(|sky| {
+        let mut cfg =
+            RenderConfig { lod: lod.clone(), workers: 1, far_path: FarPath::Compute, ..RenderConfig::default() };
+        cfg.lighting.fog_density = 0.0;
+        (cfg.lighting.sky_zenith, cfg.lighting.sky_horizon) = (sky, sky);
+        let (img, stats) =
+            render_still(cfg, &scene, &camera, SIDE, SIDE, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((stats.in_view, stats.waiting), (1, 0), "{stats:?}");
+        img
+    })
+}
+
+/// Coverage (the mean opacity of the pixels, `1 − (white − black)`: a pixel half covered counts half, whether it is
+/// half transparent or half of its samples) and the tree's mean colour (over black, divided by the coverage), 0..1.
+fn coverage_and_colour([black, white]: &[RenderedImage; 2]) -> (f64, [f64; 3]) {
+    let (mut covered, mut sum) = (0.0f64, [0.0f64; 3]);
+    for (b, w) in black.rgba.chunks_exact(4).zip(white.rgba.chunks_exact(4)) {
+        let alpha: f64 = (0..3).map(|i| 1.0 - (f64::from(w[i]) - f64::from(b[i])) / 255.0).sum::<f64>() / 3.0;
+        covered += alpha.clamp(0.0, 1.0);
+        for i in 0..3 {
+            sum[i] += f64::from(b[i]) / 255.0;
+        }
+    }
+    (covered / (black.rgba.len() / 4) as f64, sum.map(|v| v / covered.max(1e-9)))
+}
+
+/// Render `species` near and far, print the numbers, and check the far coverage within `coverage` (relative) of the
+/// near one's and the mean colours within `colour` (Euclidean, RGB in 0..1). On failure both pictures are written
+/// to the temporary directory.
+fn far_matches_near(species: &str, coverage: f64, colour: f64) {
+    let near = shoot_lone(species, &LodConfig { near_px: 0.0, far_px: 0.0, cull_px: 0.0, ..LodConfig::default() });
+    let far = shoot_lone(species, &LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, ..LodConfig::default() });
+    let (n, f) = (coverage_and_colour(&near), coverage_and_colour(&far));
+    let dc = (0..3).map(|i| (n.1[i] - f.1[i]).powi(2)).sum::<f64>().sqrt();
+    let rel = (f.0 - n.0) / n.0.max(1e-9);
+    let report = format!(
+        "{species}: near coverage {:.4} colour {:.3?}; far coverage {:.4} colour {:.3?}; coverage {:+.1} %, colour distance {dc:.3}",
+        n.0,
+        n.1,
+        f.0,
+        f.1,
+        100.0 * rel
+    );
+    eprintln!("{report}");
+    if !(n.0 > 0.005 && rel.abs() <= coverage && dc <= colour) {
+        let dir = std::env::temp_dir();
+        for (name, img) in [("near", &near[1]), ("far", &far[1])] {
+            img.save_png(&dir.join(format!("canopy-{species}-{name}.png"))).unwrap();
+        }
+        panic!("{report}: the far field does not match the near tree (pictures in {})", dir.display());
+    }
+}
+
+/// The issue's goal: coverage within ±15 %, mean colour within 0.1 (measured 2026-11-27 on lavapipe: −6.1 %,
+/// 0.070; before the far field was calibrated: +87 %, 0.16, a dark blob).
+#[test]
+fn monopodial_far_field_matches_the_near_tree_at_the_switch() {
+    far_matches_near("monopodial", 0.15, 0.1);
+}
+
+/// The colour meets the goal, the coverage nearly (measured 2026-11-27 on lavapipe: +16.9 %, 0.052; before: +141 %,
+/// 0.165). A density is the same from every side, a tree's cover is not: seen from 45° and 85° above the horizon the
+/// far conifer covers −3 % and −7 % of the near one's. A guard that it gets no worse.
+#[test]
+fn conifer_far_field_is_no_further_from_the_near_tree_than_today() {
+    far_matches_near("conifer", 0.2, 0.1);
 }

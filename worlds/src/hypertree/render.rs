@@ -95,6 +95,9 @@ pub struct RenderOptions {
     pub ambient_falloff: f32,
     /// Diffuse coefficient.
     pub diffuse: f32,
+    /// Light from the sky, `sky_light · (½ + ½ n_y)` with the procedural normal `n` (the renderer's near meshes
+    /// have this term; 0 leaves the paper's model).
+    pub sky_light: f32,
     /// Specular coefficient.
     pub specular: f32,
     /// Specular exponent.
@@ -125,6 +128,7 @@ impl Default for RenderOptions {
             ambient: 0.45,
             ambient_falloff: 1.6,
             diffuse: 0.85,
+            sky_light: 0.0,
             specular: 0.35,
             shininess: 24.0,
             density_scale: 1.0,
@@ -214,6 +218,7 @@ fn check(o: &RenderOptions) -> Result<(), RenderError> {
         (ok(o.zoom_out, 0.05, 1e3), "zoom"),
         (ok(o.ambient, 0.0, 100.0), "ambient"),
         (ok(o.ambient_falloff, 0.0, 100.0), "ambient falloff"),
+        (ok(o.sky_light, 0.0, 100.0), "sky light"),
         (ok(o.diffuse, 0.0, 100.0), "diffuse"),
         (ok(o.specular, 0.0, 100.0), "specular"),
         (ok(o.shininess, 0.0, 1e4), "shininess"),
@@ -689,6 +694,7 @@ impl<Q: VoxelQuery> Scene<'_, Q> {
             Shading::Diffuse | Shading::Specular => {
                 let n = self.normal(c);
                 let view = unit(sub(self.eye, c));
+                light = light.map(|a| a + self.o.sky_light * (0.5 + 0.5 * n[1]));
                 for k in 0..self.lights.len() {
                     let (l, col) = self.lights[k];
                     let lambert = dot(n, l).max(0.0);

@@ -6,6 +6,14 @@
 //! leaves at points spaced half a voxel apart on their triangles. Levels come from the primitive's thickness: the
 //! thickest wood is level 0 and each halving of thickness one level deeper, up to the branch depth; leaves are the
 //! level after it. Each level's colour is the mean material colour of its primitives.
+//!
+//! A voxel's density is how much of it the geometry covers, so that the far field is as open as the tree it stands
+//! for (issue 35.3): each sample carries its share of its primitive's mean projected area (a leaf's area over two,
+//! the mean of a flat surface seen from every direction; a thin branch's a quarter of its surface, Cauchy's), a
+//! voxel's optical depth `τ` is their sum over its face area, less where they clump (seen along each axis, the
+//! sub-cells their samples cover against the sum of each one's: a tuft of needles hides much of itself), plus solid
+//! wood as opaque as the part of the voxel it fills; its density is the `µ` for which the raymarcher's
+//! `α = 1 − (1 − µ)^(k·Δs)` across the voxel is `1 − e^(−τ)`.
 
 // Negated comparisons are deliberate: they treat NaN as out of range.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -13,20 +21,21 @@
 use canopy_protocol::hypertree::{DepthColor, MAX_DENSITY_CLASSES, MAX_RESOLUTION, MAX_TREE_DEPTH};
 use canopy_protocol::{LeafTopology, SpeciesGraph};
 
+use std::collections::HashMap;
+
 use super::generate::MAX_DENSE_VOXELS;
-use super::storage::HitRecorder;
+use super::render::REFERENCE_STEP;
+use super::storage::{HitRecorder, VoxelStore};
 use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
 use crate::amplify::{AmplifyError, Budget, Instance, amplify};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
-use crate::vec3::{add, norm, sub};
+use crate::vec3::{add, cross, norm, sub};
 
 /// How to voxelise.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct VoxeliseOptions {
     /// Voxels along the longest axis (voxels are cubes).
     pub resolution: u32,
-    /// Density classes including the empty one.
-    pub density_classes: u8,
     /// Wood levels 0..=this; leaves are the level after.
     pub branch_depth: u8,
     /// The storage structure.
@@ -37,13 +46,7 @@ pub struct VoxeliseOptions {
 
 impl Default for VoxeliseOptions {
     fn default() -> Self {
-        VoxeliseOptions {
-            resolution: 200,
-            density_classes: 64,
-            branch_depth: 3,
-            storage: StorageType::IndexBits,
-            max_samples: 200_000_000,
-        }
+        VoxeliseOptions { resolution: 200, branch_depth: 3, storage: StorageType::IndexBits, max_samples: 200_000_000 }
     }
 }
 
@@ -53,7 +56,7 @@ pub enum VoxeliseError {
     /// Resolution out of range.
     #[error("resolution {0} (allowed 1..={MAX_RESOLUTION})")]
     Resolution(u32),
-    /// Density classes or branch depth out of range.
+    /// The branch depth is out of range.
     #[error("{0} is out of range")]
     Parameter(&'static str),
     /// The instance has no primitives, or their bounds are not finite.
@@ -125,12 +128,125 @@ fn inside(shape: &Shape, q: [f32; 3]) -> bool {
     }
 }
 
+/// The opacity across one voxel that solid wood fills (its part of the voxel's 2×2×2 samples gives a part of this).
+pub const SOLID_OPACITY: f32 = 0.95;
+
+/// The mean projected area of a solid primitive seen from every direction, world units² (Cauchy: a convex body's
+/// is a quarter of its surface).
+fn projected_area(p: &Primitive) -> f32 {
+    let lateral = 0.5 * (p.transform.axis_scale(0) + p.transform.axis_scale(2));
+    let frustum = |bottom: f32, top: f32, height: f32| {
+        let (rb, rt, l) = (bottom * lateral, top * lateral, height * p.transform.axis_scale(1));
+        0.25 * std::f32::consts::PI * ((rb + rt) * l + rb * rb + rt * rt)
+    };
+    match solid_shape(&p.shape) {
+        Shape::Cone { bottom, top, height } => frustum(bottom, top, height),
+        Shape::Cylinder { radius, height } => frustum(radius, radius, height),
+        Shape::Sphere { radius } => {
+            let r = radius * p.transform.max_axis_scale();
+            std::f32::consts::PI * r * r
+        }
+        Shape::Box { size } => {
+            let s: [f32; 3] = std::array::from_fn(|i| size[i] * p.transform.axis_scale(i));
+            0.5 * (s[0] * s[1] + s[1] * s[2] + s[2] * s[0])
+        }
+        Shape::Leaf { .. } => 0.0,
+        Shape::TrunkBase(_) => unreachable!("solid_shape turns a trunk base into a cone"),
+    }
+}
+
+/// Sub-cells along a voxel's edge in the silhouette masks of its thin geometry.
+const MASK: u32 = 8;
+
+/// What covers one voxel.
+#[derive(Clone, Copy, Debug, Default)]
+struct Cover {
+    /// Optical depth of thin wood and of leaves: projected area over the voxel's face.
+    depth: [f32; 2],
+    /// The part of `depth` that thin geometry (leaves and thin wood, sampled at points) gives.
+    thin: f32,
+    /// Samples of the voxel's 2×2×2 inside solid wood (summed over primitives).
+    solid: u32,
+    /// The voxel's silhouette seen along x, y and z: the `MASK × MASK` sub-cells the thin geometry's samples fall
+    /// in.
+    union: [u64; 3],
+    /// The same counted primitive by primitive and summed: the sub-cells they would cover if none hid another.
+    sum: [u32; 3],
+}
+
+impl Cover {
+    /// The thin geometry's coverage of the voxel, the mean of its coverage seen along x, y and z. Each is
+    /// Beer–Lambert's `1 − e^(−τ·Ω)`, with `Ω` (at most 1) how much less the pieces cover than if they were placed at
+    /// random — the optical depth of the sub-cells they cover over that of the sum of each one's: needles in a tuft
+    /// hide much of one another — and never more than the sub-cells they cover (a thin layer of leaves covers only
+    /// its band of the voxel, however dense it is). Then less the part its neighbours along the axis cover beyond
+    /// chance, half of it for each (a twig seen end on covers the same spot in every voxel it runs through; the
+    /// raymarcher takes voxels along a ray as independent).
+    fn thin_coverage(&self, neighbours: &[[u64; 2]; 3]) -> f32 {
+        let cells = (MASK * MASK) as f32;
+        let mut total = 0.0f32;
+        for ((&m, &sum), around) in self.union.iter().zip(&self.sum).zip(neighbours) {
+            let (u, s) = (m.count_ones() as f32 / cells, sum as f32 / cells);
+            if s == 0.0 {
+                continue;
+            }
+            let omega = (-libm::logf(1.0 - u.min(1.0 - 0.5 / cells)) / s).min(1.0);
+            let coverage = (1.0 - libm::expf(-self.thin * omega)).min(u);
+            let shared: f32 = around
+                .iter()
+                .map(|&n| {
+                    let chance = n.count_ones() as f32 / cells;
+                    let seen = (m & n).count_ones() as f32 / m.count_ones() as f32;
+                    if chance < 1.0 { ((seen - chance) / (1.0 - chance)).max(0.0) } else { 0.0 }
+                })
+                .sum();
+            total += coverage * (1.0 - 0.5 * shared);
+        }
+        total / 3.0
+    }
+
+    /// The voxel's optical depth across it: its thin geometry's coverage (`neighbours`: the silhouettes of the
+    /// voxels before and after it along x, y and z), and solid wood as opaque as the part of the voxel it fills.
+    fn optical_depth(&self, neighbours: &[[u64; 2]; 3]) -> f32 {
+        let filled = self.solid.min(8) as f32 / 8.0;
+        -libm::logf(1.0 - self.thin_coverage(neighbours).min(0.999)) - libm::logf(1.0 - SOLID_OPACITY * filled)
+    }
+}
+
+/// The sub-cells of a `MASK × MASK` silhouette within `r` of `(u, w)` (sub-cell units), and always the one that
+/// holds it.
+fn disc(u: f32, w: f32, r: f32) -> u64 {
+    let cell = |x: f32| (x as u32).min(MASK - 1);
+    let mut m = 1u64 << (cell(u) * MASK + cell(w));
+    if r > 0.5 {
+        let (lo, hi) = (|x: f32| cell((x - r).max(0.0)), |x: f32| cell(x + r));
+        for i in lo(u)..=hi(u) {
+            for j in lo(w)..=hi(w) {
+                let (du, dw) = (i as f32 + 0.5 - u, j as f32 + 0.5 - w);
+                if du * du + dw * dw <= r * r {
+                    m |= 1 << (i * MASK + j);
+                }
+            }
+        }
+    }
+    m
+}
+
 struct Sampler<'a> {
     volume: Hypervolume,
     offset: [f32; 3],
     inv: [f32; 3],
     side: f32,
     recorder: &'a mut HitRecorder,
+    /// What covers each voxel, by index (looked up, never iterated).
+    covers: HashMap<u32, Cover>,
+    /// The silhouette masks of the primitive being sampled, by voxel index (merged into `covers` when it is done;
+    /// iterated, but what it adds does not depend on the order).
+    own: HashMap<u32, [u64; 3]>,
+    /// Whether the primitive being sampled is a leaf.
+    leaf: bool,
+    /// The radius of the thin wood being sampled, sub-cells (0 for leaves).
+    radius: f32,
     samples: u64,
     max: u64,
 }
@@ -141,35 +257,64 @@ impl Sampler<'_> {
         if self.samples > self.max { Err(VoxeliseError::Samples(self.max)) } else { Ok(()) }
     }
 
-    fn point(&mut self, p: [f32; 3], level: u8) {
-        let q = std::array::from_fn(|i| p[i] + self.offset[i]);
+    /// A sample of thin geometry carrying `area` (world units²) of projected area.
+    fn point(&mut self, p: [f32; 3], level: u8, area: f32) {
+        let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         if let Some(v) = self.volume.voxel_at(q, self.inv) {
-            self.recorder.record_at(v, self.volume.index(v), level, 0);
+            let index = self.volume.index(v);
+            self.recorder.record_at(v, index, level, 0);
+            let depth = area / (self.side * self.side);
+            let c = self.covers.entry(index).or_default();
+            c.depth[usize::from(self.leaf)] += depth;
+            c.thin += depth;
+            let sub: [f32; 3] =
+                std::array::from_fn(|i| ((q[i] * self.inv[i] - v[i] as f32) * MASK as f32).clamp(0.0, MASK as f32));
+            let r = self.radius;
+            let m = self.own.entry(index).or_default();
+            m[0] |= disc(sub[1], sub[2], r);
+            m[1] |= disc(sub[0], sub[2], r);
+            m[2] |= disc(sub[0], sub[1], r);
         }
     }
 
-    fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
+    /// The primitive is done: add its silhouettes to the voxels'.
+    fn flush(&mut self) {
+        for (index, m) in self.own.drain() {
+            let c = self.covers.entry(index).or_default();
+            for (a, mask) in m.into_iter().enumerate() {
+                c.union[a] |= mask;
+                c.sum[a] += mask.count_ones();
+            }
+        }
+    }
+
+    /// A thin primitive along `a`–`b` whose projected area is `area`.
+    fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8, area: f32) -> Result<(), VoxeliseError> {
         let d = sub(b, a);
         let len = norm(d);
-        let n = (len / (0.5 * self.side)).min(1e7) as u64 + 1;
+        let n = (len * MASK as f32 / self.side).min(1e7) as u64 + 1;
         self.budget(n + 1)?;
+        let share = area / (n + 1) as f32;
         for k in 0..=n {
             let t = k as f32 / n as f32;
-            self.point(std::array::from_fn(|i| a[i] + d[i] * t), level);
+            self.point(std::array::from_fn(|i| a[i] + d[i] * t), level, share);
         }
         Ok(())
     }
 
+    /// A leaf triangle: half its area is its mean projected area.
     fn triangle(&mut self, a: [f32; 3], b: [f32; 3], c: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
         let e = |p: [f32; 3], q: [f32; 3]| norm(sub(q, p));
         let longest = e(a, b).max(e(b, c)).max(e(c, a));
-        let n = (longest / (0.5 * self.side)).min(1e4) as u64 + 1;
-        self.budget((n + 1) * (n + 2) / 2)?;
+        let n = (longest * MASK as f32 / self.side).min(1e4) as u64 + 1;
+        let count = (n + 1) * (n + 2) / 2;
+        self.budget(count)?;
+        let share = 0.25 * norm(cross(sub(b, a), sub(c, a))) / count as f32;
         for i in 0..=n {
             for j in 0..=(n - i) {
                 let (u, v) = (i as f32 / n as f32, j as f32 / n as f32);
                 let w = 1.0 - u - v;
-                self.point(std::array::from_fn(|k| a[k] * w + b[k] * u + c[k] * v), level);
+                self.point(std::array::from_fn(|k| a[k] * w + b[k] * u + c[k] * v), level, share);
             }
         }
         Ok(())
@@ -210,6 +355,7 @@ impl Sampler<'_> {
                             std::array::from_fn(|i| ([x, y, z][i] as f32 + f[i]) * vs[i] - self.offset[i]);
                         if inside(&shape, inv.point(world)) {
                             self.recorder.record(idx, level, 0);
+                            self.covers.entry(idx).or_default().solid += 1;
                             any = true;
                         }
                     }
@@ -224,7 +370,7 @@ impl Sampler<'_> {
                     c[i] += k[i] / corners.len() as f32;
                 }
             }
-            self.point(p.transform.point(c), level);
+            self.point(p.transform.point(c), level, projected_area(p));
         }
         Ok(())
     }
@@ -234,9 +380,6 @@ impl Sampler<'_> {
 pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) -> Result<Hypertree, VoxeliseError> {
     if opts.resolution == 0 || opts.resolution > MAX_RESOLUTION {
         return Err(VoxeliseError::Resolution(opts.resolution));
-    }
-    if opts.density_classes < 2 || opts.density_classes > MAX_DENSITY_CLASSES {
-        return Err(VoxeliseError::Parameter("density classes"));
     }
     if opts.branch_depth + 2 > MAX_TREE_DEPTH {
         return Err(VoxeliseError::Parameter("branch depth"));
@@ -276,6 +419,10 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         inv: [1.0 / side; 3],
         side,
         recorder: &mut recorder,
+        covers: HashMap::new(),
+        own: HashMap::new(),
+        leaf: false,
+        radius: 0.0,
         samples: 0,
         max: opts.max_samples,
     };
@@ -288,6 +435,9 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
             cs.0[i] += f64::from(p.color[i]);
         }
         cs.1 += 1;
+        sampler.flush();
+        sampler.leaf = level == leaf_level;
+        sampler.radius = 0.0;
         match &p.shape {
             Shape::Leaf { topology, .. } => {
                 let pts: Vec<[f32; 3]> = stream.leaf(p).iter().map(|&q| p.transform.point(q)).collect();
@@ -312,7 +462,8 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
                         flows.push((t, Flow { from: add(base, offset), to: add(tip, offset) }));
                     }
                     if t < 0.5 * side {
-                        sampler.line(base, tip, level)?;
+                        sampler.radius = t * MASK as f32 / side;
+                        sampler.line(base, tip, level, projected_area(p))?;
                         continue;
                     }
                 }
@@ -320,7 +471,39 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
             }
         }
     }
-    let finished = recorder.finish(opts.storage, false, &volume, opts.density_classes, opts.branch_depth);
+    sampler.flush();
+    let covers = std::mem::take(&mut sampler.covers);
+    let (store, map, vbox) = recorder.finish(opts.storage, false, &volume, MAX_DENSITY_CLASSES, opts.branch_depth);
+    // Densities from optical depth: across one voxel (Δs = 1 / (R · REFERENCE_STEP) of the raymarcher's units,
+    // R the longest axis in voxels) `(1 − µ)^Δs = e^(−τ)`.
+    let longest_axis = volume.resolution.iter().copied().max().unwrap_or(1) as f32;
+    // A voxel takes the colour of what covers most of it: leaves where their depth exceeds the wood's (the recorder
+    // keeps the thickest wood's level, so a twig among leaves would otherwise colour them all as bark).
+    let mut list = store.to_list();
+    for k in 0..list.len() {
+        let index = list.indices[k];
+        let cover = covers.get(&index).copied().unwrap_or_default();
+        let v = volume.coords(index);
+        let neighbours: [[u64; 2]; 3] = std::array::from_fn(|a| {
+            [-1i64, 1].map(|d| {
+                let mut w = v;
+                let c = i64::from(v[a]) + d;
+                if c < 0 || c >= i64::from(volume.resolution[a]) {
+                    return 0;
+                }
+                w[a] = c as u32;
+                covers.get(&volume.index(w)).map_or(0, |n| n.union[a])
+            })
+        });
+        let [wood, leaves] = cover.depth;
+        let wood = wood + cover.solid as f32;
+        let mu = 1.0 - libm::expf(-cover.optical_depth(&neighbours) * longest_axis * REFERENCE_STEP);
+        list.densities[k] = libm::roundf(255.0 * mu).clamp(1.0, 255.0) as u8;
+        if leaves > wood {
+            list.levels[k] = leaf_level;
+        }
+    }
+    let finished = (VoxelStore::from_list(list, opts.storage, &volume), map, vbox);
     let depth_colors = color_sum
         .iter()
         .enumerate()
