@@ -705,4 +705,8 @@ fn species_voxelise_deterministically_with_depth_colours() {
         voxelise_species(&graph, &Instance::new(3), &Budget::default(), &VoxeliseOptions { max_samples: 10, ..opts }),
         Err(canopy_worlds::hypertree::voxelise::VoxeliseError::Samples(10))
     ));
+    assert!(matches!(
+        voxelise_species(&graph, &Instance::new(3), &Budget::default(), &VoxeliseOptions { max_covered: 100, ..opts }),
+        Err(canopy_worlds::hypertree::voxelise::VoxeliseError::Covered(100))
+    ));
 }

@@ -1,19 +1,19 @@
 //! The volumetric interpretation of a species (the future work of §12): an amplified species instance is sampled
-//! into a hypervolume with the same hit counting, density classes and depth colouring as an IFS hypertree, so every
-//! species gets a far-field volume automatically, deterministic from its instance seed.
+//! into a hypervolume with the same levels and depth colouring as an IFS hypertree, so every species gets a
+//! far-field volume automatically, deterministic from its instance seed.
 //!
-//! Solid primitives are sampled at 2×2×2 points per voxel (thin ones — narrower than a voxel — along their axis);
-//! leaves at points spaced half a voxel apart on their triangles. Levels come from the primitive's thickness: the
-//! thickest wood is level 0 and each halving of thickness one level deeper, up to the branch depth; leaves are the
-//! level after it. Each level's colour is the mean material colour of its primitives.
+//! Solid primitives are sampled at 4×4×4 points per voxel (thin ones — narrower than half a voxel — along their
+//! axis); leaves at points spaced an eighth of a voxel apart on their triangles. Levels come from the primitive's
+//! thickness: the thickest wood is level 0 and each halving of thickness one level deeper, up to the branch depth;
+//! leaves are the level after it, and a voxel is a leaf voxel where leaves cover more of it than wood. Each level's
+//! colour is the mean material colour of its primitives.
 //!
 //! A voxel's density is how much of it the geometry covers, so that the far field is as open as the tree it stands
-//! for (issue 35.3): each sample carries its share of its primitive's mean projected area (a leaf's area over two,
-//! the mean of a flat surface seen from every direction; a thin branch's a quarter of its surface, Cauchy's), a
-//! voxel's optical depth `τ` is their sum over its face area, less where they clump (seen along each axis, the
-//! sub-cells their samples cover against the sum of each one's: a tuft of needles hides much of itself), plus solid
-//! wood as opaque as the part of the voxel it fills; its density is the `µ` for which the raymarcher's
-//! `α = 1 − (1 − µ)^(k·Δs)` across the voxel is `1 − e^(−τ)`.
+//! for (issue 35.3; [`Cover::coverage`]): thin geometry by its mean projected area (Cauchy: a quarter of a solid's
+//! surface, half a leaf's area) over the voxel's face, less where the pieces clump, as the sub-cells of the voxel's
+//! silhouettes along x, y and z that they cover show; solid wood (sampled 4×4×4) by its silhouettes; each less what
+//! its neighbours along the axis cover beyond chance. The density is the `µ` for which the raymarcher's
+//! `α = 1 − (1 − µ)^(k·Δs)` across the voxel is that coverage, rounded with its error carried on.
 
 // Negated comparisons are deliberate: they treat NaN as out of range.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -25,7 +25,7 @@ use std::collections::HashMap;
 
 use super::generate::MAX_DENSE_VOXELS;
 use super::render::REFERENCE_STEP;
-use super::storage::{HitRecorder, VoxelStore};
+use super::storage::{BrickMap, HitRecorder, VoxelList, VoxelStore};
 use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
 use crate::amplify::{AmplifyError, Budget, Instance, amplify};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
@@ -42,11 +42,19 @@ pub struct VoxeliseOptions {
     pub storage: StorageType,
     /// Most sample points (bounds the work for any species).
     pub max_samples: u64,
+    /// Most voxels covered (bounds the memory: what covers each is about a hundred bytes while it runs).
+    pub max_covered: usize,
 }
 
 impl Default for VoxeliseOptions {
     fn default() -> Self {
-        VoxeliseOptions { resolution: 200, branch_depth: 3, storage: StorageType::IndexBits, max_samples: 200_000_000 }
+        VoxeliseOptions {
+            resolution: 200,
+            branch_depth: 3,
+            storage: StorageType::IndexBits,
+            max_samples: 200_000_000,
+            max_covered: 4_000_000,
+        }
     }
 }
 
@@ -65,6 +73,9 @@ pub enum VoxeliseError {
     /// Too many sample points.
     #[error("more than {0} sample points")]
     Samples(u64),
+    /// Too many voxels are covered (each is about a hundred bytes while it is voxelised).
+    #[error("more than {0} voxels covered (lower the resolution)")]
+    Covered(usize),
     /// A dense array would be too large.
     #[error("a dense array of {0} voxels exceeds {MAX_DENSE_VOXELS}")]
     DenseTooLarge(u64),
@@ -128,8 +139,9 @@ fn inside(shape: &Shape, q: [f32; 3]) -> bool {
     }
 }
 
-/// The opacity across one voxel that solid wood fills (its part of the voxel's 2×2×2 samples gives a part of this).
-pub const SOLID_OPACITY: f32 = 0.95;
+/// Sample points per voxel edge inside thick solids (4 × 4 × 4 a voxel, each marking 2 × 2 sub-cells of a
+/// silhouette).
+const SOLID_SAMPLES: u32 = 4;
 
 /// The mean projected area of a solid primitive seen from every direction, world units² (Cauchy: a convex body's
 /// is a quarter of its surface).
@@ -155,7 +167,7 @@ fn projected_area(p: &Primitive) -> f32 {
     }
 }
 
-/// Sub-cells along a voxel's edge in the silhouette masks of its thin geometry.
+/// Sub-cells along a voxel's edge in its silhouettes.
 const MASK: u32 = 8;
 
 /// What covers one voxel.
@@ -163,53 +175,56 @@ const MASK: u32 = 8;
 struct Cover {
     /// Optical depth of thin wood and of leaves: projected area over the voxel's face.
     depth: [f32; 2],
-    /// The part of `depth` that thin geometry (leaves and thin wood, sampled at points) gives.
-    thin: f32,
-    /// Samples of the voxel's 2×2×2 inside solid wood (summed over primitives).
-    solid: u32,
     /// The voxel's silhouette seen along x, y and z: the `MASK × MASK` sub-cells the thin geometry's samples fall
-    /// in.
+    /// in (a thin branch's marking its width).
     union: [u64; 3],
     /// The same counted primitive by primitive and summed: the sub-cells they would cover if none hid another.
     sum: [u32; 3],
+    /// The silhouettes of the solid wood inside the voxel.
+    solid: [u64; 3],
 }
 
+/// The voxel silhouettes around one voxel: before and after it along x, y and z, of its thin geometry and of its
+/// solid wood.
+type Around = [[[u64; 2]; 2]; 3];
+
 impl Cover {
-    /// The thin geometry's coverage of the voxel, the mean of its coverage seen along x, y and z. Each is
-    /// Beer–Lambert's `1 − e^(−τ·Ω)`, with `Ω` (at most 1) how much less the pieces cover than if they were placed at
-    /// random — the optical depth of the sub-cells they cover over that of the sum of each one's: needles in a tuft
-    /// hide much of one another — and never more than the sub-cells they cover (a thin layer of leaves covers only
-    /// its band of the voxel, however dense it is). Then less the part its neighbours along the axis cover beyond
-    /// chance, half of it for each (a twig seen end on covers the same spot in every voxel it runs through; the
-    /// raymarcher takes voxels along a ray as independent).
-    fn thin_coverage(&self, neighbours: &[[u64; 2]; 3]) -> f32 {
+    /// How much of the voxel its geometry covers, seen along x, y and z (the mean of the three).
+    ///
+    /// Thin geometry covers Beer–Lambert's `1 − e^(−τ·Ω)`, with `Ω` (at most 1) how much less the pieces cover than
+    /// if they were placed at random — the optical depth of the sub-cells they cover over that of the sum of each
+    /// one's: needles in a tuft hide much of one another — and never more than the sub-cells they cover (a thin
+    /// layer of leaves covers only its band of the voxel, however dense it is). Solid wood covers its silhouette.
+    /// Each less the part its neighbours along the axis cover beyond chance, half of it for each: a twig seen end on
+    /// covers the same spot in every voxel it runs through, the flank of a trunk the same strip, and the raymarcher
+    /// takes voxels along a ray as independent.
+    fn coverage(&self, around: &Around) -> f32 {
         let cells = (MASK * MASK) as f32;
-        let mut total = 0.0f32;
-        for ((&m, &sum), around) in self.union.iter().zip(&self.sum).zip(neighbours) {
-            let (u, s) = (m.count_ones() as f32 / cells, sum as f32 / cells);
-            if s == 0.0 {
-                continue;
-            }
-            let omega = (-libm::logf(1.0 - u.min(1.0 - 0.5 / cells)) / s).min(1.0);
-            let coverage = (1.0 - libm::expf(-self.thin * omega)).min(u);
-            let shared: f32 = around
+        let shared = |m: u64, neighbours: [u64; 2]| -> f32 {
+            neighbours
                 .iter()
                 .map(|&n| {
                     let chance = n.count_ones() as f32 / cells;
-                    let seen = (m & n).count_ones() as f32 / m.count_ones() as f32;
+                    let seen = (m & n).count_ones() as f32 / m.count_ones().max(1) as f32;
                     if chance < 1.0 { ((seen - chance) / (1.0 - chance)).max(0.0) } else { 0.0 }
                 })
-                .sum();
-            total += coverage * (1.0 - 0.5 * shared);
+                .sum()
+        };
+        let mut total = 0.0f32;
+        for (a, near) in around.iter().enumerate() {
+            let (m, solid) = (self.union[a], self.solid[a]);
+            let (u, s) = (m.count_ones() as f32 / cells, self.sum[a] as f32 / cells);
+            let thin = if s > 0.0 {
+                let omega = (-libm::logf(1.0 - u.min(1.0 - 0.5 / cells)) / s).min(1.0);
+                let depth = self.depth[0] + self.depth[1];
+                (1.0 - libm::expf(-depth * omega)).min(u) * (1.0 - 0.5 * shared(m, near[0]))
+            } else {
+                0.0
+            };
+            let wood = solid.count_ones() as f32 / cells * (1.0 - 0.5 * shared(solid, near[1]));
+            total += 1.0 - (1.0 - thin) * (1.0 - wood);
         }
         total / 3.0
-    }
-
-    /// The voxel's optical depth across it: its thin geometry's coverage (`neighbours`: the silhouettes of the
-    /// voxels before and after it along x, y and z), and solid wood as opaque as the part of the voxel it fills.
-    fn optical_depth(&self, neighbours: &[[u64; 2]; 3]) -> f32 {
-        let filled = self.solid.min(8) as f32 / 8.0;
-        -libm::logf(1.0 - self.thin_coverage(neighbours).min(0.999)) - libm::logf(1.0 - SOLID_OPACITY * filled)
     }
 }
 
@@ -249,6 +264,7 @@ struct Sampler<'a> {
     radius: f32,
     samples: u64,
     max: u64,
+    max_covered: usize,
 }
 
 impl Sampler<'_> {
@@ -266,7 +282,6 @@ impl Sampler<'_> {
             let depth = area / (self.side * self.side);
             let c = self.covers.entry(index).or_default();
             c.depth[usize::from(self.leaf)] += depth;
-            c.thin += depth;
             let sub: [f32; 3] =
                 std::array::from_fn(|i| ((q[i] * self.inv[i] - v[i] as f32) * MASK as f32).clamp(0.0, MASK as f32));
             let r = self.radius;
@@ -277,8 +292,8 @@ impl Sampler<'_> {
         }
     }
 
-    /// The primitive is done: add its silhouettes to the voxels'.
-    fn flush(&mut self) {
+    /// The primitive is done: add its silhouettes to the voxels', and refuse more than `max_covered` voxels.
+    fn flush(&mut self) -> Result<(), VoxeliseError> {
         for (index, m) in self.own.drain() {
             let c = self.covers.entry(index).or_default();
             for (a, mask) in m.into_iter().enumerate() {
@@ -286,6 +301,8 @@ impl Sampler<'_> {
                 c.sum[a] += mask.count_ones();
             }
         }
+        let max = self.max_covered;
+        if self.covers.len() > max { Err(VoxeliseError::Covered(max)) } else { Ok(()) }
     }
 
     /// A thin primitive along `a`–`b` whose projected area is `area`.
@@ -338,25 +355,34 @@ impl Sampler<'_> {
             (a, b)
         });
         let count: u64 = range.iter().map(|(a, b)| u64::from(b - a + 1)).product();
-        self.budget(count * 8)?;
+        let n = SOLID_SAMPLES;
+        self.budget(count * u64::from(n * n * n))?;
         let vs = self.volume.voxel_size();
         let mut any = false;
         for z in range[2].0..=range[2].1 {
             for y in range[1].0..=range[1].1 {
                 for x in range[0].0..=range[0].1 {
                     let idx = self.volume.index([x, y, z]);
-                    for s in 0..8 {
-                        let f = [
-                            0.25 + 0.5 * (s & 1) as f32,
-                            0.25 + 0.5 * ((s >> 1) & 1) as f32,
-                            0.25 + 0.5 * (s >> 2) as f32,
-                        ];
-                        let world: [f32; 3] =
-                            std::array::from_fn(|i| ([x, y, z][i] as f32 + f[i]) * vs[i] - self.offset[i]);
+                    let mut masks = [0u64; 3];
+                    for s in 0..n * n * n {
+                        let sub = [s % n, (s / n) % n, s / (n * n)];
+                        let world: [f32; 3] = std::array::from_fn(|i| {
+                            ([x, y, z][i] as f32 + (sub[i] as f32 + 0.5) / n as f32) * vs[i] - self.offset[i]
+                        });
                         if inside(&shape, inv.point(world)) {
                             self.recorder.record(idx, level, 0);
-                            self.covers.entry(idx).or_default().solid += 1;
+                            let cell = sub.map(|c| (c as f32 + 0.5) * (MASK / n) as f32);
+                            let r = 0.5 * (MASK / n) as f32;
+                            masks[0] |= disc(cell[1], cell[2], r);
+                            masks[1] |= disc(cell[0], cell[2], r);
+                            masks[2] |= disc(cell[0], cell[1], r);
                             any = true;
+                        }
+                    }
+                    if masks != [0; 3] {
+                        let c = self.covers.entry(idx).or_default();
+                        for (m, add) in c.solid.iter_mut().zip(masks) {
+                            *m |= add;
                         }
                     }
                 }
@@ -425,6 +451,7 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         radius: 0.0,
         samples: 0,
         max: opts.max_samples,
+        max_covered: opts.max_covered,
     };
     let mut color_sum = vec![([0.0f64; 3], 0u64); usize::from(leaf_level) + 1];
     let mut flows: Vec<(f32, Flow)> = Vec::new();
@@ -435,7 +462,7 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
             cs.0[i] += f64::from(p.color[i]);
         }
         cs.1 += 1;
-        sampler.flush();
+        sampler.flush()?;
         sampler.leaf = level == leaf_level;
         sampler.radius = 0.0;
         match &p.shape {
@@ -471,7 +498,7 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
             }
         }
     }
-    sampler.flush();
+    sampler.flush()?;
     let covers = std::mem::take(&mut sampler.covers);
     let (store, map, vbox) = recorder.finish(opts.storage, false, &volume, MAX_DENSITY_CLASSES, opts.branch_depth);
     // Densities from optical depth: across one voxel (Δs = 1 / (R · REFERENCE_STEP) of the raymarcher's units,
@@ -479,30 +506,48 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
     let longest_axis = volume.resolution.iter().copied().max().unwrap_or(1) as f32;
     // A voxel takes the colour of what covers most of it: leaves where their depth exceeds the wood's (the recorder
     // keeps the thickest wood's level, so a twig among leaves would otherwise colour them all as bark).
+    // Densities are bytes: the rounding error is carried to the next voxel in index order, so that the sparse fringe
+    // of a crown, each voxel of it under one step, keeps its total cover (a voxel that rounds to nothing is dropped).
     let mut list = store.to_list();
+    let mut carry = 0.0f32;
     for k in 0..list.len() {
         let index = list.indices[k];
         let cover = covers.get(&index).copied().unwrap_or_default();
         let v = volume.coords(index);
-        let neighbours: [[u64; 2]; 3] = std::array::from_fn(|a| {
-            [-1i64, 1].map(|d| {
-                let mut w = v;
+        let around: Around = std::array::from_fn(|a| {
+            let [before, after] = [-1i64, 1].map(|d| {
                 let c = i64::from(v[a]) + d;
                 if c < 0 || c >= i64::from(volume.resolution[a]) {
-                    return 0;
+                    return None;
                 }
+                let mut w = v;
                 w[a] = c as u32;
-                covers.get(&volume.index(w)).map_or(0, |n| n.union[a])
-            })
+                covers.get(&volume.index(w))
+            });
+            let of = |n: Option<&Cover>, solid: bool| n.map_or(0, |n| if solid { n.solid[a] } else { n.union[a] });
+            [[of(before, false), of(after, false)], [of(before, true), of(after, true)]]
         });
         let [wood, leaves] = cover.depth;
-        let wood = wood + cover.solid as f32;
-        let mu = 1.0 - libm::expf(-cover.optical_depth(&neighbours) * longest_axis * REFERENCE_STEP);
-        list.densities[k] = libm::roundf(255.0 * mu).clamp(1.0, 255.0) as u8;
+        let wood = wood + cover.solid.iter().map(|m| m.count_ones() as f32).sum::<f32>() / (3 * MASK * MASK) as f32;
+        let depth = -libm::logf(1.0 - cover.coverage(&around).min(0.999));
+        let mu = 1.0 - libm::expf(-depth * longest_axis * REFERENCE_STEP);
+        let want = 255.0 * mu + carry;
+        list.densities[k] = libm::roundf(want).clamp(0.0, 255.0) as u8;
+        carry = want - f32::from(list.densities[k]);
         if leaves > wood {
             list.levels[k] = leaf_level;
         }
     }
+    let dropped = list.densities.contains(&0);
+    if dropped {
+        let keep: Vec<usize> = (0..list.len()).filter(|&k| list.densities[k] != 0).collect();
+        list = VoxelList {
+            indices: keep.iter().map(|&k| list.indices[k]).collect(),
+            densities: keep.iter().map(|&k| list.densities[k]).collect(),
+            levels: keep.iter().map(|&k| list.levels[k]).collect(),
+        };
+    }
+    let (map, vbox) = if dropped { BrickMap::from_indices(&volume, list.indices.iter().copied()) } else { (map, vbox) };
     let finished = (VoxelStore::from_list(list, opts.storage, &volume), map, vbox);
     let depth_colors = color_sum
         .iter()
@@ -527,4 +572,47 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         Bounds::default(),
         flows,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Silhouettes of one voxel: the thin geometry's `union` along every axis, `sum` counted per piece.
+    fn thin(depth: f32, union: u64, sum: u32) -> Cover {
+        Cover { depth: [depth, 0.0], union: [union; 3], sum: [sum; 3], solid: [0; 3] }
+    }
+
+    const NONE: Around = [[[0; 2]; 2]; 3];
+
+    #[test]
+    fn pieces_placed_as_by_chance_cover_as_beer_lambert_says() {
+        // Eight sub-cells of 64, none shared: Ω is about 1.
+        let c = thin(0.1, 0xff, 8).coverage(&NONE);
+        assert!((c - (1.0 - libm::expf(-0.1))).abs() < 0.01, "{c}");
+    }
+
+    #[test]
+    fn clumped_pieces_cover_less_and_never_more_than_their_sub_cells() {
+        let spread = thin(0.5, 0xffff, 16).coverage(&NONE);
+        let tuft = thin(0.5, 0xffff, 64).coverage(&NONE);
+        assert!(tuft < 0.6 * spread, "{tuft} {spread}");
+        // A dense layer in two rows of the silhouette covers at most those rows.
+        let layer = thin(5.0, 0xffff, 16).coverage(&NONE);
+        assert!((layer - 0.25).abs() < 1e-6, "{layer}");
+    }
+
+    #[test]
+    fn what_the_neighbours_along_an_axis_cover_too_counts_half_for_each() {
+        let m = 0x0f0f;
+        let alone = thin(0.2, m, 8).coverage(&NONE);
+        // The same spot covered before and after along x only: a third of the mean loses all of it.
+        let mut around = NONE;
+        around[0][0] = [m, m];
+        let chained = thin(0.2, m, 8).coverage(&around);
+        assert!((chained - alone * 2.0 / 3.0).abs() < 1e-6, "{chained} {alone}");
+        // Solid wood inside a trunk, full silhouettes all round: still opaque.
+        let full = Cover { solid: [u64::MAX; 3], ..Cover::default() };
+        assert_eq!(full.coverage(&[[[0; 2], [u64::MAX; 2]]; 3]), 1.0);
+    }
 }
