@@ -3,7 +3,7 @@
 //! far-field volume automatically, deterministic from its instance seed.
 //!
 //! Solid primitives are sampled at 4×4×4 points per voxel (thin ones — narrower than half a voxel — along their
-//! axis); leaves at points spaced an eighth of a voxel apart on their triangles. Levels come from the primitive's
+//! axis, an eighth of a voxel or a radius apart); leaves at points a quarter of a voxel apart on their triangles. Levels come from the primitive's
 //! thickness: the thickest wood is level 0 and each halving of thickness one level deeper, up to the branch depth;
 //! leaves are the level after it, and a voxel is a leaf voxel where leaves cover more of it than wood. Each level's
 //! colour is the mean material colour of its primitives.
@@ -140,8 +140,8 @@ fn inside(shape: &Shape, q: [f32; 3]) -> bool {
 }
 
 /// Sample points per voxel edge inside thick solids (4 × 4 × 4 a voxel, each marking 2 × 2 sub-cells of a
-/// silhouette).
-const SOLID_SAMPLES: u32 = 4;
+/// silhouette: `MASK / 2`).
+const SOLID_SAMPLES: u32 = MASK / 2;
 
 /// The mean projected area of a solid primitive seen from every direction, world units² (Cauchy: a convex body's
 /// is a quarter of its surface).
@@ -169,6 +169,8 @@ fn projected_area(p: &Primitive) -> f32 {
 
 /// Sub-cells along a voxel's edge in its silhouettes.
 const MASK: u32 = 8;
+/// Samples per voxel edge on leaves (each marks the 2 × 2 sub-cells around it: the gaps between them closed).
+const LEAF_SPACING: u32 = MASK / 2;
 
 /// What covers one voxel.
 #[derive(Clone, Copy, Debug, Default)]
@@ -228,23 +230,67 @@ impl Cover {
     }
 }
 
+/// The 2 × 2 sub-cells of a `MASK × MASK` silhouette nearest `(u, w)` (sub-cell units).
+fn block(u: f32, w: f32) -> u64 {
+    let corner = |x: f32| (libm::floorf(x - 0.5).max(0.0) as u32).min(MASK - 2);
+    0x0303u64 << (corner(u) * MASK + corner(w))
+}
+
 /// The sub-cells of a `MASK × MASK` silhouette within `r` of `(u, w)` (sub-cell units), and always the one that
 /// holds it.
 fn disc(u: f32, w: f32, r: f32) -> u64 {
     let cell = |x: f32| (x as u32).min(MASK - 1);
     let mut m = 1u64 << (cell(u) * MASK + cell(w));
     if r > 0.5 {
-        let (lo, hi) = (|x: f32| cell((x - r).max(0.0)), |x: f32| cell(x + r));
-        for i in lo(u)..=hi(u) {
-            for j in lo(w)..=hi(w) {
-                let (du, dw) = (i as f32 + 0.5 - u, j as f32 + 0.5 - w);
-                if du * du + dw * dw <= r * r {
-                    m |= 1 << (i * MASK + j);
-                }
+        // Row by row, the run of sub-cells whose centres lie within `r`.
+        for i in cell((u - r).max(0.0))..=cell(u + r) {
+            let du = i as f32 + 0.5 - u;
+            let half = r * r - du * du;
+            if half < 0.0 {
+                continue;
             }
+            let half = libm::sqrtf(half);
+            let (lo, hi) = (libm::ceilf(w - half - 0.5).max(0.0), libm::floorf(w + half - 0.5));
+            if hi < lo {
+                continue;
+            }
+            let (lo, hi) = (lo as u32, (hi as u32).min(MASK - 1));
+            m |= ((1u64 << (hi - lo + 1)) - 1) << (i * MASK + lo);
         }
     }
     m
+}
+
+/// Voxel indices hashed by one multiplication: the maps below are keyed by our own samples' voxels, and what they
+/// yield does not depend on their order.
+#[derive(Clone, Copy, Default)]
+struct IndexHasher(u64);
+
+impl std::hash::Hasher for IndexHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+
+    fn write_u32(&mut self, i: u32) {
+        self.0 = u64::from(i).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+}
+
+/// A map from voxel index.
+type VoxelMap<V> = HashMap<u32, V, std::hash::BuildHasherDefault<IndexHasher>>;
+
+/// What the latest samples, all in one voxel, add to it (consecutive samples mostly fall in the same voxel).
+#[derive(Clone, Copy)]
+struct Pending {
+    index: u32,
+    depth: [f32; 2],
+    masks: [u64; 3],
 }
 
 struct Sampler<'a> {
@@ -254,13 +300,15 @@ struct Sampler<'a> {
     side: f32,
     recorder: &'a mut HitRecorder,
     /// What covers each voxel, by index (looked up, never iterated).
-    covers: HashMap<u32, Cover>,
+    covers: VoxelMap<Cover>,
     /// The silhouette masks of the primitive being sampled, by voxel index (merged into `covers` when it is done;
     /// iterated, but what it adds does not depend on the order).
-    own: HashMap<u32, [u64; 3]>,
+    own: VoxelMap<[u64; 3]>,
+    /// The latest samples' voxel, not yet in `covers` and `own`.
+    pending: Option<Pending>,
     /// Whether the primitive being sampled is a leaf.
     leaf: bool,
-    /// The radius of the thin wood being sampled, sub-cells (0 for leaves).
+    /// The radius a sample of thin wood marks, sub-cells (a leaf sample marks the [`block`] around it).
     radius: f32,
     samples: u64,
     max: u64,
@@ -278,22 +326,38 @@ impl Sampler<'_> {
         let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         if let Some(v) = self.volume.voxel_at(q, self.inv) {
             let index = self.volume.index(v);
-            self.recorder.record_at(v, index, level, 0);
-            let depth = area / (self.side * self.side);
-            let c = self.covers.entry(index).or_default();
-            c.depth[usize::from(self.leaf)] += depth;
+            // The recorder keeps a voxel's level, the shallowest it is given: once per run of samples in it.
+            if self.pending.is_none_or(|p| p.index != index) {
+                self.commit();
+                self.recorder.record_at(v, index, level, 0);
+            }
+            let p = self.pending.get_or_insert(Pending { index, depth: [0.0; 2], masks: [0; 3] });
+            p.depth[usize::from(self.leaf)] += area / (self.side * self.side);
             let sub: [f32; 3] =
                 std::array::from_fn(|i| ((q[i] * self.inv[i] - v[i] as f32) * MASK as f32).clamp(0.0, MASK as f32));
-            let r = self.radius;
-            let m = self.own.entry(index).or_default();
-            m[0] |= disc(sub[1], sub[2], r);
-            m[1] |= disc(sub[0], sub[2], r);
-            m[2] |= disc(sub[0], sub[1], r);
+            let mark = |u: f32, w: f32| if self.leaf { block(u, w) } else { disc(u, w, self.radius) };
+            p.masks[0] |= mark(sub[1], sub[2]);
+            p.masks[1] |= mark(sub[0], sub[2]);
+            p.masks[2] |= mark(sub[0], sub[1]);
+        }
+    }
+
+    /// Add the pending samples to their voxel.
+    fn commit(&mut self) {
+        if let Some(p) = self.pending.take() {
+            let c = self.covers.entry(p.index).or_default();
+            c.depth[0] += p.depth[0];
+            c.depth[1] += p.depth[1];
+            let m = self.own.entry(p.index).or_default();
+            for (m, add) in m.iter_mut().zip(p.masks) {
+                *m |= add;
+            }
         }
     }
 
     /// The primitive is done: add its silhouettes to the voxels', and refuse more than `max_covered` voxels.
     fn flush(&mut self) -> Result<(), VoxeliseError> {
+        self.commit();
         for (index, m) in self.own.drain() {
             let c = self.covers.entry(index).or_default();
             for (a, mask) in m.into_iter().enumerate() {
@@ -309,7 +373,8 @@ impl Sampler<'_> {
     fn line(&mut self, a: [f32; 3], b: [f32; 3], level: u8, area: f32) -> Result<(), VoxeliseError> {
         let d = sub(b, a);
         let len = norm(d);
-        let n = (len * MASK as f32 / self.side).min(1e7) as u64 + 1;
+        // A sample every sub-cell, or every radius for a branch wider than that (its discs still join).
+        let n = (len * MASK as f32 / (self.side * self.radius.max(1.0))).min(1e7) as u64 + 1;
         self.budget(n + 1)?;
         let share = area / (n + 1) as f32;
         for k in 0..=n {
@@ -323,7 +388,7 @@ impl Sampler<'_> {
     fn triangle(&mut self, a: [f32; 3], b: [f32; 3], c: [f32; 3], level: u8) -> Result<(), VoxeliseError> {
         let e = |p: [f32; 3], q: [f32; 3]| norm(sub(q, p));
         let longest = e(a, b).max(e(b, c)).max(e(c, a));
-        let n = (longest * MASK as f32 / self.side).min(1e4) as u64 + 1;
+        let n = (longest * LEAF_SPACING as f32 / self.side).min(1e4) as u64 + 1;
         let count = (n + 1) * (n + 2) / 2;
         self.budget(count)?;
         let share = 0.25 * norm(cross(sub(b, a), sub(c, a))) / count as f32;
@@ -370,16 +435,16 @@ impl Sampler<'_> {
                             ([x, y, z][i] as f32 + (sub[i] as f32 + 0.5) / n as f32) * vs[i] - self.offset[i]
                         });
                         if inside(&shape, inv.point(world)) {
-                            self.recorder.record(idx, level, 0);
-                            let cell = sub.map(|c| (c as f32 + 0.5) * (MASK / n) as f32);
-                            let r = 0.5 * (MASK / n) as f32;
-                            masks[0] |= disc(cell[1], cell[2], r);
-                            masks[1] |= disc(cell[0], cell[2], r);
-                            masks[2] |= disc(cell[0], cell[1], r);
+                            // Each sample stands for the 2 × 2 sub-cells of a silhouette around it.
+                            let c = sub.map(|c| (2 * c + 1) as f32);
+                            masks[0] |= block(c[1], c[2]);
+                            masks[1] |= block(c[0], c[2]);
+                            masks[2] |= block(c[0], c[1]);
                             any = true;
                         }
                     }
                     if masks != [0; 3] {
+                        self.recorder.record(idx, level, 0);
                         let c = self.covers.entry(idx).or_default();
                         for (m, add) in c.solid.iter_mut().zip(masks) {
                             *m |= add;
@@ -445,8 +510,9 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         inv: [1.0 / side; 3],
         side,
         recorder: &mut recorder,
-        covers: HashMap::new(),
-        own: HashMap::new(),
+        covers: VoxelMap::default(),
+        own: VoxelMap::default(),
+        pending: None,
         leaf: false,
         radius: 0.0,
         samples: 0,
