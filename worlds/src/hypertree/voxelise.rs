@@ -250,11 +250,12 @@ fn disc(u: f32, w: f32, r: f32) -> u64 {
                 continue;
             }
             let half = libm::sqrtf(half);
-            let (lo, hi) = (libm::ceilf(w - half - 0.5).max(0.0), libm::floorf(w + half - 0.5));
+            let lo = libm::ceilf(w - half - 0.5).max(0.0);
+            let hi = libm::floorf(w + half - 0.5).min((MASK - 1) as f32);
             if hi < lo {
                 continue;
             }
-            let (lo, hi) = (lo as u32, (hi as u32).min(MASK - 1));
+            let (lo, hi) = (lo as u32, hi as u32);
             m |= ((1u64 << (hi - lo + 1)) - 1) << (i * MASK + lo);
         }
     }
@@ -650,6 +651,18 @@ mod tests {
     }
 
     const NONE: Around = [[[0; 2]; 2]; 3];
+
+    #[test]
+    fn marks_stay_inside_the_silhouette() {
+        for (u, w) in [(0.0, 0.0), (8.0, 8.0), (8.0, 0.0), (0.0, 8.0), (3.3, 7.9)] {
+            for r in [0.0, 0.4, 1.0, 3.0, 9.0] {
+                assert_ne!(disc(u, w, r), 0);
+            }
+            assert_eq!(block(u, w).count_ones(), 4);
+        }
+        assert_eq!(disc(4.0, 4.0, 9.0), u64::MAX);
+        assert_eq!(disc(0.5, 0.5, 0.4), 1);
+    }
 
     #[test]
     fn pieces_placed_as_by_chance_cover_as_beer_lambert_says() {
