@@ -18,15 +18,15 @@
 // Negated comparisons are deliberate: they treat NaN as out of range.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-use canopy_protocol::hypertree::{DepthColor, MAX_DENSITY_CLASSES, MAX_RESOLUTION, MAX_TREE_DEPTH};
+use canopy_protocol::hypertree::{DepthColor, MAX_RESOLUTION, MAX_TREE_DEPTH};
 use canopy_protocol::{LeafTopology, SpeciesGraph};
 
 use std::collections::HashMap;
 
 use super::generate::MAX_DENSE_VOXELS;
 use super::render::REFERENCE_STEP;
-use super::storage::{BrickMap, HitRecorder, VoxelList, VoxelStore};
-use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType};
+use super::storage::{BrickMap, VoxelList, VoxelStore};
+use super::{Bounds, Flow, Hypertree, Hypervolume, StorageType, Voxel};
 use crate::amplify::{AmplifyError, Budget, Instance, amplify};
 use crate::primitive::{Primitive, PrimitiveStream, Shape};
 use crate::vec3::{add, cross, norm, sub};
@@ -175,6 +175,8 @@ const LEAF_SPACING: u32 = MASK / 2;
 /// What covers one voxel.
 #[derive(Clone, Copy, Debug, Default)]
 struct Cover {
+    /// The shallowest level of what covers it (the thickest wood, or leaves).
+    level: u8,
     /// Optical depth of thin wood and of leaves: projected area over the voxel's face.
     depth: [f32; 2],
     /// The voxel's silhouette seen along x, y and z: the `MASK × MASK` sub-cells the thin geometry's samples fall
@@ -290,16 +292,16 @@ type VoxelMap<V> = HashMap<u32, V, std::hash::BuildHasherDefault<IndexHasher>>;
 #[derive(Clone, Copy)]
 struct Pending {
     index: u32,
+    level: u8,
     depth: [f32; 2],
     masks: [u64; 3],
 }
 
-struct Sampler<'a> {
+struct Sampler {
     volume: Hypervolume,
     offset: [f32; 3],
     inv: [f32; 3],
     side: f32,
-    recorder: &'a mut HitRecorder,
     /// What covers each voxel, by index (looked up, never iterated).
     covers: VoxelMap<Cover>,
     /// The silhouette masks of the primitive being sampled, by voxel index (merged into `covers` when it is done;
@@ -316,7 +318,7 @@ struct Sampler<'a> {
     max_covered: usize,
 }
 
-impl Sampler<'_> {
+impl Sampler {
     fn budget(&mut self, n: u64) -> Result<(), VoxeliseError> {
         self.samples += n;
         if self.samples > self.max { Err(VoxeliseError::Samples(self.max)) } else { Ok(()) }
@@ -327,12 +329,10 @@ impl Sampler<'_> {
         let q: [f32; 3] = std::array::from_fn(|i| p[i] + self.offset[i]);
         if let Some(v) = self.volume.voxel_at(q, self.inv) {
             let index = self.volume.index(v);
-            // The recorder keeps a voxel's level, the shallowest it is given: once per run of samples in it.
             if self.pending.is_none_or(|p| p.index != index) {
                 self.commit();
-                self.recorder.record_at(v, index, level, 0);
             }
-            let p = self.pending.get_or_insert(Pending { index, depth: [0.0; 2], masks: [0; 3] });
+            let p = self.pending.get_or_insert(Pending { index, level, depth: [0.0; 2], masks: [0; 3] });
             p.depth[usize::from(self.leaf)] += area / (self.side * self.side);
             let sub: [f32; 3] =
                 std::array::from_fn(|i| ((q[i] * self.inv[i] - v[i] as f32) * MASK as f32).clamp(0.0, MASK as f32));
@@ -343,10 +343,17 @@ impl Sampler<'_> {
         }
     }
 
+    /// What covers voxel `index`, now covered at `level` too.
+    fn cover(&mut self, index: u32, level: u8) -> &mut Cover {
+        let c = self.covers.entry(index).or_insert(Cover { level, ..Cover::default() });
+        c.level = c.level.min(level);
+        c
+    }
+
     /// Add the pending samples to their voxel.
     fn commit(&mut self) {
         if let Some(p) = self.pending.take() {
-            let c = self.covers.entry(p.index).or_default();
+            let c = self.cover(p.index, p.level);
             c.depth[0] += p.depth[0];
             c.depth[1] += p.depth[1];
             let m = self.own.entry(p.index).or_default();
@@ -441,12 +448,11 @@ impl Sampler<'_> {
                             masks[0] |= block(c[1], c[2]);
                             masks[1] |= block(c[0], c[2]);
                             masks[2] |= block(c[0], c[1]);
-                            any = true;
                         }
                     }
                     if masks != [0; 3] {
-                        self.recorder.record(idx, level, 0);
-                        let c = self.covers.entry(idx).or_default();
+                        any = true;
+                        let c = self.cover(idx, level);
                         for (m, add) in c.solid.iter_mut().zip(masks) {
                             *m |= add;
                         }
@@ -504,13 +510,11 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
             Some(_) => opts.branch_depth,
         }
     };
-    let mut recorder = HitRecorder::new(opts.storage, volume.resolution);
     let mut sampler = Sampler {
         volume,
         offset,
         inv: [1.0 / side; 3],
         side,
-        recorder: &mut recorder,
         covers: VoxelMap::default(),
         own: VoxelMap::default(),
         pending: None,
@@ -567,19 +571,19 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
     }
     sampler.flush()?;
     let covers = std::mem::take(&mut sampler.covers);
-    let (store, map, vbox) = recorder.finish(opts.storage, false, &volume, MAX_DENSITY_CLASSES, opts.branch_depth);
     // Densities from optical depth: across one voxel (Δs = 1 / (R · REFERENCE_STEP) of the raymarcher's units,
     // R the longest axis in voxels) `(1 − µ)^Δs = e^(−τ)`.
     let longest_axis = volume.resolution.iter().copied().max().unwrap_or(1) as f32;
-    // A voxel takes the colour of what covers most of it: leaves where their depth exceeds the wood's (the recorder
-    // keeps the thickest wood's level, so a twig among leaves would otherwise colour them all as bark).
+    // A voxel takes the colour of what covers most of it: leaves where their depth exceeds the wood's (its level is
+    // the thickest wood's, so a twig among leaves would otherwise colour them all as bark).
     // Densities are bytes: the rounding error is carried to the next voxel in index order, so that the sparse fringe
     // of a crown, each voxel of it under one step, keeps its total cover (a voxel that rounds to nothing is dropped).
-    let mut list = store.to_list();
+    let mut indices: Vec<u32> = covers.keys().copied().collect();
+    indices.sort_unstable();
+    let mut list = VoxelList::default();
     let mut carry = 0.0f32;
-    for k in 0..list.len() {
-        let index = list.indices[k];
-        let cover = covers.get(&index).copied().unwrap_or_default();
+    for index in indices {
+        let cover = &covers[&index];
         let v = volume.coords(index);
         let around: Around = std::array::from_fn(|a| {
             let [before, after] = [-1i64, 1].map(|d| {
@@ -599,22 +603,13 @@ pub fn voxelise(stream: &PrimitiveStream, name: &str, opts: &VoxeliseOptions) ->
         let depth = -libm::logf(1.0 - cover.coverage(&around).min(0.999));
         let mu = 1.0 - libm::expf(-depth * longest_axis * REFERENCE_STEP);
         let want = 255.0 * mu + carry;
-        list.densities[k] = libm::roundf(want).clamp(0.0, 255.0) as u8;
-        carry = want - f32::from(list.densities[k]);
-        if leaves > wood {
-            list.levels[k] = leaf_level;
+        let density = libm::roundf(want).clamp(0.0, 255.0) as u8;
+        carry = want - f32::from(density);
+        if density != 0 {
+            list.push(index, Voxel { density, level: if leaves > wood { leaf_level } else { cover.level } });
         }
     }
-    let dropped = list.densities.contains(&0);
-    if dropped {
-        let keep: Vec<usize> = (0..list.len()).filter(|&k| list.densities[k] != 0).collect();
-        list = VoxelList {
-            indices: keep.iter().map(|&k| list.indices[k]).collect(),
-            densities: keep.iter().map(|&k| list.densities[k]).collect(),
-            levels: keep.iter().map(|&k| list.levels[k]).collect(),
-        };
-    }
-    let (map, vbox) = if dropped { BrickMap::from_indices(&volume, list.indices.iter().copied()) } else { (map, vbox) };
+    let (map, vbox) = BrickMap::from_indices(&volume, list.indices.iter().copied());
     let finished = (VoxelStore::from_list(list, opts.storage, &volume), map, vbox);
     let depth_colors = color_sum
         .iter()
@@ -647,7 +642,7 @@ mod tests {
 
     /// Silhouettes of one voxel: the thin geometry's `union` along every axis, `sum` counted per piece.
     fn thin(depth: f32, union: u64, sum: u32) -> Cover {
-        Cover { depth: [depth, 0.0], union: [union; 3], sum: [sum; 3], solid: [0; 3] }
+        Cover { level: 0, depth: [depth, 0.0], union: [union; 3], sum: [sum; 3], solid: [0; 3] }
     }
 
     const NONE: Around = [[[0; 2]; 2]; 3];
