@@ -233,9 +233,9 @@ const FOV: f32 = 35.0;
 /// The azimuths the tree is seen from, degrees (the opposite sides show the same silhouettes).
 const AZIMUTHS: [f32; 4] = [0.0, 45.0, 90.0, 135.0];
 
-/// One instance of `species` (the representative), no ground in view, and a camera from `azimuth`, 8° above the
+/// One instance of `species` (the representative), no ground in view, and its cameras by azimuth: 8° above the
 /// horizon, at the distance where the tree's bounding sphere is just under the far threshold.
-fn lone_tree(species: &str, azimuth: f32) -> (Scene, Camera) {
+fn lone_tree(species: &str) -> (Scene, impl Fn(f32) -> Camera) {
     let graph = canopy_worlds::library::find(species).expect("library species").load().expect("parses");
     let stream = amplify(&graph, &Instance::new(REPRESENTATIVE_SEED), &Budget::default()).expect("amplifies");
     let (lo, hi) = stream.bounds();
@@ -244,8 +244,6 @@ fn lone_tree(species: &str, azimuth: f32) -> (Scene, Camera) {
     // A sphere of radius r at distance d is r·H / (d·tan(fov/2)) pixels tall.
     let px = 0.97 * LodConfig::default().far_px;
     let distance = radius * SIDE as f32 / (px * (FOV.to_radians() / 2.0).tan());
-    let (el, az) = (8f32.to_radians(), azimuth.to_radians());
-    let eye = centre + distance * Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos());
     let scene = Scene {
         species: vec![Some(Arc::new(graph))],
         volumes: vec![None],
@@ -260,19 +258,23 @@ fn lone_tree(species: &str, azimuth: f32) -> (Scene, Camera) {
         generation: 1,
         far: SceneFar::default(),
     };
-    (scene, Camera::looking_at(eye, centre, FOV))
+    let camera = move |azimuth: f32| {
+        let (el, az) = (8f32.to_radians(), azimuth.to_radians());
+        let eye = centre + distance * Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos());
+        Camera::looking_at(eye, centre, FOV)
+    };
+    (scene, camera)
 }
 
 /// The tree at the level `lod` forces, over a black and over a white sky, fog off, the default lighting.
-fn shoot_lone(species: &str, azimuth: f32, lod: &LodConfig) -> [RenderedImage; 2] {
-    let (scene, camera) = lone_tree(species, azimuth);
+fn shoot_lone(scene: &Scene, camera: &Camera, lod: &LodConfig) -> [RenderedImage; 2] {
     [[0.0; 3], [1.0; 3]].map(|sky| {
         let mut cfg =
             RenderConfig { lod: lod.clone(), workers: 1, far_path: FarPath::Compute, ..RenderConfig::default() };
         cfg.lighting.fog_density = 0.0;
         (cfg.lighting.sky_zenith, cfg.lighting.sky_horizon) = (sky, sky);
         let (img, stats) =
-            render_still(cfg, &scene, &camera, SIDE, SIDE, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
+            render_still(cfg, scene, camera, SIDE, SIDE, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!((stats.in_view, stats.waiting), (1, 0), "{stats:?}");
         img
     })
@@ -301,8 +303,9 @@ fn far_matches_near(species: &str, coverage: f64, one_view: f64, colour: f64) {
     let far_lod = LodConfig { near_px: 1e7, far_px: 1e7, cull_px: 0.0, ..LodConfig::default() };
     let (mut total, mut worst) = ([(0.0f64, [0.0f64; 3]); 2], (0.0f64, 0.0f32, None));
     let mut views = Vec::new();
+    let (scene, camera) = lone_tree(species);
     for az in AZIMUTHS {
-        let shots = [shoot_lone(species, az, &near_lod), shoot_lone(species, az, &far_lod)];
+        let shots = [&near_lod, &far_lod].map(|lod| shoot_lone(&scene, &camera(az), lod));
         let [n, f] = [&shots[0], &shots[1]].map(opacity_and_colour);
         for (t, m) in total.iter_mut().zip([n, f]) {
             t.0 += m.0;
