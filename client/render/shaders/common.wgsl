@@ -15,6 +15,14 @@ struct Globals {
     sky_horizon: vec4<f32>,
     // width, height, 1/width, 1/height of the target.
     viewport: vec4<f32>,
+    // xy: horizontal direction the wind blows toward (x, z), unit; z: strength (0: still); w: time, seconds.
+    wind: vec4<f32>,
+    // xyz: distance from the eye where each shadow cascade ends; w: 1 when shadows are on.
+    shadow_split: vec4<f32>,
+    // xyz: each cascade's texel, metres; w: unused.
+    shadow_texel: vec4<f32>,
+    // Each cascade's view-projection from the sun (depth 0..1, nearest the sun 0).
+    shadow: array<mat4x4<f32>, 3>,
 };
 
 @group(0) @binding(0) var<uniform> g: Globals;
@@ -45,7 +53,12 @@ fn with_fog(c: vec3<f32>, world: vec3<f32>) -> vec3<f32> {
 
 // Lambert with the sun plus ambient light, the same model the far field's baked shading uses.
 fn shade(base: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
-    let lambert = max(dot(n, g.sun_dir.xyz), 0.0);
+    return shade_lit(base, n, 1.0);
+}
+
+// `shade` where `sun` of the sun's light arrives (shadow.wgsl `sun_visibility`).
+fn shade_lit(base: vec3<f32>, n: vec3<f32>, sun: f32) -> vec3<f32> {
+    let lambert = sun * max(dot(n, g.sun_dir.xyz), 0.0);
     // A little sky light from above so that faces turned from the sun keep their shape (`Lighting::sky_light`).
     let sky = g.sky_horizon.w * (0.5 + 0.5 * n.y);
     return base * (g.sun_dir.w + sky + g.sun_color.w * lambert * g.sun_color.rgb);

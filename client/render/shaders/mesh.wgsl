@@ -12,7 +12,7 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     let w = (s.vbase + idx) * 5u;
     let p = vec3<f32>(bitcast<f32>(verts[w]), bitcast<f32>(verts[w + 1u]), bitcast<f32>(verts[w + 2u]));
     var out: GeoOut;
-    let world = p + s.pos;
+    let world = p + s.pos + wind_offset(p + s.pos, s.pos, s.seed);
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
     out.normal = unpack4x8snorm(verts[w + 3u]).xyz;
@@ -31,5 +31,6 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     if !front {
         n = -n;
     }
-    return vec4<f32>(with_fog(shade(in.color, n), in.world), 1.0);
+    let lit = shade_lit(in.color, n, sun_visibility(in.world, n));
+    return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

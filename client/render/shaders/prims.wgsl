@@ -51,7 +51,7 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     let det = dot(a, cross(b, c));
     let wn = (cross(b, c) * n.x + cross(c, a) * n.y + cross(a, b) * n.z) * sign(det);
     var out: GeoOut;
-    let world = species + s.pos;
+    let world = species + s.pos + wind_offset(species + s.pos, s.pos, s.seed);
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
     out.normal = wn;
@@ -66,5 +66,6 @@ fn fs_prim(in: GeoOut) -> @location(0) vec4<f32> {
         discard;
     }
     let n = normalize(in.normal);
-    return vec4<f32>(with_fog(shade(in.color, n), in.world), 1.0);
+    let lit = shade_lit(in.color, n, sun_visibility(in.world, n));
+    return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

@@ -13,6 +13,11 @@ struct Segment {
     pos: vec3<f32>,
     // Dither mask: m >= 0 keeps pixels whose Bayer threshold is below m; m < 0 keeps those at or above -m.
     mask: f32,
+    // The instance's seed (its low 32 bits folded with the high), which keys its wind phase.
+    seed: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 };
 
 // Which segments a draw covers, and what it draws.
@@ -51,4 +56,25 @@ fn find_segment(i: u32, seg_first: u32, seg_count: u32) -> u32 {
         }
     }
     return lo;
+}
+
+// Where wind moves `world`, a point of the instance standing at `base` with `seed`, at time `g.wind.w` (the same
+// offset for the same point, so primitives meeting at a joint stay joined): the trunk sways by its height squared,
+// a steady lean and two slow oscillations; branches and leaves flutter, fast and small, by their distance from the
+// trunk's axis, in a phase that varies over the crown. Each tree has its own phase.
+fn wind_offset(world: vec3<f32>, base: vec3<f32>, seed: u32) -> vec3<f32> {
+    let s = g.wind.z;
+    if s <= 0.0 {
+        return vec3<f32>(0.0);
+    }
+    let dir = vec3<f32>(g.wind.x, 0.0, g.wind.y);
+    let t = g.wind.w;
+    let phase = f32(seed & 0xffffu) * (6.2831853 / 65536.0);
+    let rel = world - base;
+    let h = max(rel.y, 0.0);
+    let gust = 0.6 + 0.3 * sin(0.9 * t + phase) + 0.15 * sin(2.3 * t + 1.7 * phase);
+    let sway = s * 0.0012 * h * h * gust;
+    let r = length(rel.xz);
+    let flutter = s * 0.015 * r * sin(5.3 * t + phase + dot(rel, vec3<f32>(0.9, 0.6, 1.3)));
+    return dir * (sway + 0.5 * flutter) + vec3<f32>(0.0, flutter, 0.0);
 }

@@ -19,6 +19,7 @@ fn vs_terrain(@location(0) pos: vec3<f32>, @location(1) normal: u32, @location(2
 
 @fragment
 fn fs_terrain(in: TerrainOut) -> @location(0) vec4<f32> {
-    let c = shade(in.color, normalize(in.normal));
+    let n = normalize(in.normal);
+    let c = shade_lit(in.color, n, sun_visibility(in.world, n));
     return vec4<f32>(with_fog(c, in.world), 1.0);
 }

@@ -230,6 +230,46 @@ pub struct RenderConfig {
     pub forest_layer: f32,
     /// How the far field is drawn.
     pub far_path: FarPath,
+    /// Sun shadows: cascaded shadow maps cast by the terrain and the near and mid trees.
+    pub shadows: Shadows,
+    /// Wind bending trees and fluttering leaves in the vertex stage.
+    pub wind: Wind,
+}
+
+/// Sun shadows (`renderer/shadow.rs`): [`SHADOW_CASCADES`] shadow maps, each fitted to a slice of the view out to
+/// `distance`, the slices growing geometrically.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Shadows {
+    /// Texels along each side of a cascade's map; 0 turns shadows off.
+    pub resolution: u32,
+    /// Metres from the eye that shadows reach (beyond, the sun is unblocked).
+    pub distance: f32,
+}
+
+/// Shadow map cascades.
+pub const SHADOW_CASCADES: usize = 3;
+
+impl Default for Shadows {
+    fn default() -> Self {
+        Shadows { resolution: 2048, distance: 300.0 }
+    }
+}
+
+/// Wind (`shaders/segment.wgsl` `wind_offset`): trunks sway by their height squared and branches and leaves
+/// flutter by their distance from the trunk, each tree in its own phase drawn from its instance seed. A frame is a
+/// function of the scene and the renderer's time ([`Renderer::set_time`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Wind {
+    /// Horizontal direction the wind blows toward, (x, z) (normalised when used).
+    pub direction: [f32; 2],
+    /// 0 for still air; 1 a moderate breeze (a 20 m crown's top sways about half a metre).
+    pub strength: f32,
+}
+
+impl Default for Wind {
+    fn default() -> Self {
+        Wind { direction: [0.8, 0.6], strength: 1.0 }
+    }
 }
 
 impl Default for RenderConfig {
@@ -255,6 +295,8 @@ impl Default for RenderConfig {
             ground_window: ground::WINDOW_SQUARES,
             forest_layer: 0.5,
             far_path: FarPath::Auto,
+            shadows: Shadows::default(),
+            wind: Wind::default(),
         }
     }
 }
@@ -306,6 +348,10 @@ impl RenderConfig {
             ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
             (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
             ((0.0..=1000.0).contains(&self.forest_layer), "forest layer"),
+            (self.shadows.resolution <= 8192, "shadow map resolution"),
+            ((1.0..=100_000.0).contains(&self.shadows.distance), "shadow distance"),
+            (fin(&self.wind.direction) && self.wind.direction.iter().any(|v| *v != 0.0), "wind direction"),
+            ((0.0..=100.0).contains(&self.wind.strength), "wind strength"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

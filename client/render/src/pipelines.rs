@@ -29,10 +29,31 @@ const COMMON: &str = include_str!("../shaders/common.wgsl");
 /// The far-field volumes' infos and atlas bindings, shared by the volume and forest shaders.
 const VOLUME_INFO: &str = include_str!("../shaders/volume_info.wgsl");
 const SEGMENT: &str = include_str!("../shaders/segment.wgsl");
+/// The sun's shadow maps, read by what receives shadows (terrain, primitives, meshes).
+const SHADOW: &str = include_str!("../shaders/shadow.wgsl");
 /// The far field's per-pixel opacity, shared by the volume and forest shaders.
 const FAR_ACCUM: &str = include_str!("../shaders/far_accum.wgsl");
 const VOLUME: &str = include_str!("../shaders/volume.wgsl");
 const FOREST: &str = include_str!("../shaders/forest.wgsl");
+/// The parts of the primitives' shader, in order.
+pub(crate) const PRIMS_PARTS: [&str; 4] = [COMMON, SHADOW, include_str!("../shaders/prims.wgsl"), SEGMENT];
+/// The parts of the meshes' shader, in order.
+pub(crate) const MESH_PARTS: [&str; 4] = [COMMON, SHADOW, include_str!("../shaders/mesh.wgsl"), SEGMENT];
+
+/// The forest shader's source: its parts with the canopy tile's layout as the shader reads it, from the constants
+/// that bake it.
+pub(crate) fn forest_source() -> String {
+    [COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts(), FOREST].concat()
+}
+
+fn tile_consts() -> String {
+    format!(
+        "const CLASSES: f32 = {}.0;\nconst BANDS: f32 = {}.0;\nconst TILE_MIPS: u32 = {}u;\n",
+        super::tile::DENSITY_CLASSES,
+        super::tile::PROFILE_BANDS,
+        super::tile::TILE_MIPS
+    )
+}
 
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
 #[repr(C)]
@@ -164,6 +185,8 @@ pub struct Pipelines {
     pub composite_layout: wgpu::BindGroupLayout,
     /// The far field's compute march: scene depth, accumulation target, tile lists, far instances and patches.
     pub march_layout: wgpu::BindGroupLayout,
+    /// The sun's shadow maps and their comparison sampler (group 3 of the terrain, primitive and mesh pipelines).
+    pub shadow_layout: wgpu::BindGroupLayout,
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub prims: wgpu::RenderPipeline,
@@ -175,6 +198,10 @@ pub struct Pipelines {
     pub composite: wgpu::RenderPipeline,
     /// The far field marched per screen tile (`far_march.wgsl`).
     pub far_march: wgpu::ComputePipeline,
+    /// The terrain, primitives and meshes drawn depth-only into a shadow map (`renderer/shadow.rs`).
+    pub shadow_terrain: wgpu::RenderPipeline,
+    pub shadow_prims: wgpu::RenderPipeline,
+    pub shadow_mesh: wgpu::RenderPipeline,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -310,6 +337,22 @@ impl Pipelines {
                 storage(6, cs),
             ],
         });
+        let shadow_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("shadow maps"),
+            entries: &[
+                texture(
+                    0,
+                    wgpu::ShaderStages::FRAGMENT,
+                    wgpu::TextureSampleType::Depth,
+                    wgpu::TextureViewDimension::D2Array,
+                ),
+                entry(
+                    1,
+                    wgpu::ShaderStages::FRAGMENT,
+                    wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Comparison),
+                ),
+            ],
+        });
         let layout = |label: &str, groups: &[Option<&wgpu::BindGroupLayout>]| {
             device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some(label),
@@ -371,6 +414,36 @@ impl Pipelines {
             })
         };
         let greater = wgpu::CompareFunction::Greater;
+        // What casts a shadow: the vertex stage of a receiver, depth only, nearest the sun kept; no culling (leaves
+        // and mirrored primitives are seen from both sides). The slope bias keeps a lit surface out of its own map.
+        let caster = |label: &str,
+                      layout: &wgpu::PipelineLayout,
+                      module: &wgpu::ShaderModule,
+                      entry: &str,
+                      buffers: &[Option<wgpu::VertexBufferLayout<'_>>]| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(label),
+                layout: Some(layout),
+                vertex: wgpu::VertexState {
+                    module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    buffers,
+                },
+                primitive: wgpu::PrimitiveState::default(),
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: super::renderer::SHADOW_FORMAT,
+                    depth_write_enabled: Some(true),
+                    depth_compare: Some(wgpu::CompareFunction::Less),
+                    stencil: wgpu::StencilState::default(),
+                    bias: wgpu::DepthBiasState { constant: 0, slope_scale: 2.0, clamp: 0.0 },
+                }),
+                multisample: wgpu::MultisampleState::default(),
+                fragment: None,
+                multiview_mask: None,
+                cache: None,
+            })
+        };
 
         let sky_mod = module(device, "sky", &[COMMON, include_str!("../shaders/sky.wgsl")]);
         let sky = pipeline(
@@ -384,51 +457,74 @@ impl Pipelines {
             &opaque,
         );
 
-        let terrain_mod = module(device, "terrain", &[COMMON, include_str!("../shaders/terrain.wgsl")]);
+        let terrain_mod = module(device, "terrain", &[COMMON, SHADOW, include_str!("../shaders/terrain.wgsl")]);
         let terrain_attrs = wgpu::vertex_attr_array![0 => Float32x3, 1 => Uint32, 2 => Uint32];
+        let terrain_buffers = [Some(wgpu::VertexBufferLayout {
+            array_stride: size_of::<MeshVertex>() as u64,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &terrain_attrs,
+        })];
         let terrain = pipeline(
             "terrain",
-            &layout("terrain", &[Some(&globals_layout)]),
+            &layout("terrain", &[Some(&globals_layout), None, None, Some(&shadow_layout)]),
             &terrain_mod,
             ("vs_terrain", "fs_terrain"),
-            &[Some(wgpu::VertexBufferLayout {
-                array_stride: size_of::<MeshVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &terrain_attrs,
-            })],
+            &terrain_buffers,
             None,
             depth(true, greater),
             &opaque,
         );
+        let shadow_terrain = caster(
+            "terrain shadow",
+            &layout("terrain shadow", &[Some(&globals_layout)]),
+            &terrain_mod,
+            "vs_terrain",
+            &terrain_buffers,
+        );
 
-        let prims_mod = module(device, "prims", &[COMMON, include_str!("../shaders/prims.wgsl"), SEGMENT]);
+        let prims_mod = module(device, "prims", &PRIMS_PARTS);
         let unit_attrs = wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x4];
+        let unit_buffers = [Some(wgpu::VertexBufferLayout {
+            array_stride: size_of::<UnitVertex>() as u64,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &unit_attrs,
+        })];
         // No culling: a mirroring transform flips a primitive's winding.
         let prims = pipeline(
             "prims",
-            &layout("prims", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout)]),
+            &layout("prims", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout), Some(&shadow_layout)]),
             &prims_mod,
             ("vs_prim", "fs_prim"),
-            &[Some(wgpu::VertexBufferLayout {
-                array_stride: size_of::<UnitVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &unit_attrs,
-            })],
+            &unit_buffers,
             None,
             depth(true, greater),
             &opaque,
         );
+        let shadow_prims = caster(
+            "primitive shadow",
+            &layout("primitive shadow", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout)]),
+            &prims_mod,
+            "vs_prim",
+            &unit_buffers,
+        );
 
-        let mesh_mod = module(device, "meshes", &[COMMON, include_str!("../shaders/mesh.wgsl"), SEGMENT]);
+        let mesh_mod = module(device, "meshes", &MESH_PARTS);
         let mesh = pipeline(
             "meshes",
-            &layout("meshes", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout)]),
+            &layout("meshes", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout), Some(&shadow_layout)]),
             &mesh_mod,
             ("vs_mesh", "fs_mesh"),
             &[],
             None,
             depth(true, greater),
             &opaque,
+        );
+        let shadow_mesh = caster(
+            "mesh shadow",
+            &layout("mesh shadow", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout)]),
+            &mesh_mod,
+            "vs_mesh",
+            &[],
         );
 
         let volume_mod = far_module("volumes", &[COMMON, VOLUME_INFO, FAR_ACCUM, VOLUME]);
@@ -448,14 +544,8 @@ impl Pipelines {
             &accumulated,
         );
 
-        // The tile's layout as the shader reads it, from the constants that bake it.
-        let tile_consts = format!(
-            "const CLASSES: f32 = {}.0;\nconst BANDS: f32 = {}.0;\nconst TILE_MIPS: u32 = {}u;\n",
-            super::tile::DENSITY_CLASSES,
-            super::tile::PROFILE_BANDS,
-            super::tile::TILE_MIPS
-        );
-        let forest_mod = far_module("forest", &[COMMON, VOLUME_INFO, FAR_ACCUM, &tile_consts, FOREST]);
+        let tile_consts = tile_consts();
+        let forest_mod = far_module("forest", &[&forest_source()]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
             6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
@@ -547,6 +637,7 @@ impl Pipelines {
             accum_layout,
             composite_layout,
             march_layout,
+            shadow_layout,
             sky,
             terrain,
             prims,
@@ -555,6 +646,9 @@ impl Pipelines {
             forest,
             composite,
             far_march,
+            shadow_terrain,
+            shadow_prims,
+            shadow_mesh,
             frusta,
             spheres,
             cube,

@@ -7,7 +7,6 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use bytemuck::{Pod, Zeroable};
 use canopy_worlds::amplify::Instance;
 use canopy_worlds::world::{Ground, Terrain};
 use glam::{Mat4, Vec3};
@@ -33,11 +32,16 @@ pub use super::stats::FrameStats;
 mod atlas;
 mod far_march;
 mod forest_gpu;
+mod shadow;
+pub mod timing;
+mod uniforms;
 use atlas::Atlas;
 use far_march::FarMarch;
 use forest_gpu::ForestGpu;
-pub mod timing;
-use timing::PassTimer;
+pub(crate) use shadow::SHADOW_FORMAT;
+use shadow::ShadowPass;
+use timing::{Part, PassTimer};
+use uniforms::{Globals, VolumeInfo};
 
 /// Initial bytes of the segment buffer and of the far-instance buffer (both grow to the next power of two).
 const INITIAL_LIST_BYTES: u64 = 64 * 1024;
@@ -49,30 +53,6 @@ const VOLUME_PRIORITY: f32 = f32::MAX;
 const SKY_VERTICES: u32 = 3;
 /// Vertices of a far instance's proxy box (12 triangles, no index buffer).
 const PROXY_BOX_VERTICES: u32 = 36;
-
-#[repr(C)]
-#[derive(Clone, Copy, Pod, Zeroable)]
-struct Globals {
-    view_proj: [[f32; 4]; 4],
-    inv_view_proj: [[f32; 4]; 4],
-    eye: [f32; 4],
-    sun_dir: [f32; 4],
-    sun_color: [f32; 4],
-    sky_zenith: [f32; 4],
-    sky_horizon: [f32; 4],
-    viewport: [f32; 4],
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Pod, Zeroable)]
-struct VolumeInfo {
-    atlas: [u32; 4],
-    dims: [u32; 4],
-    voxel: [f32; 4],
-    lo: [f32; 4],
-    hi: [f32; 4],
-    origin: [f32; 4],
-}
 
 struct TerrainGpu {
     source: Arc<Terrain>,
@@ -200,6 +180,54 @@ impl GeometryGpu {
     }
 }
 
+/// The frame's opaque geometry as one pass draws it, with whatever view its group 0 holds: the scene pass from the
+/// camera, the shadow pass from the sun.
+struct GeometryDraws<'a> {
+    plan: &'a FramePlan,
+    geometry: &'a GeometryGpu,
+    terrain: Option<&'a TerrainGpu>,
+}
+
+impl GeometryDraws<'_> {
+    /// The terrain chunks the plan chose.
+    fn terrain(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline) {
+        let Some(t) = self.terrain else { return };
+        pass.set_pipeline(pipeline);
+        pass.set_vertex_buffer(0, t.vertices.slice(..));
+        pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
+        for r in &self.plan.terrain_draws {
+            pass.draw_indexed(r.clone(), 0, 0..1);
+        }
+    }
+
+    /// The instanced primitives: a draw per unit shape and tessellation.
+    fn prims(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline, p: &Pipelines) {
+        let (false, Some(bg)) = (self.plan.prim_draws.is_empty(), &self.geometry.prims_bg) else { return };
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(1, bg, &[]);
+        for d in &self.plan.prim_draws {
+            let mesh = match d.shape {
+                0 => &p.frusta[d.tess],
+                1 => &p.spheres[d.tess],
+                _ => &p.cube,
+            };
+            pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
+            pass.set_vertex_buffer(0, mesh.vertices.slice(..));
+            pass.set_index_buffer(mesh.indices.slice(..), wgpu::IndexFormat::Uint16);
+            pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
+        }
+    }
+
+    /// The meshes: one draw.
+    fn meshes(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline) {
+        let (Some((slot, count)), Some(bg)) = (self.plan.mesh_draw, &self.geometry.mesh_bg) else { return };
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(1, bg, &[]);
+        pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
+        pass.draw(0..count, 0..1);
+    }
+}
+
 /// The far field: each species' volumes, the atlas holding them, their infos, and the frame's far instances.
 struct FarField {
     /// Volume state by species id (`None`: not asked for yet).
@@ -239,6 +267,10 @@ pub struct Renderer {
     last: FrameStats,
     /// GPU time per part of the frame, once asked for ([`Renderer::time_parts`]) where the device can.
     timer: Option<PassTimer>,
+    /// The sun's shadow maps.
+    shadow: ShadowPass,
+    /// Seconds of the scene's clock (wind), [`Renderer::set_time`].
+    time: f32,
 }
 
 impl std::fmt::Debug for Renderer {
@@ -351,6 +383,7 @@ impl Renderer {
         };
         let workers = Workers::new(cfg.workers)?;
         let march = cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device));
+        let shadow = ShadowPass::new(device, &p, &cfg.shadows);
         Ok(Renderer {
             gpu: GpuCore {
                 depth: depth_view(device, size),
@@ -365,6 +398,7 @@ impl Renderer {
             geometry,
             far,
             forest: ForestGpu::new(device),
+            shadow,
             march,
             terrain: None,
             window: None,
@@ -376,6 +410,7 @@ impl Renderer {
             frame: 0,
             last: FrameStats::default(),
             timer: None,
+            time: 0.0,
             cfg,
         })
     }
@@ -393,6 +428,12 @@ impl Renderer {
     /// finish it; `None` unless [`Renderer::time_parts`] is on and a frame was rendered since the last call.
     pub fn part_times(&mut self) -> Option<[f64; timing::PARTS.len()]> {
         self.timer.as_mut()?.read(&self.gpu.device)
+    }
+
+    /// Set the scene's clock, seconds: what the wind blows by. A frame is a function of the scene, the camera and
+    /// this time (the window sets it from the wall clock; stills keep 0 unless asked).
+    pub fn set_time(&mut self, seconds: f32) {
+        self.time = if seconds.is_finite() { seconds } else { 0.0 };
     }
 
     /// Switch levels at once instead of cross-fading (offscreen stills).
@@ -569,7 +610,11 @@ impl Renderer {
 
     /// Plan the frame ([`FramePlan::plan`]), submit its jobs, mark what it draws as used, and write its lists.
     fn select(&mut self, scene: &Scene, camera: &Camera, dt: f32, stats: &mut FrameStats) {
-        let view = View::new(camera, self.gpu.size, self.cfg.near_clip, &self.cfg.lod, dt, self.lod.instant);
+        let mut view = View::new(camera, self.gpu.size, self.cfg.near_clip, &self.cfg.lod, dt, self.lod.instant);
+        if self.cfg.shadows.resolution > 0 {
+            let sun = Vec3::from(self.cfg.lighting.sun_direction).normalize_or(Vec3::Y);
+            view.shadows = Some((sun, self.cfg.shadows.distance));
+        }
         let room = self.cfg.max_jobs.saturating_sub(self.workers.outstanding() + self.cache.uploads_waiting());
         let input = FrameInputs {
             scene,
@@ -635,10 +680,13 @@ impl Renderer {
 
     fn write_globals(&self, camera: &Camera) {
         let (w, h) = self.gpu.size;
-        let vp: Mat4 = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
+        let aspect = w as f32 / h as f32;
+        let vp: Mat4 = camera.view_projection(aspect, self.cfg.near_clip);
         let l = &self.cfg.lighting;
         let sun = Vec3::from(l.sun_direction).normalize_or(Vec3::Y);
-        let g = Globals {
+        let wind = &self.cfg.wind;
+        let wind_dir = glam::Vec2::from(wind.direction).normalize_or(glam::Vec2::X);
+        let mut g = Globals {
             view_proj: vp.to_cols_array_2d(),
             inv_view_proj: vp.inverse().to_cols_array_2d(),
             eye: camera.position.extend(0.0).to_array(),
@@ -647,7 +695,13 @@ impl Renderer {
             sky_zenith: [l.sky_zenith[0], l.sky_zenith[1], l.sky_zenith[2], l.fog_density],
             sky_horizon: [l.sky_horizon[0], l.sky_horizon[1], l.sky_horizon[2], l.sky_light],
             viewport: [w as f32, h as f32, 1.0 / w as f32, 1.0 / h as f32],
+            wind: [wind_dir.x, wind_dir.y, wind.strength, self.time],
+            shadow_split: [0.0; 4],
+            shadow_texel: [0.0; 4],
+            shadow: [[[0.0; 4]; 4]; crate::SHADOW_CASCADES],
         };
+        let cascades = shadow::fit_cascades(camera, aspect, self.cfg.near_clip, sun, &self.cfg.shadows);
+        self.shadow.write(&self.gpu.queue, &mut g, &cascades);
         self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));
     }
 
@@ -657,9 +711,9 @@ impl Renderer {
     /// behind an opaque pixel ([`crate::FarPath`]) — and that laid over the scene.
     pub fn render(&mut self, view: &wgpu::TextureView) -> wgpu::SubmissionIndex {
         let gpu = &self.gpu;
-        let stamp = |pass: &mut wgpu::RenderPass<'_>, k| {
+        let done = |pass: &mut wgpu::RenderPass<'_>, part| {
             if let Some(t) = &self.timer {
-                t.stamp(pass, k);
+                t.done(pass, part);
             }
         };
         let far_count = self.plan.far_count();
@@ -669,6 +723,11 @@ impl Renderer {
             && self.far.bg.is_some()
             && self.forest.bind_group().is_some();
         let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        if let Some(t) = &self.timer {
+            t.start(&mut enc);
+        }
+        let draws = GeometryDraws { plan: &self.plan, geometry: &self.geometry, terrain: self.terrain.as_ref() };
+        self.shadow.encode(&mut enc, &gpu.p, &draws);
         {
             let hz = self.cfg.lighting.sky_horizon;
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -700,54 +759,27 @@ impl Renderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            stamp(&mut pass, 0);
+            done(&mut pass, Part::Shadows);
             pass.set_bind_group(0, &gpu.globals_bg, &[]);
+            pass.set_bind_group(3, self.shadow.receive(), &[]);
             pass.set_pipeline(&gpu.p.sky);
             pass.draw(0..SKY_VERTICES, 0..1);
-            if let Some(t) = &self.terrain {
-                pass.set_pipeline(&gpu.p.terrain);
-                pass.set_vertex_buffer(0, t.vertices.slice(..));
-                pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
-                for r in &self.plan.terrain_draws {
-                    pass.draw_indexed(r.clone(), 0, 0..1);
-                }
-            }
-            stamp(&mut pass, 1);
-            let geo = &self.geometry;
-            if let (false, Some(bg)) = (self.plan.prim_draws.is_empty(), &geo.prims_bg) {
-                pass.set_pipeline(&gpu.p.prims);
-                pass.set_bind_group(1, bg, &[]);
-                for d in &self.plan.prim_draws {
-                    let mesh = match d.shape {
-                        0 => &gpu.p.frusta[d.tess],
-                        1 => &gpu.p.spheres[d.tess],
-                        _ => &gpu.p.cube,
-                    };
-                    pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
-                    pass.set_vertex_buffer(0, mesh.vertices.slice(..));
-                    pass.set_index_buffer(mesh.indices.slice(..), wgpu::IndexFormat::Uint16);
-                    pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
-                }
-            }
-            stamp(&mut pass, 2);
-            if let (Some((slot, count)), Some(bg)) = (self.plan.mesh_draw, &geo.mesh_bg) {
-                pass.set_pipeline(&gpu.p.mesh);
-                pass.set_bind_group(1, bg, &[]);
-                pass.set_bind_group(2, &geo.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
-                pass.draw(0..count, 0..1);
-            }
-            stamp(&mut pass, 3);
+            draws.terrain(&mut pass, &gpu.p.terrain);
+            done(&mut pass, Part::Terrain);
+            draws.prims(&mut pass, &gpu.p.prims, &gpu.p);
+            done(&mut pass, Part::Primitives);
+            draws.meshes(&mut pass, &gpu.p.mesh);
+            done(&mut pass, Part::Meshes);
             if !far_field {
-                for k in 4..timing::STAMPS {
-                    stamp(&mut pass, k);
-                }
+                done(&mut pass, Part::FarField);
+                done(&mut pass, Part::Composite);
             }
         }
         if far_field {
             if let Some(march) = &self.march {
                 self.march_far_field(march, &mut enc);
                 if let Some(t) = &self.timer {
-                    t.stamp_encoder(&mut enc, 4);
+                    t.done_between(&mut enc, Part::FarField);
                 }
             } else {
                 enc.clear_buffer(&gpu.accum.opacity, 0, None);
@@ -781,7 +813,7 @@ impl Renderer {
                     pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
                 }
                 self.draw_forest(&mut pass);
-                stamp(&mut pass, 4);
+                done(&mut pass, Part::FarField);
             }
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("far-field composite"),
@@ -799,7 +831,7 @@ impl Renderer {
             pass.set_pipeline(&gpu.p.composite);
             pass.set_bind_group(0, &gpu.accum.composite_bg, &[]);
             pass.draw(0..SKY_VERTICES, 0..1);
-            stamp(&mut pass, 5);
+            done(&mut pass, Part::Composite);
         }
         if let Some(t) = &mut self.timer {
             t.resolve(&mut enc);

@@ -64,6 +64,14 @@ pub struct Segment {
     pub pos: [f32; 3],
     /// Dither mask (see [`super::lod::LodDraw::mask`]).
     pub mask: f32,
+    /// The instance's seed folded to 32 bits ([`fold_seed`]): its phase in the wind.
+    pub seed: u32,
+    pub pad: [u32; 3],
+}
+
+/// An instance seed folded to the 32 bits a [`Segment`] carries.
+pub fn fold_seed(seed: u64) -> u32 {
+    (seed ^ (seed >> 32)) as u32
 }
 
 /// The uniform of one draw: its segments and unit shape.
@@ -211,6 +219,9 @@ pub struct View {
     pub height_px: f32,
     /// Fade progress of this frame (`dt / fade_seconds`; 1 switches at once).
     pub progress: f32,
+    /// The sun's shadows, where they are on: the unit direction toward the sun and how far from the eye they reach.
+    /// A tree out of view within that reach whose shadow may fall in view is drawn too, for the shadow pass.
+    pub shadows: Option<(Vec3, f32)>,
 }
 
 impl View {
@@ -226,7 +237,20 @@ impl View {
             tan_half: camera.tan_half_fov(),
             height_px: h as f32,
             progress,
+            shadows: None,
         }
+    }
+
+    /// Whether a tree out of view (bounding sphere at `center`, `radius`; its base `base` metres below the centre)
+    /// may cast a shadow into view: within the shadow's reach, and the sphere moved along the sun's rays down to
+    /// its base's height (grown by the shadow's length) is in view.
+    fn casts_into_view(&self, center: Vec3, radius: f32, base: f32) -> bool {
+        let Some((sun, reach)) = self.shadows else { return false };
+        if sun.y <= 0.05 || (center - self.eye).length() - radius > reach {
+            return false;
+        }
+        let along = (base + radius) / sun.y;
+        self.frustum.sphere_visible(center - sun * (0.5 * along), radius + 0.5 * along)
     }
 }
 
@@ -385,11 +409,24 @@ impl FramePlan {
                 None => (Vec3::new(0.0, FALLBACK_CENTER_HEIGHT, 0.0) * scale, FALLBACK_RADIUS * scale),
             };
             let center = Vec3::from(si.position) + c_off;
-            if !view.frustum.sphere_visible(center, radius) {
-                continue;
-            }
             let dist = (center - view.eye).length();
             let size = projected_size(radius, dist, view.tan_half, view.height_px);
+            if !view.frustum.sphere_visible(center, radius) {
+                // Out of view, it may still cast a shadow into view: drawn for that at the level its size asks for
+                // where resident (without a fade: the shadow pass draws no masks), asked for behind what is seen.
+                if size >= lod.cull_px && view.casts_into_view(center, radius, c_off.y) {
+                    let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
+                    if let Level::Detail(d) = lod.select(st.target, size) {
+                        if res.cache.get(&key(d)).is_some() {
+                            self.geo_draws.push(GeoDraw { key: key(d), position: si.position, mask: 1.0 });
+                            stats.shadow_casters += 1;
+                        } else if !res.cache.is_pending(&key(d)) && !res.cache.unavailable(&key(d)) {
+                            self.requests.push(JobRequest { key: key(d), instance: idx, priority: 0.25 * size });
+                        }
+                    }
+                }
+                continue;
+            }
             if size < lod.cull_px {
                 continue;
             }
@@ -480,6 +517,8 @@ impl FramePlan {
                     count: r.len() as u32,
                     pos: g.position,
                     mask: g.mask,
+                    seed: fold_seed(g.key.seed),
+                    pad: [0; 3],
                 });
             }
             if !e.indices.is_empty() {
@@ -490,6 +529,8 @@ impl FramePlan {
                     count: (e.indices.end - e.indices.start) as u32,
                     pos: g.position,
                     mask: g.mask,
+                    seed: fold_seed(g.key.seed),
+                    pad: [0; 3],
                 });
             }
         }

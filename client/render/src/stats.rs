@@ -8,6 +8,8 @@ pub struct FrameStats {
     pub instances: usize,
     /// Instances in the view frustum and above the cull size.
     pub in_view: usize,
+    /// Trees out of view drawn for the shadows they cast into it.
+    pub shadow_casters: usize,
     /// Instances drawn at full detail.
     pub near: usize,
     /// Instances drawn with LOD substitutes.

@@ -61,6 +61,15 @@ pub struct RendererArgs {
     /// 50 m so a view from altitude reaches the horizon).
     #[arg(long)]
     fog: Option<f32>,
+    /// Texels along each side of the sun's shadow maps (one a cascade; 0: no shadows).
+    #[arg(long, default_value_t = RenderConfig::default().shadows.resolution)]
+    shadow_map: u32,
+    /// Metres from the eye that sun shadows reach.
+    #[arg(long, default_value_t = RenderConfig::default().shadows.distance)]
+    shadow_distance: f32,
+    /// Wind strength (0: still air; 1: a moderate breeze).
+    #[arg(long, default_value_t = RenderConfig::default().wind.strength)]
+    wind: f32,
 }
 
 impl RendererArgs {
@@ -89,6 +98,9 @@ impl RendererArgs {
         cfg.volume_resolution = self.volume_resolution;
         cfg.forest_layer = self.forest_layer;
         cfg.far_path = self.far_path;
+        cfg.shadows.resolution = self.shadow_map;
+        cfg.shadows.distance = self.shadow_distance;
+        cfg.wind.strength = self.wind;
         cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
         cfg.validate().context("renderer options")?;
         Ok(cfg)
@@ -121,6 +133,10 @@ pub struct RenderArgs {
     /// Image height, pixels.
     #[arg(long, default_value_t = 720)]
     height: u32,
+    /// Seconds on the scene's clock for the still (what the wind blows by); timed frames go on from it at 60 a
+    /// second.
+    #[arg(long, default_value_t = 0.0)]
+    time: f32,
     /// After the still, render this many more frames and report frame times.
     #[arg(long, default_value_t = 0)]
     frames: u32,
@@ -170,6 +186,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let altitude = camera.position.y - world.height(camera.position.x, camera.position.z);
     let cfg = args.renderer.config(altitude)?;
     let mut off = Offscreen::new(cfg, args.width, args.height)?;
+    off.renderer.set_time(args.time);
     println!("adapter: {}", off.gpu.describe());
     let far = args.far.view(args.height, camera.fov_y, altitude)?;
     if !(args.record_radius.is_finite() && args.record_radius >= 0.0) {
@@ -221,6 +238,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
             let index = off.submit();
             update.push(next.update_ms);
             if k + 1 < args.frames {
+                off.renderer.set_time(args.time + (k + 1) as f32 / 60.0);
                 next = off.renderer.update(&scene, &camera, 1.0 / 60.0);
             }
             off.wait(index)?;

@@ -517,6 +517,8 @@ impl App {
         }
         self.move_camera(dt);
         let Some(gfx) = self.gfx.as_mut() else { return };
+        // The wind blows by the wall clock.
+        gfx.renderer.set_time(now.duration_since(self.started).as_secs_f32());
         if let Some(scene) = &self.scene {
             self.stats = gfx.renderer.update(scene, &self.camera, dt);
         } else {

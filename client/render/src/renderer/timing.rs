@@ -1,13 +1,42 @@
-//! GPU time per part of a frame (sky and terrain, primitives, meshes, the far field, its composite) from timestamp queries written inside the frame's render passes — where the adapter offers them
-//! (`canopy render --frames N` reports them). A tiling or software rasteriser (Mesa's lavapipe) runs a pass's
-//! fragments at its end, so there only the whole is meaningful.
+//! GPU time per part of a frame ([`Part`]: the sun's shadow maps, sky and terrain, primitives, meshes, the far
+//! field, its composite) from timestamp queries written between and inside the frame's passes — where the adapter
+//! offers them (`canopy render --frames N` reports them). A tiling or software rasteriser (Mesa's lavapipe) runs a
+//! pass's fragments at its end, so there only the whole is meaningful.
 
-/// The parts of a frame timed, in drawing order (the far field, instances and forest, counts from the end of the
-/// scene pass).
-pub const PARTS: [&str; 5] = ["sky+terrain", "primitives", "meshes", "far field", "composite"];
+/// A part of a frame timed, in drawing order. Its time runs from the end of the previous part (the frame's start
+/// for the first) to the stamp [`PassTimer::done`] writes for it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Part {
+    /// The sun's shadow maps (every cascade).
+    Shadows,
+    /// The sky and the terrain.
+    Terrain,
+    /// The near and mid trees' instanced primitives.
+    Primitives,
+    /// Their meshes (leaves, trunk bases, merged trees).
+    Meshes,
+    /// Far instances and forest patches (counts from the end of the scene pass).
+    FarField,
+    /// The far field laid over the scene.
+    Composite,
+}
 
-/// Timestamps: one before the first part and one after each.
-pub(super) const STAMPS: u32 = PARTS.len() as u32 + 1;
+impl Part {
+    /// Every part, in drawing order.
+    pub const ALL: [Part; 6] =
+        [Part::Shadows, Part::Terrain, Part::Primitives, Part::Meshes, Part::FarField, Part::Composite];
+
+    /// The part's name in reports.
+    pub fn name(self) -> &'static str {
+        PARTS[self as usize]
+    }
+}
+
+/// The parts' names, in drawing order.
+pub const PARTS: [&str; 6] = ["shadows", "sky+terrain", "primitives", "meshes", "far field", "composite"];
+
+/// Timestamps: one at the frame's start and one after each part.
+const STAMPS: u32 = PARTS.len() as u32 + 1;
 
 /// The features a device needs for [`PassTimer`].
 pub const FEATURES: wgpu::Features = wgpu::Features::TIMESTAMP_QUERY
@@ -50,14 +79,19 @@ impl PassTimer {
         Some(PassTimer { set, resolve, read, period: f64::from(queue.get_timestamp_period()), pending: false })
     }
 
-    /// Write timestamp `index` (0 before the first part, `k + 1` after part `k`).
-    pub(super) fn stamp(&self, pass: &mut wgpu::RenderPass<'_>, index: u32) {
-        pass.write_timestamp(&self.set, index);
+    /// The frame starts (between passes).
+    pub(super) fn start(&self, enc: &mut wgpu::CommandEncoder) {
+        enc.write_timestamp(&self.set, 0);
     }
 
-    /// The same between passes.
-    pub(super) fn stamp_encoder(&self, enc: &mut wgpu::CommandEncoder, index: u32) {
-        enc.write_timestamp(&self.set, index);
+    /// `part` is done, inside a render pass.
+    pub(super) fn done(&self, pass: &mut wgpu::RenderPass<'_>, part: Part) {
+        pass.write_timestamp(&self.set, part as u32 + 1);
+    }
+
+    /// `part` is done, between passes.
+    pub(super) fn done_between(&self, enc: &mut wgpu::CommandEncoder, part: Part) {
+        enc.write_timestamp(&self.set, part as u32 + 1);
     }
 
     /// After the pass: resolve the timestamps into the mappable buffer.

@@ -1,0 +1,125 @@
+//! Image tests of the sun's shadows and the wind (issue 33), offscreen on whatever wgpu adapter is present (CI:
+//! Mesa lavapipe): one tree on flat ground, compared with committed references, and each with a tolerance that
+//! the picture without the effect (no shadow, a frozen wind) fails.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use canopy_render::compare::{Tolerance, check_reference, compare};
+use canopy_render::offscreen::{Offscreen, RenderedImage};
+use canopy_render::volume::REPRESENTATIVE_SEED;
+use canopy_render::{Camera, LodConfig, RenderConfig, Scene, SceneFar, SceneInstance, Shadows, Wind};
+use canopy_worlds::world::{InstanceId, Terrain};
+use glam::Vec3;
+
+const W: u32 = 256;
+const H: u32 = 192;
+
+fn reference(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/reference").join(name)
+}
+
+/// The representative monopodial tree at the origin of a flat ground, seen from above and to the side so that its
+/// shadow (the sun is the default: up and to −x, +z) falls in view.
+fn tree_and_camera() -> (Scene, Camera) {
+    let graph = canopy_worlds::library::find("monopodial").expect("library species").load().expect("parses");
+    let scene = Scene {
+        species: vec![Some(Arc::new(graph))],
+        volumes: vec![None],
+        instances: vec![SceneInstance {
+            id: InstanceId(0),
+            species: 0,
+            position: [0.0; 3],
+            seed: REPRESENTATIVE_SEED,
+            params: Vec::new(),
+        }],
+        ground: Arc::new(Terrain::flat([-200.0, -200.0], 400.0)).into(),
+        generation: 1,
+        far: SceneFar::default(),
+    };
+    let camera = Camera::looking_at(Vec3::new(-14.0, 17.0, -19.0), Vec3::new(3.0, 3.0, -3.0), 55.0);
+    (scene, camera)
+}
+
+/// The tree at full detail, fog off, with `shadows` and `wind`, at `time` seconds.
+fn shoot(shadows: Shadows, wind: Wind, time: f32) -> RenderedImage {
+    let (scene, camera) = tree_and_camera();
+    let (img, stats) = shoot_from(&scene, &camera, shadows, wind, time);
+    assert_eq!((stats.near, stats.waiting), (1, 0), "{stats:?}");
+    img
+}
+
+fn shoot_from(
+    scene: &Scene,
+    camera: &Camera,
+    shadows: Shadows,
+    wind: Wind,
+    time: f32,
+) -> (RenderedImage, canopy_render::FrameStats) {
+    let mut cfg = RenderConfig {
+        lod: LodConfig { near_px: 20.0, far_px: 5.0, ..LodConfig::default() },
+        workers: 1,
+        shadows,
+        wind,
+        ..RenderConfig::default()
+    };
+    cfg.lighting.fog_density = 0.0;
+    let mut off = Offscreen::new(cfg, W, H).unwrap_or_else(|e| panic!("{e}"));
+    off.renderer.set_time(time);
+    let stats = off.settle(scene, camera, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
+    (off.render().unwrap_or_else(|e| panic!("{e}")), stats)
+}
+
+/// Pixels at least `by` darker (summed RGB) in `a` than in `b`, as a fraction of the image.
+fn darker(a: &RenderedImage, b: &RenderedImage, by: i32) -> f64 {
+    let sum = |p: &[u8]| p[..3].iter().map(|&c| i32::from(c)).sum::<i32>();
+    let n = a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)).filter(|(p, q)| sum(q) - sum(p) >= by).count();
+    n as f64 / f64::from(a.width * a.height)
+}
+
+#[test]
+fn the_tree_casts_its_shadow_and_a_missing_shadow_fails() {
+    let still = Wind { strength: 0.0, ..Wind::default() };
+    let shadows = Shadows { resolution: 1024, distance: 120.0 };
+    let lit = shoot(shadows, still, 0.0);
+    let unshadowed = shoot(Shadows { resolution: 0, ..shadows }, still, 0.0);
+    // The shadow darkens the ground beside the tree and the crown's far side: a good part of the picture.
+    let shade = darker(&lit, &unshadowed, 60);
+    assert!(shade > 0.05, "only {:.1} % of the pixels are in shadow", 100.0 * shade);
+    assert!(darker(&unshadowed, &lit, 60) < 0.001, "a shadow never brightens");
+    let t = Tolerance::default();
+    check_reference(&lit, &reference("sun-shadow.png"), &t).unwrap_or_else(|e| panic!("{e}"));
+    let missing = compare(&unshadowed, &lit, t.channel).expect("same size");
+    assert!(!missing.within(&t), "a missing shadow passes the reference's tolerance: {missing:?}");
+}
+
+#[test]
+fn the_wind_moves_the_tree_and_a_frozen_wind_fails() {
+    let shadows = Shadows { resolution: 1024, distance: 120.0 };
+    let wind = Wind::default();
+    let blown = shoot(shadows, wind, 2.0);
+    // A frame is a function of the scene and the time: the same time gives the same picture.
+    assert_eq!(blown.rgba, shoot(shadows, wind, 2.0).rgba, "the same time, a different picture");
+    let t = Tolerance::default();
+    check_reference(&blown, &reference("sun-wind.png"), &t).unwrap_or_else(|e| panic!("{e}"));
+    let frozen = compare(&shoot(shadows, wind, 0.0), &blown, t.channel).expect("same size");
+    assert!(!frozen.within(&t), "a frozen wind passes the reference's tolerance: {frozen:?}");
+    // In still air time changes nothing.
+    let still = Wind { strength: 0.0, ..wind };
+    assert_eq!(shoot(shadows, still, 0.0).rgba, shoot(shadows, still, 2.0).rgba);
+}
+
+#[test]
+fn a_tree_out_of_view_still_casts_its_shadow_into_it() {
+    let (scene, _) = tree_and_camera();
+    // Looking down at the ground where the top of the crown casts its shadow, the tree itself out of view.
+    let camera = Camera::looking_at(Vec3::new(14.0, 14.0, -11.5), Vec3::new(14.5, 0.0, -12.0), 30.0);
+    let still = Wind { strength: 0.0, ..Wind::default() };
+    let shadows = Shadows { resolution: 1024, distance: 120.0 };
+    let (lit, stats) = shoot_from(&scene, &camera, shadows, still, 0.0);
+    assert_eq!((stats.in_view, stats.shadow_casters), (0, 1), "{stats:?}");
+    let (bare, _) = shoot_from(&scene, &camera, Shadows { resolution: 0, ..shadows }, still, 0.0);
+    let shade = darker(&lit, &bare, 60);
+    assert!(shade > 0.05, "only {:.1} % of the ground is in shadow", 100.0 * shade);
+}
