@@ -64,6 +64,16 @@ fn shade_lit(base: vec3<f32>, n: vec3<f32>, sun: f32) -> vec3<f32> {
     return base * (g.sun_dir.w + sky + g.sun_color.w * lambert * g.sun_color.rgb);
 }
 
+// An instance's own shade of its species' colours, from the top byte of its folded seed (select.rs `fold_seed`):
+// brightness ×0.87..1.11 from the low nibble, a shift toward yellow or blue of about ±5 % from the high one; 0x88
+// is the species' colours as they are. Near, mid and far draw the same tint, so a tree keeps its shade across its
+// levels.
+fn instance_tint(seed: u32) -> vec3<f32> {
+    let b = f32((seed >> 24u) & 15u) - 8.0;
+    let h = f32(seed >> 28u) - 8.0;
+    return vec3<f32>(1.0 + 0.006 * h, 1.0, 1.0 - 0.006 * h) * (1.0 + 0.016 * b);
+}
+
 fn sky_color(dir: vec3<f32>) -> vec3<f32> {
     let up = clamp(dir.y, 0.0, 1.0);
     return mix(g.sky_horizon.rgb, g.sky_zenith.rgb, sqrt(up));

@@ -15,11 +15,16 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     let world = p + s.pos + wind_offset(p + s.pos, s.pos, s.seed);
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
-    out.normal = unpack4x8snorm(verts[w + 3u]).xyz;
-    out.color = unpack4x8unorm(verts[w + 4u]).rgb;
+    let n = unpack4x8snorm(verts[w + 3u]);
+    out.normal = n.xyz;
+    out.thin = n.w;
+    out.color = unpack4x8unorm(verts[w + 4u]).rgb * instance_tint(s.seed);
     out.mask = s.mask;
     return out;
 }
+
+// The share of the sun's light a leaf passes to its far side.
+const TRANSLUCENCY: f32 = 0.5;
 
 @fragment
 fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
@@ -31,6 +36,11 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     if !front {
         n = -n;
     }
-    let lit = shade_lit(in.color, n, sun_visibility(in.world, n));
+    // The sun's visibility on the sunlit side (a leaf seen from behind is lit through: its own shadow is behind it).
+    let toward = dot(n, g.sun_dir.xyz);
+    let sun = sun_visibility(in.world, select(n, -n, toward < 0.0));
+    var lit = shade_lit(in.color, n, sun);
+    // Light through a leaf with the sun behind it: a share of the sun's diffuse light, in the leaf's colour.
+    lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * in.color;
     return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

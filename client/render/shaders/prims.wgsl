@@ -55,8 +55,9 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     out.clip = g.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
     out.normal = wn;
-    out.color = unpack4x8unorm(bitcast<u32>(prim.shape.w)).rgb;
+    out.color = unpack4x8unorm(bitcast<u32>(prim.shape.w)).rgb * instance_tint(s.seed);
     out.mask = s.mask;
+    out.thin = 0.0;
     return out;
 }
 

@@ -38,6 +38,8 @@ struct GeoOut {
     @location(1) normal: vec3<f32>,
     @location(2) color: vec3<f32>,
     @location(3) @interpolate(flat) mask: f32,
+    // 1 for a leaf (thin: lit through from behind), 0 otherwise.
+    @location(4) thin: f32,
 };
 
 // The segment holding element `i` of the draw: the last one whose `first` is <= i (binary search).

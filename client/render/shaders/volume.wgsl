@@ -21,7 +21,7 @@ fn vs_volume(
     @location(1) volume: u32,
     @location(2) mask: f32,
 ) -> VolumeOut {
-    let info = volumes[volume];
+    let info = volumes[volume & 0xffffffu];
     let b = mix(info.lo.xyz, info.hi.xyz, unit_cube(vi));
     let k = pos_scale.w * info.lo.w;
     let world = pos_scale.xyz + k * (b - info.origin.xyz);
@@ -54,11 +54,11 @@ fn fs_volume(in: VolumeOut) -> @location(0) vec4<f32> {
     return c;
 }
 
-// The far instance at `inst` (position, scale) of volume `volume` along the eye ray `d`: premultiplied colour and
-// opacity, the march stopping at opacity `stop`; nothing if its box begins beyond `t_scene` metres (the opaque
-// scene in front of it).
+// The far instance at `inst` (position, scale) of volume `volume` (`FarInstance::volume`: the index in its low
+// 24 bits, the instance's tint in its top 8) along the eye ray `d`: premultiplied colour and opacity, the march
+// stopping at opacity `stop`; nothing if its box begins beyond `t_scene` metres (the opaque scene in front of it).
 fn march_volume(inst: vec4<f32>, volume: u32, d: vec3<f32>, stop: f32, t_scene: f32) -> vec4<f32> {
-    let info = volumes[volume];
+    let info = volumes[volume & 0xffffffu];
     let k = inst.w * info.lo.w;
     // The ray in box units (a uniform scale keeps directions).
     let o = (g.eye.xyz - inst.xyz) / k + info.origin.xyz;
@@ -105,5 +105,6 @@ fn march_volume(inst: vec4<f32>, volume: u32, d: vec3<f32>, stop: f32, t_scene: 
     // Fog at the first voxel hit, premultiplied like the colour.
     let hit = g.eye.xyz + d * (first_hit * k);
     let f = fog_factor(distance(hit, g.eye.xyz));
-    return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
+    let tinted = color * instance_tint(volume & 0xff000000u);
+    return vec4<f32>(tinted * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
 }

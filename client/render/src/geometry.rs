@@ -7,7 +7,7 @@ use std::ops::Range;
 use bytemuck::{Pod, Zeroable};
 use canopy_protocol::SpeciesGraph;
 use canopy_worlds::amplify::{AmplifyError, Budget, Instance, amplify};
-use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into, mesh_into_where};
+use canopy_worlds::mesh::{Mesh, MeshOptions, mesh_into_where};
 use canopy_worlds::nearfield::options::species_options;
 use canopy_worlds::nearfield::species_near_mesh;
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
@@ -44,7 +44,7 @@ pub struct PrimInstance {
 pub struct MeshVertex {
     /// Species-space position.
     pub position: [f32; 3],
-    /// Unit normal, snorm8×4.
+    /// Unit normal, snorm8×4; w is 1 for a leaf (thin: lit through from behind), 0 otherwise.
     pub normal: u32,
     /// Linear RGB colour, unorm8×4.
     pub color: u32,
@@ -85,10 +85,15 @@ pub fn pack_unorm(c: [f32; 3]) -> u32 {
     q(c[0]) | q(c[1]) << 8 | q(c[2]) << 16 | 255 << 24
 }
 
-/// Pack a unit vector as snorm8×4.
+/// Pack a unit vector as snorm8×4 (w = 0).
 pub fn pack_snorm(n: [f32; 3]) -> u32 {
+    pack_snorm4(n, 0.0)
+}
+
+/// Pack a unit vector and `w` as snorm8×4.
+fn pack_snorm4(n: [f32; 3], w: f32) -> u32 {
     let q = |v: f32| ((v.clamp(-1.0, 1.0) * 127.0).round() as i32 as u32) & 0xff;
-    q(n[0]) | q(n[1]) << 8 | q(n[2]) << 16
+    q(n[0]) | q(n[1]) << 8 | q(n[2]) << 16 | q(w) << 24
 }
 
 fn finite_positive(v: &[f32]) -> bool {
@@ -147,7 +152,7 @@ pub fn build_tree(
         match species_near_mesh(&stream, &o) {
             Ok(m) => {
                 let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
-                set_mesh(&mut out, m);
+                set_mesh(&mut out, m, 0);
                 return Ok(out);
             }
             Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
@@ -161,12 +166,19 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
     let opts = MeshOptions::for_detail(detail);
     let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
     let mut mesh = Mesh::new();
+    let thin;
     match mode {
-        NearMode::Merged => mesh_into(stream, &opts, &mut mesh),
+        NearMode::Merged => {
+            // Leaves first (thin, lit through), then the rest.
+            mesh_into_where(stream, &opts, |p| matches!(p.shape, Shape::Leaf { .. }), &mut mesh);
+            thin = mesh.positions.len();
+            mesh_into_where(stream, &opts, |p| !matches!(p.shape, Shape::Leaf { .. }), &mut mesh);
+        }
         NearMode::Instanced => {
             let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
-            // Leaves and trunk bases (never unit shapes) are meshed.
-            let meshed = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. } | Shape::TrunkBase(_));
+            // Leaves and trunk bases (never unit shapes) are meshed: leaves first (thin, lit through).
+            let leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
+            let base = |p: &Primitive| matches!(p.shape, Shape::TrunkBase(_));
             for p in &stream.primitives {
                 if let Some((shape, size)) = unit_instance(p) {
                     let m = &p.transform.m;
@@ -177,8 +189,12 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
                     });
                 }
             }
-            if stream.primitives.iter().any(meshed) {
-                mesh_into_where(stream, &opts, meshed, &mut mesh);
+            if stream.primitives.iter().any(leaf) {
+                mesh_into_where(stream, &opts, leaf, &mut mesh);
+            }
+            thin = mesh.positions.len();
+            if stream.primitives.iter().any(base) {
+                mesh_into_where(stream, &opts, base, &mut mesh);
             }
             let mut start = 0u32;
             for (k, v) in by_shape.iter_mut().enumerate() {
@@ -188,18 +204,24 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
             }
         }
     }
-    set_mesh(&mut out, mesh);
+    set_mesh(&mut out, mesh, thin);
     out
 }
 
-/// Make `mesh` the geometry's mesh part, packed for the GPU.
-fn set_mesh(out: &mut TreeGeometry, mesh: Mesh) {
+/// Make `mesh` the geometry's mesh part, packed for the GPU; its first `thin` vertices are of leaves (their
+/// normal's w is 1: `mesh.wgsl` lights them through).
+fn set_mesh(out: &mut TreeGeometry, mesh: Mesh, thin: usize) {
     out.vertices = mesh
         .positions
         .iter()
         .zip(&mesh.normals)
         .zip(&mesh.colors)
-        .map(|((p, n), c)| MeshVertex { position: *p, normal: pack_snorm(*n), color: pack_unorm(*c) })
+        .enumerate()
+        .map(|(i, ((p, n), c))| MeshVertex {
+            position: *p,
+            normal: pack_snorm4(*n, if i < thin { 1.0 } else { 0.0 }),
+            color: pack_unorm(*c),
+        })
         .collect();
     out.indices = mesh.indices;
 }
@@ -258,14 +280,25 @@ mod tests {
 
     #[test]
     fn merged_geometry_is_the_worlds_mesh() {
-        let g = conifer();
-        let inst = Instance::new(3).with_detail(2);
+        let g = library::find("monopodial").unwrap().load().unwrap();
+        let inst = Instance::new(3).with_detail(0);
         let stream = amplify(&g, &inst, &Budget::default()).unwrap();
-        let geo = geometry_of(&stream, 2, NearMode::Merged);
-        let mesh = canopy_worlds::mesh::mesh(&stream, &MeshOptions::for_detail(2));
+        let geo = geometry_of(&stream, 0, NearMode::Merged);
+        let mesh = canopy_worlds::mesh::mesh(&stream, &MeshOptions::for_detail(0));
         assert!(geo.prims.is_empty());
         assert_eq!(geo.vertices.len(), mesh.positions.len());
-        assert_eq!(geo.indices, mesh.indices);
+        // The same triangles (leaves come first).
+        let triangles = |idx: &[u32], at: &dyn Fn(u32) -> [f32; 3]| {
+            let mut t: Vec<[u32; 9]> =
+                idx.chunks_exact(3).map(|c| std::array::from_fn(|k| at(c[k / 3])[k % 3].to_bits())).collect();
+            t.sort_unstable();
+            t
+        };
+        assert_eq!(
+            triangles(&geo.indices, &|i| geo.vertices[i as usize].position),
+            triangles(&mesh.indices, &|i| mesh.positions[i as usize])
+        );
+        assert!(geo.vertices.iter().any(|v| v.normal >> 24 == 127), "leaves are marked thin");
         assert!(geo.gpu_bytes() > 0);
     }
 

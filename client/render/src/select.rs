@@ -69,6 +69,9 @@ pub struct Segment {
     pub pad: [u32; 3],
 }
 
+/// The bits of [`FarInstance::volume`] that index the volume (the rest is the instance's tint).
+pub const VOLUME_INDEX: u32 = 0xff_ffff;
+
 /// An instance seed folded to the 32 bits a [`Segment`] carries.
 pub fn fold_seed(seed: u64) -> u32 {
     (seed ^ (seed >> 32)) as u32
@@ -94,7 +97,8 @@ pub struct DrawUniform {
 pub struct FarInstance {
     /// Position of the species origin and the instance scale.
     pub pos_scale: [f32; 4],
-    /// Index of the volume (full or low resolution).
+    /// Index of the volume (full or low resolution) in the low 24 bits; the instance's tint (its folded seed's top
+    /// byte, `common.wgsl` `instance_tint`) in the top 8.
     pub volume: u32,
     /// Dither mask.
     pub mask: f32,
@@ -476,6 +480,8 @@ impl FramePlan {
                         let halvings = (lod.low_res_px / size.max(1e-6)).log2().floor() + 1.0;
                         let volume = v.levels[halvings.clamp(0.0, f32::from(lod.far_resolutions - 1)) as usize];
                         let [x, y, z] = si.position;
+                        // The instance's tint rides in the top byte (volume indices stay far below 2²⁴).
+                        let volume = (volume & VOLUME_INDEX) | (fold_seed(si.seed) & !VOLUME_INDEX);
                         self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
                     }
                     (Level::Far, None) => {}

@@ -178,7 +178,8 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
             id: InstanceId(0),
             species: 0,
             position: [0.0; 3],
-            seed: 1,
+            // Folded, its top byte is 0x88: the species' colours untinted (`common.wgsl` `instance_tint`).
+            seed: 0x8800_0000,
             params: Vec::new(),
         }],
         ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),

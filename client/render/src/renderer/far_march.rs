@@ -52,7 +52,7 @@ impl Renderer {
         let Some(m) = &mut self.march else { return };
         m.bins.begin(size);
         for (i, f) in self.plan.far_sorted.iter().enumerate() {
-            let Some(info) = self.far.infos.get(f.volume as usize) else { continue };
+            let Some(info) = self.far.infos.get((f.volume & crate::select::VOLUME_INDEX) as usize) else { continue };
             let k = f.pos_scale[3] * info.lo[3];
             let pos = Vec3::new(f.pos_scale[0], f.pos_scale[1], f.pos_scale[2]);
             let corner = |c: [f32; 4]| {

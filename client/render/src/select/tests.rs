@@ -135,7 +135,7 @@ fn instances_fall_in_bands_by_projected_size() {
     let drawn: Vec<_> = f.plan.geo_draws.iter().map(|g| g.key).collect();
     assert_eq!(drawn, vec![key(0, 0), key(1, 1), key(2, 2), key(3, 3)]);
     assert!(f.plan.geo_draws.iter().all(|g| g.mask == 1.0));
-    let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
+    let far: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume & VOLUME_INDEX)).collect();
     assert_eq!(far, vec![(at_size(30.0)[2], 10), (at_size(10.0)[2], 12)]);
 }
 
@@ -148,7 +148,7 @@ fn far_instances_take_a_coarser_volume_at_each_halving_of_their_size() {
         let mut f = Frame::new();
         f.lod = LodConfig { far_resolutions: resolutions, ..f.lod };
         f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
-        let mut v: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume)).collect();
+        let mut v: Vec<_> = f.plan.far_sorted.iter().map(|fi| (fi.pos_scale[2], fi.volume & VOLUME_INDEX)).collect();
         v.sort_by(|a, b| a.0.total_cmp(&b.0));
         v.into_iter().map(|(_, v)| v).collect::<Vec<_>>()
     };
