@@ -234,6 +234,9 @@ pub struct RenderConfig {
     pub shadows: Shadows,
     /// Wind bending trees and fluttering leaves in the vertex stage.
     pub wind: Wind,
+    /// Samples a pixel of the scene pass (terrain and trees): 4 anti-aliases their edges, 1 does not. The far field
+    /// is drawn once a pixel either way, against the nearest of the pixel's depths.
+    pub msaa: u32,
 }
 
 /// Sun shadows (`renderer/shadow.rs`): [`SHADOW_CASCADES`] shadow maps, each fitted to a slice of the view out to
@@ -297,6 +300,7 @@ impl Default for RenderConfig {
             far_path: FarPath::Auto,
             shadows: Shadows::default(),
             wind: Wind::default(),
+            msaa: 4,
         }
     }
 }
@@ -352,6 +356,7 @@ impl RenderConfig {
             ((1.0..=100_000.0).contains(&self.shadows.distance), "shadow distance"),
             (fin(&self.wind.direction) && self.wind.direction.iter().any(|v| *v != 0.0), "wind direction"),
             ((0.0..=100.0).contains(&self.wind.strength), "wind strength"),
+            (matches!(self.msaa, 1 | 4), "samples a pixel (1 or 4)"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

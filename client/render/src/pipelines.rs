@@ -187,6 +187,11 @@ pub struct Pipelines {
     pub march_layout: wgpu::BindGroupLayout,
     /// The sun's shadow maps and their comparison sampler (group 3 of the terrain, primitive and mesh pipelines).
     pub shadow_layout: wgpu::BindGroupLayout,
+    /// The multisampled scene depth, read by the depth resolve.
+    pub resolve_layout: wgpu::BindGroupLayout,
+    /// The multisampled scene depth resolved to one sample a pixel for the far field (`depth_resolve.wgsl`), where
+    /// the scene pass is multisampled.
+    pub depth_resolve: Option<wgpu::RenderPipeline>,
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub prims: wgpu::RenderPipeline,
@@ -249,9 +254,9 @@ fn depth(write: bool, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStenc
 }
 
 impl Pipelines {
-    /// Build every pipeline for targets of `format`; `early_depth`: whether the device has
-    /// [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
-    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, early_depth: bool) -> Pipelines {
+    /// Build every pipeline for targets of `format`, the scene pass's with `samples` samples a pixel;
+    /// `early_depth`: whether the device has [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
+    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, samples: u32, early_depth: bool) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let fs_cs = wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE;
         let unfiltered = wgpu::TextureSampleType::Float { filterable: false };
@@ -390,7 +395,8 @@ impl Pipelines {
                         buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
                         cull: Option<wgpu::Face>,
                         depth_stencil: Option<wgpu::DepthStencilState>,
-                        targets: &[Option<wgpu::ColorTargetState>]| {
+                        targets: &[Option<wgpu::ColorTargetState>],
+                        samples: u32| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
                 layout: Some(layout),
@@ -402,7 +408,7 @@ impl Pipelines {
                 },
                 primitive: wgpu::PrimitiveState { cull_mode: cull, ..Default::default() },
                 depth_stencil,
-                multisample: wgpu::MultisampleState::default(),
+                multisample: wgpu::MultisampleState { count: samples, ..Default::default() },
                 fragment: Some(wgpu::FragmentState {
                     module,
                     entry_point: Some(entry.1),
@@ -455,6 +461,7 @@ impl Pipelines {
             None,
             depth(false, wgpu::CompareFunction::Always),
             &opaque,
+            samples,
         );
 
         let terrain_mod = module(device, "terrain", &[COMMON, SHADOW, include_str!("../shaders/terrain.wgsl")]);
@@ -473,6 +480,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
+            samples,
         );
         let shadow_terrain = caster(
             "terrain shadow",
@@ -499,6 +507,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
+            samples,
         );
         let shadow_prims = caster(
             "primitive shadow",
@@ -518,6 +527,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
+            samples,
         );
         let shadow_mesh = caster(
             "mesh shadow",
@@ -542,6 +552,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
+            1,
         );
 
         let tile_consts = tile_consts();
@@ -567,6 +578,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
+            1,
         );
 
         let bins_consts = format!(
@@ -599,6 +611,43 @@ impl Pipelines {
             cache: None,
         });
 
+        let resolve_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("scene depth"),
+            entries: &[entry(
+                0,
+                wgpu::ShaderStages::FRAGMENT,
+                wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Depth,
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: true,
+                },
+            )],
+        });
+        let depth_resolve = (samples > 1).then(|| {
+            let m = module(device, "depth resolve", &[include_str!("../shaders/depth_resolve.wgsl")]);
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some("depth resolve"),
+                layout: Some(&layout("depth resolve", &[Some(&resolve_layout)])),
+                vertex: wgpu::VertexState {
+                    module: &m,
+                    entry_point: Some("vs_resolve"),
+                    compilation_options: Default::default(),
+                    buffers: &[],
+                },
+                primitive: wgpu::PrimitiveState::default(),
+                depth_stencil: depth(true, wgpu::CompareFunction::Always),
+                multisample: wgpu::MultisampleState::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &m,
+                    entry_point: Some("fs_resolve"),
+                    compilation_options: Default::default(),
+                    targets: &[],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        });
+
         let composite_mod = module(device, "far-field composite", &[include_str!("../shaders/composite.wgsl")]);
         let composite = pipeline(
             "far-field composite",
@@ -609,6 +658,7 @@ impl Pipelines {
             None,
             None,
             &premultiplied,
+            1,
         );
 
         let frusta = FRUSTUM_SEGMENTS
@@ -638,6 +688,8 @@ impl Pipelines {
             composite_layout,
             march_layout,
             shadow_layout,
+            resolve_layout,
+            depth_resolve,
             sky,
             terrain,
             prims,

@@ -107,12 +107,57 @@ impl Growable {
 struct GpuCore {
     device: wgpu::Device,
     queue: wgpu::Queue,
+    format: wgpu::TextureFormat,
     size: (u32, u32),
+    /// One sample a pixel: the scene's depth as the far field reads it (resolved from `msaa` where there is one).
     depth: wgpu::TextureView,
+    /// The multisampled scene targets, where the scene pass is multisampled ([`crate::RenderConfig::msaa`]).
+    msaa: Option<Msaa>,
     p: Pipelines,
     globals: wgpu::Buffer,
     globals_bg: wgpu::BindGroup,
     accum: Accumulation,
+}
+
+/// The scene pass's multisampled colour and depth (the colour resolved into the frame's target, the depth into
+/// [`GpuCore::depth`] by the depth resolve), and the depth's bind group for that resolve.
+struct Msaa {
+    color: wgpu::TextureView,
+    depth: wgpu::TextureView,
+    resolve_bg: wgpu::BindGroup,
+}
+
+impl Msaa {
+    fn new(
+        device: &wgpu::Device,
+        p: &Pipelines,
+        format: wgpu::TextureFormat,
+        (w, h): (u32, u32),
+        samples: u32,
+    ) -> Msaa {
+        let target = |label, format, usage| {
+            device
+                .create_texture(&wgpu::TextureDescriptor {
+                    label: Some(label),
+                    size: wgpu::Extent3d { width: w.max(1), height: h.max(1), depth_or_array_layers: 1 },
+                    mip_level_count: 1,
+                    sample_count: samples,
+                    dimension: wgpu::TextureDimension::D2,
+                    format,
+                    usage: wgpu::TextureUsages::RENDER_ATTACHMENT | usage,
+                    view_formats: &[],
+                })
+                .create_view(&wgpu::TextureViewDescriptor::default())
+        };
+        let color = target("multisampled colour", format, wgpu::TextureUsages::empty());
+        let depth = target("multisampled depth", DEPTH_FORMAT, wgpu::TextureUsages::TEXTURE_BINDING);
+        let resolve_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("scene depth"),
+            layout: &p.resolve_layout,
+            entries: &[wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&depth) }],
+        });
+        Msaa { color, depth, resolve_bg }
+    }
 }
 
 /// The far field's accumulation target (far instances and forest patches composited front to back), the per-pixel
@@ -315,7 +360,13 @@ impl Renderer {
         size: (u32, u32),
         cfg: RenderConfig,
     ) -> std::io::Result<Renderer> {
-        let p = Pipelines::new(device, format, device.features().contains(wgpu::Features::SHADER_EARLY_DEPTH_TEST));
+        let samples = cfg.msaa;
+        let p = Pipelines::new(
+            device,
+            format,
+            samples,
+            device.features().contains(wgpu::Features::SHADER_EARLY_DEPTH_TEST),
+        );
         let globals = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("globals"),
             size: size_of::<Globals>() as u64,
@@ -387,6 +438,8 @@ impl Renderer {
         Ok(Renderer {
             gpu: GpuCore {
                 depth: depth_view(device, size),
+                msaa: (samples > 1).then(|| Msaa::new(device, &p, format, size, samples)),
+                format,
                 accum: Accumulation::new(device, &p, size, march.is_none()),
                 device: device.clone(),
                 queue: queue.clone(),
@@ -445,6 +498,10 @@ impl Renderer {
     pub fn resize(&mut self, width: u32, height: u32) {
         self.gpu.size = (width.max(1), height.max(1));
         self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
+        if self.cfg.msaa > 1 {
+            self.gpu.msaa =
+                Some(Msaa::new(&self.gpu.device, &self.gpu.p, self.gpu.format, self.gpu.size, self.cfg.msaa));
+        }
         self.gpu.accum = Accumulation::new(&self.gpu.device, &self.gpu.p, self.gpu.size, self.march.is_none());
     }
 
@@ -733,9 +790,9 @@ impl Renderer {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("scene"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view,
+                    view: gpu.msaa.as_ref().map_or(view, |m| &m.color),
                     depth_slice: None,
-                    resolve_target: None,
+                    resolve_target: gpu.msaa.as_ref().map(|_| view),
                     ops: wgpu::Operations {
                         load: wgpu::LoadOp::Clear(wgpu::Color {
                             r: hz[0].into(),
@@ -743,11 +800,12 @@ impl Renderer {
                             b: hz[2].into(),
                             a: 1.0,
                         }),
-                        store: wgpu::StoreOp::Store,
+                        // Multisampled, only the resolved colour is kept.
+                        store: if gpu.msaa.is_some() { wgpu::StoreOp::Discard } else { wgpu::StoreOp::Store },
                     },
                 })],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &gpu.depth,
+                    view: gpu.msaa.as_ref().map_or(&gpu.depth, |m| &m.depth),
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Clear(0.0),
                         // The far field is depth-tested against the scene in the next pass.
@@ -774,6 +832,23 @@ impl Renderer {
                 done(&mut pass, Part::FarField);
                 done(&mut pass, Part::Composite);
             }
+        }
+        if let (true, Some(m), Some(resolve)) = (far_field, &gpu.msaa, &gpu.p.depth_resolve) {
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("depth resolve"),
+                color_attachments: &[],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &gpu.depth,
+                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(resolve);
+            pass.set_bind_group(0, &m.resolve_bg, &[]);
+            pass.draw(0..SKY_VERTICES, 0..1);
         }
         if far_field {
             if let Some(march) = &self.march {

@@ -45,7 +45,7 @@ fn tree_and_camera() -> (Scene, Camera) {
 /// The tree at full detail, fog off, with `shadows` and `wind`, at `time` seconds.
 fn shoot(shadows: Shadows, wind: Wind, time: f32) -> RenderedImage {
     let (scene, camera) = tree_and_camera();
-    let (img, stats) = shoot_from(&scene, &camera, shadows, wind, time);
+    let (img, stats) = shoot_from(&scene, &camera, shadows, wind, time, 4);
     assert_eq!((stats.near, stats.waiting), (1, 0), "{stats:?}");
     img
 }
@@ -56,16 +56,30 @@ fn shoot_from(
     shadows: Shadows,
     wind: Wind,
     time: f32,
+    msaa: u32,
+) -> (RenderedImage, canopy_render::FrameStats) {
+    shoot_sized(scene, camera, shadows, wind, time, msaa, (W, H))
+}
+
+fn shoot_sized(
+    scene: &Scene,
+    camera: &Camera,
+    shadows: Shadows,
+    wind: Wind,
+    time: f32,
+    msaa: u32,
+    (w, h): (u32, u32),
 ) -> (RenderedImage, canopy_render::FrameStats) {
     let mut cfg = RenderConfig {
         lod: LodConfig { near_px: 20.0, far_px: 5.0, ..LodConfig::default() },
         workers: 1,
         shadows,
         wind,
+        msaa,
         ..RenderConfig::default()
     };
     cfg.lighting.fog_density = 0.0;
-    let mut off = Offscreen::new(cfg, W, H).unwrap_or_else(|e| panic!("{e}"));
+    let mut off = Offscreen::new(cfg, w, h).unwrap_or_else(|e| panic!("{e}"));
     off.renderer.set_time(time);
     let stats = off.settle(scene, camera, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
     (off.render().unwrap_or_else(|e| panic!("{e}")), stats)
@@ -117,9 +131,41 @@ fn a_tree_out_of_view_still_casts_its_shadow_into_it() {
     let camera = Camera::looking_at(Vec3::new(14.0, 14.0, -11.5), Vec3::new(14.5, 0.0, -12.0), 30.0);
     let still = Wind { strength: 0.0, ..Wind::default() };
     let shadows = Shadows { resolution: 1024, distance: 120.0 };
-    let (lit, stats) = shoot_from(&scene, &camera, shadows, still, 0.0);
+    let (lit, stats) = shoot_from(&scene, &camera, shadows, still, 0.0, 4);
     assert_eq!((stats.in_view, stats.shadow_casters), (0, 1), "{stats:?}");
-    let (bare, _) = shoot_from(&scene, &camera, Shadows { resolution: 0, ..shadows }, still, 0.0);
+    let (bare, _) = shoot_from(&scene, &camera, Shadows { resolution: 0, ..shadows }, still, 0.0, 4);
     let shade = darker(&lit, &bare, 60);
     assert!(shade > 0.05, "only {:.1} % of the ground is in shadow", 100.0 * shade);
+}
+
+/// The mean absolute difference (RGB, 0..255) of `img` from `big` averaged over `k × k` blocks.
+fn off_supersampled(img: &RenderedImage, big: &RenderedImage, k: u32) -> f64 {
+    let mut total = 0.0;
+    for y in 0..img.height {
+        for x in 0..img.width {
+            for c in 0..3 {
+                let mut sum = 0.0;
+                for dy in 0..k {
+                    for dx in 0..k {
+                        sum += f64::from(big.pixel(x * k + dx, y * k + dy)[c]);
+                    }
+                }
+                total += (sum / f64::from(k * k) - f64::from(img.pixel(x, y)[c])).abs();
+            }
+        }
+    }
+    total / f64::from(img.width * img.height * 3)
+}
+
+#[test]
+fn multisampling_brings_edges_toward_the_supersampled_picture() {
+    let (scene, camera) = tree_and_camera();
+    let (still, shadows) = (Wind { strength: 0.0, ..Wind::default() }, Shadows::default());
+    let (one, _) = shoot_from(&scene, &camera, shadows, still, 0.0, 1);
+    let (four, _) = shoot_from(&scene, &camera, shadows, still, 0.0, 4);
+    // The same view at 4 × 4 samples a pixel, one each, averaged: what an edge should look like.
+    let (big, _) = shoot_sized(&scene, &camera, shadows, still, 0.0, 1, (4 * W, 4 * H));
+    let (a, b) = (off_supersampled(&one, &big, 4), off_supersampled(&four, &big, 4));
+    eprintln!("mean difference from 16 samples a pixel: {a:.2} at 1 sample, {b:.2} at 4");
+    assert!(b < 0.8 * a, "{a:.2} → {b:.2}");
 }

@@ -70,6 +70,9 @@ pub struct RendererArgs {
     /// Wind strength (0: still air; 1: a moderate breeze).
     #[arg(long, default_value_t = RenderConfig::default().wind.strength)]
     wind: f32,
+    /// Samples a pixel of terrain and trees: 4 anti-aliases their edges, 1 does not.
+    #[arg(long, default_value_t = RenderConfig::default().msaa)]
+    msaa: u32,
 }
 
 impl RendererArgs {
@@ -101,6 +104,7 @@ impl RendererArgs {
         cfg.shadows.resolution = self.shadow_map;
         cfg.shadows.distance = self.shadow_distance;
         cfg.wind.strength = self.wind;
+        cfg.msaa = self.msaa;
         cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
         cfg.validate().context("renderer options")?;
         Ok(cfg)
