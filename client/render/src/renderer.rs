@@ -14,14 +14,14 @@ use wgpu::util::DeviceExt;
 
 use super::RenderConfig;
 use super::cache::{GeometryCache, INDEX_BYTES, Placement};
-use super::camera::Camera;
+use super::camera::{Camera, Frustum};
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
 use super::ground::FractalWindow;
 use super::pipelines::{ACCUM_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
 use super::select::{
     DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, SpeciesVol,
-    View, VolState,
+    View, ViewDraws, VolState,
 };
 use super::terrain::TerrainMesh;
 use super::volume::FarVolume;
@@ -225,10 +225,10 @@ impl GeometryGpu {
     }
 }
 
-/// The frame's opaque geometry as one pass draws it, with whatever view its group 0 holds: the scene pass from the
+/// One view's opaque geometry as a pass draws it, with whatever view its group 0 holds: the scene pass from the
 /// camera, the shadow pass from the sun.
 struct GeometryDraws<'a> {
-    plan: &'a FramePlan,
+    draws: &'a ViewDraws,
     geometry: &'a GeometryGpu,
     terrain: Option<&'a TerrainGpu>,
 }
@@ -240,17 +240,17 @@ impl GeometryDraws<'_> {
         pass.set_pipeline(pipeline);
         pass.set_vertex_buffer(0, t.vertices.slice(..));
         pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
-        for r in &self.plan.terrain_draws {
+        for r in &self.draws.terrain {
             pass.draw_indexed(r.clone(), 0, 0..1);
         }
     }
 
     /// The instanced primitives: a draw per unit shape and tessellation.
     fn prims(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline, p: &Pipelines) {
-        let (false, Some(bg)) = (self.plan.prim_draws.is_empty(), &self.geometry.prims_bg) else { return };
+        let (false, Some(bg)) = (self.draws.prims.is_empty(), &self.geometry.prims_bg) else { return };
         pass.set_pipeline(pipeline);
         pass.set_bind_group(1, bg, &[]);
-        for d in &self.plan.prim_draws {
+        for d in &self.draws.prims {
             let mesh = match d.shape {
                 0 => &p.frusta[d.tess],
                 1 => &p.spheres[d.tess],
@@ -265,7 +265,7 @@ impl GeometryDraws<'_> {
 
     /// The meshes: one draw.
     fn meshes(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline) {
-        let (Some((slot, count)), Some(bg)) = (self.plan.mesh_draw, &self.geometry.mesh_bg) else { return };
+        let (Some((slot, count)), Some(bg)) = (self.draws.mesh, &self.geometry.mesh_bg) else { return };
         pass.set_pipeline(pipeline);
         pass.set_bind_group(1, bg, &[]);
         pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
@@ -671,6 +671,7 @@ impl Renderer {
         if self.cfg.shadows.resolution > 0 {
             let sun = Vec3::from(self.cfg.lighting.sun_direction).normalize_or(Vec3::Y);
             view.shadows = Some((sun, self.cfg.shadows.distance));
+            view.cascades = self.cascades(camera).map(|c| Some(Frustum::from_matrix(c.view_proj)));
         }
         let room = self.cfg.max_jobs.saturating_sub(self.workers.outstanding() + self.cache.uploads_waiting());
         let input = FrameInputs {
@@ -735,7 +736,14 @@ impl Renderer {
         self.write_globals(camera);
     }
 
-    fn write_globals(&self, camera: &Camera) {
+    /// The sun's shadow cascades for `camera`.
+    fn cascades(&self, camera: &Camera) -> [shadow::Cascade; crate::SHADOW_CASCADES] {
+        let (w, h) = self.gpu.size;
+        let sun = Vec3::from(self.cfg.lighting.sun_direction).normalize_or(Vec3::Y);
+        shadow::fit_cascades(camera, w as f32 / h as f32, self.cfg.near_clip, sun, &self.cfg.shadows)
+    }
+
+    fn write_globals(&mut self, camera: &Camera) {
         let (w, h) = self.gpu.size;
         let aspect = w as f32 / h as f32;
         let vp: Mat4 = camera.view_projection(aspect, self.cfg.near_clip);
@@ -757,7 +765,7 @@ impl Renderer {
             shadow_texel: [0.0; 4],
             shadow: [[[0.0; 4]; 4]; crate::SHADOW_CASCADES],
         };
-        let cascades = shadow::fit_cascades(camera, aspect, self.cfg.near_clip, sun, &self.cfg.shadows);
+        let cascades = self.cascades(camera);
         self.shadow.write(&self.gpu.queue, &mut g, &cascades);
         self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));
     }
@@ -783,8 +791,10 @@ impl Renderer {
         if let Some(t) = &self.timer {
             t.start(&mut enc);
         }
-        let draws = GeometryDraws { plan: &self.plan, geometry: &self.geometry, terrain: self.terrain.as_ref() };
-        self.shadow.encode(&mut enc, &gpu.p, &draws);
+        let view_draws = |draws| GeometryDraws { draws, geometry: &self.geometry, terrain: self.terrain.as_ref() };
+        let cascades = self.plan.cascades.each_ref().map(view_draws);
+        self.shadow.encode(&mut enc, &gpu.p, &cascades);
+        let draws = view_draws(&self.plan.camera);
         {
             let hz = self.cfg.lighting.sky_horizon;
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {

@@ -37,9 +37,9 @@ pub const UNIT_SHAPES: usize = 3;
 pub const TESSELLATIONS: usize = 4;
 /// Alignment of per-draw uniforms (the WebGPU minimum for dynamic offsets).
 pub const DRAW_STRIDE: u64 = 256;
-/// Draw slots: one per unit shape and tessellation, one for meshes, and spare.
-pub const DRAW_SLOTS: u64 = 16;
-const _: () = assert!((UNIT_SHAPES * TESSELLATIONS + 1) as u64 <= DRAW_SLOTS);
+/// Draw slots: for the camera and each shadow cascade, one per unit shape and tessellation and one for meshes.
+pub const DRAW_SLOTS: u64 = 64;
+const _: () = assert!(((UNIT_SHAPES * TESSELLATIONS + 1) * (1 + crate::SHADOW_CASCADES)) as u64 <= DRAW_SLOTS);
 /// Bytes of one [`DrawUniform`] within its slot.
 pub const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
 
@@ -126,6 +126,29 @@ pub struct GeoDraw {
     pub position: [f32; 3],
     /// Dither mask.
     pub mask: f32,
+    /// Centre and radius of the tree's bounding sphere (which shadow cascades it falls in).
+    pub sphere: (Vec3, f32),
+    /// Whether the camera sees it (false: drawn only into the shadow maps, for the shadow it casts into view).
+    pub seen: bool,
+}
+
+/// What one view draws of the opaque geometry: the camera's, or a shadow cascade's.
+#[derive(Debug, Default)]
+pub struct ViewDraws {
+    /// Instanced primitive draws, by unit shape then tessellation.
+    pub prims: Vec<PrimDraw>,
+    /// The mesh draw: uniform slot and index count.
+    pub mesh: Option<(u32, u32)>,
+    /// Terrain index ranges.
+    pub terrain: Vec<Range<u32>>,
+}
+
+impl ViewDraws {
+    fn clear(&mut self) {
+        self.prims.clear();
+        self.mesh = None;
+        self.terrain.clear();
+    }
 }
 
 /// Geometry the workers must make: a key for an instance, with its projected size as priority.
@@ -223,6 +246,9 @@ pub struct View {
     pub height_px: f32,
     /// Fade progress of this frame (`dt / fade_seconds`; 1 switches at once).
     pub progress: f32,
+    /// Each shadow cascade's volume (its four sides and its end away from the sun), where shadows are on: what the
+    /// cascade's map draws is planned as the camera's view is.
+    pub cascades: [Option<Frustum>; crate::SHADOW_CASCADES],
     /// The sun's shadows, where they are on: the unit direction toward the sun and how far from the eye they reach.
     /// A tree out of view within that reach whose shadow may fall in view is drawn too, for the shadow pass.
     pub shadows: Option<(Vec3, f32)>,
@@ -241,6 +267,7 @@ impl View {
             tan_half: camera.tan_half_fov(),
             height_px: h as f32,
             progress,
+            cascades: [None; crate::SHADOW_CASCADES],
             shadows: None,
         }
     }
@@ -351,12 +378,10 @@ pub struct FramePlan {
     pub segments: Vec<Segment>,
     /// The per-draw uniforms, as uploaded: [`DRAW_SLOTS`] slots of [`DRAW_STRIDE`] bytes.
     pub uniforms: Vec<u8>,
-    /// Instanced primitive draws, by unit shape then tessellation.
-    pub prim_draws: Vec<PrimDraw>,
-    /// The mesh draw: uniform slot and index count.
-    pub mesh_draw: Option<(u32, u32)>,
-    /// Terrain index ranges to draw.
-    pub terrain_draws: Vec<Range<u32>>,
+    /// What the camera draws.
+    pub camera: ViewDraws,
+    /// What each shadow cascade's map draws (empty where shadows are off).
+    pub cascades: [ViewDraws; crate::SHADOW_CASCADES],
 }
 
 impl FramePlan {
@@ -365,9 +390,8 @@ impl FramePlan {
         self.geo_draws.clear();
         self.far_sorted.clear();
         self.jobs.clear();
-        self.prim_draws.clear();
-        self.mesh_draw = None;
-        self.terrain_draws.clear();
+        self.camera.clear();
+        self.cascades.iter_mut().for_each(ViewDraws::clear);
     }
 
     /// Far instances to draw.
@@ -380,15 +404,15 @@ impl FramePlan {
     pub fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
         self.choose_levels(input, state, stats);
         self.choose_jobs(input.job_room);
-        self.build_draw_lists(input.residency.cache, stats);
+        self.build_draw_lists(input.residency.cache, &input.view.cascades, stats);
         self.sort_far();
         self.choose_terrain(input.terrain, &input.view, stats);
-        // The sky, the terrain chunks, the primitive draws, the meshes, the far field.
+        // The sky, the terrain chunks, the primitive draws, the meshes, the far field; and the cascades'.
+        let calls = |v: &ViewDraws| v.terrain.len() as u32 + v.prims.len() as u32 + u32::from(v.mesh.is_some());
         stats.draw_calls = 1
-            + self.terrain_draws.len() as u32
-            + self.prim_draws.len() as u32
-            + u32::from(self.mesh_draw.is_some())
-            + u32::from(!self.far_sorted.is_empty());
+            + calls(&self.camera)
+            + u32::from(!self.far_sorted.is_empty())
+            + self.cascades.iter().map(calls).sum::<u32>();
     }
 
     /// Cull, choose each instance's level with hysteresis, ask for what is missing, step the cross-fades and list
@@ -422,7 +446,13 @@ impl FramePlan {
                     let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
                     if let Level::Detail(d) = lod.select(st.target, size) {
                         if res.cache.get(&key(d)).is_some() {
-                            self.geo_draws.push(GeoDraw { key: key(d), position: si.position, mask: 1.0 });
+                            self.geo_draws.push(GeoDraw {
+                                key: key(d),
+                                position: si.position,
+                                mask: 1.0,
+                                sphere: (center, radius),
+                                seen: false,
+                            });
                             stats.shadow_casters += 1;
                         } else if !res.cache.is_pending(&key(d)) && !res.cache.unavailable(&key(d)) {
                             self.requests.push(JobRequest { key: key(d), instance: idx, priority: 0.25 * size });
@@ -471,9 +501,13 @@ impl FramePlan {
             }
             for d in st.lod.draws() {
                 match (d.level, vs) {
-                    (Level::Detail(det), _) => {
-                        self.geo_draws.push(GeoDraw { key: key(det), position: si.position, mask: d.mask })
-                    }
+                    (Level::Detail(det), _) => self.geo_draws.push(GeoDraw {
+                        key: key(det),
+                        position: si.position,
+                        mask: d.mask,
+                        sphere: (center, radius),
+                        seen: true,
+                    }),
                     (Level::Far, Some(v)) => {
                         // About as many voxels as pixels: one halving of the resolution below `low_res_px` and one
                         // more for each halving of the size, to the coarsest allowed.
@@ -505,45 +539,71 @@ impl FramePlan {
         }
     }
 
-    /// Geometry draw lists: one per (unit shape, tessellation), one for meshes; packed into one segment list with
-    /// a uniform slot per draw.
-    fn build_draw_lists(&mut self, cache: &GeometryCache, stats: &mut FrameStats) {
-        self.lists.iter_mut().flatten().for_each(Vec::clear);
-        self.meshes.clear();
-        for g in &self.geo_draws {
-            let Some(e) = cache.get(&g.key) else { continue };
-            for (k, r) in e.shape_ranges.iter().enumerate() {
-                if r.is_empty() {
-                    continue;
-                }
-                self.lists[k][tess(g.key.detail)].push(Segment {
-                    first: 0,
-                    base: (e.prims.start + u64::from(r.start)) as u32,
-                    vbase: 0,
-                    count: r.len() as u32,
-                    pos: g.position,
-                    mask: g.mask,
-                    seed: fold_seed(g.key.seed),
-                    pad: [0; 3],
-                });
-            }
-            if !e.indices.is_empty() {
-                self.meshes.push(Segment {
-                    first: 0,
-                    base: e.indices.start as u32,
-                    vbase: e.verts.start as u32,
-                    count: (e.indices.end - e.indices.start) as u32,
-                    pos: g.position,
-                    mask: g.mask,
-                    seed: fold_seed(g.key.seed),
-                    pad: [0; 3],
-                });
-            }
-        }
+    /// Geometry draw lists of the camera and of each shadow cascade: per view one list per (unit shape,
+    /// tessellation) and one for meshes, all packed into one segment list with a uniform slot per draw.
+    fn build_draw_lists(
+        &mut self,
+        cache: &GeometryCache,
+        cascades: &[Option<Frustum>; crate::SHADOW_CASCADES],
+        stats: &mut FrameStats,
+    ) {
         self.segments.clear();
         self.uniforms.clear();
         self.uniforms.resize((DRAW_STRIDE * DRAW_SLOTS) as usize, 0);
-        self.prim_draws.clear();
+        let mut slot = 0u32;
+        let mut camera = std::mem::take(&mut self.camera);
+        self.view_lists(cache, |g| g.seen, &mut slot, &mut camera);
+        stats.primitives = camera.prims.iter().map(|d| u64::from(d.instances)).sum();
+        stats.mesh_triangles = camera.mesh.map_or(0, |(_, n)| u64::from(n / 3));
+        self.camera = camera;
+        let mut lists = std::mem::take(&mut self.cascades);
+        for (c, draws) in cascades.iter().zip(&mut lists) {
+            draws.prims.clear();
+            draws.mesh = None;
+            if let Some(f) = c {
+                self.view_lists(cache, |g| f.sphere_visible(g.sphere.0, g.sphere.1), &mut slot, draws);
+                stats.shadow_primitives += draws.prims.iter().map(|d| u64::from(d.instances)).sum::<u64>();
+            }
+        }
+        self.cascades = lists;
+        if self.segments.is_empty() {
+            self.segments.push(Segment::zeroed());
+        }
+    }
+
+    /// One view's lists: the trees `keep` accepts, appended to the segments with uniform slots from `slot` on.
+    fn view_lists(
+        &mut self,
+        cache: &GeometryCache,
+        keep: impl Fn(&GeoDraw) -> bool,
+        slot: &mut u32,
+        out: &mut ViewDraws,
+    ) {
+        self.lists.iter_mut().flatten().for_each(Vec::clear);
+        self.meshes.clear();
+        for g in self.geo_draws.iter().filter(|g| keep(g)) {
+            let Some(e) = cache.get(&g.key) else { continue };
+            let segment = |base: u64, vbase: u64, count: u32| Segment {
+                first: 0,
+                base: base as u32,
+                vbase: vbase as u32,
+                count,
+                pos: g.position,
+                mask: g.mask,
+                seed: fold_seed(g.key.seed),
+                pad: [0; 3],
+            };
+            for (k, r) in e.shape_ranges.iter().enumerate() {
+                if !r.is_empty() {
+                    let s = segment(e.prims.start + u64::from(r.start), 0, r.len() as u32);
+                    self.lists[k][tess(g.key.detail)].push(s);
+                }
+            }
+            if !e.indices.is_empty() {
+                let count = (e.indices.end - e.indices.start) as u32;
+                self.meshes.push(segment(e.indices.start, e.verts.start, count));
+            }
+        }
         let put = |u: DrawUniform, slot: u32, uniforms: &mut Vec<u8>| {
             let at = (u64::from(slot) * DRAW_STRIDE) as usize;
             uniforms[at..at + DRAW_UNIFORM_BYTES].copy_from_slice(bytemuck::bytes_of(&u));
@@ -559,7 +619,7 @@ impl FramePlan {
             all.extend_from_slice(list);
             (first, list.len() as u32, total)
         };
-        let mut slot = 0u32;
+        out.prims.clear();
         for (shape, per_tess) in self.lists.iter_mut().enumerate() {
             for (t, list) in per_tess.iter_mut().enumerate() {
                 if list.is_empty() {
@@ -567,23 +627,19 @@ impl FramePlan {
                 }
                 let (first, count, total) = append(list, &mut self.segments);
                 let u = DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 };
-                put(u, slot, &mut self.uniforms);
-                self.prim_draws.push(PrimDraw { shape, tess: t, slot, instances: total });
-                stats.primitives += u64::from(total);
-                slot += 1;
+                put(u, *slot, &mut self.uniforms);
+                out.prims.push(PrimDraw { shape, tess: t, slot: *slot, instances: total });
+                *slot += 1;
             }
         }
-        self.mesh_draw = if self.meshes.is_empty() {
+        out.mesh = if self.meshes.is_empty() {
             None
         } else {
             let (first, count, total) = append(&mut self.meshes, &mut self.segments);
-            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, slot, &mut self.uniforms);
-            stats.mesh_triangles = u64::from(total / 3);
-            Some((slot, total))
+            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, *slot, &mut self.uniforms);
+            *slot += 1;
+            Some((*slot - 1, total))
         };
-        if self.segments.is_empty() {
-            self.segments.push(Segment::zeroed());
-        }
     }
 
     /// Far instances front to back (they blend under what is in front, and stop where it is opaque).
@@ -593,19 +649,26 @@ impl FramePlan {
         self.far_sorted.extend(self.far.iter().map(|&(_, f)| f));
     }
 
-    /// Terrain chunks in view, each at the coarsest step whose squares stay within [`TERRAIN_SQUARE_PX`].
+    /// Terrain chunks in view, each at the coarsest step whose squares stay within [`TERRAIN_SQUARE_PX`] of the
+    /// camera; and those in each shadow cascade, at the same steps (so that the ground shadows itself where it is
+    /// drawn).
     fn choose_terrain(&mut self, terrain: Option<&TerrainMesh>, view: &View, stats: &mut FrameStats) {
-        self.terrain_draws.clear();
+        self.camera.terrain.clear();
+        self.cascades.iter_mut().for_each(|c| c.terrain.clear());
         let Some(mesh) = terrain else { return };
         let px_per_rad = view.height_px / (2.0 * view.tan_half);
         for c in &mesh.chunks {
-            if !view.frustum.sphere_visible(c.center, c.radius) {
-                continue;
-            }
             let d = ((c.center - view.eye).length() - c.radius).max(TERRAIN_NEAREST);
             let r = c.levels[mesh.level_for(d, px_per_rad, TERRAIN_SQUARE_PX)].clone();
-            stats.terrain_triangles += u64::from(r.end - r.start) / 3;
-            self.terrain_draws.push(r);
+            if view.frustum.sphere_visible(c.center, c.radius) {
+                stats.terrain_triangles += u64::from(r.end - r.start) / 3;
+                self.camera.terrain.push(r.clone());
+            }
+            for (f, draws) in view.cascades.iter().zip(&mut self.cascades) {
+                if f.is_some_and(|f| f.sphere_visible(c.center, c.radius)) {
+                    draws.terrain.push(r.clone());
+                }
+            }
         }
     }
 }

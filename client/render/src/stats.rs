@@ -10,6 +10,8 @@ pub struct FrameStats {
     pub in_view: usize,
     /// Trees out of view drawn for the shadows they cast into it.
     pub shadow_casters: usize,
+    /// Primitives drawn into the shadow maps, every cascade's summed.
+    pub shadow_primitives: u64,
     /// Instances drawn at full detail.
     pub near: usize,
     /// Instances drawn with LOD substitutes.

@@ -209,7 +209,7 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let settle = Instant::now();
     let stats = off.settle(&scene, &camera, Duration::from_secs_f64(args.timeout.max(0.0)))?;
     println!(
-        "settled in {:.2} s: {} in view — near {}, mid {}, far {}; far view {} nodes drawn as {} forest patches ({:.0} trees' worth); {} primitives, {} mesh triangles, {} terrain triangles, {} draw calls; cache {} entries, {:.1} of {:.0} MiB",
+        "settled in {:.2} s: {} in view — near {}, mid {}, far {}; far view {} nodes drawn as {} forest patches ({:.0} trees' worth); {} primitives ({} into the shadow maps, {} trees out of view among their casters), {} mesh triangles, {} terrain triangles, {} draw calls; cache {} entries, {:.1} of {:.0} MiB",
         settle.elapsed().as_secs_f64(),
         stats.in_view,
         stats.near,
@@ -219,6 +219,8 @@ pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
         stats.forest_patches,
         stats.forest_trees,
         stats.primitives,
+        stats.shadow_primitives,
+        stats.shadow_casters,
         stats.mesh_triangles,
         stats.terrain_triangles,
         stats.draw_calls,

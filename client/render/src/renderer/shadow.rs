@@ -79,8 +79,17 @@ pub fn fit_cascades(
 }
 
 /// The shadow maps, their views and bind groups, and each cascade's globals (the frame's, seen from the sun).
+///
+/// The farthest cascade is drawn every other frame: between, the frame keeps its map and the matrix it was drawn
+/// with (its texels are the coarsest, and what it covers moves least as the camera moves).
 pub(super) struct ShadowPass {
     on: bool,
+    /// The farthest cascade as last drawn, once it has been.
+    far: Option<Cascade>,
+    /// The farthest cascade this frame draws, if it does (decided by [`ShadowPass::write`]).
+    draw_far: Option<Cascade>,
+    /// Frames written.
+    frames: u64,
     /// One view a cascade, drawn into.
     layers: Vec<wgpu::TextureView>,
     /// Group 3 of the pipelines that receive shadows: the maps as an array and the comparison sampler.
@@ -151,7 +160,7 @@ impl ShadowPass {
                 (buffer, bg)
             })
             .collect();
-        ShadowPass { on, layers, receive, globals }
+        ShadowPass { on, far: None, draw_far: None, frames: 0, layers, receive, globals }
     }
 
     /// The receivers' bind group (group 3).
@@ -159,11 +168,19 @@ impl ShadowPass {
         &self.receive
     }
 
-    /// Put `cascades` into the frame's globals `g` (nothing where shadows are off), and write each cascade's
-    /// globals: `g` seen from the sun.
-    pub(super) fn write(&self, queue: &wgpu::Queue, g: &mut Globals, cascades: &[Cascade; SHADOW_CASCADES]) {
+    /// Put `cascades` into the frame's globals `g` (nothing where shadows are off; the farthest as last drawn on
+    /// the frames that keep it), and write each cascade's globals: `g` seen from the sun.
+    pub(super) fn write(&mut self, queue: &wgpu::Queue, g: &mut Globals, cascades: &[Cascade; SHADOW_CASCADES]) {
         if !self.on {
             return;
+        }
+        self.frames += 1;
+        let mut cascades = *cascades;
+        let last = SHADOW_CASCADES - 1;
+        self.draw_far = None;
+        match self.far {
+            Some(kept) if self.frames % 2 == 1 => cascades[last] = kept,
+            _ => self.draw_far = Some(cascades[last]),
         }
         for (k, c) in cascades.iter().enumerate() {
             g.shadow[k] = c.view_proj.to_cols_array_2d();
@@ -171,15 +188,24 @@ impl ShadowPass {
             g.shadow_texel[k] = c.texel;
         }
         g.shadow_split[3] = 1.0;
-        for ((buffer, _), c) in self.globals.iter().zip(cascades) {
+        for ((buffer, _), c) in self.globals.iter().zip(&cascades) {
             let seen = Globals { view_proj: c.view_proj.to_cols_array_2d(), ..*g };
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(&seen));
         }
     }
 
-    /// Draw the casters into each cascade's map.
-    pub(super) fn encode(&self, enc: &mut wgpu::CommandEncoder, p: &Pipelines, draws: &GeometryDraws<'_>) {
-        for (layer, (_, bg)) in self.layers.iter().zip(&self.globals) {
+    /// Draw the casters into each cascade's map (the farthest only on the frames that redraw it).
+    pub(super) fn encode(
+        &mut self,
+        enc: &mut wgpu::CommandEncoder,
+        p: &Pipelines,
+        cascades: &[GeometryDraws<'_>; SHADOW_CASCADES],
+    ) {
+        let drawn = if self.draw_far.is_some() { SHADOW_CASCADES } else { SHADOW_CASCADES - 1 };
+        if self.on && self.draw_far.is_some() {
+            self.far = self.draw_far;
+        }
+        for ((layer, (_, bg)), draws) in self.layers.iter().zip(&self.globals).zip(cascades).take(drawn) {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("shadow cascade"),
                 color_attachments: &[],
@@ -230,6 +256,13 @@ mod tests {
                 let c = cs[k].view_proj.project_point3(p + sun.normalize() * 50.0);
                 assert!(c.z < q.z && c.z >= 0.0, "cascade {k}: {c} {q}");
             }
+        }
+        // Each cascade's volume holds the points of its slice and not those far beside it.
+        for c in &cs {
+            let f = crate::camera::Frustum::from_matrix(c.view_proj);
+            let p = camera.position + camera.forward() * c.end;
+            assert!(f.sphere_visible(p, 0.1), "{c:?}");
+            assert!(!f.sphere_visible(p + camera.right() * (4.0 * c.end), 0.1), "{c:?}");
         }
         // Moving the camera a fraction of a texel moves no map by a fraction of a texel.
         let mut moved = camera;

@@ -280,9 +280,9 @@ fn draw_lists_group_segments_by_shape_and_tessellation() {
     let e2 = cache.get(&key(2, 2)).unwrap().clone();
     let mut f = Frame::new();
     f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
-    let draws: Vec<_> = f.plan.prim_draws.iter().map(|d| (d.shape, d.tess, d.slot, d.instances)).collect();
+    let draws: Vec<_> = f.plan.camera.prims.iter().map(|d| (d.shape, d.tess, d.slot, d.instances)).collect();
     assert_eq!(draws, vec![(0, 0, 0, 4), (0, 2, 1, 3), (1, 0, 2, 6), (2, 2, 3, 2)]);
-    assert_eq!(f.plan.mesh_draw, Some((4, 9)));
+    assert_eq!(f.plan.camera.mesh, Some((4, 9)));
     let seg = |base: u64, count: u32, pos: [f32; 3]| (base as u32, count, pos);
     let segs: Vec<_> = f.plan.segments.iter().map(|s| (s.base, s.count, s.pos)).collect();
     let (a, b) = (at_size(800.0), at_size(150.0));
@@ -317,14 +317,14 @@ fn segments_of_one_draw_are_numbered_within_it() {
     let cache = resident(&[(key(1, 0), geometry([5, 0, 0], 0))]);
     let mut f = Frame::new();
     f.run(&s, &cache, &ready_volume(), &view(0.0, true), 100);
-    assert_eq!(f.plan.prim_draws.len(), 1);
-    assert_eq!(f.plan.prim_draws[0].instances, 15);
+    assert_eq!(f.plan.camera.prims.len(), 1);
+    assert_eq!(f.plan.camera.prims[0].instances, 15);
     let firsts: Vec<_> = f.plan.segments.iter().map(|s| (s.first, s.pos[0])).collect();
     assert_eq!(firsts, vec![(0, 0.0), (5, 1.0), (10, 2.0)]);
     // Nothing to draw: one zeroed segment, so the buffer is never empty.
     f.run(&scene(Vec::new()), &cache, &ready_volume(), &view(0.0, true), 100);
     assert_eq!(f.plan.segments, vec![Segment::zeroed()]);
-    assert_eq!((f.plan.prim_draws.len(), f.plan.mesh_draw, f.stats.draw_calls), (0, None, 1));
+    assert_eq!((f.plan.camera.prims.len(), f.plan.camera.mesh, f.stats.draw_calls), (0, None, 1));
 }
 
 #[test]
@@ -385,7 +385,7 @@ fn terrain_chunks_are_culled_and_coarser_far_away() {
     let mut plan = FramePlan::default();
     let mut stats = FrameStats::default();
     plan.choose_terrain(Some(&mesh), &v, &mut stats);
-    let drawn = &plan.terrain_draws;
+    let drawn = &plan.camera.terrain;
     assert!(!drawn.is_empty() && drawn.len() < mesh.chunks.len(), "{} of {}", drawn.len(), mesh.chunks.len());
     // (distance, step) of each drawn chunk, nearest first.
     let mut steps: Vec<(f32, usize)> = drawn
@@ -407,4 +407,40 @@ fn terrain_chunks_are_culled_and_coarser_far_away() {
     // Chunks behind the camera are not drawn.
     let behind = mesh.chunks.iter().filter(|c| (c.center - eye).dot(cam.forward()) < -c.radius).count();
     assert!(behind > 0 && drawn.len() <= mesh.chunks.len() - behind);
+}
+
+#[test]
+fn each_shadow_cascade_draws_the_trees_in_its_volume_and_those_out_of_view_that_shade_the_view() {
+    // The sun straight above and a little to −z; cascades as boxes around the camera's first 40 m and beyond.
+    let sun = Vec3::new(0.0, 1.0, -0.2).normalize();
+    let near = glam::camera::rh::proj::directx::orthographic(-40.0, 40.0, -40.0, 40.0, -500.0, 100.0);
+    let light = glam::camera::rh::view::look_to_mat4(Vec3::ZERO, -sun, Vec3::Z);
+    let mut v = view(0.0, true);
+    v.shadows = Some((sun, 300.0));
+    v.cascades = [Some(Frustum::from_matrix(near * light)), None, None];
+    // In view near and far; out of view behind the camera, 12 m back (its shadow falls short of the view), and
+    // beside it, just out of view (its shadow does not reach in either: the sun is above).
+    let s = scene(vec![
+        instance(0, 1, at_size(800.0)),
+        instance(1, 2, at_size(60.0)),
+        instance(2, 3, [0.0, 0.0, -12.0]),
+        instance(3, 4, [60.0, 0.0, 30.0]),
+    ]);
+    let cache = all_resident(1..=4);
+    let mut f = Frame::new();
+    f.run(&s, &cache, &ready_volume(), &v, 100);
+    let count = |d: &ViewDraws| d.prims.iter().map(|p| p.instances).sum::<u32>();
+    assert_eq!(count(&f.plan.camera), 20, "the two trees in view");
+    assert_eq!(count(&f.plan.cascades[0]), 10, "only the near one lies in the near cascade");
+    assert!(f.plan.cascades[1].prims.is_empty() && f.plan.cascades[2].prims.is_empty());
+    assert_eq!(f.stats.shadow_casters, 0, "{:?}", f.stats);
+    // Lower the sun toward −z: the tree behind the camera now casts into view; drawn for the cascades only.
+    let low = Vec3::new(0.0, 0.3, -1.0).normalize();
+    v.shadows = Some((low, 300.0));
+    let light = glam::camera::rh::view::look_to_mat4(Vec3::ZERO, -low, Vec3::Y);
+    v.cascades = [Some(Frustum::from_matrix(near * light)), None, None];
+    f.run(&s, &cache, &ready_volume(), &v, 100);
+    assert_eq!(f.stats.shadow_casters, 1, "{:?}", f.stats);
+    assert_eq!(count(&f.plan.camera), 20, "the caster out of view is not drawn by the camera");
+    assert!(count(&f.plan.cascades[0]) >= 20, "{}", count(&f.plan.cascades[0]));
 }
