@@ -44,10 +44,15 @@ fn ground_material(base: vec3<f32>, world: vec3<f32>, n: vec3<f32>) -> vec3<f32>
     let d = distance(world, g.eye.xyz);
     let steep = smoothstep(0.18, 0.36, 1.0 - n.y);
     var c = mix(base, ROCK, steep);
-    let patches = (value_noise(world.xz / 9.0) - 0.5) * (1.0 - smoothstep(200.0, 600.0, d));
-    c *= vec3<f32>(1.0 + 0.25 * patches, 1.0 + 0.1 * patches, 1.0 - 0.2 * patches);
-    let fine = value_noise(world.xz / 1.7) * 0.6 + value_noise(world.xz / 0.37) * 0.4 - 0.5;
-    return c * (1.0 + 0.3 * fine * (1.0 - smoothstep(30.0, 120.0, d)));
+    if d < 600.0 {
+        let patches = (value_noise(world.xz / 9.0) - 0.5) * (1.0 - smoothstep(200.0, 600.0, d));
+        c *= vec3<f32>(1.0 + 0.25 * patches, 1.0 + 0.1 * patches, 1.0 - 0.2 * patches);
+    }
+    if d < 120.0 {
+        let fine = value_noise(world.xz / 1.7) * 0.6 + value_noise(world.xz / 0.37) * 0.4 - 0.5;
+        c *= 1.0 + 0.3 * fine * (1.0 - smoothstep(30.0, 120.0, d));
+    }
+    return c;
 }
 
 @fragment

@@ -234,8 +234,9 @@ pub struct RenderConfig {
     pub shadows: Shadows,
     /// Wind bending trees and fluttering leaves in the vertex stage.
     pub wind: Wind,
-    /// Samples a pixel of the scene pass (terrain and trees): 4 anti-aliases their edges, 1 does not. The far field
-    /// is drawn once a pixel either way, against the nearest of the pixel's depths.
+    /// Samples a pixel of the scene pass (terrain and trees): 4 anti-aliases their edges, 1 does not, 0 picks by
+    /// the adapter (4 on a GPU, 1 on a CPU adapter such as lavapipe, where 4 doubles some frames). The far field is
+    /// drawn once a pixel either way, against the nearest of the pixel's depths.
     pub msaa: u32,
 }
 
@@ -300,7 +301,7 @@ impl Default for RenderConfig {
             far_path: FarPath::Auto,
             shadows: Shadows::default(),
             wind: Wind::default(),
-            msaa: 4,
+            msaa: 0,
         }
     }
 }
@@ -317,6 +318,15 @@ impl RenderConfig {
     /// The job bound for `workers` worker threads: four jobs each, plus a few (the default `max_jobs`).
     pub fn jobs_for(workers: usize) -> usize {
         4 * workers + 8
+    }
+
+    /// The scene pass's samples a pixel on an adapter of `device_type` ([`RenderConfig::msaa`]).
+    pub fn samples(&self, device_type: wgpu::DeviceType) -> u32 {
+        match self.msaa {
+            0 if device_type == wgpu::DeviceType::Cpu => 1,
+            0 => 4,
+            n => n,
+        }
     }
 
     /// Bytes of the mesh arena for vertices: two thirds of `mesh_memory`.
@@ -356,7 +366,7 @@ impl RenderConfig {
             ((1.0..=100_000.0).contains(&self.shadows.distance), "shadow distance"),
             (fin(&self.wind.direction) && self.wind.direction.iter().any(|v| *v != 0.0), "wind direction"),
             ((0.0..=100.0).contains(&self.wind.strength), "wind strength"),
-            (matches!(self.msaa, 1 | 4), "samples a pixel (1 or 4)"),
+            (matches!(self.msaa, 0 | 1 | 4), "samples a pixel (0, 1 or 4)"),
         ];
         match checks.iter().find(|c| !c.0) {
             Some((_, what)) => Err(ConfigError::Range(what)),

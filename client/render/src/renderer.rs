@@ -360,7 +360,7 @@ impl Renderer {
         size: (u32, u32),
         cfg: RenderConfig,
     ) -> std::io::Result<Renderer> {
-        let samples = cfg.msaa;
+        let samples = cfg.samples(device.adapter_info().device_type);
         let p = Pipelines::new(
             device,
             format,
@@ -498,9 +498,9 @@ impl Renderer {
     pub fn resize(&mut self, width: u32, height: u32) {
         self.gpu.size = (width.max(1), height.max(1));
         self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
-        if self.cfg.msaa > 1 {
-            self.gpu.msaa =
-                Some(Msaa::new(&self.gpu.device, &self.gpu.p, self.gpu.format, self.gpu.size, self.cfg.msaa));
+        let samples = self.cfg.samples(self.gpu.device.adapter_info().device_type);
+        if samples > 1 {
+            self.gpu.msaa = Some(Msaa::new(&self.gpu.device, &self.gpu.p, self.gpu.format, self.gpu.size, samples));
         }
         self.gpu.accum = Accumulation::new(&self.gpu.device, &self.gpu.p, self.gpu.size, self.march.is_none());
     }

@@ -70,7 +70,8 @@ pub struct RendererArgs {
     /// Wind strength (0: still air; 1: a moderate breeze).
     #[arg(long, default_value_t = RenderConfig::default().wind.strength)]
     wind: f32,
-    /// Samples a pixel of terrain and trees: 4 anti-aliases their edges, 1 does not.
+    /// Samples a pixel of terrain and trees: 4 anti-aliases their edges, 1 does not, 0 picks by the adapter (4 on
+    /// a GPU, 1 on a CPU adapter such as lavapipe).
     #[arg(long, default_value_t = RenderConfig::default().msaa)]
     msaa: u32,
 }
