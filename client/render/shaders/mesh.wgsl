@@ -18,6 +18,7 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     let n = unpack4x8snorm(verts[w + 3u]);
     out.normal = n.xyz;
     out.thin = n.w;
+    out.bark = vec4<f32>(0.0);
     out.color = unpack4x8unorm(verts[w + 4u]).rgb * instance_tint(s.seed);
     out.mask = s.mask;
     return out;

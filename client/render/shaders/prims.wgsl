@@ -58,7 +58,33 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     out.color = unpack4x8unorm(bitcast<u32>(prim.shape.w)).rgb * instance_tint(s.seed);
     out.mask = s.mask;
     out.thin = 0.0;
+    out.bark = vec4<f32>(0.0);
+    if draw.kind == 0u && p.w < 0.5 {
+        // Fissures about every 12 cm around the mean circumference, a whole number of them.
+        let around = max(round(3.14159265 * (prim.shape.x + prim.shape.y) / BARK_SPACING), 3.0);
+        // The side's direction and height in the world, not the primitive's own: the pattern runs on across a
+        // trunk's segments, each turned about its axis by the phyllotaxis.
+        out.bark = vec4<f32>(wn.x, wn.z, world.y, around);
+    }
     return out;
+}
+
+// Metres between bark fissures around a trunk or branch.
+const BARK_SPACING: f32 = 0.12;
+
+// Bark on a frustum's side (seed 002's bark, procedurally): vertical fissures, a whole number around the axis
+// (so the pattern closes on itself), wandering along it; darker in the fissures. Faded out by 25 m, where they
+// would be finer than a pixel.
+fn bark(base: vec3<f32>, b: vec4<f32>, world: vec3<f32>) -> vec3<f32> {
+    let fade = 1.0 - smoothstep(10.0, 25.0, distance(world, g.eye.xyz));
+    if b.w <= 0.0 || fade <= 0.0 {
+        return base;
+    }
+    let t = atan2(b.y, b.x);
+    let wander = 0.8 * sin(b.z * 2.3 + 3.0 * t) + 0.4 * sin(b.z * 7.1 - 5.0 * t);
+    let s = sin(t * b.w + wander);
+    let fissure = smoothstep(0.55, 0.95, s);
+    return base * (1.0 - 0.45 * fissure * fade);
 }
 
 @fragment
@@ -67,6 +93,6 @@ fn fs_prim(in: GeoOut) -> @location(0) vec4<f32> {
         discard;
     }
     let n = normalize(in.normal);
-    let lit = shade_lit(in.color, n, sun_visibility(in.world, n));
+    let lit = shade_lit(bark(in.color, in.bark, in.world), n, sun_visibility(in.world, n));
     return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

@@ -40,6 +40,9 @@ struct GeoOut {
     @location(3) @interpolate(flat) mask: f32,
     // 1 for a leaf (thin: lit through from behind), 0 otherwise.
     @location(4) thin: f32,
+    // On a frustum's side (prims.wgsl `bark`): its normal's horizontal direction (x, z), its height, and
+    // the fissures around it (w; 0 elsewhere).
+    @location(5) bark: vec4<f32>,
 };
 
 // The segment holding element `i` of the draw: the last one whose `first` is <= i (binary search).

@@ -173,3 +173,27 @@ fn multisampling_brings_edges_toward_the_supersampled_picture() {
     eprintln!("mean difference from 16 samples a pixel: {a:.2} at 1 sample, {b:.2} at 4");
     assert!(b < 0.8 * a, "{a:.2} → {b:.2}");
 }
+
+#[test]
+fn a_trunk_close_up_shows_its_bark() {
+    let (scene, _) = tree_and_camera();
+    // Two metres from the trunk, looking at it level, out of the wind.
+    let camera = Camera::looking_at(Vec3::new(-2.0, 2.0, -1.0), Vec3::new(0.0, 2.0, 0.0), 40.0);
+    let still = Wind { strength: 0.0, ..Wind::default() };
+    let (img, stats) = shoot_from(&scene, &camera, Shadows::default(), still, 0.0, 4);
+    assert_eq!(stats.near, 1, "{stats:?}");
+    // Across the trunk, fissures: the brightness dips and rises again several times (smooth shading around a
+    // cylinder would have one extremum at most).
+    let row: Vec<i32> = (0..W).map(|x| img.pixel(x, H / 2)[..3].iter().map(|&c| i32::from(c)).sum()).collect();
+    let trunk = &row[W as usize * 2 / 5..W as usize * 3 / 5];
+    // A dip: 20 darker than the brightest of the 4 pixels on either side; a run of them is one fissure.
+    let dip = |i: usize| {
+        let left = trunk[i.saturating_sub(4)..i].iter().max().copied().unwrap_or(0);
+        let right = trunk[i + 1..(i + 5).min(trunk.len())].iter().max().copied().unwrap_or(0);
+        trunk[i] + 20 <= left && trunk[i] + 20 <= right
+    };
+    let dips = (1..trunk.len() - 1).filter(|&i| dip(i) && !dip(i - 1)).count();
+    eprintln!("fissures across the trunk: {dips}");
+    assert!(dips >= 2, "a smooth trunk: {trunk:?}");
+    check_reference(&img, &reference("sun-trunk.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+}
