@@ -32,12 +32,14 @@ pub use super::stats::FrameStats;
 mod atlas;
 mod far_march;
 mod forest_gpu;
+mod passes;
 mod shadow;
 pub mod timing;
 mod uniforms;
 use atlas::Atlas;
 use far_march::FarMarch;
 use forest_gpu::ForestGpu;
+use passes::{GeometryDraws, Msaa, ScenePass};
 pub(crate) use shadow::SHADOW_FORMAT;
 use shadow::ShadowPass;
 use timing::{Part, PassTimer};
@@ -119,47 +121,6 @@ struct GpuCore {
     accum: Accumulation,
 }
 
-/// The scene pass's multisampled colour and depth (the colour resolved into the frame's target, the depth into
-/// [`GpuCore::depth`] by the depth resolve), and the depth's bind group for that resolve.
-struct Msaa {
-    color: wgpu::TextureView,
-    depth: wgpu::TextureView,
-    resolve_bg: wgpu::BindGroup,
-}
-
-impl Msaa {
-    fn new(
-        device: &wgpu::Device,
-        p: &Pipelines,
-        format: wgpu::TextureFormat,
-        (w, h): (u32, u32),
-        samples: u32,
-    ) -> Msaa {
-        let target = |label, format, usage| {
-            device
-                .create_texture(&wgpu::TextureDescriptor {
-                    label: Some(label),
-                    size: wgpu::Extent3d { width: w.max(1), height: h.max(1), depth_or_array_layers: 1 },
-                    mip_level_count: 1,
-                    sample_count: samples,
-                    dimension: wgpu::TextureDimension::D2,
-                    format,
-                    usage: wgpu::TextureUsages::RENDER_ATTACHMENT | usage,
-                    view_formats: &[],
-                })
-                .create_view(&wgpu::TextureViewDescriptor::default())
-        };
-        let color = target("multisampled colour", format, wgpu::TextureUsages::empty());
-        let depth = target("multisampled depth", DEPTH_FORMAT, wgpu::TextureUsages::TEXTURE_BINDING);
-        let resolve_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("scene depth"),
-            layout: &p.resolve_layout,
-            entries: &[wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::TextureView(&depth) }],
-        });
-        Msaa { color, depth, resolve_bg }
-    }
-}
-
 /// The far field's accumulation target (far instances and forest patches composited front to back), the per-pixel
 /// opacity beside it (`far_accum.wgsl`), and their bind groups; sized to the target.
 struct Accumulation {
@@ -222,54 +183,6 @@ impl GeometryGpu {
         if !geo.indices.is_empty() {
             queue.write_buffer(&self.indices, at.indices.start * INDEX_BYTES, bytemuck::cast_slice(&geo.indices));
         }
-    }
-}
-
-/// One view's opaque geometry as a pass draws it, with whatever view its group 0 holds: the scene pass from the
-/// camera, the shadow pass from the sun.
-struct GeometryDraws<'a> {
-    draws: &'a ViewDraws,
-    geometry: &'a GeometryGpu,
-    terrain: Option<&'a TerrainGpu>,
-}
-
-impl GeometryDraws<'_> {
-    /// The terrain chunks the plan chose.
-    fn terrain(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline) {
-        let Some(t) = self.terrain else { return };
-        pass.set_pipeline(pipeline);
-        pass.set_vertex_buffer(0, t.vertices.slice(..));
-        pass.set_index_buffer(t.indices.slice(..), wgpu::IndexFormat::Uint32);
-        for r in &self.draws.terrain {
-            pass.draw_indexed(r.clone(), 0, 0..1);
-        }
-    }
-
-    /// The instanced primitives: a draw per unit shape and tessellation.
-    fn prims(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline, p: &Pipelines) {
-        let (false, Some(bg)) = (self.draws.prims.is_empty(), &self.geometry.prims_bg) else { return };
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(1, bg, &[]);
-        for d in &self.draws.prims {
-            let mesh = match d.shape {
-                0 => &p.frusta[d.tess],
-                1 => &p.spheres[d.tess],
-                _ => &p.cube,
-            };
-            pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
-            pass.set_vertex_buffer(0, mesh.vertices.slice(..));
-            pass.set_index_buffer(mesh.indices.slice(..), wgpu::IndexFormat::Uint16);
-            pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
-        }
-    }
-
-    /// The meshes: one draw.
-    fn meshes(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline) {
-        let (Some((slot, count)), Some(bg)) = (self.draws.mesh, &self.geometry.mesh_bg) else { return };
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(1, bg, &[]);
-        pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(slot) * DRAW_STRIDE) as u32]);
-        pass.draw(0..count, 0..1);
     }
 }
 
@@ -775,148 +688,42 @@ impl Renderer {
     /// back into the accumulation target — by the compute pass over screen tiles, or as boxes whose fragments stop
     /// behind an opaque pixel ([`crate::FarPath`]) — and that laid over the scene.
     pub fn render(&mut self, view: &wgpu::TextureView) -> wgpu::SubmissionIndex {
-        let gpu = &self.gpu;
-        let done = |pass: &mut wgpu::RenderPass<'_>, part| {
-            if let Some(t) = &self.timer {
-                t.done(pass, part);
-            }
-        };
         let far_count = self.plan.far_count();
         // Both ways need the volumes' bind group (there are far instances or patches only once a volume is resident)
         // and the forest's (made by the first frame's plan).
         let far_field = (far_count > 0 || !self.forest.patches().is_empty())
             && self.far.bg.is_some()
             && self.forest.bind_group().is_some();
+        let gpu = &self.gpu;
+        let timer = self.timer.as_ref();
         let mut enc = gpu.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
-        if let Some(t) = &self.timer {
+        if let Some(t) = timer {
             t.start(&mut enc);
         }
         let view_draws = |draws| GeometryDraws { draws, geometry: &self.geometry, terrain: self.terrain.as_ref() };
         let cascades = self.plan.cascades.each_ref().map(view_draws);
         self.shadow.encode(&mut enc, &gpu.p, &cascades);
-        let draws = view_draws(&self.plan.camera);
-        {
-            let hz = self.cfg.lighting.sky_horizon;
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("scene"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: gpu.msaa.as_ref().map_or(view, |m| &m.color),
-                    depth_slice: None,
-                    resolve_target: gpu.msaa.as_ref().map(|_| view),
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color {
-                            r: hz[0].into(),
-                            g: hz[1].into(),
-                            b: hz[2].into(),
-                            a: 1.0,
-                        }),
-                        // Multisampled, only the resolved colour is kept.
-                        store: if gpu.msaa.is_some() { wgpu::StoreOp::Discard } else { wgpu::StoreOp::Store },
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: gpu.msaa.as_ref().map_or(&gpu.depth, |m| &m.depth),
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(0.0),
-                        // The far field is depth-tested against the scene in the next pass.
-                        store: if far_field { wgpu::StoreOp::Store } else { wgpu::StoreOp::Discard },
-                    }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            done(&mut pass, Part::Shadows);
-            pass.set_bind_group(0, &gpu.globals_bg, &[]);
-            pass.set_bind_group(3, self.shadow.receive(), &[]);
-            pass.set_pipeline(&gpu.p.sky);
-            pass.draw(0..SKY_VERTICES, 0..1);
-            draws.terrain(&mut pass, &gpu.p.terrain);
-            done(&mut pass, Part::Terrain);
-            draws.prims(&mut pass, &gpu.p.prims, &gpu.p);
-            done(&mut pass, Part::Primitives);
-            draws.meshes(&mut pass, &gpu.p.mesh);
-            done(&mut pass, Part::Meshes);
-            if !far_field {
-                done(&mut pass, Part::FarField);
-                done(&mut pass, Part::Composite);
-            }
-        }
-        if let (true, Some(m), Some(resolve)) = (far_field, &gpu.msaa, &gpu.p.depth_resolve) {
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("depth resolve"),
-                color_attachments: &[],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &gpu.depth,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(resolve);
-            pass.set_bind_group(0, &m.resolve_bg, &[]);
-            pass.draw(0..SKY_VERTICES, 0..1);
-        }
+        let scene = ScenePass {
+            gpu,
+            target: view,
+            draws: view_draws(&self.plan.camera),
+            shadows: self.shadow.receive(),
+            sky: self.cfg.lighting.sky_horizon,
+            keep_depth: far_field,
+        };
+        scene.encode(&mut enc, timer);
         if far_field {
-            if let Some(march) = &self.march {
-                self.march_far_field(march, &mut enc);
-                if let Some(t) = &self.timer {
-                    t.done_between(&mut enc, Part::FarField);
+            passes::resolve_depth(gpu, &mut enc);
+            match &self.march {
+                Some(march) => {
+                    self.march_far_field(march, &mut enc);
+                    if let Some(t) = timer {
+                        t.done_between(&mut enc, Part::FarField);
+                    }
                 }
-            } else {
-                enc.clear_buffer(&gpu.accum.opacity, 0, None);
-                let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("far field"),
-                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                        view: &gpu.accum.target,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: wgpu::Operations {
-                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                            store: wgpu::StoreOp::Store,
-                        },
-                    })],
-                    depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                        view: &gpu.depth,
-                        depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Discard }),
-                        stencil_ops: None,
-                    }),
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                });
-                pass.set_bind_group(0, &gpu.globals_bg, &[]);
-                pass.set_bind_group(3, &gpu.accum.opacity_bg, &[]);
-                if let (true, Some(bg)) = (far_count > 0, &self.far.bg) {
-                    pass.set_pipeline(&gpu.p.volume);
-                    pass.set_bind_group(1, bg, &[]);
-                    let bytes = u64::from(far_count) * size_of::<FarInstance>() as u64;
-                    pass.set_vertex_buffer(0, self.far.instances.buffer.slice(..bytes));
-                    pass.draw(0..PROXY_BOX_VERTICES, 0..far_count);
-                }
-                self.draw_forest(&mut pass);
-                done(&mut pass, Part::FarField);
+                None => self.raster_far_field(&mut enc, far_count),
             }
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("far-field composite"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(&gpu.p.composite);
-            pass.set_bind_group(0, &gpu.accum.composite_bg, &[]);
-            pass.draw(0..SKY_VERTICES, 0..1);
-            done(&mut pass, Part::Composite);
+            passes::composite(gpu, view, &mut enc, timer);
         }
         if let Some(t) = &mut self.timer {
             t.resolve(&mut enc);

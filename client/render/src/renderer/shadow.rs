@@ -7,8 +7,9 @@
 
 use glam::{Mat4, Vec3};
 
+use super::Pipelines;
+use super::passes::GeometryDraws;
 use super::uniforms::Globals;
-use super::{GeometryDraws, Pipelines};
 use crate::camera::Camera;
 use crate::{SHADOW_CASCADES, Shadows};
 
