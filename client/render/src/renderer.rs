@@ -280,17 +280,7 @@ impl Renderer {
             samples,
             device.features().contains(wgpu::Features::SHADER_EARLY_DEPTH_TEST),
         );
-        let globals = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("globals"),
-            size: size_of::<Globals>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let globals_bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("globals"),
-            layout: &p.globals_layout,
-            entries: &[wgpu::BindGroupEntry { binding: 0, resource: globals.as_entire_binding() }],
-        });
+        let (globals, globals_bg) = uniforms::globals_binding(device, &p.globals_layout, "globals");
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
         let prim_units = cfg.prim_memory / size_of::<PrimInstance>() as u64;
         let vert_units = cfg.vertex_memory() / size_of::<MeshVertex>() as u64;

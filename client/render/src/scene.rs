@@ -8,7 +8,7 @@ use std::sync::Arc;
 use canopy_protocol::summary::NodeSummary;
 use canopy_protocol::{CellCoord, SpeciesGraph};
 use canopy_worlds::hypertree::Hypertree;
-use canopy_worlds::world::{Ground, InstanceId, World};
+use canopy_worlds::world::{Ground, InstanceId, Terrain, World};
 
 /// One tree (or bush, or weed) to draw.
 #[derive(Clone, Debug, PartialEq)]
@@ -71,6 +71,24 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// One instance of `graph` with `seed` at the origin, on `ground` (test scenes and single-tree views).
+    pub fn lone(graph: SpeciesGraph, seed: u64, ground: Terrain) -> Scene {
+        Scene {
+            species: vec![Some(Arc::new(graph))],
+            volumes: vec![None],
+            instances: vec![SceneInstance {
+                id: InstanceId(0),
+                species: 0,
+                position: [0.0; 3],
+                seed,
+                params: Vec::new(),
+            }],
+            ground: Arc::new(ground).into(),
+            generation: 1,
+            far: SceneFar::default(),
+        }
+    }
+
     /// Every instance of a loaded world, sorted by id.
     pub fn from_world(world: &World) -> Scene {
         let mut instances: Vec<SceneInstance> = (0..world.instances.len() as u32)

@@ -245,20 +245,7 @@ fn lone_tree(species: &str) -> (Scene, impl Fn(f32) -> Camera) {
     // A sphere of radius r at distance d is r·H / (d·tan(fov/2)) pixels tall.
     let px = 0.97 * LodConfig::default().far_px;
     let distance = radius * SIDE as f32 / (px * (FOV.to_radians() / 2.0).tan());
-    let scene = Scene {
-        species: vec![Some(Arc::new(graph))],
-        volumes: vec![None],
-        instances: vec![SceneInstance {
-            id: InstanceId(0),
-            species: 0,
-            position: [0.0; 3],
-            seed: REPRESENTATIVE_SEED,
-            params: Vec::new(),
-        }],
-        ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),
-        generation: 1,
-        far: SceneFar::default(),
-    };
+    let scene = Scene::lone(graph, REPRESENTATIVE_SEED, Terrain::flat([1.0e5, 1.0e5], 1.0));
     let camera = move |azimuth: f32| {
         let (el, az) = (8f32.to_radians(), azimuth.to_radians());
         let eye = centre + distance * Vec3::new(az.sin() * el.cos(), el.sin(), az.cos() * el.cos());

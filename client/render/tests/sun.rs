@@ -3,14 +3,13 @@
 //! the picture without the effect (no shadow, a frozen wind) fails.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_render::compare::{Tolerance, check_reference, compare};
 use canopy_render::offscreen::{Offscreen, RenderedImage};
 use canopy_render::volume::REPRESENTATIVE_SEED;
-use canopy_render::{Camera, LodConfig, RenderConfig, Scene, SceneFar, SceneInstance, Shadows, Wind};
-use canopy_worlds::world::{InstanceId, Terrain};
+use canopy_render::{Camera, LodConfig, RenderConfig, Scene, Shadows, Wind};
+use canopy_worlds::world::Terrain;
 use glam::Vec3;
 
 const W: u32 = 256;
@@ -24,20 +23,7 @@ fn reference(name: &str) -> PathBuf {
 /// shadow (the sun is the default: up and to −x, +z) falls in view.
 fn tree_and_camera() -> (Scene, Camera) {
     let graph = canopy_worlds::library::find("monopodial").expect("library species").load().expect("parses");
-    let scene = Scene {
-        species: vec![Some(Arc::new(graph))],
-        volumes: vec![None],
-        instances: vec![SceneInstance {
-            id: InstanceId(0),
-            species: 0,
-            position: [0.0; 3],
-            seed: REPRESENTATIVE_SEED,
-            params: Vec::new(),
-        }],
-        ground: Arc::new(Terrain::flat([-200.0, -200.0], 400.0)).into(),
-        generation: 1,
-        far: SceneFar::default(),
-    };
+    let scene = Scene::lone(graph, REPRESENTATIVE_SEED, Terrain::flat([-200.0, -200.0], 400.0));
     let camera = Camera::looking_at(Vec3::new(-14.0, 17.0, -19.0), Vec3::new(3.0, 3.0, -3.0), 55.0);
     (scene, camera)
 }
@@ -45,20 +31,9 @@ fn tree_and_camera() -> (Scene, Camera) {
 /// The tree at full detail, fog off, with `shadows` and `wind`, at `time` seconds.
 fn shoot(shadows: Shadows, wind: Wind, time: f32) -> RenderedImage {
     let (scene, camera) = tree_and_camera();
-    let (img, stats) = shoot_from(&scene, &camera, shadows, wind, time, 4);
+    let (img, stats) = shoot_sized(&scene, &camera, shadows, wind, time, 4, (W, H));
     assert_eq!((stats.near, stats.waiting), (1, 0), "{stats:?}");
     img
-}
-
-fn shoot_from(
-    scene: &Scene,
-    camera: &Camera,
-    shadows: Shadows,
-    wind: Wind,
-    time: f32,
-    msaa: u32,
-) -> (RenderedImage, canopy_render::FrameStats) {
-    shoot_sized(scene, camera, shadows, wind, time, msaa, (W, H))
 }
 
 fn shoot_sized(
@@ -134,9 +109,9 @@ fn a_tree_out_of_view_still_casts_its_shadow_into_it() {
     let camera = Camera::looking_at(Vec3::new(14.0, 14.0, -11.5), Vec3::new(14.5, 0.0, -12.0), 30.0);
     let still = Wind { strength: 0.0, ..Wind::default() };
     let shadows = Shadows { resolution: 1024, distance: 120.0 };
-    let (lit, stats) = shoot_from(&scene, &camera, shadows, still, 0.0, 4);
+    let (lit, stats) = shoot_sized(&scene, &camera, shadows, still, 0.0, 4, (W, H));
     assert_eq!((stats.in_view, stats.shadow_casters), (0, 1), "{stats:?}");
-    let (bare, _) = shoot_from(&scene, &camera, Shadows { resolution: 0, ..shadows }, still, 0.0, 4);
+    let (bare, _) = shoot_sized(&scene, &camera, Shadows { resolution: 0, ..shadows }, still, 0.0, 4, (W, H));
     let shade = darker(&lit, &bare, 60);
     eprintln!("out of view, in shadow: {:.1} % of the ground", 100.0 * shade);
     assert!(shade > 0.05, "only {:.1} % of the ground is in shadow", 100.0 * shade);
@@ -165,8 +140,8 @@ fn off_supersampled(img: &RenderedImage, big: &RenderedImage, k: u32) -> f64 {
 fn multisampling_brings_edges_toward_the_supersampled_picture() {
     let (scene, camera) = tree_and_camera();
     let (still, shadows) = (Wind { strength: 0.0, ..Wind::default() }, Shadows::default());
-    let (one, _) = shoot_from(&scene, &camera, shadows, still, 0.0, 1);
-    let (four, _) = shoot_from(&scene, &camera, shadows, still, 0.0, 4);
+    let (one, _) = shoot_sized(&scene, &camera, shadows, still, 0.0, 1, (W, H));
+    let (four, _) = shoot_sized(&scene, &camera, shadows, still, 0.0, 4, (W, H));
     // The same view at 4 × 4 samples a pixel, one each, averaged: what an edge should look like.
     let (big, _) = shoot_sized(&scene, &camera, shadows, still, 0.0, 1, (4 * W, 4 * H));
     let (a, b) = (off_supersampled(&one, &big, 4), off_supersampled(&four, &big, 4));
@@ -180,7 +155,7 @@ fn a_trunk_close_up_shows_its_bark() {
     // Two metres from the trunk, looking at it level, out of the wind.
     let camera = Camera::looking_at(Vec3::new(-2.0, 2.0, -1.0), Vec3::new(0.0, 2.0, 0.0), 40.0);
     let still = Wind { strength: 0.0, ..Wind::default() };
-    let (img, stats) = shoot_from(&scene, &camera, Shadows::default(), still, 0.0, 4);
+    let (img, stats) = shoot_sized(&scene, &camera, Shadows::default(), still, 0.0, 4, (W, H));
     assert_eq!(stats.near, 1, "{stats:?}");
     // Across the trunk, fissures: the brightness dips and rises again several times (smooth shading around a
     // cylinder would have one extremum at most).

@@ -146,20 +146,7 @@ impl ShadowPass {
             ],
         });
         let globals = (0..if on { SHADOW_CASCADES } else { 0 })
-            .map(|_| {
-                let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("shadow cascade globals"),
-                    size: size_of::<Globals>() as u64,
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                });
-                let bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("shadow cascade globals"),
-                    layout: &p.globals_layout,
-                    entries: &[wgpu::BindGroupEntry { binding: 0, resource: buffer.as_entire_binding() }],
-                });
-                (buffer, bg)
-            })
+            .map(|_| super::uniforms::globals_binding(device, &p.globals_layout, "shadow cascade globals"))
             .collect();
         ShadowPass { on, far: None, draw_far: None, frames: 0, layers, receive, globals }
     }

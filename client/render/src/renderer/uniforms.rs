@@ -21,6 +21,27 @@ pub(super) struct Globals {
     pub shadow: [[[f32; 4]; 4]; crate::SHADOW_CASCADES],
 }
 
+/// A buffer for the frame's [`Globals`] and its bind group (group 0, `layout`): the camera's, or a shadow
+/// cascade's.
+pub(super) fn globals_binding(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    label: &str,
+) -> (wgpu::Buffer, wgpu::BindGroup) {
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size_of::<Globals>() as u64,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &[wgpu::BindGroupEntry { binding: 0, resource: buffer.as_entire_binding() }],
+    });
+    (buffer, bg)
+}
+
 /// A far-field volume's place in the atlas and its box (`volume_info.wgsl` `VolumeInfo`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
