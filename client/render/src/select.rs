@@ -66,6 +66,7 @@ pub struct Segment {
     pub mask: f32,
     /// The instance's seed folded to 32 bits ([`fold_seed`]): its phase in the wind.
     pub seed: u32,
+    /// To the shader's stride (48 bytes).
     pub pad: [u32; 3],
 }
 
