@@ -166,42 +166,34 @@ pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> Tree
     let opts = MeshOptions::for_detail(detail);
     let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
     let mut mesh = Mesh::new();
-    let thin;
-    match mode {
-        NearMode::Merged => {
-            // Leaves first (thin, lit through), then the rest.
-            mesh_into_where(stream, &opts, |p| matches!(p.shape, Shape::Leaf { .. }), &mut mesh);
-            thin = mesh.positions.len();
-            mesh_into_where(stream, &opts, |p| !matches!(p.shape, Shape::Leaf { .. }), &mut mesh);
+    // Meshed: leaves first (thin, lit through), then the rest merged, or only the trunk bases (never unit shapes)
+    // where the rest are instanced.
+    let leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
+    let rest = |p: &Primitive| !leaf(p) && (mode == NearMode::Merged || matches!(p.shape, Shape::TrunkBase(_)));
+    if stream.primitives.iter().any(leaf) {
+        mesh_into_where(stream, &opts, leaf, &mut mesh);
+    }
+    let thin = mesh.positions.len();
+    if stream.primitives.iter().any(rest) {
+        mesh_into_where(stream, &opts, rest, &mut mesh);
+    }
+    if mode == NearMode::Instanced {
+        let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
+        for p in &stream.primitives {
+            if let Some((shape, size)) = unit_instance(p) {
+                let m = &p.transform.m;
+                by_shape[shape as usize].push(PrimInstance {
+                    rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
+                    shape: size,
+                    color: pack_unorm(p.color),
+                });
+            }
         }
-        NearMode::Instanced => {
-            let mut by_shape: [Vec<PrimInstance>; 3] = Default::default();
-            // Leaves and trunk bases (never unit shapes) are meshed: leaves first (thin, lit through).
-            let leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
-            let base = |p: &Primitive| matches!(p.shape, Shape::TrunkBase(_));
-            for p in &stream.primitives {
-                if let Some((shape, size)) = unit_instance(p) {
-                    let m = &p.transform.m;
-                    by_shape[shape as usize].push(PrimInstance {
-                        rows: [[m[0], m[1], m[2], m[3]], [m[4], m[5], m[6], m[7]], [m[8], m[9], m[10], m[11]]],
-                        shape: size,
-                        color: pack_unorm(p.color),
-                    });
-                }
-            }
-            if stream.primitives.iter().any(leaf) {
-                mesh_into_where(stream, &opts, leaf, &mut mesh);
-            }
-            thin = mesh.positions.len();
-            if stream.primitives.iter().any(base) {
-                mesh_into_where(stream, &opts, base, &mut mesh);
-            }
-            let mut start = 0u32;
-            for (k, v) in by_shape.iter_mut().enumerate() {
-                out.shape_ranges[k] = start..start + v.len() as u32;
-                start += v.len() as u32;
-                out.prims.append(v);
-            }
+        let mut start = 0u32;
+        for (k, v) in by_shape.iter_mut().enumerate() {
+            out.shape_ranges[k] = start..start + v.len() as u32;
+            start += v.len() as u32;
+            out.prims.append(v);
         }
     }
     set_mesh(&mut out, mesh, thin);

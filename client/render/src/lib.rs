@@ -145,6 +145,11 @@ impl Default for Lighting {
 }
 
 impl Lighting {
+    /// The unit direction toward the sun.
+    pub fn sun(&self) -> glam::Vec3 {
+        glam::Vec3::from(self.sun_direction).normalize_or(glam::Vec3::Y)
+    }
+
     /// The CPU reference renderer's options that shade a hypertree as this lighting does (its default diffuse model,
     /// one light: the sun); what the far field bakes per voxel.
     pub fn reference_options(&self) -> RenderOptions {

@@ -9,10 +9,9 @@ use std::time::{Duration, Instant};
 
 use canopy_worlds::amplify::Instance;
 use canopy_worlds::world::{Ground, Terrain};
-use glam::{Mat4, Vec3};
+use glam::Mat4;
 use wgpu::util::DeviceExt;
 
-use super::RenderConfig;
 use super::cache::{GeometryCache, INDEX_BYTES, Placement};
 use super::camera::{Camera, Frustum};
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
@@ -20,12 +19,13 @@ use super::ground::FractalWindow;
 use super::pipelines::{ACCUM_FORMAT, DEPTH_FORMAT, Pipelines};
 use super::scene::Scene;
 use super::select::{
-    DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, SpeciesVol,
-    View, ViewDraws, VolState,
+    DRAW_SLOTS, DRAW_STRIDE, DRAW_UNIFORM_BYTES, FarInstance, FrameInputs, FramePlan, LodState, Residency, ShadowView,
+    SpeciesVol, View, ViewDraws, VolState,
 };
 use super::terrain::TerrainMesh;
 use super::volume::FarVolume;
 use super::workers::{Job, JobResult, Workers};
+use super::{RenderConfig, SHADOW_CASCADES};
 
 pub use super::stats::FrameStats;
 
@@ -41,7 +41,7 @@ use far_march::FarMarch;
 use forest_gpu::ForestGpu;
 use passes::{GeometryDraws, Msaa, ScenePass};
 pub(crate) use shadow::SHADOW_FORMAT;
-use shadow::ShadowPass;
+use shadow::{Cascade, ShadowPass};
 use timing::{Part, PassTimer};
 use uniforms::{Globals, VolumeInfo};
 
@@ -432,9 +432,10 @@ impl Renderer {
         let (gpu, geometry) = (&self.gpu, &self.geometry);
         self.cache
             .upload(self.frame, self.cfg.upload_budget, &mut stats, &mut |geo, at| geometry.write(&gpu.queue, geo, at));
-        self.select(scene, camera, dt, &mut stats);
+        let cascades = self.cascades(camera);
+        self.select(scene, camera, &cascades, dt, &mut stats);
         self.plan_forest(scene, camera, dt, &mut stats);
-        self.write_globals(camera);
+        self.write_globals(camera, &cascades);
         let (w, h) = self.gpu.size;
         if self.march.is_some() {
             self.bin_far_field(&camera.view_projection(w as f32 / h as f32, self.cfg.near_clip));
@@ -569,13 +570,20 @@ impl Renderer {
     }
 
     /// Plan the frame ([`FramePlan::plan`]), submit its jobs, mark what it draws as used, and write its lists.
-    fn select(&mut self, scene: &Scene, camera: &Camera, dt: f32, stats: &mut FrameStats) {
+    fn select(
+        &mut self,
+        scene: &Scene,
+        camera: &Camera,
+        cascades: &[Cascade; SHADOW_CASCADES],
+        dt: f32,
+        stats: &mut FrameStats,
+    ) {
         let mut view = View::new(camera, self.gpu.size, self.cfg.near_clip, &self.cfg.lod, dt, self.lod.instant);
-        if self.cfg.shadows.resolution > 0 {
-            let sun = Vec3::from(self.cfg.lighting.sun_direction).normalize_or(Vec3::Y);
-            view.shadows = Some((sun, self.cfg.shadows.distance));
-            view.cascades = self.cascades(camera).map(|c| Some(Frustum::from_matrix(c.view_proj)));
-        }
+        view.shadows = (self.cfg.shadows.resolution > 0).then(|| ShadowView {
+            sun: self.cfg.lighting.sun(),
+            reach: self.cfg.shadows.distance,
+            cascades: cascades.map(|c| Frustum::from_matrix(c.view_proj)),
+        });
         let room = self.cfg.max_jobs.saturating_sub(self.workers.outstanding() + self.cache.uploads_waiting());
         let input = FrameInputs {
             scene,
@@ -636,22 +644,24 @@ impl Renderer {
     pub fn update_view(&mut self, camera: &Camera) {
         self.plan.clear();
         self.forest.clear();
-        self.write_globals(camera);
+        let cascades = self.cascades(camera);
+        self.write_globals(camera, &cascades);
     }
 
-    /// The sun's shadow cascades for `camera`.
-    fn cascades(&self, camera: &Camera) -> [shadow::Cascade; crate::SHADOW_CASCADES] {
+    /// The sun's shadow cascades for `camera` (fitted once a frame: the selection plans their draws, the globals
+    /// carry their matrices).
+    fn cascades(&self, camera: &Camera) -> [Cascade; SHADOW_CASCADES] {
         let (w, h) = self.gpu.size;
-        let sun = Vec3::from(self.cfg.lighting.sun_direction).normalize_or(Vec3::Y);
-        shadow::fit_cascades(camera, w as f32 / h as f32, self.cfg.near_clip, sun, &self.cfg.shadows)
+        let aspect = w as f32 / h as f32;
+        shadow::fit_cascades(camera, aspect, self.cfg.near_clip, self.cfg.lighting.sun(), &self.cfg.shadows)
     }
 
-    fn write_globals(&mut self, camera: &Camera) {
+    fn write_globals(&mut self, camera: &Camera, cascades: &[Cascade; SHADOW_CASCADES]) {
         let (w, h) = self.gpu.size;
         let aspect = w as f32 / h as f32;
         let vp: Mat4 = camera.view_projection(aspect, self.cfg.near_clip);
         let l = &self.cfg.lighting;
-        let sun = Vec3::from(l.sun_direction).normalize_or(Vec3::Y);
+        let sun = l.sun();
         let wind = &self.cfg.wind;
         let wind_dir = glam::Vec2::from(wind.direction).normalize_or(glam::Vec2::X);
         let mut g = Globals {
@@ -666,10 +676,9 @@ impl Renderer {
             wind: [wind_dir.x, wind_dir.y, wind.strength, self.time],
             shadow_split: [0.0; 4],
             shadow_texel: [0.0; 4],
-            shadow: [[[0.0; 4]; 4]; crate::SHADOW_CASCADES],
+            shadow: [[[0.0; 4]; 4]; SHADOW_CASCADES],
         };
-        let cascades = self.cascades(camera);
-        self.shadow.write(&self.gpu.queue, &mut g, &cascades);
+        self.shadow.write(&self.gpu.queue, &mut g, cascades);
         self.gpu.queue.write_buffer(&self.gpu.globals, 0, bytemuck::bytes_of(&g));
     }
 

@@ -247,12 +247,21 @@ pub struct View {
     pub height_px: f32,
     /// Fade progress of this frame (`dt / fade_seconds`; 1 switches at once).
     pub progress: f32,
-    /// Each shadow cascade's volume (its four sides and its end away from the sun), where shadows are on: what the
-    /// cascade's map draws is planned as the camera's view is.
-    pub cascades: [Option<Frustum>; crate::SHADOW_CASCADES],
-    /// The sun's shadows, where they are on: the unit direction toward the sun and how far from the eye they reach.
-    /// A tree out of view within that reach whose shadow may fall in view is drawn too, for the shadow pass.
-    pub shadows: Option<(Vec3, f32)>,
+    /// The sun's shadows, where they are on.
+    pub shadows: Option<ShadowView>,
+}
+
+/// The sun's shadows as the selection plans for them.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadowView {
+    /// Unit direction toward the sun.
+    pub sun: Vec3,
+    /// How far from the eye shadows reach: a tree out of view within it whose shadow may fall in view is drawn too,
+    /// for the shadow pass.
+    pub reach: f32,
+    /// Each cascade's volume (its four sides and its end away from the sun): what the cascade's map draws is planned
+    /// as the camera's view is.
+    pub cascades: [Frustum; crate::SHADOW_CASCADES],
 }
 
 impl View {
@@ -268,7 +277,6 @@ impl View {
             tan_half: camera.tan_half_fov(),
             height_px: h as f32,
             progress,
-            cascades: [None; crate::SHADOW_CASCADES],
             shadows: None,
         }
     }
@@ -277,7 +285,7 @@ impl View {
     /// may cast a shadow into view: within the shadow's reach, and the sphere moved along the sun's rays down to
     /// its base's height (grown by the shadow's length) is in view.
     fn casts_into_view(&self, center: Vec3, radius: f32, base: f32) -> bool {
-        let Some((sun, reach)) = self.shadows else { return false };
+        let Some(ShadowView { sun, reach, .. }) = self.shadows else { return false };
         if sun.y <= 0.05 || (center - self.eye).length() - radius > reach {
             return false;
         }
@@ -405,7 +413,7 @@ impl FramePlan {
     pub fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
         self.choose_levels(input, state, stats);
         self.choose_jobs(input.job_room);
-        self.build_draw_lists(input.residency.cache, &input.view.cascades, stats);
+        self.build_draw_lists(input.residency.cache, input.view.shadows.as_ref().map(|s| &s.cascades), stats);
         self.sort_far();
         self.choose_terrain(input.terrain, &input.view, stats);
         // The sky, the terrain chunks, the primitive draws, the meshes, the far field; and the cascades'.
@@ -440,24 +448,21 @@ impl FramePlan {
             let center = Vec3::from(si.position) + c_off;
             let dist = (center - view.eye).length();
             let size = projected_size(radius, dist, view.tan_half, view.height_px);
+            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
             if !view.frustum.sphere_visible(center, radius) {
                 // Out of view, it may still cast a shadow into view: drawn for that at the level its size asks for
                 // where resident (without a fade: the shadow pass draws no masks), asked for behind what is seen.
-                if size >= lod.cull_px && view.casts_into_view(center, radius, c_off.y) {
-                    let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
-                    if let Level::Detail(d) = lod.select(st.target, size) {
-                        if res.cache.get(&key(d)).is_some() {
-                            self.geo_draws.push(GeoDraw {
-                                key: key(d),
-                                position: si.position,
-                                mask: 1.0,
-                                sphere: (center, radius),
-                                seen: false,
-                            });
-                            stats.shadow_casters += 1;
-                        } else if !res.cache.is_pending(&key(d)) && !res.cache.unavailable(&key(d)) {
-                            self.requests.push(JobRequest { key: key(d), instance: idx, priority: 0.25 * size });
-                        }
+                if size >= lod.cull_px
+                    && view.casts_into_view(center, radius, c_off.y)
+                    && let Level::Detail(d) = lod.select(st.target, size)
+                {
+                    let k = key(d);
+                    if res.cache.get(&k).is_some() {
+                        let sphere = (center, radius);
+                        self.geo_draws.push(GeoDraw { key: k, position: si.position, mask: 1.0, sphere, seen: false });
+                        stats.shadow_casters += 1;
+                    } else if !res.cache.is_pending(&k) && !res.cache.unavailable(&k) {
+                        self.requests.push(JobRequest { key: k, instance: idx, priority: 0.25 * size });
                     }
                 }
                 continue;
@@ -466,7 +471,6 @@ impl FramePlan {
                 continue;
             }
             stats.in_view += 1;
-            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
             let mut wanted = lod.select(st.target, size);
             st.target = Some(wanted);
             if let Level::Detail(d) = wanted
@@ -545,7 +549,7 @@ impl FramePlan {
     fn build_draw_lists(
         &mut self,
         cache: &GeometryCache,
-        cascades: &[Option<Frustum>; crate::SHADOW_CASCADES],
+        cascades: Option<&[Frustum; crate::SHADOW_CASCADES]>,
         stats: &mut FrameStats,
     ) {
         self.segments.clear();
@@ -558,13 +562,10 @@ impl FramePlan {
         stats.mesh_triangles = camera.mesh.map_or(0, |(_, n)| u64::from(n / 3));
         self.camera = camera;
         let mut lists = std::mem::take(&mut self.cascades);
-        for (c, draws) in cascades.iter().zip(&mut lists) {
-            draws.prims.clear();
-            draws.mesh = None;
-            if let Some(f) = c {
-                self.view_lists(cache, |g| f.sphere_visible(g.sphere.0, g.sphere.1), &mut slot, draws);
-                stats.shadow_primitives += draws.prims.iter().map(|d| u64::from(d.instances)).sum::<u64>();
-            }
+        lists.iter_mut().for_each(ViewDraws::clear);
+        for (f, draws) in cascades.into_iter().flatten().zip(&mut lists) {
+            self.view_lists(cache, |g| f.sphere_visible(g.sphere.0, g.sphere.1), &mut slot, draws);
+            stats.shadow_primitives += draws.prims.iter().map(|d| u64::from(d.instances)).sum::<u64>();
         }
         self.cascades = lists;
         if self.segments.is_empty() {
@@ -655,7 +656,6 @@ impl FramePlan {
     /// drawn).
     fn choose_terrain(&mut self, terrain: Option<&TerrainMesh>, view: &View, stats: &mut FrameStats) {
         self.camera.terrain.clear();
-        self.cascades.iter_mut().for_each(|c| c.terrain.clear());
         let Some(mesh) = terrain else { return };
         let px_per_rad = view.height_px / (2.0 * view.tan_half);
         for c in &mesh.chunks {
@@ -665,8 +665,8 @@ impl FramePlan {
                 stats.terrain_triangles += u64::from(r.end - r.start) / 3;
                 self.camera.terrain.push(r.clone());
             }
-            for (f, draws) in view.cascades.iter().zip(&mut self.cascades) {
-                if f.is_some_and(|f| f.sphere_visible(c.center, c.radius)) {
+            for (f, draws) in view.shadows.iter().flat_map(|s| &s.cascades).zip(&mut self.cascades) {
+                if f.sphere_visible(c.center, c.radius) {
                     draws.terrain.push(r.clone());
                 }
             }

@@ -84,7 +84,6 @@ pub fn fit_cascades(
 /// The farthest cascade is drawn every other frame: between, the frame keeps its map and the matrix it was drawn
 /// with (its texels are the coarsest, and what it covers moves least as the camera moves).
 pub(super) struct ShadowPass {
-    on: bool,
     /// The farthest cascade as last drawn, once it has been.
     far: Option<Cascade>,
     /// The farthest cascade this frame draws, if it does (decided by [`ShadowPass::write`]).
@@ -95,14 +94,13 @@ pub(super) struct ShadowPass {
     layers: Vec<wgpu::TextureView>,
     /// Group 3 of the pipelines that receive shadows: the maps as an array and the comparison sampler.
     receive: wgpu::BindGroup,
-    /// A globals buffer and bind group a cascade.
+    /// A globals buffer and bind group a cascade (none where shadows are off).
     globals: Vec<(wgpu::Buffer, wgpu::BindGroup)>,
 }
 
 impl ShadowPass {
     /// Maps of `shadows.resolution` texels a side (a 1 × 1 placeholder that the shaders never read when it is 0).
     pub(super) fn new(device: &wgpu::Device, p: &Pipelines, shadows: &Shadows) -> ShadowPass {
-        let on = shadows.resolution > 0;
         let side = shadows.resolution.max(1);
         let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("shadow maps"),
@@ -145,10 +143,10 @@ impl ShadowPass {
                 wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::Sampler(&sampler) },
             ],
         });
-        let globals = (0..if on { SHADOW_CASCADES } else { 0 })
+        let globals = (0..if shadows.resolution > 0 { SHADOW_CASCADES } else { 0 })
             .map(|_| super::uniforms::globals_binding(device, &p.globals_layout, "shadow cascade globals"))
             .collect();
-        ShadowPass { on, far: None, draw_far: None, frames: 0, layers, receive, globals }
+        ShadowPass { far: None, draw_far: None, frames: 0, layers, receive, globals }
     }
 
     /// The receivers' bind group (group 3).
@@ -159,7 +157,7 @@ impl ShadowPass {
     /// Put `cascades` into the frame's globals `g` (nothing where shadows are off; the farthest as last drawn on
     /// the frames that keep it), and write each cascade's globals: `g` seen from the sun.
     pub(super) fn write(&mut self, queue: &wgpu::Queue, g: &mut Globals, cascades: &[Cascade; SHADOW_CASCADES]) {
-        if !self.on {
+        if self.globals.is_empty() {
             return;
         }
         self.frames += 1;
@@ -190,7 +188,7 @@ impl ShadowPass {
         cascades: &[GeometryDraws<'_>; SHADOW_CASCADES],
     ) {
         let drawn = if self.draw_far.is_some() { SHADOW_CASCADES } else { SHADOW_CASCADES - 1 };
-        if self.on && self.draw_far.is_some() {
+        if self.draw_far.is_some() {
             self.far = self.draw_far;
         }
         for ((layer, (_, bg)), draws) in self.layers.iter().zip(&self.globals).zip(cascades).take(drawn) {

@@ -21,17 +21,6 @@ pub enum Part {
     Composite,
 }
 
-impl Part {
-    /// Every part, in drawing order.
-    pub const ALL: [Part; 6] =
-        [Part::Shadows, Part::Terrain, Part::Primitives, Part::Meshes, Part::FarField, Part::Composite];
-
-    /// The part's name in reports.
-    pub fn name(self) -> &'static str {
-        PARTS[self as usize]
-    }
-}
-
 /// The parts' names, in drawing order.
 pub const PARTS: [&str; 6] = ["shadows", "sky+terrain", "primitives", "meshes", "far field", "composite"];
 

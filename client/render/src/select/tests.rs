@@ -415,9 +415,11 @@ fn each_shadow_cascade_draws_the_trees_in_its_volume_and_those_out_of_view_that_
     let sun = Vec3::new(0.0, 1.0, -0.2).normalize();
     let near = glam::camera::rh::proj::directx::orthographic(-40.0, 40.0, -40.0, 40.0, -500.0, 100.0);
     let light = glam::camera::rh::view::look_to_mat4(Vec3::ZERO, -sun, Vec3::Z);
+    // The other two cascades far away, holding nothing.
+    let away =
+        Frustum::from_matrix(glam::camera::rh::proj::directx::orthographic(1e4, 1e4 + 1.0, 1e4, 1e4 + 1.0, 0.0, 1.0));
     let mut v = view(0.0, true);
-    v.shadows = Some((sun, 300.0));
-    v.cascades = [Some(Frustum::from_matrix(near * light)), None, None];
+    v.shadows = Some(ShadowView { sun, reach: 300.0, cascades: [Frustum::from_matrix(near * light), away, away] });
     // In view near and far; out of view behind the camera, 12 m back (its shadow falls short of the view), and
     // beside it, just out of view (its shadow does not reach in either: the sun is above).
     let s = scene(vec![
@@ -436,9 +438,8 @@ fn each_shadow_cascade_draws_the_trees_in_its_volume_and_those_out_of_view_that_
     assert_eq!(f.stats.shadow_casters, 0, "{:?}", f.stats);
     // Lower the sun toward −z: the tree behind the camera now casts into view; drawn for the cascades only.
     let low = Vec3::new(0.0, 0.3, -1.0).normalize();
-    v.shadows = Some((low, 300.0));
     let light = glam::camera::rh::view::look_to_mat4(Vec3::ZERO, -low, Vec3::Y);
-    v.cascades = [Some(Frustum::from_matrix(near * light)), None, None];
+    v.shadows = Some(ShadowView { sun: low, reach: 300.0, cascades: [Frustum::from_matrix(near * light), away, away] });
     f.run(&s, &cache, &ready_volume(), &v, 100);
     assert_eq!(f.stats.shadow_casters, 1, "{:?}", f.stats);
     assert_eq!(count(&f.plan.camera), 20, "the caster out of view is not drawn by the camera");
