@@ -7,6 +7,11 @@
 //! accept loop; the endpoints share one TLS identity, Retry token key and stateless-reset key, one admission (client
 //! slots, handshakes and per-source caps count for the whole server) and one set of counters.
 //!
+//! Browsers connect to the same port: ALPN `h3` is a WebTransport session (CONNECT to [`WEB_PATH`], answered by
+//! `web-transport-quinn` on the connection quinn accepted), ALPN `canopy/1` native QUIC; both become one
+//! [`web_transport_quinn::Session`] (a native one through `Session::raw`), so the session loop has one path. A
+//! browser is given the short-lived certificate it can pin ([`WebCertificate`]), rotated while the server runs.
+//!
 //! Per connection: the client opens one bidirectional control stream (hello, ready, viewpoints up; the welcome
 //! down); the server opens up to [`SessionConfig::lanes`] unidirectional lanes, ordered streams whose QUIC priority
 //! falls with the lane number, and writes each [`Transmit`](canopy_session::Transmit) to the stream the session
@@ -18,21 +23,22 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
-use std::time::{Duration, Instant};
+use std::time::{Duration, Instant, SystemTime};
 
 use canopy_protocol::frame::{FrameDecoder, FrameError};
 use canopy_protocol::sync::Locked;
 use canopy_protocol::{CloseCode, Phase, netlimits};
-use quinn::{Connection, ConnectionError, Endpoint, SendStream, VarInt};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use quinn::{ConnectionError, Endpoint, VarInt};
 use tokio::sync::{mpsc, watch};
 use tracing::{debug, info, warn};
+use web_transport_quinn::{SendStream, Session as Link, SessionError, WebTransportError};
 
 use crate::admission::{Admission, AdmissionConfig, Refusal, Verdict};
 use crate::editing::{EditJob, EditService};
+use crate::http::{WebPage, serve_http};
 use crate::metrics::Metrics;
 use crate::outbox::Outbox;
-use crate::tls::{Identity, IdentityError};
+use crate::tls::{Identity, IdentityError, WEB_ALPN, WebCertificate};
 use canopy_protocol::edit::EditOutcome;
 use canopy_session::{CellWaker, WorldStore};
 use canopy_session::{SendBudget, Session, SessionConfig, StreamId};
@@ -48,6 +54,22 @@ pub const SEND_WINDOW: u64 = 224 * 1024;
 /// denied in about 60) add at most a few KiB more.
 pub const OWED_SLACK: usize = 16 * 1024;
 
+/// The path a browser's WebTransport CONNECT must name; any other is answered 404 and closed.
+pub const WEB_PATH: &str = "/canopy";
+
+/// Metrics connections open at once; the next one accepted closes the oldest, so idle sockets cannot keep a scraper
+/// out (its request arrives with its connection).
+const MAX_METRICS_CONNECTIONS: usize = 16;
+
+/// Page connections open at once (each may be downloading the client's wasm).
+const MAX_PAGE_CONNECTIONS: usize = 64;
+
+/// How long a refused WebTransport CONNECT's 404 may take to reach the client before its connection is closed.
+const REJECT_GRACE: Duration = Duration::from_secs(1);
+
+/// How often the server checks whether the WebTransport certificate is due for rotation.
+const WEB_CERT_CHECK: Duration = Duration::from_secs(3600);
+
 /// How a server runs.
 #[derive(Clone, Debug)]
 pub struct ServerConfig {
@@ -55,6 +77,9 @@ pub struct ServerConfig {
     pub listen: SocketAddr,
     /// The TCP address of the Prometheus metrics endpoint (`None`: no endpoint).
     pub metrics: Option<SocketAddr>,
+    /// Serve the browser client's page over HTTP (`None`: browsers can still connect, from a page served
+    /// elsewhere).
+    pub web: Option<WebConfig>,
     /// Where the certificate lives (`None`: a fresh in-memory certificate, for tests).
     pub data_dir: Option<PathBuf>,
     /// Per-session behaviour.
@@ -87,6 +112,7 @@ impl Default for ServerConfig {
         ServerConfig {
             listen: SocketAddr::from(([127, 0, 0, 1], 4433)),
             metrics: None,
+            web: None,
             data_dir: None,
             session: SessionConfig::default(),
             admission: AdmissionConfig::default(),
@@ -99,6 +125,15 @@ impl Default for ServerConfig {
             segmentation_offload: false,
         }
     }
+}
+
+/// Where the browser client's page is served from.
+#[derive(Clone, Debug)]
+pub struct WebConfig {
+    /// The TCP address of the page (HTTP; a secure context on loopback, behind a TLS proxy elsewhere).
+    pub listen: SocketAddr,
+    /// The folder `scripts/build-web` writes (`client/web/dist`).
+    pub root: PathBuf,
 }
 
 /// Why the server could not start.
@@ -125,8 +160,10 @@ pub struct Server {
     endpoints: Vec<Endpoint>,
     local_addr: SocketAddr,
     metrics_addr: Option<SocketAddr>,
+    web_addr: Option<SocketAddr>,
     fingerprint: String,
     identity_generated: bool,
+    web_certificate: Arc<WebCertificate>,
     metrics: Arc<Metrics>,
     shutdown: watch::Sender<bool>,
     accept: Vec<tokio::task::JoinHandle<()>>,
@@ -200,8 +237,12 @@ pub const MAX_ENDPOINTS: usize = 256;
 
 fn transport(cfg: &ServerConfig) -> quinn::TransportConfig {
     let mut t = quinn::TransportConfig::default();
-    t.max_concurrent_bidi_streams(VarInt::from_u32(1))
-        .max_concurrent_uni_streams(VarInt::from_u32(0))
+    // A native client opens one bidirectional stream (control) and no unidirectional ones. A browser's WebTransport
+    // session needs one more bidirectional stream (the CONNECT request) and three unidirectional ones (HTTP/3's
+    // control stream and QPACK's two): every connection gets those limits, which cost nothing while unused (what a
+    // client may send on streams the server does not read is bounded by the connection's receive window).
+    t.max_concurrent_bidi_streams(VarInt::from_u32(2))
+        .max_concurrent_uni_streams(VarInt::from_u32(3))
         .stream_receive_window(VarInt::from_u32(64 * 1024))
         .receive_window(VarInt::from_u32(128 * 1024))
         // Send data quinn holds for one connection until it is acknowledged: with the session's window of bytes
@@ -224,7 +265,8 @@ impl Server {
             Some(dir) => Identity::load_or_generate(dir)?,
             None => Identity::generate()?,
         };
-        let tls = identity.server_config()?;
+        let web_certificate = Arc::new(WebCertificate::generate(SystemTime::now())?);
+        let tls = identity.server_config_with_web(&web_certificate)?;
         let crypto =
             quinn::crypto::rustls::QuicServerConfig::try_from(tls).map_err(|e| StartError::Quic(e.to_string()))?;
         let mut server_config = quinn::ServerConfig::with_crypto(Arc::new(crypto));
@@ -257,12 +299,30 @@ impl Server {
                 let listener =
                     tokio::net::TcpListener::bind(addr).await.map_err(|source| StartError::Bind { addr, source })?;
                 let bound = listener.local_addr().map_err(|source| StartError::Bind { addr, source })?;
-                tokio::spawn(serve_metrics(listener, Arc::clone(&metrics), shutdown_rx.clone()));
+                let route = crate::http::metrics_route(Arc::clone(&metrics));
+                tokio::spawn(serve_http(listener, "metrics", MAX_METRICS_CONNECTIONS, route, shutdown_rx.clone()));
+                Some(bound)
+            }
+            None => None,
+        };
+        let web_addr = match &cfg.web {
+            Some(web) => {
+                let addr = web.listen;
+                let bind = |source| StartError::Bind { addr, source };
+                let listener = tokio::net::TcpListener::bind(addr).await.map_err(bind)?;
+                let bound = listener.local_addr().map_err(bind)?;
+                let page = WebPage {
+                    root: web.root.clone(),
+                    port: local_addr.port(),
+                    certificate: Arc::clone(&web_certificate),
+                };
+                tokio::spawn(serve_http(listener, "page", MAX_PAGE_CONNECTIONS, page.route(), shutdown_rx.clone()));
                 Some(bound)
             }
             None => None,
         };
         tokio::spawn(tick_metrics(Arc::clone(&metrics), shutdown_rx.clone()));
+        tokio::spawn(rotate_web_certificate(Arc::clone(&web_certificate), shutdown_rx.clone()));
         let admission = Arc::new(std::sync::Mutex::new(Admission::new(cfg.admission.clone())));
         let cfg = Arc::new(cfg);
         let accept = endpoints
@@ -284,8 +344,10 @@ impl Server {
             endpoints,
             local_addr,
             metrics_addr,
+            web_addr,
             fingerprint: identity.fingerprint(),
             identity_generated: identity.generated,
+            web_certificate,
             metrics,
             shutdown,
             accept,
@@ -303,9 +365,25 @@ impl Server {
         self.metrics_addr
     }
 
+    /// The browser client's page address, if it serves one.
+    pub fn web_addr(&self) -> Option<SocketAddr> {
+        self.web_addr
+    }
+
     /// The certificate's SHA-256 fingerprint (what clients pin).
     pub fn fingerprint(&self) -> &str {
         &self.fingerprint
+    }
+
+    /// The SHA-256 fingerprint of the certificate browsers are given now (ALPN `h3`): what a page passes to
+    /// WebTransport's `serverCertificateHashes`. It changes when the certificate rotates.
+    pub fn web_fingerprint(&self) -> String {
+        self.web_certificate.fingerprint()
+    }
+
+    /// The short-lived certificate browsers are given.
+    pub fn web_certificate(&self) -> &Arc<WebCertificate> {
+        &self.web_certificate
     }
 
     /// Whether the certificate was generated at this start.
@@ -476,20 +554,39 @@ impl Closing {
 
 /// Serve one connection to its end; returns how it was closed (`None`: the transport failed).
 async fn serve_connection(
-    conn: Connection,
+    conn: quinn::Connection,
     store: Arc<dyn WorldStore>,
     cfg: &ServerConfig,
     metrics: &Metrics,
     admission: &std::sync::Mutex<Admission>,
 ) -> Option<CloseCode> {
     let peer = conn.remote_address();
-    match run_session(&conn, store, cfg, metrics, admission).await {
+    let web = alpn(&conn).as_deref() == Some(WEB_ALPN);
+    let link = if web {
+        match tokio::time::timeout(cfg.session.handshake_timeout, accept_web(conn.clone())).await {
+            Ok(Ok(link)) => link,
+            Ok(Err(Closing { code, reason })) => {
+                debug!(%peer, "WebTransport session refused: {reason}");
+                let code = code.unwrap_or(CloseCode::Malformed);
+                conn.close(VarInt::from_u32(code as u32), close_reason(&reason));
+                return Some(code);
+            }
+            Err(_) => {
+                conn.close(VarInt::from_u32(CloseCode::Timeout as u32), b"no WebTransport CONNECT in time");
+                return Some(CloseCode::Timeout);
+            }
+        }
+    } else {
+        Link::raw(conn)
+    };
+    let _web = web.then(|| Gauge::up(&metrics.web_clients));
+    match run_session(&link, store, cfg, metrics, admission).await {
         Ok(()) => Some(CloseCode::Normal),
         Err(Closing { code: Some(code), reason }) => {
             if code != CloseCode::Normal && code != CloseCode::Shutdown {
-                info!(%peer, ?code, "closing connection: {reason}");
+                info!(%peer, ?code, web, "closing connection: {reason}");
             }
-            conn.close(VarInt::from_u32(code as u32), reason.as_bytes());
+            link.close(code as u32, close_reason(&reason));
             Some(code)
         }
         Err(Closing { code: None, reason }) => {
@@ -499,9 +596,57 @@ async fn serve_connection(
     }
 }
 
-fn lost(e: ConnectionError) -> Closing {
+/// The ALPN the handshake of `conn` settled on.
+fn alpn(conn: &quinn::Connection) -> Option<Vec<u8>> {
+    let data = conn.handshake_data()?.downcast::<quinn::crypto::rustls::HandshakeData>().ok()?;
+    data.protocol
+}
+
+/// A close reason as sent: at most 1,024 bytes (WebTransport's limit), cut at a character boundary.
+fn close_reason(reason: &str) -> &[u8] {
+    let mut end = reason.len().min(1024);
+    while !reason.is_char_boundary(end) {
+        end -= 1;
+    }
+    &reason.as_bytes()[..end]
+}
+
+/// The HTTP/3 side of a browser's session: its SETTINGS, and its CONNECT, answered 200 when it names [`WEB_PATH`]
+/// and 404 otherwise.
+async fn accept_web(conn: quinn::Connection) -> Result<Link, Closing> {
+    let web = |e: web_transport_quinn::ServerError| Closing::new(CloseCode::Malformed, format!("WebTransport: {e}"));
+    let request = web_transport_quinn::Request::accept(conn).await.map_err(web)?;
+    if request.url.path() != WEB_PATH {
+        let path = request.url.path().to_string();
+        let conn = request.conn().clone();
+        let _ = request.reject(web_transport_quinn::http::StatusCode::NOT_FOUND).await;
+        // Give the answer a moment to arrive before the connection closes (the client closes it on reading it).
+        let _ = tokio::time::timeout(REJECT_GRACE, conn.closed()).await;
+        return Err(Closing::new(CloseCode::Invalid, format!("no WebTransport endpoint at {path} (it is {WEB_PATH})")));
+    }
+    request.ok().await.map_err(web)
+}
+
+/// A gauge counted up while this lives.
+struct Gauge<'a>(&'a std::sync::atomic::AtomicU64);
+
+impl<'a> Gauge<'a> {
+    fn up(g: &'a std::sync::atomic::AtomicU64) -> Self {
+        g.fetch_add(1, Relaxed);
+        Gauge(g)
+    }
+}
+
+impl Drop for Gauge<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Relaxed);
+    }
+}
+
+fn lost(e: SessionError) -> Closing {
     match e {
-        ConnectionError::ApplicationClosed(_) | ConnectionError::LocallyClosed => {
+        SessionError::ConnectionError(ConnectionError::ApplicationClosed(_) | ConnectionError::LocallyClosed)
+        | SessionError::WebTransportError(WebTransportError::Closed(..)) => {
             Closing { code: Some(CloseCode::Normal), reason: "client closed".into() }
         }
         e => Closing { code: None, reason: e.to_string() },
@@ -509,7 +654,7 @@ fn lost(e: ConnectionError) -> Closing {
 }
 
 async fn run_session(
-    conn: &Connection,
+    conn: &Link,
     store: Arc<dyn WorldStore>,
     cfg: &ServerConfig,
     metrics: &Metrics,
@@ -593,7 +738,7 @@ async fn run_session(
                         Err(e) => Err(Closing::new(CloseCode::Malformed, e)),
                     };
                 }
-                Err(quinn::ReadError::ConnectionLost(e)) => break Err(lost(e)),
+                Err(web_transport_quinn::ReadError::SessionError(e)) => break Err(lost(e)),
                 Err(e) => break Err(Closing::new(CloseCode::Malformed, format!("control stream: {e}"))),
             },
             n = outbox.take_flushed() => session.on_flushed(n),
@@ -677,11 +822,11 @@ fn handle_frames(decoder: &mut FrameDecoder, session: &mut Session, now: Instant
 }
 
 /// Writes transmits in order to the stream each names, opening lanes on first use; reports flushed bytes.
-async fn write_loop(conn: Connection, mut control: SendStream, outbox: Arc<Outbox>) -> Result<(), Closing> {
+async fn write_loop(conn: Link, mut control: SendStream, outbox: Arc<Outbox>) -> Result<(), Closing> {
     let _ = control.set_priority(1);
     let mut lanes: Vec<Option<SendStream>> = (0..8).map(|_| None).collect();
-    let write_err = |e: quinn::WriteError| match e {
-        quinn::WriteError::ConnectionLost(e) => lost(e),
+    let write_err = |e: web_transport_quinn::WriteError| match e {
+        web_transport_quinn::WriteError::SessionError(e) => lost(e),
         e => Closing { code: Some(CloseCode::Normal), reason: format!("client stopped a stream: {e}") },
     };
     loop {
@@ -709,125 +854,17 @@ async fn write_loop(conn: Connection, mut control: SendStream, outbox: Arc<Outbo
     }
 }
 
-/// Metrics connections still sending their request at once; the next one accepted closes the oldest, so idle
-/// sockets cannot keep a scraper out (its request arrives with its connection).
-const MAX_METRICS_CONNECTIONS: usize = 16;
-
-/// How long a metrics connection may take to send its request, and to take the answer.
-const METRICS_TIMEOUT: Duration = Duration::from_secs(5);
-
-async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>) {
-    // Connections reading their request, oldest first: (number, task).
-    let reading: Arc<std::sync::Mutex<std::collections::VecDeque<(u64, tokio::task::AbortHandle)>>> = Arc::default();
-    let mut backoff = AcceptBackoff::default();
-    for number in 0u64.. {
-        let accepted = tokio::select! {
-            a = listener.accept() => a,
+async fn rotate_web_certificate(web: Arc<WebCertificate>, mut shutdown: watch::Receiver<bool>) {
+    let mut every = tokio::time::interval(WEB_CERT_CHECK);
+    loop {
+        tokio::select! {
+            _ = every.tick() => match web.rotate(SystemTime::now()) {
+                Ok(true) => info!(fingerprint = %web.fingerprint(), "new WebTransport certificate"),
+                Ok(false) => {}
+                Err(e) => warn!("cannot make a new WebTransport certificate: {e}"),
+            },
             _ = shutdown.changed() => return,
-        };
-        let mut sock = match accepted {
-            Ok((sock, _)) => {
-                backoff.accepted();
-                sock
-            }
-            Err(e) => {
-                // At the file-descriptor limit (EMFILE, ENFILE) accept fails at once, again and again: wait before
-                // the next try, longer each time, and log once per interval instead of once per failure.
-                let (wait, log) = backoff.failed(Instant::now());
-                if let Some(suppressed) = log {
-                    warn!("metrics endpoint: {e} ({suppressed} more since the last report); retrying in {wait:?}");
-                }
-                tokio::select! {
-                    _ = tokio::time::sleep(wait) => continue,
-                    _ = shutdown.changed() => return,
-                }
-            }
-        };
-        let (metrics, readers) = (Arc::clone(&metrics), Arc::clone(&reading));
-        // Held until the task is in the list, so it cannot take itself out before it is put in.
-        let mut list = reading.locked();
-        if list.len() >= MAX_METRICS_CONNECTIONS
-            && let Some((_, oldest)) = list.pop_front()
-        {
-            oldest.abort();
         }
-        let task = tokio::spawn(async move {
-            // Read the request head (bounded in size and time); only `GET /metrics` is served.
-            let mut buf = vec![0u8; 4096];
-            let mut n = 0;
-            let read = tokio::time::timeout(METRICS_TIMEOUT, async {
-                while n < buf.len() {
-                    match sock.read(&mut buf[n..]).await {
-                        Ok(0) | Err(_) => break,
-                        Ok(m) => n += m,
-                    }
-                    if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
-                        break;
-                    }
-                }
-            });
-            let timed_out = read.await.is_err();
-            readers.locked().retain(|(k, _)| *k != number);
-            if timed_out {
-                return;
-            }
-            let head = String::from_utf8_lossy(&buf[..n]);
-            let response = if head.starts_with("GET /metrics ") || head.starts_with("GET / ") {
-                let body = metrics.render();
-                format!(
-                    "HTTP/1.1 200 OK\r\nContent-Type: text/plain; version=0.0.4\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-                    body.len()
-                )
-            } else {
-                "HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n".to_string()
-            };
-            let _ = tokio::time::timeout(METRICS_TIMEOUT, async {
-                let _ = sock.write_all(response.as_bytes()).await;
-                let _ = sock.shutdown().await;
-            })
-            .await;
-        });
-        list.push_back((number, task.abort_handle()));
-    }
-}
-
-/// The accept loop's answer to failures: exponential backoff from 10 ms to 1 s, and a log line at most every
-/// 10 s that counts the failures it did not report. Sans-IO: `now` is an argument.
-#[derive(Debug, Default)]
-struct AcceptBackoff {
-    /// Failures in a row.
-    failures: u32,
-    /// When a failure was last logged.
-    logged: Option<Instant>,
-    /// Failures since then.
-    unreported: u64,
-}
-
-impl AcceptBackoff {
-    const FIRST: Duration = Duration::from_millis(10);
-    const MAX: Duration = Duration::from_secs(1);
-    const LOG_EVERY: Duration = Duration::from_secs(10);
-
-    /// An accept succeeded: the next failure waits the shortest time again.
-    fn accepted(&mut self) {
-        self.failures = 0;
-    }
-
-    /// An accept failed at `now`: how long to wait, and `Some(failures not reported)` if this one is to be logged.
-    fn failed(&mut self, now: Instant) -> (Duration, Option<u64>) {
-        let wait = Self::FIRST.saturating_mul(1 << self.failures.min(7)).min(Self::MAX);
-        self.failures = self.failures.saturating_add(1);
-        let log = match self.logged {
-            Some(t) if now.duration_since(t) < Self::LOG_EVERY => {
-                self.unreported += 1;
-                None
-            }
-            _ => {
-                self.logged = Some(now);
-                Some(std::mem::take(&mut self.unreported))
-            }
-        };
-        (wait, log)
     }
 }
 
@@ -838,33 +875,5 @@ async fn tick_metrics(metrics: Arc<Metrics>, mut shutdown: watch::Receiver<bool>
             _ = every.tick() => metrics.tick(Instant::now()),
             _ = shutdown.changed() => return,
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn accept_failures_back_off_and_log_once_per_interval() {
-        let t0 = Instant::now();
-        let mut b = AcceptBackoff::default();
-        let mut logged = 0;
-        let mut waited = Duration::ZERO;
-        // A million failures within 10 s of virtual time (an accept loop at the fd limit).
-        for i in 0..1_000_000u32 {
-            let now = t0 + Duration::from_micros(u64::from(i) * 9);
-            let (wait, log) = b.failed(now);
-            assert!(wait >= AcceptBackoff::FIRST && wait <= AcceptBackoff::MAX);
-            waited += wait;
-            logged += usize::from(log.is_some());
-        }
-        assert_eq!(logged, 1, "one line for a burst under 10 s");
-        assert!(waited >= Duration::from_secs(900_000), "the waits add up: at most ~1 try a second once backed off");
-        let (wait, log) = b.failed(t0 + Duration::from_secs(11));
-        assert_eq!(wait, AcceptBackoff::MAX);
-        assert_eq!(log, Some(999_999), "the next line counts what was not reported");
-        b.accepted();
-        assert_eq!(b.failed(t0 + Duration::from_secs(12)).0, AcceptBackoff::FIRST);
     }
 }

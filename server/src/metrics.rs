@@ -26,6 +26,8 @@ pub struct Metrics {
     pub clients: AtomicU64,
     /// Of those, the clients of each of the server's endpoints (its UDP sockets on the one port).
     pub endpoint_clients: Box<[AtomicU64]>,
+    /// Of those, the browsers' (WebTransport sessions, ALPN `h3`).
+    pub web_clients: AtomicU64,
     /// QUIC handshakes in flight now.
     pub handshakes: AtomicU64,
     /// Incoming connections answered with a QUIC Retry (address validation).
@@ -104,6 +106,7 @@ impl Metrics {
             started: now,
             clients: AtomicU64::new(0),
             endpoint_clients: (0..endpoints.max(1)).map(|_| AtomicU64::new(0)).collect(),
+            web_clients: AtomicU64::new(0),
             handshakes: AtomicU64::new(0),
             retries: AtomicU64::new(0),
             refused: Default::default(),
@@ -194,6 +197,8 @@ impl Metrics {
             .collect();
         let help = "Clients connected now, by the endpoint (UDP socket) that accepted them.";
         metric("canopy_endpoint_clients", "gauge", help, &per_endpoint);
+        let help = "Clients connected now over WebTransport (browsers).";
+        metric("canopy_web_clients", "gauge", help, &one(&self.web_clients));
         metric("canopy_handshakes", "gauge", "QUIC handshakes in flight now.", &one(&self.handshakes));
         metric("canopy_retries_total", "counter", "Incoming connections sent a QUIC Retry.", &one(&self.retries));
         let refused: Vec<(String, u64)> = Refusal::ALL

@@ -1,8 +1,10 @@
 //! The server's TLS identity: a self-signed certificate generated at first start (rcgen), saved in the data
-//! directory and reused, and its SHA-256 fingerprint, which clients pin.
+//! directory and reused, and its SHA-256 fingerprint, which clients pin. Beside it, the short-lived certificate
+//! that browsers pin for WebTransport ([`WebCertificate`]), picked per handshake by ALPN.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, SystemTime};
 
 use canopy_protocol::messages::certificate_fingerprint;
 use quinn::rustls;
@@ -102,6 +104,130 @@ impl Identity {
         cfg.alpn_protocols = vec![canopy_protocol::ALPN.to_vec()];
         Ok(Arc::new(cfg))
     }
+
+    /// A rustls server configuration for both kinds of client on one port: ALPN `canopy/1` gets this identity,
+    /// ALPN `h3` (WebTransport, a browser) the current certificate of `web`. TLS 1.3 only.
+    pub fn server_config_with_web(
+        &self,
+        web: &Arc<WebCertificate>,
+    ) -> Result<Arc<rustls::ServerConfig>, IdentityError> {
+        let provider = Arc::new(rustls::crypto::ring::default_provider());
+        let native = certified(&provider, self.cert.clone(), self.key.clone_key())?;
+        let resolver = ByAlpn { native, web: Arc::clone(web) };
+        let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
+            .with_protocol_versions(&[&rustls::version::TLS13])?
+            .with_no_client_auth()
+            .with_cert_resolver(Arc::new(resolver));
+        cfg.alpn_protocols = vec![canopy_protocol::ALPN.to_vec(), WEB_ALPN.to_vec()];
+        Ok(Arc::new(cfg))
+    }
+}
+
+/// The ALPN of HTTP/3, under which browsers speak WebTransport.
+pub const WEB_ALPN: &[u8] = b"h3";
+
+/// How long a WebTransport certificate is valid. Browsers accept a pinned certificate (`serverCertificateHashes`)
+/// only when it is valid for at most 14 days.
+pub const WEB_CERT_VALIDITY: Duration = Duration::from_secs(10 * 24 * 3600);
+
+/// How old a WebTransport certificate gets before a new one replaces it: a hash handed to a page stays good for
+/// at least the rest of its validity (5 days) after it stops being served.
+pub const WEB_CERT_ROTATION: Duration = Duration::from_secs(5 * 24 * 3600);
+
+/// The short-lived, in-memory certificate browsers pin for WebTransport: ECDSA P-256, valid
+/// [`WEB_CERT_VALIDITY`] from an hour before it was made (clock skew), replaced by [`WebCertificate::rotate`]
+/// once it is [`WEB_CERT_ROTATION`] old. New handshakes get the current one.
+#[derive(Debug)]
+pub struct WebCertificate {
+    current: RwLock<WebCert>,
+}
+
+#[derive(Clone, Debug)]
+struct WebCert {
+    key: Arc<rustls::sign::CertifiedKey>,
+    fingerprint: String,
+    made: SystemTime,
+}
+
+impl WebCertificate {
+    /// A fresh certificate, made at `now`.
+    pub fn generate(now: SystemTime) -> Result<WebCertificate, IdentityError> {
+        Ok(WebCertificate { current: RwLock::new(WebCert::generate(now)?) })
+    }
+
+    /// The current certificate's SHA-256 fingerprint, lowercase hex: what a page passes to
+    /// `serverCertificateHashes`.
+    pub fn fingerprint(&self) -> String {
+        self.read().fingerprint
+    }
+
+    /// The current certificate's DER.
+    pub fn der(&self) -> CertificateDer<'static> {
+        self.read().key.cert[0].clone()
+    }
+
+    /// Replace the certificate when it is at least [`WEB_CERT_ROTATION`] old at `now`; whether it did.
+    pub fn rotate(&self, now: SystemTime) -> Result<bool, IdentityError> {
+        let made = self.read().made;
+        if now.duration_since(made).unwrap_or_default() < WEB_CERT_ROTATION {
+            return Ok(false);
+        }
+        let fresh = WebCert::generate(now)?;
+        *self.current.write().unwrap_or_else(|p| p.into_inner()) = fresh;
+        Ok(true)
+    }
+
+    fn read(&self) -> WebCert {
+        self.current.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+}
+
+impl WebCert {
+    fn generate(now: SystemTime) -> Result<WebCert, IdentityError> {
+        let names: Vec<String> = CERT_NAMES.iter().map(|s| s.to_string()).collect();
+        let mut params = rcgen::CertificateParams::new(names)?;
+        let unix = |t: SystemTime| {
+            let secs = t.duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default().as_secs() as i64;
+            time::OffsetDateTime::from_unix_timestamp(secs).unwrap_or(time::OffsetDateTime::UNIX_EPOCH)
+        };
+        let from = now.checked_sub(Duration::from_secs(3600)).unwrap_or(now);
+        params.not_before = unix(from);
+        params.not_after = unix(from + WEB_CERT_VALIDITY);
+        let key = rcgen::KeyPair::generate_for(&rcgen::PKCS_ECDSA_P256_SHA256)?;
+        let cert = params.self_signed(&key)?;
+        let provider = rustls::crypto::ring::default_provider();
+        let der = cert.der().clone();
+        let fingerprint = certificate_fingerprint(der.as_ref());
+        let key = certified(&provider, der, PrivatePkcs8KeyDer::from(key.serialize_der()))?;
+        Ok(WebCert { key, fingerprint, made: now })
+    }
+}
+
+fn certified(
+    provider: &rustls::crypto::CryptoProvider,
+    cert: CertificateDer<'static>,
+    key: PrivatePkcs8KeyDer<'static>,
+) -> Result<Arc<rustls::sign::CertifiedKey>, IdentityError> {
+    let signing = provider.key_provider.load_private_key(PrivateKeyDer::Pkcs8(key))?;
+    Ok(Arc::new(rustls::sign::CertifiedKey::new(vec![cert], signing)))
+}
+
+/// Picks the certificate by the ALPN a client offers: a browser (`h3` without `canopy/1`) gets the short-lived one.
+#[derive(Debug)]
+struct ByAlpn {
+    native: Arc<rustls::sign::CertifiedKey>,
+    web: Arc<WebCertificate>,
+}
+
+impl rustls::server::ResolvesServerCert for ByAlpn {
+    fn resolve(&self, hello: rustls::server::ClientHello<'_>) -> Option<Arc<rustls::sign::CertifiedKey>> {
+        let offered: Vec<&[u8]> = hello.alpn().map(|a| a.collect()).unwrap_or_default();
+        if offered.contains(&WEB_ALPN) && !offered.contains(&canopy_protocol::ALPN) {
+            Some(self.web.read().key)
+        } else {
+            Some(Arc::clone(&self.native))
+        }
+    }
 }
 
 #[cfg(unix)]
@@ -132,5 +258,25 @@ mod tests {
         assert_eq!(a.fingerprint(), b.fingerprint());
         assert_eq!(a.fingerprint().len(), 64);
         b.server_config().unwrap();
+    }
+
+    #[test]
+    fn web_certificate_is_short_lived_p256_and_rotates() {
+        let t0 = SystemTime::UNIX_EPOCH + Duration::from_secs(1_800_000_000);
+        let web = WebCertificate::generate(t0).unwrap();
+        let first = web.fingerprint();
+        // The validity as the DER carries it (UTCTime): from an hour before t0 (2027-01-15 08:00 UTC) for 10 days.
+        let der = web.der();
+        let has = |s: &[u8]| der.as_ref().windows(s.len()).any(|w| w == s);
+        assert!(has(b"270115070000Z") && has(b"270125070000Z"), "not before / not after");
+        // ECDSA with SHA-256 (1.2.840.10045.4.3.2) and the P-256 curve (1.2.840.10045.3.1.7).
+        assert!(has(&[0x2a, 0x86, 0x48, 0xce, 0x3d, 0x04, 0x03, 0x02]));
+        assert!(has(&[0x2a, 0x86, 0x48, 0xce, 0x3d, 0x03, 0x01, 0x07]));
+        assert!(!web.rotate(t0 + WEB_CERT_ROTATION - Duration::from_secs(1)).unwrap());
+        assert_eq!(web.fingerprint(), first);
+        assert!(web.rotate(t0 + WEB_CERT_ROTATION).unwrap());
+        assert_ne!(web.fingerprint(), first);
+        let id = Identity::generate().unwrap();
+        id.server_config_with_web(&Arc::new(web)).unwrap();
     }
 }

@@ -12,12 +12,17 @@
 //! This crate knows no GPU, window or command line: it depends on no wgpu, winit, clap, indicatif, anyhow or
 //! canopy-server (a test in `tests/tests/house.rs` holds that).
 
+#[cfg(feature = "native")]
 pub mod cache;
+#[cfg(feature = "native")]
 pub mod expand;
+#[cfg(feature = "native")]
 pub mod fit;
+#[cfg(feature = "native")]
 pub mod net;
 pub mod state;
 pub mod world;
 
+#[cfg(feature = "native")]
 pub use net::{ClientError, ConnectConfig, Connection, Trust};
 pub use state::{ClientState, InstanceView};

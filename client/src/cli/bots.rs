@@ -17,7 +17,6 @@ use std::sync::atomic::Ordering::Relaxed;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
-use canopy_client::ConnectConfig;
 use canopy_harness::bots::{
     self, BotReport, BotsConfig, BotsSummary, EditPlan, PathKind, Progress, Shard, check_ledger,
 };
@@ -211,7 +210,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
         _ => None,
     };
     let verify = if args.no_verify { None } else { world };
-    let mut connect = ConnectConfig::new_edges(&args.connect.edges(), trust);
+    let mut connect = args.connect.config(&args.connect.edges(), trust);
     // One expander for every bot of the process: they share its cache, as they would share a world's cells.
     connect.expander = args.connect.expander();
     let mut cfg = BotsConfig::new(args.count, connect);

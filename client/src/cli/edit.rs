@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use canopy_client::state::Event;
-use canopy_client::{ClientError, ConnectConfig, Connection};
+use canopy_client::{ClientError, Connection};
 use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::{CellCoord, InstanceId, SpeciesGraph};
@@ -75,7 +75,7 @@ impl Client {
     ) -> anyhow::Result<Client> {
         let trust = args.connect.trust()?;
         let edges = args.connect.edges();
-        let mut cfg = ConnectConfig::new_edges(&edges, trust);
+        let mut cfg = args.connect.config(&edges, trust);
         cfg.client_name = "canopy-world".into();
         let timeout = Duration::from_secs_f64(args.timeout.clamp(0.1, 3600.0));
         cfg.timeout = timeout;

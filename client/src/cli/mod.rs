@@ -85,6 +85,10 @@ pub struct ConnectArgs {
     /// (the default where the server offers one).
     #[arg(long)]
     pub records: bool,
+    /// Speak WebTransport (HTTP/3, as a browser does) instead of native QUIC; `--cert-fingerprint` then pins the
+    /// server's WebTransport certificate (`canopy-server` prints both).
+    #[arg(long)]
+    pub web_transport: bool,
 }
 
 impl ConnectArgs {
@@ -105,6 +109,19 @@ impl ConnectArgs {
     /// of the process; `None` with `--records`.
     pub fn expander(&self) -> Option<std::sync::Arc<canopy_client::expand::Expander>> {
         (!self.records).then(canopy_client::expand::Expander::default_pool)
+    }
+
+    /// The connection configuration for `edges` with `trust`, over WebTransport with `--web-transport`.
+    pub fn config(
+        &self,
+        edges: &canopy_client::net::Edges,
+        trust: canopy_client::Trust,
+    ) -> canopy_client::ConnectConfig {
+        let mut cfg = canopy_client::ConnectConfig::new_edges(edges, trust);
+        if self.web_transport {
+            cfg.web = Some(canopy_server::WEB_PATH.to_owned());
+        }
+        cfg
     }
 
     /// Whether any flag was given (the commands with a server in process refuse trust flags without `--server`).

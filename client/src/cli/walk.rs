@@ -735,7 +735,7 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         altitude: camera.position.y,
     };
     *shared.far.locked() = args.far.view(args.height, camera.fov_y, camera.position.y)?;
-    let mut connect = ConnectConfig::new_edges(&server, trust);
+    let mut connect = args.connect.config(&server, trust);
     connect.client_name = "canopy walk".into();
     connect.expander = args.connect.expander();
     // An editor's keys send their edits through the network thread, which sends them on the connection.

@@ -12,7 +12,8 @@ use canopy_protocol::aoi::AoiParams;
 use canopy_server::session::{Editors, SessionConfig};
 use canopy_server::worlds::world::World;
 use canopy_server::{
-    AdmissionConfig, CellCacheConfig, Cells, Edits, NatsConfig, ServeOptions, ServerConfig, resident_bytes, serve,
+    AdmissionConfig, CellCacheConfig, Cells, Edits, NatsConfig, ServeOptions, ServerConfig, WebConfig, resident_bytes,
+    serve,
 };
 use clap::Parser;
 use std::sync::Arc;
@@ -49,6 +50,13 @@ struct Args {
     /// Run without the metrics endpoint.
     #[arg(long)]
     no_metrics: bool,
+    /// Serve the browser client on this TCP address (HTTP: `http://ADDR/` opens the walkthrough; a secure context
+    /// on loopback, behind a TLS proxy elsewhere). Browsers connect over WebTransport to the UDP port either way.
+    #[arg(long, value_name = "ADDR")]
+    web: Option<SocketAddr>,
+    /// With `--web`: the folder of the built page (`scripts/build-web` writes it).
+    #[arg(long, default_value = "client/web/dist", requires = "web")]
+    web_root: PathBuf,
     /// Where the certificate and the edits (`edits.sqlite`) are kept (the certificate is generated at first start).
     #[arg(long, alias = "data", default_value = "canopy-data")]
     data_dir: PathBuf,
@@ -239,6 +247,7 @@ fn main() -> anyhow::Result<()> {
         server: ServerConfig {
             listen: args.listen,
             metrics: (!args.no_metrics).then_some(args.metrics),
+            web: args.web.map(|listen| WebConfig { listen, root: args.web_root.clone() }),
             data_dir: Some(args.data_dir.clone()),
             session,
             admission: AdmissionConfig {
@@ -273,6 +282,18 @@ fn main() -> anyhow::Result<()> {
         let editors_n = session_editors;
         println!("{} edits stored in {}; {editors_n} editors", server.edit_count(), server.edits_at());
         println!("fingerprint {}", server.fingerprint());
+        let days = canopy_server::WEB_CERT_VALIDITY.as_secs() / 86_400;
+        println!(
+            "WebTransport (ALPN h3, path {}) fingerprint {} (valid {days} days, renewed while running)",
+            canopy_server::WEB_PATH,
+            server.web_fingerprint()
+        );
+        if let Some(web) = server.web_addr() {
+            if !args.web_root.join("index.html").is_file() {
+                tracing::warn!("{} has no index.html: build the page with scripts/build-web", args.web_root.display());
+            }
+            println!("browser client on http://{web}/");
+        }
         let (r, s) = server.socket_buffers();
         println!("socket buffers: receive {r} B, send {s} B");
         let metrics = std::sync::Arc::clone(server.metrics());

@@ -169,7 +169,7 @@ impl Connection {
     ) -> Result<Connection, ClientError> {
         let lost = self.server();
         let cache = self.cache.clone();
-        self.conn.close(quinn::VarInt::from_u32(canopy_protocol::CloseCode::Normal as u32), b"failing over");
+        self.conn.close(canopy_protocol::CloseCode::Normal as u32, b"failing over");
         let previous = self.state;
         let edges = order(cfg, lost);
         try_edges(&edges, FAILOVER_TIMEOUT, |at| {

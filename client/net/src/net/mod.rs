@@ -18,9 +18,10 @@ use canopy_protocol::aoi::Viewpoint;
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{ByKind, MessageError, ServerMsgKind, ServerStreaming, Welcome};
 use canopy_protocol::{CloseCode, ServerMsg, netlimits};
-use quinn::{Endpoint, VarInt};
+use quinn::Endpoint;
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
+use web_transport_quinn::{Session as Link, SessionError, WebTransportError};
 
 use crate::cache::{CacheError, SpeciesCache};
 use crate::expand::Expander;
@@ -57,9 +58,16 @@ pub struct ConnectConfig {
     pub expander: Option<Arc<Expander>>,
     /// Ask for grants and expand nothing ([`ClientState::set_grants_only`]): a load generator's client.
     pub grants_only: bool,
-    /// The QUIC client configuration built for `trust` and `idle_timeout`, shared by this configuration's clones.
-    quic: Arc<OnceLock<((Trust, Duration), quinn::ClientConfig)>>,
+    /// Speak WebTransport as a browser does (ALPN `h3`, an HTTP/3 CONNECT to this path, e.g. `/canopy`) instead
+    /// of native QUIC (`None`). `trust` then pins the server's short-lived WebTransport certificate.
+    pub web: Option<String>,
+    /// The QUIC client configuration built for `trust`, `idle_timeout` and the protocol, shared by this
+    /// configuration's clones.
+    quic: Arc<OnceLock<(QuicKey, quinn::ClientConfig)>>,
 }
+
+/// What a QUIC client configuration is built for: the trust, the idle timeout, WebTransport or not.
+type QuicKey = (Trust, Duration, bool);
 
 impl ConnectConfig {
     /// Connect to `server`, trusting as `trust` says.
@@ -75,6 +83,7 @@ impl ConnectConfig {
             idle_timeout: tls::IDLE_TIMEOUT,
             expander: None,
             grants_only: false,
+            web: None,
             quic: Arc::default(),
         }
     }
@@ -93,13 +102,15 @@ impl ConnectConfig {
     /// The QUIC client configuration trusting as `trust` says: built on first use and shared by the clones (many
     /// connections, one TLS configuration).
     pub fn client_config(&self) -> Result<quinn::ClientConfig, ClientError> {
-        let key = (self.trust.clone(), self.idle_timeout);
+        let key = (self.trust.clone(), self.idle_timeout, self.web.is_some());
+        let alpn = if self.web.is_some() { WEB_ALPN } else { canopy_protocol::ALPN };
+        let build = || tls::client_config_alpn(self.trust.clone(), self.idle_timeout, alpn);
         match self.quic.get() {
             Some((k, cfg)) if *k == key => Ok(cfg.clone()),
-            // `trust` or the timeout was changed after the first build: build for them, uncached.
-            Some(_) => Ok(tls::client_config_idle(self.trust.clone(), self.idle_timeout)?),
+            // `trust`, the timeout or the protocol was changed after the first build: build for them, uncached.
+            Some(_) => Ok(build()?),
             None => {
-                let cfg = tls::client_config_idle(self.trust.clone(), self.idle_timeout)?;
+                let cfg = build()?;
                 Ok(self.quic.get_or_init(|| (key, cfg)).1.clone())
             }
         }
@@ -126,12 +137,16 @@ pub enum ClientError {
     /// The connection was lost.
     #[error("connection lost: {0}")]
     Lost(quinn::ConnectionError),
+    /// The WebTransport session could not be opened or failed (HTTP/3 settings, the CONNECT answered other than
+    /// 200, a malformed stream header).
+    #[error("WebTransport: {0}")]
+    Web(String),
     /// Reading a stream failed (other than by losing the connection).
     #[error("reading a stream: {0}")]
-    Read(quinn::ReadError),
+    Read(web_transport_quinn::ReadError),
     /// Writing the control stream failed (other than by losing the connection).
     #[error("writing the control stream: {0}")]
-    Write(quinn::WriteError),
+    Write(web_transport_quinn::WriteError),
     /// The server ended its streams before the step named here.
     #[error("the server ended its streams {0}")]
     Ended(&'static str),
@@ -159,10 +174,20 @@ pub enum ClientError {
 }
 
 impl ClientError {
-    fn from_write(e: quinn::WriteError) -> ClientError {
+    fn from_write(e: web_transport_quinn::WriteError) -> ClientError {
         match e {
-            quinn::WriteError::ConnectionLost(e) => ClientError::from_connection(e),
+            web_transport_quinn::WriteError::SessionError(e) => ClientError::from_session(e),
             e => ClientError::Write(e),
+        }
+    }
+
+    fn from_session(e: SessionError) -> ClientError {
+        match e {
+            SessionError::ConnectionError(e) => ClientError::from_connection(e),
+            SessionError::WebTransportError(WebTransportError::Closed(code, reason)) => {
+                ClientError::Closed { code: CloseCode::from_code(u64::from(code)), reason }
+            }
+            e => ClientError::Web(e.to_string()),
         }
     }
 
@@ -182,6 +207,7 @@ impl ClientError {
     pub fn edge_lost(&self) -> bool {
         match self {
             ClientError::Lost(_)
+            | ClientError::Web(_)
             | ClientError::Ended(_)
             | ClientError::Read(_)
             | ClientError::Write(_)
@@ -259,8 +285,8 @@ impl Drop for AbortOnDrop {
 
 /// One session with a server (see the module docs).
 pub struct Connection {
-    conn: quinn::Connection,
-    control: quinn::SendStream,
+    conn: Link,
+    control: web_transport_quinn::SendStream,
     inbox: mpsc::Receiver<Inbound>,
     state: ClientState,
     cache: Option<Arc<SpeciesCache>>,
@@ -283,7 +309,7 @@ impl std::fmt::Debug for Connection {
 }
 
 async fn read_frame(
-    recv: &mut quinn::RecvStream,
+    recv: &mut web_transport_quinn::RecvStream,
     decoder: &mut FrameDecoder,
 ) -> Result<Option<(ServerMsg, usize)>, ClientError> {
     loop {
@@ -297,10 +323,25 @@ async fn read_frame(
                 decoder.finish()?;
                 return Ok(None);
             }
-            Err(quinn::ReadError::ConnectionLost(e)) => return Err(ClientError::from_connection(e)),
+            Err(web_transport_quinn::ReadError::SessionError(e)) => return Err(ClientError::from_session(e)),
             Err(e) => return Err(ClientError::Read(e)),
         }
     }
+}
+
+/// The ALPN under which a browser speaks WebTransport (HTTP/3).
+pub const WEB_ALPN: &[u8] = b"h3";
+
+/// Open the WebTransport session on `conn` (ALPN `h3`): HTTP/3 settings, then CONNECT to `path` on the server's
+/// name and port.
+async fn open_web(conn: quinn::Connection, cfg: &ConnectConfig, path: &str) -> Result<Link, ClientError> {
+    let at = format!("https://{}:{}{path}", cfg.server_name, cfg.server.port());
+    let url = url::Url::parse(&at).map_err(|e| ClientError::Web(format!("{at}: {e}")))?;
+    let request = web_transport_quinn::proto::ConnectRequest::new(url);
+    Link::connect(conn, request).await.map_err(|e| match e {
+        web_transport_quinn::ClientError::Connection(e) => ClientError::from_connection(e),
+        e => ClientError::Web(e.to_string()),
+    })
 }
 
 impl Connection {
@@ -333,30 +374,37 @@ impl Connection {
             Ok(Err(e)) => return Err(ClientError::from_connection(e)),
             Err(_) => return Err(ClientError::Timeout("connecting")),
         };
+        let conn = match &cfg.web {
+            None => Link::raw(conn),
+            Some(path) => match tokio::time::timeout_at(deadline, open_web(conn, cfg, path)).await {
+                Ok(r) => r?,
+                Err(_) => return Err(ClientError::Timeout("opening the WebTransport session")),
+            },
+        };
         match tokio::time::timeout_at(deadline, Connection::handshake(conn.clone(), cfg, cache, state, viewpoint)).await
         {
             Ok(Ok(c)) => Ok(c),
             Ok(Err(e)) => {
                 if let Some(code) = e.close_code() {
-                    conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
+                    conn.close(code as u32, e.to_string().as_bytes());
                 }
                 Err(e)
             }
             Err(_) => {
-                conn.close(VarInt::from_u32(CloseCode::Timeout as u32), b"handshake timed out");
+                conn.close(CloseCode::Timeout as u32, b"handshake timed out");
                 Err(ClientError::Timeout("in the handshake"))
             }
         }
     }
 
     async fn handshake(
-        conn: quinn::Connection,
+        conn: Link,
         cfg: &ConnectConfig,
         cache: Option<Arc<SpeciesCache>>,
         mut state: ClientState,
         viewpoint: impl FnOnce(&Welcome) -> Viewpoint,
     ) -> Result<Connection, ClientError> {
-        let (mut control, mut recv) = conn.open_bi().await.map_err(ClientError::from_connection)?;
+        let (mut control, mut recv) = conn.open_bi().await.map_err(ClientError::from_session)?;
         let hello = frame(&state.hello_as(&cfg.client_name, cfg.token.clone())?.encode());
         control.write_all(&hello).await.map_err(ClientError::from_write)?;
         let mut decoder = FrameDecoder::new(netlimits::MAX_SERVER_FRAME);
@@ -410,7 +458,7 @@ impl Connection {
                 let mut stream = match lanes_conn.accept_uni().await {
                     Ok(s) => s,
                     Err(e) => {
-                        let _ = tx.send(Inbound::Failed(ClientError::from_connection(e))).await;
+                        let _ = tx.send(Inbound::Failed(ClientError::from_session(e))).await;
                         return;
                     }
                 };
@@ -466,12 +514,12 @@ impl Connection {
 
     /// Bytes received on the connection (UDP payloads, QUIC overhead included).
     pub fn bytes_received(&self) -> u64 {
-        self.conn.stats().udp_rx.bytes
+        quinn::Connection::stats(&self.conn).udp_rx.bytes
     }
 
     /// Bytes sent on the connection (UDP payloads, QUIC overhead included).
     pub fn bytes_sent(&self) -> u64 {
-        self.conn.stats().udp_tx.bytes
+        quinn::Connection::stats(&self.conn).udp_tx.bytes
     }
 
     /// Frame bytes received by message class.
@@ -598,7 +646,7 @@ impl Connection {
         if let Err(e) = &result
             && let Some(code) = e.close_code()
         {
-            self.conn.close(VarInt::from_u32(code as u32), e.to_string().as_bytes());
+            self.conn.close(code as u32, e.to_string().as_bytes());
         }
         result
     }
@@ -650,7 +698,7 @@ impl Connection {
 
     fn closed_error(&self) -> ClientError {
         match self.conn.close_reason() {
-            Some(e) => ClientError::from_connection(e),
+            Some(e) => ClientError::from_session(e),
             None => ClientError::Ended("while streaming"),
         }
     }
@@ -676,12 +724,12 @@ impl Connection {
 
     /// End the session normally.
     pub fn close(self) {
-        self.conn.close(VarInt::from_u32(CloseCode::Normal as u32), b"bye");
+        self.conn.close(CloseCode::Normal as u32, b"bye");
     }
 
     /// End the session normally and keep what it received.
     pub fn close_into_state(self) -> ClientState {
-        self.conn.close(VarInt::from_u32(CloseCode::Normal as u32), b"bye");
+        self.conn.close(CloseCode::Normal as u32, b"bye");
         self.state
     }
 }

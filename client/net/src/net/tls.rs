@@ -118,6 +118,15 @@ pub fn client_config(trust: Trust) -> Result<quinn::ClientConfig, TlsError> {
 
 /// [`client_config`] with a connection counted as lost after `idle` of silence (keep-alives at a quarter of it).
 pub fn client_config_idle(trust: Trust, idle: std::time::Duration) -> Result<quinn::ClientConfig, TlsError> {
+    client_config_alpn(trust, idle, canopy_protocol::ALPN)
+}
+
+/// [`client_config_idle`] speaking `alpn`: `canopy/1`, or `h3` for a WebTransport session as a browser opens it.
+pub fn client_config_alpn(
+    trust: Trust,
+    idle: std::time::Duration,
+    alpn: &[u8],
+) -> Result<quinn::ClientConfig, TlsError> {
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let verifier = Arc::new(Verifier { trust, provider: Arc::clone(&provider) });
     let mut tls = rustls::ClientConfig::builder_with_provider(provider)
@@ -125,7 +134,7 @@ pub fn client_config_idle(trust: Trust, idle: std::time::Duration) -> Result<qui
         .dangerous()
         .with_custom_certificate_verifier(verifier)
         .with_no_client_auth();
-    tls.alpn_protocols = vec![canopy_protocol::ALPN.to_vec()];
+    tls.alpn_protocols = vec![alpn.to_vec()];
     let crypto = quinn::crypto::rustls::QuicClientConfig::try_from(tls).map_err(|e| TlsError::Quic(e.to_string()))?;
     let mut cfg = quinn::ClientConfig::new(Arc::new(crypto));
     let mut t = quinn::TransportConfig::default();
