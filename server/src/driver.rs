@@ -266,7 +266,7 @@ impl Server {
             None => Identity::generate()?,
         };
         let web_certificate = Arc::new(WebCertificate::generate(SystemTime::now())?);
-        let tls = identity.server_config_with_web(&web_certificate)?;
+        let tls = identity.server_config(&web_certificate)?;
         let crypto =
             quinn::crypto::rustls::QuicServerConfig::try_from(tls).map_err(|e| StartError::Quic(e.to_string()))?;
         let mut server_config = quinn::ServerConfig::with_crypto(Arc::new(crypto));

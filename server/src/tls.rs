@@ -94,23 +94,9 @@ impl Identity {
         certificate_fingerprint(self.cert.as_ref())
     }
 
-    /// A rustls server configuration presenting this identity with the Canopy ALPN, TLS 1.3 only.
-    pub fn server_config(&self) -> Result<Arc<rustls::ServerConfig>, IdentityError> {
-        let provider = Arc::new(rustls::crypto::ring::default_provider());
-        let mut cfg = rustls::ServerConfig::builder_with_provider(provider)
-            .with_protocol_versions(&[&rustls::version::TLS13])?
-            .with_no_client_auth()
-            .with_single_cert(vec![self.cert.clone()], PrivateKeyDer::Pkcs8(self.key.clone_key()))?;
-        cfg.alpn_protocols = vec![canopy_protocol::ALPN.to_vec()];
-        Ok(Arc::new(cfg))
-    }
-
     /// A rustls server configuration for both kinds of client on one port: ALPN `canopy/1` gets this identity,
     /// ALPN `h3` (WebTransport, a browser) the current certificate of `web`. TLS 1.3 only.
-    pub fn server_config_with_web(
-        &self,
-        web: &Arc<WebCertificate>,
-    ) -> Result<Arc<rustls::ServerConfig>, IdentityError> {
+    pub fn server_config(&self, web: &Arc<WebCertificate>) -> Result<Arc<rustls::ServerConfig>, IdentityError> {
         let provider = Arc::new(rustls::crypto::ring::default_provider());
         let native = certified(&provider, self.cert.clone(), self.key.clone_key())?;
         let resolver = ByAlpn { native, web: Arc::clone(web) };
@@ -257,7 +243,7 @@ mod tests {
         assert!(!b.generated);
         assert_eq!(a.fingerprint(), b.fingerprint());
         assert_eq!(a.fingerprint().len(), 64);
-        b.server_config().unwrap();
+        b.server_config(&Arc::new(WebCertificate::generate(SystemTime::now()).unwrap())).unwrap();
     }
 
     #[test]
@@ -277,6 +263,6 @@ mod tests {
         assert!(web.rotate(t0 + WEB_CERT_ROTATION).unwrap());
         assert_ne!(web.fingerprint(), first);
         let id = Identity::generate().unwrap();
-        id.server_config_with_web(&Arc::new(web)).unwrap();
+        id.server_config(&Arc::new(web)).unwrap();
     }
 }

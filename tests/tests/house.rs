@@ -144,6 +144,27 @@ fn crates_depend_only_on_what_architecture_allows() {
     assert!(server_app.contains("clap") && server_app.contains("tokio") && server_app.contains("canopy-session"));
 }
 
+/// The browser client as it is built, for wasm32 on its own (the workspace's unified features would give it
+/// canopy-client's native driver): no runtime, transport, window or server.
+#[test]
+fn the_browser_client_builds_without_a_runtime_or_a_transport() {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let args = ["tree", "-p", "canopy-web", "-e", "normal", "--target", "wasm32-unknown-unknown", "--offline"];
+    let out = Command::new(cargo)
+        .args(args)
+        .args(["--prefix", "none", "--format", "{p}"])
+        .current_dir(root())
+        .output()
+        .expect("cargo tree runs");
+    assert!(out.status.success(), "cargo tree failed: {}", String::from_utf8_lossy(&out.stderr));
+    let tree = String::from_utf8(out.stdout).expect("UTF-8");
+    let names: BTreeSet<&str> = tree.lines().filter_map(|l| l.split_whitespace().next()).collect();
+    assert!(names.contains("canopy-client") && names.contains("wasm-bindgen"), "{names:?}");
+    let forbidden = ["tokio", "quinn", "web-transport-quinn", "socket2", "winit", "clap", "anyhow", "canopy-server"];
+    let broken: Vec<_> = forbidden.iter().filter(|f| names.contains(*f)).collect();
+    assert!(broken.is_empty(), "canopy-web for wasm32 depends on {broken:?}");
+}
+
 /// Every `.rs` file git knows (the tree as committed or staged, plus new files not ignored).
 fn rust_files() -> Vec<PathBuf> {
     let out = Command::new("git")

@@ -106,7 +106,7 @@ fn vs_forest(
 // A hash of the pixel to [0, 1): where the first sample falls within a step (sampling from the box entry at a
 // fixed offset would draw the layer's intersections with the step grid as bands).
 fn jitter(frag: vec2<f32>) -> f32 {
-    var x = u32(frag.x) * 0x9e3779b1u ^ u32(frag.y) * 0x85ebca77u;
+    var x = (u32(frag.x) * 0x9e3779b1u) ^ (u32(frag.y) * 0x85ebca77u);
     x ^= x >> 15u;
     x *= 0x2c1b3c6du;
     x ^= x >> 12u;
@@ -116,7 +116,7 @@ fn jitter(frag: vec2<f32>) -> f32 {
 // Where a tile placed at tile cell (cx, cz) starts within the tile, [0, 1)² (texture bombing: every repetition
 // shifted at random, so that the stand does not repeat in rows a far view turns into moiré).
 fn shift(cx: f32, cz: f32) -> vec2<f32> {
-    var x = bitcast<u32>(i32(cx)) * 0x8da6b343u ^ bitcast<u32>(i32(cz)) * 0xd8163841u;
+    var x = (bitcast<u32>(i32(cx)) * 0x8da6b343u) ^ (bitcast<u32>(i32(cz)) * 0xd8163841u);
     x ^= x >> 16u;
     x *= 0x7feb352du;
     x ^= x >> 15u;

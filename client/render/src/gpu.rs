@@ -42,22 +42,36 @@ pub struct Gpu {
 
 impl Gpu {
     /// An instance whose backends come from `WGPU_BACKEND` (all native backends by default).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn instance() -> wgpu::Instance {
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
     }
 
     /// A GPU for offscreen rendering.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn headless(cfg: &RenderConfig) -> Result<Gpu, GpuError> {
         Gpu::with_instance(Gpu::instance(), None, cfg)
     }
 
-    /// A GPU able to present to `surface` (created from `instance`).
+    /// A GPU able to present to `surface` (created from `instance`): [`Gpu::request`], waited for.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn with_instance(
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
         cfg: &RenderConfig,
     ) -> Result<Gpu, GpuError> {
-        let adapter = pollster::block_on(wgpu::util::initialize_adapter_from_env_or_default(&instance, surface))
+        pollster::block_on(Gpu::request(instance, surface, cfg))
+    }
+
+    /// A GPU able to present to `surface` (created from `instance`), set up asynchronously: natively
+    /// [`Gpu::with_instance`] waits for it; in a browser the page awaits it (`Gpu::from_canvas`).
+    pub async fn request(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+        cfg: &RenderConfig,
+    ) -> Result<Gpu, GpuError> {
+        let adapter = wgpu::util::initialize_adapter_from_env_or_default(&instance, surface)
+            .await
             .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
         let down = adapter.get_downlevel_capabilities();
@@ -97,17 +111,42 @@ impl Gpu {
             max_buffer_size: limits.max_buffer_size.min(have.max_buffer_size),
             ..limits
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("canopy"),
-            // Where the adapter has them: timestamps inside passes (`canopy render --frames` reports GPU time per
-            // part) and depth tests forced before the far field's shaders (which write the pixel's opacity).
-            required_features: adapter.features()
-                & (super::renderer::timing::FEATURES | wgpu::Features::SHADER_EARLY_DEPTH_TEST),
-            required_limits: limits,
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::Device(e.to_string()))?;
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("canopy"),
+                // Where the adapter has them: timestamps inside passes (`canopy render --frames` reports GPU time
+                // per part) and depth tests forced before the far field's shaders (which write the pixel's opacity).
+                required_features: adapter.features()
+                    & (super::renderer::timing::FEATURES | wgpu::Features::SHADER_EARLY_DEPTH_TEST),
+                required_limits: limits,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::Device(e.to_string()))?;
         Ok(Gpu { instance, adapter, device, queue })
+    }
+
+    /// A GPU on the browser's WebGPU and a surface on `canvas` (wasm32 only). `Err` where the browser has no
+    /// WebGPU (`navigator.gpu` missing: WebGL2 cannot run this renderer, which needs storage buffers in vertex
+    /// shaders and writable storage in fragment shaders), no adapter, or a device without what the renderer needs.
+    #[cfg(target_arch = "wasm32")]
+    pub async fn from_canvas(
+        canvas: web_sys::HtmlCanvasElement,
+        cfg: &RenderConfig,
+    ) -> Result<(Gpu, wgpu::Surface<'static>), GpuError> {
+        let gpu = js_sys_gpu();
+        if !gpu {
+            return Err(GpuError::NoAdapter("the browser has no WebGPU (navigator.gpu is missing)".into()));
+        }
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+            backends: wgpu::Backends::BROWSER_WEBGPU,
+            ..wgpu::InstanceDescriptor::new_without_display_handle()
+        });
+        let surface = instance
+            .create_surface(wgpu::SurfaceTarget::Canvas(canvas))
+            .map_err(|e| GpuError::Surface(e.to_string()))?;
+        let gpu = Gpu::request(instance, Some(&surface), cfg).await?;
+        Ok((gpu, surface))
     }
 
     /// "name (backend, driver)".
@@ -115,4 +154,13 @@ impl Gpu {
         let i = self.adapter.get_info();
         format!("{} ({:?}, {} {})", i.name, i.backend, i.driver, i.driver_info)
     }
+}
+
+/// Whether the page's `navigator.gpu` exists (wgpu's instance would otherwise fail later, less clearly).
+#[cfg(target_arch = "wasm32")]
+fn js_sys_gpu() -> bool {
+    web_sys::window().is_some_and(|w| {
+        let gpu = js_sys::Reflect::get(&w.navigator(), &"gpu".into());
+        gpu.is_ok_and(|g| !g.is_undefined() && !g.is_null())
+    })
 }

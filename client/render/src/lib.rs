@@ -27,12 +27,16 @@ pub mod arena;
 mod bins;
 mod cache;
 pub mod camera;
+pub mod clock;
+// Offscreen stills and the image comparison block on the GPU and write files: native only.
+#[cfg(not(target_arch = "wasm32"))]
 pub mod compare;
 mod forest;
 pub mod geometry;
 pub mod gpu;
 pub mod ground;
 pub mod lod;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod offscreen;
 mod pipelines;
 mod renderer;
@@ -47,6 +51,7 @@ pub mod workers;
 pub use camera::{Camera, CameraError};
 pub use gpu::{Gpu, GpuError};
 pub use lod::{Band, LodConfig};
+#[cfg(not(target_arch = "wasm32"))]
 pub use offscreen::{OffscreenError, RenderedImage};
 pub use renderer::{FrameStats, Renderer, timing};
 pub use scene::{Scene, SceneFar, SceneInstance};

@@ -2,9 +2,10 @@
 //! and the image tests use; it needs no window and no GPU (Mesa's lavapipe is enough).
 
 use std::path::Path;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use super::camera::Camera;
+use super::clock::Instant;
 use super::gpu::{Gpu, GpuError};
 use super::renderer::{FrameStats, Renderer};
 use super::scene::Scene;

@@ -5,7 +5,7 @@
 
 use std::collections::VecDeque;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use canopy_worlds::amplify::Instance;
 use canopy_worlds::world::{Ground, Terrain};
@@ -14,6 +14,7 @@ use wgpu::util::DeviceExt;
 
 use super::cache::{GeometryCache, INDEX_BYTES, Placement};
 use super::camera::{Camera, Frustum};
+use super::clock::Instant;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
 use super::ground::FractalWindow;
 use super::pipelines::{ACCUM_FORMAT, DEPTH_FORMAT, Pipelines};
@@ -335,7 +336,11 @@ impl Renderer {
                 wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::STORAGE,
             ),
         };
+        // A browser page has no threads: amplification runs there on the page's thread, `Renderer::run_jobs`.
+        #[cfg(not(target_arch = "wasm32"))]
         let workers = Workers::new(cfg.workers)?;
+        #[cfg(target_arch = "wasm32")]
+        let workers = Workers::inline();
         let march = cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device));
         let shadow = ShadowPass::new(device, &p, &cfg.shadows);
         Ok(Renderer {
@@ -413,6 +418,13 @@ impl Renderer {
         if let Some(r) = self.workers.recv_timeout(timeout) {
             self.received.push_back(r);
         }
+    }
+
+    /// Where there are no worker threads (wasm32): run queued amplification, voxelisation and baking jobs on this
+    /// thread, most urgent first, while `more()` says so (asked before each job); how many ran. A page calls it
+    /// each frame with its time budget, before [`Renderer::update`]. With worker threads it does nothing.
+    pub fn run_jobs(&mut self, more: &mut dyn FnMut() -> bool) -> usize {
+        self.workers.run_inline(more)
     }
 
     /// The statistics of the last update.

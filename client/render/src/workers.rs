@@ -1,17 +1,19 @@
 //! Worker threads for the renderer's CPU work — amplifying instances into geometry, voxelising species into
 //! far-field volumes and baking their canopy tiles — so the render loop never waits: it submits jobs with a priority and collects whatever has
-//! finished with [`Workers::try_recv`].
+//! finished with [`Workers::try_recv`]. Where there are no threads (a browser page: wasm32) the same queue is
+//! run on the calling thread instead, a few jobs a frame ([`Workers::inline`], [`Workers::run_inline`]).
 
 use std::collections::BinaryHeap;
 use std::sync::mpsc;
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use canopy_protocol::SpeciesGraph;
 use canopy_protocol::sync::{Locked, Waited};
 use canopy_worlds::amplify::{Budget, Instance};
 
+use super::clock::Instant;
 use super::geometry::{TreeGeometry, build_tree};
 use super::scene::SceneVolume;
 use super::tile::{CanopyTile, bake_tile};
@@ -153,12 +155,14 @@ struct Shared {
     next: u64,
 }
 
-/// A pool of worker threads (see the module docs). Dropping it stops and joins them.
+/// A pool of worker threads (see the module docs), or none ([`Workers::inline`]). Dropping it stops and joins them.
 pub struct Workers {
     shared: Arc<(Mutex<Shared>, Condvar)>,
     results: mpsc::Receiver<JobResult>,
     threads: Vec<JoinHandle<()>>,
     outstanding: usize,
+    /// Where results go when jobs run on the calling thread ([`Workers::inline`]); `None` for threads.
+    inline: Option<mpsc::Sender<JobResult>>,
 }
 
 impl std::fmt::Debug for Workers {
@@ -227,7 +231,34 @@ impl Workers {
                 }
             })?);
         }
-        Ok(Workers { shared, results, threads, outstanding: 0 })
+        Ok(Workers { shared, results, threads, outstanding: 0, inline: None })
+    }
+
+    /// Workers without threads (a browser page: wasm32 has none): jobs wait in the queue until
+    /// [`Workers::run_inline`] runs them on the calling thread.
+    pub fn inline() -> Workers {
+        let (tx, results) = mpsc::channel();
+        Workers { shared: Arc::default(), results, threads: Vec::new(), outstanding: 0, inline: Some(tx) }
+    }
+
+    /// Whether jobs run on the calling thread ([`Workers::inline`]).
+    pub fn is_inline(&self) -> bool {
+        self.inline.is_some()
+    }
+
+    /// For inline workers: run queued jobs on this thread, highest priority first, while `more()` says so (asked
+    /// before each job, so a job started runs to its end); how many ran. Worker threads run nothing here.
+    pub fn run_inline(&mut self, more: &mut dyn FnMut() -> bool) -> usize {
+        let Some(tx) = &self.inline else { return 0 };
+        let mut ran = 0;
+        while more() {
+            let next = self.shared.0.locked().heap.pop();
+            let Some(q) = next else { break };
+            // The receiver lives as long as `self`.
+            let _ = tx.send(run(q.job));
+            ran += 1;
+        }
+        ran
     }
 
     /// Queue a job; higher priorities run first.
@@ -248,8 +279,13 @@ impl Workers {
         Some(r)
     }
 
-    /// Wait up to `timeout` for a finished job.
+    /// Wait up to `timeout` for a finished job (inline workers run the next job, if any, and never wait).
     pub fn recv_timeout(&mut self, timeout: Duration) -> Option<JobResult> {
+        if self.is_inline() {
+            let mut first = true;
+            self.run_inline(&mut || std::mem::take(&mut first));
+            return self.try_recv();
+        }
         let r = self.results.recv_timeout(timeout).ok()?;
         self.outstanding -= 1;
         Some(r)
@@ -315,6 +351,45 @@ mod tests {
                 other => panic!("unexpected {other:?}"),
             }
         }
+    }
+
+    #[test]
+    fn inline_workers_run_jobs_by_priority_on_the_calling_thread_within_the_budget_asked() {
+        let g = Arc::new(library::find("conifer").unwrap().load().unwrap());
+        let mut w = Workers::inline();
+        assert!(w.is_inline() && w.threads() == 0);
+        for (seed, priority) in [(1, 1.0), (2, 3.0), (3, 2.0)] {
+            let key = TreeKey { species: 0, seed, detail: 1, params: 0 };
+            let instance = Instance::new(seed).with_detail(1);
+            let job = Job::Tree {
+                key,
+                graph: Arc::clone(&g),
+                instance,
+                mode: NearMode::Instanced,
+                budget: Budget::default(),
+            };
+            w.submit(job, priority);
+        }
+        assert!(w.try_recv().is_none(), "nothing runs until asked");
+        let mut left = 2u32;
+        let mut two = || {
+            let more = left > 0;
+            left = left.saturating_sub(1);
+            more
+        };
+        assert_eq!(w.run_inline(&mut two), 2);
+        let seeds: Vec<u64> = std::iter::from_fn(|| w.try_recv())
+            .map(|r| match r {
+                JobResult::Tree { key, result, .. } => {
+                    assert!(result.is_ok());
+                    key.seed
+                }
+                other => panic!("unexpected {other:?}"),
+            })
+            .collect();
+        assert_eq!((seeds, w.outstanding()), (vec![2, 3], 1));
+        assert!(matches!(w.recv_timeout(Duration::ZERO), Some(JobResult::Tree { key, .. }) if key.seed == 1));
+        assert_eq!((w.outstanding(), w.run_inline(&mut || true)), (0, 0));
     }
 
     #[test]

@@ -707,10 +707,11 @@ pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         (None, None) => None,
     };
     let (server, trust) = match &local {
-        Some(l) => (
-            Edges::one(l.server.local_addr()),
-            Trust::pinned(l.server.fingerprint()).context("the in-process server's fingerprint")?,
-        ),
+        Some(l) => (Edges::one(l.server.local_addr()), {
+            let fingerprint =
+                if args.connect.web_transport { l.server.web_fingerprint() } else { l.server.fingerprint().to_owned() };
+            Trust::pinned(&fingerprint).context("the in-process server's fingerprint")?
+        }),
         None => (args.connect.edges(), args.connect.trust()?),
     };
     if !(args.radius.is_finite() && args.radius > 0.0 && args.speed.is_finite() && args.speed > 0.0) {

@@ -3,6 +3,8 @@
 //! native test recomputes from the world function.
 
 use canopy_client::state::{ClientState, instance_seed};
+use canopy_protocol::{CellCoord, InstanceId};
+use canopy_worlds::world::{CellKey, World};
 use serde::{Deserialize, Serialize};
 
 use crate::session::Options;
@@ -68,6 +70,10 @@ pub fn query_options(search: &str) -> Options {
     let (mut x, mut z) = (None, None);
     for pair in search.trim_start_matches('?').split('&') {
         let Some((k, v)) = pair.split_once('=') else { continue };
+        if k == "token" {
+            opts.token = unhex(v);
+            continue;
+        }
         let Ok(v) = v.parse::<f32>() else { continue };
         if !v.is_finite() {
             continue;
@@ -84,6 +90,14 @@ pub fn query_options(search: &str) -> Options {
         opts.start = Some([x, z]);
     }
     opts
+}
+
+/// Hexadecimal digits as bytes (`None`: empty, odd or not hexadecimal).
+fn unhex(s: &str) -> Option<Vec<u8>> {
+    if s.is_empty() || !s.len().is_multiple_of(2) {
+        return None;
+    }
+    (0..s.len()).step_by(2).map(|i| u8::from_str_radix(s.get(i..i + 2)?, 16).ok()).collect()
 }
 
 /// FNV-1a, 64 bits.
@@ -141,6 +155,44 @@ pub fn held_digest(state: &ClientState) -> (u64, usize) {
     (f.0, count)
 }
 
+/// [`held_digest`] computed from the world function itself rather than from a client: the digest of every instance
+/// of `cells` as [`World::expand_cell`] places them. A second, independent writing of the same definition, for
+/// tests that check a client (a browser's page included) against the world.
+pub fn world_digest(world: &World, cells: &[CellCoord]) -> (u64, usize) {
+    let mut cells = cells.to_vec();
+    cells.sort_by_key(|c| (c.x, c.z));
+    let mut items = Vec::new();
+    for c in cells {
+        let key = CellKey { x: c.x, z: c.z };
+        for (i, p) in world.expand_cell(key).iter().enumerate() {
+            let id = InstanceId::new(c, i as u16).unwrap();
+            items.push((c, i as u16, p.species as u8, world.steps(key, p), world.seed, id, p.params.clone()));
+        }
+    }
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    eat(&(items.len() as u64).to_le_bytes());
+    for (c, i, species, [qx, qz], seed, id, params) in &items {
+        eat(&c.x.to_le_bytes());
+        eat(&c.z.to_le_bytes());
+        eat(&i.to_le_bytes());
+        eat(&[*species]);
+        eat(&qx.to_le_bytes());
+        eat(&qz.to_le_bytes());
+        eat(&canopy_worlds::world::instance_seed(*seed, *id).to_le_bytes());
+        eat(&(params.len() as u16).to_le_bytes());
+        for (slot, v) in params {
+            eat(&slot.to_le_bytes());
+            eat(&v.to_bits().to_le_bytes());
+        }
+    }
+    (h, items.len())
+}
+
 /// The viewpoint last sent, as the page state shows it.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct SentViewpoint {
@@ -193,6 +245,27 @@ pub struct PageState {
     pub frame_ms_max: f64,
     /// Whether a scripted walk is under way.
     pub walking: bool,
+    /// The 3D view: `"webgpu: <adapter>"`, `"none: <reason>"`, or `"starting"` while the GPU is set up.
+    pub renderer: String,
+    /// Frames the 3D view has drawn.
+    pub frames: u64,
+    /// The renderer's jobs waiting (amplification, voxelisation, canopy tiles): 0 once what is in view is built.
+    pub jobs: usize,
+    /// Whether the page said hello with an editor's token (`?token=HEX`).
+    pub editor: bool,
+    /// The edits asked for lately, oldest first.
+    pub edits: Vec<EditState>,
+}
+
+/// An edit as the page state shows it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EditState {
+    /// Its request number.
+    pub request: u32,
+    /// `"waiting"`, `"ok"` or why it was refused.
+    pub outcome: String,
+    /// The instance made or changed, `[cell x, cell z, index]`, once applied.
+    pub instance: Option<[i32; 3]>,
 }
 
 impl PageState {
@@ -232,6 +305,25 @@ impl PageState {
             frame_ms: 0.0,
             frame_ms_max: 0.0,
             walking: false,
+            renderer: "starting".into(),
+            frames: 0,
+            jobs: 0,
+            editor: session.editor(),
+            edits: session
+                .edits()
+                .map(|e| EditState {
+                    request: e.request,
+                    outcome: match &e.outcome {
+                        None => "waiting".into(),
+                        Some(Ok(_)) => "ok".into(),
+                        Some(Err(why)) => why.clone(),
+                    },
+                    instance: match &e.outcome {
+                        Some(Ok(id)) => Some([id.cell().x, id.cell().z, i32::from(id.index())]),
+                        _ => None,
+                    },
+                })
+                .collect(),
         }
     }
 
@@ -275,6 +367,10 @@ mod tests {
         let o = query_options("?x=1&radius=-3&yaw=NaN");
         assert_eq!(o, Options::default());
         assert_eq!(query_options(""), Options::default());
+        assert_eq!(query_options("?token=00ff7a").token, Some(vec![0x00, 0xff, 0x7a]));
+        for bad in ["?token=", "?token=abc", "?token=zz"] {
+            assert_eq!(query_options(bad).token, None, "{bad}");
+        }
     }
 
     #[test]

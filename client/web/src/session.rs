@@ -15,11 +15,12 @@ use std::time::Duration;
 
 use canopy_client::state::{ClientState, Event, StateError, viewpoint_due};
 use canopy_protocol::aoi::{Grid, Viewpoint};
+use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{CellMode, PhaseError, ServerStreaming, Welcome};
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceRecord, MessageError, Phase, ServerMsg, netlimits};
-use canopy_protocol::{SpeciesGraph, SpeciesHash};
+use canopy_protocol::{InstanceId, SpeciesGraph, SpeciesHash};
 use canopy_worlds::world::{CellKey, Ground, Placement, World};
 
 /// Where the link is, as the page and its tests name it.
@@ -84,12 +85,26 @@ pub struct Options {
     pub yaw: f32,
     /// The area-of-interest radius to ask for, metres (the server caps it).
     pub radius: f32,
+    /// An editor's token for the hello (`None`: a read-only session).
+    pub token: Option<Vec<u8>>,
 }
 
 impl Default for Options {
     fn default() -> Options {
-        Options { name: "canopy web".into(), start: None, yaw: DEFAULT_YAW, radius: DEFAULT_RADIUS }
+        Options { name: "canopy web".into(), start: None, yaw: DEFAULT_YAW, radius: DEFAULT_RADIUS, token: None }
     }
+}
+
+/// Edits whose requests and outcomes a session remembers (the oldest are forgotten).
+pub const EDITS_KEPT: usize = 32;
+
+/// An edit this session asked for: its request number and, once the server answered, the outcome.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EditAsked {
+    /// The request number.
+    pub request: u32,
+    /// `None` while unanswered; `Ok(instance)` applied and durable; `Err(why)` refused.
+    pub outcome: Option<Result<InstanceId, String>>,
 }
 
 /// The radius asked for by default (the native walk's).
@@ -141,6 +156,7 @@ pub struct Session {
     /// The world built from the welcome's world function and species, with the function's hash.
     world: Option<(SpeciesHash, Arc<World>)>,
     seq: u32,
+    edits: std::collections::VecDeque<EditAsked>,
     expanded: u64,
     bytes_in: u64,
     bytes_out: u64,
@@ -150,7 +166,7 @@ impl Session {
     /// A session that has said hello (the hello is in the outbox).
     pub fn new(opts: Options) -> Session {
         let mut state = ClientState::new();
-        let hello = state.hello(&opts.name).expect("a new state says hello");
+        let hello = state.hello_as(&opts.name, opts.token.clone()).expect("a new state says hello");
         let mut s = Session {
             opts,
             state,
@@ -163,6 +179,7 @@ impl Session {
             ground: None,
             world: None,
             seq: 0,
+            edits: std::collections::VecDeque::new(),
             expanded: 0,
             bytes_in: 0,
             bytes_out: 0,
@@ -386,6 +403,16 @@ impl Session {
                 let msg = self.state.records(c).map_err(Fault::state)?;
                 self.send(&msg);
             }
+            Event::EditResult(r) => {
+                if let Some(e) = self.edits.iter_mut().find(|e| e.request == r.request) {
+                    e.outcome = Some(match r.outcome {
+                        EditOutcome::Ok { id, .. } => Ok(id),
+                        EditOutcome::Denied(why) => Err(format!("denied: {why}")),
+                        EditOutcome::Invalid(why) => Err(format!("invalid: {why}")),
+                        EditOutcome::Conflict => Err("conflict: the cell changed; try again".into()),
+                    });
+                }
+            }
             _ => {}
         }
         Ok(())
@@ -412,6 +439,39 @@ impl Session {
             .map_err(|d| Fault::invalid(format!("the server's world function does not build: {d}")))?;
         self.world = Some((f.hash(), Arc::new(world)));
         Ok(true)
+    }
+
+    /// Ask for an edit (an editor's session: the hello carried a token, else the server denies it); its request
+    /// number. The outcome comes later ([`Session::edits`]).
+    pub fn edit(&mut self, op: EditOp) -> Result<u32, String> {
+        if self.link != Link::Streaming {
+            return Err(format!("cannot edit while {}", self.link.name()));
+        }
+        let (request, msg) = self.state.edit(op).map_err(|e| e.to_string())?;
+        self.send(&msg);
+        if self.edits.len() == EDITS_KEPT {
+            self.edits.pop_front();
+        }
+        self.edits.push_back(EditAsked { request, outcome: None });
+        Ok(request)
+    }
+
+    /// The edits asked for lately, oldest first.
+    pub fn edits(&self) -> impl Iterator<Item = &EditAsked> {
+        self.edits.iter()
+    }
+
+    /// Whether the session said hello with an editor's token.
+    pub fn editor(&self) -> bool {
+        self.opts.token.is_some()
+    }
+
+    /// The instances held in cell `c`: species and world position, by index.
+    pub fn cell_instances(&self, c: CellCoord) -> Vec<(u8, [f32; 3])> {
+        let height = |x: f32, z: f32| self.height(x, z);
+        let mut v: Vec<_> = self.state.instances(&height).filter(|i| i.id.cell() == c).collect();
+        v.sort_by_key(|i| i.id.index());
+        v.into_iter().map(|i| (i.species, i.position)).collect()
     }
 
     /// Cells waiting for their expansion.

@@ -7,10 +7,10 @@ use canopy_protocol::messages::{
     CellGrant, ClientHandshake, ClientStreaming, ServerHandshake, SpeciesData, SpeciesEntry, TerrainDesc,
     WorldFunction, WorldInfo,
 };
-use canopy_protocol::{InstanceId, POSITION_STEPS, PROTOCOL_VERSION};
+use canopy_protocol::{POSITION_STEPS, PROTOCOL_VERSION};
 
 use super::*;
-use crate::page::{PageState, held_digest};
+use crate::page::{PageState, held_digest, world_digest};
 
 const MANIFEST: &str = "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nscatter a {\n  spacing 4\n}\n";
 
@@ -87,42 +87,6 @@ fn welcomed() -> Session {
     s
 }
 
-/// The digest of the cells `cells` as a native test computes it from the world itself.
-fn digest_from_world(world: &World, cells: &[CellCoord]) -> (u64, usize) {
-    let mut cells = cells.to_vec();
-    cells.sort_by_key(|c| (c.x, c.z));
-    let mut items = Vec::new();
-    for c in cells {
-        let key = CellKey { x: c.x, z: c.z };
-        for (i, p) in world.expand_cell(key).iter().enumerate() {
-            let id = InstanceId::new(c, i as u16).unwrap();
-            items.push((c, i as u16, p.species as u8, world.steps(key, p), world.seed, id, p.params.clone()));
-        }
-    }
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut eat = |bytes: &[u8]| {
-        for &b in bytes {
-            h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
-        }
-    };
-    eat(&(items.len() as u64).to_le_bytes());
-    for (c, i, species, [qx, qz], seed, id, params) in &items {
-        eat(&c.x.to_le_bytes());
-        eat(&c.z.to_le_bytes());
-        eat(&i.to_le_bytes());
-        eat(&[*species]);
-        eat(&qx.to_le_bytes());
-        eat(&qz.to_le_bytes());
-        eat(&canopy_worlds::world::instance_seed(*seed, *id).to_le_bytes());
-        eat(&(params.len() as u16).to_le_bytes());
-        for (slot, v) in params {
-            eat(&slot.to_le_bytes());
-            eat(&v.to_bits().to_le_bytes());
-        }
-    }
-    (h, items.len())
-}
-
 #[test]
 fn granted_cells_are_expanded_nearest_first_within_the_budget_and_match_the_world() {
     let mut s = welcomed();
@@ -170,7 +134,7 @@ fn granted_cells_are_expanded_nearest_first_within_the_budget_and_match_the_worl
 
     let world = World::from_function("t", MANIFEST, &[SpeciesGraph::decode(&worm()).unwrap()], None).unwrap();
     let (digest, count) = held_digest(s.state());
-    assert_eq!((digest, count), digest_from_world(&world, &inner));
+    assert_eq!((digest, count), world_digest(&world, &inner));
     assert!(count > 0);
     let page = PageState::of(&s, [16.0, 30.0, 16.0], 0.0);
     assert_eq!(

@@ -3,6 +3,7 @@
 //! viewpoints, expand cells within a time budget, draw), and the input handlers.
 
 mod draw;
+mod gpu; // The 3D view: canopy-render on WebGPU.
 mod transport;
 
 use std::cell::RefCell;
@@ -17,8 +18,10 @@ use crate::map::Map;
 use crate::page::{PageState, query_options};
 use crate::session::{Fault, Link, Session};
 
-/// Time a frame may spend expanding cells, milliseconds (one cell at least while any waits).
+/// Time a slice of cell expansion may take, milliseconds (one cell at least while any waits).
 const EXPAND_BUDGET_MS: f64 = 8.0;
+/// How often the expansion timer looks for granted cells while none waits, milliseconds.
+const PUMP_IDLE_MS: i32 = 16;
 /// How long connecting and the handshake may take, milliseconds (the native client's 20 s).
 const HANDSHAKE_TIMEOUT_MS: f64 = 20_000.0;
 /// Altitude over the ground the camera starts at, metres (the default view's).
@@ -43,6 +46,8 @@ pub(crate) struct App {
     intervals: std::collections::VecDeque<f64>,
     frame_ms: f64,
     dragging: bool,
+    /// The 3D view (gpu.rs).
+    view: gpu::View,
 }
 
 thread_local! {
@@ -91,9 +96,11 @@ pub fn start() {
         intervals: Default::default(),
         frame_ms: 0.0,
         dragging: false,
+        view: gpu::View::start(),
     }));
     APP.with(|a| *a.borrow_mut() = Some(Rc::clone(&app)));
     listen(&app);
+    gpu::listen(&app);
     let connecting = Rc::clone(&app);
     wasm_bindgen_futures::spawn_local(async move {
         if let Err(e) = transport::run(Rc::clone(&connecting)).await {
@@ -101,6 +108,7 @@ pub fn start() {
         }
         transport::flush(&connecting);
     });
+    pump(Rc::clone(&app));
     animate(app);
 }
 
@@ -152,6 +160,28 @@ pub fn canopy_radius(radius: f32) -> Result<(), JsValue> {
     Ok(())
 }
 
+/// Plant an instance of species `species` at world (x, z) (an editor's page: `?token=HEX`); the request number,
+/// whose outcome `canopyState().edits` shows when the server has answered.
+#[wasm_bindgen(js_name = canopyPlant)]
+pub fn canopy_plant(species: u8, x: f32, z: f32) -> Result<u32, JsValue> {
+    let a = app().ok_or("canopyPlant: the client has not started")?;
+    let op = canopy_protocol::edit::EditOp::Plant { species, x, z, params: Vec::new() };
+    a.borrow_mut().session.edit(op).map_err(|e| JsValue::from_str(&format!("canopyPlant: {e}")))
+}
+
+/// The instances held in the cell at world (x, z): `[[species, x, y, z], ...]` by index in the cell.
+#[wasm_bindgen(js_name = canopyCell)]
+pub fn canopy_cell(x: f32, z: f32) -> Result<JsValue, JsValue> {
+    let a = app().ok_or("canopyCell: the client has not started")?;
+    let a = a.borrow();
+    let grid = a.session.welcome().map(|w| w.world.grid).ok_or("canopyCell: not welcomed yet")?;
+    let list: Vec<[f32; 4]> = (a.session.cell_instances(grid.cell_of(x, z)).into_iter())
+        .map(|(species, [x, y, z])| [f32::from(species), x, y, z])
+        .collect();
+    let json = serde_json::to_string(&list).map_err(|e| JsValue::from_str(&e.to_string()))?;
+    js_sys::JSON::parse(&json)
+}
+
 impl App {
     fn page_state(&self, full: bool) -> PageState {
         let (session, position, yaw) = (&self.session, self.camera.position, self.camera.yaw);
@@ -160,6 +190,9 @@ impl App {
         s.frame_ms = self.frame_ms;
         s.frame_ms_max = self.intervals.iter().copied().fold(0.0, f64::max);
         s.walking = self.camera.walking();
+        s.renderer = self.view.describe();
+        s.frames = self.view.frames();
+        s.jobs = self.view.jobs();
         s
     }
 
@@ -198,12 +231,11 @@ impl App {
                 self.sent_at = t;
             }
         }
-        let deadline = now() + EXPAND_BUDGET_MS;
-        self.session.expand(&mut || now() < deadline);
+        self.view.frame(&self.session, &self.camera, t, dt);
         let span = self.session.radius().min(self.session.welcome().map_or(f32::MAX, |w| w.aoi.max_radius)) * self.zoom;
         if let Some(c) = &self.canvas {
             c.draw(&mut self.map, &self.session, &self.camera, span);
-            c.hud(&self.hud_text());
+            c.hud(&format!("{}\n{}", self.hud_text(), self.view.hud()));
         }
     }
 
@@ -256,6 +288,35 @@ fn animate(app: Rc<RefCell<App>>) {
     }
 }
 
+/// Expand granted cells in slices of [`EXPAND_BUDGET_MS`] on a timer of their own, not in the animation frames:
+/// where the GPU is slow (a CPU adapter draws a frame in seconds) frames are rare, and cells must not wait for them.
+/// Between slices the page's events run, so input never waits longer than a slice.
+fn pump(app: Rc<RefCell<App>>) {
+    type Callback = Closure<dyn FnMut()>;
+    let slot: Rc<RefCell<Option<Callback>>> = Rc::new(RefCell::new(None));
+    let again = Rc::clone(&slot);
+    let schedule = |cb: &Callback, delay: i32| {
+        if let Some(w) = web_sys::window() {
+            let _ = w.set_timeout_with_callback_and_timeout_and_arguments_0(cb.as_ref().unchecked_ref(), delay);
+        }
+    };
+    *slot.borrow_mut() = Some(Closure::new(move || {
+        let waiting = {
+            let mut a = app.borrow_mut();
+            let deadline = now() + EXPAND_BUDGET_MS;
+            a.session.expand(&mut || now() < deadline);
+            a.session.pending() > 0
+        };
+        transport::flush(&app);
+        if let Some(cb) = again.borrow().as_ref() {
+            schedule(cb, if waiting { 0 } else { PUMP_IDLE_MS });
+        }
+    }));
+    if let Some(cb) = slot.borrow().as_ref() {
+        schedule(cb, 0);
+    }
+}
+
 /// Keys, the mouse (drag, or click for pointer lock) and the wheel.
 fn listen(app: &Rc<RefCell<App>>) {
     let Some(window) = web_sys::window() else { return };
@@ -282,6 +343,19 @@ fn listen(app: &Rc<RefCell<App>>) {
                         }
                         (true, "Minus" | "NumpadSubtract") => {
                             a.camera.speed = (a.camera.speed / 1.25).max(0.5);
+                            true
+                        }
+                        // An editor's page plants the world's first species 8 m ahead.
+                        (true, "KeyP") if a.session.editor() => {
+                            let [x, _, z] = a.camera.position;
+                            let [dx, dz] = a.camera.heading();
+                            let op = canopy_protocol::edit::EditOp::Plant {
+                                species: 0,
+                                x: x + 8.0 * dx,
+                                z: z + 8.0 * dz,
+                                params: Vec::new(),
+                            };
+                            let _ = a.session.edit(op);
                             true
                         }
                         _ => false,
