@@ -16,6 +16,7 @@
 pub mod cache;
 #[cfg(feature = "native")]
 pub mod expand;
+pub mod farwalk;
 #[cfg(feature = "native")]
 pub mod fit;
 #[cfg(feature = "native")]

@@ -4,11 +4,13 @@
 //! map of what it holds with a small HUD.
 //!
 //! The parts that need no browser are plain modules, tested natively: [`session`] (the sans-IO driver: frames in,
-//! frames out, the bounded expansion), [`camera`] (WASD and mouse-look movement, scripted walks), [`page`] (the
-//! `connect.json` document, the state a test reads, the held instances' digest) and [`map`] (the map's pixels).
+//! frames out, the bounded expansion), [`far`] (the far view's summary nodes computed in the page), [`camera`] (WASD
+//! and mouse-look movement, scripted walks), [`page`] (the `connect.json` document, the state a test reads, the held
+//! instances' digest) and [`map`] (the map's pixels).
 //! The browser glue (WebTransport, the animation loop, input, the canvas) is in `web/`, built for wasm32 only.
 
 pub mod camera;
+pub mod far;
 pub mod map;
 pub mod page;
 pub mod session;

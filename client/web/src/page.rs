@@ -223,6 +223,8 @@ pub struct PageState {
     pub missing: usize,
     /// Cells this page expanded.
     pub expanded: u64,
+    /// Far-view summary nodes held ([`ClientState::summaries`]).
+    pub far_nodes: usize,
     /// The camera, x, y, z.
     pub position: [f32; 3],
     /// The camera's heading, radians (0 looks along +z, π/2 along +x).
@@ -294,6 +296,7 @@ impl PageState {
             pending: session.pending(),
             missing: state.missing(),
             expanded: session.expanded(),
+            far_nodes: state.summaries().len(),
             position,
             yaw,
             digest,

@@ -23,6 +23,8 @@ use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceRecord, MessageEr
 use canopy_protocol::{InstanceId, SpeciesGraph, SpeciesHash};
 use canopy_worlds::world::{CellKey, Ground, Placement, World};
 
+use crate::far::{Far, default_view};
+
 /// Where the link is, as the page and its tests name it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Link {
@@ -121,6 +123,9 @@ pub fn default_start(grid: &Grid) -> [f32; 2] {
     [centre(grid.min.x, grid.max.x, grid.origin[0]), centre(grid.min.z, grid.max.z, grid.origin[1])]
 }
 
+/// The camera's height over the ground at the start, metres (the default view's): the far view's first altitude.
+pub const DEFAULT_ALTITUDE: f32 = 28.0;
+
 /// The default view's heading: from (40, −760) towards (0, −300), up the valley.
 pub const DEFAULT_YAW: f32 = -0.086_738_5;
 
@@ -160,6 +165,10 @@ pub struct Session {
     expanded: u64,
     bytes_in: u64,
     bytes_out: u64,
+    /// The far view computed here ([`Session::far_step`]).
+    far: Far,
+    /// The eye's height over the ground, metres (the far view's altitude).
+    altitude: f32,
 }
 
 impl Session {
@@ -183,6 +192,8 @@ impl Session {
             expanded: 0,
             bytes_in: 0,
             bytes_out: 0,
+            far: Far::default(),
+            altitude: DEFAULT_ALTITUDE,
         };
         s.send(&hello);
         s
@@ -544,6 +555,7 @@ impl Session {
             Ok(msg) => {
                 self.seq = vp.seq;
                 self.send(&msg);
+                self.far.moved();
                 true
             }
             Err(e) => {
@@ -558,6 +570,66 @@ impl Session {
         if radius.is_finite() && radius > 0.0 {
             self.opts.radius = radius;
         }
+    }
+
+    /// The eye is `altitude` metres over the ground (the far view's altitude, taken when it changed enough:
+    /// [`ClientState::far_view_due`]).
+    pub fn set_altitude(&mut self, altitude: f32) {
+        if altitude.is_finite() {
+            self.altitude = altitude;
+        }
+    }
+
+    /// The far field: its nodes held are [`ClientState::summaries`].
+    pub fn far(&self) -> &Far {
+        &self.far
+    }
+
+    /// Say the far view (the native walk's default, at the eye's altitude) when it is due, as the native
+    /// `Connection::set_far_view`: a session that expands its cells computes the nodes itself, one that takes
+    /// records asks the server.
+    fn update_far_view(&mut self) -> Result<(), Fault> {
+        let view = default_view(self.altitude);
+        if !self.state.far_view_due(&view) {
+            return Ok(());
+        }
+        let msg = self.state.set_far_view(view).map_err(Fault::state)?;
+        if self.state.welcome().is_some_and(|w| w.world.function.is_some()) {
+            self.far.set_view(view);
+        } else {
+            self.send(&msg);
+        }
+        Ok(())
+    }
+
+    /// Compute far-view summary nodes at `now` (time since any fixed moment), coarse first, one block or node at
+    /// least, then as long as `more()` says there is time — only while no granted cell waits (cells first, as
+    /// natively) — and lay them into the state. Returns the nodes computed.
+    pub fn far_step(&mut self, now: Duration, more: &mut dyn FnMut() -> bool) -> usize {
+        if self.link != Link::Streaming {
+            return 0;
+        }
+        let r = self.far_inner(now, more);
+        match r {
+            Ok(n) => n,
+            Err(f) => {
+                self.fail(f);
+                0
+            }
+        }
+    }
+
+    fn far_inner(&mut self, now: Duration, more: &mut dyn FnMut() -> bool) -> Result<usize, Fault> {
+        self.update_far_view()?;
+        if self.far.view().is_none() || self.pending() > 0 || !self.build_world()? {
+            return Ok(0);
+        }
+        if !self.far.has_world()
+            && let (Some((_, world)), Some(w)) = (&self.world, self.state.welcome())
+        {
+            self.far.set_world(Arc::clone(world), w.world.grid);
+        }
+        self.far.step(&mut self.state, now, more).map_err(Fault::state)
     }
 }
 

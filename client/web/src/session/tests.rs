@@ -218,3 +218,5 @@ fn the_default_start_is_the_default_view_where_the_grid_holds_it() {
     let yaw = (0.0f32 - 40.0).atan2(-300.0 + 760.0);
     assert!((yaw - DEFAULT_YAW).abs() < 1e-6, "{yaw}");
 }
+
+mod far;

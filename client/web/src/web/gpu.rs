@@ -1,6 +1,7 @@
 //! The 3D view (wasm32): the project's renderer, `canopy-render`, on the browser's WebGPU, drawing on the `#view`
 //! canvas what the native `canopy walk` window draws — the terrain from the welcome, the trees of every instance the
-//! session holds (`ClientState::instances`, as the walk's scene snapshot builds them), the sky and its fog — from the
+//! session holds (`ClientState::instances`, as the walk's scene snapshot builds them), the far view's summary nodes
+//! beyond them (`ClientState::summaries`, computed in the page: `crate::far`), the sky and its fog — from the
 //! page's camera. The renderer amplifies on the page's thread within a time budget a frame (`Renderer::run_jobs`):
 //! a browser page has no worker threads.
 //!
@@ -26,6 +27,8 @@ use crate::session::Session;
 
 /// Time a frame may spend amplifying, voxelising and baking (one job at least while any waits), milliseconds.
 const JOB_BUDGET_MS: f64 = 10.0;
+/// Renderer jobs queued at once (amplification, voxelisation, tiles).
+const PAGE_JOBS: usize = 64;
 /// The scene is rebuilt from the session at most this often while what it holds changes, milliseconds (the walk's
 /// snapshot interval).
 const SCENE_INTERVAL_MS: f64 = 250.0;
@@ -72,8 +75,9 @@ enum Setup {
 pub(super) struct View {
     setup: Rc<RefCell<Setup>>,
     scene: Option<Arc<Scene>>,
-    /// What the scene was built from: bytes read, cells expanded, cells held, instances held.
-    built_from: (u64, u64, usize, usize),
+    /// What the scene was built from: bytes read, cells expanded, cells held, instances held, the summary nodes'
+    /// generation.
+    built_from: (u64, u64, usize, usize, u64),
     built_at: f64,
     generation: u64,
     stats: FrameStats,
@@ -110,7 +114,7 @@ impl View {
         View {
             setup,
             scene: None,
-            built_from: (0, 0, 0, 0),
+            built_from: (0, 0, 0, 0, 0),
             built_at: f64::NEG_INFINITY,
             generation: 0,
             stats: FrameStats::default(),
@@ -125,6 +129,14 @@ impl View {
             Setup::Starting => "starting".into(),
             Setup::Ready(d) => format!("webgpu: {}", d.adapter),
             Setup::Failed(why) => format!("none: {why}"),
+        }
+    }
+
+    /// Run the renderer's queued jobs while `more()` says so, between frames (the page's timer); how many ran.
+    pub(super) fn run_jobs(&mut self, more: &mut dyn FnMut() -> bool) -> usize {
+        match &mut *self.setup.borrow_mut() {
+            Setup::Ready(d) => d.renderer.run_jobs(more),
+            _ => 0,
         }
     }
 
@@ -212,7 +224,13 @@ impl View {
     fn rebuild_scene(&mut self, session: &Session, t: f64) {
         let (Some(ground), Some(welcome)) = (session.ground(), session.welcome()) else { return };
         let state = session.state();
-        let from = (session.bytes_in(), session.expanded(), state.cells().len(), state.record_count());
+        let from = (
+            session.bytes_in(),
+            session.expanded(),
+            state.cells().len(),
+            state.record_count(),
+            state.summaries_generation(),
+        );
         if (self.scene.is_some() && from == self.built_from) || t - self.built_at < SCENE_INTERVAL_MS {
             return;
         }
@@ -240,7 +258,7 @@ impl View {
             ground: ground.clone(),
             generation: self.generation,
             far: SceneFar {
-                nodes: Vec::new(),
+                nodes: state.summaries().values().cloned().collect(),
                 cell_size: welcome.world.grid.cell_size,
                 record_cells,
                 generation: self.generation,
@@ -269,7 +287,9 @@ impl Drawing {
 /// thread) and, on a CPU adapter, what the renderer picks for one natively (one sample a pixel, the far field as
 /// boxes).
 fn config(cpu: bool) -> RenderConfig {
-    let mut cfg = RenderConfig { workers: 1, max_jobs: RenderConfig::jobs_for(1), ..RenderConfig::default() };
+    // Jobs queued a frame: the page's timer runs them between frames (`View::run_jobs`), which a slow GPU makes
+    // far apart, so a frame queues as many as a pool of worker threads would take.
+    let mut cfg = RenderConfig { workers: 1, max_jobs: PAGE_JOBS, ..RenderConfig::default() };
     if cpu {
         cfg.msaa = 1;
         cfg.far_path = FarPath::Raster;

@@ -25,7 +25,7 @@ const PUMP_IDLE_MS: i32 = 16;
 /// How long connecting and the handshake may take, milliseconds (the native client's 20 s).
 const HANDSHAKE_TIMEOUT_MS: f64 = 20_000.0;
 /// Altitude over the ground the camera starts at, metres (the default view's).
-const START_ALTITUDE: f32 = 28.0;
+const START_ALTITUDE: f32 = crate::session::DEFAULT_ALTITUDE;
 
 /// The page's state (one per page, on its only thread).
 pub(crate) struct App {
@@ -231,6 +231,9 @@ impl App {
                 self.sent_at = t;
             }
         }
+        let [x, y, z] = self.camera.position;
+        let altitude = y - self.session.height(x, z);
+        self.session.set_altitude(altitude);
         self.view.frame(&self.session, &self.camera, t, dt);
         let span = self.session.radius().min(self.session.welcome().map_or(f32::MAX, |w| w.aoi.max_radius)) * self.zoom;
         if let Some(c) = &self.canvas {
@@ -290,7 +293,9 @@ fn animate(app: Rc<RefCell<App>>) {
 
 /// Expand granted cells in slices of [`EXPAND_BUDGET_MS`] on a timer of their own, not in the animation frames:
 /// where the GPU is slow (a CPU adapter draws a frame in seconds) frames are rare, and cells must not wait for them.
-/// Between slices the page's events run, so input never waits longer than a slice.
+/// While no cell waits, the slices compute the far view's summary nodes instead (`Session::far_step`), with the
+/// same budget, then run the renderer's queued jobs. Between slices the page's events run, so input never waits
+/// longer than a slice.
 fn pump(app: Rc<RefCell<App>>) {
     type Callback = Closure<dyn FnMut()>;
     let slot: Rc<RefCell<Option<Callback>>> = Rc::new(RefCell::new(None));
@@ -305,7 +310,13 @@ fn pump(app: Rc<RefCell<App>>) {
             let mut a = app.borrow_mut();
             let deadline = now() + EXPAND_BUDGET_MS;
             a.session.expand(&mut || now() < deadline);
-            a.session.pending() > 0
+            if a.session.pending() == 0 && now() < deadline {
+                let at = Duration::from_secs_f64(now().max(0.0) / 1e3);
+                a.session.far_step(at, &mut || now() < deadline);
+            }
+            // What time is left goes to the renderer's jobs, which a slow GPU's rare frames would hold back.
+            let jobs = if now() < deadline { a.view.run_jobs(&mut || now() < deadline) } else { 0 };
+            a.session.pending() > 0 || a.session.far().busy() || jobs > 0
         };
         transport::flush(&app);
         if let Some(cb) = again.borrow().as_ref() {
