@@ -49,27 +49,11 @@ impl App {
         let instance = Gpu::instance();
         let surface = instance.create_surface(Arc::clone(&window)).map_err(|e| fail(e.to_string()))?;
         let gpu = Gpu::with_instance(instance, Some(&surface), &RenderConfig::default())?;
-        let caps = surface.get_capabilities(&gpu.adapter);
-        // As the walkthrough window: a non-sRGB surface shows the colours the offscreen images write.
-        let format = caps
-            .formats
-            .iter()
-            .copied()
-            .find(|f| !f.is_srgb())
-            .or_else(|| caps.formats.first().copied())
-            .ok_or_else(|| fail("the surface supports no format".into()))?;
         let size = window.inner_size();
-        let config = wgpu::SurfaceConfiguration {
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            format,
-            color_space: wgpu::SurfaceColorSpace::Auto,
-            width: size.width.max(1),
-            height: size.height.max(1),
-            desired_maximum_frame_latency: 2,
-            present_mode: wgpu::PresentMode::AutoVsync,
-            alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
-            view_formats: vec![],
-        };
+        let config = gpu
+            .surface_config(&surface, (size.width, size.height), wgpu::PresentMode::AutoVsync)
+            .ok_or_else(|| fail("the surface supports no format".into()))?;
+        let format = config.format;
         surface.configure(&gpu.device, &config);
         let egui = egui_wgpu::Renderer::new(&gpu.device, format, egui_wgpu::RendererOptions::default());
         let ctx = egui::Context::default();

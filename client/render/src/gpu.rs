@@ -41,6 +41,30 @@ pub struct Gpu {
 }
 
 impl Gpu {
+    /// How to present on `surface` at `size` (pixels; at least 1 each): a non-sRGB format where the surface offers
+    /// one, so a window shows the colours the offscreen images write (computed, not re-encoded), else the first it
+    /// offers; `present_mode`; the surface's first alpha mode. `None`: the surface offers no format.
+    pub fn surface_config(
+        &self,
+        surface: &wgpu::Surface<'_>,
+        size: (u32, u32),
+        present_mode: wgpu::PresentMode,
+    ) -> Option<wgpu::SurfaceConfiguration> {
+        let caps = surface.get_capabilities(&self.adapter);
+        let format = caps.formats.iter().copied().find(|f| !f.is_srgb()).or_else(|| caps.formats.first().copied())?;
+        Some(wgpu::SurfaceConfiguration {
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            format,
+            color_space: wgpu::SurfaceColorSpace::Auto,
+            width: size.0.max(1),
+            height: size.1.max(1),
+            desired_maximum_frame_latency: 2,
+            present_mode,
+            alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
+            view_formats: vec![],
+        })
+    }
+
     /// An instance whose backends come from `WGPU_BACKEND` (all native backends by default).
     #[cfg(not(target_arch = "wasm32"))]
     pub fn instance() -> wgpu::Instance {

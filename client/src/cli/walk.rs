@@ -374,31 +374,12 @@ impl App {
         let instance = Gpu::instance();
         let surface = instance.create_surface(Arc::clone(&window)).context("creating the window surface")?;
         let gpu = Gpu::with_instance(instance, Some(&surface), &self.cfg)?;
-        let caps = surface.get_capabilities(&gpu.adapter);
-        // The offscreen images write colours as computed; a non-sRGB surface shows the same picture.
-        let format = caps
-            .formats
-            .iter()
-            .copied()
-            .find(|f| !f.is_srgb())
-            .or_else(|| caps.formats.first().copied())
-            .context("the surface supports no format")?;
         let size = window.inner_size();
-        let config = wgpu::SurfaceConfiguration {
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            format,
-            color_space: wgpu::SurfaceColorSpace::Auto,
-            width: size.width.max(1),
-            height: size.height.max(1),
-            desired_maximum_frame_latency: 2,
-            present_mode: if self.args.no_vsync {
-                wgpu::PresentMode::AutoNoVsync
-            } else {
-                wgpu::PresentMode::AutoVsync
-            },
-            alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
-            view_formats: vec![],
-        };
+        let present = if self.args.no_vsync { wgpu::PresentMode::AutoNoVsync } else { wgpu::PresentMode::AutoVsync };
+        let config = gpu
+            .surface_config(&surface, (size.width, size.height), present)
+            .context("the surface supports no format")?;
+        let format = config.format;
         surface.configure(&gpu.device, &config);
         let renderer = Renderer::new(&gpu.device, &gpu.queue, format, (config.width, config.height), self.cfg.clone())?;
         println!("adapter: {}; surface {:?} {}×{}", gpu.describe(), format, config.width, config.height);

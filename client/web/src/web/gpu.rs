@@ -324,30 +324,13 @@ async fn set_up(canvas: HtmlCanvasElement) -> Result<Drawing, String> {
             d.borrow_mut().get_or_insert(msg);
         });
     }));
-    let caps = surface.get_capabilities(&gpu.adapter);
-    // The offscreen images write colours as computed; a non-sRGB surface shows the same picture (the walk's choice).
-    let format = caps
-        .formats
-        .iter()
-        .copied()
-        .find(|f| !f.is_srgb())
-        .or_else(|| caps.formats.first().copied())
-        .ok_or("the canvas supports no format")?;
     let scale = if cpu { CPU_SCALE } else { 1.0 };
     let (w, h) = backing_size(&canvas, scale);
     canvas.set_width(w);
     canvas.set_height(h);
-    let config = wgpu::SurfaceConfiguration {
-        usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-        format,
-        color_space: wgpu::SurfaceColorSpace::Auto,
-        width: w,
-        height: h,
-        desired_maximum_frame_latency: 2,
-        present_mode: wgpu::PresentMode::AutoVsync,
-        alpha_mode: caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto),
-        view_formats: vec![],
-    };
+    let config =
+        gpu.surface_config(&surface, (w, h), wgpu::PresentMode::AutoVsync).ok_or("the canvas supports no format")?;
+    let format = config.format;
     surface.configure(&gpu.device, &config);
     let renderer = Renderer::new(&gpu.device, &gpu.queue, format, (w, h), cfg).map_err(|e| e.to_string())?;
     let adapter = format!("{adapter}{}", if cpu { " (CPU)" } else { "" });
