@@ -29,7 +29,8 @@ use canopy_session::{CellData, CellState, WorldStore};
 pub const MAX_GROUP: usize = 4096;
 /// Most requests waiting for the writer; beyond, new ones are denied at once.
 pub const MAX_QUEUED: usize = 65_536;
-/// How long the writer waits for a cell's expansion before it gives up on an edit of it.
+/// How long the writer waits for a cell's expansion, or for its log to be readable, before it gives up on an edit
+/// of it.
 const CELL_WAIT: Duration = Duration::from_secs(30);
 /// How often the writer looks again at requests whose cells are being expanded.
 const CELL_POLL: Duration = Duration::from_millis(5);
@@ -216,6 +217,9 @@ enum Waiting {
     Unknown,
     /// Its cell is being expanded (since then): the writer goes on with other requests meanwhile.
     Cell(Instant),
+    /// Its cell's log could not be read (since then), as during an engine's election: looked at again after the
+    /// writer's pause, refused only after [`CELL_WAIT`].
+    Unreadable(Instant),
 }
 
 /// Why a request could not be made into an edit now.
@@ -224,6 +228,8 @@ enum Refusal {
     Answer(EditOutcome),
     /// Its cell is not ready yet.
     Pending,
+    /// Its cell's log could not be read: why.
+    Unreadable(String),
 }
 
 impl From<EditOutcome> for Refusal {
@@ -376,6 +382,19 @@ impl Writer {
                         again.push(request);
                     }
                 }
+                Err(Refusal::Unreadable(why)) => {
+                    let since = match waited {
+                        Waiting::Unreadable(since) => since,
+                        _ => Instant::now(),
+                    };
+                    if since.elapsed() >= CELL_WAIT {
+                        let why = format!("the cell's edits could not be read: {why}");
+                        self.reply(request.job.reply, EditOutcome::Denied(why));
+                    } else {
+                        request.waiting = Waiting::Unreadable(since);
+                        again.push(request);
+                    }
+                }
             }
         }
         if edits.is_empty() {
@@ -485,9 +504,8 @@ impl Writer {
                         _ => Err(Refusal::Pending),
                     };
                 }
-                Err(e) => {
-                    return Err(EditOutcome::Denied(format!("the cell's edits could not be read: {e}")).into());
-                }
+                // A store in an election or a disk that fails for a while: the request waits instead of being refused.
+                Err(e) => return Err(Refusal::Unreadable(e.to_string())),
             };
             if let Some(why) = self.live.damaged(c) {
                 return Err(EditOutcome::Denied(format!(

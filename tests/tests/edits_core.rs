@@ -431,6 +431,22 @@ fn edits_whose_appends_failed_are_acknowledged_once_whether_stored_or_not_though
 }
 
 #[test]
+fn an_edit_whose_cell_cannot_be_read_for_a_while_waits_for_the_store_instead_of_being_refused() {
+    // Reads fail from the start (an engine in an election): the writer's first look at the cell fails too.
+    let store = Arc::new(Election::default());
+    store.unreadable.store(20, SeqCst);
+    let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
+    let mut a = Pair::connect(&w, ClientState::new(), Some(ALICE), 23);
+    let plant = a.edit(EditOp::Plant { species: 0, x: 70.0, z: -50.0, params: vec![] });
+    settle_until(&mut [(&w, &mut a)], |p| p[0].1.results.contains_key(&plant) && p[0].1.client.is_complete());
+    assert_eq!(store.unreadable.load(SeqCst), 0, "the reads failed meanwhile");
+    let c = CellCoord::new(2, -2);
+    assert!(matches!(a.results[&plant], EditOutcome::Ok { version: 1, .. }), "{:?}", a.results[&plant]);
+    assert_eq!(store.inner.load(c).unwrap().len(), 1);
+    assert_eq!(sorted(a.client.instances(&|_, _| 0.0).collect()), expected(&w));
+}
+
+#[test]
 fn stored_edits_the_world_cannot_take_are_skipped_and_the_cell_is_served_with_the_rest() {
     use canopy_protocol::InstanceRecord;
     use canopy_server::edits::CellEdit;

@@ -49,6 +49,8 @@ const ROUNDS: usize = 6;
 const EDITORS: usize = 2;
 /// Each editor sends an edit this often.
 const PERIOD: Duration = Duration::from_millis(4);
+/// Most edits an editor has sent and not had answered (below the server's `MAX_EDITS_IN_FLIGHT`).
+const MAX_WAITING: usize = 32;
 /// Bound of every wait for the server or a client.
 const WAIT: Duration = Duration::from_secs(20);
 /// Parameter values tag edits (each plant and set carries a value of its own); they stay below the server's bound.
@@ -233,26 +235,38 @@ async fn load(
     };
     let mut tick = tokio::time::interval(PERIOD);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Answers awaited, bounded as an editing client bounds them: a slow disk slows the load instead of filling the
+    // session's window of edits in flight (whose overflow the server denies, and a flood of denials ends a session).
+    let mut waiting = 0usize;
     loop {
         tokio::select! {
             _ = stop.changed() => break,
             ev = conn.next_event() => match ev {
-                Ok(ev) => answer(&requests, ev),
+                Ok(ev) => {
+                    waiting -= usize::from(matches!(ev, Event::EditResult(_)));
+                    answer(&requests, ev)
+                }
                 Err(_) => break,
             },
-            _ = tick.tick() => {
+            _ = tick.tick(), if waiting < MAX_WAITING => {
                 let (op, i) = {
                     let mut m = model.lock().unwrap();
                     let op = next_op(&mut m, me, &grid, &mut rng);
                     m.sent.push(Sent { op: op.clone(), answer: None });
                     (op, m.sent.len() - 1)
                 };
-                // A write the dead server never takes leaves the edit sent and unanswered.
-                match tokio::time::timeout(Duration::from_secs(1), conn.edit(op)).await {
-                    Ok(Ok(request)) => {
+                // A write the dead server never takes leaves the edit sent and unanswered; a slow one is waited for
+                // until the server is killed.
+                let sent = tokio::select! {
+                    _ = stop.changed() => break,
+                    sent = conn.edit(op) => sent,
+                };
+                match sent {
+                    Ok(request) => {
                         requests.insert(request, i);
+                        waiting += 1;
                     }
-                    _ => break,
+                    Err(_) => break,
                 }
             }
         }
