@@ -109,18 +109,12 @@ pub fn lod_chain(cm: &ContinuousMesh, opts: &LodOptions) -> Result<Vec<LodLevel>
                 SimplifyOptions::ErrorAbsolute | SimplifyOptions::LockBorder,
                 None,
             );
-            let distances = nearest(&used, &m.positions, &simplified, f64::from(bound));
-            let err = distances.iter().fold(0.0f64, |a, &d| a.max(d));
+            let Measure { error: err, far } = measure(&used, &m.positions, &simplified, f64::from(bound));
             if err > f64::from(bound) {
                 // Vertices the simplifier took away at no cost by its measure (slivers weigh nothing in its
                 // quadrics) can still stray from the surface: keep them and their neighbours; a level that strays
                 // without such a vertex tries a tighter target.
-                let far: Vec<u32> = distances
-                    .iter()
-                    .zip(&used_ids)
-                    .filter(|(d, _)| **d > f64::from(bound))
-                    .map(|(_, &v)| welded[v as usize])
-                    .collect();
+                let far: Vec<u32> = far.into_iter().map(|i| welded[used_ids[i] as usize]).collect();
                 if far.iter().all(|&v| locks[v as usize]) {
                     target *= 0.5;
                 } else {
@@ -207,78 +201,177 @@ fn compact(m: &Mesh, indices: &[u32]) -> Mesh {
 /// The largest distance from a point of `points` to the triangles `indices` over `positions`, exact up to
 /// `bound` (a point farther than `bound` from every triangle counts as `f64::INFINITY`).
 pub fn hausdorff(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f64) -> f64 {
-    nearest(points, positions, indices, bound).into_iter().fold(0.0, f64::max)
+    measure(points, positions, indices, bound).error
 }
 
-/// The distance from each point of `points` to the nearest of the triangles `indices` over `positions`, exact up
-/// to `bound` (`f64::INFINITY` beyond it).
-pub fn nearest(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f64) -> Vec<f64> {
+/// How far points are from a surface: [`measure`].
+pub struct Measure {
+    /// The largest distance from a point to the surface, exact up to the bound (`f64::INFINITY` where a point is
+    /// farther).
+    pub error: f64,
+    /// The points (their indices) farther than the bound from every triangle, in order.
+    pub far: Vec<usize>,
+}
+
+/// How far the points `points` are from the triangles `indices` over `positions`, up to `bound`. A point's search
+/// ends once a triangle is found no farther than the largest distance so far (it cannot raise it): the result is
+/// what measuring every point exactly would give, in a fraction of the work.
+pub fn measure(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f64) -> Measure {
     if indices.is_empty() {
-        return vec![f64::INFINITY; points.len()];
+        let far: Vec<usize> = (0..points.len()).collect();
+        let error = if far.is_empty() { 0.0 } else { f64::INFINITY };
+        return Measure { error, far };
     }
     let tris: Vec<[V3; 3]> =
         indices.chunks_exact(3).map(|t| [0, 1, 2].map(|k| positions[t[k] as usize].map(f64::from))).collect();
+    let boxes: Vec<[V3; 2]> = tris
+        .iter()
+        .map(|t| {
+            let lo = [0, 1, 2].map(|k| t[0][k].min(t[1][k]).min(t[2][k]));
+            let hi = [0, 1, 2].map(|k| t[0][k].max(t[1][k]).max(t[2][k]));
+            [lo, hi]
+        })
+        .collect();
     // Cells at least as large as the bound (so every triangle within it of a point is in the point's cell or a
     // neighbour) and as the median triangle (so a triangle is listed in a few cells, not thousands). The result
     // does not depend on the cell size: it is the distance to the nearest triangle either way.
-    let mut extents: Vec<f64> = tris
-        .iter()
-        .map(|t| {
-            (0..3).map(|k| t[0][k].max(t[1][k]).max(t[2][k]) - t[0][k].min(t[1][k]).min(t[2][k])).fold(0.0, f64::max)
-        })
-        .collect();
+    let mut extents: Vec<f64> =
+        boxes.iter().map(|[lo, hi]| (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max)).collect();
     extents.sort_by(f64::total_cmp);
     let median = extents.get(extents.len() / 2).copied().filter(|e| e.is_finite()).unwrap_or(0.0);
-    let cell = bound.max(median).max(1e-9);
-    let key = |p: V3| p.map(|x| libm::floor(x / cell) as i64);
-    let mut grid: BTreeMap<[i64; 3], Vec<usize>> = BTreeMap::new();
+    // Cells are numbered from the triangles' lowest corner, 21 bits an axis (larger cells where the triangles span
+    // more than 2^20 of them): a cell is one `u64`, and the grid and the points are sorted as plain numbers.
+    let lowest = [0, 1, 2].map(|k| boxes.iter().map(|b| b[0][k]).fold(f64::INFINITY, f64::min));
+    let span = (0..3).map(|k| boxes.iter().map(|b| b[1][k] - lowest[k]).fold(0.0, f64::max)).fold(0.0, f64::max);
+    let cell = bound.max(median).max(span / f64::from(1u32 << 20)).max(1e-9);
+    // Two cells of margin below and above: a point farther out than one cell from every triangle keeps an empty
+    // neighbourhood when clamped.
+    let axis = |x: f64, k: usize| (libm::floor((x - lowest[k]) / cell) + 2.0).clamp(0.0, f64::from((1u32 << 21) - 1));
+    let cell_of = |p: V3| [0, 1, 2].map(|k| axis(p[k], k) as u64);
+    let pack = |c: [u64; 3]| (c[0] << 42) | (c[1] << 21) | c[2];
+    // The grid: (cell, triangle) pairs, sorted.
+    let mut grid: Vec<u128> = Vec::new();
     let mut big = Vec::new();
-    for (i, t) in tris.iter().enumerate() {
-        let lo = key([0, 1, 2].map(|k| t[0][k].min(t[1][k]).min(t[2][k])));
-        let hi = key([0, 1, 2].map(|k| t[0][k].max(t[1][k]).max(t[2][k])));
-        let count: i64 = (0..3).map(|k| hi[k] - lo[k] + 1).product();
+    for (i, [lo, hi]) in boxes.iter().enumerate() {
+        let (lo, hi) = (cell_of(*lo), cell_of(*hi));
+        let count: u64 = (0..3).map(|k| hi[k] - lo[k] + 1).product();
         if count > 4096 {
-            big.push(i);
+            big.push(i as u32);
             continue;
         }
         for x in lo[0]..=hi[0] {
             for y in lo[1]..=hi[1] {
                 for z in lo[2]..=hi[2] {
-                    grid.entry([x, y, z]).or_default().push(i);
+                    grid.push(u128::from(pack([x, y, z])) << 32 | i as u128);
                 }
             }
         }
     }
-    let mut out = Vec::with_capacity(points.len());
-    for &p in points {
-        let c = key(p);
-        let mut best = f64::INFINITY;
-        for &i in &big {
-            best = best.min(point_triangle(p, &tris[i]));
-        }
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                for dz in -1..=1 {
-                    if let Some(list) = grid.get(&[c[0] + dx, c[1] + dy, c[2] + dz]) {
-                        for &i in list {
-                            best = best.min(point_triangle(p, &tris[i]));
-                        }
+    grid.sort_unstable();
+    let in_cell = |c: u64| {
+        let from = grid.partition_point(|&e| ((e >> 32) as u64) < c);
+        let to = from + grid[from..].partition_point(|&e| (e >> 32) as u64 == c);
+        grid[from..to].iter().map(|&e| e as u32)
+    };
+    // Corners as their f32 coordinates' bits (a point that is not three f32s is no corner).
+    let as_f32 = |p: V3| {
+        let q = p.map(|x| x as f32);
+        (0..3).all(|k| f64::from(q[k]) == p[k]).then(|| q.iter().fold(0u128, |a, x| a << 32 | u128::from(x.to_bits())))
+    };
+    let mut corners: Vec<u128> = indices.iter().filter_map(|&v| as_f32(positions[v as usize].map(f64::from))).collect();
+    corners.sort_unstable();
+    corners.dedup();
+    // Points by cell: the triangles of a cell's neighbourhood are gathered once for all its points.
+    let mut order: Vec<u128> =
+        points.iter().enumerate().map(|(i, &p)| u128::from(pack(cell_of(p))) << 32 | i as u128).collect();
+    order.sort_unstable();
+    // The largest distance (squared) of a point within the bound so far; the bound's square, with a margin that
+    // keeps rounding from ever ruling out a triangle the full search would pick (the result is the same bits).
+    let mut largest = 0.0f64;
+    let beyond = bound * bound * (1.0 + 1e-6);
+    let mut far = Vec::new();
+    let mut near: Vec<u32> = Vec::new();
+    for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
+        let c = (run[0] >> 32) as u64;
+        let [cx, cy, cz] = [c >> 42, c >> 21 & 0x1f_ffff, c & 0x1f_ffff];
+        let mut gathered = false;
+        for &i in run {
+            let i = i as u32;
+            let p = points[i as usize];
+            // A point that is a corner of a triangle (a vertex the simplifier kept) is on the surface.
+            let corner = as_f32(p).is_some_and(|q| corners.binary_search(&q).is_ok());
+            let mut best = if corner { 0.0 } else { f64::INFINITY };
+            if best > largest && !gathered {
+                // The point's own cell first: a near triangle found early lets the boxes rule out most others.
+                near.clear();
+                near.extend(in_cell(c));
+                for d in NEIGHBOURS {
+                    // Cells of the margin have no neighbours below 0 nor above the range: skipped, not wrapped.
+                    let step = |v: u64, d: i64| v.checked_add_signed(d).filter(|&v| v < 1 << 21);
+                    if let (Some(x), Some(y), Some(z)) = (step(cx, d[0]), step(cy, d[1]), step(cz, d[2])) {
+                        near.extend(in_cell(pack([x, y, z])));
                     }
                 }
+                near.extend_from_slice(&big);
+                gathered = true;
+            }
+            for &t in near.iter().take_while(|_| gathered) {
+                if best <= largest {
+                    break;
+                }
+                // A triangle whose box is farther than the nearest so far, or than the bound, cannot change the
+                // result.
+                let b = box_distance_squared(p, &boxes[t as usize]);
+                if b > best * (1.0 + 1e-6) || b > beyond {
+                    continue;
+                }
+                best = best.min(point_triangle_squared(p, &tris[t as usize]));
+            }
+            if libm::sqrt(best) > bound {
+                far.push(i as usize);
+            } else {
+                largest = largest.max(best);
             }
         }
-        out.push(if best > bound { f64::INFINITY } else { best });
+    }
+    far.sort_unstable();
+    let error = if far.is_empty() { libm::sqrt(largest) } else { f64::INFINITY };
+    Measure { error, far }
+}
+
+/// The 26 cells around a cell.
+const NEIGHBOURS: [[i64; 3]; 26] = {
+    let mut out = [[0; 3]; 26];
+    let mut n = 0;
+    let mut k = 0;
+    while k < 27 {
+        let d = [k / 9 - 1, k / 3 % 3 - 1, k % 3 - 1];
+        if k != 13 {
+            out[n] = d;
+            n += 1;
+        }
+        k += 1;
     }
     out
+};
+
+/// The squared distance from `p` to the box `[lo, hi]` (0 inside it).
+fn box_distance_squared(p: V3, [lo, hi]: &[V3; 2]) -> f64 {
+    (0..3).map(|k| (lo[k] - p[k]).max(p[k] - hi[k]).max(0.0)).map(|d| d * d).sum()
 }
 
 /// Distance from `p` to the triangle `t` (closest point by regions, after Ericson's Real-Time Collision
 /// Detection §5.1.5).
 pub fn point_triangle(p: V3, t: &[V3; 3]) -> f64 {
+    libm::sqrt(point_triangle_squared(p, t))
+}
+
+/// The squared distance from `p` to the triangle `t` ([`point_triangle`] before its square root).
+fn point_triangle_squared(p: V3, t: &[V3; 3]) -> f64 {
     let [a, b, c] = *t;
     let (ab, ac, ap) = (sub(b, a), sub(c, a), sub(p, a));
     let (d1, d2) = (dot(ab, ap), dot(ac, ap));
-    let dist = |q: V3| libm::sqrt(dot(sub(p, q), sub(p, q)));
+    let dist = |q: V3| dot(sub(p, q), sub(p, q));
     if d1 <= 0.0 && d2 <= 0.0 {
         return dist(a);
     }
