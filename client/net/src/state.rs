@@ -52,6 +52,9 @@ pub struct HeldCell {
     pub felled: BTreeSet<u16>,
     /// Granted to expand, and not expanded yet (no records).
     pub expanding: bool,
+    /// Asked for again after a gap: its deltas are dropped until the new grant replaces it (one request a gap, not
+    /// one a delta that follows it, which a server takes as a flood).
+    pub refreshing: bool,
 }
 
 impl HeldCell {
@@ -551,6 +554,7 @@ impl ClientState {
                     version: b.version,
                     felled: BTreeSet::new(),
                     expanding: false,
+                    refreshing: false,
                 };
                 self.cells.insert(b.cell, cell);
                 self.expanding.remove(&b.cell);

@@ -151,6 +151,8 @@ struct Model {
     sent: Vec<Sent>,
     next_tag: u32,
     live: [Vec<InstanceId>; EDITORS],
+    /// Why each editor's load ended, this round (for a failure's message).
+    ended: Vec<String>,
 }
 
 impl Model {
@@ -246,7 +248,10 @@ async fn load(
                     waiting -= usize::from(matches!(ev, Event::EditResult(_)));
                     answer(&requests, ev)
                 }
-                Err(_) => break,
+                Err(e) => {
+                    model.lock().unwrap().ended.push(format!("editor {me}: {e}"));
+                    break;
+                }
             },
             _ = tick.tick(), if waiting < MAX_WAITING => {
                 let (op, i) = {
@@ -266,7 +271,10 @@ async fn load(
                         requests.insert(request, i);
                         waiting += 1;
                     }
-                    Err(_) => break,
+                    Err(e) => {
+                        model.lock().unwrap().ended.push(format!("editor {me} sending: {e}"));
+                        break;
+                    }
                 }
             }
         }
@@ -415,6 +423,7 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
             let (stop, stopped) = tokio::sync::watch::channel(false);
             let trigger = Arc::new(Trigger::default());
             let watching = tokio::spawn(watch(watcher, stopped.clone()));
+            model.lock().unwrap().ended.clear();
             let tasks: Vec<_> = editors
                 .into_iter()
                 .enumerate()
@@ -440,7 +449,21 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
                 Kill::AtAck => {
                     tokio::time::sleep(kill_after).await;
                     trigger.armed.store(true, Relaxed);
-                    tokio::time::timeout(WAIT, trigger.fired.notified()).await.expect("an edit is acknowledged");
+                    if tokio::time::timeout(WAIT, trigger.fired.notified()).await.is_err() {
+                        let m = model.lock().unwrap();
+                        let mut answers = BTreeMap::new();
+                        for s in &m.sent {
+                            *answers.entry(s.answer.as_ref().map_or("none", EditOutcome::label)).or_insert(0) += 1;
+                        }
+                        let last: Vec<_> = m.sent.iter().rev().take(4).collect();
+                        let ended = &m.ended;
+                        let log = std::fs::read_to_string(dir.join(format!("server-{round}.log"))).unwrap_or_default();
+                        panic!(
+                            "no edit acknowledged within {WAIT:?} once armed: {} sent, answers {answers:?}, last \
+                             {last:?}, editors ended {ended:?}; the server's log:\n{log}",
+                            m.sent.len()
+                        );
+                    }
                 }
                 Kill::Stalled => {
                     let lock = rusqlite::Connection::open(dir.join("data").join("edits.sqlite")).unwrap();

@@ -104,6 +104,11 @@ impl ClientState {
             }
             return bad("delta of a grant not held");
         }
+        if h.refreshing {
+            // Asked for again: the new grant brings this change too.
+            self.stats.dropped += 1;
+            return Ok(Event::Dropped);
+        }
         if self.grants_only {
             // Nothing held to change: the version moves.
             h.version = d.to_version;
@@ -115,6 +120,7 @@ impl ClientState {
             // for it again).
             if later.deltas.len() >= super::expand::MAX_DEFERRED_DELTAS {
                 self.stats.gaps += 1;
+                h.refreshing = true;
                 return Ok(Event::Gap(d.cell));
             }
             later.deltas.push(d);
@@ -125,6 +131,7 @@ impl ClientState {
         }
         if h.version != d.from_version {
             self.stats.gaps += 1;
+            h.refreshing = true;
             return Ok(Event::Gap(d.cell));
         }
         apply_delta(h, &d, self.species.len())?;

@@ -120,6 +120,7 @@ impl ClientState {
             version: g.version,
             felled: Default::default(),
             expanding: !self.grants_only,
+            refreshing: false,
         };
         self.cells.insert(g.cell, held);
         if self.grants_only {
@@ -167,6 +168,7 @@ impl ClientState {
         let h = self.cells.get_mut(&c).expect("an awaited cell is held");
         let count = records.len();
         let version = h.version;
+        let refreshing = h.refreshing;
         h.total = records.len() as u16;
         h.records = records;
         h.overrides = overrides;
@@ -202,8 +204,9 @@ impl ClientState {
             self.stats.mismatches += 1;
             return Ok(Event::Differs(c));
         }
-        if gap {
+        if gap && !refreshing {
             self.stats.gaps += 1;
+            self.cells.get_mut(&c).expect("held").refreshing = true;
             return Ok(Event::Gap(c));
         }
         Ok(Event::Records { cell: c, count, complete: true })
