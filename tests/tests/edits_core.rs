@@ -212,6 +212,20 @@ fn a_client_that_reconnects_gets_exactly_the_missing_deltas() {
     settle(&w, &mut [&mut a]);
     a.edit(EditOp::Plant { species: 1, x: 3.0, z: 3.0, params: vec![] });
     settle(&w, &mut [&mut a]);
+    // A finds a gap in cell (0, 0) and goes away before the cell comes again: resumed, its deltas apply again.
+    let c = CellCoord::new(0, 0);
+    let (grant, total) = (a.client.cells()[&c].grant, a.client.cells()[&c].total);
+    let stray = CellDelta {
+        cell: c,
+        grant,
+        from_version: 5,
+        to_version: 6,
+        total,
+        adds: vec![],
+        removes: vec![],
+        updates: vec![],
+    };
+    assert_eq!(a.client.handle(ServerMsg::Streaming(ServerStreaming::Delta(stray))), Ok(Event::Gap(c)));
     // A goes away holding every cell, cell (0, 0) at version 1; B edits two cells meanwhile.
     let held = a.client.cells().len();
     let state = std::mem::take(&mut a.client);

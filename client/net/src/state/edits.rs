@@ -67,6 +67,8 @@ impl ClientState {
         for (i, c) in order.iter().enumerate() {
             let mut h = cells.remove(c).expect("named above");
             h.grant = i as u32 + 1;
+            // The server sends what changed since the version named: nothing is asked for again.
+            h.refreshing = false;
             self.cells.insert(*c, h);
         }
         Ok(msgs)
