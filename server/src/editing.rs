@@ -371,29 +371,12 @@ impl Writer {
                 }
                 Err(Refusal::Answer(outcome)) => self.reply(request.job.reply, outcome),
                 Err(Refusal::Pending) => {
-                    let since = match waited {
-                        Waiting::Cell(since) => since,
-                        _ => Instant::now(),
-                    };
-                    if since.elapsed() >= CELL_WAIT {
-                        self.reply(request.job.reply, EditOutcome::Denied("the cell is not ready; try again".into()));
-                    } else {
-                        request.waiting = Waiting::Cell(since);
-                        again.push(request);
-                    }
+                    let why = "the cell is not ready; try again".to_string();
+                    self.wait_or_refuse(request, waited, Waiting::Cell, why, &mut again);
                 }
-                Err(Refusal::Unreadable(why)) => {
-                    let since = match waited {
-                        Waiting::Unreadable(since) => since,
-                        _ => Instant::now(),
-                    };
-                    if since.elapsed() >= CELL_WAIT {
-                        let why = format!("the cell's edits could not be read: {why}");
-                        self.reply(request.job.reply, EditOutcome::Denied(why));
-                    } else {
-                        request.waiting = Waiting::Unreadable(since);
-                        again.push(request);
-                    }
+                Err(Refusal::Unreadable(e)) => {
+                    let why = format!("the cell's edits could not be read: {e}");
+                    self.wait_or_refuse(request, waited, Waiting::Unreadable, why, &mut again);
                 }
             }
         }
@@ -424,6 +407,28 @@ impl Writer {
                 again.extend(self.settle_failed(&working, edits, accepted, &e));
                 again
             }
+        }
+    }
+
+    /// A request that cannot be prepared yet: back to wait as `waiting` (since it first did so, `waited` if that is
+    /// the same kind of wait), or refused with `why` after [`CELL_WAIT`].
+    fn wait_or_refuse(
+        &self,
+        mut request: Request,
+        waited: Waiting,
+        waiting: fn(Instant) -> Waiting,
+        why: String,
+        again: &mut Vec<Request>,
+    ) {
+        let since = match waited {
+            Waiting::Cell(since) | Waiting::Unreadable(since) if waiting(since) == waited => since,
+            _ => Instant::now(),
+        };
+        if since.elapsed() >= CELL_WAIT {
+            self.reply(request.job.reply, EditOutcome::Denied(why));
+        } else {
+            request.waiting = waiting(since);
+            again.push(request);
         }
     }
 

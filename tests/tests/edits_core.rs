@@ -166,6 +166,23 @@ fn denied_and_invalid_edits_leave_no_trace() {
     assert_eq!(w.edits.count().unwrap(), 8);
 }
 
+/// Hand `p`'s client a delta of held cell `c` from a version it does not hold (as if one had been lost): a gap.
+fn gap(p: &mut Pair, c: CellCoord) -> CellDelta {
+    let h = &p.client.cells()[&c];
+    let stray = CellDelta {
+        cell: c,
+        grant: h.grant,
+        from_version: h.version + 4,
+        to_version: h.version + 5,
+        total: h.total,
+        adds: vec![],
+        removes: vec![],
+        updates: vec![],
+    };
+    assert_eq!(p.client.handle(ServerMsg::Streaming(ServerStreaming::Delta(stray.clone()))), Ok(Event::Gap(c)));
+    stray
+}
+
 #[test]
 fn a_version_gap_brings_the_whole_cell_at_its_current_version() {
     let w = world();
@@ -177,18 +194,7 @@ fn a_version_gap_brings_the_whole_cell_at_its_current_version() {
     assert_eq!(a.client.cells()[&c].version, 1);
     // A delta that does not start at the version held (as if one had been lost) is a gap: the client asks again.
     let grant = a.client.cells()[&c].grant;
-    let total = a.client.cells()[&c].total;
-    let stray = CellDelta {
-        cell: c,
-        grant,
-        from_version: 5,
-        to_version: 6,
-        total,
-        adds: vec![],
-        removes: vec![0],
-        updates: vec![],
-    };
-    assert_eq!(a.client.handle(ServerMsg::Streaming(ServerStreaming::Delta(stray.clone()))), Ok(Event::Gap(c)));
+    let stray = gap(&mut a, c);
     // The deltas that follow while the cell comes again ask nothing more: one refresh a gap (one a delta would
     // flood the server's budget of requests under a stream of edits).
     for v in 6..40 {
@@ -213,19 +219,7 @@ fn a_client_that_reconnects_gets_exactly_the_missing_deltas() {
     a.edit(EditOp::Plant { species: 1, x: 3.0, z: 3.0, params: vec![] });
     settle(&w, &mut [&mut a]);
     // A finds a gap in cell (0, 0) and goes away before the cell comes again: resumed, its deltas apply again.
-    let c = CellCoord::new(0, 0);
-    let (grant, total) = (a.client.cells()[&c].grant, a.client.cells()[&c].total);
-    let stray = CellDelta {
-        cell: c,
-        grant,
-        from_version: 5,
-        to_version: 6,
-        total,
-        adds: vec![],
-        removes: vec![],
-        updates: vec![],
-    };
-    assert_eq!(a.client.handle(ServerMsg::Streaming(ServerStreaming::Delta(stray))), Ok(Event::Gap(c)));
+    gap(&mut a, CellCoord::new(0, 0));
     // A goes away holding every cell, cell (0, 0) at version 1; B edits two cells meanwhile.
     let held = a.client.cells().len();
     let state = std::mem::take(&mut a.client);

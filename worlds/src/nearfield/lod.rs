@@ -301,6 +301,7 @@ pub fn measure(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f6
             // A point that is a corner of a triangle (a vertex the simplifier kept) is on the surface.
             let corner = as_f32(p).is_some_and(|q| corners.binary_search(&q).is_ok());
             let mut best = if corner { 0.0 } else { f64::INFINITY };
+            // A corner cannot raise the largest distance: its cell's neighbourhood is gathered only for others.
             if best > largest && !gathered {
                 // The point's own cell first: a near triangle found early lets the boxes rule out most others.
                 near.clear();
@@ -315,7 +316,8 @@ pub fn measure(points: &[V3], positions: &[[f32; 3]], indices: &[u32], bound: f6
                 near.extend_from_slice(&big);
                 gathered = true;
             }
-            for &t in near.iter().take_while(|_| gathered) {
+            // (Ungathered, `near` is another cell's: the first look below stops before reading it.)
+            for &t in &near {
                 if best <= largest {
                     break;
                 }
