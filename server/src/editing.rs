@@ -191,15 +191,15 @@ struct Request {
     job: EditJob,
     /// Edits tried for it whose append failed, oldest first.
     attempts: Vec<StoredEdit>,
-    /// Conflicts it met (another writer took the cell's version first).
-    conflicts: usize,
+    /// When it was submitted (conflicts are tried again until [`CONFLICT_WAIT`] after).
+    since: Instant,
     /// Why it waits, when it came back for another reason than a conflict.
     waiting: Waiting,
 }
 
 impl Request {
-    fn new(job: EditJob) -> Request {
-        Request { job, attempts: Vec::new(), conflicts: 0, waiting: Waiting::No }
+    fn new(job: EditJob, since: Instant) -> Request {
+        Request { job, attempts: Vec::new(), since, waiting: Waiting::No }
     }
 
     /// The attempt `overlay` holds at its version, if any: the request's outcome.
@@ -250,9 +250,10 @@ fn edit_id(e: &StoredEdit) -> InstanceId {
     InstanceId::new(e.cell, e.op.index()).expect("a grid cell can be named")
 }
 
-/// How often a request that met a conflict (another writer took the cell's version) is checked and written again
-/// before it is answered `conflict`.
-pub const CONFLICT_RETRIES: usize = 3;
+/// How long a request that meets conflicts (another writer took the cell's version) is checked and written again
+/// before it is answered `conflict`: writers that share a busy cell take turns on it, and each turn costs a conflict
+/// to all but one of them.
+pub const CONFLICT_WAIT: Duration = Duration::from_secs(2);
 
 /// The first pause before requests whose fate is not known yet (their cell's log could not be read) are looked at
 /// again; it doubles up to [`UNKNOWN_PAUSE_MAX`].
@@ -263,16 +264,21 @@ const UNKNOWN_PAUSE_MAX: Duration = Duration::from_secs(2);
 
 impl Writer {
     fn run(self, rx: mpsc::Receiver<(EditJob, Instant)>) {
-        // Requests that wait: whose fate is not known yet (their cell could not be read), looked at again with the
-        // next group or after a pause that grows while they stay unknown; whose cell is being expanded, looked at
-        // every few milliseconds. The writer goes on with other requests meanwhile.
-        let mut unknown: Vec<Request> = Vec::new();
+        // Requests that come back from a group: those that met a conflict go round again at once, with whatever
+        // arrived meanwhile (so a writer that lost a busy cell to another writer takes it back with every edit
+        // waiting for it, in one run); those whose fate is not known yet (their cell could not be read) are looked at
+        // again with the next group or after a pause that grows while they stay unknown; those whose cell is being
+        // expanded, every few milliseconds. The writer goes on with other requests meanwhile.
+        let mut carried: Vec<Request> = Vec::new();
         let mut pause = UNKNOWN_PAUSE;
         loop {
-            let first = if unknown.is_empty() {
+            let waiting = |r: &Vec<Request>| r.iter().filter(|r| r.waiting != Waiting::No).count();
+            let first = if carried.iter().any(|r| r.waiting == Waiting::No) {
+                rx.try_recv().ok()
+            } else if carried.is_empty() {
                 rx.recv().ok()
             } else {
-                let cell_pending = unknown.iter().any(|r| matches!(r.waiting, Waiting::Cell(_)));
+                let cell_pending = carried.iter().any(|r| matches!(r.waiting, Waiting::Cell(_)));
                 match rx.recv_timeout(if cell_pending { CELL_POLL } else { pause }) {
                     Ok(first) => Some(first),
                     Err(mpsc::RecvTimeoutError::Timeout) => None,
@@ -281,7 +287,7 @@ impl Writer {
                         // sessions end with it), never answered by a guess.
                         warn!(
                             "{} edits stay unanswered: their cells could not be read before the server stopped",
-                            unknown.len()
+                            carried.len()
                         );
                         return;
                     }
@@ -292,13 +298,13 @@ impl Writer {
                 }
             };
             let started = first.as_ref().map_or_else(Instant::now, |f| f.1);
-            let mut requests = std::mem::take(&mut unknown);
-            let fresh = requests.len();
-            if let Some((job, _)) = first {
-                requests.push(Request::new(job));
+            let mut requests = std::mem::take(&mut carried);
+            let (fresh, unknown) = (requests.len(), waiting(&requests));
+            if let Some((job, at)) = first {
+                requests.push(Request::new(job, at));
                 while requests.len() - fresh < MAX_GROUP {
                     match rx.try_recv() {
-                        Ok((j, _)) => requests.push(Request::new(j)),
+                        Ok((j, at)) => requests.push(Request::new(j, at)),
                         Err(_) => break,
                     }
                 }
@@ -306,30 +312,15 @@ impl Writer {
                 // The queue is closed and nothing waits.
                 return;
             }
-            unknown = self.write_group(requests, started);
+            carried = self.try_group(requests, started);
             // Longer pauses only while nothing that was unknown became known.
-            pause = if unknown.len() < fresh.max(1) { UNKNOWN_PAUSE } else { (pause * 2).min(UNKNOWN_PAUSE_MAX) };
+            pause = if waiting(&carried) < unknown.max(1) { UNKNOWN_PAUSE } else { (pause * 2).min(UNKNOWN_PAUSE_MAX) };
         }
     }
 
     fn reply(&self, reply: Box<dyn Reply>, outcome: EditOutcome) {
         self.metrics.count(&outcome);
         reply.answer(outcome);
-    }
-
-    /// Write a group, sending requests that met a conflict round again at once; returns those whose fate is not
-    /// known yet.
-    fn write_group(&self, requests: Vec<Request>, started: Instant) -> Vec<Request> {
-        let mut requests = requests;
-        let mut unknown = Vec::new();
-        while !requests.is_empty() {
-            let again = self.try_group(requests, started);
-            let (u, conflicted): (Vec<Request>, Vec<Request>) =
-                again.into_iter().partition(|r| r.waiting != Waiting::No);
-            unknown.extend(u);
-            requests = conflicted;
-        }
-        unknown
     }
 
     /// Check, write and answer a group; the requests that must go round again come back (a conflict, or a store
@@ -383,31 +374,45 @@ impl Writer {
         if edits.is_empty() {
             return again;
         }
-        match self.live.edit_store().append(&edits) {
-            Ok(()) => {
-                self.metrics.groups.fetch_add(1, Relaxed);
-                self.metrics.commit_time.record(started.elapsed());
-                for (cell, w) in working {
-                    if edits.iter().any(|e| e.cell == cell) {
-                        self.live.publish(cell, w.overlay);
-                    }
-                }
-                for a in accepted {
-                    self.reply(a.request.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
-                }
-                again
-            }
-            Err(e) => {
-                match &e {
-                    EditStoreError::Conflict { cell, version } => {
-                        info!(?cell, version, "another writer changed the cell first: checking its edits again")
-                    }
-                    e => warn!("writing {} edits: {e}", edits.len()),
-                }
-                again.extend(self.settle_failed(&working, edits, accepted, &e));
-                again
+        // Cell by cell: a conflict in one cell of the group (another edge's edit) leaves the others acknowledged.
+        let mut failed: BTreeMap<CellCoord, EditStoreError> = BTreeMap::new();
+        let results = self.live.edit_store().append_cells(&edits);
+        let written = results.len();
+        for (cell, result) in results {
+            if let Err(e) = result {
+                failed.insert(cell, e);
             }
         }
+        if failed.len() < written {
+            self.metrics.groups.fetch_add(1, Relaxed);
+            self.metrics.commit_time.record(started.elapsed());
+        }
+        let bases: BTreeMap<CellCoord, Arc<CellData>> =
+            working.iter().filter(|(c, _)| failed.contains_key(c)).map(|(c, w)| (*c, Arc::clone(&w.base))).collect();
+        let (mut stored, mut settle) = (Vec::new(), Vec::new());
+        for (a, e) in accepted.into_iter().zip(edits) {
+            if failed.contains_key(&e.cell) { settle.push((a, e)) } else { stored.push(a) }
+        }
+        for (cell, w) in working {
+            if !failed.contains_key(&cell) && stored.iter().any(|a| a.id.cell() == cell) {
+                self.live.publish(cell, w.overlay);
+            }
+        }
+        for a in stored {
+            self.reply(a.request.job.reply, EditOutcome::Ok { id: a.id, version: a.version });
+        }
+        for (cell, e) in &failed {
+            match e {
+                EditStoreError::Conflict { version, .. } => {
+                    info!(?cell, version, "another writer changed the cell first: checking its edits again")
+                }
+                e => warn!(?cell, "writing the cell's edits: {e}"),
+            }
+        }
+        if !settle.is_empty() {
+            again.extend(self.settle_failed(bases, settle, &failed));
+        }
+        again
     }
 
     /// A request that cannot be prepared yet: back to wait as `waiting` (since it first did so, `waited` if that is
@@ -440,25 +445,43 @@ impl Writer {
     /// edit is never called "not stored" on the strength of a read that failed.
     fn settle_failed(
         &self,
-        working: &BTreeMap<CellCoord, Working>,
-        edits: Vec<StoredEdit>,
-        accepted: Vec<Accepted>,
-        error: &EditStoreError,
+        mut bases: BTreeMap<CellCoord, Arc<CellData>>,
+        settle: Vec<(Accepted, StoredEdit)>,
+        errors: &BTreeMap<CellCoord, EditStoreError>,
     ) -> Vec<Request> {
         // Each cell read once again (and watched again, for a shared store): what the sessions get, and what says
-        // which edits were stored.
+        // which edits were stored. The cells at once, a thread each: a network store's reads are round trips, and
+        // writers sharing busy cells lose several of them a turn.
+        // A cell lost to another writer whose overlay here is already past the version tried (the store told of the
+        // winner, or a watch did) is not read: what this server holds is the store's fold.
         let mut read: BTreeMap<CellCoord, Arc<Overlay>> = BTreeMap::new();
-        for (c, w) in working {
-            match self.live.reload(*c, &w.base) {
-                Ok(overlay) => {
+        bases.retain(|c, _| {
+            let EditStoreError::Conflict { version, .. } = errors[c] else { return true };
+            match self.live.cached(*c) {
+                Some(overlay) if overlay.version() >= version => {
                     read.insert(*c, overlay);
+                    false
+                }
+                _ => true,
+            }
+        });
+        let reads: Vec<(CellCoord, Result<Arc<Overlay>, EditStoreError>)> = std::thread::scope(|s| {
+            let reading: Vec<_> =
+                bases.iter().map(|(c, base)| (*c, s.spawn(move || self.live.reload(*c, base)))).collect();
+            reading.into_iter().map(|(c, t)| (c, t.join().expect("a cell's read does not panic"))).collect()
+        });
+        for (c, overlay) in reads {
+            match overlay {
+                Ok(overlay) => {
+                    read.insert(c, overlay);
                 }
                 Err(e) => warn!(?c, "reading the cell's edits again (its edits wait until it can be read): {e}"),
             }
         }
         let mut again = Vec::new();
-        for (a, e) in accepted.into_iter().zip(edits) {
+        for (a, e) in settle {
             let mut request = a.request;
+            let error = &errors[&e.cell];
             let Some(overlay) = read.get(&e.cell) else {
                 request.attempts.push(e);
                 request.waiting = Waiting::Unknown;
@@ -469,8 +492,7 @@ impl Writer {
             let kept = Request::kept(std::iter::once(&e).chain(&request.attempts), overlay);
             let outcome = match error {
                 _ if let Some(kept) = kept => EditOutcome::Ok { id: edit_id(kept), version: kept.version },
-                EditStoreError::Conflict { .. } if request.conflicts < CONFLICT_RETRIES => {
-                    request.conflicts += 1;
+                EditStoreError::Conflict { .. } if request.since.elapsed() < CONFLICT_WAIT => {
                     request.attempts.push(e);
                     again.push(request);
                     continue;

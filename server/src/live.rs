@@ -500,6 +500,11 @@ impl LiveStore {
         &self.shared.hub
     }
 
+    /// Cell `c`'s overlay as this server holds it now, if it holds one (never reads the store).
+    pub fn cached(&self, c: CellCoord) -> Option<Arc<Overlay>> {
+        self.shared.with(|o| o.lru.peek(&c).map(|e| Arc::clone(&e.overlay)))
+    }
+
     /// Read cell `c`'s log again (after another writer changed it, or a write failed), cache and watch it; what
     /// was read (an edited cell's version) is announced to the sessions, as every read of a log is.
     pub fn reload(&self, c: CellCoord, base: &CellData) -> Result<Arc<Overlay>, EditStoreError> {

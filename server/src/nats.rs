@@ -1,27 +1,34 @@
 //! The edit log on NATS JetStream (issue 17): many stateless edges share one world's edits through a replicated
-//! stream, one subject a cell (`canopy.edits.WORLD.X.Z`), each message one [`StoredEdit`].
+//! stream, one subject a cell (`canopy.edits.WORLD.X.Z`), each message a **run**: the consecutive versions one
+//! group of a writer made to the cell ([`encode_run`], header `Canopy-Run`; a message without the header is one
+//! [`StoredEdit`], as streams written before runs hold).
 //!
-//! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append of version
-//!   v names the stream sequence of version v − 1 (`Nats-Expected-Last-Subject-Sequence`): the engine refuses it if
-//!   another edge got there first (compare-and-set), so no version is taken twice; the writer then reads the cell
-//!   again and checks the edit once more. The store remembers each cell's last edit as (version, sequence), and an
-//!   append whose v − 1 is not that edit (a watch already told of a later one) is refused without publishing —
-//!   naming the later edit's sequence would let the engine take version v a second time. The engine's check is not
-//!   serializable on a clustered stream before nats-server 2.9.21 (nats-io/nats-server#4320; Debian ships 2.9.10):
-//!   two publishes naming the same sequence may both be stored. So a version is the *first* message on the subject
-//!   that names it (`first_wins`, the fold every reader applies), and a writer acknowledges its edit only after
-//!   reading that its message is the first of its version on the subject after the one it named (an earlier
-//!   version's lost race, not yet taken out, is passed over); a loser is a conflict. `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a
-//!   second edit (the id carries a digest of the edit's bytes, so another edit of the same version is no
-//!   duplicate).
+//! - **Versions every edge agrees on.** A cell's versions are 1, 2, … in its subject's order. An append of a run
+//!   from version v names the stream sequence of the message holding v − 1 (`Nats-Expected-Last-Subject-Sequence`):
+//!   the engine refuses it if another edge got there first (compare-and-set), so no version is taken twice; the
+//!   writer then reads the cell again and checks the edits once more. The store remembers each cell's last edit as
+//!   (version, sequence), and an append whose v − 1 is not that edit (a watch already told of a later one) is
+//!   refused without publishing — naming the later edit's sequence would let the engine take version v a second
+//!   time. The engine's check is not serializable on a clustered stream before nats-server 2.9.21
+//!   (nats-io/nats-server#4320; Debian ships 2.9.10): two publishes naming the same sequence may both be stored.
+//!   So versions from v are the *first* run on the subject that starts at v (`first_wins`, the fold every reader
+//!   and every watch applies; a run that starts at a version already taken is skipped whole), and a writer
+//!   acknowledges its run only after reading that its message is the first from its version on the subject after
+//!   the one it named (an earlier version's lost race, not yet taken out, is passed over); a loser is a conflict.
+//!   `Nats-Msg-Id` (`X.Z.VERSION.DIGEST`) makes a retried publish a duplicate, not a second run (the id carries a
+//!   digest of the run's bytes, so another run from the same version is no duplicate).
+//! - **One round trip for a cell's whole group.** Writers that share a busy cell take turns on it; the one whose run
+//!   is first takes every edit it had waiting for the cell, so a turn costs a publish and a read whatever the edits
+//!   in it, and a cell's throughput is not one version a round trip.
 //! - **Durable means replicated.** An append returns once JetStream acknowledged every message, which for a stream
 //!   of `replicas` > 1 is after its Raft group committed it on a quorum.
-//! - **Group commit.** A group's cells are published concurrently; one cell's versions go one after the other
-//!   (each names the previous one's sequence).
+//! - **Group commit.** A group's cells are published concurrently and stored or refused each on its own
+//!   ([`EditStore::append_cells`]): a conflict in one cell does not hold back the others.
 //! - **Watching.** An edge watches the cells whose overlays it keeps ([`EditStore::watch`]): an ordered consumer
-//!   of the cell's subject from just after the last edit its read of the log saw (so nothing between the read and
-//!   the watch is missed, and only what the stream stored is told: a publish the engine refused is not), dropped
-//!   when the overlay is evicted; other edges' edits reach the [`EditWatcher`].
+//!   of the cell's subject from just after the last message its read of the log saw (so nothing between the read
+//!   and the watch is missed, and only what the stream stored is told: a publish the engine refused is not, a lost
+//!   race is skipped by the fold), kept when the cell is read again, dropped when the overlay is evicted; other
+//!   edges' edits reach the [`EditWatcher`].
 //!
 //! The store's calls are synchronous (the [`EditStore`] trait); they run on a runtime of the store's own, on its
 //! own thread, so they may be called from any thread (the edit writer, overlay loaders).
@@ -33,7 +40,7 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use async_nats::jetstream::{self, context::PublishErrorKind, stream};
-use canopy_edits::{EditStore, EditStoreError, EditWatcher, StoredEdit};
+use canopy_edits::{EditStore, EditStoreError, EditWatcher, LogError, MAX_RUN, StoredEdit, decode_run, encode_run};
 use canopy_protocol::CellCoord;
 use canopy_protocol::sync::Locked;
 use futures_util::{StreamExt, TryStreamExt};
@@ -136,7 +143,7 @@ struct Inner {
     /// Per cell, the version of its last edit this store knows and that edit's stream sequence ((0, 0): none).
     last: Mutex<HashMap<CellCoord, Known>>,
     /// Watched cells and the tasks forwarding their subjects.
-    watches: Mutex<HashMap<CellCoord, tokio::task::JoinHandle<()>>>,
+    watches: Mutex<HashMap<CellCoord, (tokio::task::JoinHandle<()>, WatcherSlot)>>,
     /// Cells' logs as last read, bounded by [`TAIL_CACHE_BYTES`]: a cell read again (after a conflict, another
     /// edge's edit) costs a round trip a new message, not one a message of its whole log.
     tails: Mutex<canopy_protocol::lru::Lru<CellCoord, Tail>>,
@@ -366,110 +373,128 @@ impl Inner {
         Ok((last != known).then_some(last))
     }
 
-    /// Publish one cell's edits in order, each naming the previous one's subject sequence.
+    /// Publish one cell's edits of a group: each run of consecutive versions (at most [`MAX_RUN`]) one message,
+    /// naming the subject sequence of the cell's last edit before it.
     async fn append_cell(self: Arc<Self>, c: CellCoord, edits: Vec<StoredEdit>) -> Result<(), EditStoreError> {
-        let subject = self.cfg.subject(c);
-        for e in edits {
-            let payload = e.encode();
-            // The id names this very edit (its bytes, not only its version): a publish retried after a lost
-            // acknowledgement is a duplicate, another edit of the same version is not (the compare-and-set refuses
-            // that one).
-            let digest: [u8; 32] =
-                sha2::Digest::finalize(<sha2::Sha256 as sha2::Digest>::new_with_prefix(&payload)).into();
-            let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
-            let payload = bytes::Bytes::from(payload);
-            let id = format!("{}.{}.{}.{id}", c.x, c.z, e.version);
-            let Some(known) = self.expected(c, e.version) else {
-                return Err(EditStoreError::Conflict { cell: c, version: e.version });
-            };
-            // What the publish names as the subject's last sequence: the last message known, unless the engine
-            // has lost track of it (`engine_last`).
-            let mut expected = known;
-            let mut asked_engine = false;
-            // A publish whose answer was lost (its node died, the stream is electing a leader) is sent again, the
-            // same message with the same id: if the first was stored, the engine answers the retry as a duplicate
-            // (or, having the edit as the cell's last, refuses it as a conflict, and the writer finds the edit
-            // stored when it reads the cell again). Never a second copy.
-            let deadline = tokio::time::Instant::now() + PUBLISH_PATIENCE;
-            let mut pause = PUBLISH_RETRY;
-            loop {
-                let msg = jetstream::message::PublishMessage::build()
-                    .payload(payload.clone())
-                    .message_id(id.clone())
-                    .expected_last_subject_sequence(expected);
-                let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
-                match ack {
-                    Ok(ack) => {
-                        // The engine's compare-and-set is not serializable on a clustered stream in nats-server
-                        // before 2.9.21 (nats-io/nats-server#4320): two publishes naming the same last sequence
-                        // may both be taken. The first of a cell's messages with a version is that version (the
-                        // fold every reader applies, `first_wins`); this one is the version only if it is the
-                        // first message on the subject after the one it named.
-                        // Messages of earlier versions after the one it named are lost races of those versions
-                        // that their writers have not taken out yet: they do not count (counting one made a
-                        // winner take itself out, leaving a version missing).
-                        let mut from = known + 1;
-                        let first = loop {
-                            let m = self
-                                .stream
-                                .raw_message_builder()
-                                .sequence(from)
-                                .next_by_subject(subject.clone())
-                                .send()
-                                .await
-                                // Stored, but whether first on the subject is not known.
-                                .map_err(|err| EditStoreError::Unanswered(format!("NATS checking a publish: {err}")))?;
-                            let other = StoredEdit::decode(&m.payload).ok().map(|o| o.version);
-                            match race_step(e.version, ack.sequence, m.sequence, other) {
-                                Race::Earlier => from = m.sequence + 1,
-                                Race::Decided => break m,
-                            }
-                        };
-                        if first.sequence != ack.sequence {
-                            // Lost: the message is refused, so it is taken out of the stream too — readers skip
-                            // it anyway, and the stream then holds exactly the edits acknowledged (its message
-                            // counts are `count` and `cells`). Should the delete fail, readers still skip it.
-                            match self.stream.delete_message(ack.sequence).await {
-                                // The winner, this very version, is the cell's last edit again (or a later one
-                                // is, which the store learns when it reads or watches the cell).
-                                Ok(_) => self.learn(c, Known { version: e.version, sequence: first.sequence }),
-                                Err(err) => {
-                                    debug!(?c, "deleting a lost publish: {err}");
-                                    self.learn(c, Known { version: 0, sequence: ack.sequence });
-                                }
-                            }
-                            return Err(EditStoreError::Conflict { cell: c, version: e.version });
-                        }
-                        self.learn(c, Known { version: e.version, sequence: ack.sequence });
-                        break;
-                    }
-                    Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
-                        if !asked_engine {
-                            asked_engine = true;
-                            if let Some(last) = self.engine_last(&subject, known).await? {
-                                debug!(?c, known, last, "the engine names another last sequence; again with it");
-                                expected = last;
-                                continue;
-                            }
-                        }
-                        return Err(EditStoreError::Conflict { cell: c, version: e.version });
-                    }
-                    Err(err) if tokio::time::Instant::now() + pause < deadline => {
-                        debug!(?c, "publishing an edit: {err}; again in {pause:?}");
-                        tokio::time::sleep(pause).await;
-                        pause = (pause * 2).min(PUBLISH_RETRY_MAX);
-                    }
-                    // An answer lost with a node: the publish may yet be stored.
-                    Err(err) => return Err(EditStoreError::Unanswered(format!("NATS publishing an edit: {err}"))),
-                }
-            }
+        for run in runs(&edits) {
+            self.append_run(c, run).await?;
         }
         Ok(())
     }
 
+    /// Publish one run of a cell's consecutive versions as one message (see the module docs).
+    async fn append_run(&self, c: CellCoord, run: &[StoredEdit]) -> Result<(), EditStoreError> {
+        let subject = self.cfg.subject(c);
+        let (version, last_version) = (run[0].version, run[run.len() - 1].version);
+        let payload = encode_run(run);
+        // The id names this very run (its bytes, not only its versions): a publish retried after a lost
+        // acknowledgement is a duplicate, another run from the same version is not (the compare-and-set refuses
+        // that one).
+        let digest: [u8; 32] = sha2::Digest::finalize(<sha2::Sha256 as sha2::Digest>::new_with_prefix(&payload)).into();
+        let id: String = digest[..12].iter().map(|b| format!("{b:02x}")).collect();
+        let payload = bytes::Bytes::from(payload);
+        let id = format!("{}.{}.{version}.{id}", c.x, c.z);
+        let Some(known) = self.expected(c, version) else {
+            return Err(EditStoreError::Conflict { cell: c, version });
+        };
+        // What the publish names as the subject's last sequence: the last message known, unless the engine
+        // has lost track of it (`engine_last`).
+        let mut expected = known;
+        let mut asked_engine = false;
+        // A publish whose answer was lost (its node died, the stream is electing a leader) is sent again, the
+        // same message with the same id: if the first was stored, the engine answers the retry as a duplicate
+        // (or, having the run as the cell's last, refuses it as a conflict, and the writer finds the run
+        // stored when it reads the cell again). Never a second copy.
+        let deadline = tokio::time::Instant::now() + PUBLISH_PATIENCE;
+        let mut pause = PUBLISH_RETRY;
+        loop {
+            let msg = jetstream::message::PublishMessage::build()
+                .payload(payload.clone())
+                .message_id(id.clone())
+                .header(RUN_HEADER, "1")
+                .expected_last_subject_sequence(expected);
+            let ack = async { self.js.send_publish(subject.clone(), msg).await?.await }.await;
+            match ack {
+                Ok(ack) => {
+                    // The engine's compare-and-set is not serializable on a clustered stream in nats-server
+                    // before 2.9.21 (nats-io/nats-server#4320): two publishes naming the same last sequence
+                    // may both be taken. The first of a cell's messages from a version is that version (the
+                    // fold every reader applies, `first_wins`); this one is the version only if it is the
+                    // first message on the subject after the one it named.
+                    // Messages from earlier versions after the one it named are lost races of those versions
+                    // that their writers have not taken out yet: they do not count (counting one made a
+                    // winner take itself out, leaving a version missing).
+                    let mut from = known + 1;
+                    let (first, first_last) = loop {
+                        let m = self
+                            .stream
+                            .raw_message_builder()
+                            .sequence(from)
+                            .next_by_subject(subject.clone())
+                            .send()
+                            .await
+                            // Stored, but whether first on the subject is not known.
+                            .map_err(|err| EditStoreError::Unanswered(format!("NATS checking a publish: {err}")))?;
+                        let other = decode_message(Some(&m.headers), &m.payload).ok();
+                        let span = other.as_ref().map(|o| (o[0].version, o[o.len() - 1].version));
+                        match race_step(version, ack.sequence, m.sequence, span.map(|s| s.0)) {
+                            Race::Earlier => from = m.sequence + 1,
+                            Race::Decided => break (m, span.map_or(0, |s| s.1)),
+                        }
+                    };
+                    if first.sequence != ack.sequence {
+                        // Lost: the message is refused, so it is taken out of the stream too — readers skip
+                        // it anyway, and the stream then holds exactly the edits acknowledged. Should the delete
+                        // fail, readers still skip it.
+                        match self.stream.delete_message(ack.sequence).await {
+                            // The winner, from this very version, is the cell's last message again (or a later one
+                            // is, which the store learns when it reads or watches the cell).
+                            Ok(_) => self.learn(c, Known { version: first_last, sequence: first.sequence }),
+                            // Its sequence is not learned: messages between the winner and it are not known, and
+                            // naming it would let a run take a version one of them holds. An append naming the
+                            // winner finds it there and reads the cell again.
+                            Err(err) => debug!(?c, "deleting a lost publish: {err}"),
+                        }
+                        // The winner's run is told to the cell's watcher now, as its watch will tell it again: the
+                        // writer goes on from it without reading the cell again.
+                        if let Ok(winner) = decode_message(Some(&first.headers), &first.payload)
+                            && winner[0].cell == c
+                            && winner[0].version == version
+                        {
+                            self.advance_tail(c, version - 1, first.sequence, Some(&winner));
+                            self.tell(c, winner);
+                        }
+                        return Err(EditStoreError::Conflict { cell: c, version });
+                    }
+                    self.learn(c, Known { version: last_version, sequence: ack.sequence });
+                    self.advance_tail(c, version - 1, ack.sequence, Some(run));
+                    return Ok(());
+                }
+                Err(err) if err.kind() == PublishErrorKind::WrongLastSequence => {
+                    if !asked_engine {
+                        asked_engine = true;
+                        if let Some(last) = self.engine_last(&subject, known).await? {
+                            debug!(?c, known, last, "the engine names another last sequence; again with it");
+                            expected = last;
+                            continue;
+                        }
+                    }
+                    return Err(EditStoreError::Conflict { cell: c, version });
+                }
+                Err(err) if tokio::time::Instant::now() + pause < deadline => {
+                    debug!(?c, "publishing an edit: {err}; again in {pause:?}");
+                    tokio::time::sleep(pause).await;
+                    pause = (pause * 2).min(PUBLISH_RETRY_MAX);
+                }
+                // An answer lost with a node: the publish may yet be stored.
+                Err(err) => return Err(EditStoreError::Unanswered(format!("NATS publishing an edit: {err}"))),
+            }
+        }
+    }
+
     async fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
         let subject = self.cfg.subject(c);
-        // The cell's edits, each the next on the subject after the previous, until there is none (reads go to the
+        // The cell's runs, each the next on the subject after the previous, until there is none (reads go to the
         // stream's leader, so a write another edge saw acknowledged is there). Not bounded by the subject's last
         // message as the engine reports it: nats-server 2.9 can answer "no message" for the last message of a
         // subject whose last message was deleted (a lost race's publish, taken out), though earlier ones remain.
@@ -488,8 +513,8 @@ impl Inner {
                 Err(e) => return Err(io("reading a cell's edits", e)),
             };
             self.metrics.log_reads.fetch_add(1, Relaxed);
-            let e = match StoredEdit::decode(&m.payload) {
-                Ok(e) => e,
+            let run = match decode_message(Some(&m.headers), &m.payload) {
+                Ok(run) => run,
                 Err(e) => {
                     return Err(EditStoreError::Damaged {
                         store: format!("NATS stream {} sequence {}", self.cfg.stream(), m.sequence),
@@ -500,13 +525,16 @@ impl Inner {
                     });
                 }
             };
-            if e.cell != c {
-                return Err(EditStoreError::Corrupt(format!("cell {c:?} sequence {} holds {:?}", m.sequence, e.cell)));
+            if run[0].cell != c {
+                return Err(EditStoreError::Corrupt(format!(
+                    "cell {c:?} sequence {} holds {:?}",
+                    m.sequence, run[0].cell
+                )));
             }
-            if first_wins(out.len() as u32, e.version)
+            if first_wins(out.len() as u32, run[0].version)
                 .map_err(|v| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {v}", m.sequence)))?
             {
-                out.push(e);
+                out.extend(run);
             }
             last = m.sequence;
             seq = m.sequence + 1;
@@ -518,6 +546,92 @@ impl Inner {
         tails.evict_to(TAIL_CACHE_BYTES, Some(&c));
         Ok(out)
     }
+
+    /// The fold of cell `c`'s subject went on over the message at `sequence` from `before` versions, taking `run`
+    /// (a winner) or skipping it (`None`, a lost race): the cell's kept tail follows if it was at that state and
+    /// behind the message, so reading the cell again reads only what neither this edge wrote nor its watch told.
+    /// (Two states of the fold with the same versions have only lost races between them.)
+    fn advance_tail(&self, c: CellCoord, before: u32, sequence: u64, run: Option<&[StoredEdit]>) {
+        let mut tails = self.tails.locked();
+        let Some(t) = tails.get(&c) else { return };
+        if t.edits.len() as u32 != before || t.last >= sequence {
+            return;
+        }
+        t.edits.extend_from_slice(run.unwrap_or_default());
+        t.last = sequence;
+        let cost = TAIL_EDIT_BYTES * (t.edits.len() + 1);
+        tails.set_cost(&c, cost);
+        tails.evict_to(TAIL_CACHE_BYTES, Some(&c));
+    }
+
+    /// Tell cell `c`'s watcher, if the cell is watched, of `run` (a winner of the fold).
+    fn tell(&self, c: CellCoord, run: Vec<StoredEdit>) {
+        // Not under the lock: a watcher may stop watching cells.
+        let watcher = self.watches.locked().get(&c).map(|(_, slot)| Arc::clone(&*slot.locked()));
+        if let Some(watcher) = watcher {
+            for e in run {
+                watcher.edited(e);
+            }
+        }
+    }
+
+    /// Every edited cell and its latest version, as the last message on its subject says (one request a cell, a
+    /// few at a time); a subject whose last message the engine cannot name (deleted: see `load`) is read whole.
+    async fn versions(self: &Arc<Self>) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
+        let mut subjects = self.stream.info_with_subjects(self.cfg.wildcard()).await.map_err(|e| io("info", e))?;
+        let mut cells = Vec::new();
+        while let Some((subject, _)) = subjects.try_next().await.map_err(|e| io("info", e))? {
+            cells.extend(self.cfg.cell_of(&subject));
+        }
+        let mut out: Vec<(CellCoord, u32)> = futures_util::stream::iter(cells)
+            .map(|c| async move {
+                let m = match self.stream.get_last_raw_message_by_subject(&self.cfg.subject(c)).await {
+                    Ok(m) => m,
+                    Err(e) if e.kind() == stream::LastRawMessageErrorKind::NoMessageFound => {
+                        return Ok((c, self.load(c).await?.len() as u32));
+                    }
+                    Err(e) => return Err(io("reading a cell's last edit", e)),
+                };
+                let run = decode_message(Some(&m.headers), &m.payload)
+                    .map_err(|e| EditStoreError::Corrupt(format!("cell {c:?} sequence {}: {e}", m.sequence)))?;
+                Ok((c, run[run.len() - 1].version))
+            })
+            .buffer_unordered(32)
+            .try_collect()
+            .await?;
+        out.retain(|&(_, v)| v > 0);
+        out.sort_unstable();
+        Ok(out)
+    }
+}
+
+/// The header that marks a message as a run of edits ([`encode_run`]); a message without it is one
+/// [`StoredEdit`] (what streams written before runs hold).
+const RUN_HEADER: &str = "Canopy-Run";
+
+/// The edits of a message on a cell's subject: a run, or one edit.
+fn decode_message(headers: Option<&async_nats::HeaderMap>, payload: &[u8]) -> Result<Vec<StoredEdit>, LogError> {
+    match headers.and_then(|h| h.get(RUN_HEADER)) {
+        Some(_) => decode_run(payload),
+        None => StoredEdit::decode(payload).map(|e| vec![e]),
+    }
+}
+
+/// A cell's edits of a group cut into runs: consecutive versions, at most [`MAX_RUN`] a run (a version that does
+/// not follow the one before starts a run of its own, which the store refuses as a conflict).
+fn runs(edits: &[StoredEdit]) -> Vec<&[StoredEdit]> {
+    let mut out = Vec::new();
+    let mut rest = edits;
+    while !rest.is_empty() {
+        let mut n = 1;
+        while n < rest.len().min(MAX_RUN) && rest[n].version == rest[n - 1].version + 1 {
+            n += 1;
+        }
+        let (run, tail) = rest.split_at(n);
+        out.push(run);
+        rest = tail;
+    }
+    out
 }
 
 /// What a message after the one a publish named says of the publish's race ([`race_step`]).
@@ -529,8 +643,9 @@ enum Race {
     Decided,
 }
 
-/// A publish of `version` acknowledged at sequence `ours` meets the message at `sequence` (of `other`'s version,
-/// `None` if it does not decode), the next after the one it named: is that message the race's first, or one to pass?
+/// A publish of a run from `version` acknowledged at sequence `ours` meets the message at `sequence` (a run from
+/// `other`'s version, `None` if it does not decode), the next after the one it named: is that message the race's
+/// first, or one to pass?
 fn race_step(version: u32, ours: u64, sequence: u64, other: Option<u32>) -> Race {
     match other {
         Some(v) if sequence != ours && v < version => Race::Earlier,
@@ -538,8 +653,8 @@ fn race_step(version: u32, ours: u64, sequence: u64, other: Option<u32>) -> Race
     }
 }
 
-/// The fold every reader of a cell's subject applies, given the versions taken so far and the next message's:
-/// `Ok(true)` the message is the next version; `Ok(false)` it names a version already taken — the loser of a race
+/// The fold every reader of a cell's subject applies, given the versions taken so far and the first version of the
+/// next message's run: `Ok(true)` the run is the next versions; `Ok(false)` it starts at a version already taken — the loser of a race
 /// the engine let through, never acknowledged (its writer checked), skipped; `Err` a version skipped: damage.
 fn first_wins(taken: u32, version: u32) -> Result<bool, String> {
     match version {
@@ -549,11 +664,17 @@ fn first_wins(taken: u32, version: u32) -> Result<bool, String> {
     }
 }
 
-/// Forward cell `c`'s edits from subject sequence `next` on to `watcher`, for as long as the task lives: an ordered
-/// consumer of the cell's subject, created again from just after the last edit forwarded whenever it cannot be
-/// created or its stream ends or fails (a node died), with a growing pause between attempts.
-async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, watcher: Arc<dyn EditWatcher>) {
+/// Who a watch tells, replaceable while it runs: a cell read again keeps its watch.
+type WatcherSlot = Arc<Mutex<Arc<dyn EditWatcher>>>;
+
+/// Forward cell `c`'s edits from subject sequence `next` on to the watcher, for as long as the task lives: an ordered
+/// consumer of the cell's subject, created again from just after the last message seen whenever it cannot be created
+/// or its stream ends or fails (a node died), with a growing pause between attempts. `taken` is the cell's version
+/// before `next`; the watch applies the readers' fold (`first_wins`), so a lost race not yet taken out is never told.
+async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, mut taken: u32, watcher: WatcherSlot) {
     let mut pause = WATCH_RETRY;
+    // Once a message does not decode or leaves a gap, this watch no longer moves the kept tail on.
+    let mut damaged = false;
     loop {
         let config = jetstream::consumer::pull::OrderedConfig {
             filter_subject: inner.cfg.subject(c),
@@ -582,21 +703,44 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, watcher: Arc
                     break;
                 }
             };
-            let sequence = m.info().map(|i| i.stream_sequence).ok();
-            if let Some(s) = sequence {
-                next = next.max(s + 1);
-            }
-            match StoredEdit::decode(&m.payload) {
-                Ok(e) if e.cell == c => {
-                    // What this edge's next append to the cell must name as the cell's last edit, and its version.
-                    if let Some(sequence) = sequence {
-                        inner.learn(c, Known { version: e.version, sequence });
+            let Ok(sequence) = m.info().map(|i| i.stream_sequence) else {
+                warn!(?c, "watching the cell: a message without its stream sequence");
+                continue;
+            };
+            next = next.max(sequence + 1);
+            let run = match decode_message(m.headers.as_ref(), &m.payload) {
+                Ok(run) if run[0].cell == c => run,
+                other => {
+                    match other {
+                        Ok(_) => warn!(?c, "a message on the cell's subject names another cell"),
+                        Err(e) => warn!(?c, "watching the cell: sequence {sequence}: {e}"),
                     }
-                    inner.metrics.deltas_in.fetch_add(1, Relaxed);
-                    watcher.edited(e)
+                    // The kept tail stays before it: a read of the cell meets it and reports it.
+                    damaged = true;
+                    continue;
                 }
-                Ok(_) => warn!(?c, "a message on the cell's subject names another cell"),
-                Err(e) => warn!(?c, "watching the cell: {e}"),
+            };
+            let last = run[run.len() - 1].version;
+            let winner = first_wins(taken, run[0].version);
+            if !damaged && let Ok(won) = winner {
+                inner.advance_tail(c, taken, sequence, won.then_some(&run[..]));
+            }
+            match winner {
+                // A lost race its writer has not taken out yet: what the next append must name as the subject's
+                // last message while it stays, not a version.
+                Ok(false) => inner.learn(c, Known { version: 0, sequence }),
+                // The next versions, or a gap (damage): told either way, the watcher reads the cell again on a gap.
+                Ok(true) | Err(_) => {
+                    damaged |= winner.is_err();
+                    taken = last;
+                    // What this edge's next append to the cell must name as the cell's last edit, and its version.
+                    inner.learn(c, Known { version: last, sequence });
+                    inner.metrics.deltas_in.fetch_add(run.len() as u64, Relaxed);
+                    let watcher = Arc::clone(&*watcher.locked());
+                    for e in run {
+                        watcher.edited(e);
+                    }
+                }
             }
         }
         tokio::time::sleep(pause).await;
@@ -605,23 +749,31 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, watcher: Arc
 
 impl EditStore for NatsEditStore {
     fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
+        self.append_cells(edits).into_iter().map(|(_, r)| r).find(Result::is_err).unwrap_or(Ok(()))
+    }
+
+    /// Each cell's runs are published on their own, concurrently: one cell's conflict leaves the others stored.
+    fn append_cells(&self, edits: &[StoredEdit]) -> Vec<(CellCoord, Result<(), EditStoreError>)> {
         let mut by_cell: BTreeMap<CellCoord, Vec<StoredEdit>> = BTreeMap::new();
         for e in edits {
             by_cell.entry(e.cell).or_default().push(e.clone());
         }
+        let cells: Vec<CellCoord> = by_cell.keys().copied().collect();
         let inner = Arc::clone(&self.inner);
-        self.run("appending edits", async move {
+        let all = self.run("appending edits", async move {
             let tasks: Vec<_> =
                 by_cell.into_iter().map(|(c, v)| tokio::spawn(Arc::clone(&inner).append_cell(c, v))).collect();
-            let mut first = Ok(());
+            let mut out = Vec::with_capacity(tasks.len());
             for t in tasks {
-                let r = t.await.map_err(|e| io("append task", e)).and_then(|r| r);
-                if first.is_ok() {
-                    first = r;
-                }
+                out.push(t.await.map_err(|e| io("append task", e)).and_then(|r| r));
             }
-            first
-        })
+            Ok(out)
+        });
+        match all {
+            Ok(each) => cells.into_iter().zip(each).collect(),
+            // No answer in time: whether any cell was stored is not known.
+            Err(e) => cells.into_iter().map(|c| (c, Err(e.clone()))).collect(),
+        }
     }
 
     fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
@@ -631,25 +783,13 @@ impl EditStore for NatsEditStore {
 
     fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError> {
         let inner = Arc::clone(&self.inner);
-        self.run("listing the edited cells", async move {
-            let mut subjects =
-                inner.stream.info_with_subjects(inner.cfg.wildcard()).await.map_err(|e| io("info", e))?;
-            let mut out = Vec::new();
-            while let Some((subject, count)) = subjects.try_next().await.map_err(|e| io("info", e))? {
-                if let Some(c) = inner.cfg.cell_of(&subject) {
-                    out.push((c, u32::try_from(count).unwrap_or(u32::MAX)));
-                }
-            }
-            out.sort_unstable();
-            Ok(out)
-        })
+        self.run("listing the edited cells", async move { inner.versions().await })
     }
 
+    /// The sum of the cells' versions. A subject whose last message is a lost race its writer could not take out
+    /// counts that run's last version (the store then under-counts until the next edit of the cell).
     fn count(&self) -> Result<u64, EditStoreError> {
-        let inner = Arc::clone(&self.inner);
-        self.run("counting the edits", async move {
-            Ok(inner.stream.get_info().await.map_err(|e| io("info", e))?.state.messages)
-        })
+        Ok(self.cells()?.iter().map(|&(_, v)| u64::from(v)).sum())
     }
 
     fn describe(&self) -> String {
@@ -658,18 +798,29 @@ impl EditStore for NatsEditStore {
 
     fn watch(&self, c: CellCoord, watcher: Arc<dyn EditWatcher>) {
         let inner = Arc::clone(&self.inner);
+        let mut watches = self.inner.watches.locked();
+        // A cell read again (another edge's edit, a conflict) keeps the watch it has: the watch folds the subject
+        // itself, so it tells exactly the versions that follow whatever it told before, and a new consumer for
+        // every conflict would cost the engine more than the conflict.
+        if let Some((task, slot)) = watches.get(&c)
+            && !task.is_finished()
+        {
+            *slot.locked() = watcher;
+            return;
+        }
         // The watch starts just after the last message the read of the log saw; it is set up on the store's runtime,
         // not here: a cluster electing a leader can take seconds to create a consumer, and neither the writer nor
         // a loader waits for that (nothing is missed: the consumer starts at that sequence whenever it starts).
-        // From the last message the read saw, not the last this store knows of the cell: this edge's own
-        // publish may be known (learned) but not yet laid into the overlay the read made, and a watch started past
-        // it would deliver the next message — a lost race of the same version, before its writer takes it out —
-        // as the version's edit.
-        let read = inner.tails.locked().peek(&c).map(|t| t.last);
-        let next = read.unwrap_or_else(|| inner.last(c).sequence) + 1;
-        let task = self.handle.spawn(watch_cell(inner, c, next, watcher));
-        let mut watches = self.inner.watches.locked();
-        if let Some(old) = watches.insert(c, task) {
+        let (next, taken) = match inner.tails.locked().peek(&c) {
+            Some(t) => (t.last + 1, t.edits.len() as u32),
+            None => {
+                let k = inner.last(c);
+                (k.sequence + 1, k.version)
+            }
+        };
+        let slot: WatcherSlot = Arc::new(Mutex::new(watcher));
+        let task = self.handle.spawn(watch_cell(inner, c, next, taken, Arc::clone(&slot)));
+        if let Some((old, _)) = watches.insert(c, (task, slot)) {
             old.abort();
         }
         self.metrics.watched.store(watches.len() as u64, Relaxed);
@@ -677,7 +828,7 @@ impl EditStore for NatsEditStore {
 
     fn unwatch(&self, c: CellCoord) {
         let mut watches = self.inner.watches.locked();
-        if let Some(t) = watches.remove(&c) {
+        if let Some((t, _)) = watches.remove(&c) {
             // Dropping the consumer's message stream with its task ends it (an ordered consumer is ephemeral).
             t.abort();
         }

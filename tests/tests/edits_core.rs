@@ -688,3 +688,86 @@ fn an_edit_whose_session_ended_before_it_was_written_is_not_made() {
     assert_eq!(w.edits.count().unwrap(), 1);
     assert_eq!(w.service.metrics().abandoned.load(SeqCst), 1);
 }
+
+/// A store shared with another writer that takes cell `contested`'s next version just before each of this writer's
+/// next `rivals` appends to it (as an edge sharing a busy cell does), storing cells on their own; it counts the
+/// reads of each cell, and `gate` holds an append while the test queues requests behind it.
+struct Rival {
+    inner: MemoryEditStore,
+    contested: CellCoord,
+    rivals: std::sync::atomic::AtomicUsize,
+    reads: std::sync::Mutex<std::collections::BTreeMap<CellCoord, usize>>,
+    gate: std::sync::Mutex<()>,
+}
+
+impl EditStore for Rival {
+    fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
+        self.append_cells(edits).into_iter().map(|(_, r)| r).find(Result::is_err).unwrap_or(Ok(()))
+    }
+    fn append_cells(&self, edits: &[StoredEdit]) -> Vec<(CellCoord, Result<(), EditStoreError>)> {
+        drop(self.gate.lock().unwrap());
+        let mut cells: Vec<CellCoord> = edits.iter().map(|e| e.cell).collect();
+        cells.dedup();
+        let mut out = Vec::new();
+        for c in cells {
+            if c == self.contested && self.rivals.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok() {
+                let version = self.inner.load(c).unwrap().len() as u32 + 1;
+                let op = canopy_server::edits::CellEdit::Set { index: 0, params: vec![(0, version as f32)] };
+                self.inner.append(&[StoredEdit { cell: c, version, op }]).unwrap();
+            }
+            let mine: Vec<StoredEdit> = edits.iter().filter(|e| e.cell == c).cloned().collect();
+            out.push((c, self.inner.append(&mine)));
+        }
+        out
+    }
+    fn load(&self, c: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError> {
+        *self.reads.lock().unwrap().entry(c).or_default() += 1;
+        self.inner.load(c)
+    }
+    passes_through!(inner);
+}
+
+#[test]
+fn writers_sharing_a_busy_cell_take_turns_and_a_conflict_in_one_cell_holds_back_no_other() {
+    let (a, b, c) = (CellCoord::new(0, 0), CellCoord::new(1, 0), CellCoord::new(-1, 0));
+    // More conflicts in a row than a writer used to try (three) before it answered `conflict`.
+    let store = Arc::new(Rival {
+        inner: MemoryEditStore::new(),
+        contested: a,
+        rivals: 5.into(),
+        reads: Default::default(),
+        gate: Default::default(),
+    });
+    let w = world_over(Arc::clone(&store) as Arc<dyn EditStore>);
+    let alice = w.cfg.editors.as_ref().unwrap().find(&ALICE).unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let submit = |tag: char, x: f32| {
+        let op = EditOp::Plant { species: 0, x, z: 5.0, params: vec![] };
+        let tx = tx.clone();
+        let reply = Box::new(move |o: EditOutcome| tx.send((tag, o)).unwrap());
+        w.service.submit(canopy_server::EditJob { op, editor: Arc::clone(&alice), reply });
+    };
+    // A first edit (cell c) holds the writer in its append while the next two queue: they make one group.
+    let gate = store.gate.lock().unwrap();
+    submit('c', -20.0);
+    std::thread::sleep(Duration::from_millis(100));
+    submit('a', 5.0);
+    submit('b', 40.0);
+    std::thread::sleep(Duration::from_millis(100));
+    drop(gate);
+    let mut answers: Vec<(char, EditOutcome)> =
+        (0..3).map(|_| rx.recv_timeout(Duration::from_secs(10)).unwrap()).collect();
+    answers.sort_by_key(|(t, _)| *t);
+    let acked = |o: &EditOutcome| match o {
+        EditOutcome::Ok { version, .. } => *version,
+        other => panic!("{other:?}"),
+    };
+    // Cell b was stored with the group and acknowledged without being read again; cell a, after five turns of the
+    // other writer, takes the version after them.
+    assert_eq!(answers.iter().map(|(t, o)| (*t, acked(o))).collect::<Vec<_>>(), [('a', 6), ('b', 1), ('c', 1)]);
+    let reads = store.reads.lock().unwrap().clone();
+    assert_eq!(reads[&b], 1, "cell b read once, to prepare its edit: {reads:?}");
+    assert!(reads[&a] > 5, "cell a read again after each conflict: {reads:?}");
+    assert_eq!(w.edits.load(a).unwrap().len(), 6);
+    assert_eq!(version(&w, a), 6);
+}

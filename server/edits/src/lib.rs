@@ -21,7 +21,7 @@ pub mod sqlite;
 pub mod store;
 pub mod suite;
 
-pub use log::{CellEdit, LogError, StoredEdit};
+pub use log::{CellEdit, LogError, MAX_RUN, StoredEdit, decode_run, encode_run};
 pub use overlay::{Overlay, OverlayError};
 pub use rules::{EditRules, MAX_PARAM_VALUE};
 pub use sqlite::SqliteEditStore;

@@ -117,6 +117,62 @@ impl StoredEdit {
     }
 }
 
+/// Most edits one stored run holds ([`encode_run`]).
+pub const MAX_RUN: usize = 256;
+
+/// Most bytes one stored run may take.
+pub const MAX_RUN_BYTES: usize = MAX_RUN * MAX_STORED_EDIT;
+
+/// A run of consecutive versions of one cell as a message log stores it: one message, one compare-and-set, for
+/// every edit a group made to the cell ([`encode_run`], [`decode_run`]).
+#[derive(Serialize, Deserialize)]
+struct Run {
+    cell: CellCoord,
+    first: u32,
+    ops: Vec<CellEdit>,
+}
+
+/// Encode `edits`, consecutive versions of one cell (1 to [`MAX_RUN`] of them), as one run.
+///
+/// # Panics
+/// If the edits are not such a run: a writer's bug.
+pub fn encode_run(edits: &[StoredEdit]) -> Vec<u8> {
+    let first = edits.first().expect("a run holds an edit");
+    assert!(edits.len() <= MAX_RUN, "a run of {} edits", edits.len());
+    assert!(
+        edits.iter().zip(first.version..).all(|(e, v)| e.cell == first.cell && e.version == v),
+        "a run is consecutive versions of one cell"
+    );
+    let run = Run { cell: first.cell, first: first.version, ops: edits.iter().map(|e| e.op.clone()).collect() };
+    postcard::to_allocvec(&run).expect("encoding into a Vec cannot fail")
+}
+
+/// Decode a stored run into its edits, bounded and checked like [`StoredEdit::decode`] (at most [`MAX_RUN`] edits,
+/// versions from 1 that do not overflow).
+pub fn decode_run(bytes: &[u8]) -> Result<Vec<StoredEdit>, LogError> {
+    if bytes.len() > MAX_RUN_BYTES {
+        return Err(LogError::TooLarge(bytes.len()));
+    }
+    let (run, rest): (Run, &[u8]) = postcard::take_from_bytes(bytes).map_err(|e| LogError::Decode(e.to_string()))?;
+    if !rest.is_empty() {
+        return Err(LogError::Decode(format!("{} trailing bytes", rest.len())));
+    }
+    if run.ops.is_empty() || run.ops.len() > MAX_RUN {
+        return Err(LogError::Decode(format!("a run of {} edits (1 to {MAX_RUN})", run.ops.len())));
+    }
+    if run.first == 0 || run.first.checked_add(run.ops.len() as u32).is_none() {
+        return Err(LogError::Decode(format!("a run from version {}", run.first)));
+    }
+    run.ops
+        .into_iter()
+        .zip(run.first..)
+        .map(|(op, version)| {
+            CellEdit::decode(&op.encode())?;
+            Ok(StoredEdit { cell: run.cell, version, op })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -144,5 +200,40 @@ mod tests {
         let nan = CellEdit::Set { index: 0, params: vec![(1, f32::NAN)] }.encode();
         assert!(matches!(CellEdit::decode(&nan), Err(LogError::Params(_))));
         assert!(matches!(CellEdit::decode(&[0; 600]), Err(LogError::TooLarge(600))));
+    }
+
+    #[test]
+    fn runs_round_trip_and_bad_runs_are_refused() {
+        let cell = CellCoord::new(-3, 7);
+        let ops = [
+            CellEdit::Plant { index: 9, record: InstanceRecord::new(1, 2, 3), params: vec![(0, 1.5)] },
+            CellEdit::Fell { index: 2 },
+            CellEdit::Set { index: 9, params: vec![(1, -2.0)] },
+        ];
+        let edits: Vec<StoredEdit> =
+            ops.iter().zip(41..).map(|(op, version)| StoredEdit { cell, version, op: op.clone() }).collect();
+        let bytes = encode_run(&edits);
+        assert_eq!(decode_run(&bytes), Ok(edits.clone()));
+        assert!(bytes.len() < 40, "a run of three edits takes {} bytes", bytes.len());
+        let full: Vec<StoredEdit> =
+            (1..=MAX_RUN as u32).map(|v| StoredEdit { cell, version: v, op: CellEdit::Fell { index: 1 } }).collect();
+        assert_eq!(decode_run(&encode_run(&full)).map(|r| r.len()), Ok(MAX_RUN));
+
+        let run = |first: u32, ops: Vec<CellEdit>| postcard::to_allocvec(&Run { cell, first, ops }).unwrap();
+        assert!(matches!(decode_run(&run(1, vec![])), Err(LogError::Decode(_))), "an empty run");
+        let long = vec![CellEdit::Fell { index: 0 }; MAX_RUN + 1];
+        assert!(matches!(decode_run(&run(1, long)), Err(LogError::Decode(_))), "a run too long");
+        assert!(matches!(decode_run(&run(0, ops.to_vec())), Err(LogError::Decode(_))), "version 0");
+        assert!(matches!(decode_run(&run(u32::MAX - 1, ops.to_vec())), Err(LogError::Decode(_))), "overflow");
+        let nan = vec![CellEdit::Set { index: 0, params: vec![(1, f32::NAN)] }];
+        assert!(matches!(decode_run(&run(1, nan)), Err(LogError::Params(_))));
+        let mut trailing = bytes.clone();
+        trailing.push(0);
+        assert!(matches!(decode_run(&trailing), Err(LogError::Decode(_))));
+        assert!(matches!(decode_run(&vec![0; MAX_RUN_BYTES + 1]), Err(LogError::TooLarge(_))));
+        // A huge declared length is refused without allocating for it.
+        let mut lying = postcard::to_allocvec(&(cell, 1u32)).unwrap();
+        lying.extend_from_slice(&[0xff, 0xff, 0xff, 0xff, 0x0f]);
+        assert!(decode_run(&lying).is_err());
     }
 }

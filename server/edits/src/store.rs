@@ -9,7 +9,7 @@ use canopy_protocol::sync::Locked;
 use crate::log::StoredEdit;
 
 /// Why a store could not do what it was asked.
-#[derive(Debug, thiserror::Error)]
+#[derive(Clone, Debug, thiserror::Error)]
 pub enum EditStoreError {
     /// A `(cell, version)` of the group is already stored (another writer got there first): nothing of the group
     /// was stored.
@@ -60,6 +60,14 @@ pub trait EditStore: Send + Sync + 'static {
     fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError>;
     /// A cell's edits in version order (empty for a cell never edited).
     fn load(&self, cell: CellCoord) -> Result<Vec<StoredEdit>, EditStoreError>;
+    /// Store a group as [`EditStore::append`] does, and say for each of its cells (in cell order) whether that
+    /// cell's edits were stored: a store without multi-key transactions stores cells on their own, and a writer
+    /// then acknowledges the cells stored without reading them again. By default every cell gets `append`'s answer.
+    fn append_cells(&self, edits: &[StoredEdit]) -> Vec<(CellCoord, Result<(), EditStoreError>)> {
+        let result = self.append(edits);
+        let cells: std::collections::BTreeSet<CellCoord> = edits.iter().map(|e| e.cell).collect();
+        cells.into_iter().map(|c| (c, result.clone())).collect()
+    }
     /// Every edited cell and its latest version, in cell order.
     fn cells(&self) -> Result<Vec<(CellCoord, u32)>, EditStoreError>;
     /// How many edits are stored.

@@ -58,7 +58,15 @@ pub fn check_ledger<'a>(
     for (cell, acks) in by_cell {
         let log: Vec<StoredEdit> = store.load(cell)?;
         l.stored += log.len() as u64;
-        for a in acks {
+        // Each content stored (a plant's species, position and parameters; a fell's or set's target): the versions
+        // that hold it.
+        let mut stored: BTreeMap<Vec<u8>, Vec<u32>> = BTreeMap::new();
+        for e in &log {
+            stored.entry(content(&e.op)).or_default().push(e.version);
+        }
+        // Each content acknowledged: the versions its answers named (two bots may ask for the same plant).
+        let mut asked: BTreeMap<Vec<u8>, Vec<u32>> = BTreeMap::new();
+        for a in &acks {
             l.acknowledged += 1;
             let at = log.iter().find(|e| e.version == a.version);
             let kept = at.is_some_and(|e| e.op.index() == a.id.index() && same_content(&e.op, &a.op, cell, grid));
@@ -68,15 +76,49 @@ pub fn check_ledger<'a>(
                     format!("lost: {:?} acknowledged as version {} of cell {cell:?}, stored: {at:?}", a.op, a.version)
                 });
             }
-            let copies = log.iter().filter(|e| same_content(&e.op, &a.op, cell, grid)).count() as u64;
-            if copies > 1 {
-                l.duplicated += copies - 1;
-                l.first_problem
-                    .get_or_insert_with(|| format!("duplicated: {:?} stored {copies} times in cell {cell:?}", a.op));
+            asked.entry(asked_content(&a.op, cell, grid)).or_default().push(a.version);
+        }
+        // Copies beyond the requests that asked for a content are duplicates.
+        for (key, versions) in &asked {
+            let copies = stored.get(key).map_or(&[][..], Vec::as_slice);
+            if copies.len() > versions.len() {
+                l.duplicated += (copies.len() - versions.len()) as u64;
+                l.first_problem.get_or_insert_with(|| {
+                    let op = acks.iter().find(|a| asked_content(&a.op, cell, grid) == *key);
+                    format!(
+                        "duplicated: {:?} stored {} times in cell {cell:?} (versions {copies:?}), acknowledged as \
+                         versions {versions:?}",
+                        op.map(|a| &a.op),
+                        copies.len()
+                    )
+                });
             }
         }
     }
     Ok(l)
+}
+
+/// What a stored edit did, without the index a plant happened to take (a copy takes the next one).
+fn content(op: &CellEdit) -> Vec<u8> {
+    match op {
+        CellEdit::Plant { record, params, .. } => {
+            CellEdit::Plant { index: 0, record: *record, params: params.clone() }.encode()
+        }
+        op => op.encode(),
+    }
+}
+
+/// [`content`] of what `op` asked for in `cell`.
+fn asked_content(op: &EditOp, cell: CellCoord, grid: &Grid) -> Vec<u8> {
+    let edit = match op {
+        EditOp::Plant { species, x, z, params } => {
+            let [qx, qz] = grid.steps(cell, (*x).into(), (*z).into());
+            CellEdit::Plant { index: 0, record: InstanceRecord::new(*species, qx, qz), params: params.clone() }
+        }
+        EditOp::Fell { id } => CellEdit::Fell { index: id.index() },
+        EditOp::Set { id, params } => CellEdit::Set { index: id.index(), params: params.clone() },
+    };
+    content(&edit)
 }
 
 #[cfg(test)]
@@ -112,5 +154,13 @@ mod tests {
         store.append(&[stored(2, 41)]).unwrap();
         let dup = check_ledger(&store, &grid, &[ack(1, 40)]).unwrap();
         assert_eq!((dup.lost, dup.duplicated, dup.stored), (0, 1, 2));
+        assert!(dup.first_problem.unwrap().contains("versions [1, 2]"));
+        // Two bots that asked for the same plant, each acknowledged: no duplicate.
+        let both = check_ledger(&store, &grid, &[ack(1, 40), ack(2, 41)]).unwrap();
+        assert_eq!((both.lost, both.duplicated), (0, 0));
+        // A third copy is one too many.
+        store.append(&[stored(3, 42)]).unwrap();
+        let three = check_ledger(&store, &grid, &[ack(1, 40), ack(2, 41)]).unwrap();
+        assert_eq!((three.lost, three.duplicated), (0, 1));
     }
 }
