@@ -191,15 +191,23 @@ struct Request {
     job: EditJob,
     /// Edits tried for it whose append failed, oldest first.
     attempts: Vec<StoredEdit>,
-    /// When it was submitted (conflicts are tried again until [`CONFLICT_WAIT`] after).
-    since: Instant,
+    /// Conflicts it met (another writer took the cell's version first), and when the first was.
+    conflicts: (usize, Option<Instant>),
     /// Why it waits, when it came back for another reason than a conflict.
     waiting: Waiting,
 }
 
 impl Request {
-    fn new(job: EditJob, since: Instant) -> Request {
-        Request { job, attempts: Vec::new(), since, waiting: Waiting::No }
+    fn new(job: EditJob) -> Request {
+        Request { job, attempts: Vec::new(), conflicts: (0, None), waiting: Waiting::No }
+    }
+
+    /// Count a conflict; whether the request has met enough to be answered `conflict` ([`CONFLICT_WAIT`]).
+    fn conflicted(&mut self) -> bool {
+        let (n, first) = &mut self.conflicts;
+        *n += 1;
+        let since = *first.get_or_insert_with(Instant::now);
+        *n > CONFLICT_RETRIES && since.elapsed() >= CONFLICT_WAIT
     }
 
     /// The attempt `overlay` holds at its version, if any: the request's outcome.
@@ -250,10 +258,14 @@ fn edit_id(e: &StoredEdit) -> InstanceId {
     InstanceId::new(e.cell, e.op.index()).expect("a grid cell can be named")
 }
 
-/// How long a request that meets conflicts (another writer took the cell's version) is checked and written again
-/// before it is answered `conflict`: writers that share a busy cell take turns on it, and each turn costs a conflict
-/// to all but one of them.
+/// How long a request that meets conflicts (another writer took the cell's version) is checked and written again,
+/// from its first conflict and at least [`CONFLICT_RETRIES`] times, before it is answered `conflict`: writers that
+/// share a busy cell take turns on it, and each turn costs a conflict to all but one of them. (Time spent waiting
+/// for a store in an election does not count.)
 pub const CONFLICT_WAIT: Duration = Duration::from_secs(2);
+
+/// The fewest conflicts a request meets before it is answered `conflict`.
+pub const CONFLICT_RETRIES: usize = 3;
 
 /// The first pause before requests whose fate is not known yet (their cell's log could not be read) are looked at
 /// again; it doubles up to [`UNKNOWN_PAUSE_MAX`].
@@ -300,11 +312,11 @@ impl Writer {
             let started = first.as_ref().map_or_else(Instant::now, |f| f.1);
             let mut requests = std::mem::take(&mut carried);
             let (fresh, unknown) = (requests.len(), waiting(&requests));
-            if let Some((job, at)) = first {
-                requests.push(Request::new(job, at));
+            if let Some((job, _)) = first {
+                requests.push(Request::new(job));
                 while requests.len() - fresh < MAX_GROUP {
                     match rx.try_recv() {
-                        Ok((j, at)) => requests.push(Request::new(j, at)),
+                        Ok((j, _)) => requests.push(Request::new(j)),
                         Err(_) => break,
                     }
                 }
@@ -492,12 +504,14 @@ impl Writer {
             let kept = Request::kept(std::iter::once(&e).chain(&request.attempts), overlay);
             let outcome = match error {
                 _ if let Some(kept) = kept => EditOutcome::Ok { id: edit_id(kept), version: kept.version },
-                EditStoreError::Conflict { .. } if request.since.elapsed() < CONFLICT_WAIT => {
-                    request.attempts.push(e);
-                    again.push(request);
-                    continue;
+                EditStoreError::Conflict { .. } => {
+                    if !request.conflicted() {
+                        request.attempts.push(e);
+                        again.push(request);
+                        continue;
+                    }
+                    EditOutcome::Conflict
                 }
-                EditStoreError::Conflict { .. } => EditOutcome::Conflict,
                 // Not stored now, but the append may yet land: tried again (the same edit at the same version
                 // where the cell is unchanged, so a store that deduplicates takes it once) after a pause, found
                 // when it lands, never answered by a guess.
