@@ -190,8 +190,10 @@ pub const IMAGE_SIDE: u32 = 384;
 pub struct VolumeImage {
     /// The image.
     pub image: Image,
-    /// `generated 123,456 voxels in 80 ms, raymarched in 120 ms` and the like.
+    /// `generated 64×64×64 voxels in 80 ms, raymarched in 120 ms` and the like.
     pub summary: String,
+    /// The same without the times (`generated 64×64×64 voxels, raymarched`).
+    pub untimed: String,
 }
 
 /// The work behind a raymarched view, taken from the model so it can run on another thread.
@@ -234,6 +236,7 @@ impl VolumeJob {
         Ok(VolumeImage {
             image,
             summary: format!("{what} {}×{}×{} voxels in {made:.0} ms, raymarched in {marched:.0} ms", r[0], r[1], r[2]),
+            untimed: format!("{what} {}×{}×{} voxels, raymarched", r[0], r[1], r[2]),
         })
     }
 }

@@ -221,6 +221,13 @@ impl SpeciesStats {
 
     /// The report, one line each: species, instance, primitives, encoded, explicit, traversal, mesh, lod.
     pub fn lines(&self) -> Vec<String> {
+        self.lines_timed(true)
+    }
+
+    /// [`Stats::lines`], with the times measured or (`times` false: a picture that must not change run to run)
+    /// a dash in their place.
+    pub fn lines_timed(&self, times: bool) -> Vec<String> {
+        let ms = |v: f64| if times { format!("{v:.3}") } else { "–".into() };
         let n = self.primitives;
         let lod = self
             .lod
@@ -242,16 +249,16 @@ impl SpeciesStats {
                 ratio(self.explicit as f64 / self.encoded as f64)
             ),
             format!(
-                "traversal   {:.3} ms median of {} ({:.2} M primitives/s)",
-                self.traversal_ms,
+                "traversal   {} ms median of {} ({} M primitives/s)",
+                ms(self.traversal_ms),
                 self.repeat,
-                n as f64 / self.traversal_ms / 1e3
+                if times { format!("{:.2}", n as f64 / self.traversal_ms / 1e3) } else { "–".into() }
             ),
             format!(
-                "mesh        {} triangles, {} vertices in {:.3} ms",
+                "mesh        {} triangles, {} vertices in {} ms",
                 thousands(self.triangles as u64),
                 thousands(self.vertices as u64),
-                self.mesh_ms
+                ms(self.mesh_ms)
             ),
             format!("lod         {} level(s): {lod}", self.lod.len()),
         ]

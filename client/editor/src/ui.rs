@@ -145,6 +145,9 @@ pub struct EditorUi {
     /// Near-field mode: a species that declares `nearfield(…)` is drawn with its continuous mesh (true) or its
     /// primitives (false); see [`crate::preview`].
     pub near_field: bool,
+    /// Whether measured times are shown (the stats panel, the raymarch's status line); off, a dash stands in for
+    /// them, so a screenshot is the same run to run.
+    pub show_times: bool,
     stats: StatsPanel,
     volume: Option<VolumeImage>,
     volume_job: Option<(u64, Receiver<Result<hyp::VolumeImage, String>>)>,
@@ -169,6 +172,7 @@ impl EditorUi {
             preview_px: [640, 480],
             export_path,
             near_field: true,
+            show_times: true,
             stats: StatsPanel {
                 worker: StatsWorker::new().map_err(|e| format!("starting the stats thread: {e}")),
                 shown: None,
@@ -347,7 +351,7 @@ impl EditorUi {
                 let texture = ctx.load_texture("volume", image, egui::TextureOptions::LINEAR);
                 self.volume = Some(VolumeImage { revision, texture });
                 self.volume_error = None;
-                self.status = img.summary;
+                self.status = if self.show_times { img.summary } else { img.untimed };
             }
             Err(e) => self.volume_error = Some(e),
         }
@@ -572,7 +576,7 @@ impl EditorUi {
                 if stale {
                     ui.label(RichText::new("measuring… (the numbers below are of an earlier model)").italics().small());
                 }
-                for line in s.lines() {
+                for line in s.lines_timed(self.show_times) {
                     ui.label(RichText::new(line).monospace().small());
                 }
                 ui.label(RichText::new(format!("stream hash {:016x}", s.stream_hash)).monospace().small());
