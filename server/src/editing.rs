@@ -18,7 +18,7 @@ use canopy_edits::{CellEdit, EditStoreError, Overlay, StoredEdit};
 use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, InstanceId, InstanceRecord};
-use tracing::{info, warn};
+use tracing::{debug, warn};
 
 use crate::live::{EditHub, LiveStore};
 use canopy_session::Editor;
@@ -46,6 +46,8 @@ pub struct EditMetrics {
     pub commit_time: Histogram,
     /// Requests dropped unwritten because their session ended first.
     pub abandoned: AtomicU64,
+    /// Cells of a group whose append met a conflict (another writer changed the cell first).
+    pub cell_conflicts: AtomicU64,
     /// Stored edits not served: the world cannot take them, or they do not decode ([`LiveStore::skipped`]).
     pub skipped: Arc<AtomicU64>,
 }
@@ -416,7 +418,9 @@ impl Writer {
         for (cell, e) in &failed {
             match e {
                 EditStoreError::Conflict { version, .. } => {
-                    info!(?cell, version, "another writer changed the cell first: checking its edits again")
+                    self.metrics.cell_conflicts.fetch_add(1, Relaxed);
+                    // Routine where edges share busy cells: counted, not logged at info.
+                    debug!(?cell, version, "another writer changed the cell first: checking its edits again")
                 }
                 e => warn!(?cell, "writing the cell's edits: {e}"),
             }
@@ -462,9 +466,7 @@ impl Writer {
         errors: &BTreeMap<CellCoord, EditStoreError>,
     ) -> Vec<Request> {
         // Each cell read once again (and watched again, for a shared store): what the sessions get, and what says
-        // which edits were stored. The cells at once, a thread each: a network store's reads are round trips, and
-        // writers sharing busy cells lose several of them a turn.
-        // A cell lost to another writer whose overlay here is already past the version tried (the store told of the
+        // which edits were stored. A cell lost to another writer whose overlay here is already past the version tried (the store told of the
         // winner, or a watch did) is not read: what this server holds is the store's fold.
         let mut read: BTreeMap<CellCoord, Arc<Overlay>> = BTreeMap::new();
         bases.retain(|c, _| {
@@ -477,6 +479,8 @@ impl Writer {
                 _ => true,
             }
         });
+        // The others at once, a thread each: a network store's reads are round trips, and writers sharing busy
+        // cells lose several of them a turn.
         let reads: Vec<(CellCoord, Result<Arc<Overlay>, EditStoreError>)> = std::thread::scope(|s| {
             let reading: Vec<_> =
                 bases.iter().map(|(c, base)| (*c, s.spawn(move || self.live.reload(*c, base)))).collect();

@@ -277,6 +277,8 @@ impl Metrics {
             metric("canopy_edits_skipped_total", "counter", help, &one(&e.skipped));
             let help = "Edits dropped unwritten because their session ended before they were written.";
             metric("canopy_edits_abandoned_total", "counter", help, &one(&e.abandoned));
+            let help = "Cells of a group another writer had changed first (their edits go round again).";
+            metric("canopy_edit_cell_conflicts_total", "counter", help, &one(&e.cell_conflicts));
         }
         if let Some(e) = self.engine.get() {
             metric("canopy_engine_watched_cells", "gauge", "Cells whose edits this edge watches.", &one(&e.watched));

@@ -771,4 +771,5 @@ fn writers_sharing_a_busy_cell_take_turns_and_a_conflict_in_one_cell_holds_back_
     assert_eq!(w.edits.load(a).unwrap().len(), 6);
     assert_eq!(version(&w, a), 6);
     assert_eq!((version(&w, b), version(&w, c)), (1, 1));
+    assert_eq!(w.service.metrics().cell_conflicts.load(SeqCst), 5, "one conflict a turn of the other writer");
 }
