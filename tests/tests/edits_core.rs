@@ -706,8 +706,7 @@ impl EditStore for Rival {
     }
     fn append_cells(&self, edits: &[StoredEdit]) -> Vec<(CellCoord, Result<(), EditStoreError>)> {
         drop(self.gate.lock().unwrap());
-        let mut cells: Vec<CellCoord> = edits.iter().map(|e| e.cell).collect();
-        cells.dedup();
+        let cells: std::collections::BTreeSet<CellCoord> = edits.iter().map(|e| e.cell).collect();
         let mut out = Vec::new();
         for c in cells {
             if c == self.contested && self.rivals.fetch_update(SeqCst, SeqCst, |n| n.checked_sub(1)).is_ok() {
