@@ -619,19 +619,8 @@ fn decode_message(headers: Option<&async_nats::HeaderMap>, payload: &[u8]) -> Re
 
 /// A cell's edits of a group cut into runs: consecutive versions, at most [`MAX_RUN`] a run (a version that does
 /// not follow the one before starts a run of its own, which the store refuses as a conflict).
-fn runs(edits: &[StoredEdit]) -> Vec<&[StoredEdit]> {
-    let mut out = Vec::new();
-    let mut rest = edits;
-    while !rest.is_empty() {
-        let mut n = 1;
-        while n < rest.len().min(MAX_RUN) && rest[n].version == rest[n - 1].version + 1 {
-            n += 1;
-        }
-        let (run, tail) = rest.split_at(n);
-        out.push(run);
-        rest = tail;
-    }
-    out
+fn runs(edits: &[StoredEdit]) -> impl Iterator<Item = &[StoredEdit]> {
+    edits.chunk_by(|a, b| b.version == a.version + 1).flat_map(|run| run.chunks(MAX_RUN))
 }
 
 /// What a message after the one a publish named says of the publish's race ([`race_step`]).

@@ -32,16 +32,7 @@ pub struct EditLedger {
 
 /// Whether the stored `edit` is what `op` asked for in `cell` (a plant at any index: a copy takes the next one).
 fn same_content(edit: &CellEdit, op: &EditOp, cell: CellCoord, grid: &Grid) -> bool {
-    match (edit, op) {
-        (CellEdit::Plant { record, params, .. }, EditOp::Plant { species, x, z, params: asked }) => {
-            let [qx, qz] = grid.steps(cell, (*x).into(), (*z).into());
-            let q = InstanceRecord::new(*species, qx, qz);
-            *record == q && params == asked
-        }
-        (CellEdit::Fell { index }, EditOp::Fell { id }) => *index == id.index(),
-        (CellEdit::Set { index, params }, EditOp::Set { id, params: asked }) => *index == id.index() && params == asked,
-        _ => false,
-    }
+    content(edit) == asked_content(op, cell, grid)
 }
 
 /// Check `acknowledged` against `store` (every cell they touched is read once) on the world's `grid`.
