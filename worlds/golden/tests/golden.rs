@@ -1,19 +1,23 @@
 //! Golden determinism vectors: hashes of the primitive stream and mesh of every library species for fixed seeds
-//! and detail levels, committed in `tests/golden/amplify.txt`, and of the cells of 16 blocks of 4 × 4 cells of both
-//! embedded worlds (`tests/golden/cells.txt`: cell expansion is held to the same rule as amplification), and of
-//! far-view summary nodes of both worlds at levels 0, 2, 4 and 6 (`tests/golden/summaries.txt`). The same test
-//! binary runs natively, under qemu for
-//! aarch64 and under node's WASI for wasm32 in CI (`.ci/cross-determinism`), so a change in any platform's
-//! floating point, libm or RNG path shows up as a mismatch here.
+//! and detail levels (`vectors/amplify.txt`), of the cells of 16 blocks of 4 × 4 cells of both embedded worlds
+//! (`vectors/cells.txt`: cell expansion is held to the same rule as amplification), of far-view summary nodes of
+//! both worlds at levels 0, 2, 4 and 6 (`vectors/summaries.txt`), and of hypertree generation and rendering. The
+//! same test binary runs natively, under qemu for aarch64 and under node's WASI for wasm32 in CI
+//! (`.ci/cross-determinism`), so a change in any platform's floating point, libm or RNG path shows up as a mismatch
+//! here. It lives in a package of its own, `canopy-golden`, whose only dependencies are canopy-worlds,
+//! canopy-protocol and postcard: the cross-platform builds compile those and not canopy-worlds' dev-dependencies.
 //!
-//! To re-bless after an intended change: `CANOPY_BLESS=1 cargo test -p canopy-worlds --test golden` and review
-//! the diff of the golden file.
+//! To re-bless after an intended change: `CANOPY_BLESS=1 cargo test -p canopy-golden` and review the diff of the
+//! vector files (the hypertree hashes are constants below; their tests print the new values).
 
 use canopy_worlds::amplify::{Budget, Instance, amplify};
+use canopy_worlds::hypertree::generate::{GenerateOptions, generate};
+use canopy_worlds::hypertree::render::{RenderOptions, render};
+use canopy_worlds::hypertree::{Hypertree, StorageType};
 use canopy_worlds::library::SPECIES;
 use canopy_worlds::mesh::{MeshOptions, mesh};
 
-const GOLDEN: &str = include_str!("golden/amplify.txt");
+const GOLDEN: &str = include_str!("../vectors/amplify.txt");
 const SEEDS: [u64; 3] = [0, 1, 0xdead_beef];
 const DETAILS: [u8; 3] = [0, 1, 2];
 
@@ -38,21 +42,24 @@ fn vectors() -> Vec<String> {
     lines
 }
 
+/// Checks `got` against a committed vector file's lines (`#` starts a comment line), first difference first. Only
+/// `CANOPY_BLESS=1` rewrites the file instead (any other value, `0` or empty, checks) and gives `None`.
+fn check_vectors(file: &str, committed: &'static str, got: &[String], what: &str) -> Option<Vec<&'static str>> {
+    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
+        std::fs::write(format!("{}/vectors/{file}", env!("CARGO_MANIFEST_DIR")), got.join("\n") + "\n").unwrap();
+        return None;
+    }
+    let want: Vec<&str> = committed.lines().filter(|l| !l.starts_with('#')).collect();
+    for (g, w) in got.iter().zip(&want) {
+        assert_eq!(g, w, "{what} differs from the golden vector");
+    }
+    assert_eq!(got.len(), want.len(), "number of golden vectors in {file}");
+    Some(want)
+}
+
 #[test]
 fn amplification_matches_golden_vectors() {
-    let got = vectors().join("\n") + "\n";
-    // Only `CANOPY_BLESS=1` rewrites the vectors; any other value (`0`, empty) checks them.
-    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/golden/amplify.txt");
-        std::fs::write(path, &got).unwrap();
-        return;
-    }
-    let want: Vec<&str> = GOLDEN.lines().filter(|l| !l.starts_with('#')).collect();
-    let got: Vec<&str> = got.lines().collect();
-    for (g, w) in got.iter().zip(&want) {
-        assert_eq!(g, w, "amplification differs from the golden vector (species seed detail count stream mesh)");
-    }
-    assert_eq!(got.len(), want.len(), "number of golden vectors");
+    check_vectors("amplify.txt", GOLDEN, &vectors(), "amplification (species seed detail count stream mesh)");
 }
 
 // wasm32-wasip1 has no threads; the native and aarch64 runs cover this.
@@ -131,19 +138,10 @@ fn cell_vectors() -> Vec<String> {
 
 #[test]
 fn cell_expansion_matches_golden_vectors() {
-    const CELLS: &str = include_str!("golden/cells.txt");
-    let got = cell_vectors().join("\n") + "\n";
-    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
-        std::fs::write(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/golden/cells.txt"), &got).unwrap();
-        return;
+    let cells = include_str!("../vectors/cells.txt");
+    if let Some(want) = check_vectors("cells.txt", cells, &cell_vectors(), "cell expansion (world x z count hash)") {
+        assert!(want.iter().filter(|l| !l.contains(" 0 ")).count() > 100, "the golden cells hold instances");
     }
-    let want: Vec<&str> = CELLS.lines().filter(|l| !l.starts_with('#')).collect();
-    let got: Vec<&str> = got.lines().collect();
-    for (g, w) in got.iter().zip(&want) {
-        assert_eq!(g, w, "cell expansion differs from the golden vector (world x z count hash)");
-    }
-    assert_eq!(got.len(), want.len(), "number of golden cells");
-    assert!(want.iter().filter(|l| !l.contains(" 0 ")).count() > 100, "the golden cells hold instances");
 }
 
 /// Far-view summary nodes whose encoding is golden, `(world, level, x, z)`: the default world's cells, quadrants
@@ -235,17 +233,76 @@ fn summary_vectors() -> Vec<String> {
 
 #[test]
 fn summaries_match_golden_vectors() {
-    const SUMMARIES: &str = include_str!("golden/summaries.txt");
-    let got = summary_vectors().join("\n") + "\n";
-    if std::env::var_os("CANOPY_BLESS").is_some_and(|v| v == "1") {
-        std::fs::write(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/golden/summaries.txt"), &got).unwrap();
-        return;
+    let nodes = include_str!("../vectors/summaries.txt");
+    let what = "a summary node (world level x z species total hash)";
+    if let Some(want) = check_vectors("summaries.txt", nodes, &summary_vectors(), what) {
+        assert!(want.iter().filter(|l| !l.contains(" 0 0 ")).count() > 40, "the golden nodes hold instances");
     }
-    let want: Vec<&str> = SUMMARIES.lines().filter(|l| !l.starts_with('#')).collect();
-    let got: Vec<&str> = got.lines().collect();
-    for (g, w) in got.iter().zip(&want) {
-        assert_eq!(g, w, "a summary node differs from the golden vector (world level x z species total hash)");
+}
+
+// ---------------------------------------------------------------------------------------------------------------
+// Hypertrees (seed 000): generation and rendering
+
+fn hypertree(name: &str, storage: StorageType, res: u32, iterations: u64) -> Hypertree {
+    let def = canopy_worlds::hypertree::library::find(name)
+        .unwrap_or_else(|| panic!("no library hypertree {name}"))
+        .load()
+        .expect("library parses");
+    let opts =
+        GenerateOptions { storage, resolution: Some([res; 3]), iterations: Some(iterations), ..Default::default() };
+    generate(&def, 1, &opts, &mut |_, _| {}).expect("generates").0
+}
+
+/// Golden hashes: resolution 64, 30 000 iterations, seed 1, index list. Any change to the RNG addressing, the
+/// pipelines, the density classes or the voxel mapping changes them.
+const HYPERTREES: [(&str, u64, usize); 5] = [
+    ("apple", 0xee04c5d588274a7d, 10783),
+    ("spruce", 0xd76a14611ecb1086, 1522),
+    ("willow", 0xf05132875e89ce07, 18924),
+    ("fork", 0xa872258fc6fff22a, 7505),
+    ("perturbed", 0x869b076f71d3f80e, 6103),
+];
+
+#[test]
+fn generation_is_deterministic_golden() {
+    let mut report = Vec::new();
+    for (name, hash, voxels) in HYPERTREES {
+        let t = hypertree(name, StorageType::IndexList, 64, 30_000);
+        let again = hypertree(name, StorageType::IndexList, 64, 30_000);
+        assert_eq!(t.hash(), again.hash(), "{name} is not deterministic");
+        report.push(format!("(\"{name}\", 0x{:016x}, {}),", t.hash(), t.len()));
+        if hash != 0 {
+            assert_eq!((t.hash(), t.len()), (hash, voxels), "{name} changed; now {}", report.last().expect("pushed"));
+        }
     }
-    assert_eq!(got.len(), want.len(), "number of golden summary nodes");
-    assert!(want.iter().filter(|l| !l.contains(" 0 0 ")).count() > 40, "the golden nodes hold instances");
+    assert!(HYPERTREES.iter().all(|g| g.1 != 0), "pin the golden values:\n{}", report.join("\n"));
+}
+
+#[test]
+fn render_golden_and_png() {
+    let t = hypertree("apple", StorageType::IndexBits, 64, 30_000);
+    let (img, stats) = render(
+        &t,
+        &RenderOptions { width: 64, height: 64, supersample: 2, ..RenderOptions::default() },
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert!(stats.rays > 0);
+    let again = render(
+        &t,
+        &RenderOptions { width: 64, height: 64, supersample: 2, ..RenderOptions::default() },
+        &mut |_, _| {},
+    )
+    .unwrap()
+    .0;
+    assert_eq!(img.hash(), again.hash());
+    // The tree covers the middle of the image and leaves the corners to the sky.
+    let sky = img.pixel(0, 0);
+    let centre = img.pixel(32, 30);
+    assert_ne!(sky, centre);
+    assert!(centre[1] >= centre[2], "foliage is greener than it is blue: {centre:?}");
+    let png = img.encode_png().unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    const GOLDEN_RENDER: u64 = 0x8f39_f0cb_3183_bba2;
+    assert_eq!(img.hash(), GOLDEN_RENDER, "render changed: now 0x{:016x}", img.hash());
 }
