@@ -1,15 +1,13 @@
 //! Live edits on the wire: byte snapshots of the edit, its result, the cell delta, resume and refresh messages and
 //! the versioned batch, their phases, and rejection of hostile values.
 
-mod wire;
-
+use crate::wire::{check_client, check_server};
 use canopy_protocol::edit::{CellDelta, Edit, EditOp, EditOutcome, EditResult, Planted, Resume, ResumeCell};
 use canopy_protocol::messages::{ClientHandshake, ClientStreaming, ServerStreaming};
 use canopy_protocol::record::PackedF32;
 use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, MessageError, Phase, ServerMsg, netlimits,
 };
-use wire::{check_client, check_server};
 
 fn edit(op: EditOp) -> ClientMsg {
     ClientMsg::Streaming(ClientStreaming::Edit(Edit { request: 300, op }))

@@ -1,8 +1,7 @@
 //! The streaming protocol's wire: byte snapshots of every message variant, round trips, phase legality, framing,
 //! and rejection of malformed, oversized and hostile bytes (a stable-toolchain stand-in for the fuzz targets).
 
-mod wire;
-
+use crate::wire::{check_client, check_server, hex};
 use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
 use canopy_protocol::edit::CellDelta;
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
@@ -16,7 +15,6 @@ use canopy_protocol::{
     CellBatch, CellCoord, ClientMsg, InstanceId, InstanceRecord, MessageError, POSITION_STEPS, PROTOCOL_VERSION, Phase,
     ServerMsg, SpeciesHash, netlimits,
 };
-use wire::{check_client, check_server, hex};
 
 fn viewpoint() -> Viewpoint {
     Viewpoint { seq: 7, position: [100.5, -20.25], yaw: 1.5, velocity: [3.0, -4.0], radius: 160.0 }

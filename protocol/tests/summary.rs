@@ -1,15 +1,13 @@
 //! Far-view summaries on the wire (issue 15): byte snapshots of the far view and the summaries message, round
 //! trips, bounds, and mutated bytes that must never panic a decoder.
 
-mod wire;
-
+use crate::wire::{check_client, check_server};
 use canopy_protocol::messages::{ClientStreaming, ServerStreaming};
 use canopy_protocol::summary::{
     FarView, MAX_BATCH_NODES, MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover, SummaryBatch,
 };
 use canopy_protocol::xorshift::XorShift64;
 use canopy_protocol::{ClientMsg, MessageError, ServerMsg};
-use wire::{check_client, check_server};
 
 fn far_view() -> FarView {
     FarView { error_px: 16.0, height_px: 1080, fov_y: 1.0, range: 20_000.0, altitude: 1500.0 }

@@ -3,8 +3,6 @@
 //! from all of them; a client that reconnects is sent only the deltas it missed, no cell again; read-only sessions
 //! and unknown tokens are denied and change nothing. Every wait is bounded: a hang fails the test.
 
-mod support;
-
 use std::collections::HashMap;
 use std::future::Future;
 use std::net::SocketAddr;
@@ -12,6 +10,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
 use std::time::Duration;
 
+use crate::support::{ALICE, BOB, CELL, base};
 use canopy_client::expand::Expander;
 use canopy_client::net::endpoint;
 use canopy_client::state::{ClientState, Event, InstanceView};
@@ -25,7 +24,6 @@ use canopy_server::edits::{EditStore, MemoryEditStore};
 use canopy_server::session::editor_line;
 use canopy_server::session::{Editors, GridStore, SessionConfig, WorldStore};
 use canopy_server::{EditService, Edits, ServeOptions, Served, ServerConfig, serve_store};
-use support::{ALICE, BOB, CELL, base};
 
 /// Far more than any wait here should take, short enough that a hang fails well within CI's patience.
 const WAIT: Duration = Duration::from_secs(20);

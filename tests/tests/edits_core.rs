@@ -3,18 +3,16 @@
 //! apply in one order and every client converges on the store; denied and invalid edits leave no trace; a version
 //! gap brings the whole cell again; a client that reconnects gets only what changed since its versions.
 
-mod support;
-
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::support::*;
 use canopy_client::state::{ClientState, Event};
 use canopy_protocol::edit::{CellDelta, EditOp, EditOutcome};
 use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::ServerStreaming;
 use canopy_protocol::{CellCoord, InstanceId, ServerMsg};
 use canopy_server::edits::{EditStore, EditStoreError, MemoryEditStore, StoredEdit};
-use support::*;
 
 /// The part of a test store that passes through to the memory store it wraps (`self.$inner`).
 macro_rules! passes_through {

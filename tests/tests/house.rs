@@ -1,7 +1,7 @@
 //! House rules, checked over the whole tree (rust-analyzer's tidy test in spirit): the crate dependency rules that
-//! ARCHITECTURE.md states, read from `cargo metadata`; every Rust file opens with a `//!` line; the sans-IO cores
-//! read no clock and use no tokio or quinn; no `#[ignore]` without a reason; no file over 1,000 lines unless it is
-//! listed below with its reason.
+//! ARCHITECTURE.md states, read from `cargo metadata`; every Rust file opens with a `//!` line; every file in a
+//! `tests/` directory is compiled; the sans-IO cores read no clock and use no tokio or quinn; no `#[ignore]` without
+//! a reason; no file over 1,000 lines unless it is listed below with its reason.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -69,9 +69,9 @@ const FORBIDDEN: &[(&str, &[&str])] = &[
     ("canopy-harness", &["wgpu", "winit", "canopy-render", "canopy-server-app"]),
 ];
 
-/// Each workspace package's name and its normal dependencies' closure, from `cargo metadata`.
-fn dependency_closures() -> BTreeMap<String, BTreeSet<String>> {
-    // Resolved for the host only: other platforms' dependencies (Android, Windows) need not be downloaded.
+/// `cargo metadata` of the workspace, resolved for the host only: other platforms' dependencies (Android, Windows)
+/// need not be downloaded.
+fn metadata() -> serde_json::Value {
     let rustc = std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
     let version = Command::new(rustc).arg("-vV").output().expect("rustc -vV runs");
     let version = String::from_utf8(version.stdout).expect("UTF-8");
@@ -83,7 +83,12 @@ fn dependency_closures() -> BTreeMap<String, BTreeSet<String>> {
         .output()
         .expect("cargo metadata runs");
     assert!(out.status.success(), "cargo metadata failed: {}", String::from_utf8_lossy(&out.stderr));
-    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON");
+    serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON")
+}
+
+/// Each workspace package's name and its normal dependencies' closure, from `cargo metadata`.
+fn dependency_closures() -> BTreeMap<String, BTreeSet<String>> {
+    let meta = metadata();
     let names: BTreeMap<String, String> = meta["packages"]
         .as_array()
         .expect("packages")
@@ -185,6 +190,55 @@ fn rust_files() -> Vec<PathBuf> {
 
 fn relative(p: &Path) -> String {
     p.strip_prefix(root()).unwrap_or(p).display().to_string()
+}
+
+/// Every `.rs` file directly in a package's `tests/` directory is compiled: it is the root of a test target, or a
+/// module (`mod name;`) of a root beside it. A package whose integration tests are one binary of modules
+/// (`autotests = false`) would otherwise leave a new file out without a word.
+#[test]
+fn every_test_file_is_compiled() {
+    let meta = metadata();
+    let members: BTreeSet<&str> =
+        meta["workspace_members"].as_array().expect("members").iter().filter_map(|m| m.as_str()).collect();
+    let roots: BTreeSet<PathBuf> = meta["packages"]
+        .as_array()
+        .expect("packages")
+        .iter()
+        .filter(|p| members.contains(p["id"].as_str().expect("id")))
+        .flat_map(|p| p["targets"].as_array().expect("targets"))
+        .filter(|t| t["kind"].as_array().expect("kind").iter().any(|k| k == "test"))
+        .map(|t| PathBuf::from(t["src_path"].as_str().expect("src_path")))
+        .collect();
+    assert!(roots.len() > 10, "found only {} test targets", roots.len());
+    // A package's own `tests/` directory (beside its Cargo.toml), not a `tests` module inside `src/`.
+    let in_tests_dir = |p: &&PathBuf| {
+        p.parent().is_some_and(|d| {
+            d.file_name().is_some_and(|n| n == "tests")
+                && d.parent().is_some_and(|pkg| pkg.join("Cargo.toml").is_file())
+        })
+    };
+    let mut checked = 0;
+    let mut loose = Vec::new();
+    for file in rust_files().iter().filter(in_tests_dir) {
+        checked += 1;
+        if roots.contains(file) {
+            continue;
+        }
+        let stem = file.file_stem().and_then(|s| s.to_str()).expect("UTF-8 file name");
+        let declared = roots
+            .iter()
+            .filter(|r| r.parent() == file.parent())
+            .any(|r| std::fs::read_to_string(r).expect("readable").lines().any(|l| l.trim() == format!("mod {stem};")));
+        if !declared {
+            loose.push(relative(file));
+        }
+    }
+    assert!(checked > 40, "found only {checked} files in tests/ directories");
+    assert!(
+        loose.is_empty(),
+        "test files no target compiles (name them `mod x;` in their binary):\n{}",
+        loose.join("\n")
+    );
 }
 
 #[test]

@@ -1,6 +1,6 @@
 //! The species library of seeds 001 and 003: every file parses and amplifies, and each model has the shape, size
-//! and level-of-detail behaviour its paper describes. `cargo test -p canopy-worlds --test library -- --nocapture`
-//! prints the counts per kind and the encoded sizes that `counts_by_kind_and_detail_level` checks.
+//! and level-of-detail behaviour its paper describes.
+//! `cargo test -p canopy-worlds --test worlds library:: -- --nocapture` prints the counts per kind and the encoded sizes that `counts_by_kind_and_detail_level` checks.
 
 use std::collections::HashMap;
 

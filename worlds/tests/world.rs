@@ -2,7 +2,7 @@
 //! (Poisson-disk spacing, density by altitude and slope, parameters), the cell index, the position grid, the
 //! terrain's height surface against the amplified terrain mesh, and the embedded default world.
 //!
-//! `cargo test -p canopy-worlds --test world -- --nocapture` prints the default world's summary.
+//! `cargo test -p canopy-worlds --test worlds world:: -- --nocapture` prints the default world's summary.
 
 use std::collections::HashMap;
 use std::path::Path;
