@@ -1,11 +1,13 @@
 //! One bounded least-recently-used map for every cache in Canopy (the server's overlays and summary nodes, the far
-//! field's memo, the harness's ground truth and meshes): entries carry a cost (bytes, or 1 for a count bound), and
-//! the caller evicts the oldest down to its bound, told what left so that it can act on it (stop a watch, count an
-//! eviction). Eviction order is by use only, so it is the same on every machine.
+//! field's memo, the harness's ground truth and meshes, the renderer's resident geometry): entries carry a cost
+//! (bytes, or 1 for a count bound), and the caller evicts the oldest down to its bound, told what left so that it
+//! can act on it (stop a watch, count an eviction). Eviction order is by use only, so it is the same on every
+//! machine.
 
 use std::collections::{BTreeMap, HashMap};
 use std::hash::Hash;
 
+#[derive(Debug)]
 struct Slot<V> {
     value: V,
     cost: usize,
@@ -13,6 +15,7 @@ struct Slot<V> {
 }
 
 /// A map that remembers the order its entries were last used in (see the module docs).
+#[derive(Debug)]
 pub struct Lru<K, V> {
     map: HashMap<K, Slot<V>>,
     /// Keys by last use, oldest first.
@@ -94,6 +97,12 @@ impl<K: Hash + Eq + Clone, V> Lru<K, V> {
         Some(slot.value)
     }
 
+    /// The least recently used entry (not a use).
+    pub fn oldest(&self) -> Option<(&K, &V)> {
+        let key = self.order.values().next()?;
+        Some((key, &self.map[key].value))
+    }
+
     /// Take out the least recently used entry other than `keep`.
     pub fn pop_oldest(&mut self, keep: Option<&K>) -> Option<(K, V)> {
         let key = self.order.values().find(|k| keep != Some(*k))?.clone();
@@ -139,6 +148,7 @@ mod tests {
         l.insert(3, "c", 10);
         assert_eq!(l.get(&1), Some(&mut "a"));
         assert_eq!(l.cost(), 30);
+        assert_eq!(l.oldest(), Some((&2, &"b")));
         // 2 is the oldest now, then 3; 3 is kept.
         let out = l.evict_to(10, Some(&3));
         assert_eq!(out, vec![(2, "b"), (1, "a")]);

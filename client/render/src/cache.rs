@@ -3,8 +3,10 @@
 //! for upload budget, and least-recently-used eviction. [`GeometryCache::upload`] places geometry in the arenas and
 //! hands each placement to a writer: the renderer's buffer writes, or nothing in tests.
 
-use std::collections::{BTreeSet, HashMap, HashSet, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::ops::Range;
+
+use canopy_protocol::lru::Lru;
 
 use super::arena::Arena;
 use super::geometry::{MeshVertex, PrimInstance, TreeGeometry};
@@ -53,9 +55,8 @@ pub struct GeometryCache {
     prim_arena: Arena,
     vert_arena: Arena,
     index_arena: Arena,
-    entries: HashMap<TreeKey, CacheEntry>,
-    /// Resident keys by the frame that last drew them, oldest first.
-    lru: BTreeSet<(u64, TreeKey)>,
+    /// Resident keys, least recently drawn first (each costs 1: the arenas bound what fits).
+    entries: Lru<TreeKey, CacheEntry>,
     /// Keys asked of the workers and not yet uploaded (or given up): never asked for twice.
     pending: HashSet<TreeKey>,
     /// Keys whose geometry did not fit the cache, by the frame they were given up; retried after
@@ -74,8 +75,7 @@ impl GeometryCache {
             prim_arena: Arena::new(prim_units),
             vert_arena: Arena::new(vert_units),
             index_arena: Arena::new(index_units),
-            entries: HashMap::new(),
-            lru: BTreeSet::new(),
+            entries: Lru::new(),
             pending: HashSet::new(),
             deferred: HashMap::new(),
             failed: HashSet::new(),
@@ -85,7 +85,7 @@ impl GeometryCache {
 
     /// The resident entry of a key.
     pub fn get(&self, key: &TreeKey) -> Option<&CacheEntry> {
-        self.entries.get(key)
+        self.entries.peek(key)
     }
 
     /// Whether a key is being made or waits for upload.
@@ -127,10 +127,9 @@ impl GeometryCache {
 
     /// Mark a resident key as drawn in `frame` (no-op for a key not resident).
     pub fn touch(&mut self, key: TreeKey, frame: u64) {
-        let Some(e) = self.entries.get_mut(&key) else { return };
-        if e.last_used != frame {
-            self.lru.remove(&(e.last_used, key));
-            self.lru.insert((frame, key));
+        if self.entries.peek(&key).is_some_and(|e| e.last_used != frame)
+            && let Some(e) = self.entries.get(&key)
+        {
             e.last_used = frame;
         }
     }
@@ -160,12 +159,10 @@ impl GeometryCache {
     /// Evict the least recently drawn entry, unless the previous frame drew it (this frame most likely draws it
     /// again); false when nothing could be evicted.
     fn evict_one(&mut self, frame: u64) -> bool {
-        let Some(&(last, key)) = self.lru.iter().next() else { return false };
-        if last + 1 >= frame {
+        if self.entries.oldest().is_none_or(|(_, e)| e.last_used + 1 >= frame) {
             return false;
         }
-        self.lru.remove(&(last, key));
-        if let Some(e) = self.entries.remove(&key) {
+        if let Some((_, e)) = self.entries.pop_oldest(None) {
             self.free(e);
         }
         true
@@ -247,10 +244,8 @@ impl GeometryCache {
             stats.uploaded_bytes += bytes;
             // A stale duplicate (requested again after an eviction) replaces the old entry.
             if let Some(old) = self.entries.remove(&key) {
-                self.lru.remove(&(old.last_used, key));
                 self.free(old);
             }
-            self.lru.insert((frame, key));
             let entry = CacheEntry {
                 prims: placed.prims,
                 shape_ranges: geo.shape_ranges.clone(),
@@ -258,7 +253,7 @@ impl GeometryCache {
                 indices: placed.indices,
                 last_used: frame,
             };
-            self.entries.insert(key, entry);
+            self.entries.insert(key, entry, 1);
         }
     }
 }
