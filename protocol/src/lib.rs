@@ -9,7 +9,7 @@ pub mod edit;
 pub mod expr;
 pub mod farview;
 pub mod frame;
-pub mod grant;
+mod grant;
 pub mod hypertree;
 pub mod limits;
 pub mod lru;
@@ -19,7 +19,7 @@ pub mod record;
 pub mod species;
 pub mod summary;
 pub mod sync;
-pub mod world;
+mod world;
 pub mod xorshift;
 
 pub use expr::{Expr, Func, Op};

@@ -58,7 +58,7 @@ impl Refusal {
 
 /// What to do with an incoming connection.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Verdict {
+pub(crate) enum Verdict {
     /// Go on with the handshake (it now holds a handshake slot).
     Accept,
     /// Answer with a QUIC Retry (no state kept).
@@ -69,7 +69,7 @@ pub enum Verdict {
 
 /// The counts admission decides on.
 #[derive(Debug, Default)]
-pub struct Admission {
+pub(crate) struct Admission {
     cfg: AdmissionConfig,
     handshaking: usize,
     clients: usize,
@@ -78,12 +78,12 @@ pub struct Admission {
 
 impl Admission {
     /// Admission under `cfg`, with nobody connected.
-    pub fn new(cfg: AdmissionConfig) -> Admission {
+    pub(crate) fn new(cfg: AdmissionConfig) -> Admission {
         Admission { cfg, ..Admission::default() }
     }
 
     /// An incoming connection from `source`; `validated`: its address is proved (after a Retry).
-    pub fn incoming(&mut self, source: IpAddr, validated: bool) -> Verdict {
+    pub(crate) fn incoming(&mut self, source: IpAddr, validated: bool) -> Verdict {
         let from_source = self.per_source.get(&source).copied().unwrap_or(0);
         let verdict = if from_source >= self.cfg.max_per_source {
             Verdict::Refuse(Refusal::PerSource)
@@ -105,7 +105,7 @@ impl Admission {
 
     /// An accepted handshake from `source` ended: completed (`true`: it takes a client slot if one is free, and the
     /// answer says whether it did) or failed.
-    pub fn handshake_done(&mut self, source: IpAddr, completed: bool) -> bool {
+    pub(crate) fn handshake_done(&mut self, source: IpAddr, completed: bool) -> bool {
         self.handshaking = self.handshaking.saturating_sub(1);
         if completed && self.clients < self.cfg.max_clients {
             self.clients += 1;
@@ -117,7 +117,7 @@ impl Admission {
     }
 
     /// A client from `source` that held a client slot left.
-    pub fn closed(&mut self, source: IpAddr) {
+    pub(crate) fn closed(&mut self, source: IpAddr) {
         self.clients = self.clients.saturating_sub(1);
         self.release(source);
     }
@@ -133,25 +133,25 @@ impl Admission {
 
     /// Clients holding a slot now.
     #[cfg(test)]
-    pub fn clients(&self) -> usize {
+    pub(crate) fn clients(&self) -> usize {
         self.clients
     }
 
     /// Handshakes in flight now.
     #[cfg(test)]
-    pub fn handshaking(&self) -> usize {
+    pub(crate) fn handshaking(&self) -> usize {
         self.handshaking
     }
 
     /// Whether the server is near capacity (nine tenths of the client slots taken): then sessions that hold a slot
     /// without streaming may be closed.
-    pub fn near_capacity(&self) -> bool {
+    pub(crate) fn near_capacity(&self) -> bool {
         self.clients.saturating_mul(10) >= self.cfg.max_clients.saturating_mul(9)
     }
 
     /// Source addresses with a connection now (the per-source table's size; it holds no more).
     #[cfg(test)]
-    pub fn sources(&self) -> usize {
+    pub(crate) fn sources(&self) -> usize {
         self.per_source.len()
     }
 }

@@ -36,7 +36,7 @@ use canopy_session::{
 use canopy_session::{SummaryLru, Waiters};
 
 /// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
-pub const BLOCK: i32 = 4;
+pub(crate) const BLOCK: i32 = 4;
 
 /// How a cell cache runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -44,7 +44,7 @@ use canopy_session::{CellWaker, WorldStore};
 use canopy_session::{SendBudget, Session, SessionConfig, StreamId};
 
 /// UDP socket buffer size: 1,000 concurrent handshakes on loopback overflow the default buffers.
-pub const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
+pub(crate) const SOCKET_BUFFER: usize = 4 * 1024 * 1024;
 
 /// Bytes of unacknowledged send data quinn keeps per connection (224 KiB: ~36 Mbit/s at 50 ms round trip).
 pub const SEND_WINDOW: u64 = 224 * 1024;

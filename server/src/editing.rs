@@ -26,9 +26,9 @@ use canopy_session::counters::Histogram;
 use canopy_session::{CellData, CellState, WorldStore};
 
 /// Most requests written in one group.
-pub const MAX_GROUP: usize = 4096;
+pub(crate) const MAX_GROUP: usize = 4096;
 /// Most requests waiting for the writer; beyond, new ones are denied at once.
-pub const MAX_QUEUED: usize = 65_536;
+pub(crate) const MAX_QUEUED: usize = 65_536;
 /// How long the writer waits for a cell's expansion, or for its log to be readable, before it gives up on an edit
 /// of it.
 const CELL_WAIT: Duration = Duration::from_secs(30);
@@ -264,10 +264,10 @@ fn edit_id(e: &StoredEdit) -> InstanceId {
 /// from its first conflict and at least [`CONFLICT_RETRIES`] times, before it is answered `conflict`: writers that
 /// share a busy cell take turns on it, and each turn costs a conflict to all but one of them. (Time spent waiting
 /// for a store in an election does not count.)
-pub const CONFLICT_WAIT: Duration = Duration::from_secs(2);
+pub(crate) const CONFLICT_WAIT: Duration = Duration::from_secs(2);
 
 /// The fewest conflicts a request meets before it is answered `conflict`.
-pub const CONFLICT_RETRIES: usize = 3;
+pub(crate) const CONFLICT_RETRIES: usize = 3;
 
 /// The first pause before requests whose fate is not known yet (their cell's log could not be read) are looked at
 /// again; it doubles up to [`UNKNOWN_PAUSE_MAX`].

@@ -139,7 +139,7 @@ impl Overlays {
 }
 
 /// Threads reading cells' edit logs.
-pub const LOADERS: usize = 2;
+pub(crate) const LOADERS: usize = 2;
 
 /// A cell whose log is to be read, with its world-function records, or without them only to tell whether it is
 /// edited (the same cell is the same load).
@@ -202,7 +202,7 @@ struct Shared {
 }
 
 /// A cell's world-function records and its overlay.
-pub type BaseAndOverlay = (Arc<CellData>, Arc<Overlay>);
+pub(crate) type BaseAndOverlay = (Arc<CellData>, Arc<Overlay>);
 
 /// The live world (see the module docs).
 pub struct LiveStore {

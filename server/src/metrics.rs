@@ -14,7 +14,7 @@ use canopy_protocol::messages::ByKind;
 use canopy_protocol::sync::Locked;
 
 use canopy_protocol::messages::ServerMsgKind;
-pub use canopy_session::counters::{CellMetrics, Histogram};
+pub(crate) use canopy_session::counters::{CellMetrics, Histogram};
 
 use crate::admission::Refusal;
 

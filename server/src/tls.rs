@@ -11,7 +11,7 @@ use quinn::rustls;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 
 /// Names the certificate is issued for.
-pub const CERT_NAMES: [&str; 2] = ["localhost", "canopy"];
+pub(crate) const CERT_NAMES: [&str; 2] = ["localhost", "canopy"];
 
 /// A certificate and its private key.
 #[derive(Debug)]
@@ -110,7 +110,7 @@ impl Identity {
 }
 
 /// The ALPN of HTTP/3, under which browsers speak WebTransport.
-pub const WEB_ALPN: &[u8] = b"h3";
+pub(crate) const WEB_ALPN: &[u8] = b"h3";
 
 /// How long a WebTransport certificate is valid. Browsers accept a pinned certificate (`serverCertificateHashes`)
 /// only when it is valid for at most 14 days.

@@ -8,7 +8,7 @@ use canopy_protocol::{Expr, Func, Op, limits};
 
 /// A source of random bits for the drawing functions (`rand`, `uniform`, `normal`, `chance`, `choose`) and of
 /// position-keyed noise.
-pub trait Draw {
+pub(crate) trait Draw {
     /// The next 32 random bits in the current context.
     fn next_u32(&mut self) -> u32;
     /// A uniform value in [0, 1) that depends only on the instance seed and the bits of `x` and `y`.
@@ -16,7 +16,7 @@ pub trait Draw {
 }
 
 /// A [`Draw`] for contexts with no instance (constant folding): draws yield 0.
-pub struct NoDraw;
+pub(crate) struct NoDraw;
 
 impl Draw for NoDraw {
     fn next_u32(&mut self) -> u32 {
@@ -29,19 +29,19 @@ impl Draw for NoDraw {
 
 /// A float in [0, 1) from the top 24 bits: `(bits >> 8) · 2⁻²⁴`, exact in f32.
 #[inline]
-pub fn unit_f32(bits: u32) -> f32 {
+pub(crate) fn unit_f32(bits: u32) -> f32 {
     (bits >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
 /// A float in (0, 1] from the top 24 bits: `((bits >> 8) + 1) · 2⁻²⁴`, exact in f32 (safe for `ln`).
 #[inline]
-pub fn open_unit_f32(bits: u32) -> f32 {
+pub(crate) fn open_unit_f32(bits: u32) -> f32 {
     ((bits >> 8) + 1) as f32 * (1.0 / 16_777_216.0)
 }
 
 /// Truthiness in expressions: false is zero or NaN.
 #[inline]
-pub fn truthy(v: f32) -> bool {
+pub(crate) fn truthy(v: f32) -> bool {
     v != 0.0 && !v.is_nan()
 }
 
@@ -53,7 +53,7 @@ fn b(v: bool) -> f32 {
 /// Evaluate a validated expression. `params` must hold at least as many values as the expression's slots refer
 /// to (guaranteed for expressions of a validated species graph). The work is at most `expr.ops.len()` steps.
 #[inline(always)]
-pub fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
+pub(crate) fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
     match eval_simple(expr, params) {
         Some(v) => v,
         None => eval_stack(expr, params, detail, draw),
@@ -63,7 +63,7 @@ pub fn eval<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &m
 /// The commonest shapes without the stack machine: a constant, a parameter, and one arithmetic or comparison
 /// operator on two of them. `None` for anything else. Computes exactly what [`eval_stack`] computes.
 #[inline(always)]
-pub fn eval_simple(expr: &Expr, params: &[f32]) -> Option<f32> {
+pub(crate) fn eval_simple(expr: &Expr, params: &[f32]) -> Option<f32> {
     #[inline(always)]
     fn leaf(op: &Op, params: &[f32]) -> Option<f32> {
         match op {
@@ -96,7 +96,7 @@ pub fn eval_simple(expr: &Expr, params: &[f32]) -> Option<f32> {
 
 /// The general stack machine (see [`eval`]).
 #[inline(never)]
-pub fn eval_stack<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
+pub(crate) fn eval_stack<D: Draw + ?Sized>(expr: &Expr, params: &[f32], detail: f32, draw: &mut D) -> f32 {
     // The stack never holds more values than there are operations: short expressions get a small stack, which
     // is cheaper to set up.
     if expr.ops.len() <= 16 {

@@ -18,11 +18,11 @@ use crate::text::{Cursor, ParseError};
 
 /// Deepest nesting of parentheses and operators the parser accepts before giving up (no stack overflow on
 /// hostile input).
-pub const MAX_NESTING: usize = 64;
+pub(crate) const MAX_NESTING: usize = 64;
 
 /// A unary operator.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum UnOp {
+pub(crate) enum UnOp {
     /// `-a`.
     Neg,
     /// `!a`.
@@ -31,7 +31,7 @@ pub enum UnOp {
 
 /// A binary operator with eager operands.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BinOp {
+pub(crate) enum BinOp {
     /// `+`.
     Add,
     /// `-`.
@@ -60,7 +60,7 @@ pub enum BinOp {
 
 /// A parsed expression.
 #[derive(Clone, Debug, PartialEq)]
-pub enum Ast {
+pub(crate) enum Ast {
     /// A number literal.
     Num(f32),
     /// A parameter name, resolved at compile time.
@@ -85,37 +85,25 @@ pub enum Ast {
 
 impl Ast {
     /// `a op b`.
-    pub fn bin(op: BinOp, a: Ast, b: Ast) -> Ast {
+    pub(crate) fn bin(op: BinOp, a: Ast, b: Ast) -> Ast {
         Ast::Binary(op, Box::new(a), Box::new(b))
     }
 
     /// `c ? a : b`.
-    pub fn cond(c: Ast, a: Ast, b: Ast) -> Ast {
+    pub(crate) fn cond(c: Ast, a: Ast, b: Ast) -> Ast {
         Ast::Cond(Box::new(c), Box::new(a), Box::new(b))
     }
 
     /// A reference to a parameter by name (with an empty span).
-    pub fn var(name: &str) -> Ast {
+    pub(crate) fn var(name: &str) -> Ast {
         Ast::Var(name.to_string(), 0..0)
-    }
-
-    /// Whether evaluating may draw from the instance RNG.
-    pub fn draws(&self) -> bool {
-        match self {
-            Ast::Num(_) | Ast::Var(..) | Ast::Detail => false,
-            Ast::Unary(_, a) => a.draws(),
-            Ast::Binary(_, a, b) | Ast::And(a, b) | Ast::Or(a, b) => a.draws() || b.draws(),
-            Ast::Cond(c, a, b) => c.draws() || a.draws() || b.draws(),
-            Ast::Call(f, args) => f.draws() || args.iter().any(Ast::draws),
-            Ast::Choose(_) => true,
-        }
     }
 }
 
 /// Parse one expression at the cursor. The cursor stops after the expression. An expression with a constant
 /// sub-expression that folds to a non-finite value is an error at the expression's span (see
 /// [`non_finite_constant`]).
-pub fn parse_expr(cur: &mut Cursor<'_>) -> Result<Ast, ParseError> {
+pub(crate) fn parse_expr(cur: &mut Cursor<'_>) -> Result<Ast, ParseError> {
     cur.skip_trivia();
     let start = cur.pos;
     let ast = Parser { cur: &mut *cur, depth: 0 }.cond()?;
@@ -129,7 +117,7 @@ pub fn parse_expr(cur: &mut Cursor<'_>) -> Result<Ast, ParseError> {
 /// an infinity, as in `0 / 0`, `1 / 0`, `sqrt(-1)`, `ln(0)` or `1e30 * 1e30` — if any. Sub-expressions fold as
 /// [`compile`] folds them: bottom-up, with the evaluator traversal uses, and never across `?:`, `&&`, `||`, a
 /// random draw or `noise`.
-pub fn non_finite_constant(ast: &Ast) -> Option<f32> {
+pub(crate) fn non_finite_constant(ast: &Ast) -> Option<f32> {
     fold(ast).err()
 }
 
@@ -219,7 +207,7 @@ fn binary_op(op: BinOp) -> Op {
 }
 
 /// Parse a whole string as one expression (for tests and command-line parameter values).
-pub fn parse_str(src: &str) -> Result<Ast, ParseError> {
+pub(crate) fn parse_str(src: &str) -> Result<Ast, ParseError> {
     let mut cur = Cursor::new(src, true);
     let ast = parse_expr(&mut cur)?;
     if !cur.at_end() {
@@ -414,7 +402,7 @@ impl Parser<'_, '_> {
 }
 
 /// Compile an [`Ast`], resolving parameter names to slots with `resolve`. Unknown names are errors at their span.
-pub fn compile(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>) -> Result<Expr, ParseError> {
+pub(crate) fn compile(ast: &Ast, resolve: &mut dyn FnMut(&str) -> Option<u16>) -> Result<Expr, ParseError> {
     let mut ops = Vec::new();
     emit(ast, resolve, &mut ops)?;
     if ops.len() > limits::MAX_EXPR_OPS {

@@ -6,8 +6,8 @@
 
 pub mod amplify;
 pub mod diag;
-pub mod eval;
-pub mod expr;
+mod eval;
+mod expr;
 pub mod fsread;
 pub mod gltf;
 pub mod hypertree;
@@ -16,11 +16,11 @@ pub mod load;
 pub mod lsystem;
 pub mod mesh;
 pub mod nearfield;
-pub mod nodes;
+mod nodes;
 pub mod primitive;
 pub mod rng;
 pub mod species_text;
-pub mod text;
+mod text;
 pub mod transform;
 pub(crate) mod vec3;
 pub mod world;

@@ -29,7 +29,7 @@ use crate::expr::{Ast, compile, parse_expr};
 use crate::text::{Cursor, ParseError};
 
 /// Names of the calls this module parses.
-pub const NODE_CALLS: [&str; 17] = [
+pub(crate) const NODE_CALLS: [&str; 17] = [
     "translate",
     "rotate",
     "rotx",
@@ -53,7 +53,7 @@ pub const NODE_CALLS: [&str; 17] = [
 /// factor, trunk height, base and top radii, tilt spread (degrees), cusps of the hypocycloid, generator ellipse
 /// count, curve resolution, base randomiser factor, the transition (0 generator ellipses, 1 quadrifolium) and the
 /// perturbation's seed (drawn per instance).
-pub const TRUNKBASE_ARGS: [(&str, &str); TrunkBaseNode::LEN] = [
+pub(crate) const TRUNKBASE_ARGS: [(&str, &str); TrunkBaseNode::LEN] = [
     ("spread", "2"),
     ("height", "1.5"),
     ("bottom", "0.4"),
@@ -70,7 +70,7 @@ pub const TRUNKBASE_ARGS: [(&str, &str); TrunkBaseNode::LEN] = [
 /// The arguments of `nearfield(...)` in positional order, with their defaults: continuous mesh (non-zero: yes),
 /// contour resolution, junction refinement by intervals (non-zero: yes), bark depth in metres (0: single bark),
 /// chisel mode (1 shrink, 2 remove, 3 both) and the two chisel factors.
-pub const NEARFIELD_ARGS: [(&str, &str); NearFieldNode::LEN] = [
+pub(crate) const NEARFIELD_ARGS: [(&str, &str); NearFieldNode::LEN] = [
     ("continuous", "1"),
     ("contour", "12"),
     ("refine", "1"),
@@ -81,7 +81,7 @@ pub const NEARFIELD_ARGS: [(&str, &str); NearFieldNode::LEN] = [
 ];
 
 /// Parse `(a, b, …)` at the cursor into expression ASTs.
-pub fn parse_args(cur: &mut Cursor<'_>) -> Result<(Vec<Ast>, Range<usize>), ParseError> {
+pub(crate) fn parse_args(cur: &mut Cursor<'_>) -> Result<(Vec<Ast>, Range<usize>), ParseError> {
     cur.skip_trivia();
     let start = cur.pos;
     cur.expect("(")?;
@@ -100,7 +100,7 @@ pub fn parse_args(cur: &mut Cursor<'_>) -> Result<(Vec<Ast>, Range<usize>), Pars
 
 /// If `name` is one of [`NODE_CALLS`], parse its arguments at the cursor (just after the name) and build the
 /// node, resolving parameter names with `resolve`. Returns `None` for other names, leaving the cursor untouched.
-pub fn parse_node_call(
+pub(crate) fn parse_node_call(
     name: &str,
     name_span: Range<usize>,
     cur: &mut Cursor<'_>,

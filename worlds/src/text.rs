@@ -5,7 +5,7 @@ use std::ops::Range;
 
 /// A parse problem at a byte span, turned into a [`crate::diag::Diagnostic`] by the format's parser.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct ParseError {
+pub(crate) struct ParseError {
     /// Where.
     pub span: Range<usize>,
     /// What, lowercase without a trailing period.
@@ -14,14 +14,14 @@ pub struct ParseError {
 
 impl ParseError {
     /// A parse error at `span`.
-    pub fn new(span: Range<usize>, message: impl Into<String>) -> ParseError {
+    pub(crate) fn new(span: Range<usize>, message: impl Into<String>) -> ParseError {
         ParseError { span, message: message.into() }
     }
 }
 
 /// A position in a source text.
 #[derive(Clone, Debug)]
-pub struct Cursor<'a> {
+pub(crate) struct Cursor<'a> {
     /// The whole text.
     pub src: &'a str,
     /// Byte offset of the next character.
@@ -32,17 +32,17 @@ pub struct Cursor<'a> {
 
 impl<'a> Cursor<'a> {
     /// A cursor at the start of `src`.
-    pub fn new(src: &'a str, newlines_are_space: bool) -> Cursor<'a> {
+    pub(crate) fn new(src: &'a str, newlines_are_space: bool) -> Cursor<'a> {
         Cursor { src, pos: 0, newlines_are_space }
     }
 
     /// The text from the cursor on.
-    pub fn rest(&self) -> &'a str {
+    pub(crate) fn rest(&self) -> &'a str {
         &self.src[self.pos..]
     }
 
     /// Skip whitespace and `#` comments (and newlines, if they count as whitespace).
-    pub fn skip_trivia(&mut self) {
+    pub(crate) fn skip_trivia(&mut self) {
         loop {
             let rest = self.rest();
             let Some(c) = rest.chars().next() else { return };
@@ -59,18 +59,18 @@ impl<'a> Cursor<'a> {
     }
 
     /// The next character after trivia, without consuming it.
-    pub fn peek(&mut self) -> Option<char> {
+    pub(crate) fn peek(&mut self) -> Option<char> {
         self.skip_trivia();
         self.rest().chars().next()
     }
 
     /// Whether only trivia remains.
-    pub fn at_end(&mut self) -> bool {
+    pub(crate) fn at_end(&mut self) -> bool {
         self.peek().is_none()
     }
 
     /// Consume `s` if the text continues with it after trivia.
-    pub fn eat(&mut self, s: &str) -> bool {
+    pub(crate) fn eat(&mut self, s: &str) -> bool {
         self.skip_trivia();
         if self.rest().starts_with(s) {
             self.pos += s.len();
@@ -81,14 +81,14 @@ impl<'a> Cursor<'a> {
     }
 
     /// Consume `s` or fail with "expected `s`".
-    pub fn expect(&mut self, s: &str) -> Result<Range<usize>, ParseError> {
+    pub(crate) fn expect(&mut self, s: &str) -> Result<Range<usize>, ParseError> {
         self.skip_trivia();
         let start = self.pos;
         if self.eat(s) { Ok(start..self.pos) } else { Err(self.unexpected(&format!("`{s}`"))) }
     }
 
     /// An error "expected WHAT, found ..." at the next token.
-    pub fn unexpected(&mut self, what: &str) -> ParseError {
+    pub(crate) fn unexpected(&mut self, what: &str) -> ParseError {
         self.skip_trivia();
         let rest = self.rest();
         match rest.chars().next() {
@@ -106,7 +106,7 @@ impl<'a> Cursor<'a> {
     }
 
     /// An identifier `[A-Za-z_][A-Za-z0-9_]*` after trivia, with its span.
-    pub fn ident(&mut self) -> Option<(&'a str, Range<usize>)> {
+    pub(crate) fn ident(&mut self) -> Option<(&'a str, Range<usize>)> {
         self.skip_trivia();
         let rest = self.rest();
         let first = rest.chars().next()?;
@@ -120,7 +120,7 @@ impl<'a> Cursor<'a> {
     }
 
     /// Consume the keyword `kw` if the next identifier is exactly it.
-    pub fn eat_keyword(&mut self, kw: &str) -> bool {
+    pub(crate) fn eat_keyword(&mut self, kw: &str) -> bool {
         let save = self.pos;
         match self.ident() {
             Some((w, _)) if w == kw => true,
@@ -134,12 +134,12 @@ impl<'a> Cursor<'a> {
     /// An unsigned decimal number (`12`, `1.5`, `.5`, `2e-3`) after trivia, correctly rounded to f32. A `.` followed
     /// by another `.` is not part of it: `1..2` reads as `1`, `..`, `2`. `None` (nothing consumed but trivia) if
     /// no number starts here.
-    pub fn number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
+    pub(crate) fn number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
         self.scan_number(false)
     }
 
     /// [`Cursor::number`] with an optional `-` or `+` directly in front, part of its span and text.
-    pub fn signed_number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
+    pub(crate) fn signed_number(&mut self) -> Option<Result<(f32, Range<usize>), ParseError>> {
         self.scan_number(true)
     }
 
@@ -186,7 +186,7 @@ impl<'a> Cursor<'a> {
     /// (`0x5eed_f0e5`). The token runs to the end of the word, so `12ab` is one token. `None` (nothing consumed but
     /// trivia) if no digit starts here; otherwise the token is consumed and comes back with its span and its value,
     /// `None` if it is not a valid u64.
-    pub fn integer(&mut self) -> Option<(Option<u64>, Range<usize>)> {
+    pub(crate) fn integer(&mut self) -> Option<(Option<u64>, Range<usize>)> {
         self.skip_trivia();
         let rest = self.rest();
         if !rest.starts_with(|c: char| c.is_ascii_digit()) {
@@ -206,18 +206,18 @@ impl<'a> Cursor<'a> {
     }
 
     /// Skip to just past the next newline (error recovery in line-oriented formats).
-    pub fn skip_line(&mut self) {
+    pub(crate) fn skip_line(&mut self) {
         let rest = self.rest();
         self.pos += rest.find('\n').map_or(rest.len(), |i| i + 1);
     }
 }
 
 /// Whether `c` may start an identifier.
-pub fn is_ident_start(c: char) -> bool {
+pub(crate) fn is_ident_start(c: char) -> bool {
     c.is_ascii_alphabetic() || c == '_'
 }
 
 /// Whether `c` may continue an identifier.
-pub fn is_ident_continue(c: char) -> bool {
+pub(crate) fn is_ident_continue(c: char) -> bool {
     c.is_ascii_alphanumeric() || c == '_'
 }

@@ -13,7 +13,7 @@ use canopy_worlds::hypertree::voxelise::{VoxeliseOptions, voxelise};
 use crate::species::Species;
 
 /// A new hypertree when the file does not exist yet: a trunk and four branch transformations.
-pub const TEMPLATE: &str = "# A new hypertree (seed 000 §10): edit, and the raymarched preview follows.\n\
+pub(crate) const TEMPLATE: &str = "# A new hypertree (seed 000 §10): edit, and the raymarched preview follows.\n\
 NAME sapling\n\
 RESOLUTION 128\n\
 ITERATIONS 200000\n\
@@ -48,9 +48,9 @@ TRANSFORM 0.25 255\n\
 
 /// Voxels along the longest axis of the preview's generation at most (the definition's own resolution is used up
 /// to this; the slider goes higher).
-pub const PREVIEW_RESOLUTION: u32 = 160;
+pub(crate) const PREVIEW_RESOLUTION: u32 = 160;
 /// Iterations of the preview's generation at most by default.
-pub const PREVIEW_ITERATIONS: u64 = 400_000;
+pub(crate) const PREVIEW_ITERATIONS: u64 = 400_000;
 
 /// A hypertree definition with the editor's slider values.
 #[derive(Clone, Debug)]
@@ -162,14 +162,20 @@ fn push_step<'a>(owner: &str, step: &'a mut Elementary, out: &mut Vec<LevelValue
 
 /// Raymarch a hypertree with the CPU reference renderer (seed 000 §8) into a `width × height` image, seen from
 /// `azimuth` degrees, lit as `lit` says.
-pub fn raymarch(tree: &Hypertree, lit: &RenderOptions, width: u32, height: u32, azimuth: f32) -> Result<Image, String> {
+pub(crate) fn raymarch(
+    tree: &Hypertree,
+    lit: &RenderOptions,
+    width: u32,
+    height: u32,
+    azimuth: f32,
+) -> Result<Image, String> {
     let opts = RenderOptions { width, height, azimuth, ..lit.clone() };
     render(tree, &opts, &mut |_, _| {}).map(|(img, _)| img).map_err(|e| e.to_string())
 }
 
 /// The far field of a species instance: its amplified stream voxelised into a hypervolume (`resolution` voxels
 /// along the longest axis).
-pub fn species_volume(
+pub(crate) fn species_volume(
     species: &Species,
     instance: &Instance,
     budget: &Budget,
@@ -181,13 +187,13 @@ pub fn species_volume(
 }
 
 /// Voxels along the longest axis of a species' far-field volume in the editor.
-pub const FAR_RESOLUTION: u32 = 96;
+pub(crate) const FAR_RESOLUTION: u32 = 96;
 /// Side of the raymarched images, pixels.
-pub const IMAGE_SIDE: u32 = 384;
+pub(crate) const IMAGE_SIDE: u32 = 384;
 
 /// A raymarched image and a line saying what it took.
 #[derive(Clone, Debug)]
-pub struct VolumeImage {
+pub(crate) struct VolumeImage {
     /// The image.
     pub image: Image,
     /// `generated 64×64×64 voxels in 80 ms, raymarched in 120 ms` and the like.
@@ -198,7 +204,7 @@ pub struct VolumeImage {
 
 /// The work behind a raymarched view, taken from the model so it can run on another thread.
 #[derive(Clone, Debug)]
-pub enum VolumeJob {
+pub(crate) enum VolumeJob {
     /// Generate a `.hyp` and raymarch it.
     Hypertree(Box<HypertreeModel>, f32),
     /// Voxelise a species instance and raymarch it.
@@ -207,7 +213,7 @@ pub enum VolumeJob {
 
 impl VolumeJob {
     /// The job for the model's current state, if it has something to show.
-    pub fn of(model: &crate::model::Editor, azimuth: f32) -> Option<VolumeJob> {
+    pub(crate) fn of(model: &crate::model::Editor, azimuth: f32) -> Option<VolumeJob> {
         if let Some(h) = model.hypertree() {
             return Some(VolumeJob::Hypertree(Box::new(h.clone()), azimuth));
         }
@@ -216,7 +222,7 @@ impl VolumeJob {
     }
 
     /// Generate (or voxelise) and raymarch.
-    pub fn run(&self) -> Result<VolumeImage, String> {
+    pub(crate) fn run(&self) -> Result<VolumeImage, String> {
         let t = std::time::Instant::now();
         // A `.hyp` in the paper's shading model; a species' far field as the walkthrough shades it.
         let (tree, lit, azimuth, what) = match self {

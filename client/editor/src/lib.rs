@@ -9,9 +9,9 @@
 //! editor knows no network.
 
 pub mod grid;
-pub mod hyp;
+mod hyp;
 pub mod last_good;
-pub mod model;
+mod model;
 pub mod preview;
 pub mod save;
 pub mod screenshot;
@@ -19,8 +19,8 @@ pub mod species;
 pub mod stats;
 pub mod ui;
 mod ui_source;
-pub mod watch;
-pub mod window;
+mod watch;
+mod window;
 
 use std::path::PathBuf;
 

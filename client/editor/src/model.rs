@@ -24,7 +24,7 @@ use crate::species::Species;
 
 /// How long typing must pause before the text is parsed and amplified again, seconds (times are the UI's clock:
 /// egui's `input.time`, so tests drive it).
-pub const DEBOUNCE: f64 = 0.1;
+pub(crate) const DEBOUNCE: f64 = 0.1;
 
 /// What kind of source the editor holds (from the file name's extension).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -81,7 +81,7 @@ pub struct Amplified {
 }
 
 /// A new species source when no file is given (or the file does not exist yet).
-pub const TEMPLATE: &str = "# A new species: edit, and the preview follows.\n\
+pub(crate) const TEMPLATE: &str = "# A new species: edit, and the preview follows.\n\
 species Sapling\n\
 param height = 6\n\
 separator {\n\

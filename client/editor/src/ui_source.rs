@@ -8,11 +8,11 @@ use egui::text::{LayoutJob, TextFormat};
 use egui::{Color32, FontId, Stroke, TextBuffer, Ui};
 
 /// The colour of error marks and underlines.
-pub const ERROR: Color32 = Color32::from_rgb(230, 70, 60);
+pub(crate) const ERROR: Color32 = Color32::from_rgb(230, 70, 60);
 
 /// Byte ranges of `text` that the diagnostics point at (a zero-width span at the end of a line marks its last
 /// character, or nothing on an empty line).
-pub fn spans(text: &str, diags: &[Diagnostic]) -> Vec<std::ops::Range<usize>> {
+pub(crate) fn spans(text: &str, diags: &[Diagnostic]) -> Vec<std::ops::Range<usize>> {
     let starts: Vec<usize> = std::iter::once(0).chain(text.match_indices('\n').map(|(i, _)| i + 1)).collect();
     let mut out = Vec::new();
     for d in diags {
@@ -59,7 +59,7 @@ fn layout(text: &str, diags: &[Diagnostic], font: &FontId, color: Color32) -> La
 }
 
 /// The editor: gutter and text side by side in one scroll area. Returns true when the text changed.
-pub fn show(ui: &mut Ui, text: &mut String, diags: &[Diagnostic]) -> bool {
+pub(crate) fn show(ui: &mut Ui, text: &mut String, diags: &[Diagnostic]) -> bool {
     let font = egui::TextStyle::Monospace.resolve(ui.style());
     let color = ui.visuals().text_color();
     let lines = text.matches('\n').count() + 1;

@@ -7,7 +7,7 @@ use std::sync::mpsc::{Receiver, channel};
 use notify::{EventKind, RecursiveMode, Watcher};
 
 /// Watches one file (through its directory, so a rename over it is seen too).
-pub struct FileWatch {
+pub(crate) struct FileWatch {
     _watcher: notify::RecommendedWatcher,
     changes: Receiver<()>,
 }
@@ -20,7 +20,7 @@ impl std::fmt::Debug for FileWatch {
 
 impl FileWatch {
     /// Start watching `file`.
-    pub fn new(file: &Path) -> Result<FileWatch, notify::Error> {
+    pub(crate) fn new(file: &Path) -> Result<FileWatch, notify::Error> {
         let file: PathBuf = std::path::absolute(file).unwrap_or_else(|_| file.to_path_buf());
         let dir = file.parent().map_or_else(|| PathBuf::from("."), Path::to_path_buf);
         let name = file.file_name().map(|n| n.to_os_string());
@@ -37,7 +37,7 @@ impl FileWatch {
     }
 
     /// Whether the file changed since the last call (several events count once).
-    pub fn changed(&self) -> bool {
+    pub(crate) fn changed(&self) -> bool {
         let mut any = false;
         while self.changes.try_recv().is_ok() {
             any = true;
@@ -46,7 +46,8 @@ impl FileWatch {
     }
 
     /// Wait up to `timeout` for a change (tests).
-    pub fn wait(&self, timeout: std::time::Duration) -> bool {
+    #[cfg(test)]
+    pub(crate) fn wait(&self, timeout: std::time::Duration) -> bool {
         let got = self.changes.recv_timeout(timeout).is_ok();
         got | self.changed()
     }

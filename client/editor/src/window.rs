@@ -193,7 +193,7 @@ impl ApplicationHandler for App {
 /// Open the window on the UI and run until it is closed (or `exit_after` has passed since it opened, with the GPU
 /// set up). Prints the adapter when the window opens and, at the end, the frames presented (`N frames, preview
 /// settled` or `… waiting`). Closing by itself having presented no frame is an error.
-pub fn run(ui: EditorUi, size: (u32, u32), exit_after: Option<Duration>) -> Result<(), EditorError> {
+pub(crate) fn run(ui: EditorUi, size: (u32, u32), exit_after: Option<Duration>) -> Result<(), EditorError> {
     let watch = match ui.model.path().filter(|p| p.exists()) {
         Some(p) => match FileWatch::new(p) {
             Ok(w) => Some(w),

@@ -6,7 +6,7 @@ use std::ops::Range;
 
 /// Ranges of `0..capacity` handed out and returned (see the module docs).
 #[derive(Clone, Debug)]
-pub struct Arena {
+pub(crate) struct Arena {
     capacity: u64,
     /// Free ranges by start → length; never adjacent (they are merged).
     free: BTreeMap<u64, u64>,
@@ -15,7 +15,7 @@ pub struct Arena {
 
 impl Arena {
     /// An empty arena of `capacity` units.
-    pub fn new(capacity: u64) -> Arena {
+    pub(crate) fn new(capacity: u64) -> Arena {
         let mut free = BTreeMap::new();
         if capacity > 0 {
             free.insert(0, capacity);
@@ -24,18 +24,18 @@ impl Arena {
     }
 
     /// Units in use.
-    pub fn used(&self) -> u64 {
+    pub(crate) fn used(&self) -> u64 {
         self.used
     }
 
     /// Total units.
-    pub fn capacity(&self) -> u64 {
+    pub(crate) fn capacity(&self) -> u64 {
         self.capacity
     }
 
     /// A range of `n` units (the lowest that fits), or `None` when no free range is long enough. `n = 0` gives an
     /// empty range.
-    pub fn alloc(&mut self, n: u64) -> Option<Range<u64>> {
+    pub(crate) fn alloc(&mut self, n: u64) -> Option<Range<u64>> {
         if n == 0 {
             return Some(0..0);
         }
@@ -49,7 +49,7 @@ impl Arena {
     }
 
     /// Return a range from [`Arena::alloc`].
-    pub fn free(&mut self, r: Range<u64>) {
+    pub(crate) fn free(&mut self, r: Range<u64>) {
         if r.is_empty() {
             return;
         }

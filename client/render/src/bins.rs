@@ -7,18 +7,18 @@
 use glam::{Mat4, Vec3, Vec4Swizzles};
 
 /// Pixels along a tile's side (the compute pass's workgroup is one tile).
-pub const TILE_PX: u32 = 16;
+pub(crate) const TILE_PX: u32 = 16;
 
 /// The bit of an item that marks a forest patch (clear: a far instance); the rest is its index.
-pub const PATCH_BIT: u32 = 1 << 31;
+pub(crate) const PATCH_BIT: u32 = 1 << 31;
 
 /// Most items listed in one frame; beyond it the farthest go unlisted (a bound on the frame's memory whatever the
 /// scene).
-pub const MAX_ENTRIES: usize = 1 << 24;
+pub(crate) const MAX_ENTRIES: usize = 1 << 24;
 
 /// The frame's tile lists: `items[offsets[t]..offsets[t + 1]]` for tile `t` (row-major).
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct TileBins {
+pub(crate) struct TileBins {
     /// Tiles across and down.
     pub tiles: (u32, u32),
     /// Where each tile's list starts in `items`, and one more for the end.
@@ -31,14 +31,14 @@ pub struct TileBins {
 
 impl TileBins {
     /// Start a frame for a `size` target.
-    pub fn begin(&mut self, size: (u32, u32)) {
+    pub(crate) fn begin(&mut self, size: (u32, u32)) {
         self.tiles = (size.0.div_ceil(TILE_PX).max(1), size.1.div_ceil(TILE_PX).max(1));
         self.rects.clear();
     }
 
     /// Add `item` (in drawing order) whose box `lo..hi` (world space) projects through `view_proj` onto a `size`
     /// target; nothing if it is wholly off screen.
-    pub fn add(&mut self, item: u32, lo: Vec3, hi: Vec3, view_proj: &Mat4, size: (u32, u32)) {
+    pub(crate) fn add(&mut self, item: u32, lo: Vec3, hi: Vec3, view_proj: &Mat4, size: (u32, u32)) {
         let (mut min, mut max) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
         let mut behind = 0;
         for k in 0..8 {
@@ -76,7 +76,7 @@ impl TileBins {
     }
 
     /// Fill the lists (a counting sort: each tile keeps the drawing order).
-    pub fn finish(&mut self) {
+    pub(crate) fn finish(&mut self) {
         let (tx, ty) = self.tiles;
         let n = (tx * ty) as usize;
         self.offsets.clear();

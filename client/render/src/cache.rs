@@ -14,18 +14,18 @@ use super::stats::FrameStats;
 use super::workers::TreeKey;
 
 /// Frames before geometry that did not fit the cache is asked for again.
-pub const DEFER_FRAMES: u64 = 120;
+pub(crate) const DEFER_FRAMES: u64 = 120;
 
 /// Keys given up in one frame because the cache is full of what is in view, at most; after that the frame's
 /// uploads stop (the rest waits for the next frame).
-pub const MAX_DEFERRED_PER_FRAME: usize = 8;
+pub(crate) const MAX_DEFERRED_PER_FRAME: usize = 8;
 
 /// Bytes of one mesh index.
-pub const INDEX_BYTES: u64 = size_of::<u32>() as u64;
+pub(crate) const INDEX_BYTES: u64 = size_of::<u32>() as u64;
 
 /// One resident key: its ranges in the arenas (in units of the arena: primitives, vertices, indices).
 #[derive(Clone, Debug, PartialEq)]
-pub struct CacheEntry {
+pub(crate) struct CacheEntry {
     /// Primitive instances.
     pub prims: Range<u64>,
     /// The range of each unit shape within `prims`, relative to its start.
@@ -40,7 +40,7 @@ pub struct CacheEntry {
 
 /// Where one piece of geometry was placed, in arena units (what the writer copies it to).
 #[derive(Clone, Debug, PartialEq)]
-pub struct Placement {
+pub(crate) struct Placement {
     /// Primitive instances.
     pub prims: Range<u64>,
     /// Mesh vertices.
@@ -51,7 +51,7 @@ pub struct Placement {
 
 /// The cache (see the module docs).
 #[derive(Debug)]
-pub struct GeometryCache {
+pub(crate) struct GeometryCache {
     prim_arena: Arena,
     vert_arena: Arena,
     index_arena: Arena,
@@ -70,7 +70,7 @@ pub struct GeometryCache {
 
 impl GeometryCache {
     /// An empty cache over arenas of these many primitives, vertices and indices.
-    pub fn new(prim_units: u64, vert_units: u64, index_units: u64) -> GeometryCache {
+    pub(crate) fn new(prim_units: u64, vert_units: u64, index_units: u64) -> GeometryCache {
         GeometryCache {
             prim_arena: Arena::new(prim_units),
             vert_arena: Arena::new(vert_units),
@@ -84,28 +84,28 @@ impl GeometryCache {
     }
 
     /// The resident entry of a key.
-    pub fn get(&self, key: &TreeKey) -> Option<&CacheEntry> {
+    pub(crate) fn get(&self, key: &TreeKey) -> Option<&CacheEntry> {
         self.entries.peek(key)
     }
 
     /// Whether a key is being made or waits for upload.
-    pub fn is_pending(&self, key: &TreeKey) -> bool {
+    pub(crate) fn is_pending(&self, key: &TreeKey) -> bool {
         self.pending.contains(key)
     }
 
     /// Record that a key was asked of the workers; false when it already was.
-    pub fn mark_pending(&mut self, key: TreeKey) -> bool {
+    pub(crate) fn mark_pending(&mut self, key: TreeKey) -> bool {
         self.pending.insert(key)
     }
 
     /// Whether a key must not be asked for now: it failed, or it was given up for lack of room a short while ago.
-    pub fn unavailable(&self, key: &TreeKey) -> bool {
+    pub(crate) fn unavailable(&self, key: &TreeKey) -> bool {
         self.failed.contains(key) || self.deferred.contains_key(key)
     }
 
     /// A worker's result for a key. The key stays pending until its geometry is uploaded (or given up), so it is
     /// not asked for twice.
-    pub fn finished(&mut self, key: TreeKey, result: Result<TreeGeometry, String>) {
+    pub(crate) fn finished(&mut self, key: TreeKey, result: Result<TreeGeometry, String>) {
         match result {
             Ok(geo) if !geo.is_empty() => self.uploads.push_back((key, geo)),
             Ok(_) => {
@@ -121,12 +121,12 @@ impl GeometryCache {
     }
 
     /// Forget keys given up [`DEFER_FRAMES`] or more before `frame`, so that they are asked for again.
-    pub fn expire_deferred(&mut self, frame: u64) {
+    pub(crate) fn expire_deferred(&mut self, frame: u64) {
         self.deferred.retain(|_, at| *at + DEFER_FRAMES > frame);
     }
 
     /// Mark a resident key as drawn in `frame` (no-op for a key not resident).
-    pub fn touch(&mut self, key: TreeKey, frame: u64) {
+    pub(crate) fn touch(&mut self, key: TreeKey, frame: u64) {
         if self.entries.peek(&key).is_some_and(|e| e.last_used != frame)
             && let Some(e) = self.entries.get(&key)
         {
@@ -135,22 +135,22 @@ impl GeometryCache {
     }
 
     /// Resident keys.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.entries.len()
     }
 
     /// Finished geometry waiting for upload budget.
-    pub fn uploads_waiting(&self) -> usize {
+    pub(crate) fn uploads_waiting(&self) -> usize {
         self.uploads.len()
     }
 
     /// Keys that failed.
-    pub fn failed(&self) -> usize {
+    pub(crate) fn failed(&self) -> usize {
         self.failed.len()
     }
 
     /// Bytes of the arenas in use.
-    pub fn bytes_used(&self) -> u64 {
+    pub(crate) fn bytes_used(&self) -> u64 {
         self.prim_arena.used() * size_of::<PrimInstance>() as u64
             + self.vert_arena.used() * size_of::<MeshVertex>() as u64
             + self.index_arena.used() * INDEX_BYTES
@@ -202,7 +202,7 @@ impl GeometryCache {
     /// Place waiting geometry in the arenas in arrival order, within `budget` bytes this frame (the first upload of a
     /// frame always goes), calling `write` with each piece and where it goes. Counts uploaded bytes, evictions and
     /// deferrals in `stats`.
-    pub fn upload(
+    pub(crate) fn upload(
         &mut self,
         frame: u64,
         budget: u64,

@@ -2,10 +2,10 @@
 //! page's `performance.now()`, with the same `now`, `elapsed` and `duration_since`.
 
 #[cfg(not(target_arch = "wasm32"))]
-pub use std::time::Instant;
+pub(crate) use std::time::Instant;
 
 #[cfg(target_arch = "wasm32")]
-pub use web::Instant;
+pub(crate) use web::Instant;
 
 #[cfg(target_arch = "wasm32")]
 mod web {
@@ -13,7 +13,7 @@ mod web {
 
     /// A moment on the page's monotonic clock, milliseconds since the page's time origin.
     #[derive(Clone, Copy, Debug, PartialEq, PartialOrd)]
-    pub struct Instant(f64);
+    pub(crate) struct Instant(f64);
 
     /// `performance.now()`, or 0 where there is no window (a worker without one is not supported).
     fn millis() -> f64 {
@@ -22,17 +22,17 @@ mod web {
 
     impl Instant {
         /// Now.
-        pub fn now() -> Instant {
+        pub(crate) fn now() -> Instant {
             Instant(millis())
         }
 
         /// The time since `earlier` (zero if it is later).
-        pub fn duration_since(&self, earlier: Instant) -> Duration {
+        pub(crate) fn duration_since(&self, earlier: Instant) -> Duration {
             Duration::from_secs_f64(((self.0 - earlier.0) / 1e3).max(0.0))
         }
 
         /// The time since this instant.
-        pub fn elapsed(&self) -> Duration {
+        pub(crate) fn elapsed(&self) -> Duration {
             Instant::now().duration_since(*self)
         }
     }

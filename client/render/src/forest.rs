@@ -35,23 +35,23 @@ use super::stats::FrameStats;
 use super::tile::{DENSITY_CLASSES, TILE_TREES};
 
 /// Corners per node edge of a node's ground grid (the sub-squares' corners).
-pub const GROUND_SIDE: usize = COVER_SIDE as usize + 1;
+pub(crate) const GROUND_SIDE: usize = COVER_SIDE as usize + 1;
 /// Heights in a node's ground grid.
-pub const GROUND_POINTS: usize = GROUND_SIDE * GROUND_SIDE;
+pub(crate) const GROUND_POINTS: usize = GROUND_SIDE * GROUND_SIDE;
 /// Nodes whose ground grids are computed per frame at most (nearest first; the rest wait for later frames). A grid
 /// of a fractal ground costs about 11 µs (one lattice patch per node): about 3 ms a frame at most.
-pub const GROUND_NODES_PER_FRAME: usize = 256;
+pub(crate) const GROUND_NODES_PER_FRAME: usize = 256;
 /// A patch whose density keeps less than half a class of its tile's trees is not marched (it would keep no
 /// class): it is drawn only where rays take the uniform layer, which thins continuously.
 const MIN_KEEP: f32 = 0.5 / DENSITY_CLASSES as f32;
 
 /// The tile resolution a patch marches has voxels of about this many pixels (0.5: the finest detail; 1: half the
 /// samples — on an H200 at 1920×1080 from 1,500 m up, 0.5 cost 70 ms a frame).
-pub const VOXEL_PX: f32 = 1.0;
+pub(crate) const VOXEL_PX: f32 = 1.0;
 
 /// A species' canopy tile, resident in the atlas.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TileVol {
+pub(crate) struct TileVol {
     /// Volume index of the tile's finest resolution; the [`TILE_MIPS`](super::tile::TILE_MIPS) − 1 coarser ones
     /// follow it (the forest shader takes the one at the finest's index plus its level).
     pub volume: u32,
@@ -72,7 +72,7 @@ pub struct TileVol {
 
 /// Where a species' canopy tile stands.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum TileState {
+pub(crate) enum TileState {
     /// Being baked (or its far volume is).
     Pending,
     /// Resident.
@@ -84,7 +84,7 @@ pub enum TileState {
 /// One summary patch as the forest pipeline reads it (a vertex buffer entry, per instance).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct ForestPatch {
+pub(crate) struct ForestPatch {
     /// The node's first corner (x, z), its edge and the canopy's height above the ground, metres.
     pub rect: [f32; 4],
     /// The proxy box's lowest and highest y.
@@ -114,7 +114,7 @@ pub struct ForestPatch {
 }
 
 /// The sub-squares of quadrant `q` (children order: `(0,0), (1,0), (0,1), (1,1)`).
-pub fn quadrant_mask(q: usize) -> u64 {
+pub(crate) fn quadrant_mask(q: usize) -> u64 {
     let half = COVER_SIDE / 2;
     let (qi, qj) = ((q as u32 & 1) * half, (q as u32 >> 1) * half);
     let mut m = 0u64;
@@ -127,7 +127,7 @@ pub fn quadrant_mask(q: usize) -> u64 {
 }
 
 /// A mask grown by one sub-square in all eight directions.
-pub fn dilate(m: u64) -> u64 {
+pub(crate) fn dilate(m: u64) -> u64 {
     const NOT_FIRST: u64 = !0x0101_0101_0101_0101;
     const NOT_LAST: u64 = !0x8080_8080_8080_8080;
     let rows = m | (m << 1 & NOT_FIRST) | (m >> 1 & NOT_LAST);
@@ -137,7 +137,7 @@ pub fn dilate(m: u64) -> u64 {
 /// What one (node, species) draws while its sub-squares change: the set shown (fading in while `fade < 1`) and the
 /// set before it (fading out).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct MaskFade {
+pub(crate) struct MaskFade {
     /// Sub-squares shown.
     pub shown: u64,
     /// Sub-squares shown before the current fade.
@@ -155,7 +155,7 @@ impl Default for MaskFade {
 impl MaskFade {
     /// Advance by `progress` of a fade (≥ 1 finishes at once) toward showing `wanted`; a change asked for during a
     /// fade waits for it to end.
-    pub fn step(&mut self, wanted: u64, progress: f32) {
+    pub(crate) fn step(&mut self, wanted: u64, progress: f32) {
         if self.fade < 1.0 {
             self.fade = (self.fade + progress).min(1.0);
         }
@@ -175,7 +175,7 @@ impl MaskFade {
 
     /// The draws: (sub-squares, dither mask) — those in both sets whole, the new ones fading in, the old ones
     /// fading out with the complementary mask.
-    pub fn parts(&self) -> impl Iterator<Item = (u64, f32)> {
+    pub(crate) fn parts(&self) -> impl Iterator<Item = (u64, f32)> {
         let f = self.fade;
         let parts = if f >= 1.0 {
             [(self.shown, 1.0), (0, 0.0), (0, 0.0)]
@@ -188,7 +188,7 @@ impl MaskFade {
     }
 
     /// Whether nothing is drawn, now or while fading.
-    pub fn idle(&self) -> bool {
+    pub(crate) fn idle(&self) -> bool {
         self.shown == 0 && (self.fade >= 1.0 || self.old == 0)
     }
 }
@@ -224,7 +224,7 @@ struct NodeEntry {
 
 /// Everything the forest plan of a frame reads.
 #[derive(Clone, Copy, Debug)]
-pub struct ForestInputs<'a> {
+pub(crate) struct ForestInputs<'a> {
     /// The far field.
     pub far: &'a SceneFar,
     /// The ground patches stand on.
@@ -241,7 +241,7 @@ pub struct ForestInputs<'a> {
 
 /// The forest plan (see the module docs), kept between frames.
 #[derive(Debug, Default)]
-pub struct ForestPlan {
+pub(crate) struct ForestPlan {
     nodes: Vec<NodeEntry>,
     spare: Vec<NodeEntry>,
     generation: Option<u64>,
@@ -265,7 +265,7 @@ impl ForestPlan {
 
     /// Plan a frame: follow the scene's far field, compute missing ground grids (a bounded number), step the
     /// fades, cull, and list the patches front to back; counts in `stats`.
-    pub fn plan(&mut self, input: &ForestInputs, stats: &mut FrameStats) {
+    pub(crate) fn plan(&mut self, input: &ForestInputs, stats: &mut FrameStats) {
         self.unsorted.clear();
         self.patches.clear();
         self.ground.clear();
@@ -472,14 +472,14 @@ impl ForestPlan {
 }
 
 /// A node's first corner (x, z) and edge, metres (the grid's origin at (0, 0)).
-pub fn node_rect(key: NodeKey, cell_size: f32) -> [f32; 3] {
+pub(crate) fn node_rect(key: NodeKey, cell_size: f32) -> [f32; 3] {
     let c = key.first_cell();
     [c.x as f32 * cell_size, c.z as f32 * cell_size, key.side() as f32 * cell_size]
 }
 
 /// The tile scale of a species in a node: its mean height over the representative's, clamped as instance scales
 /// are (1 without a height).
-pub fn tile_scale(cover: &SpeciesCover, tile: &TileVol) -> f32 {
+pub(crate) fn tile_scale(cover: &SpeciesCover, tile: &TileVol) -> f32 {
     match tile.reference {
         Some(r) if cover.height_dm > 0 && r > 0.0 => (f32::from(cover.height_dm) * 0.1 / r).clamp(0.05, 20.0),
         _ => 1.0,

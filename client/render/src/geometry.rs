@@ -16,7 +16,7 @@ use super::NearMode;
 
 /// The unit shapes drawn by instancing, in draw order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum UnitShape {
+pub(crate) enum UnitShape {
     /// A frustum on the origin along +Y: cones and cylinders (`shape = [bottom, top, height]`).
     Frustum = 0,
     /// A sphere on the origin (`shape = [radius, radius, radius]`).
@@ -29,7 +29,7 @@ pub enum UnitShape {
 /// size and the linear RGB colour packed as unorm8×4.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct PrimInstance {
+pub(crate) struct PrimInstance {
     /// Rows of the 3×4 affine transform.
     pub rows: [[f32; 4]; 3],
     /// Size parameters (see [`UnitShape`]).
@@ -41,7 +41,7 @@ pub struct PrimInstance {
 /// One mesh vertex as the shaders read it (20 bytes): position, normal snorm8×4, colour unorm8×4.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct MeshVertex {
+pub(crate) struct MeshVertex {
     /// Species-space position.
     pub position: [f32; 3],
     /// Unit normal, snorm8×4; w is 1 for a leaf (thin: lit through from behind), 0 otherwise.
@@ -52,7 +52,7 @@ pub struct MeshVertex {
 
 /// The GPU-ready geometry of one (species, seed, detail).
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct TreeGeometry {
+pub(crate) struct TreeGeometry {
     /// Primitive instances, grouped by [`UnitShape`] (empty in merged mode).
     pub prims: Vec<PrimInstance>,
     /// The range of each [`UnitShape`] in `prims`.
@@ -67,26 +67,26 @@ pub struct TreeGeometry {
 
 impl TreeGeometry {
     /// Bytes this geometry takes on the GPU.
-    pub fn gpu_bytes(&self) -> u64 {
+    pub(crate) fn gpu_bytes(&self) -> u64 {
         (self.prims.len() * size_of::<PrimInstance>()
             + self.vertices.len() * size_of::<MeshVertex>()
             + self.indices.len() * 4) as u64
     }
 
     /// Whether there is nothing to draw.
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.prims.is_empty() && self.indices.is_empty()
     }
 }
 
 /// Pack a linear colour as unorm8×4.
-pub fn pack_unorm(c: [f32; 3]) -> u32 {
+pub(crate) fn pack_unorm(c: [f32; 3]) -> u32 {
     let q = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u32;
     q(c[0]) | q(c[1]) << 8 | q(c[2]) << 16 | 255 << 24
 }
 
 /// Pack a unit vector as snorm8×4 (w = 0).
-pub fn pack_snorm(n: [f32; 3]) -> u32 {
+pub(crate) fn pack_snorm(n: [f32; 3]) -> u32 {
     pack_snorm4(n, 0.0)
 }
 
@@ -137,7 +137,7 @@ fn unit_instance(p: &Primitive) -> Option<(UnitShape, [f32; 3])> {
 }
 
 /// Amplify `instance` of `graph` (its `detail` selects the LOD substitutes) and build its geometry.
-pub fn build_tree(
+pub(crate) fn build_tree(
     graph: &SpeciesGraph,
     instance: &Instance,
     mode: NearMode,
@@ -162,7 +162,7 @@ pub fn build_tree(
 }
 
 /// Build the geometry of an amplified stream (see [`build_tree`]).
-pub fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
+pub(crate) fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) -> TreeGeometry {
     let opts = MeshOptions::for_detail(detail);
     let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
     let mut mesh = Mesh::new();

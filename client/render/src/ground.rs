@@ -15,18 +15,18 @@ use canopy_worlds::world::{Fractal, Terrain};
 use glam::Vec3;
 
 /// Lattice squares per window edge by default.
-pub const WINDOW_SQUARES: u32 = 256;
+pub(crate) const WINDOW_SQUARES: u32 = 256;
 /// The window's corner is a multiple of this many lattice squares (a terrain chunk's edge).
-pub const ALIGN: i64 = 32;
+pub(crate) const ALIGN: i64 = 32;
 /// The window covers at least this many metres per edge, however low the viewer.
-pub const MIN_EXTENT: f64 = 1_500.0;
+pub(crate) const MIN_EXTENT: f64 = 1_500.0;
 /// … and at least this many times the viewer's height above the ground: 28 reaches 21 km from 1,500 m up, the far
 /// view's default range, so the forest of summary nodes stands on drawn ground to the horizon.
-pub const EXTENT_PER_HEIGHT: f64 = 28.0;
+pub(crate) const EXTENT_PER_HEIGHT: f64 = 28.0;
 
 /// A window of a fractal's lattice around the viewer, as a height grid.
 #[derive(Clone, Debug)]
-pub struct FractalWindow {
+pub(crate) struct FractalWindow {
     fractal: Arc<Fractal>,
     squares: u32,
     depth: u32,
@@ -37,7 +37,7 @@ pub struct FractalWindow {
 impl FractalWindow {
     /// A window of `squares` (at least [`ALIGN`], rounded down to a multiple of it) lattice squares per edge
     /// around `eye`.
-    pub fn new(fractal: Arc<Fractal>, squares: u32, eye: Vec3) -> FractalWindow {
+    pub(crate) fn new(fractal: Arc<Fractal>, squares: u32, eye: Vec3) -> FractalWindow {
         let squares = (squares / ALIGN as u32).max(1) * ALIGN as u32;
         let depth = depth_for(&fractal, squares, eye, None);
         let lo = corner_for(&fractal, squares, depth, eye);
@@ -46,28 +46,30 @@ impl FractalWindow {
     }
 
     /// The fractal drawn.
-    pub fn fractal(&self) -> &Arc<Fractal> {
+    pub(crate) fn fractal(&self) -> &Arc<Fractal> {
         &self.fractal
     }
 
     /// The height grid of the window now.
-    pub fn terrain(&self) -> &Arc<Terrain> {
+    pub(crate) fn terrain(&self) -> &Arc<Terrain> {
         &self.terrain
     }
 
     /// The recursion depth drawn.
-    pub fn depth(&self) -> u32 {
+    #[cfg(test)]
+    pub(crate) fn depth(&self) -> u32 {
         self.depth
     }
 
     /// Lattice indices of the window's corner with the smallest x and z (at [`FractalWindow::depth`]).
-    pub fn corner(&self) -> [i64; 2] {
+    #[cfg(test)]
+    pub(crate) fn corner(&self) -> [i64; 2] {
         self.lo
     }
 
     /// Follow the viewer: rebuild the window when the viewer's height asks for another depth or the viewer has
     /// moved more than an eighth of the window (at least [`ALIGN`] squares) from its centre. True when rebuilt.
-    pub fn update(&mut self, eye: Vec3) -> bool {
+    pub(crate) fn update(&mut self, eye: Vec3) -> bool {
         let depth = depth_for(&self.fractal, self.squares, eye, Some(self.depth));
         let s = self.fractal.spacing(depth);
         let centre = |axis: usize, lo: i64| self.fractal.origin[axis] + (lo as f64 + f64::from(self.squares) / 2.0) * s;

@@ -23,19 +23,19 @@
 //! used entries are evicted). Rendering never waits for a worker: an instance whose geometry is not resident is
 //! drawn at the nearest resident level, or not at all.
 
-pub mod arena;
+mod arena;
 mod bins;
 mod cache;
 pub mod camera;
-pub mod clock;
+mod clock;
 // Offscreen stills and the image comparison block on the GPU and write files: native only.
 #[cfg(not(target_arch = "wasm32"))]
 pub mod compare;
 mod forest;
-pub mod geometry;
-pub mod gpu;
-pub mod ground;
-pub mod lod;
+mod geometry;
+mod gpu;
+mod ground;
+mod lod;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod offscreen;
 mod pipelines;
@@ -44,9 +44,9 @@ pub mod scene;
 mod select;
 mod stats;
 mod terrain;
-pub mod tile;
+mod tile;
 pub mod volume;
-pub mod workers;
+mod workers;
 
 pub use camera::{Camera, CameraError};
 pub use gpu::{Gpu, GpuError};

@@ -141,7 +141,7 @@ impl LodConfig {
 
 /// What one instance draws while levels change.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct InstanceLod {
+pub(crate) struct InstanceLod {
     /// The level drawn (fading in while `fade < 1`).
     pub shown: Option<Level>,
     /// The level fading out.
@@ -152,7 +152,7 @@ pub struct InstanceLod {
 
 /// One draw of an instance: a level and its screen-door mask.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct LodDraw {
+pub(crate) struct LodDraw {
     /// The level.
     pub level: Level,
     /// The dither mask for the shaders: `m ≥ 0` keeps pixels whose Bayer threshold is below `m` (1 keeps all);
@@ -164,7 +164,7 @@ impl InstanceLod {
     /// Advance by `progress` of a fade (`dt / fade_seconds`; ≥ 1 finishes any fade) toward `wanted`, drawing only
     /// levels for which `ready` holds. When `wanted` is not ready the shown level stays; when nothing is shown
     /// yet, the nearest ready level (coarser first) stands in.
-    pub fn step(&mut self, wanted: Level, progress: f32, ready: &dyn Fn(Level) -> bool, others: &[Level]) {
+    pub(crate) fn step(&mut self, wanted: Level, progress: f32, ready: &dyn Fn(Level) -> bool, others: &[Level]) {
         if let Some(s) = self.shown
             && !ready(s)
         {
@@ -206,7 +206,7 @@ impl InstanceLod {
     }
 
     /// The draws of this instance (at most two).
-    pub fn draws(&self) -> impl Iterator<Item = LodDraw> {
+    pub(crate) fn draws(&self) -> impl Iterator<Item = LodDraw> {
         let shown = self.shown.map(|level| LodDraw { level, mask: self.fade.clamp(0.0, 1.0) });
         let old = match (self.old, self.fade < 1.0) {
             (Some(level), true) => Some(LodDraw { level, mask: -self.fade.clamp(0.0, 1.0) }),
@@ -218,7 +218,7 @@ impl InstanceLod {
 
 /// Projected height in pixels of a sphere of `radius` at `distance`, for a viewport `height_px` tall with
 /// `tan(fov_y / 2) = tan_half`.
-pub fn projected_size(radius: f32, distance: f32, tan_half: f32, height_px: f32) -> f32 {
+pub(crate) fn projected_size(radius: f32, distance: f32, tan_half: f32, height_px: f32) -> f32 {
     if distance <= radius {
         return f32::MAX;
     }

@@ -6,13 +6,13 @@ use wgpu::util::DeviceExt;
 use super::geometry::MeshVertex;
 
 /// Depth buffer format (reversed Z: cleared to 0, `Greater` passes).
-pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+pub(crate) const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
 /// Format of the far-field atlas texels.
-pub const ATLAS_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+pub(crate) const ATLAS_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
 /// Format of the far field's accumulation target (premultiplied colour and opacity, composited front to back).
-pub const ACCUM_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+pub(crate) const ACCUM_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 
 /// The fragment shaders' attribute forcing depth tests before them (where the device has
 /// [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`]; without it the attribute is left out, and fragments the scene hides
@@ -21,9 +21,9 @@ const EARLY_DEPTH_TEST: &str = "@early_depth_test(force)";
 
 /// Radial segments of cones and cylinders, and latitude bands of spheres, by detail level (as
 /// [`canopy_worlds::mesh::MeshOptions::for_detail`]).
-pub const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
+pub(crate) const FRUSTUM_SEGMENTS: [u32; 4] = [8, 6, 4, 3];
 /// Sphere latitude bands by detail level.
-pub const SPHERE_RINGS: [u32; 4] = [6, 4, 2, 2];
+pub(crate) const SPHERE_RINGS: [u32; 4] = [6, 4, 2, 2];
 
 const COMMON: &str = include_str!("../shaders/common.wgsl");
 /// The far-field volumes' infos and atlas bindings, shared by the volume and forest shaders.
@@ -58,14 +58,14 @@ fn tile_consts() -> String {
 /// A vertex of a unit mesh: `p` (position, or for frusta `(cos, 0|1, sin, cap)`) and a face normal.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
-pub struct UnitVertex {
+pub(crate) struct UnitVertex {
     p: [f32; 4],
     n: [f32; 4],
 }
 
 /// One unit mesh on the GPU.
 #[derive(Debug)]
-pub struct UnitMesh {
+pub(crate) struct UnitMesh {
     pub vertices: wgpu::Buffer,
     pub indices: wgpu::Buffer,
     pub index_count: u32,
@@ -88,7 +88,7 @@ fn unit_mesh(device: &wgpu::Device, label: &str, v: &[UnitVertex], i: &[u16]) ->
 }
 
 /// A frustum along +Y with `n` segments and both caps, counter-clockwise from outside.
-pub fn frustum(n: u32) -> (Vec<UnitVertex>, Vec<u16>) {
+pub(crate) fn frustum(n: u32) -> (Vec<UnitVertex>, Vec<u16>) {
     let mut v = Vec::new();
     let mut idx = Vec::new();
     let ring = |k: u32| {
@@ -125,7 +125,7 @@ pub fn frustum(n: u32) -> (Vec<UnitVertex>, Vec<u16>) {
 }
 
 /// A unit sphere with `rings` latitude bands and `2 · rings` longitude segments.
-pub fn sphere(rings: u32) -> (Vec<UnitVertex>, Vec<u16>) {
+pub(crate) fn sphere(rings: u32) -> (Vec<UnitVertex>, Vec<u16>) {
     let segs = 2 * rings;
     let mut v = Vec::new();
     for r in 0..=rings {
@@ -147,7 +147,7 @@ pub fn sphere(rings: u32) -> (Vec<UnitVertex>, Vec<u16>) {
 }
 
 /// A unit cube centred on the origin, four vertices per face.
-pub fn cube() -> (Vec<UnitVertex>, Vec<u16>) {
+pub(crate) fn cube() -> (Vec<UnitVertex>, Vec<u16>) {
     let faces: [([f32; 3], [f32; 3], [f32; 3]); 6] = [
         ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]),
         ([-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]),
@@ -171,7 +171,7 @@ pub fn cube() -> (Vec<UnitVertex>, Vec<u16>) {
 
 /// Everything the renderer draws with.
 #[derive(Debug)]
-pub struct Pipelines {
+pub(crate) struct Pipelines {
     pub globals_layout: wgpu::BindGroupLayout,
     pub prims_layout: wgpu::BindGroupLayout,
     pub mesh_layout: wgpu::BindGroupLayout,
@@ -256,7 +256,12 @@ fn depth(write: bool, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStenc
 impl Pipelines {
     /// Build every pipeline for targets of `format`, the scene pass's with `samples` samples a pixel;
     /// `early_depth`: whether the device has [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
-    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat, samples: u32, early_depth: bool) -> Pipelines {
+    pub(crate) fn new(
+        device: &wgpu::Device,
+        format: wgpu::TextureFormat,
+        samples: u32,
+        early_depth: bool,
+    ) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let fs_cs = wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE;
         let unfiltered = wgpu::TextureSampleType::Float { filterable: false };

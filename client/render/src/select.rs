@@ -23,35 +23,35 @@ use super::workers::TreeKey;
 
 /// Height of the bounding sphere's centre above the species origin, metres at scale 1, while the species'
 /// far-field volume (which gives the true sphere) is not known: about a mid-sized tree's crown.
-pub const FALLBACK_CENTER_HEIGHT: f32 = 6.0;
+pub(crate) const FALLBACK_CENTER_HEIGHT: f32 = 6.0;
 /// Radius of that stand-in bounding sphere, metres at scale 1 (generous, so a tree is culled late rather than
 /// early).
-pub const FALLBACK_RADIUS: f32 = 8.0;
+pub(crate) const FALLBACK_RADIUS: f32 = 8.0;
 /// Terrain chunks take the coarsest step whose grid squares are at most this many pixels on screen.
-pub const TERRAIN_SQUARE_PX: f32 = 12.0;
+pub(crate) const TERRAIN_SQUARE_PX: f32 = 12.0;
 /// Nearest distance, metres, a terrain chunk's step is chosen for (a chunk around the eye counts as this far).
-pub const TERRAIN_NEAREST: f32 = 1.0;
+pub(crate) const TERRAIN_NEAREST: f32 = 1.0;
 /// Unit shapes of primitive instances (frusta, spheres, boxes: [`super::geometry::UnitShape`]).
-pub const UNIT_SHAPES: usize = 3;
+pub(crate) const UNIT_SHAPES: usize = 3;
 /// Tessellations of the unit meshes, one per detail level (coarser levels share the last).
-pub const TESSELLATIONS: usize = 4;
+pub(crate) const TESSELLATIONS: usize = 4;
 /// Alignment of per-draw uniforms (the WebGPU minimum for dynamic offsets).
-pub const DRAW_STRIDE: u64 = 256;
+pub(crate) const DRAW_STRIDE: u64 = 256;
 /// Draw slots: for the camera and each shadow cascade, one per unit shape and tessellation and one for meshes.
-pub const DRAW_SLOTS: u64 = 64;
+pub(crate) const DRAW_SLOTS: u64 = 64;
 const _: () = assert!(((UNIT_SHAPES * TESSELLATIONS + 1) * (1 + crate::SHADOW_CASCADES)) as u64 <= DRAW_SLOTS);
 /// Bytes of one [`DrawUniform`] within its slot.
-pub const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
+pub(crate) const DRAW_UNIFORM_BYTES: usize = size_of::<DrawUniform>();
 
 /// The tessellation of a detail level.
-pub fn tess(detail: u8) -> usize {
+pub(crate) fn tess(detail: u8) -> usize {
     usize::from(detail).min(TESSELLATIONS - 1)
 }
 
 /// A run of one tree's primitives (or mesh indices) drawn at a position, as the shaders read it.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct Segment {
+pub(crate) struct Segment {
     /// First instance (or index) of the run within its draw.
     pub first: u32,
     /// First primitive (or index) in the arena.
@@ -71,17 +71,17 @@ pub struct Segment {
 }
 
 /// The bits of [`FarInstance::volume`] that index the volume (the rest is the instance's tint).
-pub const VOLUME_INDEX: u32 = 0xff_ffff;
+pub(crate) const VOLUME_INDEX: u32 = 0xff_ffff;
 
 /// An instance seed folded to the 32 bits a [`Segment`] carries.
-pub fn fold_seed(seed: u64) -> u32 {
+pub(crate) fn fold_seed(seed: u64) -> u32 {
     (seed ^ (seed >> 32)) as u32
 }
 
 /// The uniform of one draw: its segments and unit shape.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct DrawUniform {
+pub(crate) struct DrawUniform {
     /// First segment in the frame's segment list.
     pub seg_first: u32,
     /// Segments.
@@ -95,7 +95,7 @@ pub struct DrawUniform {
 /// One far instance as the volume pipeline reads it (a vertex buffer entry).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct FarInstance {
+pub(crate) struct FarInstance {
     /// Position of the species origin and the instance scale.
     pub pos_scale: [f32; 4],
     /// Index of the volume (full or low resolution) in the low 24 bits; the instance's tint (its folded seed's top
@@ -107,7 +107,7 @@ pub struct FarInstance {
 
 /// One instanced primitive draw of the frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PrimDraw {
+pub(crate) struct PrimDraw {
     /// Unit shape.
     pub shape: usize,
     /// Tessellation.
@@ -120,7 +120,7 @@ pub struct PrimDraw {
 
 /// One tree to draw from the geometry cache.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct GeoDraw {
+pub(crate) struct GeoDraw {
     /// The cached geometry.
     pub key: TreeKey,
     /// World position of the species origin.
@@ -135,7 +135,7 @@ pub struct GeoDraw {
 
 /// What one view draws of the opaque geometry: the camera's, or a shadow cascade's.
 #[derive(Debug, Default)]
-pub struct ViewDraws {
+pub(crate) struct ViewDraws {
     /// Instanced primitive draws, by unit shape then tessellation.
     pub prims: Vec<PrimDraw>,
     /// The mesh draw: uniform slot and index count.
@@ -154,7 +154,7 @@ impl ViewDraws {
 
 /// Geometry the workers must make: a key for an instance, with its projected size as priority.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct JobRequest {
+pub(crate) struct JobRequest {
     /// What to make.
     pub key: TreeKey,
     /// Index of the instance in [`Scene::instances`] (its graph, seed and parameters).
@@ -165,7 +165,7 @@ pub struct JobRequest {
 
 /// A species' far-field volumes, resident in the atlas.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SpeciesVol {
+pub(crate) struct SpeciesVol {
     /// Volume indices at full resolution, then halved, a quarter and an eighth of it (the coarsest there is
     /// repeated where a species has fewer).
     pub levels: [u32; FAR_LEVELS],
@@ -179,7 +179,7 @@ pub struct SpeciesVol {
 
 /// Where a species' far-field volumes stand.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum VolState {
+pub(crate) enum VolState {
     /// Being voxelised.
     Pending,
     /// Resident.
@@ -190,7 +190,7 @@ pub enum VolState {
 
 /// One instance's selection state, carried across frames.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct InstState {
+pub(crate) struct InstState {
     /// The instance id.
     pub id: InstanceId,
     /// What it draws while levels change.
@@ -207,14 +207,14 @@ pub struct InstState {
 
 impl InstState {
     /// The state of an instance seen for the first time: nothing chosen or drawn yet.
-    pub fn new(id: InstanceId) -> InstState {
+    pub(crate) fn new(id: InstanceId) -> InstState {
         InstState { id, lod: InstanceLod::default(), target: None, scale: None, params: 0 }
     }
 }
 
 /// What is resident, as the selection sees it.
 #[derive(Clone, Copy, Debug)]
-pub struct Residency<'a> {
+pub(crate) struct Residency<'a> {
     /// The geometry cache.
     pub cache: &'a GeometryCache,
     /// Far-field volumes by species id (`None`: not asked for yet).
@@ -236,7 +236,7 @@ impl Residency<'_> {
 
 /// The camera as the selection needs it, and how far fades advance this frame.
 #[derive(Clone, Copy, Debug)]
-pub struct View {
+pub(crate) struct View {
     /// The view frustum.
     pub frustum: Frustum,
     /// Eye position.
@@ -253,7 +253,7 @@ pub struct View {
 
 /// The sun's shadows as the selection plans for them.
 #[derive(Clone, Copy, Debug)]
-pub struct ShadowView {
+pub(crate) struct ShadowView {
     /// Unit direction toward the sun.
     pub sun: Vec3,
     /// How far from the eye shadows reach: a tree out of view within it whose shadow may fall in view is drawn too,
@@ -267,7 +267,14 @@ pub struct ShadowView {
 impl View {
     /// The view of `camera` on a `size` viewport, `dt` seconds after the previous frame (`instant` finishes every
     /// fade at once).
-    pub fn new(camera: &Camera, size: (u32, u32), near_clip: f32, lod: &LodConfig, dt: f32, instant: bool) -> View {
+    pub(crate) fn new(
+        camera: &Camera,
+        size: (u32, u32),
+        near_clip: f32,
+        lod: &LodConfig,
+        dt: f32,
+        instant: bool,
+    ) -> View {
         let (w, h) = size;
         let vp = camera.view_projection(w as f32 / h as f32, near_clip);
         let progress = if instant || lod.fade_seconds <= 0.0 { 1.0 } else { (dt / lod.fade_seconds).max(0.0) };
@@ -296,7 +303,7 @@ impl View {
 
 /// Everything a frame's plan reads.
 #[derive(Clone, Copy, Debug)]
-pub struct FrameInputs<'a> {
+pub(crate) struct FrameInputs<'a> {
     /// The scene.
     pub scene: &'a Scene,
     /// What is resident.
@@ -313,7 +320,7 @@ pub struct FrameInputs<'a> {
 
 /// The selection state of every instance, carried across frames and scene generations.
 #[derive(Debug)]
-pub struct LodState {
+pub(crate) struct LodState {
     /// Per instance, in [`Scene::instances`] order.
     pub inst: Vec<InstState>,
     /// The previous generation's states while they are carried over (kept for its allocation).
@@ -327,7 +334,7 @@ pub struct LodState {
 
 impl LodState {
     /// No instances yet; levels `0..=mid_levels` and the far field.
-    pub fn new(lod: &LodConfig) -> LodState {
+    pub(crate) fn new(lod: &LodConfig) -> LodState {
         LodState {
             inst: Vec::new(),
             spare: Vec::new(),
@@ -339,7 +346,7 @@ impl LodState {
 
     /// Follow a new scene generation: carry states over by id (both lists are sorted by id, so one merge pass; an
     /// instance the old list does not have starts afresh).
-    pub fn sync(&mut self, generation: u64, instances: &[SceneInstance]) {
+    pub(crate) fn sync(&mut self, generation: u64, instances: &[SceneInstance]) {
         if self.generation == Some(generation) && self.inst.len() == instances.len() {
             return;
         }
@@ -366,7 +373,7 @@ impl LodState {
 
 /// One frame's plan (see the module docs). Kept between frames so that a frame allocates only when a list grows.
 #[derive(Debug, Default)]
-pub struct FramePlan {
+pub(crate) struct FramePlan {
     /// Trees to draw from the geometry cache, in instance order.
     pub geo_draws: Vec<GeoDraw>,
     /// Far instances with their distance, in instance order.
@@ -395,7 +402,7 @@ pub struct FramePlan {
 
 impl FramePlan {
     /// Draw nothing but the sky.
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.geo_draws.clear();
         self.far_sorted.clear();
         self.jobs.clear();
@@ -404,13 +411,13 @@ impl FramePlan {
     }
 
     /// Far instances to draw.
-    pub fn far_count(&self) -> u32 {
+    pub(crate) fn far_count(&self) -> u32 {
         self.far_sorted.len() as u32
     }
 
     /// Plan a frame: levels (stepping `state`), jobs, draw lists, far instances, terrain chunks; counts in `stats`.
     /// The caller submits [`FramePlan::jobs`], marks the drawn keys used and uploads the lists.
-    pub fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
+    pub(crate) fn plan(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
         self.choose_levels(input, state, stats);
         self.choose_jobs(input.job_room);
         self.build_draw_lists(input.residency.cache, input.view.shadows.as_ref().map(|s| &s.cascades), stats);

@@ -12,11 +12,11 @@ use super::geometry::{MeshVertex, pack_snorm, pack_unorm};
 /// Grid squares per chunk edge (or the whole grid when smaller).
 const CHUNK: u32 = 32;
 /// Steps of the chunk levels of detail, in grid squares.
-pub const STEPS: [u32; 4] = [1, 2, 4, 8];
+pub(crate) const STEPS: [u32; 4] = [1, 2, 4, 8];
 
 /// One chunk: its bounding sphere and an index range per step.
 #[derive(Clone, Debug)]
-pub struct Chunk {
+pub(crate) struct Chunk {
     /// Centre of the bounding sphere.
     pub center: Vec3,
     /// Radius.
@@ -28,7 +28,7 @@ pub struct Chunk {
 
 /// The CPU terrain mesh.
 #[derive(Clone, Debug)]
-pub struct TerrainMesh {
+pub(crate) struct TerrainMesh {
     /// Grid vertices, then skirt vertices.
     pub vertices: Vec<MeshVertex>,
     /// Triangles of every chunk and level.
@@ -60,7 +60,7 @@ fn hash(i: u32, j: u32) -> f32 {
 
 impl TerrainMesh {
     /// Build the mesh of a terrain.
-    pub fn build(t: &Terrain) -> TerrainMesh {
+    pub(crate) fn build(t: &Terrain) -> TerrainMesh {
         let [sx, sz] = t.squares();
         let (nx, nz) = (sx + 1, sz + 1);
         let s = t.spacing();
@@ -156,7 +156,7 @@ impl TerrainMesh {
 
     /// The level (index into [`STEPS`]) for a chunk seen from `distance` when a metre at unit distance covers
     /// `px_per_rad` pixels: the coarsest step whose squares stay under `max_px` pixels.
-    pub fn level_for(&self, distance: f32, px_per_rad: f32, max_px: f32) -> usize {
+    pub(crate) fn level_for(&self, distance: f32, px_per_rad: f32, max_px: f32) -> usize {
         let square_px = |step: u32| step as f32 * self.spacing * px_per_rad / distance.max(1e-3);
         STEPS.iter().rposition(|&st| square_px(st) <= max_px).unwrap_or(0)
     }

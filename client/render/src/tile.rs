@@ -22,15 +22,15 @@
 use super::volume::{FarVolume, f16_bits, half_to_f32};
 
 /// Trees per tile edge.
-pub const TILE_TREES: u32 = 8;
+pub(crate) const TILE_TREES: u32 = 8;
 /// Tree spacing on the tile's grid, in crown widths (crowns overlap as in a stand grown close).
-pub const CROWN_SPACING: f32 = 0.4;
+pub(crate) const CROWN_SPACING: f32 = 0.4;
 /// Resolutions of a tile (the first, then halved each time).
-pub const TILE_MIPS: usize = 4;
+pub(crate) const TILE_MIPS: usize = 4;
 /// Classes trees are thinned by (three sign bits).
-pub const DENSITY_CLASSES: u32 = 8;
+pub(crate) const DENSITY_CLASSES: u32 = 8;
 /// Height bands of a tile's [`CanopyProfile`].
-pub const PROFILE_BANDS: usize = 16;
+pub(crate) const PROFILE_BANDS: usize = 16;
 /// Smallest colour magnitude written (keeps the sign bit of every texel meaningful).
 const MIN_COLOUR: f32 = 1.0 / 1024.0;
 /// Largest source opacity resampled (an opaque voxel would have an infinite optical depth).
@@ -45,7 +45,7 @@ const BAYER8: [u8; 64] = [
 /// A species' canopy tile in its resolutions, each a [`FarVolume`] in tile metres (scale 1: the representative's
 /// size), origin at the tile's corner on the ground.
 #[derive(Clone, Debug, PartialEq)]
-pub struct CanopyTile {
+pub(crate) struct CanopyTile {
     /// Tile edge along x and z, metres at scale 1.
     pub period: f32,
     /// Height of the tile's box, metres at scale 1.
@@ -64,7 +64,7 @@ pub struct CanopyTile {
 /// straight above the layer covers the ground as the tile's trees do (a uniform medium would close the gaps
 /// between crowns); the colours are scaled so that the layer's mean far view is the tile's.
 #[derive(Clone, Debug, PartialEq)]
-pub struct CanopyProfile {
+pub(crate) struct CanopyProfile {
     /// Per band, bottom first: extinction per metre at scale 1 with the first `n + 1` classes kept.
     pub sigma: [[f32; DENSITY_CLASSES as usize]; PROFILE_BANDS],
     /// Per band: the colour the layer shows there.
@@ -73,7 +73,7 @@ pub struct CanopyProfile {
 
 impl CanopyProfile {
     /// The profile as the shader reads it: per band, the eight extinctions, then the colour (three `vec4`s).
-    pub fn gpu(&self) -> Vec<[f32; 4]> {
+    pub(crate) fn gpu(&self) -> Vec<[f32; 4]> {
         let mut out = Vec::with_capacity(3 * PROFILE_BANDS);
         for b in 0..PROFILE_BANDS {
             let s = &self.sigma[b];
@@ -85,7 +85,7 @@ impl CanopyProfile {
 
     /// Optical depth straight down through the layer, `∫σ dh` over the tile's height `top`, with the first
     /// `classes` classes kept (its cover from above is `1 − e^(−depth)`).
-    pub fn depth(&self, classes: usize, top: f32) -> f32 {
+    pub(crate) fn depth(&self, classes: usize, top: f32) -> f32 {
         if classes == 0 {
             return 0.0;
         }
@@ -112,7 +112,7 @@ impl CanopyProfile {
 
 /// Why a tile could not be made.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum TileError {
+pub(crate) enum TileError {
     /// The source volume has no extent or no voxels.
     #[error("the species' far volume is empty")]
     Empty,
@@ -400,14 +400,15 @@ impl Grid {
 }
 
 /// The density class of a tile texel (its colour's sign bits) and its colour.
-pub fn texel_class(t: &[u16]) -> (u32, [f32; 3]) {
+#[cfg(test)]
+pub(crate) fn texel_class(t: &[u16]) -> (u32, [f32; 3]) {
     let class = (0..3).map(|k| u32::from(t[k] >> 15) << k).sum();
     (class, [0, 1, 2].map(|k| half_to_f32(t[k] & 0x7fff)))
 }
 
 /// Bake a species' canopy tile from its far volume, `resolution` voxels along x and z (a power of two: the
 /// atlas slot's edge), half as many up.
-pub fn bake_tile(v: &FarVolume, resolution: u32) -> Result<CanopyTile, TileError> {
+pub(crate) fn bake_tile(v: &FarVolume, resolution: u32) -> Result<CanopyTile, TileError> {
     if !(8..=256).contains(&resolution) || !resolution.is_power_of_two() {
         return Err(TileError::Resolution(resolution));
     }

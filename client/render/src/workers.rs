@@ -10,7 +10,9 @@ use std::thread::JoinHandle;
 use std::time::Duration;
 
 use canopy_protocol::SpeciesGraph;
-use canopy_protocol::sync::{Locked, Waited};
+use canopy_protocol::sync::Locked;
+#[cfg(not(target_arch = "wasm32"))]
+use canopy_protocol::sync::Waited;
 use canopy_worlds::amplify::{Budget, Instance};
 
 use super::clock::Instant;
@@ -22,7 +24,7 @@ use super::{Lighting, NearMode};
 
 /// The geometry cache key: one instance at one detail level (instances are identified by species and seed).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct TreeKey {
+pub(crate) struct TreeKey {
     /// Species id.
     pub species: u16,
     /// Instance seed.
@@ -36,7 +38,7 @@ pub struct TreeKey {
 
 impl TreeKey {
     /// FNV-1a over `(slot, value bits)` pairs; 0 for none.
-    pub fn params_hash(params: &[(u16, f32)]) -> u64 {
+    pub(crate) fn params_hash(params: &[(u16, f32)]) -> u64 {
         if params.is_empty() {
             return 0;
         }
@@ -52,7 +54,7 @@ impl TreeKey {
 
 /// Work for a worker.
 #[derive(Clone, Debug)]
-pub enum Job {
+pub(crate) enum Job {
     /// Amplify one instance at one detail level.
     Tree {
         /// Cache key.
@@ -94,15 +96,13 @@ pub enum Job {
 
 /// What a job produced.
 #[derive(Debug)]
-pub enum JobResult {
+pub(crate) enum JobResult {
     /// A tree's geometry, or why there is none.
     Tree {
         /// Cache key.
         key: TreeKey,
         /// The geometry.
         result: Result<TreeGeometry, String>,
-        /// Time the job took.
-        took: Duration,
     },
     /// A species' volumes, or why there are none.
     Volume {
@@ -156,7 +156,7 @@ struct Shared {
 }
 
 /// A pool of worker threads (see the module docs), or none ([`Workers::inline`]). Dropping it stops and joins them.
-pub struct Workers {
+pub(crate) struct Workers {
     shared: Arc<(Mutex<Shared>, Condvar)>,
     results: mpsc::Receiver<JobResult>,
     threads: Vec<JoinHandle<()>>,
@@ -178,7 +178,7 @@ fn run(job: Job) -> JobResult {
             let result = std::panic::catch_unwind(|| build_tree(&graph, &instance, mode, &budget))
                 .map_err(|_| "amplification panicked".to_string())
                 .and_then(|r| r.map_err(|e| e.to_string()));
-            JobResult::Tree { key, result, took: started.elapsed() }
+            JobResult::Tree { key, result }
         }
         Job::Volume { species, graph, given, resolution, budget, lighting } => {
             let result = std::panic::catch_unwind(|| match &given {
@@ -203,7 +203,8 @@ fn run(job: Job) -> JobResult {
 
 impl Workers {
     /// Start `n` workers (at least one).
-    pub fn new(n: usize) -> std::io::Result<Workers> {
+    #[cfg(not(target_arch = "wasm32"))]
+    pub(crate) fn new(n: usize) -> std::io::Result<Workers> {
         let shared: Arc<(Mutex<Shared>, Condvar)> = Arc::default();
         let (tx, results) = mpsc::channel();
         let mut threads = Vec::new();
@@ -236,19 +237,20 @@ impl Workers {
 
     /// Workers without threads (a browser page: wasm32 has none): jobs wait in the queue until
     /// [`Workers::run_inline`] runs them on the calling thread.
-    pub fn inline() -> Workers {
+    #[cfg(any(test, target_arch = "wasm32"))]
+    pub(crate) fn inline() -> Workers {
         let (tx, results) = mpsc::channel();
         Workers { shared: Arc::default(), results, threads: Vec::new(), outstanding: 0, inline: Some(tx) }
     }
 
     /// Whether jobs run on the calling thread ([`Workers::inline`]).
-    pub fn is_inline(&self) -> bool {
+    pub(crate) fn is_inline(&self) -> bool {
         self.inline.is_some()
     }
 
     /// For inline workers: run queued jobs on this thread, highest priority first, while `more()` says so (asked
     /// before each job, so a job started runs to its end); how many ran. Worker threads run nothing here.
-    pub fn run_inline(&mut self, more: &mut dyn FnMut() -> bool) -> usize {
+    pub(crate) fn run_inline(&mut self, more: &mut dyn FnMut() -> bool) -> usize {
         let Some(tx) = &self.inline else { return 0 };
         let mut ran = 0;
         while more() {
@@ -262,7 +264,7 @@ impl Workers {
     }
 
     /// Queue a job; higher priorities run first.
-    pub fn submit(&mut self, job: Job, priority: f32) {
+    pub(crate) fn submit(&mut self, job: Job, priority: f32) {
         let (lock, cv) = &*self.shared;
         let mut s = lock.locked();
         let order = s.next;
@@ -273,14 +275,14 @@ impl Workers {
     }
 
     /// A finished job, if any (never blocks).
-    pub fn try_recv(&mut self) -> Option<JobResult> {
+    pub(crate) fn try_recv(&mut self) -> Option<JobResult> {
         let r = self.results.try_recv().ok()?;
         self.outstanding -= 1;
         Some(r)
     }
 
     /// Wait up to `timeout` for a finished job (inline workers run the next job, if any, and never wait).
-    pub fn recv_timeout(&mut self, timeout: Duration) -> Option<JobResult> {
+    pub(crate) fn recv_timeout(&mut self, timeout: Duration) -> Option<JobResult> {
         if self.is_inline() {
             let mut first = true;
             self.run_inline(&mut || std::mem::take(&mut first));
@@ -292,13 +294,8 @@ impl Workers {
     }
 
     /// Jobs queued or running.
-    pub fn outstanding(&self) -> usize {
+    pub(crate) fn outstanding(&self) -> usize {
         self.outstanding
-    }
-
-    /// Worker threads.
-    pub fn threads(&self) -> usize {
-        self.threads.len()
     }
 }
 
@@ -357,7 +354,7 @@ mod tests {
     fn inline_workers_run_jobs_by_priority_on_the_calling_thread_within_the_budget_asked() {
         let g = Arc::new(library::find("conifer").unwrap().load().unwrap());
         let mut w = Workers::inline();
-        assert!(w.is_inline() && w.threads() == 0);
+        assert!(w.is_inline() && w.threads.len() == 0);
         for (seed, priority) in [(1, 1.0), (2, 3.0), (3, 2.0)] {
             let key = TreeKey { species: 0, seed, detail: 1, params: 0 };
             let instance = Instance::new(seed).with_detail(1);

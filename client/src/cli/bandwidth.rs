@@ -64,7 +64,7 @@ impl Mode {
 /// with a teleport). With `--path flight`: the flight (records and expanded cells over 1 Mbit/s and 10 Mbit/s; 2
 /// bots, 30 s at 250 m/s, 1,500 m above the highlands, asking for the far view).
 #[derive(Args, Debug)]
-pub struct BandwidthArgs {
+pub(super) struct BandwidthArgs {
     /// The bots' path: walk lines (the default walkthrough) or fly (the flight scenario: procedural only, far view
     /// summaries beside records).
     #[arg(long, value_enum, default_value_t = Path::Line)]
@@ -226,7 +226,7 @@ fn config(args: &BandwidthArgs) -> anyhow::Result<BandwidthConfig> {
 }
 
 /// Run `canopy bandwidth`.
-pub fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: BandwidthArgs) -> anyhow::Result<ExitCode> {
     let cfg = config(&args)?;
     let loaded = Instant::now();
     let world = Arc::new(match (&args.world, cfg.flying()) {

@@ -32,7 +32,7 @@ use clap::Args;
 // and, after them, each process's own (`--count`, `--first-id`, `--connect-rate`, …).
 #[derive(Args, Debug)]
 #[command(args_override_self = true)]
-pub struct BotsArgs {
+pub(super) struct BotsArgs {
     /// How many bots.
     #[arg(long, default_value_t = 10)]
     count: usize,
@@ -151,7 +151,7 @@ fn open_store(at: &str, world: &World) -> anyhow::Result<Arc<dyn EditStore>> {
 /// Run `canopy bots`.
 // Negated comparisons are deliberate: NaN is rejected too.
 #[allow(clippy::neg_cmp_op_on_partial_ord, clippy::nonminimal_bool)]
-pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
     if args.count == 0
         || !(args.speed.is_finite() && args.speed >= 0.0)
         || !(args.duration >= 0.0)
@@ -245,7 +245,7 @@ pub fn run(args: BotsArgs) -> anyhow::Result<ExitCode> {
 
 /// Run bots on a fresh runtime with a progress display; returns the summary, with the acknowledged edits checked
 /// against `ledger`'s store (on its world's grid) when given.
-pub fn run_bots(
+pub(super) fn run_bots(
     cfg: BotsConfig,
     quiet: bool,
     ledger: Option<(Arc<dyn EditStore>, Grid)>,

@@ -25,7 +25,7 @@ use clap::Args;
 
 /// Options of `canopy demo`.
 #[derive(Args, Debug)]
-pub struct DemoArgs {
+pub(super) struct DemoArgs {
     /// How many bots.
     #[arg(long, default_value_t = 8)]
     bots: usize,
@@ -105,7 +105,7 @@ fn live_line(t: Duration, m: &Metrics, p: &Progress, bots: usize, last: &mut (In
 }
 
 /// Run `canopy demo`.
-pub fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: DemoArgs) -> anyhow::Result<ExitCode> {
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     if args.no_window || !display_present() {
         return demo(args, None, stop_rx);

@@ -16,7 +16,7 @@ use clap::Args;
 
 /// How to reach the server, and as whom.
 #[derive(Args, Debug, Clone)]
-pub struct ServerArgs {
+pub(super) struct ServerArgs {
     #[command(flatten)]
     connect: super::ConnectArgs,
     /// The editor token (64 hexadecimal digits, as `canopy-server --add-editor` printed it); also read from
@@ -29,7 +29,7 @@ pub struct ServerArgs {
 }
 
 /// An instance id: the number `canopy` prints, or `X:Z:INDEX` (cell and index in the cell).
-pub fn parse_id(s: &str) -> Result<InstanceId, String> {
+pub(super) fn parse_id(s: &str) -> Result<InstanceId, String> {
     if let Ok(n) = s.parse::<u64>() {
         return Ok(InstanceId(n));
     }
@@ -46,7 +46,7 @@ pub fn parse_id(s: &str) -> Result<InstanceId, String> {
 }
 
 /// `NAME=VALUE` (a parameter name or slot number, and a finite number).
-pub fn parse_param(s: &str) -> Result<(String, f32), String> {
+pub(super) fn parse_param(s: &str) -> Result<(String, f32), String> {
     let (k, v) = s.split_once('=').ok_or_else(|| format!("`{s}`: expected NAME=VALUE"))?;
     let v: f32 = v.trim().parse().map_err(|e| format!("`{v}`: {e}"))?;
     if !v.is_finite() || k.trim().is_empty() {
@@ -56,7 +56,7 @@ pub fn parse_param(s: &str) -> Result<(String, f32), String> {
 }
 
 /// How an instance id reads: `X:Z:INDEX (N)`.
-pub fn show_id(id: InstanceId) -> String {
+pub(super) fn show_id(id: InstanceId) -> String {
     let c = id.cell();
     format!("{}:{}:{} ({})", c.x, c.z, id.index(), id.0)
 }
@@ -180,7 +180,12 @@ fn cell_centre(w: &canopy_protocol::messages::Welcome, c: CellCoord) -> [f32; 2]
 }
 
 /// `canopy world plant SPECIES --at X Z [--param NAME=VALUE …]`.
-pub fn plant(server: &ServerArgs, species: &str, at: [f32; 2], params: &[(String, f32)]) -> anyhow::Result<ExitCode> {
+pub(super) fn plant(
+    server: &ServerArgs,
+    species: &str,
+    at: [f32; 2],
+    params: &[(String, f32)],
+) -> anyhow::Result<ExitCode> {
     let mut c = Client::connect(server, |_| at)?;
     let id = c.species_id(species)?;
     let params = c.params(id, params)?;
@@ -188,13 +193,13 @@ pub fn plant(server: &ServerArgs, species: &str, at: [f32; 2], params: &[(String
 }
 
 /// `canopy world fell ID`.
-pub fn fell(server: &ServerArgs, id: InstanceId) -> anyhow::Result<ExitCode> {
+pub(super) fn fell(server: &ServerArgs, id: InstanceId) -> anyhow::Result<ExitCode> {
     let mut c = Client::connect(server, |w| cell_centre(w, id.cell()))?;
     c.edit(EditOp::Fell { id })
 }
 
 /// `canopy world set ID NAME=VALUE …`.
-pub fn set(server: &ServerArgs, id: InstanceId, params: &[(String, f32)]) -> anyhow::Result<ExitCode> {
+pub(super) fn set(server: &ServerArgs, id: InstanceId, params: &[(String, f32)]) -> anyhow::Result<ExitCode> {
     let mut c = Client::connect(server, |w| cell_centre(w, id.cell()))?;
     let held = c.conn.state().cells().get(&id.cell()).context("the server did not send the instance's cell")?;
     let record = held.records.get(usize::from(id.index())).filter(|_| !held.felled.contains(&id.index()));
@@ -204,7 +209,7 @@ pub fn set(server: &ServerArgs, id: InstanceId, params: &[(String, f32)]) -> any
 }
 
 /// `canopy world cell X Z`: the instances of the cell at world (x, z) as a client receives them.
-pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
+pub(super) fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
     let c = Client::connect(server, |_| at)?;
     let w = c.conn.welcome();
     let cell = w.world.grid.cell_of(at[0], at[1]);
@@ -243,7 +248,7 @@ pub fn cell(server: &ServerArgs, at: [f32; 2]) -> anyhow::Result<ExitCode> {
 /// manifest — the source manifest (species paths made absolute, or library names for an embedded world), then one
 /// line per edited instance: `fell` and `set` for the world function's instances, `instance` for planted ones. The
 /// baked world is a new world: planted instances become explicit ones, so ids in edited cells may differ.
-pub fn bake(
+pub(super) fn bake(
     manifest: Option<&std::path::Path>,
     data: &std::path::Path,
     out: &std::path::Path,

@@ -13,7 +13,7 @@ use clap::Args;
 
 /// Far-view options shared by `canopy render` and `canopy walk`.
 #[derive(Args, Debug, Clone)]
-pub struct FarArgs {
+pub(super) struct FarArgs {
     /// Screen-space error of the far view, pixels: summary nodes beyond the records are refined while their
     /// geometric error projects larger (Cesium's default is 16).
     #[arg(long, default_value_t = 16.0)]
@@ -29,7 +29,7 @@ pub struct FarArgs {
 impl FarArgs {
     /// The far view for a viewport `height_px` high with vertical field of view `fov_y_deg`, at `altitude` metres
     /// above the ground; `None` with `--no-summaries`.
-    pub fn view(&self, height_px: u32, fov_y_deg: f32, altitude: f32) -> anyhow::Result<Option<FarView>> {
+    pub(super) fn view(&self, height_px: u32, fov_y_deg: f32, altitude: f32) -> anyhow::Result<Option<FarView>> {
         if self.no_summaries {
             return Ok(None);
         }
@@ -49,7 +49,7 @@ impl FarArgs {
 
 /// The far view of bots (`canopy bots`, `canopy bandwidth`, `canopy demo`): flights ask for one by default.
 #[derive(Args, Debug, Clone)]
-pub struct BotFarArgs {
+pub(super) struct BotFarArgs {
     /// Screen-space error of the far view, pixels: summary nodes beyond the records, refined while their error
     /// projects larger on a 1080-pixel-high, 60° view (Cesium's default is 16). Flights ask for a far view of 16
     /// by default, walkers only with this.
@@ -71,7 +71,7 @@ impl Default for BotFarArgs {
 
 impl BotFarArgs {
     /// The far view bots ask for: `--far-error` if given, 16 px flying, none walking or with `--no-far`.
-    pub fn view(&self, flying: bool, altitude: f32) -> anyhow::Result<Option<FarView>> {
+    pub(super) fn view(&self, flying: bool, altitude: f32) -> anyhow::Result<Option<FarView>> {
         let args = FarArgs {
             far_error: match (self.far_error, flying) {
                 (Some(e), _) => e,
@@ -87,7 +87,7 @@ impl BotFarArgs {
 
 /// The summary nodes the far view wants around `eye` (x, z), records covering `record_radius`, computed through
 /// `summaries` (which keeps what it computed for the next call).
-pub fn wanted_nodes(
+pub(super) fn wanted_nodes(
     summaries: &mut Summaries,
     view: FarView,
     eye: [f32; 2],
@@ -130,7 +130,7 @@ fn overlaps(world: &World, k: NodeKey) -> bool {
 
 /// A scene of `world` around `eye` (x, y, z) from its function: every instance of the cells within
 /// `record_radius` (a materialised world: every instance), and the far view's summary nodes beyond them.
-pub fn scene_around(world: &Arc<World>, eye: [f32; 3], record_radius: f32, view: Option<FarView>) -> Scene {
+pub(super) fn scene_around(world: &Arc<World>, eye: [f32; 3], record_radius: f32, view: Option<FarView>) -> Scene {
     let mut scene = if world.is_materialised() {
         Scene::from_world(world)
     } else {

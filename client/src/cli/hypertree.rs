@@ -23,7 +23,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::{species, write_file};
 
 #[derive(Subcommand, Debug)]
-pub enum HypertreeCommand {
+pub(super) enum HypertreeCommand {
     /// Check hypertree (.hyp) and hyperforest (.hyf) files; print every diagnostic with file:line:col.
     Check {
         /// Files to check; all are checked even if one fails.
@@ -162,7 +162,7 @@ impl From<StorageArg> for StorageType {
 
 /// Which hypertree to work on, and how to generate it when it is a definition.
 #[derive(Args, Debug, Clone)]
-pub struct InputArgs {
+pub(super) struct InputArgs {
     /// A saved volume (.hvol), a definition (.hyp), a hyperforest (.hyf) or a library name (`canopy hypertree list`).
     input: String,
     /// Instance seed (definitions only).
@@ -183,7 +183,7 @@ pub struct InputArgs {
 }
 
 #[derive(Args, Debug, Clone)]
-pub struct ViewArgs {
+pub(super) struct ViewArgs {
     /// Image width.
     #[arg(long, default_value_t = 300)]
     width: u32,
@@ -223,7 +223,7 @@ pub struct ViewArgs {
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum BoundsArg {
+pub(super) enum BoundsArg {
     /// The axis-aligned box of the voxels.
     Aabb,
     /// Secondary bounding spheres and the condensation box.
@@ -231,7 +231,7 @@ pub enum BoundsArg {
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum ShadingArg {
+pub(super) enum ShadingArg {
     /// Shadow-attenuated ambient only.
     Ambient,
     /// Attenuated ambient and shadowed diffuse.
@@ -269,7 +269,7 @@ impl ViewArgs {
 
 /// A box region in hypervolume coordinates.
 #[derive(Args, Debug, Clone)]
-pub struct RegionArgs {
+pub(super) struct RegionArgs {
     /// Lower corner `x,y,z` (hypervolume box coordinates, 0..extent).
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     min: [f32; 3],
@@ -423,7 +423,7 @@ fn describe(tree: &Hypertree, generation: Option<&(GenerationStats, f64)>) {
 }
 
 /// Run a hypertree subcommand.
-pub fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
+pub(super) fn run(cmd: HypertreeCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         HypertreeCommand::Check { files } => Ok(check(&files)),
         HypertreeCommand::List => {

@@ -23,7 +23,7 @@ use clap::{Parser, Subcommand};
 /// Canopy: procedural outdoor worlds — species are programs, trees are a few bytes.
 #[derive(Parser, Debug)]
 #[command(name = "canopy", version, about, long_about = None)]
-pub struct Cli {
+pub(crate) struct Cli {
     #[command(subcommand)]
     command: Command,
 }
@@ -53,7 +53,7 @@ enum Command {
 }
 
 /// Run a parsed command line.
-pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Species(cmd) => species::run(cmd),
         Command::Hypertree(cmd) => hypertree::run(cmd),
@@ -69,7 +69,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
 /// Which server a client command connects to and how it trusts the server's certificate: one set of flags for
 /// `walk`, `bots`, `world plant|fell|set|cell` and `bandwidth`.
 #[derive(clap::Args, Debug, Clone, Default)]
-pub struct ConnectArgs {
+pub(crate) struct ConnectArgs {
     /// The server's UDP address, or the edges of one world comma-separated (`HOST:PORT,HOST:PORT`: a client whose
     /// edge dies or closes resumes on another). Without it, `walk` and `bandwidth` start a server in this process,
     /// and the other commands connect to 127.0.0.1:4433.
@@ -93,26 +93,26 @@ pub struct ConnectArgs {
 
 impl ConnectArgs {
     /// The address `canopy-server` listens on by default.
-    pub const DEFAULT_SERVER: &str = "127.0.0.1:4433";
+    pub(crate) const DEFAULT_SERVER: &str = "127.0.0.1:4433";
 
     /// The server's edges, or the default server's.
-    pub fn edges(&self) -> canopy_client::net::Edges {
+    pub(crate) fn edges(&self) -> canopy_client::net::Edges {
         self.server.clone().unwrap_or_else(|| Self::DEFAULT_SERVER.parse().expect("the default address parses"))
     }
 
     /// How to trust the server's certificate (one of the two flags is needed).
-    pub fn trust(&self) -> anyhow::Result<canopy_client::Trust> {
+    pub(crate) fn trust(&self) -> anyhow::Result<canopy_client::Trust> {
         Ok(canopy_client::Trust::from_flags(self.cert_fingerprint.as_deref(), self.insecure)?)
     }
 
     /// Where cells are expanded: a pool with a worker per core and the default cache, shared by every connection
     /// of the process; `None` with `--records`.
-    pub fn expander(&self) -> Option<std::sync::Arc<canopy_client::expand::Expander>> {
+    pub(crate) fn expander(&self) -> Option<std::sync::Arc<canopy_client::expand::Expander>> {
         (!self.records).then(canopy_client::expand::Expander::default_pool)
     }
 
     /// The connection configuration for `edges` with `trust`, over WebTransport with `--web-transport`.
-    pub fn config(
+    pub(crate) fn config(
         &self,
         edges: &canopy_client::net::Edges,
         trust: canopy_client::Trust,
@@ -125,7 +125,7 @@ impl ConnectArgs {
     }
 
     /// Whether any flag was given (the commands with a server in process refuse trust flags without `--server`).
-    pub fn trust_given(&self) -> bool {
+    pub(crate) fn trust_given(&self) -> bool {
         self.cert_fingerprint.is_some() || self.insecure
     }
 }

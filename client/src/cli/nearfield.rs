@@ -23,7 +23,7 @@ use clap::{Args, ValueEnum};
 /// Near-field flags of `canopy species export` and `canopy species render`; they override what the species'
 /// `nearfield(...)` asks for.
 #[derive(Args, Debug, Clone, Default)]
-pub struct NearFieldArgs {
+pub(crate) struct NearFieldArgs {
     /// Mesh the branches as one continuous surface (seed 004).
     #[arg(long, conflicts_with_all = ["junctions", "primitives"])]
     continuous: bool,
@@ -64,7 +64,7 @@ pub struct NearFieldArgs {
 
 /// The chisel modes by name.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum Chisel {
+pub(super) enum Chisel {
     /// Shrink the outer bark's triangles.
     Shrink,
     /// Remove runs of them.
@@ -75,7 +75,7 @@ pub enum Chisel {
 
 /// How one species' instances are meshed, resolved from the species and the flags.
 #[derive(Clone, Copy, Debug)]
-pub enum Mode {
+pub(crate) enum Mode {
     /// One mesh per primitive (the ordinary mesher).
     Primitives,
     /// The continuous mesh.
@@ -86,7 +86,7 @@ pub enum Mode {
 
 /// The resolved near-field plan.
 #[derive(Clone, Copy, Debug)]
-pub struct Plan {
+pub(crate) struct Plan {
     /// How the branches are meshed.
     pub mode: Mode,
     /// The outer bark, if any.
@@ -97,7 +97,7 @@ pub struct Plan {
 
 impl NearFieldArgs {
     /// Resolve the plan for an instance of `graph`: the species' options, then the flags.
-    pub fn plan(&self, graph: &SpeciesGraph, instance: &Instance) -> anyhow::Result<Plan> {
+    pub(crate) fn plan(&self, graph: &SpeciesGraph, instance: &Instance) -> anyhow::Result<Plan> {
         let asked = species_options(graph, instance)?;
         let mut mesh_opts = asked.map(|o| o.mesh).unwrap_or_default();
         if let Some(c) = self.contour {
@@ -158,7 +158,7 @@ impl NearFieldArgs {
 }
 
 /// The meshes of one instance under a plan.
-pub struct InstanceMeshes {
+pub(super) struct InstanceMeshes {
     /// The named meshes: the branches (or all primitives), the outer bark, the LOD levels and the foliage, in that
     /// order; empty ones are left out.
     pub parts: Vec<(String, Mesh)>,
@@ -168,7 +168,7 @@ pub struct InstanceMeshes {
 }
 
 /// The named meshes of one instance under a plan (see [`InstanceMeshes`]).
-pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> anyhow::Result<InstanceMeshes> {
+pub(super) fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> anyhow::Result<InstanceMeshes> {
     let mut out = Vec::new();
     let mut not_one_body = None;
     let bark_of = |cm: &ContinuousMesh, b: &BarkOptions| -> anyhow::Result<Mesh> {
@@ -225,7 +225,7 @@ pub fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8) -> any
 
 /// `canopy species nearfield`: seed 004's Table 1 (triangles of the continuous mesh at contour resolutions 5, 9,
 /// 12 and 15, direct against refined) and the LOD chain's reduction at an error bound.
-pub fn table(
+pub(super) fn table(
     graph: &SpeciesGraph,
     instance: &Instance,
     budget: &Budget,
@@ -283,7 +283,7 @@ pub fn table(
 
 /// What `canopy species render` frames.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum View {
+pub(crate) enum View {
     /// The whole tree.
     Tree,
     /// The trunk base (the lowest part of the tree, widened to the root flares).
@@ -294,7 +294,7 @@ pub enum View {
 
 /// Render one instance under a plan to a PNG.
 #[allow(clippy::too_many_arguments)]
-pub fn render_png(
+pub(super) fn render_png(
     graph: &SpeciesGraph,
     instance: &Instance,
     budget: &Budget,

@@ -13,11 +13,11 @@ use canopy_render::{FarPath, LodConfig, NearMode, RenderConfig, timing};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
-pub const DEFAULT_VIEW: &str = "position 40 ~28 -760; look-at 0 ~30 -300; fov 60";
+pub(super) const DEFAULT_VIEW: &str = "position 40 ~28 -760; look-at 0 ~30 -300; fov 60";
 
 /// Renderer options shared by `canopy render` and `canopy walk`.
 #[derive(Args, Debug, Clone)]
-pub struct RendererArgs {
+pub(super) struct RendererArgs {
     /// Projected height in pixels at or above which a tree is drawn at full detail.
     #[arg(long, default_value_t = LodConfig::default().near_px)]
     near_px: f32,
@@ -78,7 +78,7 @@ pub struct RendererArgs {
 
 impl RendererArgs {
     /// The validated renderer configuration for a camera `altitude` metres above the ground.
-    pub fn config(&self, altitude: f32) -> anyhow::Result<RenderConfig> {
+    pub(super) fn config(&self, altitude: f32) -> anyhow::Result<RenderConfig> {
         let mut cfg = RenderConfig {
             lod: LodConfig {
                 near_px: self.near_px,
@@ -114,14 +114,14 @@ impl RendererArgs {
 
 /// The default fog density for a camera `altitude` metres above the ground: the walkthrough's near the ground,
 /// thinned in proportion above 50 m.
-pub fn fog_at(altitude: f32) -> f32 {
+pub(super) fn fog_at(altitude: f32) -> f32 {
     let near = RenderConfig::default().lighting.fog_density;
     if altitude.is_finite() && altitude > 50.0 { near * 50.0 / altitude } else { near }
 }
 
 /// Options of `canopy render`.
 #[derive(Args, Debug)]
-pub struct RenderArgs {
+pub(super) struct RenderArgs {
     /// World manifest, or an embedded world by name (`highlands`; default: the embedded default world).
     #[arg(long)]
     world: Option<PathBuf>,
@@ -159,7 +159,7 @@ pub struct RenderArgs {
 }
 
 /// The camera of a `--camera` argument: a file if one exists at that path, else inline statements.
-pub fn camera_spec(arg: Option<&str>) -> anyhow::Result<CameraSpec> {
+pub(super) fn camera_spec(arg: Option<&str>) -> anyhow::Result<CameraSpec> {
     match arg {
         None => Ok(CameraSpec::parse(DEFAULT_VIEW)?),
         Some(a) if std::path::Path::new(a).is_file() => Ok(CameraSpec::load(std::path::Path::new(a))?),
@@ -175,7 +175,7 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 }
 
 /// Run `canopy render`.
-pub fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let spec = camera_spec(args.camera.as_deref())?;
     let loaded = Instant::now();
     let world = Arc::new(super::load_world(args.world.as_deref()).map_err(|d| anyhow::anyhow!("{d}"))?);

@@ -24,7 +24,7 @@ mod export;
 mod nearfield;
 
 #[derive(Subcommand, Debug)]
-pub enum SpeciesCommand {
+pub(super) enum SpeciesCommand {
     /// Validate species files (.species, .lsys); print every diagnostic with file:line:col. Each species that
     /// parses is also amplified once (seed 0, default parameters, default budget): one that cannot finish fails.
     Check {
@@ -205,7 +205,7 @@ impl InstanceArgs {
 
 /// `canopy species edit [FILE] [--screenshot out.png | --exit-after SECONDS]`.
 #[derive(Args, Debug)]
-pub struct EditArgs {
+pub(super) struct EditArgs {
     /// A `.species`, `.lsys` or `.hyp` file (created on save if it does not exist), or an embedded library species;
     /// none starts a new species.
     file: Option<PathBuf>,
@@ -263,7 +263,7 @@ fn edit(args: EditArgs) -> anyhow::Result<ExitCode> {
 }
 
 #[derive(Args, Debug)]
-pub struct DemoArgs {
+pub(super) struct DemoArgs {
     /// Where to write the grove.
     #[arg(long, default_value = "out/demo-grove.glb")]
     out: PathBuf,
@@ -272,7 +272,7 @@ pub struct DemoArgs {
     per_species: u32,
 }
 
-pub fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
+pub(super) fn run(cmd: SpeciesCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         SpeciesCommand::Check { files } => Ok(check(&files)),
         SpeciesCommand::Stats { instance, repeat } => stats(&instance.config()?, repeat.max(1)),
@@ -402,7 +402,7 @@ fn write_glb(out: &Path, meshes: &[(String, Mesh, [f32; 3])]) -> anyhow::Result<
     super::write_file(out, &glb(&refs)?)
 }
 
-pub fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn demo(args: DemoArgs) -> anyhow::Result<ExitCode> {
     println!("Canopy species demo: every embedded species, amplified deterministically from its seed.\n");
     println!(
         "{:<16} {:>6} {:>8} {:>9} {:>11} {:>7} {:>9} {:>9}",

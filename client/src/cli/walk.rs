@@ -49,7 +49,7 @@ use super::walk_edit::{EditKeys, EditLink};
 
 /// Options of `canopy walk`.
 #[derive(Args, Debug)]
-pub struct WalkArgs {
+pub(super) struct WalkArgs {
     /// Where to walk (without `--server`: canopy-server in this process on `--world`, or on the embedded default
     /// world).
     #[command(flatten)]
@@ -669,7 +669,7 @@ fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::
 }
 
 /// Run `canopy walk`.
-pub fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
+pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let spec = camera_spec(args.camera.as_deref())?;
     // The fog for the starting camera's height above a ground not known yet (taken as 0).
     let cfg = args.renderer.config(spec.resolve(&|_, _| 0.0).position.y)?;

@@ -21,9 +21,9 @@ use winit::keyboard::KeyCode;
 use crate::cli::edit::show_id;
 
 /// How far the crosshair reaches along the view, metres.
-pub const REACH: f32 = 2000.0;
+pub(super) const REACH: f32 = 2000.0;
 /// How far (horizontally) from the crosshair's ground point `F` looks for an instance to fell, metres.
-pub const FELL_RADIUS: f32 = 4.0;
+pub(super) const FELL_RADIUS: f32 = 4.0;
 /// How long an instance this window asked to fell is passed over by the next `F` (the answer and the delta
 /// usually arrive well within it), so a second press fells the next tree rather than asking twice for one.
 const FELLING: Duration = Duration::from_secs(3);
@@ -33,7 +33,7 @@ const FELLING: Duration = Duration::from_secs(3);
 /// first step that ends below the ground is bisected. The point returned lies on the ground (its y is the height
 /// at its x, z). `None` when the ray stays above the ground (looking up or at the horizon) or is not finite; a
 /// camera below the ground hits the point under it.
-pub fn ray_ground(origin: Vec3, dir: Vec3, height: &dyn Fn(f32, f32) -> f32, max_dist: f32) -> Option<Vec3> {
+pub(super) fn ray_ground(origin: Vec3, dir: Vec3, height: &dyn Fn(f32, f32) -> f32, max_dist: f32) -> Option<Vec3> {
     let dir = dir.normalize_or_zero();
     if dir == Vec3::ZERO || !origin.is_finite() || max_dist.is_nan() || max_dist <= 0.0 {
         return None;
@@ -72,14 +72,14 @@ pub fn ray_ground(origin: Vec3, dir: Vec3, height: &dyn Fn(f32, f32) -> f32, max
 }
 
 /// The crosshair's ground point: the screen centre, i.e. the camera's forward ray, onto the scene's ground.
-pub fn aim(camera: &Camera, scene: &Scene) -> Option<Vec3> {
+pub(super) fn aim(camera: &Camera, scene: &Scene) -> Option<Vec3> {
     let ground = &scene.ground;
     ray_ground(camera.position, camera.forward(), &|x, z| ground.height(x, z), REACH)
 }
 
 /// The instance standing nearest to world `(x, z)` — horizontal distance, ties to the smaller id — among those
 /// within `radius` metres and not passed over by `skip`; `None` when there is none.
-pub fn nearest<'a>(
+pub(super) fn nearest<'a>(
     instances: impl IntoIterator<Item = &'a SceneInstance>,
     at: [f32; 2],
     radius: f32,
@@ -100,7 +100,7 @@ pub fn nearest<'a>(
 }
 
 /// The species after (`forward`) or before `selected` in a table of `n`, wrapping around.
-pub fn cycle(selected: usize, n: usize, forward: bool) -> usize {
+pub(super) fn cycle(selected: usize, n: usize, forward: bool) -> usize {
     match n {
         0 => 0,
         _ if forward => (selected % n + 1) % n,
@@ -118,7 +118,7 @@ fn species_name(scene: Option<&Scene>, id: usize) -> String {
 
 /// An edit the window asks the network thread to send, with how to name it in the answer's line.
 #[derive(Debug)]
-pub struct EditRequest {
+pub(super) struct EditRequest {
     /// The edit.
     pub op: EditOp,
     /// What it is, for people: `plant conifer at (12.5, -40.2)`.
@@ -128,7 +128,7 @@ pub struct EditRequest {
 /// The window's side: the selected species, the instances it asked to fell, and the channel to the network
 /// thread.
 #[derive(Debug)]
-pub struct EditKeys {
+pub(super) struct EditKeys {
     tx: UnboundedSender<EditRequest>,
     species: usize,
     felling: HashMap<InstanceId, Instant>,
@@ -136,17 +136,17 @@ pub struct EditKeys {
 
 impl EditKeys {
     /// Keys that send their edits on `tx`.
-    pub fn new(tx: UnboundedSender<EditRequest>) -> EditKeys {
+    pub(super) fn new(tx: UnboundedSender<EditRequest>) -> EditKeys {
         EditKeys { tx, species: 0, felling: HashMap::new() }
     }
 
     /// Whether `code` is one of the editing keys.
-    pub fn handles(code: KeyCode) -> bool {
+    pub(super) fn handles(code: KeyCode) -> bool {
         matches!(code, KeyCode::KeyP | KeyCode::KeyF | KeyCode::BracketLeft | KeyCode::BracketRight)
     }
 
     /// Act on an editing key with the camera and scene as they are; what to show and log.
-    pub fn key(&mut self, code: KeyCode, camera: &Camera, scene: Option<&Scene>) -> Option<String> {
+    pub(super) fn key(&mut self, code: KeyCode, camera: &Camera, scene: Option<&Scene>) -> Option<String> {
         let n = scene.map_or(0, |s| s.species.len());
         match code {
             KeyCode::BracketLeft | KeyCode::BracketRight => {
@@ -196,7 +196,7 @@ impl EditKeys {
     }
 
     /// The status line's part: the species `P` plants and the crosshair's ground point.
-    pub fn hud(&self, camera: &Camera, scene: Option<&Scene>) -> String {
+    pub(super) fn hud(&self, camera: &Camera, scene: Option<&Scene>) -> String {
         let n = scene.map_or(0, |s| s.species.len());
         let name = if n == 0 { "…".into() } else { species_name(scene, self.species.min(n - 1)) };
         match scene.and_then(|s| aim(camera, s)) {
@@ -208,19 +208,19 @@ impl EditKeys {
 
 /// The network thread's side: edits sent and not answered yet, by request number.
 #[derive(Debug)]
-pub struct EditLink {
+pub(super) struct EditLink {
     rx: UnboundedReceiver<EditRequest>,
     pending: HashMap<u32, String>,
 }
 
 impl EditLink {
     /// Requests from `rx`.
-    pub fn new(rx: UnboundedReceiver<EditRequest>) -> EditLink {
+    pub(super) fn new(rx: UnboundedReceiver<EditRequest>) -> EditLink {
         EditLink { rx, pending: HashMap::new() }
     }
 
     /// The next request from the window (never, once the window has gone).
-    pub async fn next(link: &mut Option<EditLink>) -> EditRequest {
+    pub(super) async fn next(link: &mut Option<EditLink>) -> EditRequest {
         match link {
             Some(l) => match l.rx.recv().await {
                 Some(r) => r,
@@ -231,14 +231,14 @@ impl EditLink {
     }
 
     /// Send `req` on `conn`, remembering what it was for its answer.
-    pub async fn send(&mut self, conn: &mut Connection, req: EditRequest) -> Result<(), ClientError> {
+    pub(super) async fn send(&mut self, conn: &mut Connection, req: EditRequest) -> Result<(), ClientError> {
         let request = conn.edit(req.op).await?;
         self.pending.insert(request, req.what);
         Ok(())
     }
 
     /// The line for an event that answers one of this window's edits.
-    pub fn answer(&mut self, ev: &Event) -> Option<String> {
+    pub(super) fn answer(&mut self, ev: &Event) -> Option<String> {
         let Event::EditResult(EditResult { request, outcome }) = ev else { return None };
         let what = self.pending.remove(request).unwrap_or_else(|| format!("edit {request}"));
         Some(describe(&what, outcome))
@@ -246,7 +246,7 @@ impl EditLink {
 }
 
 /// How an edit ended, for the status line and the log.
-pub fn describe(what: &str, outcome: &EditOutcome) -> String {
+pub(super) fn describe(what: &str, outcome: &EditOutcome) -> String {
     match outcome {
         EditOutcome::Ok { id, version } => format!("{what}: ok, instance {} (cell version {version})", show_id(*id)),
         EditOutcome::Denied(why) => format!("{what}: denied: {why}"),

@@ -12,7 +12,7 @@ use canopy_worlds::world::{CellKey, World};
 use clap::Subcommand;
 
 #[derive(Subcommand, Debug)]
-pub enum WorldCommand {
+pub(super) enum WorldCommand {
     /// Load a world and print its summary (area, cells, terrain, species, instances per species) and load time.
     Stats {
         /// A world manifest (`.world`); without one, the embedded default world.
@@ -86,7 +86,7 @@ pub enum WorldCommand {
 }
 
 /// Run a `canopy world` command.
-pub fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
+pub(super) fn run(cmd: WorldCommand) -> anyhow::Result<ExitCode> {
     match cmd {
         WorldCommand::Stats { manifest, repeat, samples, cells } => Ok(stats(manifest, repeat, samples, cells)),
         WorldCommand::Plant { species, at, params, server } => {

@@ -18,18 +18,18 @@ use canopy_worlds::world::World;
 use canopy_worlds::world::far::{LEAF_BLOCK_LEVEL, Summaries};
 
 /// The far view's screen-space error, pixels (the native walk's `--far-error` default).
-pub const FAR_ERROR_PX: f32 = 16.0;
+pub(crate) const FAR_ERROR_PX: f32 = 16.0;
 /// How far the far view reaches, metres (the native walk's `--far-range` default).
-pub const FAR_RANGE: f32 = 20_000.0;
+pub(crate) const FAR_RANGE: f32 = 20_000.0;
 /// The viewport height the far view is refined for, pixels (the native walk's `--height` default).
-pub const FAR_HEIGHT_PX: u16 = 720;
+pub(crate) const FAR_HEIGHT_PX: u16 = 720;
 /// The vertical field of view the far view is refined for, degrees (the native default view's, the page's).
-pub const FAR_FOV_Y_DEG: f32 = 60.0;
+pub(crate) const FAR_FOV_Y_DEG: f32 = 60.0;
 /// Most batches laid into the state in one go.
 const MAX_BATCHES: usize = 64;
 
 /// The far view the native walk asks for by default, with the eye `altitude` metres over the ground (2 at least).
-pub fn default_view(altitude: f32) -> FarView {
+pub(crate) fn default_view(altitude: f32) -> FarView {
     FarView {
         error_px: FAR_ERROR_PX,
         height_px: FAR_HEIGHT_PX,

@@ -10,10 +10,10 @@
 //! The browser glue (WebTransport, the animation loop, input, the canvas) is in `web/`, built for wasm32 only.
 
 pub mod camera;
-pub mod far;
+mod far;
 pub mod map;
 pub mod page;
-pub mod session;
+mod session;
 
 #[cfg(target_arch = "wasm32")]
-mod web;
+pub mod web;

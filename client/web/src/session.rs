@@ -98,7 +98,7 @@ impl Default for Options {
 }
 
 /// Edits whose requests and outcomes a session remembers (the oldest are forgotten).
-pub const EDITS_KEPT: usize = 32;
+pub(crate) const EDITS_KEPT: usize = 32;
 
 /// An edit this session asked for: its request number and, once the server answered, the outcome.
 #[derive(Clone, Debug, PartialEq)]
@@ -110,11 +110,11 @@ pub struct EditAsked {
 }
 
 /// The radius asked for by default (the native walk's).
-pub const DEFAULT_RADIUS: f32 = 600.0;
+pub(crate) const DEFAULT_RADIUS: f32 = 600.0;
 
 /// Where a session starts by default: the native default view's (40, −760) where the grid holds it (the default
 /// world's valley), else the grid's centre.
-pub fn default_start(grid: &Grid) -> [f32; 2] {
+pub(crate) fn default_start(grid: &Grid) -> [f32; 2] {
     let view = [40.0, -760.0];
     if grid.contains(grid.cell_of(view[0], view[1])) {
         return view;
@@ -124,15 +124,19 @@ pub fn default_start(grid: &Grid) -> [f32; 2] {
 }
 
 /// The camera's height over the ground at the start, metres (the default view's): the far view's first altitude.
-pub const DEFAULT_ALTITUDE: f32 = 28.0;
+pub(crate) const DEFAULT_ALTITUDE: f32 = 28.0;
 
 /// The default view's heading: from (40, −760) towards (0, −300), up the valley.
-pub const DEFAULT_YAW: f32 = -0.086_738_5;
+pub(crate) const DEFAULT_YAW: f32 = -0.086_738_5;
 
 /// One cell's placements quantised on the welcome's grid, as the native expander and the server's store quantise
 /// them (`canopy_client::expand::Expanded::of_placements`, which is native-only): record `i` is instance
 /// `(cell, i)`, overrides by index in the cell, sorted by `(record, slot)`.
-pub fn quantise(grid: &Grid, cell: CellCoord, placements: &[Placement]) -> (Vec<InstanceRecord>, Vec<ParamOverride>) {
+pub(crate) fn quantise(
+    grid: &Grid,
+    cell: CellCoord,
+    placements: &[Placement],
+) -> (Vec<InstanceRecord>, Vec<ParamOverride>) {
     let mut records = Vec::with_capacity(placements.len());
     let mut overrides = Vec::new();
     for (i, p) in placements.iter().enumerate() {

@@ -589,7 +589,7 @@ fn acknowledged_edits_survive_sigkill_once_each_and_nothing_is_half_applied() {
                 }
                 CellEdit::Set { index, params } => {
                     let r = want.records.get_mut(index).expect("a set of a planted instance");
-                    r.3 = canopy_server::edits::overlay::merge_params(&r.3, params);
+                    r.3 = canopy_server::edits::merge_params(&r.3, params);
                 }
                 CellEdit::Fell { index } => {
                     want.records.remove(index);

@@ -14,15 +14,15 @@
 //!
 //! Contract: no networking and no clock; the SQLite store is the only code here that touches a file.
 
-pub mod log;
-pub mod overlay;
-pub mod rules;
+mod log;
+mod overlay;
+mod rules;
 pub mod sqlite;
-pub mod store;
+mod store;
 pub mod suite;
 
 pub use log::{CellEdit, LogError, MAX_RUN, StoredEdit, decode_run, encode_run};
-pub use overlay::{Overlay, OverlayError};
+pub use overlay::{Overlay, OverlayError, merge_params};
 pub use rules::{EditRules, MAX_PARAM_VALUE};
 pub use sqlite::SqliteEditStore;
 pub use store::{EditStore, EditStoreError, EditWatcher, MemoryEditStore};

@@ -6,7 +6,7 @@ use canopy_protocol::{CellCoord, InstanceRecord};
 use serde::{Deserialize, Serialize};
 
 /// Most bytes one stored edit may take (a plant with every parameter is far below it).
-pub const MAX_STORED_EDIT: usize = 512;
+pub(crate) const MAX_STORED_EDIT: usize = 512;
 
 /// What one edit did to its cell.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -121,7 +121,7 @@ impl StoredEdit {
 pub const MAX_RUN: usize = 256;
 
 /// Most bytes one stored run may take.
-pub const MAX_RUN_BYTES: usize = MAX_RUN * MAX_STORED_EDIT;
+pub(crate) const MAX_RUN_BYTES: usize = MAX_RUN * MAX_STORED_EDIT;
 
 /// A run of consecutive versions of one cell as a message log stores it: one message, one compare-and-set, for
 /// every edit a group made to the cell ([`encode_run`], [`decode_run`]).

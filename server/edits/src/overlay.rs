@@ -12,7 +12,7 @@ use crate::log::{CellEdit, StoredEdit};
 use crate::rules::EditRules;
 
 /// The latest edits an overlay keeps to compose deltas from; a client holding an older version gets the whole cell.
-pub const LOG_KEEP: usize = 1024;
+pub(crate) const LOG_KEEP: usize = 1024;
 
 /// Why an edit does not apply to a cell.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

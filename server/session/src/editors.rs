@@ -22,7 +22,7 @@ use canopy_protocol::sync::Locked;
 use sha2::{Digest, Sha256};
 
 /// Edits a second an editor may make when its line names no rate.
-pub const DEFAULT_RATE: u32 = 50;
+pub(crate) const DEFAULT_RATE: u32 = 50;
 /// Largest editors file read, bytes.
 const MAX_FILE: u64 = 1 << 20;
 /// Bytes of a token.

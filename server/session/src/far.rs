@@ -35,12 +35,12 @@ use crate::transmit::{StreamId, Transmit};
 /// down a computed subtree at once instead of a level per [`REBUILD_INTERVAL`].
 pub const NODE_REBUILD_INTERVAL: Duration = Duration::from_millis(20);
 /// Largest summaries message the session builds, bytes of nodes (a few QUIC packets).
-pub const BATCH_BYTES: usize = 8 * 1024;
+pub(crate) const BATCH_BYTES: usize = 8 * 1024;
 /// The farthest a session's far view reaches, metres, whatever the client asks (bounds the nodes a client can make
 /// the cache compute: a 32 km disc is about 800 km² of leaves, computed once and shared).
-pub const MAX_RANGE: f32 = 32_768.0;
+pub(crate) const MAX_RANGE: f32 = 32_768.0;
 /// The finest screen-space error threshold a session applies, pixels.
-pub const MIN_ERROR_PX: f32 = 2.0;
+pub(crate) const MIN_ERROR_PX: f32 = 2.0;
 
 /// One session's far view (see the module docs).
 #[derive(Debug)]
@@ -246,7 +246,7 @@ fn bounded(view: FarView) -> FarView {
 /// A summaries message from nodes encoded once: `ServerMsg::Streaming` (1), `ServerStreaming::Summaries` (6), the
 /// nodes' count and encodings, the releases' count and keys — postcard's encoding of the same
 /// [`canopy_protocol::summary::SummaryBatch`], without decoding and encoding each node again.
-pub fn encode_batch(nodes: &[Arc<EncodedSummary>], released: &[NodeKey]) -> Vec<u8> {
+pub(crate) fn encode_batch(nodes: &[Arc<EncodedSummary>], released: &[NodeKey]) -> Vec<u8> {
     let mut out = vec![1u8, 6];
     push_varint(&mut out, nodes.len() as u64);
     for n in nodes {

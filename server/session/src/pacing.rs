@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 /// A token bucket in bytes. Sending may take the bucket into debt by one message; the next send waits until the
 /// debt is repaid, so messages are never split and the long-run rate is exact.
 #[derive(Clone, Debug)]
-pub struct TokenBucket {
+pub(crate) struct TokenBucket {
     rate: f64,
     burst: f64,
     tokens: f64,
@@ -16,7 +16,7 @@ pub struct TokenBucket {
 
 impl TokenBucket {
     /// A full bucket refilling at `rate` bytes per second, holding at most `burst` bytes.
-    pub fn new(rate: u64, burst: u64, now: Instant) -> TokenBucket {
+    pub(crate) fn new(rate: u64, burst: u64, now: Instant) -> TokenBucket {
         let burst = burst.max(1) as f64;
         TokenBucket { rate: rate.max(1) as f64, burst, tokens: burst, last: now }
     }
@@ -28,19 +28,19 @@ impl TokenBucket {
     }
 
     /// Whether a message may be sent now.
-    pub fn ready(&mut self, now: Instant) -> bool {
+    pub(crate) fn ready(&mut self, now: Instant) -> bool {
         self.refill(now);
         self.tokens >= 0.0
     }
 
     /// Take `bytes` (possibly into debt).
-    pub fn take(&mut self, now: Instant, bytes: usize) {
+    pub(crate) fn take(&mut self, now: Instant, bytes: usize) {
         self.refill(now);
         self.tokens -= bytes as f64;
     }
 
     /// When the bucket will be out of debt again (`None` if it is not in debt).
-    pub fn ready_at(&self) -> Option<Instant> {
+    pub(crate) fn ready_at(&self) -> Option<Instant> {
         (self.tokens < 0.0).then(|| self.last + Duration::from_secs_f64(-self.tokens / self.rate))
     }
 }

@@ -36,10 +36,10 @@ use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceId, PROTOCOL_VERS
 
 use crate::editors::{Editor, Editors};
 use crate::far::{Eye, FarSession};
-pub use crate::pacing::SendBudget;
+use crate::pacing::SendBudget;
 use crate::pacing::TokenBucket;
 use crate::store::{CellData, CellState, CellWaker, WorldStore};
-pub use crate::transmit::{StreamId, Transmit};
+use crate::transmit::{StreamId, Transmit};
 
 mod edits;
 mod expand;
@@ -52,16 +52,16 @@ pub const MAX_EDITS_IN_FLIGHT: usize = 256;
 
 /// Most digests of a session waiting to be checked; more are not checked (the client samples, the server need not
 /// keep up with a flood).
-pub const MAX_DIGESTS_WAITING: usize = 16;
+pub(crate) const MAX_DIGESTS_WAITING: usize = 16;
 
 /// Most cells a client that expands cells may ask records for in one session (beyond, its asks are ignored and it
 /// keeps its grants).
-pub const MAX_RECORD_CELLS: usize = 4096;
+pub(crate) const MAX_RECORD_CELLS: usize = 4096;
 
 /// A cell out of view is scheduled as if it were this many times farther away.
 pub const OUT_OF_VIEW_FACTOR: f32 = 2.0;
 
-pub use crate::payload::{GeometrySource, Payload, PayloadMode};
+use crate::payload::{Payload, PayloadMode};
 
 /// How a session behaves.
 #[derive(Clone, Debug, PartialEq)]

@@ -14,7 +14,7 @@ use crate::waiters::Waiters;
 
 /// Most summary nodes queued for computing; a lookup past it answers pending without queueing (the session asks
 /// again later), so a flood of far views cannot grow the queue.
-pub const MAX_QUEUED: usize = 16_384;
+pub(crate) const MAX_QUEUED: usize = 16_384;
 
 /// What a cached node costs the cache: its bytes and its slot's (map entry, recency).
 fn cost(node: &EncodedSummary) -> usize {

@@ -20,17 +20,17 @@ use canopy_server::session::{PlacedInstance, StoreBuilder, WorldStore};
 use canopy_server::session::{Session, SessionConfig, StreamId};
 use canopy_server::{CellChange, EditJob, EditService};
 
-pub const CELL: f32 = 32.0;
-pub const ALICE: [u8; 32] = [1; 32];
-pub const BOB: [u8; 32] = [2; 32];
+pub(crate) const CELL: f32 = 32.0;
+pub(crate) const ALICE: [u8; 32] = [1; 32];
+pub(crate) const BOB: [u8; 32] = [2; 32];
 /// Carol may edit only the cells with x < 0.
-pub const CAROL: [u8; 32] = [3; 32];
+pub(crate) const CAROL: [u8; 32] = [3; 32];
 /// Dave may make 3 edits a second.
-pub const DAVE: [u8; 32] = [4; 32];
+pub(crate) const DAVE: [u8; 32] = [4; 32];
 
 /// A 8 × 8 grid of 32 m cells around the origin (the world's bounds end 8 m short of its high edges), 1 to 5
 /// instances a cell of two species.
-pub fn base() -> Arc<dyn WorldStore> {
+pub(crate) fn base() -> Arc<dyn WorldStore> {
     let species: Vec<SpeciesGraph> =
         ["worm", "conifer"].iter().map(|n| canopy_worlds::library::find(n).unwrap().load().unwrap()).collect();
     let grid = Grid { origin: [0.0, 0.0], cell_size: CELL, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) };
@@ -58,7 +58,7 @@ pub fn base() -> Arc<dyn WorldStore> {
 
 /// A live world over an edit store, its edit writer, and the sessions' configuration (editors Alice, Bob,
 /// Carol, Dave).
-pub struct World {
+pub(crate) struct World {
     pub live: Arc<LiveStore>,
     pub service: Arc<EditService>,
     pub edits: Arc<dyn EditStore>,
@@ -66,17 +66,17 @@ pub struct World {
 }
 
 /// The world over an in-memory edit store.
-pub fn world() -> World {
+pub(crate) fn world() -> World {
     world_over(Arc::new(MemoryEditStore::new()))
 }
 
 /// The world over `edits`.
-pub fn world_over(edits: Arc<dyn EditStore>) -> World {
+pub(crate) fn world_over(edits: Arc<dyn EditStore>) -> World {
     world_on(base(), edits)
 }
 
 /// The world of `base` (the world function's records) over `edits`.
-pub fn world_on(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>) -> World {
+pub(crate) fn world_on(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>) -> World {
     let live = Arc::new(LiveStore::new(base, Arc::clone(&edits), 1 << 20));
     let service = EditService::start(Arc::clone(&live));
     let text = [
@@ -99,10 +99,10 @@ pub fn world_on(base: Arc<dyn WorldStore>, edits: Arc<dyn EditStore>) -> World {
 type Answer = (u32, EditOutcome);
 
 /// An instance as the tests compare it: id, species, position bits and parameter bits.
-pub type Seen = (u64, u8, [u32; 3], Vec<(u16, u32)>);
+pub(crate) type Seen = (u64, u8, [u32; 3], Vec<(u16, u32)>);
 
 /// One client and its session, lanes delivered in a random interleaving, edits through the pipeline.
-pub struct Pair {
+pub(crate) struct Pair {
     pub server: Session,
     pub client: ClientState,
     lanes: HashMap<StreamId, VecDeque<Vec<u8>>>,
@@ -115,7 +115,7 @@ pub struct Pair {
 }
 
 impl Pair {
-    pub fn connect(w: &World, client: ClientState, token: Option<[u8; 32]>, seed: u64) -> Pair {
+    pub(crate) fn connect(w: &World, client: ClientState, token: Option<[u8; 32]>, seed: u64) -> Pair {
         let now = Instant::now();
         let store = Arc::clone(&w.live) as Arc<dyn WorldStore>;
         let mut server = Session::new(store, w.cfg.clone(), now);
@@ -141,7 +141,7 @@ impl Pair {
         }
     }
 
-    pub fn edit(&mut self, op: EditOp) -> u32 {
+    pub(crate) fn edit(&mut self, op: EditOp) -> u32 {
         let (request, msg) = self.client.edit(op).unwrap();
         self.server.handle(self.now, msg).unwrap();
         request
@@ -149,7 +149,7 @@ impl Pair {
 
     /// Hand edits to the pipeline, take its answers and the announced changes, let the server send and deliver
     /// a few messages in a random lane order. Returns whether anything moved.
-    pub fn step(&mut self, w: &World) -> bool {
+    pub(crate) fn step(&mut self, w: &World) -> bool {
         let mut moved = false;
         while let Some((request, op, editor)) = self.server.poll_edit() {
             let tx = self.answers.0.clone();
@@ -203,13 +203,13 @@ impl Pair {
 
 /// Step every pair until nothing moves and every edit is answered (the writer runs on its own thread).
 /// Step every pair until nothing moves and every edit is answered (the writer runs on its own thread).
-pub fn settle(w: &World, pairs: &mut [&mut Pair]) {
+pub(crate) fn settle(w: &World, pairs: &mut [&mut Pair]) {
     let mut each: Vec<(&World, &mut Pair)> = pairs.iter_mut().map(|p| (w, &mut **p)).collect();
     settle_each(&mut each);
 }
 
 /// [`settle`] for pairs on different edges, each with its own world.
-pub fn settle_each(pairs: &mut [(&World, &mut Pair)]) {
+pub(crate) fn settle_each(pairs: &mut [(&World, &mut Pair)]) {
     let deadline = Instant::now() + Duration::from_secs(20);
     let mut quiet = 0;
     while quiet < 20 {
@@ -225,7 +225,7 @@ pub fn settle_each(pairs: &mut [(&World, &mut Pair)]) {
 }
 
 /// Step the pairs until `done` holds of them (changes from other edges come over the network), at most 20 s.
-pub fn settle_until(pairs: &mut [(&World, &mut Pair)], done: impl Fn(&[(&World, &mut Pair)]) -> bool) {
+pub(crate) fn settle_until(pairs: &mut [(&World, &mut Pair)], done: impl Fn(&[(&World, &mut Pair)]) -> bool) {
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
         settle_each(pairs);
@@ -237,7 +237,7 @@ pub fn settle_until(pairs: &mut [(&World, &mut Pair)], done: impl Fn(&[(&World, 
     }
 }
 
-pub fn sorted(mut v: Vec<InstanceView>) -> Vec<Seen> {
+pub(crate) fn sorted(mut v: Vec<InstanceView>) -> Vec<Seen> {
     v.sort_by_key(|i| i.id);
     v.into_iter()
         .map(|i| {
@@ -247,17 +247,17 @@ pub fn sorted(mut v: Vec<InstanceView>) -> Vec<Seen> {
 }
 
 /// What the store says every cell holds now, as a client would see it.
-pub fn expected(w: &World) -> Vec<Seen> {
+pub(crate) fn expected(w: &World) -> Vec<Seen> {
     let mut c = ClientState::new();
     let mut p = Pair::connect(w, std::mem::take(&mut c), None, 99);
     settle_until(&mut [(w, &mut p)], |p| p[0].1.client.is_complete());
     sorted(p.client.instances(&|_, _| 0.0).collect())
 }
 
-pub fn version(w: &World, c: CellCoord) -> u32 {
+pub(crate) fn version(w: &World, c: CellCoord) -> u32 {
     w.live.cell(c, None).ready().unwrap().version
 }
 
-pub fn id(x: i32, z: i32, i: u16) -> InstanceId {
+pub(crate) fn id(x: i32, z: i32, i: u16) -> InstanceId {
     InstanceId::new(CellCoord::new(x, z), i).unwrap()
 }

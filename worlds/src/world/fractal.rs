@@ -35,11 +35,11 @@ use crate::rng::{InstanceRng, child_key};
 /// Deepest subdivision of a fractal terrain (the welcome's bound too).
 pub const MAX_FRACTAL_DEPTH: u32 = canopy_protocol::netlimits::MAX_FRACTAL_DEPTH;
 /// Smallest lattice spacing at full depth, metres.
-pub const MIN_FRACTAL_SPACING: f64 = canopy_protocol::netlimits::MIN_FRACTAL_SPACING;
+pub(super) const MIN_FRACTAL_SPACING: f64 = canopy_protocol::netlimits::MIN_FRACTAL_SPACING;
 /// Most control heights.
-pub const MAX_CONTROL_HEIGHTS: usize = canopy_protocol::netlimits::MAX_CONTROL_HEIGHTS;
+pub(super) const MAX_CONTROL_HEIGHTS: usize = canopy_protocol::netlimits::MAX_CONTROL_HEIGHTS;
 /// The fractal dimension's range: `[2, 3)`.
-pub const DIMENSION_RANGE: (f32, f32) = canopy_protocol::netlimits::FRACTAL_DIMENSION;
+pub(super) const DIMENSION_RANGE: (f32, f32) = canopy_protocol::netlimits::FRACTAL_DIMENSION;
 
 /// A fractal terrain: everything needed to compute a height anywhere.
 #[derive(Clone, Debug, PartialEq)]

@@ -23,17 +23,17 @@ use crate::primitive::Fnv;
 use crate::rng::{child_key, mix64};
 
 /// Salt of the default terrain seed: `mix64(world seed ^ TERRAIN_SALT)`.
-pub const TERRAIN_SALT: u64 = 0x7465_7272_6169_6e00;
+pub(super) const TERRAIN_SALT: u64 = 0x7465_7272_6169_6e00;
 
 /// The library name of the built-in fractal terrain function ([`Fractal`]): `terrain fractal { … }`.
 pub const FRACTAL: &str = "fractal";
 /// A fractal terrain's default depth, dimension and relief.
-pub const DEFAULT_FRACTAL_DEPTH: u32 = 10;
+pub(super) const DEFAULT_FRACTAL_DEPTH: u32 = 10;
 const DEFAULT_DIMENSION: f32 = 2.2;
 const DEFAULT_RELIEF: f32 = 100.0;
 
 /// The default terrain depth (the terrain species' own default at full detail).
-pub const DEFAULT_TERRAIN_DEPTH: u32 = 7;
+pub(super) const DEFAULT_TERRAIN_DEPTH: u32 = 7;
 
 /// A density ramp over a value (altitude in metres, slope in degrees): 0 below `a`, rising linearly to 1 at `b`,
 /// 1 up to `c`, falling linearly to 0 at `d`. Ends may be infinite.
@@ -168,7 +168,7 @@ pub enum ParamValue {
 }
 
 /// Most distinct values of a stepped range.
-pub const MAX_RANGE_STEPS: f64 = 16_777_216.0;
+pub(super) const MAX_RANGE_STEPS: f64 = 16_777_216.0;
 
 impl ParamValue {
     /// The value drawn by ChaCha8 word `bits`: with `u = unit_f32(bits)` in [0, 1), `lo + (hi - lo) · u` in f32,

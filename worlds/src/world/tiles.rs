@@ -40,7 +40,7 @@ const _: () = assert!(ROUND_WORDS == 24, "rounds 0 and 1 read block 0, round 2 b
 /// Most bytes the tile caches of one world keep, over all its rules (the words and the variants; a few rules
 /// take about 0.4 MiB each). Past it, a variant or a rule's words are computed for the expansion that needs them
 /// and not kept: a world function with many rules costs time, not memory.
-pub const TILE_CACHE_BYTES: usize = 32 << 20;
+pub(super) const TILE_CACHE_BYTES: usize = 32 << 20;
 
 /// Variants computed on all cores at once when one lookup needs at least this many.
 const PARALLEL_VARIANTS: usize = 4;

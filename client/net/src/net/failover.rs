@@ -26,7 +26,7 @@ const ATTEMPT_TIMEOUT: Duration = Duration::from_secs(5);
 const ROUND_PAUSE: Duration = Duration::from_millis(500);
 
 /// How long [`Connection::connect_any`] keeps asking one server that says it is busy ([`ClientError::busy`]).
-pub const BUSY_TIMEOUT: Duration = Duration::from_secs(60);
+pub(super) const BUSY_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// The first pause after a busy answer; each next one doubles, up to [`BUSY_PAUSE_MAX`], and each is drawn between
 /// half and one and a half of it, so that clients refused together do not come back together.

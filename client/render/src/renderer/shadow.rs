@@ -26,7 +26,7 @@ const LOG_SPLIT: f32 = 0.75;
 
 /// One cascade: the sun's view-projection over it, its texel in metres, where its slice ends (metres along the view).
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Cascade {
+pub(super) struct Cascade {
     pub view_proj: Mat4,
     pub texel: f32,
     pub end: f32,
@@ -35,7 +35,7 @@ pub struct Cascade {
 /// The cascades for `camera` (target `aspect`, near plane `near`) and the sun in direction `sun` (toward it).
 /// Each map is a square around its slice's bounding sphere, from a fixed orientation and moved in whole texels, so
 /// that shadows do not shimmer as the camera moves or turns.
-pub fn fit_cascades(
+pub(super) fn fit_cascades(
     camera: &Camera,
     aspect: f32,
     near: f32,

@@ -45,7 +45,7 @@ fn shares(count: usize, processes: usize) -> Vec<Share> {
 /// ([`std::env::args_os`]) followed by its share: `--count`, `--first-id`, `connect_rate` divided between them,
 /// `--processes 1 --quiet --shard-out`. Returns the summary over every process's shard, the wall time the
 /// parent's; fails, naming the process, when one could not start, exited with a failure or wrote no shard.
-pub fn run(count: usize, processes: usize, connect_rate: f64) -> anyhow::Result<BotsSummary> {
+pub(super) fn run(count: usize, processes: usize, connect_rate: f64) -> anyhow::Result<BotsSummary> {
     let exe = std::env::current_exe().context("--processes: finding this program to start it again")?;
     let options: Vec<OsString> = std::env::args_os().skip(1).collect();
     let shares = shares(count, processes);
