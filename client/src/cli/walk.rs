@@ -18,7 +18,6 @@ use std::collections::HashSet;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -26,10 +25,12 @@ use anyhow::{Context, bail};
 use canopy_client::cache::{CacheLimits, SpeciesCache};
 use canopy_client::fit::LinkFit;
 use canopy_client::net::Edges;
-use canopy_client::state::{Event, viewpoint_due};
-use canopy_client::{ClientError, ConnectConfig, Connection, Trust};
+use canopy_client::state::Event;
+use canopy_client::{ConnectConfig, Connection, Trust};
+use canopy_harness::bots::{DriveHooks, DrivePlan, Mover, drive};
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::edit::EditOp;
 use canopy_protocol::summary::FarView;
 use canopy_protocol::sync::Locked;
 use canopy_render::camera::{Camera, CameraSpec};
@@ -140,7 +141,8 @@ struct Shared {
     far: Mutex<Option<FarView>>,
     scene: Mutex<Option<Arc<Scene>>>,
     status: Mutex<NetStatus>,
-    stop: AtomicBool,
+    /// Set when the window has closed: the network thread's walk ends.
+    stop: tokio::sync::watch::Sender<bool>,
 }
 
 fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
@@ -208,27 +210,42 @@ async fn net_session(
         s.world = welcome.world.name.clone();
         s.species_total = welcome.species.len();
     }
-    let mut generation = 1u64;
-    *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, generation)));
-    let grid = conn.welcome().world.grid;
-    let mut sent_at = Instant::now();
+    let mut hooks = WindowHooks {
+        shared: &shared,
+        ground: &ground,
+        edits: edits.as_mut(),
+        asked: None,
+        generation: 1,
+        dirty: false,
+        changed: false,
+        last_publish: Instant::now(),
+    };
+    *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, hooks.generation)));
+    let mut camera = CameraMover { shared: &shared, pose: start };
     loop {
-        let streamed =
-            stream(&mut conn, &shared, &mut edits, &ground, &mut generation, grid, (radius, fit), &mut sent_at).await;
-        match streamed {
+        let plan = DrivePlan {
+            radius,
+            tick: Duration::from_millis(100),
+            // Until the window closes.
+            walk_until: Instant::now() + Duration::from_secs(100 * 365 * 86_400),
+            settle: Duration::ZERO,
+            sample: Some(Duration::from_millis(100)),
+            stop: shared.stop.subscribe(),
+            far: *shared.far.locked(),
+            fit,
+        };
+        match drive(&mut conn, &mut camera, plan, &mut hooks).await {
             // The edge is gone: resume on another with what this session held, at the camera's pose now.
-            Err(e) if cfg.edges.len() > 1 && e.downcast_ref::<ClientError>().is_some_and(ClientError::edge_lost) => {
+            Err(e) if cfg.edges.len() > 1 && e.edge_lost() => {
                 let lost = conn.server();
-                let pose = *shared.pose.locked();
-                let vp = Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius };
+                let vp = camera.pose_now().viewpoint(radius);
                 shared.status.locked().edit = Some(format!("edge {lost} lost ({e}); failing over"));
                 conn = conn.fail_over(&endpoint, &cfg, vp).await.context("failing over to another edge")?;
                 let line = format!("edge {lost} lost; resumed on {}", conn.server());
                 println!("{line}");
                 shared.status.locked().edit = Some(line);
-                sent_at = Instant::now();
             }
-            r => break r?,
+            r => break r.map(drop)?,
         }
     }
     conn.close();
@@ -236,78 +253,102 @@ async fn net_session(
     Ok(())
 }
 
-/// Stream one session until the window closes: apply what arrives, send edits and viewpoints, publish snapshots.
-#[allow(clippy::too_many_arguments)]
-async fn stream(
-    conn: &mut Connection,
-    shared: &Shared,
-    edits: &mut Option<EditLink>,
-    ground: &Ground,
-    generation: &mut u64,
-    grid: canopy_protocol::aoi::Grid,
-    (radius, fit): (f32, Option<LinkFit>),
-    sent_at: &mut Instant,
-) -> anyhow::Result<()> {
-    let mut dirty = false;
-    // A delta to a held cell (an edit, ours or another editor's) is shown at once; batches and releases at most
-    // every 250 ms.
-    let mut changed = false;
-    let mut last_publish = Instant::now();
-    let mut tick = tokio::time::interval(Duration::from_millis(100));
-    while !shared.stop.load(Ordering::Relaxed) {
-        tokio::select! {
-            ev = conn.next_event() => {
-                let mut seen = |e: Event| {
-                    changed |= matches!(e, Event::Changed { .. });
-                    if let Some(line) = edits.as_mut().and_then(|l| l.answer(&e)) {
-                        println!("{line}");
-                        shared.status.locked().edit = Some(line);
-                    }
-                };
-                seen(ev?);
-                // Drain what has already arrived before looking at the clock again.
-                for _ in 0..256 {
-                    match conn.try_next_event() {
-                        Some(r) => seen(r?),
-                        None => break,
-                    }
-                }
-                dirty = true;
-            }
-            req = EditLink::next(edits) => {
-                if let Some(link) = edits.as_mut() {
-                    link.send(conn, req).await?;
-                }
-            }
-            _ = tick.tick() => {
-                let pose = *shared.pose.locked();
-                let far = *shared.far.locked();
-                if let Some(f) = far {
-                    conn.set_far_view(FarView { altitude: pose.altitude.max(2.0), ..f }).await?;
-                }
-                let sent = *conn.state().viewpoint().expect("a streaming session has a viewpoint");
-                // On a slow link the radius follows what the link carries at the camera's speed.
-                let asked = fit.map_or(radius, |f| f.next(conn, sent.radius, pose.velocity, radius));
-                if asked != sent.radius || viewpoint_due(&grid, &sent, pose.position, pose.yaw, sent_at.elapsed()) {
-                    let radius = asked;
-                    conn.set_viewpoint(Viewpoint { seq: 0, position: pose.position, yaw: pose.yaw, velocity: pose.velocity, radius }).await?;
-                    *sent_at = Instant::now();
-                }
-            }
+/// The window's camera as the harness's [`Mover`]: where the render thread last put it, read at each step.
+struct CameraMover<'a> {
+    shared: &'a Shared,
+    pose: Pose,
+}
+
+impl CameraMover<'_> {
+    /// Read the camera's pose now.
+    fn pose_now(&mut self) -> &Self {
+        self.pose = *self.shared.pose.locked();
+        self
+    }
+}
+
+impl Mover for CameraMover<'_> {
+    fn step(&mut self, _dt: f32) -> bool {
+        self.pose_now();
+        false
+    }
+    fn position(&self) -> [f32; 2] {
+        self.pose.position
+    }
+    fn yaw(&self) -> f32 {
+        self.pose.yaw
+    }
+    fn velocity(&self) -> [f32; 2] {
+        self.pose.velocity
+    }
+    fn altitude(&self) -> f32 {
+        self.pose.altitude
+    }
+}
+
+/// What the window does along the harness's [`drive`]: publish scene snapshots and the status, send the editor's
+/// keys as edits and show their answers.
+struct WindowHooks<'a> {
+    shared: &'a Shared,
+    ground: &'a Ground,
+    edits: Option<&'a mut EditLink>,
+    /// What the edit being sent is, until its request number is known.
+    asked: Option<String>,
+    generation: u64,
+    /// Events applied since the last snapshot.
+    dirty: bool,
+    /// A held cell changed (an edit) since the last snapshot: shown at once, not after the 250 ms of batches.
+    changed: bool,
+    last_publish: Instant,
+}
+
+impl WindowHooks<'_> {
+    /// Publish a snapshot when something arrived: at once for a changed cell, batches and releases at most every
+    /// 250 ms; and the status.
+    fn publish(&mut self, conn: &Connection) {
+        if self.dirty && (self.changed || self.last_publish.elapsed() > Duration::from_millis(250)) {
+            self.generation += 1;
+            *self.shared.scene.locked() = Some(Arc::new(snapshot(conn, self.ground, self.generation)));
+            (self.dirty, self.changed) = (false, false);
+            self.last_publish = Instant::now();
         }
-        if dirty && (changed || last_publish.elapsed() > Duration::from_millis(250)) {
-            *generation += 1;
-            *shared.scene.locked() = Some(Arc::new(snapshot(conn, ground, *generation)));
-            (dirty, changed) = (false, false);
-            last_publish = Instant::now();
-        }
-        let mut s = shared.status.locked();
+        let mut s = self.shared.status.locked();
         s.bytes_received = conn.bytes_received();
         s.records = conn.state().record_count();
         s.species_held = conn.state().species_held();
         s.complete = conn.state().is_complete();
     }
-    Ok(())
+}
+
+impl DriveHooks<CameraMover<'_>> for WindowHooks<'_> {
+    fn event(&mut self, ev: &Event) {
+        self.changed |= matches!(ev, Event::Changed { .. });
+        self.dirty = true;
+        if let Some(line) = self.edits.as_mut().and_then(|l| l.answer(ev)) {
+            println!("{line}");
+            self.shared.status.locked().edit = Some(line);
+        }
+    }
+    fn changed(&mut self, conn: &Connection) {
+        self.publish(conn);
+    }
+    fn sample(&mut self, conn: &Connection, _camera: &CameraMover<'_>, _settling: bool) {
+        self.publish(conn);
+    }
+    fn edit_every(&self) -> Option<Duration> {
+        // A key's edit waits at most this long for the network thread.
+        self.edits.is_some().then_some(Duration::from_millis(20))
+    }
+    fn edit(&mut self, _now: Instant, _conn: &Connection, _camera: &CameraMover<'_>) -> Option<EditOp> {
+        let req = self.edits.as_mut()?.try_next()?;
+        self.asked = Some(req.what);
+        Some(req.op)
+    }
+    fn edit_sent(&mut self, request: u32, _op: &EditOp, _at: Instant) {
+        if let (Some(link), Some(what)) = (self.edits.as_mut(), self.asked.take()) {
+            link.sent(request, what);
+        }
+    }
 }
 
 fn net_thread(
@@ -759,7 +800,7 @@ pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         edit: edit_keys,
     };
     let ran = event_loop.run_app(&mut app);
-    shared.stop.store(true, Ordering::Relaxed);
+    shared.stop.send_replace(true);
     let elapsed = app.started.elapsed().as_secs_f64();
     let status = shared.status.locked().clone();
     println!("{}", app.status_line());
@@ -786,4 +827,56 @@ pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         bail!("network: {e}");
     }
     Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::walk_edit::EditRequest;
+
+    /// The network thread without a window (the harness's `drive`, the camera its mover): it fills the camera's
+    /// area of interest into the published scene, and an editor key's edit goes out, its answer reaches the status
+    /// line and its tree the next scene, shown without moving.
+    #[test]
+    fn the_network_thread_streams_the_camera_s_area_and_sends_the_keys_edits() {
+        let local = local_server(None, None).expect("the in-process server on the default world");
+        let shared = Arc::new(Shared::default());
+        *shared.pose.locked() = Pose { position: [0.0, 0.0], yaw: 0.0, velocity: [0.0; 2], altitude: 2.0 };
+        let mut connect =
+            ConnectConfig::new(local.server.local_addr(), Trust::pinned(local.server.fingerprint()).unwrap());
+        connect.token = Some(local.token.clone());
+        let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
+        let net = net_thread(connect, (120.0, None), None, Arc::clone(&shared), Some(EditLink::new(rx)));
+        let wait = |what: &str, done: &dyn Fn(&Shared) -> bool| {
+            let started = Instant::now();
+            while !done(&shared) {
+                let status = shared.status.locked().clone();
+                assert!(status.error.is_none() && !net.is_finished(), "the network thread stopped: {status:?}");
+                assert!(started.elapsed() < Duration::from_secs(120), "waited 120 s for {what}: {status:?}");
+                std::thread::sleep(Duration::from_millis(20));
+            }
+        };
+        wait("a complete area of interest", &|s| s.status.locked().complete);
+        let held = |s: &Shared| s.scene.locked().as_ref().map_or(0, |scene| scene.instances.len());
+        wait("the area's trees in the scene", &|s| held(s) > 0);
+        let before = held(&shared);
+        let (x, z) = (7.25, -3.5);
+        let what = format!("plant at ({x}, {z})");
+        let op = EditOp::Plant { species: 0, x, z, params: Vec::new() };
+        tx.send(EditRequest { op, what: what.clone() }).unwrap();
+        wait("the edit's answer", &|s| s.status.locked().edit.as_deref().is_some_and(|l| l.starts_with(&what)));
+        let line = shared.status.locked().edit.clone().unwrap();
+        assert!(line.starts_with(&format!("{what}: ok, instance")), "{line}");
+        let planted = |s: &Shared| {
+            s.scene.locked().as_ref().is_some_and(|scene| {
+                scene.instances.iter().any(|i| (i.position[0] - x).abs() < 0.1 && (i.position[2] - z).abs() < 0.1)
+            })
+        };
+        wait("the planted tree in the scene", &planted);
+        assert_eq!(held(&shared), before + 1, "one tree more, the rest kept");
+        shared.stop.send_replace(true);
+        net.join().unwrap();
+        assert!(shared.status.locked().error.is_none(), "{:?}", shared.status.locked().error);
+        local.runtime.block_on(local.server.shutdown(Duration::from_secs(1)));
+    }
 }

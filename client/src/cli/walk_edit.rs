@@ -9,7 +9,6 @@ use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use canopy_client::state::Event;
-use canopy_client::{ClientError, Connection};
 use canopy_protocol::InstanceId;
 use canopy_protocol::edit::{EditOp, EditOutcome, EditResult};
 use canopy_render::camera::Camera;
@@ -219,22 +218,14 @@ impl EditLink {
         EditLink { rx, pending: HashMap::new() }
     }
 
-    /// The next request from the window (never, once the window has gone).
-    pub(super) async fn next(link: &mut Option<EditLink>) -> EditRequest {
-        match link {
-            Some(l) => match l.rx.recv().await {
-                Some(r) => r,
-                None => std::future::pending().await,
-            },
-            None => std::future::pending().await,
-        }
+    /// The window's next request, if one waits.
+    pub(super) fn try_next(&mut self) -> Option<EditRequest> {
+        self.rx.try_recv().ok()
     }
 
-    /// Send `req` on `conn`, remembering what it was for its answer.
-    pub(super) async fn send(&mut self, conn: &mut Connection, req: EditRequest) -> Result<(), ClientError> {
-        let request = conn.edit(req.op).await?;
-        self.pending.insert(request, req.what);
-        Ok(())
+    /// Request `request` was sent for `what`: remembered for its answer.
+    pub(super) fn sent(&mut self, request: u32, what: String) {
+        self.pending.insert(request, what);
     }
 
     /// The line for an event that answers one of this window's edits.

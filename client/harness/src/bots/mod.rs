@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
 use canopy_protocol::CellCoord;
-use canopy_protocol::aoi::AoiParams;
+use canopy_protocol::aoi::{AoiParams, Viewpoint};
 use canopy_protocol::edit::EditOp;
 use canopy_protocol::messages::{ByKind, ServerMsgKind};
 use canopy_protocol::summary::FarView;
@@ -367,8 +367,44 @@ pub struct DrivePlan {
     pub fit: Option<LinkFit>,
 }
 
-/// What a caller of [`drive`] sees along the way (every method does nothing by default).
-pub trait DriveHooks {
+/// What moves a driven connection's viewpoint: a scripted [`Walker`], or a window's camera (`canopy walk`).
+pub trait Mover {
+    /// Advance `dt` seconds; true when it jumped (a viewpoint goes out at once).
+    fn step(&mut self, dt: f32) -> bool;
+    /// Where it is on the ground plane (x, z).
+    fn position(&self) -> [f32; 2];
+    /// Its heading, radians.
+    fn yaw(&self) -> f32;
+    /// Its velocity on the ground plane, metres a second.
+    fn velocity(&self) -> [f32; 2];
+    /// Its height above the ground, metres (the far view's altitude).
+    fn altitude(&self) -> f32;
+    /// The viewpoint of a client here, asking for `radius` metres (`seq` is set when it is sent).
+    fn viewpoint(&self, radius: f32) -> Viewpoint {
+        Viewpoint { seq: 0, position: self.position(), yaw: self.yaw(), velocity: self.velocity(), radius }
+    }
+}
+
+impl Mover for Walker {
+    fn step(&mut self, dt: f32) -> bool {
+        Walker::step(self, dt)
+    }
+    fn position(&self) -> [f32; 2] {
+        Walker::position(self)
+    }
+    fn yaw(&self) -> f32 {
+        Walker::yaw(self)
+    }
+    fn velocity(&self) -> [f32; 2] {
+        Walker::velocity(self)
+    }
+    fn altitude(&self) -> f32 {
+        Walker::altitude(self)
+    }
+}
+
+/// What a caller of [`drive`] sees along the way, moved by `W` (every method does nothing by default).
+pub trait DriveHooks<W: ?Sized = Walker> {
     /// Every event applied, in order.
     fn event(&mut self, _ev: &Event) {}
     /// Every event applied, in order, with the connection's state just after it (by default
@@ -379,17 +415,17 @@ pub trait DriveHooks {
     /// After the state changed: events applied, or a viewpoint sent.
     fn changed(&mut self, _conn: &Connection) {}
     /// After the walker stepped at `now`; may move it (a jump). Returns whether to send a viewpoint now.
-    fn stepped(&mut self, _now: Instant, _walker: &mut Walker) -> bool {
+    fn stepped(&mut self, _now: Instant, _walker: &mut W) -> bool {
         false
     }
     /// At every sampling tick, while walking and while `settling` at rest.
-    fn sample(&mut self, _conn: &Connection, _walker: &Walker, _settling: bool) {}
+    fn sample(&mut self, _conn: &Connection, _walker: &W, _settling: bool) {}
     /// How often to ask [`DriveHooks::edit`] for an edit while walking (`None`: never). Asked once, at the start.
     fn edit_every(&self) -> Option<Duration> {
         None
     }
     /// The edit to send now, if any.
-    fn edit(&mut self, _now: Instant, _conn: &Connection, _walker: &Walker) -> Option<EditOp> {
+    fn edit(&mut self, _now: Instant, _conn: &Connection, _walker: &W) -> Option<EditOp> {
         None
     }
     /// `op` was sent as request `request`; `at` is just before it was written.
@@ -406,11 +442,13 @@ async fn next_tick(interval: &mut Option<tokio::time::Interval>) {
 /// Walk a connection: apply what arrives, step the walker every tick and send a viewpoint when one is due (it
 /// teleported or jumped, moved or turned enough: [`viewpoint_due`]), until `walk_until` or a stop. Then stop: a
 /// viewpoint at rest, and wait up to `settle` for the area of interest to fill. Returns whether it did.
-pub async fn drive(
+///
+/// The one streaming loop: bots, the bandwidth harness and the walkthrough window (its camera a [`Mover`]) run it.
+pub async fn drive<W: Mover, H: DriveHooks<W>>(
     conn: &mut Connection,
-    walker: &mut Walker,
+    walker: &mut W,
     plan: DrivePlan,
-    hooks: &mut impl DriveHooks,
+    hooks: &mut H,
 ) -> Result<bool, ClientError> {
     let grid = conn.welcome().world.grid;
     let mut tick = tokio::time::interval(plan.tick);
@@ -427,7 +465,7 @@ pub async fn drive(
     let mut stop = plan.stop;
     // Without a sender (nobody can stop the walk early) `changed` would return at once: listen only while one lives.
     let mut stoppable = stop.has_changed().is_ok();
-    let far_view = |walker: &Walker| plan.far.map(|f| FarView { altitude: walker.altitude().max(2.0), ..f });
+    let far_view = |walker: &W| plan.far.map(|f| FarView { altitude: walker.altitude().max(2.0), ..f });
     // Fitted, the first viewpoint's radius ([`LinkFit::first_radius`]) is where the fit starts from.
     let mut radius = match plan.fit {
         Some(_) => conn.state().viewpoint().map_or(plan.radius, |v| v.radius),
@@ -464,6 +502,10 @@ pub async fn drive(
                     let r = fit.next(conn, radius, walker.velocity(), plan.radius);
                     refit = r != radius;
                     radius = r;
+                }
+                // The far view follows the altitude (sent only when it changed enough: `far_view_due`).
+                if let Some(f) = far_view(walker) {
+                    conn.set_far_view(f).await?;
                 }
                 let sent = conn.state().viewpoint().expect("a streaming session has a viewpoint");
                 if jumped || refit || viewpoint_due(&grid, sent, walker.position(), walker.yaw(), now - sent_at) {
