@@ -354,7 +354,7 @@ mod tests {
     fn inline_workers_run_jobs_by_priority_on_the_calling_thread_within_the_budget_asked() {
         let g = Arc::new(library::find("conifer").unwrap().load().unwrap());
         let mut w = Workers::inline();
-        assert!(w.is_inline() && w.threads.len() == 0);
+        assert!(w.is_inline() && w.threads.is_empty());
         for (seed, priority) in [(1, 1.0), (2, 3.0), (3, 2.0)] {
             let key = TreeKey { species: 0, seed, detail: 1, params: 0 };
             let instance = Instance::new(seed).with_detail(1);
