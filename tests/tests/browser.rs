@@ -138,7 +138,12 @@ impl Browser {
     }
 
     fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Value {
-        webdriver(self.port, method, &format!("/session/{}{path}", self.session), body)
+        self.try_call(method, path, body).unwrap_or_else(|e| panic!("{method} {path}: {e}"))
+    }
+
+    /// [`Browser::call`], a WebDriver error as `Err`.
+    fn try_call(&self, method: &str, path: &str, body: Option<&Value>) -> Result<Value, Value> {
+        exchange(self.port, method, &format!("/session/{}{path}", self.session), body)
     }
 
     fn open(&self, url: &str) {
@@ -173,14 +178,13 @@ impl Browser {
     fn screenshot(&self) -> Vec<u8> {
         use std::io::Cursor;
         let started = Instant::now();
-        let path = format!("/session/{}/screenshot", self.session);
         let b64 = loop {
-            match exchange(self.port, "GET", &path, None) {
+            match self.try_call("GET", "/screenshot", None) {
                 Ok(b64) => break b64,
                 Err(e) if e["value"]["error"] == "timeout" && started.elapsed() < WAIT => {
                     eprintln!("the screenshot timed out after {:.1?}; asking again", started.elapsed());
                 }
-                Err(e) => panic!("GET {path}: {e}"),
+                Err(e) => panic!("GET /screenshot: {e}"),
             }
         };
         let png = base64(b64.as_str().expect("base64 text"));

@@ -211,7 +211,7 @@ fn every_test_file_is_compiled() {
         .collect();
     assert!(roots.len() > 10, "found only {} test targets", roots.len());
     // What the test targets compile: their roots, and the files their roots name as `mod x;` beside them.
-    let mut compiled = roots.clone();
+    let mut compiled: BTreeSet<PathBuf> = roots.iter().cloned().collect();
     for root in &roots {
         let text = std::fs::read_to_string(root).expect("readable");
         let modules = text.lines().filter_map(|l| l.trim().strip_prefix("mod ")?.strip_suffix(';'));

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_client::net::{Connection, endpoint};
-use canopy_harness::bots::{self, BotsConfig, BotsSummary, DriveHooks, DrivePlan, PathKind, Progress, Walker};
+use canopy_harness::bots::{self, BotsConfig, BotsSummary, DriveHooks, DrivePlan, Mover, PathKind, Progress, Walker};
 use canopy_protocol::aoi::AoiParams;
 use canopy_protocol::summary::FarView;
 use canopy_server::session::SessionConfig;

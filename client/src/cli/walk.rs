@@ -137,8 +137,6 @@ struct NetStatus {
 #[derive(Default)]
 struct Shared {
     pose: Mutex<Pose>,
-    /// The far view asked for (its altitude replaced by the pose's); `None`: no summaries.
-    far: Mutex<Option<FarView>>,
     scene: Mutex<Option<Arc<Scene>>>,
     status: Mutex<NetStatus>,
     /// Set when the window has closed: the network thread's walk ends.
@@ -179,9 +177,29 @@ fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
     }
 }
 
+/// How the network thread streams: the harness's walk loop at the window's pace, until the window closes (`stop`),
+/// asking for `radius` metres (fitted to the link with `fit`) and the far view `far`.
+fn window_plan(
+    radius: f32,
+    fit: Option<LinkFit>,
+    far: Option<FarView>,
+    stop: &tokio::sync::watch::Sender<bool>,
+) -> DrivePlan {
+    DrivePlan {
+        radius,
+        tick: Duration::from_millis(100),
+        walk_until: Instant::now() + Duration::from_secs(100 * 365 * 86_400),
+        settle: Duration::ZERO,
+        sample: Some(Duration::from_millis(100)),
+        stop: stop.subscribe(),
+        far,
+        fit,
+    }
+}
+
 async fn net_session(
     cfg: ConnectConfig,
-    (radius, fit): (f32, Option<LinkFit>),
+    plan: DrivePlan,
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
     mut edits: Option<EditLink>,
@@ -194,7 +212,7 @@ async fn net_session(
         position: start.position,
         yaw: start.yaw,
         velocity: [0.0, 0.0],
-        radius,
+        radius: plan.radius,
     })
     .await
     .with_context(|| format!("connecting to {}", cfg.server))?;
@@ -223,22 +241,12 @@ async fn net_session(
     *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, hooks.generation)));
     let mut camera = CameraMover { shared: &shared, pose: start };
     loop {
-        let plan = DrivePlan {
-            radius,
-            tick: Duration::from_millis(100),
-            // Until the window closes.
-            walk_until: Instant::now() + Duration::from_secs(100 * 365 * 86_400),
-            settle: Duration::ZERO,
-            sample: Some(Duration::from_millis(100)),
-            stop: shared.stop.subscribe(),
-            far: *shared.far.locked(),
-            fit,
-        };
-        match drive(&mut conn, &mut camera, plan, &mut hooks).await {
+        match drive(&mut conn, &mut camera, plan.clone(), &mut hooks).await {
             // The edge is gone: resume on another with what this session held, at the camera's pose now.
             Err(e) if cfg.edges.len() > 1 && e.edge_lost() => {
                 let lost = conn.server();
-                let vp = camera.pose_now().viewpoint(radius);
+                camera.step(0.0);
+                let vp = camera.viewpoint(plan.radius);
                 shared.status.locked().edit = Some(format!("edge {lost} lost ({e}); failing over"));
                 conn = conn.fail_over(&endpoint, &cfg, vp).await.context("failing over to another edge")?;
                 let line = format!("edge {lost} lost; resumed on {}", conn.server());
@@ -259,17 +267,10 @@ struct CameraMover<'a> {
     pose: Pose,
 }
 
-impl CameraMover<'_> {
-    /// Read the camera's pose now.
-    fn pose_now(&mut self) -> &Self {
-        self.pose = *self.shared.pose.locked();
-        self
-    }
-}
-
 impl Mover for CameraMover<'_> {
+    /// Read the camera's pose now (it never jumps: a teleport is a move `viewpoint_due` sees).
     fn step(&mut self, _dt: f32) -> bool {
-        self.pose_now();
+        self.pose = *self.shared.pose.locked();
         false
     }
     fn position(&self) -> [f32; 2] {
@@ -353,7 +354,7 @@ impl DriveHooks<CameraMover<'_>> for WindowHooks<'_> {
 
 fn net_thread(
     cfg: ConnectConfig,
-    reach: (f32, Option<LinkFit>),
+    plan: DrivePlan,
     cache: Option<Arc<SpeciesCache>>,
     shared: Arc<Shared>,
     edits: Option<EditLink>,
@@ -366,7 +367,7 @@ fn net_thread(
                 return;
             }
         };
-        if let Err(e) = rt.block_on(net_session(cfg, reach, cache, Arc::clone(&shared), edits)) {
+        if let Err(e) = rt.block_on(net_session(cfg, plan, cache, Arc::clone(&shared), edits)) {
             shared.status.locked().error = Some(format!("{e:#}"));
         }
     })
@@ -757,7 +758,7 @@ pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
         velocity: [0.0; 2],
         altitude: camera.position.y,
     };
-    *shared.far.locked() = args.far.view(args.height, camera.fov_y, camera.position.y)?;
+    let far = args.far.view(args.height, camera.fov_y, camera.position.y)?;
     let mut connect = args.connect.config(&server, trust);
     connect.client_name = "canopy walk".into();
     connect.expander = args.connect.expander();
@@ -771,7 +772,8 @@ pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     };
     connect.token = token;
     let fit = args.link.map(|rate| LinkFit { link_bits: rate as f64 });
-    let net = net_thread(connect, (args.radius, fit), cache, Arc::clone(&shared), edit_link);
+    let plan = window_plan(args.radius, fit, far, &shared.stop);
+    let net = net_thread(connect, plan, cache, Arc::clone(&shared), edit_link);
     let event_loop = EventLoop::new().context("opening the display (is DISPLAY or WAYLAND_DISPLAY set?)")?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let now = Instant::now();
@@ -846,7 +848,8 @@ mod tests {
             ConnectConfig::new(local.server.local_addr(), Trust::pinned(local.server.fingerprint()).unwrap());
         connect.token = Some(local.token.clone());
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
-        let net = net_thread(connect, (120.0, None), None, Arc::clone(&shared), Some(EditLink::new(rx)));
+        let plan = window_plan(120.0, None, None, &shared.stop);
+        let net = net_thread(connect, plan, None, Arc::clone(&shared), Some(EditLink::new(rx)));
         let wait = |what: &str, done: &dyn Fn(&Shared) -> bool| {
             let started = Instant::now();
             while !done(&shared) {

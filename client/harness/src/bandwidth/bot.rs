@@ -18,7 +18,7 @@ use quinn::Endpoint;
 use super::link::{self, Relay};
 use super::measure::{Bytes, GroundTruth, HeldSnapshot, Sample, SamplePhase};
 use super::{BandwidthConfig, BandwidthError, BotResult, LinkTotals, Scenario};
-use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, LinkFit, PathKind, Walker};
+use crate::bots::{self, BotReport, Completion, DriveHooks, DrivePlan, LinkFit, Mover, PathKind, Walker};
 
 /// Live counters for the progress display.
 #[derive(Debug, Default)]

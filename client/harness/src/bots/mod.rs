@@ -385,24 +385,6 @@ pub trait Mover {
     }
 }
 
-impl Mover for Walker {
-    fn step(&mut self, dt: f32) -> bool {
-        Walker::step(self, dt)
-    }
-    fn position(&self) -> [f32; 2] {
-        Walker::position(self)
-    }
-    fn yaw(&self) -> f32 {
-        Walker::yaw(self)
-    }
-    fn velocity(&self) -> [f32; 2] {
-        Walker::velocity(self)
-    }
-    fn altitude(&self) -> f32 {
-        Walker::altitude(self)
-    }
-}
-
 /// What a caller of [`drive`] sees along the way, moved by `W` (every method does nothing by default).
 pub trait DriveHooks<W: ?Sized = Walker> {
     /// Every event applied, in order.

@@ -8,7 +8,9 @@
 //! rectangle however fast it flies. Position is clamped to the rectangle as a last resort.
 
 use canopy_protocol::CellCoord;
-use canopy_protocol::aoi::{Grid, Viewpoint};
+use canopy_protocol::aoi::Grid;
+
+use super::Mover;
 
 /// The scripted path a bot walks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -143,11 +145,6 @@ impl Walker {
         self
     }
 
-    /// The height above the terrain, metres.
-    pub fn altitude(&self) -> f32 {
-        self.altitude
-    }
-
     /// Where the walker is in 3-D, on terrain `ground(x, z)`: at its altitude above the ground.
     pub fn position3(&self, ground: impl Fn(f32, f32) -> f32) -> [f32; 3] {
         let [x, z] = self.pos;
@@ -159,16 +156,6 @@ impl Walker {
         self.turn_rate
     }
 
-    /// Where the walker is.
-    pub fn position(&self) -> [f32; 2] {
-        self.pos
-    }
-
-    /// The viewpoint of a client at the walker, asking for `radius` metres (`seq` is set when it is sent).
-    pub fn viewpoint(&self, radius: f32) -> Viewpoint {
-        Viewpoint { seq: 0, position: self.position(), yaw: self.yaw(), velocity: self.velocity(), radius }
-    }
-
     /// Jump to another walk of the same kind and speed in the same rectangle: a new start and heading, seeded
     /// from this walk's generator (deterministic for a given seed).
     pub fn jump(&mut self) {
@@ -176,8 +163,37 @@ impl Walker {
         *self = Walker::new(self.kind, self.speed, self.lo, self.hi, seed).with_altitude(self.altitude);
     }
 
+    /// One step of a flight (see the module docs).
+    fn fly(&mut self, h: f32) {
+        let margin = 2.0 * self.speed / self.turn_rate;
+        let outward = (0..2).any(|a| {
+            (self.pos[a] - self.lo[a] < margin && self.dir[a] < 0.0)
+                || (self.hi[a] - self.pos[a] < margin && self.dir[a] > 0.0)
+        });
+        self.timer -= h;
+        if outward {
+            let mid = [(self.lo[0] + self.hi[0]) * 0.5, (self.lo[1] + self.hi[1]) * 0.5];
+            self.target = (mid[0] - self.pos[0]).atan2(mid[1] - self.pos[1]);
+        } else if self.timer <= 0.0 {
+            // A new leg: turn by 30°–150° either way, then fly straight for 8–30 s.
+            self.timer = self.rng.range(8.0, 30.0);
+            let turn = self.rng.range(0.52, 2.62);
+            self.target = if self.rng.next() & 1 == 0 { self.angle + turn } else { self.angle - turn };
+        }
+        let most = self.turn_rate * h;
+        self.angle += angle_diff(self.target, self.angle).clamp(-most, most);
+        self.angle = angle_diff(self.angle, 0.0);
+        self.dir = [self.angle.sin(), self.angle.cos()];
+        for axis in 0..2 {
+            let p = self.pos[axis] + self.dir[axis] * self.speed * h;
+            self.pos[axis] = p.clamp(self.lo[axis], self.hi[axis]);
+        }
+    }
+}
+
+impl Mover for Walker {
     /// Advance by `dt` seconds; returns whether it teleported.
-    pub fn step(&mut self, dt: f32) -> bool {
+    fn step(&mut self, dt: f32) -> bool {
         let mut teleported = false;
         match self.kind {
             PathKind::Line | PathKind::Random => {
@@ -224,45 +240,24 @@ impl Walker {
         }
         teleported
     }
-
-    /// One step of a flight (see the module docs).
-    fn fly(&mut self, h: f32) {
-        let margin = 2.0 * self.speed / self.turn_rate;
-        let outward = (0..2).any(|a| {
-            (self.pos[a] - self.lo[a] < margin && self.dir[a] < 0.0)
-                || (self.hi[a] - self.pos[a] < margin && self.dir[a] > 0.0)
-        });
-        self.timer -= h;
-        if outward {
-            let mid = [(self.lo[0] + self.hi[0]) * 0.5, (self.lo[1] + self.hi[1]) * 0.5];
-            self.target = (mid[0] - self.pos[0]).atan2(mid[1] - self.pos[1]);
-        } else if self.timer <= 0.0 {
-            // A new leg: turn by 30°–150° either way, then fly straight for 8–30 s.
-            self.timer = self.rng.range(8.0, 30.0);
-            let turn = self.rng.range(0.52, 2.62);
-            self.target = if self.rng.next() & 1 == 0 { self.angle + turn } else { self.angle - turn };
-        }
-        let most = self.turn_rate * h;
-        self.angle += angle_diff(self.target, self.angle).clamp(-most, most);
-        self.angle = angle_diff(self.angle, 0.0);
-        self.dir = [self.angle.sin(), self.angle.cos()];
-        for axis in 0..2 {
-            let p = self.pos[axis] + self.dir[axis] * self.speed * h;
-            self.pos[axis] = p.clamp(self.lo[axis], self.hi[axis]);
-        }
+    /// Where the walker is.
+    fn position(&self) -> [f32; 2] {
+        self.pos
     }
-
+    /// The heading (yaw, radians; direction `(sin yaw, cos yaw)`).
+    fn yaw(&self) -> f32 {
+        self.dir[0].atan2(self.dir[1])
+    }
     /// The velocity, metres per second (zero for a teleporter).
-    pub fn velocity(&self) -> [f32; 2] {
+    fn velocity(&self) -> [f32; 2] {
         match self.kind {
             PathKind::Teleport => [0.0, 0.0],
             _ => [self.dir[0] * self.speed, self.dir[1] * self.speed],
         }
     }
-
-    /// The heading (yaw, radians; direction `(sin yaw, cos yaw)`).
-    pub fn yaw(&self) -> f32 {
-        self.dir[0].atan2(self.dir[1])
+    /// The height above the terrain, metres.
+    fn altitude(&self) -> f32 {
+        self.altitude
     }
 }
 
