@@ -36,14 +36,8 @@ fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("tests/ has a parent").to_path_buf()
 }
 
-/// A minimal HTTP/1.1 exchange with chromedriver: `method path` with a JSON body; the JSON answer's `value` (panics
-/// on a WebDriver error).
+/// A minimal HTTP/1.1 exchange with chromedriver: `method path` with a JSON body; the JSON answer's `value`.
 fn webdriver(port: u16, method: &str, path: &str, body: Option<&Value>) -> Value {
-    exchange(port, method, path, body).unwrap_or_else(|e| panic!("{method} {path}: {e}"))
-}
-
-/// [`webdriver`]'s exchange, a WebDriver error (`{"error", "message", "stacktrace"}`) as `Err` with its answer.
-fn exchange(port: u16, method: &str, path: &str, body: Option<&Value>) -> Result<Value, Value> {
     let body = body.map(|b| b.to_string()).unwrap_or_default();
     let mut s = TcpStream::connect(("127.0.0.1", port)).expect("chromedriver answers");
     s.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
@@ -79,7 +73,8 @@ fn exchange(port: u16, method: &str, path: &str, body: Option<&Value>) -> Result
     let v: Value = serde_json::from_slice(body).expect("chromedriver answers JSON");
     // WebDriver's errors: `{"error", "message", "stacktrace"}` (a page state has an `error` field of its own).
     let failed = v["value"].get("error").is_some_and(Value::is_string) && v["value"].get("stacktrace").is_some();
-    if failed { Err(v) } else { Ok(v["value"].clone()) }
+    assert!(!failed, "{method} {path}: {v}");
+    v["value"].clone()
 }
 
 /// chromedriver with one headless Chromium session; both end when this drops.
@@ -138,12 +133,7 @@ impl Browser {
     }
 
     fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Value {
-        self.try_call(method, path, body).unwrap_or_else(|e| panic!("{method} {path}: {e}"))
-    }
-
-    /// [`Browser::call`], a WebDriver error as `Err`.
-    fn try_call(&self, method: &str, path: &str, body: Option<&Value>) -> Result<Value, Value> {
-        exchange(self.port, method, &format!("/session/{}{path}", self.session), body)
+        webdriver(self.port, method, &format!("/session/{}{path}", self.session), body)
     }
 
     fn open(&self, url: &str) {
@@ -173,20 +163,9 @@ impl Browser {
         }
     }
 
-    /// The page as PNG pixels. chromedriver gives up on a screenshot when the renderer does not answer in 10 s,
-    /// which a SwiftShader frame can take on a loaded 2-core machine: a timeout is asked again, up to [`WAIT`].
     fn screenshot(&self) -> Vec<u8> {
         use std::io::Cursor;
-        let started = Instant::now();
-        let b64 = loop {
-            match self.try_call("GET", "/screenshot", None) {
-                Ok(b64) => break b64,
-                Err(e) if e["value"]["error"] == "timeout" && started.elapsed() < WAIT => {
-                    eprintln!("the screenshot timed out after {:.1?}; asking again", started.elapsed());
-                }
-                Err(e) => panic!("GET /screenshot: {e}"),
-            }
-        };
+        let b64 = self.call("GET", "/screenshot", None);
         let png = base64(b64.as_str().expect("base64 text"));
         let img = image::ImageReader::new(Cursor::new(png)).with_guessed_format().unwrap().decode().unwrap();
         img.into_rgb8().into_raw()
@@ -385,6 +364,9 @@ async fn with_webgpu_the_page_draws_the_forest_with_the_native_renderer() {
         let drawn = s["frames"].as_u64().unwrap_or(0);
         let s = browser
             .until("frames drawn with the trees", |t| t["frames"].as_u64().unwrap_or(0) >= drawn + 2 && t["jobs"] == 0);
+        // A still page for the screenshot: while SwiftShader draws (seconds a frame on a loaded machine) the renderer
+        // does not answer chromedriver, which gives up after 10 s, again and again.
+        browser.eval("window.canopyPause(true); return null;");
         (s, browser.screenshot())
     });
     let drawn = started.elapsed();

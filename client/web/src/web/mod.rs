@@ -6,7 +6,7 @@ mod draw;
 mod gpu; // The 3D view: canopy-render on WebGPU.
 mod transport;
 
-use std::cell::RefCell;
+use std::cell::{Cell, RefCell};
 use std::rc::Rc;
 use std::time::Duration;
 
@@ -52,6 +52,8 @@ pub(crate) struct App {
 
 thread_local! {
     static APP: RefCell<Option<Rc<RefCell<App>>>> = const { RefCell::new(None) };
+    /// Set by `canopyPause(true)`: animation frames draw nothing (the link, the cells and the jobs go on).
+    static PAUSED: Cell<bool> = const { Cell::new(false) };
 }
 
 fn app() -> Option<Rc<RefCell<App>>> {
@@ -169,6 +171,14 @@ pub fn canopy_plant(species: u8, x: f32, z: f32) -> Result<u32, JsValue> {
     a.borrow_mut().session.edit(op).map_err(|e| JsValue::from_str(&format!("canopyPlant: {e}")))
 }
 
+/// Stop drawing (`true`) or draw again (`false`): a paused page submits no GPU work and keeps its last picture, so
+/// a screenshot needs nothing from a busy GPU (a CPU adapter's frame can take seconds); the link, the cells and the
+/// renderer's jobs go on. The camera resumes from where it was.
+#[wasm_bindgen(js_name = canopyPause)]
+pub fn canopy_pause(paused: bool) {
+    PAUSED.with(|p| p.set(paused));
+}
+
 /// The instances held in the cell at world (x, z): `[[species, x, y, z], ...]` by index in the cell.
 #[wasm_bindgen(js_name = canopyCell)]
 pub fn canopy_cell(x: f32, z: f32) -> Result<JsValue, JsValue> {
@@ -280,7 +290,12 @@ fn animate(app: Rc<RefCell<App>>) {
     let slot: Rc<RefCell<Option<Callback>>> = Rc::new(RefCell::new(None));
     let again = Rc::clone(&slot);
     *slot.borrow_mut() = Some(Closure::new(move |t: f64| {
-        app.borrow_mut().frame(t);
+        if PAUSED.with(Cell::get) {
+            // No step from the time paused when it resumes.
+            app.borrow_mut().last_frame = None;
+        } else {
+            app.borrow_mut().frame(t);
+        }
         transport::flush(&app);
         if let (Some(w), Some(cb)) = (web_sys::window(), again.borrow().as_ref()) {
             let _ = w.request_animation_frame(cb.as_ref().unchecked_ref());
