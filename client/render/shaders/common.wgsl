@@ -1,4 +1,4 @@
-// Shared by every Canopy shader (prepended by the renderer): frame globals, fog, sky, dithering.
+// Shared by every Canopy shader (prepended by the renderer): frame globals, haze, sky, dithering.
 
 struct Globals {
     view_proj: mat4x4<f32>,
@@ -9,9 +9,9 @@ struct Globals {
     sun_dir: vec4<f32>,
     // rgb: sun colour; w: diffuse coefficient.
     sun_color: vec4<f32>,
-    // rgb: sky at the zenith; w: fog density per metre.
+    // rgb: sky at the zenith; w: haze density per metre at height 0.
     sky_zenith: vec4<f32>,
-    // rgb: sky at the horizon and fog colour; w: unused.
+    // rgb: sky at the horizon and the colour of thick haze; w: the sky's light on surfaces.
     sky_horizon: vec4<f32>,
     // width, height, 1/width, 1/height of the target.
     viewport: vec4<f32>,
@@ -21,6 +21,9 @@ struct Globals {
     shadow_split: vec4<f32>,
     // xyz: each cascade's texel, metres; w: unused.
     shadow_texel: vec4<f32>,
+    // x: the haze's scale height, metres (0: the same density at every height); y: the sun's glow through it;
+    // zw: unused.
+    haze: vec4<f32>,
     // Each cascade's view-projection from the sun (depth 0..1, nearest the sun 0).
     shadow: array<mat4x4<f32>, 3>,
 };
@@ -42,13 +45,55 @@ fn dither_keeps(mask: f32, frag: vec2<f32>) -> bool {
     return b >= -mask;
 }
 
-fn fog_factor(dist: f32) -> f32 {
-    return 1.0 - exp(-g.sky_zenith.w * dist);
+// Aerial perspective. The haze's density is `ρ · exp(−y / H)` (ρ = g.sky_zenith.w at height 0, H = g.haze.x):
+// valleys lie under more of it than ridges, and a view from altitude looks down through thin air yet sees the
+// horizon fade. Its optical depth from the eye to `world`, in closed form along the straight ray:
+// ρ · d · (exp(−y₀/H) − exp(−y₁/H)) / ((y₁ − y₀)/H).
+fn haze_depth(world: vec3<f32>) -> f32 {
+    let d = distance(world, g.eye.xyz);
+    let h = g.haze.x;
+    if h <= 0.0 {
+        return g.sky_zenith.w * d;
+    }
+    let a = clamp(-g.eye.y / h, -60.0, 60.0);
+    let b = clamp(-world.y / h, -60.0, 60.0);
+    let k = a - b;
+    var mean = exp(a) * (1.0 - 0.5 * k);
+    if abs(k) > 1e-3 {
+        mean = (exp(a) - exp(b)) / k;
+    }
+    return g.sky_zenith.w * d * mean;
+}
+
+// The share of the light from `world` that the haze replaces.
+fn haze_amount(world: vec3<f32>) -> f32 {
+    return 1.0 - exp(-haze_depth(world));
+}
+
+// The sun's glow toward `dir` (unit): forward scattering in the haze, and around the sun in the sky.
+fn sun_glow(dir: vec3<f32>) -> vec3<f32> {
+    let c = max(dot(dir, g.sun_dir.xyz), 0.0);
+    let c2 = c * c;
+    let c4 = c2 * c2;
+    return g.haze.y * c4 * c4 * g.sun_color.rgb;
+}
+
+// The colour of haze `f` thick toward `world`: blue where thin (the sky's light scattered in), the horizon's where
+// thick, brighter toward the sun.
+fn haze_color(world: vec3<f32>, f: f32) -> vec3<f32> {
+    let dir = normalize(world - g.eye.xyz);
+    return mix(mix(g.sky_zenith.rgb, g.sky_horizon.rgb, 0.6 + 0.4 * f), g.sky_horizon.rgb, 0.5) + sun_glow(dir);
 }
 
 fn with_fog(c: vec3<f32>, world: vec3<f32>) -> vec3<f32> {
-    let f = fog_factor(distance(world, g.eye.xyz));
-    return mix(c, g.sky_horizon.rgb, f);
+    let f = haze_amount(world);
+    return mix(c, haze_color(world, f), f);
+}
+
+// `with_fog` of a premultiplied colour of opacity `alpha`.
+fn with_fog_premultiplied(color: vec3<f32>, alpha: f32, world: vec3<f32>) -> vec4<f32> {
+    let f = haze_amount(world);
+    return vec4<f32>(color * (1.0 - f) + haze_color(world, f) * f * alpha, alpha);
 }
 
 // Lambert with the sun plus ambient light, the same model the far field's baked shading uses.
@@ -76,5 +121,5 @@ fn instance_tint(seed: u32) -> vec3<f32> {
 
 fn sky_color(dir: vec3<f32>) -> vec3<f32> {
     let up = clamp(dir.y, 0.0, 1.0);
-    return mix(g.sky_horizon.rgb, g.sky_zenith.rgb, sqrt(up));
+    return mix(g.sky_horizon.rgb, g.sky_zenith.rgb, sqrt(up)) + sun_glow(dir);
 }

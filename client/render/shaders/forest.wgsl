@@ -434,6 +434,5 @@ fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32
     if alpha < 1.0 / 512.0 {
         return vec4<f32>(0.0);
     }
-    let f = fog_factor(first_hit);
-    return vec4<f32>(color * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
+    return with_fog_premultiplied(color, alpha, g.eye.xyz + d * first_hit);
 }

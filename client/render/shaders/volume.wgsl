@@ -104,7 +104,5 @@ fn march_volume(inst: vec4<f32>, volume: u32, d: vec3<f32>, stop: f32, t_scene: 
     }
     // Fog at the first voxel hit, premultiplied like the colour.
     let hit = g.eye.xyz + d * (first_hit * k);
-    let f = fog_factor(distance(hit, g.eye.xyz));
-    let tinted = color * instance_tint(volume & 0xff000000u);
-    return vec4<f32>(tinted * (1.0 - f) + g.sky_horizon.rgb * f * alpha, alpha);
+    return with_fog_premultiplied(color * instance_tint(volume & 0xff000000u), alpha, hit);
 }

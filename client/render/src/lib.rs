@@ -120,10 +120,16 @@ pub struct Lighting {
     pub volume_shadows: bool,
     /// Sky colour at the zenith.
     pub sky_zenith: [f32; 3],
-    /// Sky colour at the horizon (and the fog colour).
+    /// Sky colour at the horizon (and the colour of thick haze).
     pub sky_horizon: [f32; 3],
-    /// Fog density per metre (`1 − exp(−density · distance)`); 0 disables fog.
+    /// Haze density per metre at height 0 (aerial perspective: `1 − exp(−optical depth)` of a surface's light is
+    /// replaced by the haze's); 0 disables the haze.
     pub fog_density: f32,
+    /// The haze's scale height, metres: its density falls as `exp(−y / haze_height)`, so valleys are hazier than
+    /// ridges and a view from altitude looks down through thin air (0: the same density at every height).
+    pub haze_height: f32,
+    /// How much brighter the haze and the sky are toward the sun (forward scattering).
+    pub sun_glow: f32,
 }
 
 impl Default for Lighting {
@@ -145,6 +151,8 @@ impl Default for Lighting {
             sky_zenith: [0.42, 0.6, 0.85],
             sky_horizon: [0.78, 0.85, 0.92],
             fog_density: 0.0007,
+            haze_height: 700.0,
+            sun_glow: 0.25,
         }
     }
 }
@@ -364,6 +372,8 @@ impl RenderConfig {
             ((0.0..=1000.0).contains(&l.density_scale), "density scale"),
             (fin(&l.sky_zenith) && fin(&l.sky_horizon), "sky colour"),
             ((0.0..=1.0).contains(&l.fog_density), "fog density"),
+            ((0.0..=100_000.0).contains(&l.haze_height), "haze height"),
+            ((0.0..=10.0).contains(&l.sun_glow), "sun glow"),
             ((1..=64).contains(&self.workers), "worker count"),
             ((1 << 20..=2 << 30).contains(&self.prim_memory), "primitive memory"),
             ((1 << 20..=2 << 30).contains(&self.mesh_memory), "mesh memory"),

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_worlds::amplify::Instance;
-use canopy_worlds::world::{Ground, Terrain};
+use canopy_worlds::world::{Ground, GroundCover, Terrain};
 use glam::Mat4;
 use wgpu::util::DeviceExt;
 
@@ -59,6 +59,8 @@ const PROXY_BOX_VERTICES: u32 = 36;
 
 struct TerrainGpu {
     source: Arc<Terrain>,
+    /// The cover its colours came from.
+    cover: Option<Arc<GroundCover>>,
     mesh: TerrainMesh,
     vertices: wgpu::Buffer,
     indices: wgpu::Buffer,
@@ -490,12 +492,16 @@ impl Renderer {
 
     fn sync_scene(&mut self, scene: &Scene, camera: &Camera) {
         let grid = self.ground_grid(scene, camera);
+        let same_cover = |c: &Option<Arc<GroundCover>>| match (c, &scene.cover) {
+            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+            (a, b) => a.is_none() && b.is_none(),
+        };
         let terrain_changed = match &self.terrain {
-            Some(t) => !Arc::ptr_eq(&t.source, &grid),
+            Some(t) => !Arc::ptr_eq(&t.source, &grid) || !same_cover(&t.cover),
             None => true,
         };
         if terrain_changed {
-            let mesh = TerrainMesh::build(&grid);
+            let mesh = TerrainMesh::build(&grid, scene.cover.as_deref());
             let vertices = self.gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("terrain vertices"),
                 contents: bytemuck::cast_slice(&mesh.vertices),
@@ -506,7 +512,7 @@ impl Renderer {
                 contents: bytemuck::cast_slice(&mesh.indices),
                 usage: wgpu::BufferUsages::INDEX,
             });
-            self.terrain = Some(TerrainGpu { source: grid, mesh, vertices, indices });
+            self.terrain = Some(TerrainGpu { source: grid, cover: scene.cover.clone(), mesh, vertices, indices });
         }
         self.lod.sync(scene.generation, &scene.instances);
         let vols = &mut self.far.vols;
@@ -688,6 +694,7 @@ impl Renderer {
             wind: [wind_dir.x, wind_dir.y, wind.strength, self.time],
             shadow_split: [0.0; 4],
             shadow_texel: [0.0; 4],
+            haze: [l.haze_height, l.sun_glow, 0.0, 0.0],
             shadow: [[[0.0; 4]; 4]; SHADOW_CASCADES],
         };
         self.shadow.write(&self.gpu.queue, &mut g, cascades);

@@ -8,7 +8,7 @@ use std::sync::Arc;
 use canopy_protocol::summary::NodeSummary;
 use canopy_protocol::{CellCoord, SpeciesGraph};
 use canopy_worlds::hypertree::Hypertree;
-use canopy_worlds::world::{Ground, InstanceId, Terrain, World};
+use canopy_worlds::world::{Ground, GroundCover, InstanceId, Terrain, World};
 
 /// One tree (or bush, or weed) to draw.
 #[derive(Clone, Debug, PartialEq)]
@@ -64,6 +64,9 @@ pub struct Scene {
     pub instances: Vec<SceneInstance>,
     /// The ground: a height grid, or a fractal the renderer draws in a window around the viewer.
     pub ground: Ground,
+    /// What covers the ground, from the world's rules: the terrain's colours (forest floor, meadow, rock, snow).
+    /// `None` colours it by relative height and slope (single-tree views, a world not known yet).
+    pub cover: Option<Arc<GroundCover>>,
     /// Changes whenever species or instances change (the renderer rebuilds its per-instance state then).
     pub generation: u64,
     /// The far field beyond the records: summary nodes drawn as forest (empty: nothing beyond the instances).
@@ -84,6 +87,7 @@ impl Scene {
                 params: Vec::new(),
             }],
             ground: Arc::new(ground).into(),
+            cover: None,
             generation: 1,
             far: SceneFar::default(),
         }
@@ -111,6 +115,7 @@ impl Scene {
             volumes: vec![None; world.species.len()],
             instances,
             ground: Ground::of_world(world),
+            cover: Some(Arc::new(GroundCover::of_world(world))),
             generation: 1,
             far: SceneFar::default(),
         }
@@ -123,6 +128,7 @@ impl Scene {
             volumes: Vec::new(),
             instances: Vec::new(),
             ground: ground.into(),
+            cover: None,
             generation: 0,
             far: SceneFar::default(),
         }

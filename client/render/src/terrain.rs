@@ -1,10 +1,12 @@
 //! The terrain mesh: the world's height grid (the fractal terrain species' triangles, seed 001 §5) in square chunks,
 //! each with index ranges at 1, 2, 4 and 8 grid squares per step chosen by projected size, and skirts hanging from
-//! chunk borders so that neighbours at different steps leave no cracks.
+//! chunk borders so that neighbours at different steps leave no cracks. Each vertex carries its ground's colour: the
+//! world's cover where the scene has one ([`GroundCover`]: forest floor, meadow, scree, rock, snow), else a green
+//! by relative height and slope.
 
 use std::ops::Range;
 
-use canopy_worlds::world::Terrain;
+use canopy_worlds::world::{GroundCover, Terrain};
 use glam::Vec3;
 
 use super::geometry::{MeshVertex, pack_snorm, pack_unorm};
@@ -50,6 +52,34 @@ fn ground_color(h: f32, slope_deg: f32, lo: f32, hi: f32, jitter: f32) -> [f32; 
     std::array::from_fn(|i| (grass[i] + (rock[i] - grass[i]) * r) * (0.92 + 0.16 * jitter))
 }
 
+/// The ground's materials under its cover.
+const MEADOW: [f32; 3] = [0.30, 0.42, 0.16];
+const FOREST_FLOOR: [f32; 3] = [0.25, 0.26, 0.13];
+const SCREE: [f32; 3] = [0.40, 0.39, 0.37];
+const ROCK: [f32; 3] = [0.31, 0.30, 0.29];
+const SNOW: [f32; 3] = [0.92, 0.94, 0.98];
+
+fn mix(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
+    std::array::from_fn(|i| a[i] + (b[i] - a[i]) * t)
+}
+
+fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
+    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Ground colour from the world's cover at height `h` and squared gradient `g2`: bare ground is scree, rock where
+/// it steepens past 20° (all rock by 35°); low plants turn it to meadow, trees to forest floor; snow lies on top
+/// where the ground is under 35° (none past 50°).
+fn covered_color(cover: &GroundCover, h: f32, g2: f64, jitter: f32) -> [f32; 3] {
+    let c = cover.at(h, g2);
+    let slope = canopy_worlds::world::slope_degrees(g2);
+    let bare = mix(SCREE, ROCK, smoothstep(20.0, 35.0, slope));
+    let grown = mix(mix(bare, MEADOW, c.plants), FOREST_FLOOR, c.trees);
+    let snowed = mix(grown, SNOW, c.snow * (1.0 - smoothstep(35.0, 50.0, slope)));
+    snowed.map(|v| v * (0.92 + 0.16 * jitter))
+}
+
 fn hash(i: u32, j: u32) -> f32 {
     let mut x = i.wrapping_mul(0x9e37_79b1) ^ j.wrapping_mul(0x85eb_ca77);
     x ^= x >> 15;
@@ -59,8 +89,8 @@ fn hash(i: u32, j: u32) -> f32 {
 }
 
 impl TerrainMesh {
-    /// Build the mesh of a terrain.
-    pub(crate) fn build(t: &Terrain) -> TerrainMesh {
+    /// Build the mesh of a terrain, its vertices coloured by `cover` where given.
+    pub(crate) fn build(t: &Terrain, cover: Option<&GroundCover>) -> TerrainMesh {
         let [sx, sz] = t.squares();
         let (nx, nz) = (sx + 1, sz + 1);
         let s = t.spacing();
@@ -76,11 +106,14 @@ impl TerrainMesh {
                 let dx = (t.vertex_height(i1, j) - t.vertex_height(i0, j)) / ((i1 - i0).max(1) as f32 * s);
                 let dz = (t.vertex_height(i, j1) - t.vertex_height(i, j0)) / ((j1 - j0).max(1) as f32 * s);
                 let n = Vec3::new(-dx, 1.0, -dz).normalize_or(Vec3::Y);
-                let slope = n.y.clamp(-1.0, 1.0).acos().to_degrees();
+                let color = match cover {
+                    Some(c) => covered_color(c, h, f64::from(dx * dx + dz * dz), hash(i, j)),
+                    None => ground_color(h, n.y.clamp(-1.0, 1.0).acos().to_degrees(), lo, hi, hash(i, j)),
+                };
                 vertices.push(MeshVertex {
                     position: [x, h, z],
                     normal: pack_snorm(n.to_array()),
-                    color: pack_unorm(ground_color(h, slope, lo, hi, hash(i, j))),
+                    color: pack_unorm(color),
                 });
             }
         }
@@ -171,7 +204,7 @@ mod tests {
     #[test]
     fn the_mesh_follows_the_terrain_and_every_level_covers_the_chunk() {
         let w = World::default_world();
-        let m = TerrainMesh::build(&w.terrain);
+        let m = TerrainMesh::build(&w.terrain, None);
         let [sx, sz] = w.terrain.squares();
         assert_eq!(m.chunks.len() as u32, sx.div_ceil(CHUNK) * sz.div_ceil(CHUNK));
         // Grid vertices carry the exact heights.
@@ -194,7 +227,7 @@ mod tests {
     #[test]
     fn flat_terrain_is_one_small_chunk() {
         let t = Terrain::flat([-10.0, -10.0], 20.0);
-        let m = TerrainMesh::build(&t);
+        let m = TerrainMesh::build(&t, None);
         assert_eq!(m.chunks.len(), 1);
         assert_eq!(m.vertices[..4].iter().map(|v| v.position[1]).sum::<f32>(), 0.0);
     }

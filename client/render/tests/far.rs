@@ -214,9 +214,10 @@ fn from_inside_a_nodes_canopy_the_forest_is_drawn_around_the_eye() {
     let nodes = summaries(&world, &cam, H as u16);
     let under = nodes.iter().filter(|n| n.key.level == 0).count();
     assert!(under > 0, "leaves are selected next to the eye: {:?}", nodes.iter().map(|n| n.key).collect::<Vec<_>>());
-    let bare = shoot(&Scene::from_world(&world), &cam, W, H);
+    // The ground in its sunlit green (no cover: the forest floor's dark would pass for canopy).
+    let bare = shoot(&Scene { cover: None, ..Scene::from_world(&world) }, &cam, W, H);
     for far_path in [FarPath::Compute, FarPath::Raster] {
-        let with = shoot_with(&scene_with(&world, &nodes), &cam, W, H, far_path);
+        let with = shoot_with(&Scene { cover: None, ..scene_with(&world, &nodes) }, &cam, W, H, far_path);
         if let Some(dir) = std::env::var_os("CANOPY_FAR_PNG") {
             let dir = PathBuf::from(dir);
             with.image.save_png(&dir.join(format!("inside-with-{far_path}.png"))).expect("saved");

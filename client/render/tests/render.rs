@@ -183,6 +183,7 @@ fn far_field_volumes_match_the_cpu_reference_raymarcher() {
             params: Vec::new(),
         }],
         ground: Arc::new(Terrain::flat([1.0e5, 1.0e5], 1.0)).into(),
+        cover: None,
         generation: 1,
         far: SceneFar::default(),
     };

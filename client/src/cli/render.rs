@@ -57,10 +57,13 @@ pub(super) struct RendererArgs {
     /// lavapipe), or `auto` (by the adapter).
     #[arg(long, value_parser = super::named(&FarPath::NAMES), default_value_t = FarPath::Auto)]
     far_path: FarPath,
-    /// Fog density per metre (0: none; default 0.0007 near the ground, thinned with the camera's altitude above
-    /// 50 m so a view from altitude reaches the horizon).
+    /// Haze density per metre at height 0 (0: none; default 0.0007). It thins with height (`--haze-height`), so
+    /// valleys are hazier than ridges and a view from altitude reaches the horizon.
     #[arg(long)]
     fog: Option<f32>,
+    /// The haze's scale height, metres: its density falls as exp(−height / this) (0: the same at every height).
+    #[arg(long, default_value_t = RenderConfig::default().lighting.haze_height)]
+    haze_height: f32,
     /// Texels along each side of the sun's shadow maps (one a cascade; 0: no shadows).
     #[arg(long, default_value_t = RenderConfig::default().shadows.resolution)]
     shadow_map: u32,
@@ -77,8 +80,8 @@ pub(super) struct RendererArgs {
 }
 
 impl RendererArgs {
-    /// The validated renderer configuration for a camera `altitude` metres above the ground.
-    pub(super) fn config(&self, altitude: f32) -> anyhow::Result<RenderConfig> {
+    /// The validated renderer configuration.
+    pub(super) fn config(&self) -> anyhow::Result<RenderConfig> {
         let mut cfg = RenderConfig {
             lod: LodConfig {
                 near_px: self.near_px,
@@ -106,17 +109,13 @@ impl RendererArgs {
         cfg.shadows.distance = self.shadow_distance;
         cfg.wind.strength = self.wind;
         cfg.msaa = self.msaa;
-        cfg.lighting.fog_density = self.fog.unwrap_or_else(|| fog_at(altitude));
+        if let Some(fog) = self.fog {
+            cfg.lighting.fog_density = fog;
+        }
+        cfg.lighting.haze_height = self.haze_height;
         cfg.validate().context("renderer options")?;
         Ok(cfg)
     }
-}
-
-/// The default fog density for a camera `altitude` metres above the ground: the walkthrough's near the ground,
-/// thinned in proportion above 50 m.
-pub(super) fn fog_at(altitude: f32) -> f32 {
-    let near = RenderConfig::default().lighting.fog_density;
-    if altitude.is_finite() && altitude > 50.0 { near * 50.0 / altitude } else { near }
 }
 
 /// Options of `canopy render`.
@@ -189,7 +188,7 @@ pub(super) fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     );
     // Records near the camera (every instance of a world materialised at load), the far view's summaries beyond.
     let altitude = camera.position.y - world.height(camera.position.x, camera.position.z);
-    let cfg = args.renderer.config(altitude)?;
+    let cfg = args.renderer.config()?;
     let mut off = Offscreen::new(cfg, args.width, args.height)?;
     off.renderer.set_time(args.time);
     println!("adapter: {}", off.gpu.describe());

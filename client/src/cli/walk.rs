@@ -35,7 +35,7 @@ use canopy_protocol::summary::FarView;
 use canopy_protocol::sync::Locked;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::{FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneFar, SceneInstance};
-use canopy_worlds::world::Ground;
+use canopy_worlds::world::{Ground, GroundCover};
 use clap::Args;
 use glam::Vec3;
 use winit::application::ApplicationHandler;
@@ -143,7 +143,8 @@ struct Shared {
     stop: tokio::sync::watch::Sender<bool>,
 }
 
-fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
+/// The scene of what the connection holds now, on `ground`, its colours from `cover`.
+fn snapshot(conn: &Connection, ground: &Ground, cover: Option<&Arc<GroundCover>>, generation: u64) -> Scene {
     let state = conn.state();
     let welcome = conn.welcome();
     let species = (0..welcome.species.len()).map(|id| state.species(id as u8).cloned()).collect::<Vec<_>>();
@@ -167,6 +168,7 @@ fn snapshot(conn: &Connection, ground: &Ground, generation: u64) -> Scene {
         species,
         instances,
         ground: ground.clone(),
+        cover: cover.cloned(),
         generation,
         far: SceneFar {
             nodes: state.summaries().values().cloned().collect(),
@@ -232,13 +234,14 @@ async fn net_session(
         shared: &shared,
         ground: &ground,
         edits: edits.as_mut(),
+        cover: None,
         asked: None,
         generation: 1,
         dirty: false,
         changed: false,
         last_publish: Instant::now(),
     };
-    *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, hooks.generation)));
+    *shared.scene.locked() = Some(Arc::new(snapshot(&conn, &ground, None, hooks.generation)));
     let mut camera = CameraMover { shared: &shared, pose: start };
     loop {
         match drive(&mut conn, &mut camera, plan.clone(), &mut hooks).await {
@@ -293,6 +296,9 @@ struct WindowHooks<'a> {
     shared: &'a Shared,
     ground: &'a Ground,
     edits: Option<&'a mut EditLink>,
+    /// The ground's cover, once the world is built from its function (one `Arc`: the renderer colours the terrain
+    /// again only when it changes).
+    cover: Option<Arc<GroundCover>>,
     /// What the edit being sent is, until its request number is known.
     asked: Option<String>,
     generation: u64,
@@ -307,9 +313,16 @@ impl WindowHooks<'_> {
     /// Publish a snapshot when something arrived: at once for a changed cell, batches and releases at most every
     /// 250 ms; and the status.
     fn publish(&mut self, conn: &Connection) {
+        if self.cover.is_none()
+            && let Some(world) = conn.world()
+        {
+            self.cover = Some(Arc::new(GroundCover::of_world(world)));
+            self.dirty = true;
+        }
         if self.dirty && (self.changed || self.last_publish.elapsed() > Duration::from_millis(250)) {
             self.generation += 1;
-            *self.shared.scene.locked() = Some(Arc::new(snapshot(conn, self.ground, self.generation)));
+            let scene = snapshot(conn, self.ground, self.cover.as_ref(), self.generation);
+            *self.shared.scene.locked() = Some(Arc::new(scene));
             (self.dirty, self.changed) = (false, false);
             self.last_publish = Instant::now();
         }
@@ -713,8 +726,7 @@ fn local_server(world: Option<&PathBuf>, data_dir: Option<&PathBuf>) -> anyhow::
 /// Run `canopy walk`.
 pub(super) fn run(args: WalkArgs) -> anyhow::Result<ExitCode> {
     let spec = camera_spec(args.camera.as_deref())?;
-    // The fog for the starting camera's height above a ground not known yet (taken as 0).
-    let cfg = args.renderer.config(spec.resolve(&|_, _| 0.0).position.y)?;
+    let cfg = args.renderer.config()?;
     let local = match &args.connect.server {
         Some(_) => None,
         None if args.connect.trust_given() => bail!("--cert-fingerprint and --insecure name the trust of a --server"),

@@ -21,7 +21,7 @@ use canopy_protocol::messages::{CellMode, PhaseError, ServerStreaming, Welcome};
 use canopy_protocol::record::ParamOverride;
 use canopy_protocol::{CellCoord, ClientMsg, CloseCode, InstanceRecord, MessageError, Phase, ServerMsg, netlimits};
 use canopy_protocol::{InstanceId, SpeciesGraph, SpeciesHash};
-use canopy_worlds::world::{CellKey, Ground, Placement, World};
+use canopy_worlds::world::{CellKey, Ground, GroundCover, Placement, World};
 
 use crate::far::{Far, default_view};
 
@@ -164,6 +164,8 @@ pub struct Session {
     ground: Option<Ground>,
     /// The world built from the welcome's world function and species, with the function's hash.
     world: Option<(SpeciesHash, Arc<World>)>,
+    /// What covers its ground (the terrain's colours), with the world.
+    cover: Option<Arc<GroundCover>>,
     seq: u32,
     edits: std::collections::VecDeque<EditAsked>,
     expanded: u64,
@@ -191,6 +193,7 @@ impl Session {
             close: None,
             ground: None,
             world: None,
+            cover: None,
             seq: 0,
             edits: std::collections::VecDeque::new(),
             expanded: 0,
@@ -221,6 +224,11 @@ impl Session {
     /// The ground from the welcome, once it arrived.
     pub fn ground(&self) -> Option<&Ground> {
         self.ground.as_ref()
+    }
+
+    /// What covers the ground, once the world is built from its function.
+    pub fn cover(&self) -> Option<&Arc<GroundCover>> {
+        self.cover.as_ref()
     }
 
     /// The terrain height at (x, z) (0 before the welcome).
@@ -452,6 +460,7 @@ impl Session {
         };
         let world = World::from_function(&w.world.name, &f.manifest, &species, terrain.as_ref())
             .map_err(|d| Fault::invalid(format!("the server's world function does not build: {d}")))?;
+        self.cover = Some(Arc::new(GroundCover::of_world(&world)));
         self.world = Some((f.hash(), Arc::new(world)));
         Ok(true)
     }

@@ -225,6 +225,13 @@ impl Model {
     }
 }
 
+/// The mean of each rule's `height` parameter (the rule's value, else its species' default where that is a
+/// constant or `uniform` of two), in rule order; `None` where the species has no `height` or its default is an
+/// expression only evaluating would tell (the ground's cover reads trees by it).
+pub(super) fn rule_heights(world: &World) -> Vec<Option<f64>> {
+    Model::new(world).rules.iter().map(|r| r.height.map(|l| l.mean)).collect()
+}
+
 /// Per-species sums over one cell while it is computed.
 #[derive(Clone, Debug)]
 struct Tally {

@@ -118,6 +118,7 @@
 //! Every count, size and extent read from the file is bounded (the `MAX_` constants below).
 
 mod cells;
+mod cover;
 pub mod far;
 mod fractal;
 mod ground;
@@ -139,6 +140,7 @@ use crate::amplify::Instance;
 use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
 pub use cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
+pub use cover::{Cover, GroundCover, SNOW_ABOVE, SNOW_FULL, TREE_HEIGHT};
 pub use far::{DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, PACKING, Summaries, aggregate, summary_bytes};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use ground::Ground;

@@ -507,6 +507,11 @@ impl Connection {
         &self.state
     }
 
+    /// The world built from the session's world function, once built (a connection that expands its cells).
+    pub fn world(&self) -> Option<&Arc<canopy_worlds::world::World>> {
+        self.expanding.built().map(|(w, _)| &w.world)
+    }
+
     /// The welcome.
     pub fn welcome(&self) -> &Arc<Welcome> {
         self.state.welcome().expect("a connection is welcomed")

@@ -18,6 +18,7 @@ pub(super) struct Globals {
     pub wind: [f32; 4],
     pub shadow_split: [f32; 4],
     pub shadow_texel: [f32; 4],
+    pub haze: [f32; 4],
     pub shadow: [[[f32; 4]; 4]; crate::SHADOW_CASCADES],
 }
 
@@ -99,6 +100,7 @@ mod tests {
                     wind: wind,
                     shadow_split: shadow_split,
                     shadow_texel: shadow_texel,
+                    haze: haze,
                     shadow: shadow,
                 }),
             ),

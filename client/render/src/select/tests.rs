@@ -43,6 +43,7 @@ fn scene(instances: Vec<SceneInstance>) -> Scene {
         volumes: vec![None],
         instances,
         ground: Arc::new(Terrain::flat([0.0, 0.0], 1.0)).into(),
+        cover: None,
         generation: 1,
         far: Default::default(),
     }
@@ -377,7 +378,7 @@ fn lod_state_is_carried_over_by_id() {
 #[test]
 fn terrain_chunks_are_culled_and_coarser_far_away() {
     let world = World::default_world();
-    let mesh = TerrainMesh::build(&world.terrain);
+    let mesh = TerrainMesh::build(&world.terrain, None);
     // In the middle of the 2 km world, looking north-east.
     let eye = Vec3::new(0.0, world.height(0.0, 0.0) + 20.0, 0.0);
     let cam = Camera { position: eye, yaw: 45f32.to_radians(), pitch: -0.05, fov_y: 60.0 };

@@ -256,6 +256,7 @@ impl View {
             species,
             instances,
             ground: ground.clone(),
+            cover: session.cover().cloned(),
             generation: self.generation,
             far: SceneFar {
                 nodes: state.summaries().values().cloned().collect(),
