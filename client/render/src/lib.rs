@@ -151,7 +151,7 @@ impl Default for Lighting {
             sky_zenith: [0.42, 0.6, 0.85],
             sky_horizon: [0.78, 0.85, 0.92],
             fog_density: 0.0007,
-            haze_height: 700.0,
+            haze_height: 500.0,
             sun_glow: 0.25,
         }
     }

@@ -117,7 +117,9 @@ fn the_haze_thins_with_height_so_valleys_are_hazier_than_ridges() {
     let haze = RenderConfig::default().lighting.sky_horizon.map(|c| (c.powf(1.0 / 2.2) * 255.0) as i32);
     // How far a pixel is from the colour of thick haze (the horizon's): more haze, nearer.
     let clear = |p: [u8; 4]| (0..3).map(|i| (i32::from(p[i]) - haze[i]).abs()).sum::<i32>();
-    let (low, high) = (plateau(0.0, 700.0), plateau(1_500.0, 700.0));
+    let h = RenderConfig::default().lighting.haze_height;
+    assert!(h > 0.0, "the default haze thins with height");
+    let (low, high) = (plateau(0.0, h), plateau(1_500.0, h));
     assert!(clear(high) > clear(low) + 30, "at 1,500 m {high:?} is clearer than at sea level {low:?}");
     // Where the haze is the same at every height the two look alike.
     let (low, high) = (plateau(0.0, 0.0), plateau(1_500.0, 0.0));
