@@ -22,7 +22,7 @@ struct Globals {
     // xyz: each cascade's texel, metres; w: unused.
     shadow_texel: vec4<f32>,
     // x: the haze's scale height, metres (0: the same density at every height); y: the sun's glow through it;
-    // zw: unused.
+    // z: the most ambient occlusion deep in a crown (segment.wgsl `crown_occlusion`); w: unused.
     haze: vec4<f32>,
     // Each cascade's view-projection from the sun (depth 0..1, nearest the sun 0).
     shadow: array<mat4x4<f32>, 3>,
@@ -103,10 +103,15 @@ fn shade(base: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
 
 // `shade` where `sun` of the sun's light arrives (shadow.wgsl `sun_visibility`).
 fn shade_lit(base: vec3<f32>, n: vec3<f32>, sun: f32) -> vec3<f32> {
+    return shade_occluded(base, n, sun, 1.0);
+}
+
+// `shade_lit` where `ao` of the ambient and the sky's light arrives (ambient occlusion).
+fn shade_occluded(base: vec3<f32>, n: vec3<f32>, sun: f32, ao: f32) -> vec3<f32> {
     let lambert = sun * max(dot(n, g.sun_dir.xyz), 0.0);
     // A little sky light from above so that faces turned from the sun keep their shape (`Lighting::sky_light`).
     let sky = g.sky_horizon.w * (0.5 + 0.5 * n.y);
-    return base * (g.sun_dir.w + sky + g.sun_color.w * lambert * g.sun_color.rgb);
+    return base * (ao * (g.sun_dir.w + sky) + g.sun_color.w * lambert * g.sun_color.rgb);
 }
 
 // An instance's own shade of its species' colours, from the top byte of its folded seed (select.rs `fold_seed`):

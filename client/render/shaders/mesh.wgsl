@@ -19,6 +19,7 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     out.normal = n.xyz;
     out.thin = n.w;
     out.bark = vec4<f32>(0.0);
+    out.ao = crown_occlusion(p, s);
     out.color = unpack4x8unorm(verts[w + 4u]).rgb * instance_tint(s.seed);
     out.mask = s.mask;
     return out;
@@ -40,7 +41,7 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     // The sun's visibility on the sunlit side (a leaf seen from behind is lit through: its own shadow is behind it).
     let toward = dot(n, g.sun_dir.xyz);
     let sun = sun_visibility(in.world, select(n, -n, toward < 0.0));
-    var lit = shade_lit(in.color, n, sun);
+    var lit = shade_occluded(in.color, n, sun, in.ao);
     // Light through a leaf with the sun behind it: a share of the sun's diffuse light, in the leaf's colour.
     lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * in.color;
     return vec4<f32>(with_fog(lit, in.world), 1.0);

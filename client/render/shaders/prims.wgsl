@@ -58,6 +58,7 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     out.color = unpack4x8unorm(bitcast<u32>(prim.shape.w)).rgb * instance_tint(s.seed);
     out.mask = s.mask;
     out.thin = 0.0;
+    out.ao = crown_occlusion(species, s);
     out.bark = vec4<f32>(0.0);
     if draw.kind == 0u && p.w < 0.5 {
         // Fissures about every 12 cm around the mean circumference, a whole number of them.
@@ -93,6 +94,6 @@ fn fs_prim(in: GeoOut) -> @location(0) vec4<f32> {
         discard;
     }
     let n = normalize(in.normal);
-    let lit = shade_lit(bark(in.color, in.bark, in.world), n, sun_visibility(in.world, n));
+    let lit = shade_occluded(bark(in.color, in.bark, in.world), n, sun_visibility(in.world, n), in.ao);
     return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

@@ -15,9 +15,10 @@ struct Segment {
     mask: f32,
     // The instance's seed (its low 32 bits folded with the high), which keys its wind phase.
     seed: u32,
+    // The tree's crown as its bounding sphere: the centre's height above `pos` and the radius (0: no occlusion).
+    crown_y: f32,
+    crown_r: f32,
     pad0: u32,
-    pad1: u32,
-    pad2: u32,
 };
 
 // Which segments a draw covers, and what it draws.
@@ -43,7 +44,23 @@ struct GeoOut {
     // On a frustum's side (prims.wgsl `bark`): its normal's horizontal direction (x, z), its height, and
     // the fissures around it (w; 0 elsewhere).
     @location(5) bark: vec4<f32>,
+    // The share of the sky's and the ambient light that reaches it (`crown_occlusion`).
+    @location(6) ao: f32,
 };
+
+// Ambient occlusion inside a crown: how much of the sky's and the ambient light reaches a point `rel` from the
+// tree's base, the crown taken as its bounding sphere. Whole at the sphere's surface and outside it; toward the
+// centre less by up to g.haze.z (`Lighting::crown_occlusion`), the lower half of the crown darker than the upper
+// (the foliage above shades it from the sky).
+fn crown_occlusion(rel: vec3<f32>, s: Segment) -> f32 {
+    if s.crown_r <= 0.0 {
+        return 1.0;
+    }
+    let q = (rel - vec3<f32>(0.0, s.crown_y, 0.0)) / s.crown_r;
+    let inner = 1.0 - smoothstep(0.25, 1.0, length(q));
+    let low = 1.0 - 0.5 * clamp(0.5 + 0.5 * q.y, 0.0, 1.0);
+    return 1.0 - g.haze.z * inner * low;
+}
 
 // The segment holding element `i` of the draw: the last one whose `first` is <= i (binary search).
 fn find_segment(i: u32, seg_first: u32, seg_count: u32) -> u32 {

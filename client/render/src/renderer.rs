@@ -694,7 +694,7 @@ impl Renderer {
             wind: [wind_dir.x, wind_dir.y, wind.strength, self.time],
             shadow_split: [0.0; 4],
             shadow_texel: [0.0; 4],
-            haze: [l.haze_height, l.sun_glow, 0.0, 0.0],
+            haze: [l.haze_height, l.sun_glow, l.crown_occlusion, 0.0],
             shadow: [[[0.0; 4]; 4]; SHADOW_CASCADES],
         };
         self.shadow.write(&self.gpu.queue, &mut g, cascades);

@@ -66,8 +66,10 @@ pub(crate) struct Segment {
     pub mask: f32,
     /// The instance's seed folded to 32 bits ([`fold_seed`]): its phase in the wind.
     pub seed: u32,
+    /// The crown for ambient occlusion: the tree's bounding sphere's centre height above `pos`, and its radius.
+    pub crown: [f32; 2],
     /// To the shader's stride (48 bytes).
-    pub pad: [u32; 3],
+    pub pad: u32,
 }
 
 /// The bits of [`FarInstance::volume`] that index the volume (the rest is the instance's tint).
@@ -600,7 +602,8 @@ impl FramePlan {
                 pos: g.position,
                 mask: g.mask,
                 seed: fold_seed(g.key.seed),
-                pad: [0; 3],
+                crown: [g.sphere.0.y - g.position[1], g.sphere.1],
+                pad: 0,
             };
             for (k, r) in e.shape_ranges.iter().enumerate() {
                 if !r.is_empty() {

@@ -1,4 +1,4 @@
-//! Image tests of the sun's shadows and the wind (issue 33), offscreen on whatever wgpu adapter is present (CI:
+//! Image tests of the sun's shadows, the wind and the crowns' ambient occlusion (issue 33), offscreen on whatever wgpu adapter is present (CI:
 //! Mesa lavapipe): one tree on flat ground, compared with committed references, and each with a tolerance that
 //! the picture without the effect (no shadow, a frozen wind) fails.
 
@@ -43,8 +43,13 @@ fn shoot_sized(
     wind: Wind,
     time: f32,
     msaa: u32,
-    (w, h): (u32, u32),
+    size: (u32, u32),
 ) -> (RenderedImage, canopy_render::FrameStats) {
+    shoot_configured(scene, camera, config(shadows, wind, msaa), time, size)
+}
+
+/// The tests' renderer: the tree at full detail from 20 pixels, one worker, fog off.
+fn config(shadows: Shadows, wind: Wind, msaa: u32) -> RenderConfig {
     let mut cfg = RenderConfig {
         lod: LodConfig { near_px: 20.0, far_px: 5.0, ..LodConfig::default() },
         workers: 1,
@@ -54,6 +59,16 @@ fn shoot_sized(
         ..RenderConfig::default()
     };
     cfg.lighting.fog_density = 0.0;
+    cfg
+}
+
+fn shoot_configured(
+    scene: &Scene,
+    camera: &Camera,
+    cfg: RenderConfig,
+    time: f32,
+    (w, h): (u32, u32),
+) -> (RenderedImage, canopy_render::FrameStats) {
     let mut off = Offscreen::new(cfg, w, h).unwrap_or_else(|e| panic!("{e}"));
     off.renderer.set_time(time);
     let stats = off.settle(scene, camera, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
@@ -171,4 +186,21 @@ fn a_trunk_close_up_shows_its_bark() {
     eprintln!("fissures across the trunk: {dips}");
     assert!(dips >= 2, "a smooth trunk: {trunk:?}");
     check_reference(&img, &reference("sun-trunk.png"), &Tolerance::default()).unwrap_or_else(|e| panic!("{e}"));
+}
+
+#[test]
+fn a_crown_is_darker_inside_and_no_occlusion_fails() {
+    let (scene, camera) = tree_and_camera();
+    let still = Wind { strength: 0.0, ..Wind::default() };
+    let shot = |occlusion: f32| {
+        let mut cfg = config(Shadows { resolution: 0, ..Shadows::default() }, still, 4);
+        cfg.lighting.crown_occlusion = occlusion;
+        shoot_configured(&scene, &camera, cfg, 0.0, (W, H)).0
+    };
+    let (occluded, open) = (shot(RenderConfig::default().lighting.crown_occlusion), shot(0.0));
+    // Inside the crown the ambient and sky light is less: a good part of the crown darker, nothing brighter.
+    let inner = darker(&occluded, &open, 24);
+    eprintln!("darker inside the crown: {:.1} % of the pixels", 100.0 * inner);
+    assert!(inner > 0.02, "only {:.1} % of the pixels are darker", 100.0 * inner);
+    assert!(darker(&open, &occluded, 6) == 0.0, "occlusion never brightens");
 }

@@ -114,6 +114,7 @@ mod tests {
                     pos: pos,
                     mask: mask,
                     seed: seed,
+                    crown_y: crown,
                     pad0: pad,
                 }),
             ),
