@@ -140,8 +140,8 @@ impl Default for Lighting {
         // Sun, ambient, diffuse and opacity are the CPU reference renderer's defaults. The far field is lit as the
         // near meshes are, so that a tree does not change where it becomes a volume (issue 35.3): the sky's light
         // of the meshes, its ambient light darkening toward the crown's interior as the meshes' crown occlusion
-        // darkens theirs (a falloff of 2 matches it best: colour distance at the switch 0.019 for the conifer and
-        // 0.008 for the monopodial tree, `render::*_far_field_matches_the_near_tree_at_the_switch`), and no
+        // darkens theirs (a falloff of 1.5 matches it best: colour distance at the switch 0.018 for the conifer and
+        // 0.010 for the monopodial tree, `render::*_far_field_matches_the_near_tree_at_the_switch`), and no
         // self-shadowing (the meshes' shadow maps reach 300 m).
         let r = RenderOptions::default();
         let sun = r.lights[0];
@@ -151,7 +151,7 @@ impl Default for Lighting {
             ambient: r.ambient,
             diffuse: r.diffuse,
             sky_light: 0.12,
-            ambient_falloff: 2.0,
+            ambient_falloff: 1.5,
             density_scale: r.density_scale,
             volume_shadows: false,
             sky_zenith: [0.42, 0.6, 0.85],
@@ -159,7 +159,7 @@ impl Default for Lighting {
             fog_density: 0.0007,
             haze_height: 500.0,
             sun_glow: 0.25,
-            crown_occlusion: 0.6,
+            crown_occlusion: 0.5,
         }
     }
 }
