@@ -849,7 +849,7 @@ mod tests {
     use crate::cli::walk_edit::EditRequest;
 
     /// The network thread without a window (the harness's `drive`, the camera its mover): it fills the camera's
-    /// area of interest into the published scene, and an editor key's edit goes out, its answer reaches the status
+    /// area of interest and the ground's cover into the published scene, and an editor key's edit goes out, its answer reaches the status
     /// line and its tree the next scene, shown without moving.
     #[test]
     fn the_network_thread_streams_the_camera_s_area_and_sends_the_keys_edits() {
@@ -859,6 +859,8 @@ mod tests {
         let mut connect =
             ConnectConfig::new(local.server.local_addr(), Trust::pinned(local.server.fingerprint()).unwrap());
         connect.token = Some(local.token.clone());
+        // As `canopy walk` connects by default: expanding its cells from the world function.
+        connect.expander = Some(canopy_client::expand::Expander::default_pool());
         let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
         let plan = window_plan(120.0, None, None, &shared.stop);
         let net = net_thread(connect, plan, None, Arc::clone(&shared), Some(EditLink::new(rx)));
@@ -874,6 +876,11 @@ mod tests {
         wait("a complete area of interest", &|s| s.status.locked().complete);
         let held = |s: &Shared| s.scene.locked().as_ref().map_or(0, |scene| scene.instances.len());
         wait("the area's trees in the scene", &|s| held(s) > 0);
+        // The world built from its function colours the ground: the scene carries the world's cover.
+        let covered = |s: &Shared| s.scene.locked().as_ref().and_then(|scene| scene.cover.clone());
+        wait("the ground's cover in the scene", &|s| covered(s).is_some());
+        let world = canopy_worlds::world::World::default_world();
+        assert_eq!(*covered(&shared).unwrap(), GroundCover::of_world(&world), "the world's own cover");
         let before = held(&shared);
         let (x, z) = (7.25, -3.5);
         let what = format!("plant at ({x}, {z})");

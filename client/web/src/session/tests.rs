@@ -116,6 +116,9 @@ fn granted_cells_are_expanded_nearest_first_within_the_budget_and_match_the_worl
     // No time left: one cell all the same, the nearest (the one the viewpoint is in).
     assert_eq!(s.expand(&mut || false), 1);
     assert!(s.world_built());
+    // The world built, its ground's cover is known (the page's terrain colours).
+    let cover = s.cover().expect("the cover of the built world");
+    assert!(cover.at(0.0, 0.0).trees + cover.at(0.0, 0.0).plants > 0.0, "the world's rules grow plants");
     let held = s.state().cells();
     assert!(held[&CellCoord::new(0, 0)].is_complete());
     assert_eq!(held.values().filter(|h| h.is_complete()).count(), 1);
