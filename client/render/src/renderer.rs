@@ -492,12 +492,9 @@ impl Renderer {
 
     fn sync_scene(&mut self, scene: &Scene, camera: &Camera) {
         let grid = self.ground_grid(scene, camera);
-        let same_cover = |c: &Option<Arc<GroundCover>>| match (c, &scene.cover) {
-            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
-            (a, b) => a.is_none() && b.is_none(),
-        };
+        let cover_ptr = |c: &Option<Arc<GroundCover>>| c.as_ref().map(Arc::as_ptr);
         let terrain_changed = match &self.terrain {
-            Some(t) => !Arc::ptr_eq(&t.source, &grid) || !same_cover(&t.cover),
+            Some(t) => !Arc::ptr_eq(&t.source, &grid) || cover_ptr(&t.cover) != cover_ptr(&scene.cover),
             None => true,
         };
         if terrain_changed {

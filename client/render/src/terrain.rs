@@ -42,26 +42,19 @@ pub(crate) struct TerrainMesh {
 }
 
 /// Ground colour from height, slope and a little per-vertex variation.
-fn ground_color(h: f32, slope_deg: f32, lo: f32, hi: f32, jitter: f32) -> [f32; 3] {
+fn ground_color(h: f32, slope_deg: f32, lo: f32, hi: f32, jitter: f32) -> Vec3 {
     let t = if hi > lo { ((h - lo) / (hi - lo)).clamp(0.0, 1.0) } else { 0.5 };
-    let meadow = [0.30, 0.42, 0.16];
-    let upland = [0.24, 0.32, 0.15];
-    let rock = [0.42, 0.40, 0.36];
-    let grass: [f32; 3] = std::array::from_fn(|i| meadow[i] + (upland[i] - meadow[i]) * t);
+    let grass = MEADOW.lerp(Vec3::new(0.24, 0.32, 0.15), t);
     let r = ((slope_deg - 28.0) / 14.0).clamp(0.0, 1.0);
-    std::array::from_fn(|i| (grass[i] + (rock[i] - grass[i]) * r) * (0.92 + 0.16 * jitter))
+    grass.lerp(Vec3::new(0.42, 0.40, 0.36), r) * (0.92 + 0.16 * jitter)
 }
 
 /// The ground's materials under its cover.
-const MEADOW: [f32; 3] = [0.30, 0.42, 0.16];
-const FOREST_FLOOR: [f32; 3] = [0.25, 0.26, 0.13];
-const SCREE: [f32; 3] = [0.40, 0.39, 0.37];
-const ROCK: [f32; 3] = [0.31, 0.30, 0.29];
-const SNOW: [f32; 3] = [0.92, 0.94, 0.98];
-
-fn mix(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
-    std::array::from_fn(|i| a[i] + (b[i] - a[i]) * t)
-}
+const MEADOW: Vec3 = Vec3::new(0.30, 0.42, 0.16);
+const FOREST_FLOOR: Vec3 = Vec3::new(0.25, 0.26, 0.13);
+const SCREE: Vec3 = Vec3::new(0.40, 0.39, 0.37);
+const ROCK: Vec3 = Vec3::new(0.31, 0.30, 0.29);
+const SNOW: Vec3 = Vec3::new(0.92, 0.94, 0.98);
 
 fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
     let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
@@ -71,13 +64,13 @@ fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
 /// Ground colour from the world's cover at height `h` and squared gradient `g2`: bare ground is scree, rock where
 /// it steepens past 20° (all rock by 35°); low plants turn it to meadow, trees to forest floor; snow lies on top
 /// where the ground is under 35° (none past 50°).
-fn covered_color(cover: &GroundCover, h: f32, g2: f64, jitter: f32) -> [f32; 3] {
+fn covered_color(cover: &GroundCover, h: f32, g2: f64, jitter: f32) -> Vec3 {
     let c = cover.at(h, g2);
     let slope = canopy_worlds::world::slope_degrees(g2);
-    let bare = mix(SCREE, ROCK, smoothstep(20.0, 35.0, slope));
-    let grown = mix(mix(bare, MEADOW, c.plants), FOREST_FLOOR, c.trees);
-    let snowed = mix(grown, SNOW, c.snow * (1.0 - smoothstep(35.0, 50.0, slope)));
-    snowed.map(|v| v * (0.92 + 0.16 * jitter))
+    let bare = SCREE.lerp(ROCK, smoothstep(20.0, 35.0, slope));
+    let grown = bare.lerp(MEADOW, c.plants).lerp(FOREST_FLOOR, c.trees);
+    let snowed = grown.lerp(SNOW, c.snow * (1.0 - smoothstep(35.0, 50.0, slope)));
+    snowed * (0.92 + 0.16 * jitter)
 }
 
 fn hash(i: u32, j: u32) -> f32 {
@@ -113,7 +106,7 @@ impl TerrainMesh {
                 vertices.push(MeshVertex {
                     position: [x, h, z],
                     normal: pack_snorm(n.to_array()),
-                    color: pack_unorm(color),
+                    color: pack_unorm(color.to_array()),
                 });
             }
         }

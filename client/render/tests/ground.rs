@@ -44,8 +44,8 @@ fn highlands_from_altitude_shows_fractal_ground() {
 }
 
 /// The highlands' world, drawn with its ground's cover and without, from `eye` toward `target` (heights above the
-/// ground there), 160 × 100.
-fn highlands_cover_shots(eye: [f32; 3], target: [f32; 3]) -> (RenderedImage, RenderedImage) {
+/// ground there), 160 × 100; saved as `NAME.png` and `NAME-uncovered.png` in `CANOPY_COVER_PNG=dir`.
+fn highlands_cover_shots(name: &str, eye: [f32; 3], target: [f32; 3]) -> (RenderedImage, RenderedImage) {
     let world = World::embedded("highlands").expect("embedded");
     let at = |p: [f32; 3]| Vec3::new(p[0], world.height(p[0], p[2]) + p[1], p[2]);
     let camera = Camera::looking_at(at(eye), at(target), 60.0);
@@ -58,7 +58,13 @@ fn highlands_cover_shots(eye: [f32; 3], target: [f32; 3]) -> (RenderedImage, Ren
     let covered = Scene::from_world(&world);
     assert!(covered.cover.is_some(), "a world's scene carries its cover");
     let bare = Scene { cover: None, ..covered.clone() };
-    (shot(&covered), shot(&bare))
+    let (covered, bare) = (shot(&covered), shot(&bare));
+    if let Some(dir) = std::env::var_os("CANOPY_COVER_PNG") {
+        let dir = std::path::Path::new(&dir);
+        covered.save_png(&dir.join(format!("{name}.png"))).expect("saved");
+        bare.save_png(&dir.join(format!("{name}-uncovered.png"))).expect("saved");
+    }
+    (covered, bare)
 }
 
 /// Pixels of the rows `from..` (of 100) that `f` counts.
@@ -81,19 +87,11 @@ fn white(p: [u8; 4]) -> bool {
 #[test]
 fn past_the_tree_line_the_highlands_are_rock_and_on_the_heights_snow() {
     // Toward the southern massif from 1,500 m: forest below the tree line (1,280 m), rock and scree above.
-    let (covered, bare) = highlands_cover_shots([2_000.0, 1_500.0, -30_000.0], [1_000.0, 0.0, -40_000.0]);
-    if let Some(dir) = std::env::var_os("CANOPY_COVER_PNG") {
-        covered.save_png(&std::path::Path::new(&dir).join("rock.png")).expect("saved");
-        bare.save_png(&std::path::Path::new(&dir).join("rock-uncovered.png")).expect("saved");
-    }
+    let (covered, bare) = highlands_cover_shots("rock", [2_000.0, 1_500.0, -30_000.0], [1_000.0, 0.0, -40_000.0]);
     let (rock, rock_without) = (count_below(&covered, 45, grey), count_below(&bare, 45, grey));
     assert!(rock > 800 && rock_without < 50, "rock pixels: {rock} with the cover, {rock_without} without");
     // Up on the northern heights (1,600 m and more, above the snow line at 1,500 m): snow.
-    let (snowy, green) = highlands_cover_shots([0.0, 300.0, 33_500.0], [0.0, 0.0, 38_400.0]);
-    if let Some(dir) = std::env::var_os("CANOPY_COVER_PNG") {
-        snowy.save_png(&std::path::Path::new(&dir).join("snow.png")).expect("saved");
-        green.save_png(&std::path::Path::new(&dir).join("snow-uncovered.png")).expect("saved");
-    }
+    let (snowy, green) = highlands_cover_shots("snow", [0.0, 300.0, 33_500.0], [0.0, 0.0, 38_400.0]);
     let (snow, snow_without) = (count_below(&snowy, 60, white), count_below(&green, 60, white));
     assert!(snow > 2_000 && snow_without < 50, "snow pixels: {snow} with the cover, {snow_without} without");
 }
