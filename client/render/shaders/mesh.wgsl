@@ -20,9 +20,19 @@ fn vs_mesh(@builtin(vertex_index) vi: u32) -> GeoOut {
     out.thin = n.w;
     out.bark = vec4<f32>(0.0);
     out.ao = crown_occlusion(p, s);
-    out.color = unpack4x8unorm(verts[w + 4u]).rgb * instance_tint(s.seed);
+    let c = verts[w + 4u];
+    out.color = unpack4x8unorm(c).rgb * instance_tint(s.seed);
+    out.card = leaf_card(c >> 24u);
     out.mask = s.mask;
     return out;
+}
+
+// A mesh into the sun's shadow maps: depth only, a leaf card's silhouette cut out.
+@fragment
+fn fs_mesh_shadow(in: GeoOut) {
+    if !leaf_keeps(in.card) {
+        discard;
+    }
 }
 
 // The share of the sun's light a leaf passes to its far side.
@@ -30,7 +40,7 @@ const TRANSLUCENCY: f32 = 0.5;
 
 @fragment
 fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
-    if !dither_keeps(in.mask, in.clip.xy) {
+    if !dither_keeps(in.mask, in.clip.xy) || !leaf_keeps(in.card) {
         discard;
     }
     // Leaves are two-sided: light the side that faces the viewer.
@@ -41,8 +51,9 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     // The sun's visibility on the sunlit side (a leaf seen from behind is lit through: its own shadow is behind it).
     let toward = dot(n, g.sun_dir.xyz);
     let sun = sun_visibility(in.world, select(n, -n, toward < 0.0));
-    var lit = shade_occluded(in.color, n, sun, in.ao);
+    let color = in.color * leaf_veins(in.card);
+    var lit = shade_occluded(color, n, sun, in.ao);
     // Light through a leaf with the sun behind it: a share of the sun's diffuse light, in the leaf's colour.
-    lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * in.color;
+    lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * color;
     return vec4<f32>(with_fog(lit, in.world), 1.0);
 }

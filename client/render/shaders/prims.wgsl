@@ -60,6 +60,7 @@ fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(insta
     out.thin = 0.0;
     out.ao = crown_occlusion(species, s);
     out.bark = vec4<f32>(0.0);
+    out.card = vec4<f32>(0.0);
     if draw.kind == 0u && p.w < 0.5 {
         // Fissures about every 12 cm around the mean circumference, a whole number of them.
         let around = max(round(3.14159265 * (prim.shape.x + prim.shape.y) / BARK_SPACING), 3.0);

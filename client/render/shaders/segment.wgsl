@@ -46,7 +46,51 @@ struct GeoOut {
     @location(5) bark: vec4<f32>,
     // The share of the sky's and the ambient light that reaches it (`crown_occlusion`).
     @location(6) ao: f32,
+    // On a leaf card (w = 1; 0 elsewhere): u along the blade (0 petiole, 1 tip), v across it (-1..1) and where the
+    // blade is widest (z), see `leaf_half_width`.
+    @location(7) card: vec4<f32>,
 };
+
+// A leaf card's corner from its vertex's alpha byte (leaf.rs): bit 0 u, bit 1 the side, bits 2..=6 the widest
+// point's level of 31 over 0.15..0.75, bit 7 set where the vertex is not on a card.
+fn leaf_card(tag: u32) -> vec4<f32> {
+    if tag >= 128u {
+        return vec4<f32>(0.0);
+    }
+    let widest = 0.15 + 0.6 * f32((tag >> 2u) & 31u) / 31.0;
+    return vec4<f32>(f32(tag & 1u), f32((tag >> 1u) & 1u) * 2.0 - 1.0, widest, 1.0);
+}
+
+// The blade's half-width at u (a share of the card's), widest at w: a sine lobe stretched to peak at w, cut by eight
+// teeth a margin leaning toward the tip, 12 % deep (leaf.rs `half_width`, whose area sizes the card).
+fn leaf_half_width(u: f32, w: f32) -> f32 {
+    if u <= 0.0 || u >= 1.0 {
+        return 0.0;
+    }
+    let t = select(0.5 + 0.5 * (u - w) / (1.0 - w), 0.5 * u / w, u < w);
+    let teeth = 1.0 - 0.12 * fract(u * 8.0);
+    return sin(3.14159265 * t) * teeth;
+}
+
+// Whether a fragment is on the leaf: everywhere off a card; on one, within the blade or on its stalk.
+fn leaf_keeps(card: vec4<f32>) -> bool {
+    if card.w < 0.5 {
+        return true;
+    }
+    let v = abs(card.y);
+    return v <= leaf_half_width(card.x, card.z) || (card.x < 0.12 && v < 0.05);
+}
+
+// A leaf's veins: a lighter midrib and darker side veins running out toward the tip (1 off a card).
+fn leaf_veins(card: vec4<f32>) -> f32 {
+    if card.w < 0.5 {
+        return 1.0;
+    }
+    let v = abs(card.y);
+    let midrib = 1.0 - smoothstep(0.03, 0.06, v);
+    let side = smoothstep(0.8, 0.95, abs(fract(card.x * 7.0 - v * 1.6) - 0.5) * 2.0);
+    return 1.0 + 0.18 * midrib - 0.1 * side * (1.0 - midrib);
+}
 
 // Ambient occlusion inside a crown: how much of the sky's and the ambient light reaches a point `rel` from the
 // tree's base, the crown taken as its bounding sphere. Whole at the sphere's surface and outside it; toward the

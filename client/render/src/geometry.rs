@@ -13,6 +13,7 @@ use canopy_worlds::nearfield::species_near_mesh;
 use canopy_worlds::primitive::{Primitive, PrimitiveStream, Shape};
 
 use super::NearMode;
+use super::leaf::{Card, NOT_A_CARD, card_of};
 
 /// The unit shapes drawn by instancing, in draw order.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -46,7 +47,7 @@ pub(crate) struct MeshVertex {
     pub position: [f32; 3],
     /// Unit normal, snorm8×4; w is 1 for a leaf (thin: lit through from behind), 0 otherwise.
     pub normal: u32,
-    /// Linear RGB colour, unorm8×4.
+    /// Linear RGB colour, unorm8×3; the alpha byte places a leaf card's corner (`leaf.rs`), 255 elsewhere.
     pub color: u32,
 }
 
@@ -152,7 +153,7 @@ pub(crate) fn build_tree(
         match species_near_mesh(&stream, &o) {
             Ok(m) => {
                 let mut out = TreeGeometry { primitives: stream.primitives.len(), ..Default::default() };
-                set_mesh(&mut out, m, 0);
+                set_mesh(&mut out, m, &[]);
                 return Ok(out);
             }
             Err(e) => tracing::warn!("{}: near-field mesh failed ({e}); drawing its primitives", graph.name),
@@ -168,12 +169,25 @@ pub(crate) fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) 
     let mut mesh = Mesh::new();
     // Meshed: leaves first (thin, lit through), then the rest merged, or only the trunk bases (never unit shapes)
     // where the rest are instanced.
+    // Flat leaves as cards (`leaf.rs`), the others as their polygons.
     let leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
     let rest = |p: &Primitive| !leaf(p) && (mode == NearMode::Merged || matches!(p.shape, Shape::TrunkBase(_)));
-    if stream.primitives.iter().any(leaf) {
-        mesh_into_where(stream, &opts, leaf, &mut mesh);
+    let mut tags = Vec::new();
+    for card in stream.primitives.iter().filter_map(|p| card_of(stream, p).map(|c| (c, p.color))) {
+        let ((c, color), first) = (card, mesh.positions.len() as u32);
+        for (corner, tag) in c.corners.iter().zip(c.tags) {
+            mesh.positions.push(corner.to_array());
+            mesh.normals.push(c.normal.to_array());
+            mesh.colors.push(color);
+            tags.push(tag);
+        }
+        mesh.indices.extend(Card::TRIANGLES.iter().map(|i| first + i));
+    }
+    if stream.primitives.iter().any(|p| leaf(p) && card_of(stream, p).is_none()) {
+        mesh_into_where(stream, &opts, |p| leaf(p) && card_of(stream, p).is_none(), &mut mesh);
     }
     let thin = mesh.positions.len();
+    tags.resize(thin, NOT_A_CARD);
     if stream.primitives.iter().any(rest) {
         mesh_into_where(stream, &opts, rest, &mut mesh);
     }
@@ -196,13 +210,13 @@ pub(crate) fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) 
             out.prims.append(v);
         }
     }
-    set_mesh(&mut out, mesh, thin);
+    set_mesh(&mut out, mesh, &tags);
     out
 }
 
-/// Make `mesh` the geometry's mesh part, packed for the GPU; its first `thin` vertices are of leaves (their
-/// normal's w is 1: `mesh.wgsl` lights them through).
-fn set_mesh(out: &mut TreeGeometry, mesh: Mesh, thin: usize) {
+/// Make `mesh` the geometry's mesh part, packed for the GPU; its first `leaves.len()` vertices are of leaves (their
+/// normal's w is 1: `mesh.wgsl` lights them through), each with its card's alpha byte (`leaf.rs`).
+fn set_mesh(out: &mut TreeGeometry, mesh: Mesh, leaves: &[u8]) {
     out.vertices = mesh
         .positions
         .iter()
@@ -211,8 +225,8 @@ fn set_mesh(out: &mut TreeGeometry, mesh: Mesh, thin: usize) {
         .enumerate()
         .map(|(i, ((p, n), c))| MeshVertex {
             position: *p,
-            normal: pack_snorm4(*n, if i < thin { 1.0 } else { 0.0 }),
-            color: pack_unorm(*c),
+            normal: pack_snorm4(*n, if i < leaves.len() { 1.0 } else { 0.0 }),
+            color: pack_unorm(*c) & 0x00ff_ffff | u32::from(leaves.get(i).copied().unwrap_or(NOT_A_CARD)) << 24,
         })
         .collect();
     out.indices = mesh.indices;
@@ -271,26 +285,35 @@ mod tests {
     }
 
     #[test]
-    fn merged_geometry_is_the_worlds_mesh() {
+    fn merged_geometry_is_the_worlds_mesh_with_leaves_as_cards() {
         let g = library::find("monopodial").unwrap().load().unwrap();
         let inst = Instance::new(3).with_detail(0);
         let stream = amplify(&g, &inst, &Budget::default()).unwrap();
         let geo = geometry_of(&stream, 0, NearMode::Merged);
-        let mesh = canopy_worlds::mesh::mesh(&stream, &MeshOptions::for_detail(0));
+        let is_leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
+        let mut rest = Mesh::new();
+        mesh_into_where(&stream, &MeshOptions::for_detail(0), |p| !is_leaf(p), &mut rest);
         assert!(geo.prims.is_empty());
-        assert_eq!(geo.vertices.len(), mesh.positions.len());
-        // The same triangles (leaves come first).
+        // Every leaf of the monopodial is flat: a card of 4 corners and 2 triangles, first, marked thin and placed.
+        let leaves = stream.primitives.iter().filter(|p| is_leaf(p)).count();
+        assert!(leaves > 100, "{leaves}");
+        let (cards, others) = geo.vertices.split_at(4 * leaves);
+        assert!(cards.iter().all(|v| v.normal >> 24 == 127 && v.color >> 24 < 128), "leaf cards marked");
+        assert!(others.iter().all(|v| v.normal >> 24 == 0 && v.color >> 24 == 255));
+        assert_eq!(others.len(), rest.positions.len());
+        // The rest: the same triangles as the world's mesh.
         let triangles = |idx: &[u32], at: &dyn Fn(u32) -> [f32; 3]| {
             let mut t: Vec<[u32; 9]> =
                 idx.chunks_exact(3).map(|c| std::array::from_fn(|k| at(c[k / 3])[k % 3].to_bits())).collect();
             t.sort_unstable();
             t
         };
+        let base = 4 * leaves as u32;
         assert_eq!(
-            triangles(&geo.indices, &|i| geo.vertices[i as usize].position),
-            triangles(&mesh.indices, &|i| mesh.positions[i as usize])
+            triangles(&geo.indices[6 * leaves..], &|i| geo.vertices[i as usize].position),
+            triangles(&rest.indices, &|i| rest.positions[(i) as usize])
         );
-        assert!(geo.vertices.iter().any(|v| v.normal >> 24 == 127), "leaves are marked thin");
+        assert!(geo.indices[6 * leaves..].iter().all(|&i| i >= base));
         assert!(geo.gpu_bytes() > 0);
     }
 

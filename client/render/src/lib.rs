@@ -35,6 +35,7 @@ mod forest;
 mod geometry;
 mod gpu;
 mod ground;
+mod leaf;
 mod lod;
 #[cfg(not(target_arch = "wasm32"))]
 pub mod offscreen;

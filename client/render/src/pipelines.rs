@@ -427,10 +427,11 @@ impl Pipelines {
         let greater = wgpu::CompareFunction::Greater;
         // What casts a shadow: the vertex stage of a receiver, depth only, nearest the sun kept; no culling (leaves
         // and mirrored primitives are seen from both sides). The slope bias keeps a lit surface out of its own map.
+        // A fragment stage only where it cuts something out (the meshes' leaf cards).
         let caster = |label: &str,
                       layout: &wgpu::PipelineLayout,
                       module: &wgpu::ShaderModule,
-                      entry: &str,
+                      (entry, cut): (&str, Option<&str>),
                       buffers: &[Option<wgpu::VertexBufferLayout<'_>>]| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
@@ -450,7 +451,12 @@ impl Pipelines {
                     bias: wgpu::DepthBiasState { constant: 0, slope_scale: 2.0, clamp: 0.0 },
                 }),
                 multisample: wgpu::MultisampleState::default(),
-                fragment: None,
+                fragment: cut.map(|cut| wgpu::FragmentState {
+                    module,
+                    entry_point: Some(cut),
+                    compilation_options: Default::default(),
+                    targets: &[],
+                }),
                 multiview_mask: None,
                 cache: None,
             })
@@ -491,7 +497,7 @@ impl Pipelines {
             "terrain shadow",
             &layout("terrain shadow", &[Some(&globals_layout)]),
             &terrain_mod,
-            "vs_terrain",
+            ("vs_terrain", None),
             &terrain_buffers,
         );
 
@@ -518,7 +524,7 @@ impl Pipelines {
             "primitive shadow",
             &layout("primitive shadow", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout)]),
             &prims_mod,
-            "vs_prim",
+            ("vs_prim", None),
             &unit_buffers,
         );
 
@@ -538,7 +544,7 @@ impl Pipelines {
             "mesh shadow",
             &layout("mesh shadow", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout)]),
             &mesh_mod,
-            "vs_mesh",
+            ("vs_mesh", Some("fs_mesh_shadow")),
             &[],
         );
 

@@ -15,7 +15,7 @@ use glam::Vec3;
 const W: u32 = 256;
 const H: u32 = 192;
 
-fn reference(name: &str) -> PathBuf {
+pub(super) fn reference(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/reference").join(name)
 }
 
@@ -49,7 +49,7 @@ fn shoot_sized(
 }
 
 /// The tests' renderer: the tree at full detail from 20 pixels, one worker, fog off.
-fn config(shadows: Shadows, wind: Wind, msaa: u32) -> RenderConfig {
+pub(super) fn config(shadows: Shadows, wind: Wind, msaa: u32) -> RenderConfig {
     let mut cfg = RenderConfig {
         lod: LodConfig { near_px: 20.0, far_px: 5.0, ..LodConfig::default() },
         workers: 1,
@@ -62,7 +62,7 @@ fn config(shadows: Shadows, wind: Wind, msaa: u32) -> RenderConfig {
     cfg
 }
 
-fn shoot_configured(
+pub(super) fn shoot_configured(
     scene: &Scene,
     camera: &Camera,
     cfg: RenderConfig,
@@ -76,7 +76,7 @@ fn shoot_configured(
 }
 
 /// Pixels at least `by` darker (summed RGB) in `a` than in `b`, as a fraction of the image.
-fn darker(a: &RenderedImage, b: &RenderedImage, by: i32) -> f64 {
+pub(super) fn darker(a: &RenderedImage, b: &RenderedImage, by: i32) -> f64 {
     let sum = |p: &[u8]| p[..3].iter().map(|&c| i32::from(c)).sum::<i32>();
     let n = a.rgba.chunks_exact(4).zip(b.rgba.chunks_exact(4)).filter(|(p, q)| sum(q) - sum(p) >= by).count();
     n as f64 / f64::from(a.width * a.height)
