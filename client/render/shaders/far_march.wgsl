@@ -25,12 +25,13 @@ fn word_f(w: u32) -> f32 {
 }
 
 fn load_patch(i: u32) -> Patch {
-    let b = i * 18u;
-    let w = array<u32, 18>(
+    let b = i * 22u;
+    let w = array<u32, 22>(
         patch_words[b], patch_words[b + 1u], patch_words[b + 2u], patch_words[b + 3u], patch_words[b + 4u],
         patch_words[b + 5u], patch_words[b + 6u], patch_words[b + 7u], patch_words[b + 8u], patch_words[b + 9u],
         patch_words[b + 10u], patch_words[b + 11u], patch_words[b + 12u], patch_words[b + 13u],
         patch_words[b + 14u], patch_words[b + 15u], patch_words[b + 16u], patch_words[b + 17u],
+        patch_words[b + 18u], patch_words[b + 19u], patch_words[b + 20u], patch_words[b + 21u],
     );
     return Patch(
         vec4<f32>(word_f(w[0]), word_f(w[1]), word_f(w[2]), word_f(w[3])),
@@ -42,6 +43,8 @@ fn load_patch(i: u32) -> Patch {
         w[15],
         word_f(w[16]),
         word_f(w[17]),
+        vec2<f32>(word_f(w[18]), word_f(w[19])),
+        vec2<f32>(word_f(w[20]), word_f(w[21])),
     );
 }
 

@@ -5,7 +5,8 @@
 // it steps through the canopy layer between the ground (bilinear between the sub-square's corner heights) and the
 // canopy's top, samples at `t0 + (n + j)·Δs` from the box entry (j a per-pixel jitter in [0, 1): a fixed offset
 // would draw the step grid as bands), lights them by the slope relative to level ground, keeps the trees whose
-// density class is below the patch's density times the coverage interpolated between sub-square centres, and
+// density class is below the patch's density (ramping toward its neighbours' at its edges) times the coverage
+// interpolated between sub-square centres, and
 // blends front to back; it stops at the ground or once the pixel is opaque (`march_patch`). Patches come front to
 // back after the far instances, into the far field's accumulation: walked by the compute pass's tile lists
 // (far_march.wgsl), or drawn as these boxes, blending under what is in front of them (far_accum.wgsl).
@@ -47,6 +48,7 @@ struct PatchOut {
     @location(7) @interpolate(flat) profile: u32,
     @location(8) @interpolate(flat) layer_from: f32,
     @location(9) @interpolate(flat) mip_scale: f32,
+    @location(10) @interpolate(flat) edges: vec4<f32>,
 };
 
 @vertex
@@ -64,6 +66,8 @@ fn vs_forest(
     @location(9) profile: u32,
     @location(10) layer_from: f32,
     @location(11) mip_scale: f32,
+    @location(12) edges_x: vec2<f32>,
+    @location(13) edges_z: vec2<f32>,
 ) -> PatchOut {
     // The box drawn spans the sub-squares the instance marches, not the whole node: a ray that meets none of
     // them draws nothing (the fragment shader still walks the node's box, so what it draws is the same).
@@ -100,6 +104,7 @@ fn vs_forest(
     out.profile = profile;
     out.layer_from = layer_from;
     out.mip_scale = mip_scale;
+    out.edges = vec4<f32>(edges_x, edges_z);
     return out;
 }
 
@@ -121,6 +126,21 @@ fn shift(cx: f32, cz: f32) -> vec2<f32> {
     x *= 0x7feb352du;
     x ^= x >> 15u;
     return vec2<f32>(f32(x & 0xffffu), f32(x >> 16u)) / 65536.0;
+}
+
+// Where within a class a repetition of the tile at tile cell (cx, cz) draws its line, [0, 1): a tree of class n is
+// kept where (n + phase) / CLASSES < keep × coverage. Drawn at random per repetition, so the trees kept are the
+// fraction `keep` on average wherever it falls between classes. (One phase of ½ everywhere rounded every patch to
+// whole classes, a node and each of its children differently: the seams between finer and coarser nodes showed
+// as lighter and darker blocks.)
+fn keep_phase(cx: f32, cz: f32) -> f32 {
+    var x = (bitcast<u32>(i32(cx)) * 0x9e3779b1u) ^ (bitcast<u32>(i32(cz)) * 0x632be5abu);
+    x ^= x >> 15u;
+    x *= 0x2c1b3c6du;
+    x ^= x >> 12u;
+    x *= 0x297a2d39u;
+    x ^= x >> 15u;
+    return f32(x >> 8u) / 16777216.0;
 }
 
 // The slope's light over flat ground's (the terrain's lighting model): the canopy follows the ground, and its
@@ -191,7 +211,10 @@ fn fs_forest(in: PatchOut) -> @location(0) vec4<f32> {
     if front >= OPAQUE {
         discard;
     }
-    let p = Patch(in.rect, in.span, in.cover, in.field, in.ids, in.params, in.profile, in.layer_from, in.mip_scale);
+    let p = Patch(
+        in.rect, in.span, in.cover, in.field, in.ids, in.params, in.profile, in.layer_from, in.mip_scale, in.edges.xy,
+        in.edges.zw,
+    );
     let c = march_patch(p, normalize(in.world - g.eye.xyz), in.clip.xy, stop_alpha(front), 1e30);
     if c.a < 1.0 / 512.0 {
         discard;
@@ -212,7 +235,21 @@ struct Patch {
     profile: u32,
     layer_from: f32,
     mip_scale: f32,
+    // The fraction kept at the node's -x and +x edges, and at its -z and +z edges (`keep_at`).
+    edges_x: vec2<f32>,
+    edges_z: vec2<f32>,
 };
+
+// The fraction of the tile's trees kept at (x, z) metres from the patch's node's corner: the node's own (params.y)
+// in its middle, ramping linearly to the value at each edge (the mean of its density and the neighbour's there).
+fn keep_at(in: Patch, x: f32, z: f32) -> f32 {
+    let k = in.params.y;
+    let u = clamp(2.0 * x / in.rect.z - 1.0, -1.0, 1.0);
+    let v = clamp(2.0 * z / in.rect.z - 1.0, -1.0, 1.0);
+    let dx = (select(in.edges_x.y, in.edges_x.x, u < 0.0) - k) * abs(u);
+    let dz = (select(in.edges_z.y, in.edges_z.x, v < 0.0) - k) * abs(v);
+    return clamp(k + dx + dz, 0.0, 1.0);
+}
 
 // How much nearer than its box a patch counts for the opaque scene in front of it, at `d` metres: the canopy
 // stands on the scene's ground, which the terrain drawn only approximates at a distance.
@@ -224,7 +261,6 @@ fn pull(d: f32) -> f32 {
 // `stop`; nothing if its box begins (pulled nearer) beyond `t_scene` metres.
 fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32) -> vec4<f32> {
     let scale = in.params.x;
-    let keep = in.params.y;
     let lo = vec3<f32>(in.rect.x, in.span.x, in.rect.y);
     let ext = vec3<f32>(in.rect.z, in.span.y - in.span.x, in.rect.z);
     // The ray, relative to the box's lower corner (precision far from the origin). Only the faces that march
@@ -274,11 +310,6 @@ fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32
     // The layer beyond the patch's distance (where a pixel spans `RenderConfig::forest_layer` tree spacings),
     // dithered over ±25 %.
     let layer = t0 > in.layer_from * (0.75 + 0.5 * offset);
-    // A species too sparse for the march to keep one class (it keeps class n where (n + ½) / CLASSES < keep ×
-    // coverage, and coverage ≤ 1) draws nothing where this ray would march: the same picture without the samples.
-    if !layer && keep * CLASSES < 0.5 {
-        return vec4<f32>(0.0);
-    }
     let band = top / BANDS;
     for (var walked = 0; walked < 17; walked++) {
         let t_out = min(min(next_x, next_z), t1);
@@ -320,8 +351,8 @@ fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32
                     let tb = t_in + sb * (t_out - t_in);
                     let qa = o + d * ta;
                     let qb = o + d * tb;
-                    let ma = CLASSES * keep * coverage(in.field, qa.x / cell, qa.z / cell);
-                    let mb = CLASSES * keep * coverage(in.field, qb.x / cell, qb.z / cell);
+                    let ma = CLASSES * keep_at(in, qa.x, qa.z) * coverage(in.field, qa.x / cell, qa.z / cell);
+                    let mb = CLASSES * keep_at(in, qb.x, qb.z) * coverage(in.field, qb.x / cell, qb.z / cell);
                     for (var k = 0; k < LAYER_SAMPLES; k++) {
                         let f = (f32(k) + offset) / f32(LAYER_SAMPLES);
                         let w = mix(wa, wb, sa + (sb - sa) * f);
@@ -400,7 +431,8 @@ fn march_patch(in: Patch, d: vec3<f32>, frag: vec2<f32>, stop: f32, t_scene: f32
                     }
                     let bits = vec3<u32>(bitcast<u32>(s.r), bitcast<u32>(s.g), bitcast<u32>(s.b)) >> vec3<u32>(31u);
                     let cls = f32(bits.x + 2u * bits.y + 4u * bits.z);
-                    if (cls + 0.5) / CLASSES >= keep * coverage(in.field, p.x / cell, p.z / cell) {
+                    let kept = keep_at(in, p.x, p.z) * coverage(in.field, p.x / cell, p.z / cell);
+                    if (cls + keep_phase(cell_t.x, cell_t.y)) / CLASSES >= kept {
                         continue;
                     }
                     if first_hit < 0.0 {

@@ -9,7 +9,8 @@
 //! each repetition shifted at random, so the stand does not repeat in rows a far view turns into moiré),
 //! on the sub-squares the instance draws, following the ground through a 9 × 9 grid of heights at the
 //! sub-squares' corners; scaled by the species' mean height over its representative's, thinned to the summary's
-//! density (count over covered area) by density classes, and feathered toward uncovered sub-squares by the
+//! density (count over covered area, ramping toward the neighbours' at the node's edges) by density classes, and
+//! feathered toward uncovered sub-squares by the
 //! coverage mask interpolated between sub-square centres. A ray marches the tile resolution whose voxels are about a
 //! pixel where it enters each sub-square; where trees stand closer than `RenderConfig::forest_layer` pixels it
 //! crosses the species' uniform layer ([`super::tile::CanopyProfile`]) instead.
@@ -32,7 +33,7 @@ use super::lod::projected_size;
 use super::scene::SceneFar;
 use super::select::View;
 use super::stats::FrameStats;
-use super::tile::{DENSITY_CLASSES, TILE_TREES};
+use super::tile::TILE_TREES;
 
 /// Corners per node edge of a node's ground grid (the sub-squares' corners).
 pub(crate) const GROUND_SIDE: usize = COVER_SIDE as usize + 1;
@@ -41,9 +42,11 @@ pub(crate) const GROUND_POINTS: usize = GROUND_SIDE * GROUND_SIDE;
 /// Nodes whose ground grids are computed per frame at most (nearest first; the rest wait for later frames). A grid
 /// of a fractal ground costs about 11 µs (one lattice patch per node): about 3 ms a frame at most.
 pub(crate) const GROUND_NODES_PER_FRAME: usize = 256;
-/// A patch whose density keeps less than half a class of its tile's trees is not marched (it would keep no
-/// class): it is drawn only where rays take the uniform layer, which thins continuously.
-const MIN_KEEP: f32 = 0.5 / DENSITY_CLASSES as f32;
+/// A patch whose density keeps less than one of its tile's trees a repetition on average is not marched (the
+/// march keeps whole classes, each repetition of the tile rounding at its own random phase, so the stand keeps
+/// its density on average; this sparse it would march a whole patch for a tree in many repetitions): it is drawn
+/// only where rays take the uniform layer, which thins continuously.
+const MIN_KEEP: f32 = 1.0 / (TILE_TREES * TILE_TREES) as f32;
 
 /// The tile resolution a patch marches has voxels of about this many pixels (0.5: the finest detail; 1: half the
 /// samples — on an H200 at 1920×1080 from 1,500 m up, 0.5 cost 70 ms a frame).
@@ -99,7 +102,7 @@ pub(crate) struct ForestPatch {
     pub volume: u32,
     /// Tile scale: the species' mean height over its representative's.
     pub scale: f32,
-    /// Fraction of the tile's trees kept (the summary's density over the tile's).
+    /// Fraction of the tile's trees kept in the node's middle (the summary's density over the tile's).
     pub keep: f32,
     /// Dither mask (see [`super::lod::LodDraw::mask`]).
     pub mask: f32,
@@ -111,6 +114,10 @@ pub(crate) struct ForestPatch {
     /// Per metre from the eye, the tile resolution's level the march takes: `⌊log₂(t · mip_scale)⌋`, clamped (voxels
     /// of about [`VOXEL_PX`] pixels where a ray enters each sub-square).
     pub mip_scale: f32,
+    /// The fraction kept at the node's −x and +x edges: `keep` ramps to them from the middle (`keep_at`).
+    pub edges_x: [f32; 2],
+    /// The same at its −z and +z edges.
+    pub edges_z: [f32; 2],
 }
 
 /// The sub-squares of quadrant `q` (children order: `(0,0), (1,0), (0,1), (1,1)`).
@@ -200,6 +207,9 @@ struct SpeciesFade {
     fade: MaskFade,
     /// Whether the node (still) lists the species.
     listed: bool,
+    /// Its density beyond each edge (−x, +x, −z, +z; trees a square metre): the node drawing the far side of the
+    /// edge's midpoint, or this node's own where records or nothing draw there.
+    beyond: [f32; 4],
 }
 
 /// A node's ground: heights at its sub-squares' corners and their range.
@@ -310,7 +320,12 @@ impl ForestPlan {
             for c in n.map_or(&[][..], |n| &n.species) {
                 match e.species.iter_mut().find(|s| s.cover.species == c.species) {
                     Some(s) => (s.cover, s.listed) = (*c, true),
-                    None => e.species.push(SpeciesFade { cover: *c, fade: MaskFade::default(), listed: true }),
+                    None => e.species.push(SpeciesFade {
+                        cover: *c,
+                        fade: MaskFade::default(),
+                        listed: true,
+                        beyond: [0.0; 4],
+                    }),
                 }
             }
         };
@@ -349,10 +364,51 @@ impl ForestPlan {
             }
             e.hidden = hidden;
         }
+        self.densities_beyond(far, &incoming);
         self.species = self.nodes.iter().flat_map(|e| e.species.iter().map(|s| s.cover.species)).collect();
         self.species.sort_unstable();
         self.species.dedup();
         self.generation = Some(far.generation);
+    }
+
+    /// Each present node's species' densities beyond its four edges ([`SpeciesFade::beyond`]), from `incoming`
+    /// (the scene's nodes by key): a patch's density ramps from its own in the middle to the mean of both at each
+    /// edge (`forest.wgsl` `keep_at`), so neighbouring nodes of different densities meet without a step. (Each node
+    /// one density over its area drew the forest as blocks a node wide, lighter and darker, sharpest where finer
+    /// nodes meet coarser ones.) What one node gains toward an edge its neighbour of the same size loses.
+    fn densities_beyond(&mut self, far: &SceneFar, incoming: &[&Arc<NodeSummary>]) {
+        let cell = far.cell_size;
+        // The finest node held that contains `c`, unless records draw it.
+        let drawer = |c: CellCoord| -> Option<&NodeSummary> {
+            if far.record_cells.binary_search(&c).is_ok() {
+                return None;
+            }
+            (0..=canopy_protocol::summary::MAX_LEVEL).find_map(|level| {
+                let k = NodeKey::of_cell(c, level);
+                incoming.binary_search_by_key(&k, |n| n.key).ok().map(|i| &**incoming[i])
+            })
+        };
+        let density = |n: &NodeSummary, species: u16| {
+            let edge = node_rect(n.key, cell)[2];
+            let sub_area = (edge / COVER_SIDE as f32).powi(2);
+            n.species.iter().find(|s| s.species == species).map_or(0.0, |s| own_density(s, sub_area))
+        };
+        for e in self.nodes.iter_mut().filter(|e| e.present) {
+            let (first, side) = (e.key.first_cell(), e.key.side());
+            let mid = side / 2;
+            let across = [
+                CellCoord::new(first.x - 1, first.z + mid),
+                CellCoord::new(first.x + side, first.z + mid),
+                CellCoord::new(first.x + mid, first.z - 1),
+                CellCoord::new(first.x + mid, first.z + side),
+            ];
+            let nodes = across.map(drawer);
+            let sub_area = (node_rect(e.key, cell)[2] / COVER_SIDE as f32).powi(2);
+            for s in &mut e.species {
+                let own = own_density(&s.cover, sub_area);
+                s.beyond = nodes.map(|n| n.map_or(own, |n| density(n, s.cover.species)));
+            }
+        }
     }
 
     /// Ground grids for nodes without one, nearest first, at most [`GROUND_NODES_PER_FRAME`]; the nodes still
@@ -424,8 +480,12 @@ impl ForestPlan {
                     continue;
                 }
                 let scale = tile_scale(&s.cover, &t);
-                let covered = s.cover.cover.count_ones().max(1) as f32 * sub_area;
-                let keep = (s.cover.count as f32 / covered / (t.density / (scale * scale))).min(1.0);
+                // Densities as fractions of the tile's trees: the node's own, and at each edge the mean of its and
+                // the neighbour's.
+                let tile_density = t.density / (scale * scale);
+                let own = own_density(&s.cover, sub_area);
+                let keep = (own / tile_density).min(1.0);
+                let edges = s.beyond.map(|b| (0.5 * (own + b) / tile_density).min(1.0));
                 // The march takes the resolution whose voxels are about `VOXEL_PX` pixels (coarser ones lose the
                 // sunlit sides) where each ray enters each sub-square.
                 let mip_scale = VOXEL_PX * footprint / (t.voxel * scale);
@@ -433,7 +493,7 @@ impl ForestPlan {
                 let spacing = t.period * scale / TILE_TREES as f32;
                 let layer_from = if input.layer > 0.0 { input.layer * spacing / footprint } else { f32::INFINITY };
                 // Too sparse to march, and no ray reaches the layer (its dither starts at 0.75 × `layer_from`).
-                if keep < MIN_KEEP && dist + radius < 0.75 * layer_from {
+                if keep.max(edges.into_iter().fold(0.0, f32::max)) < MIN_KEEP && dist + radius < 0.75 * layer_from {
                     continue;
                 }
                 let covered_drawn = (wanted & s.cover.cover).count_ones();
@@ -457,6 +517,8 @@ impl ForestPlan {
                         scale,
                         keep,
                         mask,
+                        edges_x: [edges[0], edges[1]],
+                        edges_z: [edges[2], edges[3]],
                         profile: t.profile,
                         layer_from,
                         mip_scale,
@@ -475,6 +537,11 @@ impl ForestPlan {
 pub(crate) fn node_rect(key: NodeKey, cell_size: f32) -> [f32; 3] {
     let c = key.first_cell();
     [c.x as f32 * cell_size, c.z as f32 * cell_size, key.side() as f32 * cell_size]
+}
+
+/// A species' density in a node, trees a square metre: its count over the area its coverage bits cover.
+fn own_density(s: &SpeciesCover, sub_area: f32) -> f32 {
+    s.count as f32 / (s.cover.count_ones().max(1) as f32 * sub_area)
 }
 
 /// The tile scale of a species in a node: its mean height over the representative's, clamped as instance scales
@@ -653,6 +720,33 @@ mod tests {
         assert_eq!(parents[0].3, quadrant_mask(1) | quadrant_mask(2), "the parent draws the quadrants of absent kids");
         assert_eq!(drawn.iter().filter(|d| d.2 == 4).count(), 2);
         assert_eq!(r.stats.forest_waiting, 0);
+    }
+
+    #[test]
+    fn neighbouring_nodes_meet_at_the_mean_of_their_densities() {
+        // Two level-4 nodes side by side ahead of the camera, the second a third as dense as the first.
+        let mut a = node(4, 0, 1, ALL);
+        Arc::make_mut(&mut a).species[0].count /= 8;
+        let mut b = node(4, 1, 1, ALL);
+        Arc::make_mut(&mut b).species[0].count /= 24;
+        let mut r = Run::new();
+        r.frame(&far(vec![a.clone(), b.clone()], vec![], 1), 1.0);
+        let patch = |n: &NodeSummary| *r.plan.patches.iter().find(|p| p.rect[0] == node_rect(n.key, CELL)[0]).unwrap();
+        let (pa, pb) = (patch(&a), patch(&b));
+        assert!(pb.keep < 0.5 * pa.keep && pa.keep < 1.0, "{} {}", pa.keep, pb.keep);
+        // At the shared edge both ramp to the mean of the two (the same tile at the same scale).
+        let mean = 0.5 * (pa.keep + pb.keep);
+        assert!((pa.edges_x[1] - mean).abs() < 1e-6 && (pb.edges_x[0] - mean).abs() < 1e-6, "{pa:?} {pb:?}");
+        // Where no node is held beyond an edge, nothing to ramp to.
+        assert_eq!((pa.edges_x[0], pa.edges_z), (pa.keep, [pa.keep; 2]));
+        assert_eq!((pb.edges_x[1], pb.edges_z), (pb.keep, [pb.keep; 2]));
+        // Records beyond an edge: the same.
+        let first = b.key.first_cell();
+        let records: Vec<CellCoord> = (0..16).map(|j| CellCoord::new(first.x, first.z + j)).collect();
+        let mut r = Run::new();
+        r.frame(&far(vec![a.clone(), b.clone()], records, 1), 1.0);
+        let pa = *r.plan.patches.iter().find(|p| p.rect[0] == 0.0).unwrap();
+        assert_eq!(pa.edges_x[1], pa.keep);
     }
 
     #[test]

@@ -570,7 +570,8 @@ impl Pipelines {
         let forest_mod = far_module("forest", &[&forest_source()]);
         let patch_attrs = wgpu::vertex_attr_array![
             0 => Float32x4, 1 => Float32x2, 2 => Uint32x2, 3 => Uint32x2, 4 => Uint32, 5 => Uint32,
-            6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32
+            6 => Float32, 7 => Float32, 8 => Float32, 9 => Uint32, 10 => Float32, 11 => Float32, 12 => Float32x2,
+            13 => Float32x2
         ];
         // Back faces culled: from inside a node's box the vertex shader mirrors it, so its inner faces are drawn.
         let forest = pipeline(

@@ -148,6 +148,8 @@ mod tests {
             profile: profile,
             layer_from: layer_from,
             mip_scale: mip_scale,
+            edges_x: edges_x,
+            edges_z: edges_z,
         });
         assert_eq!(rmembers, wmembers);
         let words = format!("let b = i * {}u;", rsize / 4);
