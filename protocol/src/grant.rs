@@ -105,6 +105,34 @@ impl CellGrant {
     }
 }
 
+/// An edited cell beyond the area of interest, sent to a client that expands cells and computes its far view
+/// itself (issue 30, item 5): the cell's version and its edits as a delta from version 0 (numbered grant 0: no
+/// grant holds it), so that the client corrects the summary nodes holding the cell by them. Sent again whenever
+/// the cell's version changes while it lies within the far view's range; a client forgets the cells that leave it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FarCell {
+    /// The cell.
+    pub cell: CellCoord,
+    /// From version 0 to the cell's version.
+    pub delta: CellDelta,
+}
+
+impl FarCell {
+    /// Check the cell and that the delta takes it from version 0 to a later one.
+    pub fn validate(&self) -> Result<(), MessageError> {
+        let d = &self.delta;
+        if !InstanceId::names(self.cell) || d.cell != self.cell || d.from_version != 0 || d.grant != 0 {
+            return Err(MessageError::Edit("a far cell's delta does not take its cell from version 0"));
+        }
+        d.validate()
+    }
+
+    /// The cell's version.
+    pub fn version(&self) -> u32 {
+        self.delta.to_version
+    }
+}
+
 /// The world function: the manifest text the server's world was built from. Its species statements name the
 /// welcome's species table in order (statement `i` is species `i`), and a terrain species is the welcome's terrain
 /// graph, so the client builds the same world without reading a file.

@@ -24,14 +24,14 @@ use sha2::{Digest, Sha256};
 use crate::aoi::{AoiParams, AoiParamsError, GridError, Viewpoint, ViewpointError};
 use crate::edit::{CellDelta, Edit, EditResult, Resume};
 use crate::frame::PREFIX;
-pub use crate::grant::{CellDigest, CellGrant, CellMode, WorldFunction, cell_digest};
+pub use crate::grant::{CellDigest, CellGrant, CellMode, FarCell, WorldFunction, cell_digest};
 use crate::record::{BatchError, CellBatch, CellCoord, InstanceId};
 use crate::summary::{FarView, SummaryBatch, SummaryError};
 pub use crate::world::{FractalDesc, TerrainDesc, WorldInfo};
 use crate::{limits, netlimits};
 
 /// The protocol version; a client and server speak only their own version.
-pub const PROTOCOL_VERSION: u16 = 6;
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// The TLS application protocol (ALPN) token of this protocol version.
 pub const ALPN: &[u8] = b"canopy/1";
@@ -207,6 +207,9 @@ pub enum ServerStreaming {
     Grant(CellGrant),
     /// The world function, for a client that expands cells itself.
     Function(WorldFunction),
+    /// An edited cell beyond the area of interest, for a client that computes its far view itself (on the last
+    /// lane).
+    FarCell(FarCell),
 }
 
 /// The kind of a [`ServerMsg`], without its contents (for accounting: an index into per-kind counters).
@@ -232,11 +235,13 @@ pub enum ServerMsgKind {
     Grant = 8,
     /// The world function (clients that expand cells).
     Function = 9,
+    /// An edited cell beyond the area of interest (clients that expand cells).
+    FarCell = 10,
 }
 
 impl ServerMsgKind {
     /// Every kind, in index order.
-    pub const ALL: [ServerMsgKind; 10] = [
+    pub const ALL: [ServerMsgKind; 11] = [
         ServerMsgKind::Welcome,
         ServerMsgKind::Species,
         ServerMsgKind::Cells,
@@ -247,6 +252,7 @@ impl ServerMsgKind {
         ServerMsgKind::Summaries,
         ServerMsgKind::Grant,
         ServerMsgKind::Function,
+        ServerMsgKind::FarCell,
     ];
 
     /// The kind's name, for logs, errors and metrics.
@@ -262,6 +268,7 @@ impl ServerMsgKind {
             ServerMsgKind::Summaries => "summaries",
             ServerMsgKind::Grant => "grant",
             ServerMsgKind::Function => "function",
+            ServerMsgKind::FarCell => "far_cell",
         }
     }
 
@@ -651,6 +658,7 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::Delta(d)) => d.validate(),
             ServerMsg::Streaming(ServerStreaming::Summaries(b)) => Ok(b.validate()?),
             ServerMsg::Streaming(ServerStreaming::Grant(g)) => g.validate(),
+            ServerMsg::Streaming(ServerStreaming::FarCell(f)) => f.validate(),
             ServerMsg::Streaming(ServerStreaming::Function(f)) => {
                 count("world function", f.manifest.len(), netlimits::MAX_FUNCTION_BYTES)
             }
@@ -691,6 +699,7 @@ impl ServerMsg {
             ServerMsg::Streaming(ServerStreaming::Summaries(_)) => ServerMsgKind::Summaries,
             ServerMsg::Streaming(ServerStreaming::Grant(_)) => ServerMsgKind::Grant,
             ServerMsg::Streaming(ServerStreaming::Function(_)) => ServerMsgKind::Function,
+            ServerMsg::Streaming(ServerStreaming::FarCell(_)) => ServerMsgKind::FarCell,
         }
     }
 

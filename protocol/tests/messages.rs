@@ -6,8 +6,9 @@ use canopy_protocol::aoi::{AoiParams, Grid, Viewpoint};
 use canopy_protocol::edit::CellDelta;
 use canopy_protocol::frame::{FrameDecoder, FrameError, frame};
 use canopy_protocol::messages::{
-    CellDigest, CellGrant, ClientHandshake, ClientStreaming, FractalDesc, Hello, Release, ServerHandshake,
-    ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome, WorldFunction, WorldInfo, cell_digest,
+    CellDigest, CellGrant, ClientHandshake, ClientStreaming, FarCell, FractalDesc, Hello, Release, ServerHandshake,
+    ServerMsgKind, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, Welcome, WorldFunction, WorldInfo,
+    cell_digest,
 };
 use canopy_protocol::record::{BatchError, PackedF32, ParamOverride, dequantize, quantize};
 use canopy_protocol::xorshift::XorShift64;
@@ -65,7 +66,7 @@ fn welcome() -> Welcome {
 
 #[test]
 fn hello_is_pinned() {
-    check_client(&ClientMsg::hello("bot-1"), "00000605626f742d3100");
+    check_client(&ClientMsg::hello("bot-1"), "00000705626f742d3100");
 }
 
 #[test]
@@ -85,7 +86,7 @@ fn viewpoint_is_pinned() {
 fn welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(welcome())),
-        "00000606666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
+        "00000706666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e706010301020307000080c4000080c40000004401\
          0107040000803f0000004000004040000080400104cdcc0c4000010610c39861ffddeaf018d1930586a354855feaa7de91b94b69e710\
          4ad5e7dc9701ababababababababababababababababababababababababababababababababd2090000004400000042000000400000\
          0043",
@@ -115,7 +116,7 @@ fn fractal_welcome() -> Welcome {
 fn fractal_welcome_is_pinned() {
     check_server(
         &ServerMsg::Handshake(ServerHandshake::Welcome(fractal_welcome())),
-        "00000606666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
+        "00000706666f72657374e5e1b7f7050000000000000000000080421f1f1e1e8020c4e7060000000048c7000048c70000c8470101000400\
          0000000000000000000000000000000001c88ea5c204000000000000e9c0000000000000e9c0000000000000c9400b00001040000082\
          430202040000964300001644000048430000e143010610c39861ffddeaf018d1930586a354855feaa7de91b94b69e7104ad5e7dc9701\
          ababababababababababababababababababababababababababababababababd20900000044000000420000004000000043",
@@ -581,6 +582,25 @@ fn grants_functions_digests_and_record_asks_are_pinned_and_checked() {
     assert!(matches!(ServerMsg::decode(&huge.encode()), Err(MessageError::Count { .. })));
     // The function's hash is the SHA-256 of its manifest: what a welcome names.
     assert_eq!(WorldFunction { manifest: "seed 1".into() }.hash(), SpeciesHash::of(b"seed 1"));
+}
+
+#[test]
+fn far_cells_are_pinned_and_must_carry_their_edits_from_version_0() {
+    let far = |delta: CellDelta| ServerMsg::Streaming(ServerStreaming::FarCell(FarCell { cell: delta.cell, delta }));
+    let edits = CellDelta { grant: 0, ..felled(0, 2) };
+    assert_eq!(far(edits.clone()).kind(), ServerMsgKind::FarCell);
+    check_server(&far(edits.clone()), "0109050a050a0000020c00010400");
+    // Not from version 0, numbered as a grant, of another cell, or an inconsistent delta: refused.
+    let other = CellDelta { cell: CellCoord::new(1, 1), ..edits.clone() };
+    let wrong = ServerMsg::Streaming(ServerStreaming::FarCell(FarCell { cell: CellCoord::new(-3, 5), delta: other }));
+    for bad in [
+        far(CellDelta { grant: 0, ..felled(1, 2) }),
+        far(felled(0, 2)),
+        wrong,
+        far(CellDelta { removes: vec![12], ..edits }),
+    ] {
+        assert!(matches!(ServerMsg::decode(&bad.encode()), Err(MessageError::Edit(_))), "{bad:?}");
+    }
 }
 
 #[test]

@@ -9,6 +9,10 @@
 //! [`crate::editing`] publishes an overlay here after its edit is durable, and this tells the sessions
 //! ([`EditHub`]); an overlay only ever moves forward (the newer version wins), so a log read racing a publish cannot
 //! take a cell back.
+//!
+//! It also keeps an index of the edited cells and their versions (read from the edit store at start and every
+//! [`INDEX_REFRESH`], kept current by every announcement), for the far views of clients that expand cells
+//! ([`WorldStore::edited_cells`]): another edge's edit of a cell no session here holds reaches it within a refresh.
 
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -60,6 +64,14 @@ impl EditHub {
 
 /// Changes a slow listener may fall behind by before it is told it lagged (and reloads what it holds).
 const HUB_CAPACITY: usize = 1 << 14;
+
+/// How often the index of edited cells is read again from the edit store (another edge's edits of cells no
+/// session here holds reach it so).
+pub(crate) const INDEX_REFRESH: Duration = Duration::from_secs(30);
+
+/// Most cells the index of edited cells keeps (about 40 bytes each); past it, cells beyond are not indexed and a
+/// far view does not show their edits (their records still do).
+const MAX_INDEXED: usize = 1 << 18;
 
 /// Bytes an overlay entry costs beyond the overlay and the records it keeps (map, LRU slot).
 const ENTRY_OVERHEAD: usize = 96;
@@ -199,6 +211,10 @@ struct Shared {
     damaged: Mutex<std::collections::BTreeMap<CellCoord, String>>,
     /// The last failure to read a log that was logged, and when, and how many since went unlogged.
     failures: Mutex<(String, Option<std::time::Instant>, u64)>,
+    /// Edited cells and their versions, at most [`MAX_INDEXED`].
+    index: Mutex<std::collections::BTreeMap<CellCoord, u32>>,
+    /// Notified when the store stops (the index thread waits on it between reads).
+    stopping: Condvar,
 }
 
 /// A cell's world-function records and its overlay.
@@ -215,6 +231,7 @@ impl Drop for LiveStore {
     fn drop(&mut self) {
         self.shared.loads.locked().stop = true;
         self.shared.work.notify_all();
+        self.shared.stopping.notify_all();
         for t in self.loaders.drain(..) {
             let _ = t.join();
         }
@@ -317,7 +334,57 @@ impl Shared {
     }
 
     fn announce(&self, cell: CellCoord, version: u32) {
+        self.index_version(cell, version);
         self.hub.announce(CellChange { cell, version });
+    }
+
+    /// Put a cell's version in the index of edited cells (a version only moves forward); whether it moved.
+    fn index_version(&self, cell: CellCoord, version: u32) -> bool {
+        let mut index = self.index.locked();
+        let full = index.len() >= MAX_INDEXED;
+        match index.get_mut(&cell) {
+            Some(v) if *v >= version => false,
+            Some(v) => {
+                *v = version;
+                true
+            }
+            None if version > 0 && !full => {
+                index.insert(cell, version);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// The index thread: read every edited cell's version from the edit store at start and every
+    /// [`INDEX_REFRESH`]; a version that moved is announced (the sessions whose far views hold the cell look again).
+    fn run_index(self: &Arc<Self>) {
+        let mut first = true;
+        loop {
+            match self.edits.cells() {
+                Ok(cells) => {
+                    for (cell, version) in cells {
+                        if self.index_version(cell, version) && !first {
+                            self.hub.announce(CellChange { cell, version });
+                        }
+                    }
+                    first = false;
+                }
+                Err(e) => warn!(store = %self.edits.describe(), "listing the edited cells failed: {e}"),
+            }
+            let deadline = std::time::Instant::now() + INDEX_REFRESH;
+            let mut loads = self.loads.locked();
+            loop {
+                if loads.stop {
+                    return;
+                }
+                let now = std::time::Instant::now();
+                if now >= deadline {
+                    break;
+                }
+                loads = self.stopping.waited_for(loads, deadline - now).0;
+            }
+        }
     }
 
     /// A loader thread: read queued cells' logs, wake who waits for them.
@@ -412,8 +479,10 @@ impl LiveStore {
             reported: Mutex::default(),
             damaged: Mutex::default(),
             failures: Mutex::new((String::new(), None, 0)),
+            index: Mutex::default(),
+            stopping: Condvar::new(),
         });
-        let loaders = (0..LOADERS)
+        let mut loaders: Vec<JoinHandle<()>> = (0..LOADERS)
             .map(|i| {
                 let shared = Arc::clone(&shared);
                 std::thread::Builder::new()
@@ -422,6 +491,9 @@ impl LiveStore {
                     .expect("spawning an overlay loader")
             })
             .collect();
+        let indexer = Arc::clone(&shared);
+        let index = std::thread::Builder::new().name("canopy-edit-index".into()).spawn(move || indexer.run_index());
+        loaders.push(index.expect("spawning the edited cells' indexer"));
         LiveStore { base, shared, loaders }
     }
 
@@ -658,6 +730,10 @@ impl WorldStore for LiveStore {
 
     fn summary_root_level(&self) -> u8 {
         self.base.summary_root_level()
+    }
+
+    fn edited_cells(&self, lo: CellCoord, hi: CellCoord, max: usize) -> Vec<(CellCoord, u32)> {
+        canopy_session::cells_in(&self.shared.index.locked(), lo, hi, max)
     }
 
     fn changes(&self, c: CellCoord, from: u32, waker: Option<&Arc<dyn CellWaker>>) -> Changes {

@@ -1,7 +1,9 @@
 //! The far field a client computes itself (issue 30, item 5), over real QUIC on loopback: a client that expands
 //! its cells computes the far view's summary nodes from the world function, and ends holding exactly the nodes,
 //! bit for bit, that the server sends a client that takes records from the same place, after moves too; the server
-//! sends it none, and a second client of the same process computes none again.
+//! sends it none, and a second client of the same process computes none again. Edits reach that far view: an
+//! editor's fells in a cell 1.4 km away lower the count of the node the expanding client holds
+//! over it by exactly what was felled.
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
@@ -11,10 +13,16 @@ use canopy_client::expand::Expander;
 use canopy_client::net::endpoint;
 use canopy_client::{ConnectConfig, Connection};
 use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::edit::{EditOp, EditOutcome};
 use canopy_protocol::messages::{CellMode, ServerMsgKind, Welcome};
-use canopy_protocol::summary::FarView;
-use canopy_server::{CellCache, CellCacheConfig, ServeOptions, ServerConfig, serve_store};
+use canopy_protocol::summary::{FarView, NodeKey};
+use canopy_protocol::{CellCoord, InstanceId};
+use canopy_server::edits::{EditStore, MemoryEditStore};
+use canopy_server::session::{Editors, SessionConfig, editor_line};
+use canopy_server::{CellCache, CellCacheConfig, Edits, ServeOptions, ServerConfig, serve_store};
 use canopy_test_support::{forest, pinned};
+
+use crate::support::ALICE;
 
 /// Connect with `cfg` at (300, −200), ask for `view` and wait until the area of interest is complete and no
 /// summary node has come for a while.
@@ -102,5 +110,84 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     assert_eq!(expands.frame_bytes_received()[ServerMsgKind::Summaries], 0, "the server sent summaries");
     records.close();
     expands.close();
+    server.shutdown(Duration::from_secs(1)).await;
+}
+
+/// The species counts of the finest node `c` holds over `cell`, and its key.
+fn counts_over(c: &Connection, cell: CellCoord) -> Option<(NodeKey, Vec<(u16, u32)>)> {
+    let held = c.state().summaries();
+    let (k, n) = held.iter().filter(|(k, _)| k.contains(cell)).min_by_key(|(k, _)| k.level)?;
+    Some((*k, n.species.iter().map(|s| (s.species, s.count)).collect()))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
+    let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 2, ..CellCacheConfig::default() };
+    let store = CellCache::new((**forest()).clone(), cfg).expect("the default world builds a store").shared();
+    let editors = Editors::parse("editors", &editor_line("alice", &ALICE, None, Some(1000))).unwrap();
+    let session = SessionConfig { editors: Some(Arc::new(editors)), ..SessionConfig::default() };
+    let server_cfg = ServerConfig { listen: "127.0.0.1:0".parse().unwrap(), session, ..ServerConfig::default() };
+    let edits: Arc<dyn EditStore> = Arc::new(MemoryEditStore::new());
+    let opts = ServeOptions { server: server_cfg, edits: Edits::Store(edits), ..ServeOptions::default() };
+    let server = serve_store(store, opts).await.expect("starts");
+
+    // The observer expands its cells and computes its far view, 1.4 km east of the editor, looking west at it.
+    let mut cfg = pinned(&server);
+    cfg.expander = Some(Expander::new(2, 8 << 20));
+    let view = FarView { error_px: 8.0, height_px: 720, fov_y: 1.0, range: 2500.0, altitude: 120.0 };
+    let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
+    let west = Viewpoint { yaw: -std::f32::consts::FRAC_PI_2, ..Viewpoint::at(0, [700.0, -200.0], 100.0) };
+    let mut observer = Connection::connect(&ep, &cfg, None, |_: &Welcome| west).await.unwrap();
+    assert!(observer.set_far_view(view).await.unwrap());
+    settle(&mut observer).await;
+
+    // The editor fells three trees of one species in the fullest cell of its area of interest.
+    let mut editor_cfg = pinned(&server);
+    editor_cfg.token = Some(ALICE.to_vec());
+    let place = |_: &Welcome| Viewpoint::at(0, [-700.0, -200.0], 60.0);
+    let mut editor = Connection::connect(&ep, &editor_cfg, None, place).await.unwrap();
+    editor.wait_complete(Duration::from_secs(60)).await.unwrap();
+    let flat = |_: f32, _: f32| 0.0;
+    let mut by_cell: std::collections::BTreeMap<(CellCoord, u8), Vec<InstanceId>> = Default::default();
+    for v in editor.state().instances(&flat) {
+        by_cell.entry((v.id.cell(), v.species)).or_default().push(v.id);
+    }
+    let ((cell, species), ids) = by_cell.into_iter().max_by_key(|(_, ids)| ids.len()).expect("trees near the editor");
+    assert!(ids.len() >= 3, "{} trees", ids.len());
+    let (key, before) = counts_over(&observer, cell).expect("the observer's far view holds the cell");
+    let count = |counts: &[(u16, u32)]| counts.iter().find(|s| s.0 == u16::from(species)).map_or(0, |s| s.1);
+    assert!(count(&before) >= 3, "{key:?}: {before:?}");
+    for id in &ids[..3] {
+        let request = editor.edit(EditOp::Fell { id: *id }).await.unwrap();
+        loop {
+            match editor.next_event().await.unwrap() {
+                canopy_client::state::Event::EditResult(r) if r.request == request => {
+                    assert!(matches!(r.outcome, EditOutcome::Ok { .. }), "{:?}", r.outcome);
+                    break;
+                }
+                _ => {}
+            }
+        }
+    }
+
+    // The observer is told of the cell and its node over it loses exactly the three trees, nothing else.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let after = loop {
+        if let Ok(r) = tokio::time::timeout(Duration::from_millis(300), observer.next_event()).await {
+            r.unwrap();
+        }
+        let now = counts_over(&observer, cell).expect("still held");
+        if now.0 == key && count(&now.1) + 3 == count(&before) {
+            break now.1;
+        }
+        assert!(tokio::time::Instant::now() < deadline, "{key:?} {before:?}, now {now:?}");
+    };
+    let others = |c: &[(u16, u32)]| c.iter().filter(|s| s.0 != u16::from(species)).copied().collect::<Vec<_>>();
+    assert_eq!(others(&after), others(&before));
+    assert!(observer.frame_bytes_received()[ServerMsgKind::FarCell] > 0);
+    // Told of the cell once a version at most (the edits may arrive together).
+    assert!((1..=3).contains(&observer.state().stats().far_cells), "{}", observer.state().stats().far_cells);
+    editor.close();
+    observer.close();
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -1,14 +1,21 @@
 //! Far-view summaries (issue 15): the hierarchy aggregates exactly, nodes do not depend on the order or blocks they
 //! are computed in, the leaf expectation is close to the exact expansion (counts, heights, coverage), bare rock
-//! summarises to nothing, and the Poisson-disk packing constant is what the process measures.
+//! summarises to nothing, the Poisson-disk packing constant is what the process measures, and a memo corrected by
+//! a cell's edits counts them in the cell's leaf and every ancestor.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
+use canopy_protocol::CellCoord;
+use canopy_protocol::edit::{CellDelta, Planted};
+use canopy_protocol::record::{InstanceRecord, PackedF32};
 use canopy_protocol::summary::{MAX_NODE_SPECIES, NodeKey, NodeSummary, SpeciesCover};
 use canopy_test_support::{forest, highlands};
 use canopy_worlds::diag::SourceFile;
-use canopy_worlds::world::{CellKey, PACKING, Placement, Summaries, World, aggregate, summary_bytes};
+use canopy_worlds::world::{
+    CellKey, LeafEdit, MAX_CORRECTED_CELLS, PACKING, POSITION_STEPS, Placement, Summaries, World, aggregate,
+    summary_bytes,
+};
 
 fn parse(text: &str) -> World {
     World::parse(&SourceFile::new("t.world", text), None).unwrap_or_else(|d| panic!("{d}"))
@@ -283,4 +290,181 @@ fn an_avoiding_rule_is_estimated_within_tolerance() {
             assert!((*e as f64 / *x as f64 - 1.0).abs() < 0.08, "{e} estimated, {x} placed:\n{text}");
         }
     }
+}
+
+/// Counts by species.
+fn counts(n: &NodeSummary) -> BTreeMap<u16, u32> {
+    n.species.iter().map(|s| (s.species, s.count)).collect()
+}
+
+/// The node of `level` holding cell `c`.
+fn holding(c: CellKey, level: u8) -> NodeKey {
+    NodeKey::of_cell(CellCoord::new(c.x, c.z), level)
+}
+
+/// A cell's edits from version 0, as a delta carries them (checked as its receiver checks it).
+fn delta(
+    c: CellKey,
+    total: usize,
+    adds: Vec<Planted>,
+    removes: Vec<u16>,
+    updates: Vec<(u16, Vec<(u16, PackedF32)>)>,
+) -> CellDelta {
+    let total = u16::try_from(total).expect("a cell's records fit a u16");
+    let d = CellDelta {
+        cell: CellCoord::new(c.x, c.z),
+        grant: 1,
+        from_version: 0,
+        to_version: 1,
+        total,
+        adds,
+        removes,
+        updates,
+    };
+    d.validate().expect("a valid delta");
+    d
+}
+
+#[test]
+fn felling_a_cell_takes_its_instances_from_its_leaf_and_its_ancestors() {
+    let w = forest();
+    let c = cell(4, -10);
+    let (leaf_key, top_key, next_key) = (holding(c, 0), holding(c, 4), key(0, c.x + 1, c.z));
+    let base = w.expand_cell(c);
+    let mut felled: BTreeMap<u16, u32> = BTreeMap::new();
+    base.iter().for_each(|p| *felled.entry(p.species).or_default() += 1);
+    let d = delta(c, base.len(), vec![], (0..base.len() as u16).collect(), vec![]);
+    let edits = w.leaf_edits(c, &base, &d);
+    assert_eq!(edits.len(), base.len());
+    assert!(edits.iter().zip(&base).all(|(e, p)| (e.species, e.x, e.z, e.sign) == (p.species, p.x, p.z, -1)));
+    let mut memo = Summaries::new(Arc::clone(w));
+    let (leaf, top, next) = (memo.get(leaf_key), memo.get(top_key), memo.get(next_key));
+    assert_eq!(*leaf, w.leaf_summaries(c, c)[0], "without edits, the world function's leaf");
+    assert!(memo.correct(c, Some(edits.into())));
+    assert_eq!(memo.corrected_cells(), 1);
+    let (before, after) = (counts(&leaf), counts(&memo.get(leaf_key)));
+    for (s, &n) in &before {
+        let want = n.saturating_sub(felled.get(s).copied().unwrap_or(0));
+        assert_eq!(after.get(s).copied().unwrap_or(0), want, "species {s}: {n} less the {:?} felled", felled.get(s));
+    }
+    assert!(after.keys().all(|s| before.contains_key(s)), "felling adds no species");
+    let dropped: u32 = before.values().sum::<u32>() - after.values().sum::<u32>();
+    assert!(dropped > 100, "the cell held instances to fell: {before:?} → {after:?}");
+    // The ancestor drops by what the leaf dropped, species by species.
+    let top_after = counts(&memo.get(top_key));
+    for (s, &n) in &counts(&top) {
+        let drop = before.get(s).copied().unwrap_or(0) - after.get(s).copied().unwrap_or(0);
+        assert_eq!(top_after.get(s).copied().unwrap_or(0), n - drop, "species {s}");
+    }
+    assert_eq!(memo.get(next_key), next, "a neighbouring cell's leaf is unchanged");
+    assert_eq!(*next, w.leaf_summaries(cell(c.x + 1, c.z), cell(c.x + 1, c.z))[0]);
+}
+
+#[test]
+fn planting_adds_one_to_its_species_and_covers_its_sub_square() {
+    let w = forest();
+    let c = cell(-8, 0);
+    let leaf_key = holding(c, 0);
+    let mut memo = Summaries::new(Arc::clone(w));
+    let before = memo.get(leaf_key);
+    // A species of the leaf, and the first sub-square it does not cover.
+    let (species, k) = before
+        .species
+        .iter()
+        .find_map(|s| (0..64u32).find(|k| s.cover >> k & 1 == 0).map(|k| (s.species, k)))
+        .expect("a sub-square some species does not cover");
+    let (i, j) = (k % 8, k / 8);
+    let steps = POSITION_STEPS / 8;
+    let at = |v: u32| u16::try_from(v * steps + steps / 2).expect("a step within the cell");
+    let record = InstanceRecord::new(u8::try_from(species).expect("a species id"), at(i), at(j));
+    let base = w.expand_cell(c);
+    let plant = Planted { record, params: vec![] };
+    let edits = w.leaf_edits(c, &base, &delta(c, base.len() + 1, vec![plant.clone()], vec![], vec![]));
+    assert_eq!(edits.len(), 1);
+    let e = edits[0];
+    let ([ox, oz], sub) = (w.cell_origin(c), f64::from(w.cell_size) / 8.0);
+    let sub_of = |v: f64, o: f32| ((v - f64::from(o)) / sub).floor() as u32;
+    assert_eq!((e.species, e.sign, sub_of(e.x, ox), sub_of(e.z, oz)), (species, 1, i, j), "{e:?}");
+    assert!(memo.correct(c, Some(edits.into())));
+    let after = memo.get(leaf_key);
+    let mut want = counts(&before);
+    *want.get_mut(&species).expect("listed") += 1;
+    assert_eq!(counts(&after), want, "exactly one more of its species");
+    let s = after.species.iter().find(|s| s.species == species).expect("listed");
+    assert!(s.covers(i, j), "the sub-square it stands in is covered");
+    // Planted and felled in the same delta: nothing.
+    let d = delta(c, base.len() + 1, vec![plant], vec![base.len() as u16], vec![]);
+    assert!(w.leaf_edits(c, &base, &d).is_empty());
+}
+
+#[test]
+fn a_cell_given_back_its_world_function_summarises_as_before() {
+    let w = highlands();
+    let c = cell(-318, 384);
+    let keys = [holding(c, 0), holding(c, 5)];
+    let mut memo = Summaries::new(Arc::clone(w));
+    let original: Vec<Arc<NodeSummary>> = keys.iter().map(|&k| memo.get(k)).collect();
+    let base = w.expand_cell(c);
+    // A `set` of an instance's height: the count stays, the height moves.
+    let (index, p) =
+        base.iter().enumerate().find(|(_, p)| height_of(w, p).is_some()).expect("an instance with a height");
+    let slot = w.species[usize::from(p.species)].graph.param_slot("height").expect("a height");
+    let raised = height_of(w, p).expect("a height") + 60.0;
+    let set = delta(c, base.len(), vec![], vec![], vec![(index as u16, vec![(slot, PackedF32(raised))])]);
+    let edits = w.leaf_edits(c, &base, &set);
+    let h = |e: &LeafEdit| (e.sign, e.height);
+    assert_eq!(edits.iter().map(h).collect::<Vec<_>>(), [(-1, height_of(w, p)), (1, Some(raised))]);
+    assert!(memo.correct(c, Some(edits.into())));
+    let raised_leaf = memo.get(keys[0]);
+    assert_eq!(counts(&raised_leaf), counts(&original[0]), "a set changes no count");
+    let height = |n: &NodeSummary| n.species.iter().find(|s| s.species == p.species).expect("listed").height_dm;
+    assert!(height(&raised_leaf) > height(&original[0]), "the mean height rises");
+    // Felled, planted and set at once, then given back.
+    let plant = Planted { record: InstanceRecord::new(0, 100, 200), params: vec![] };
+    let mixed = delta(c, base.len() + 1, vec![plant], (0..base.len() as u16).step_by(2).collect(), set.updates.clone());
+    assert!(memo.correct(c, Some(w.leaf_edits(c, &base, &mixed).into())));
+    for (&k, n) in keys.iter().zip(&original) {
+        assert_ne!(memo.get(k), *n, "{k:?} is corrected");
+    }
+    assert!(memo.correct(c, None));
+    assert!(!memo.correct(c, None), "nothing changed");
+    assert!(!memo.correct(c, Some(Arc::new([]))), "no edits are the world function too");
+    assert_eq!(memo.corrected_cells(), 0);
+    for (&k, n) in keys.iter().zip(&original) {
+        assert_eq!(memo.get(k), *n, "{k:?}: bit-identical");
+        assert_eq!(**n, w.node_summary(k), "{k:?}");
+    }
+}
+
+#[test]
+fn a_correction_drops_every_cached_node_holding_the_cell() {
+    let w = forest();
+    let c = cell(3, -9);
+    let keys: Vec<NodeKey> = (0..=6).map(|level| holding(c, level)).collect();
+    let other = [key(0, c.x + 1, c.z), key(4, 1, -1)];
+    let mut memo = Summaries::new(Arc::clone(w));
+    let old: Vec<Arc<NodeSummary>> = keys.iter().map(|&k| memo.get(k)).collect();
+    other.iter().for_each(|&k| drop(memo.get(k)));
+    assert!(keys.iter().chain(&other).all(|&k| memo.peek(k).is_some()), "cached");
+    let p = w.expand_cell(c)[0].clone();
+    let one: Arc<[LeafEdit]> =
+        Arc::new([LeafEdit { species: p.species, x: p.x, z: p.z, height: height_of(w, &p), sign: -1 }]);
+    assert!(memo.correct(c, Some(one.clone())));
+    assert!(keys.iter().all(|&k| memo.peek(k).is_none()), "the leaf and every ancestor are dropped");
+    assert!(other.iter().all(|&k| memo.peek(k).is_some()), "nodes not holding the cell are kept");
+    for (&k, n) in keys.iter().zip(&old) {
+        let species = |n: &NodeSummary| n.species.iter().find(|s| s.species == p.species).map_or(0, |s| s.count);
+        assert_eq!(species(&memo.get(k)) + 1, species(n), "{k:?}: not served from the cache");
+    }
+    assert!(!memo.correct(c, Some(one.clone())), "the same edits again change nothing");
+    assert!(keys.iter().all(|&k| memo.peek(k).is_some()), "and drop nothing");
+    // At most MAX_CORRECTED_CELLS cells: a new one past it is refused, a known one still corrected or given back.
+    for n in 1..MAX_CORRECTED_CELLS as i32 {
+        assert!(memo.correct(cell(1000 + n % 64, n / 64), Some(one.clone())));
+    }
+    assert_eq!(memo.corrected_cells(), MAX_CORRECTED_CELLS);
+    assert!(!memo.correct(cell(-1000, 0), Some(one.clone())), "refused past the bound");
+    assert_eq!(memo.corrected_cells(), MAX_CORRECTED_CELLS);
+    assert!(memo.correct(c, None));
+    assert!(memo.correct(cell(-1000, 0), Some(one)), "room again");
 }

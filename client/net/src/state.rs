@@ -122,6 +122,9 @@ pub enum Event {
     },
     /// The world function arrived.
     Function,
+    /// An edited cell beyond the area of interest (a client that computes its far view itself): the driver
+    /// corrects its far view's nodes by the cell's edits.
+    FarCell(Box<canopy_protocol::messages::FarCell>),
     /// A delta for a cell still being expanded: applied after the expansion.
     Deferred(CellCoord),
     /// This client's expansion of a cell does not fit the server's overlay: it must take the cell's records
@@ -225,6 +228,8 @@ pub struct ClientStats {
     pub summaries: u64,
     /// Far-view summary nodes released.
     pub summaries_released: u64,
+    /// Edited cells beyond the area of interest told of (far cells).
+    pub far_cells: u64,
     /// Cells granted to expand here.
     pub grants: u64,
     /// Records this client expanded itself.
@@ -473,6 +478,7 @@ impl ClientState {
             ServerStreaming::Summaries(b) => self.on_summaries(b),
             ServerStreaming::Grant(g) => self.on_grant(g),
             ServerStreaming::Function(f) => self.on_function(f),
+            ServerStreaming::FarCell(f) => Ok(self.on_far_cell(f)),
             ServerStreaming::EditResult(r) => Ok(Event::EditResult(r)),
             ServerStreaming::Geometry(g) => {
                 // Explicit geometry (a bandwidth baseline): counted, not kept; the records that follow it are what

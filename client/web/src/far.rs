@@ -4,18 +4,23 @@
 //! only while no granted cell waits (the [`crate::session::Session`] checks that) — within the slice's budget, and
 //! laid into the state as the server's batches would be. A node above a leaf block is computed a block at a time,
 //! so that one step stays short (a block is 16 × 16 cells' leaves); the node itself then only aggregates.
+//!
+//! Edited cells beyond the area of interest the server tells of (far cells) correct the memo as natively: each is
+//! expanded and its edits laid against it in a step of its own, before the nodes, the newest version winning.
 
 use std::cmp::Reverse;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
 
 use canopy_client::farwalk::FarWalk;
 use canopy_client::state::{ClientState, StateError};
+use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::messages::FarCell;
 use canopy_protocol::summary::{FarView, NodeKey, root_level};
 use canopy_worlds::world::World;
-use canopy_worlds::world::far::{LEAF_BLOCK_LEVEL, Summaries};
+use canopy_worlds::world::far::{LEAF_BLOCK_LEVEL, Summaries, cell_key};
 
 /// The far view's screen-space error, pixels (the native walk's `--far-error` default).
 pub(crate) const FAR_ERROR_PX: f32 = 16.0;
@@ -27,6 +32,8 @@ pub(crate) const FAR_HEIGHT_PX: u16 = 720;
 pub(crate) const FAR_FOV_Y_DEG: f32 = 60.0;
 /// Most batches laid into the state in one go.
 const MAX_BATCHES: usize = 64;
+/// Most far cells kept track of (the server tells of the nearest 256 at a time).
+const MAX_FAR_CELLS: usize = 4096;
 
 /// The far view the native walk asks for by default, with the eye `altitude` metres over the ground (2 at least).
 pub(crate) fn default_view(altitude: f32) -> FarView {
@@ -56,6 +63,9 @@ pub struct Far {
     queue: BTreeMap<(Reverse<u8>, u64), NodeKey>,
     asked: u64,
     computed: u64,
+    /// Far cells to correct the memo by, oldest first, and the newest version told of each.
+    far_cells: VecDeque<FarCell>,
+    versions: BTreeMap<CellCoord, u32>,
 }
 
 impl std::fmt::Debug for Far {
@@ -111,15 +121,29 @@ impl Far {
         self.computed
     }
 
-    /// Whether a step has nodes to compute.
+    /// Whether a step has nodes to compute or far cells to correct by.
     pub fn busy(&self) -> bool {
-        !self.queue.is_empty()
+        !self.queue.is_empty() || !self.far_cells.is_empty()
+    }
+
+    /// An edited cell beyond the area of interest: the memo is corrected by its edits at a coming step, unless a
+    /// newer version of it was told already.
+    pub fn far_cell(&mut self, f: FarCell) {
+        let known = self.versions.contains_key(&f.cell);
+        if self.versions.get(&f.cell).is_some_and(|&v| v >= f.version())
+            || (!known && self.versions.len() >= MAX_FAR_CELLS)
+        {
+            return;
+        }
+        self.versions.insert(f.cell, f.version());
+        self.far_cells.retain(|g| g.cell != f.cell);
+        self.far_cells.push_back(f);
     }
 
     /// Whether nothing is left to do: no node to compute, and no whole walk held back by
     /// [`REBUILD_INTERVAL`](canopy_protocol::farview::REBUILD_INTERVAL) (the next step after it takes it).
     pub fn settled(&self) -> bool {
-        self.queue.is_empty() && self.walk.held_back_until().is_none()
+        self.queue.is_empty() && self.far_cells.is_empty() && self.walk.held_back_until().is_none()
     }
 
     /// One slice at `now` (time since any fixed moment): walk and lay what is ready, then compute asked nodes —
@@ -137,6 +161,17 @@ impl Far {
         self.advance(state, now)?;
         let Some(source) = &mut self.source else { return Ok(0) };
         let (mut steps, mut done) = (0, 0);
+        // Far cells first: each a cell's expansion (a step of its own), its nodes laid again once computed anew.
+        while !self.far_cells.is_empty() && (steps == 0 || more()) {
+            let f = self.far_cells.pop_front().expect("a far cell");
+            steps += 1;
+            let key = cell_key(f.cell);
+            let world = Arc::clone(source.memo.world());
+            let edits = world.leaf_edits(key, &world.expand_cell(key), &f.delta);
+            if source.memo.correct(key, Some(edits.into())) {
+                self.walk.corrected(f.cell);
+            }
+        }
         while let Some((&slot, &k)) = self.queue.first_key_value() {
             if steps > 0 && !more() {
                 break;

@@ -426,6 +426,7 @@ impl Session {
                 let msg = self.state.records(c).map_err(Fault::state)?;
                 self.send(&msg);
             }
+            Event::FarCell(f) => self.far.far_cell(*f),
             Event::EditResult(r) => {
                 if let Some(e) = self.edits.iter_mut().find(|e| e.request == r.request) {
                     e.outcome = Some(match r.outcome {
@@ -599,8 +600,8 @@ impl Session {
     }
 
     /// Say the far view (the native walk's default, at the eye's altitude) when it is due, as the native
-    /// `Connection::set_far_view`: a session that expands its cells computes the nodes itself, one that takes
-    /// records asks the server.
+    /// `Connection::set_far_view`: a session that expands its cells computes the nodes itself (the server tells it
+    /// of the edited cells within the view's range), one that takes records asks the server for them.
     fn update_far_view(&mut self) -> Result<(), Fault> {
         let view = default_view(self.altitude);
         if !self.state.far_view_due(&view) {
@@ -609,9 +610,9 @@ impl Session {
         let msg = self.state.set_far_view(view).map_err(Fault::state)?;
         if self.state.welcome().is_some_and(|w| w.world.function.is_some()) {
             self.far.set_view(view);
-        } else {
-            self.send(&msg);
         }
+        // The server sends the nodes (records) or tells of the edited cells within the view's range (expanding).
+        self.send(&msg);
         Ok(())
     }
 

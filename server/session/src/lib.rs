@@ -27,7 +27,10 @@ pub use editors::{Editor, Editors, EditorsError, TOKEN_BYTES, editor_line, hex, 
 pub use far::{NODE_REBUILD_INTERVAL, REBUILD_INTERVAL};
 pub use pacing::SendBudget;
 pub use payload::{GeometrySource, Payload, PayloadMode};
-pub use session::{MAX_EDITS_IN_FLIGHT, OUT_OF_VIEW_FACTOR, Session, SessionConfig, SessionError, SessionStats};
+pub use session::{
+    MAX_EDITS_IN_FLIGHT, MAX_FAR_CELLS, OUT_OF_VIEW_FACTOR, Session, SessionConfig, SessionError, SessionStats,
+    cells_in,
+};
 pub use store::{
     CellData, CellState, CellWaker, Changes, EncodedSummary, GridStore, PlacedInstance, StoreBuilder, StoreError,
     StoreHead, SummaryState, VersionState, WorldStore,

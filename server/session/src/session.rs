@@ -43,7 +43,10 @@ use crate::transmit::{StreamId, Transmit};
 
 mod edits;
 mod expand;
+mod far_edits;
 mod stats;
+
+pub use far_edits::{MAX_FAR_CELLS, cells_in};
 
 pub use stats::SessionStats;
 
@@ -228,6 +231,9 @@ pub struct Session {
     far: Option<FarSession>,
     /// The client expands cells itself ([`CellMode::Expand`]): it gets grants, not records.
     expand: bool,
+    /// For a client that expands cells and said how far it sees: the edited cells beyond its area of interest it
+    /// is told of (it computes its far view itself).
+    far_edits: Option<far_edits::FarEdits>,
     /// Cells this client takes as records although it expands cells (it asked, or its digest differed).
     record_cells: HashSet<CellCoord>,
     /// Digests to check, and the store generation they were last looked at.
@@ -298,6 +304,7 @@ impl Session {
             changed: (BTreeSet::new(), None),
             resume: Vec::new(),
             far: None,
+            far_edits: None,
             expand: false,
             record_cells: HashSet::new(),
             digests: (VecDeque::new(), None),
@@ -476,11 +483,19 @@ impl Session {
             ClientMsg::Streaming(ClientStreaming::Records(c)) => self.on_records(now, c)?,
             ClientMsg::Streaming(ClientStreaming::Digest(d)) => self.on_digest(now, d)?,
             ClientMsg::Streaming(ClientStreaming::FarView(f)) => {
-                // Each far view costs a rebuild: the same budget as viewpoints.
+                // Each far view costs a rebuild: the same budget as viewpoints. A client that expands cells computes
+                // its far view itself and is told only of the edited cells within its range.
                 self.take_request(now)?;
-                match &mut self.far {
-                    Some(far) => far.set_view(f),
-                    None => self.far = Some(FarSession::new(f)),
+                if self.expand {
+                    match &mut self.far_edits {
+                        Some(far) => far.set_range(f.range),
+                        None => self.far_edits = Some(far_edits::FarEdits::new(f.range)),
+                    }
+                } else {
+                    match &mut self.far {
+                        Some(far) => far.set_view(f),
+                        None => self.far = Some(FarSession::new(f)),
+                    }
                 }
             }
             ClientMsg::Streaming(ClientStreaming::Viewpoint(v)) => {
@@ -553,7 +568,7 @@ impl Session {
             return Some(self.deadline);
         }
         let far_due = self.far.as_ref().and_then(|f| f.due_at(&*self.store));
-        let far_work = self.far.as_ref().is_some_and(FarSession::has_work);
+        let far_work = self.far_work();
         if self.queue.is_empty() && self.staged.is_empty() && !far_work {
             return far_due;
         }
@@ -590,10 +605,11 @@ impl Session {
         self.send_changes();
         self.check_digests();
         self.update_far(now);
+        self.look_for_far_cells();
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
         }
-        let far_work = self.far.as_ref().is_some_and(FarSession::has_work);
+        let far_work = self.far_work();
         let idle = self.queue.is_empty() && self.staged.is_empty() && !far_work;
         if self.phase != Phase::Streaming || idle || self.unflushed >= self.cfg.window {
             return None;
@@ -638,10 +654,18 @@ impl Session {
         far.update(now, &*self.store, self.waker.as_ref(), &eye);
     }
 
-    /// The far view's next summaries message, on the last lane.
+    /// The far view's next message, on the last lane: an edited cell beyond the area of interest, else summaries.
     fn next_far_batch(&mut self) -> Option<Transmit> {
+        if let Some(t) = self.next_far_cell() {
+            return Some(t);
+        }
         let lane = self.cfg.lanes - 1;
         self.far.as_mut()?.next_batch(&*self.store, self.waker.as_ref(), lane)
+    }
+
+    /// Whether the far view has something to send: summaries, or edited cells beyond the area of interest.
+    fn far_work(&self) -> bool {
+        self.far.as_ref().is_some_and(FarSession::has_work) || self.far_edits.as_ref().is_some_and(|f| f.has_work())
     }
 
     /// The far view, once the client asked for one.

@@ -277,6 +277,12 @@ pub trait WorldStore: Send + Sync + 'static {
     fn cache_metrics(&self) -> Option<Arc<crate::counters::CellMetrics>> {
         None
     }
+    /// The edited cells in the rectangle `lo ..= hi` with their versions, at most `max` of them, for the far views
+    /// of clients that expand cells (see `session/far_edits.rs`). A store without edits has none.
+    fn edited_cells(&self, _lo: CellCoord, _hi: CellCoord, _max: usize) -> Vec<(CellCoord, u32)> {
+        Vec::new()
+    }
+
     /// What changed in cell `c` since version `from`, for a session that holds it at `from` (never waiting, like
     /// [`WorldStore::cell`]). A store without edits is always at version 0, so this default only tells whether the
     /// session is current; the server's live store (`canopy_server::LiveStore`) composes deltas.

@@ -730,3 +730,106 @@ fn a_client_that_expands_gets_the_function_every_species_and_grants_and_its_dige
     let outside = report(CellCoord::new(1000, 0), 0);
     assert_eq!(s.handle(t0, outside).unwrap_err().close_code(), CloseCode::Invalid);
 }
+
+/// A store of edited cells over another: each edited cell's delta from version 0, changed by the test.
+struct Edited {
+    base: Arc<dyn WorldStore>,
+    edits: std::sync::Mutex<std::collections::BTreeMap<CellCoord, canopy_protocol::edit::CellDelta>>,
+}
+
+impl WorldStore for Edited {
+    fn head(&self) -> &canopy_session::StoreHead {
+        self.base.head()
+    }
+    fn cell(&self, c: CellCoord, waker: Option<&Arc<dyn canopy_session::CellWaker>>) -> canopy_session::CellState {
+        self.base.cell(c, waker)
+    }
+    fn version(
+        &self,
+        c: CellCoord,
+        waker: Option<&Arc<dyn canopy_session::CellWaker>>,
+    ) -> canopy_session::VersionState {
+        match self.edits.lock().unwrap().contains_key(&c) {
+            true => canopy_session::VersionState::Edited,
+            false => self.base.version(c, waker),
+        }
+    }
+    fn changes(
+        &self,
+        c: CellCoord,
+        from: u32,
+        _: Option<&Arc<dyn canopy_session::CellWaker>>,
+    ) -> canopy_session::Changes {
+        match self.edits.lock().unwrap().get(&c) {
+            Some(d) if from == 0 => canopy_session::Changes::Delta(d.clone()),
+            Some(_) => canopy_session::Changes::Whole,
+            None => canopy_session::Changes::Current { total: 0 },
+        }
+    }
+    fn edited_cells(&self, lo: CellCoord, hi: CellCoord, max: usize) -> Vec<(CellCoord, u32)> {
+        let edits = self.edits.lock().unwrap();
+        let index = edits.iter().map(|(c, d)| (*c, d.to_version)).collect();
+        canopy_session::cells_in(&index, lo, hi, max)
+    }
+}
+
+fn felled_in(cell: CellCoord, version: u32) -> canopy_protocol::edit::CellDelta {
+    let removes = (0..version as u16).collect();
+    canopy_protocol::edit::CellDelta {
+        cell,
+        grant: 0,
+        from_version: 0,
+        to_version: version,
+        total: 40,
+        adds: vec![],
+        removes,
+        updates: vec![],
+    }
+}
+
+fn far_cells(msgs: &[(StreamId, ServerMsg)]) -> Vec<(CellCoord, u32)> {
+    msgs.iter()
+        .filter_map(|(_, m)| match m {
+            ServerMsg::Streaming(ServerStreaming::FarCell(f)) => Some((f.cell, f.version())),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_client_that_expands_is_told_of_edited_cells_within_its_far_view_and_of_their_changes() {
+    use canopy_protocol::messages::ClientStreaming;
+    use canopy_protocol::summary::FarView;
+    let (base, _world) = function_store();
+    let (near, far, beyond) = (CellCoord::new(-4, -4), CellCoord::new(-4, 1), CellCoord::new(3, -4));
+    let edits = [(near, felled_in(near, 1)), (far, felled_in(far, 2)), (beyond, felled_in(beyond, 1))];
+    let edited = Arc::new(Edited { base, edits: std::sync::Mutex::new(edits.into_iter().collect()) });
+    let store: Arc<dyn WorldStore> = edited.clone();
+    let t0 = Instant::now();
+    // In the world's south-west corner (cells of 32 m from -128): `near` is in the area of interest, `far` 160 m
+    // away along z, `beyond` 224 m along x.
+    let vp = Viewpoint::at(1, [-112.0, -112.0], 40.0);
+    let mut s = expanding(&store, vp, t0);
+    drain(&mut s, t0);
+    let view = |range: f32| FarView { error_px: 16.0, height_px: 720, fov_y: 1.0, range, altitude: 2.0 };
+    s.handle(t0, ClientMsg::Streaming(ClientStreaming::FarView(view(215.0)))).unwrap();
+    let sent = drain(&mut s, t0);
+    // The edited cell within range and beyond the area of interest, with its edits; the one in the area of
+    // interest comes as its grant, the one out of range not at all; no summaries (the client computes them).
+    assert_eq!(far_cells(&sent), vec![(far, 2)]);
+    assert!(sent.iter().all(|(_, m)| m.kind() != ServerMsgKind::Summaries));
+    assert_eq!(s.far_cells(), vec![(far, 2)]);
+    // Nothing more until something changes.
+    assert!(far_cells(&drain(&mut s, t0)).is_empty());
+    // Another edit of the far cell: told again.
+    edited.edits.lock().unwrap().insert(far, felled_in(far, 3));
+    s.on_cell_changed(far);
+    assert_eq!(far_cells(&drain(&mut s, t0)), vec![(far, 3)]);
+    // A longer range reaches the other cell too; the first is not sent again.
+    s.handle(t0, ClientMsg::Streaming(ClientStreaming::FarView(view(300.0)))).unwrap();
+    assert_eq!(far_cells(&drain(&mut s, t0)), vec![(beyond, 1)]);
+    // A client that takes records asks for summaries as before and is told of no far cell.
+    let mut r = streaming(&store, config(), vp, vec![], t0);
+    r.handle(t0, ClientMsg::Streaming(ClientStreaming::FarView(view(300.0)))).unwrap();
+    assert!(far_cells(&drain(&mut r, t0)).is_empty() && r.far_cells().is_empty());
+}

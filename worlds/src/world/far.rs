@@ -34,6 +34,15 @@
 //! Not modelled: `avoid` distances to explicit instances (a handful of landmarks), baked `fell`/`set` edits (one
 //! instance each), and the denser packing along a rule region's edge.
 //!
+//! # Edits
+//!
+//! A cell's live edits reach its leaf as [`LeafEdit`]s ([`World::leaf_edits`], `far_edits.rs`), counted as its
+//! explicit instances are but signed: a felled instance takes one from its species' count (which stops at 0), its
+//! sub-square's tally and the height moments, a planted one adds one, and a `set` of its height takes the old
+//! height out and puts the new one in. A memo corrected so ([`Summaries::correct`], at most [`MAX_CORRECTED_CELLS`]
+//! cells) drops every node holding the cell and caches nothing computed from the edits as they were before; the
+//! parents follow, being sums. [`World::leaf_summaries`] and [`World::node_summary`] are the world function's alone.
+//!
 //! # Parents
 //!
 //! [`aggregate`] sums counts exactly, combines heights in integer arithmetic (means rounded half up, spreads
@@ -54,6 +63,8 @@ use canopy_protocol::sync::Locked;
 use canopy_protocol::{CellCoord, Expr, Func, Op};
 
 use super::cells::Ground;
+use super::far_edits::Corrections;
+pub use super::far_edits::{LeafEdit, MAX_CORRECTED_CELLS};
 use super::{CellKey, ParamValue, ScatterRule, World, par};
 use crate::eval::unit_f32;
 use crate::rng::{InstanceRng, child_key};
@@ -232,21 +243,29 @@ pub(super) fn rule_heights(world: &World) -> Vec<Option<f64>> {
     Model::new(world).rules.iter().map(|r| r.height.map(|l| l.mean)).collect()
 }
 
+/// The mean of a species default the leaf model reads ([`Law::of_default`]: a constant, or `uniform(a, b)` of two
+/// constants), as an instance's height.
+pub(super) fn default_mean(e: &Expr) -> Option<f32> {
+    Law::of_default(e).map(|l| l.mean as f32)
+}
+
 /// Per-species sums over one cell while it is computed.
 #[derive(Clone, Debug)]
 struct Tally {
     /// Expected count per sub-square, from the rules.
     sub: [f64; SUBS],
-    /// Explicit instances per sub-square.
-    explicit: [u32; SUBS],
+    /// Explicit instances per sub-square, and edits (signed).
+    explicit: [i64; SUBS],
     /// Height moments: Σ w, Σ w · mean, Σ w · (var + mean²).
     w: f64,
     wm: f64,
     wq: f64,
+    /// Σ |w| of the edits' heights: what `w` may have lost to cancellation (0 for a cell without edits).
+    edited: f64,
 }
 
 impl Tally {
-    const EMPTY: Tally = Tally { sub: [0.0; SUBS], explicit: [0; SUBS], w: 0.0, wm: 0.0, wq: 0.0 };
+    const EMPTY: Tally = Tally { sub: [0.0; SUBS], explicit: [0; SUBS], w: 0.0, wm: 0.0, wq: 0.0, edited: 0.0 };
 
     fn add_height(&mut self, weight: f64, law: Law) {
         self.w += weight;
@@ -284,8 +303,9 @@ fn phase(i: u32, j: u32) -> (u32, u32) {
     ((i + 2 * j) % 8, (3 * i + j) % 8)
 }
 
-/// The leaves of cells `c0 ..= c1` (row-major), which must lie in one block (the patch is made for them).
-fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<NodeSummary> {
+/// The leaves of cells `c0 ..= c1` (row-major), which must lie in one block (the patch is made for them), each
+/// corrected by its `edits`.
+fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey, edits: &Corrections) -> Vec<NodeSummary> {
     let s = f64::from(world.cell_size);
     let sub = s / f64::from(COVER_SIDE);
     let area = sub * sub;
@@ -374,9 +394,9 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                     tallies[m.species].add_height(expected[r] * area, law);
                 }
             }
+            let sub_of = |v: f64, o: i32| ((v - f64::from(o) * s) / sub).floor().clamp(0.0, 7.0) as u32;
             for (_, p) in world.populations.explicit.get(&cell).into_iter().flatten() {
                 let t = &mut tallies[usize::from(p.species)];
-                let sub_of = |v: f64, o: i32| ((v - f64::from(o) * s) / sub).floor().clamp(0.0, 7.0) as u32;
                 t.explicit[(sub_of(p.z, cz) * COVER_SIDE + sub_of(p.x, cx)) as usize] += 1;
                 if let Some((slot, default)) = model.heights[usize::from(p.species)] {
                     let own =
@@ -384,6 +404,18 @@ fn leaf_block(world: &World, model: &Model, c0: CellKey, c1: CellKey) -> Vec<Nod
                     if let Some(law) = own.or(default) {
                         t.add_height(1.0, law);
                     }
+                }
+            }
+            // The cell's edits, counted as its explicit instances are but signed (an unknown species, a sign of 0
+            // and a height that is not finite count nothing).
+            for e in edits.get(&cell).into_iter().flat_map(|e| e.iter()).filter(|e| e.sign != 0) {
+                let Some(t) = tallies.get_mut(usize::from(e.species)) else { continue };
+                let sign = e.sign.signum();
+                t.explicit[(sub_of(e.z, cz) * COVER_SIDE + sub_of(e.x, cx)) as usize] += i64::from(sign);
+                let h = e.height.filter(|h| h.is_finite());
+                if let (Some(Some(_)), Some(h)) = (model.heights.get(usize::from(e.species)), h) {
+                    t.add_height(f64::from(sign), Law::of(&ParamValue::Constant(h)));
+                    t.edited += 1.0;
                 }
             }
             out.push(leaf(world, model, &mut rng, cell, &tallies));
@@ -417,19 +449,20 @@ fn leaf(world: &World, model: &Model, rng: &mut InstanceRng, cell: CellKey, tall
     let mut species = Vec::new();
     for (id, t) in tallies.iter().enumerate() {
         let sum: f64 = t.sub.iter().sum();
-        let explicit: u32 = t.explicit.iter().sum();
+        let explicit: i64 = t.explicit.iter().sum();
         let drawn = if sum > 0.0 { (sum + f64::from(unit_f32(rng.word(stream, id as u64)))).floor() } else { 0.0 };
-        let count = (drawn as u64 + u64::from(explicit)).min(u64::from(u32::MAX)) as u32;
+        let count = (drawn as i64).saturating_add(explicit).clamp(0, i64::from(u32::MAX)) as u32;
         if count == 0 {
             continue;
         }
-        let at = |k: usize| t.sub[k] + f64::from(t.explicit[k]);
+        let at = |k: usize| t.sub[k] + t.explicit[k] as f64;
         let mut cover = (0..SUBS).filter(|&k| at(k) >= 0.5).fold(0u64, |m, k| m | 1 << k);
         if cover == 0 {
             let densest = (0..SUBS).fold(0, |best, k| if at(k) > at(best) { k } else { best });
             cover = 1 << densest;
         }
-        let (height_dm, spread_dm) = if model.heights[id].is_some() && t.w > 0.0 {
+        // Edits can take the weight to 0 or below, or leave a rounding residue of a cancellation: no height then.
+        let (height_dm, spread_dm) = if model.heights[id].is_some() && t.w > t.edited * 1e-9 {
             let mean = t.wm / t.w;
             let var = (t.wq / t.w - mean * mean).max(0.0);
             (decimetres(mean), decimetres(var.sqrt()))
@@ -554,11 +587,19 @@ fn build_up(mut nodes: Vec<NodeSummary>, mut side: usize, mut sink: impl FnMut(&
     }
 }
 
-/// The node `key` (level ≤ [`LEAF_BLOCK_LEVEL`]) from its leaves, every node of its subtree handed to `sink`.
-fn subtree(world: &World, model: &Model, key: NodeKey, sink: impl FnMut(&NodeSummary)) -> NodeSummary {
+/// The node `key` (level ≤ [`LEAF_BLOCK_LEVEL`]) from its leaves (corrected by `edits`), every node of its subtree
+/// handed to `sink`.
+fn subtree(
+    world: &World,
+    model: &Model,
+    key: NodeKey,
+    edits: &Corrections,
+    sink: impl FnMut(&NodeSummary),
+) -> NodeSummary {
     let c = key.first_cell();
     let n = key.side();
-    let leaves = leaf_block(world, model, CellKey { x: c.x, z: c.z }, CellKey { x: c.x + n - 1, z: c.z + n - 1 });
+    let (c0, c1) = (CellKey { x: c.x, z: c.z }, CellKey { x: c.x + n - 1, z: c.z + n - 1 });
+    let leaves = leaf_block(world, model, c0, c1, edits);
     build_up(leaves, n as usize, sink)
 }
 
@@ -570,6 +611,17 @@ fn blocks_of(key: NodeKey) -> (Vec<NodeKey>, usize) {
         .flat_map(|j| (0..side).map(move |i| NodeKey { level: LEAF_BLOCK_LEVEL, x: x0 + i, z: z0 + j }))
         .collect();
     (keys, side as usize)
+}
+
+/// `key` from `local` (cached nodes and computed blocks), aggregating missing levels, caching nothing.
+fn resolve_uncached(key: NodeKey, local: &mut BTreeMap<NodeKey, Arc<NodeSummary>>) -> Arc<NodeSummary> {
+    if let Some(n) = local.get(&key) {
+        return n.clone();
+    }
+    let children = key.children().expect("every block below the key is held").map(|c| resolve_uncached(c, local));
+    let node = Arc::new(aggregate(key, [&*children[0], &*children[1], &*children[2], &*children[3]]));
+    local.insert(key, node.clone());
+    node
 }
 
 /// A world cell from a protocol cell.
@@ -605,7 +657,8 @@ impl World {
                 parts.push((lo, hi));
             }
         }
-        let computed = par::map(&parts, || (), |_, &(lo, hi)| leaf_block(self, &model, lo, hi));
+        let none = Corrections::new();
+        let computed = par::map(&parts, || (), |_, &(lo, hi)| leaf_block(self, &model, lo, hi, &none));
         let width = (i64::from(c1.x) - i64::from(c0.x) + 1) as usize;
         let height = (i64::from(c1.z) - i64::from(c0.z) + 1) as usize;
         let mut slots: Vec<Option<NodeSummary>> = vec![None; width * height];
@@ -630,17 +683,19 @@ impl World {
 /// [`World::node_summary`] with the model resolved.
 fn node_with(world: &World, model: &Model, key: NodeKey) -> NodeSummary {
     if key.level <= LEAF_BLOCK_LEVEL {
-        return subtree(world, model, key, |_| {});
+        return subtree(world, model, key, &Corrections::new(), |_| {});
     }
     let (blocks, side) = blocks_of(key);
-    let roots = par::map(&blocks, || (), |_, &b| subtree(world, model, b, |_| {}));
+    let none = Corrections::new();
+    let roots = par::map(&blocks, || (), |_, &b| subtree(world, model, b, &none, |_| {}));
     build_up(roots, side, |_| {})
 }
 
 /// Memoised summary nodes of one world, for the server's far view and `canopy render`: [`Summaries::get`] answers
 /// a node from the cache, from cached descendants, or from leaves computed in blocks of 16 × 16 cells (on the
 /// available cores). At most `capacity` nodes are kept; the least recently used goes first. Nodes are pure
-/// functions of the world and the key: what is cached, and the order of requests, never changes an answer.
+/// functions of the world, the cells' edits ([`Summaries::correct`]) and the key: what is cached, and the order of
+/// requests, never changes an answer. Without edits a node is [`World::node_summary`]'s, bit for bit.
 ///
 /// A memo shared between threads is asked through [`Summaries::get_shared`], which computes the leaves outside its
 /// lock. Two threads asking for overlapping nodes at once may compute a block twice; both get the same nodes.
@@ -649,11 +704,19 @@ pub struct Summaries {
     model: Arc<Model>,
     capacity: usize,
     nodes: Lru<NodeKey, Arc<NodeSummary>>,
+    /// Cells' edits the leaves take ([`Summaries::correct`]), and how many times they changed.
+    edits: Arc<Corrections>,
+    corrections: u64,
 }
 
 impl std::fmt::Debug for Summaries {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Summaries").field("capacity", &self.capacity).field("nodes", &self.nodes.len()).finish()
+        let (capacity, nodes, corrected) = (self.capacity, self.nodes.len(), self.edits.len());
+        f.debug_struct("Summaries")
+            .field("capacity", &capacity)
+            .field("nodes", &nodes)
+            .field("corrected", &corrected)
+            .finish()
     }
 }
 
@@ -663,6 +726,9 @@ struct Plan {
     key: NodeKey,
     world: Arc<World>,
     model: Arc<Model>,
+    /// The edits as they were when the plan was made, and their count of changes then.
+    edits: Arc<Corrections>,
+    corrections: u64,
     /// Nodes found cached on the way down, held so that evictions meanwhile do not matter.
     local: BTreeMap<NodeKey, Arc<NodeSummary>>,
     /// Blocks (level [`LEAF_BLOCK_LEVEL`]) to compute, sorted.
@@ -675,6 +741,9 @@ struct Plan {
 #[derive(Debug)]
 struct Computed {
     key: NodeKey,
+    /// The memo's count of corrections when the plan was made: a result computed before a correction is answered
+    /// but not cached.
+    corrections: u64,
     local: BTreeMap<NodeKey, Arc<NodeSummary>>,
     /// The blocks' roots.
     roots: Vec<NodeSummary>,
@@ -685,7 +754,7 @@ struct Computed {
 impl Plan {
     /// Compute the plan's blocks (on the available cores), touching no memo.
     fn compute(self) -> Computed {
-        let Plan { key, world, model, local, missing, keep } = self;
+        let Plan { key, world, model, edits, corrections, local, missing, keep } = self;
         let leaves = key.level == 0;
         // Each block hands back its nodes of levels 1 ..= LEAF_BLOCK_LEVEL (85), or its 256 leaves as well.
         let per_block = if leaves { 341 } else { 85 };
@@ -696,7 +765,7 @@ impl Plan {
             |_, &b| {
                 let mut found = Vec::new();
                 let n = missing.partition_point(|&m| m < b);
-                let root = subtree(&world, &model, b, |node| {
+                let root = subtree(&world, &model, b, &edits, |node| {
                     if n < kept_blocks && (node.key.level >= 1 || leaves) && node.key != b {
                         found.push(node.clone());
                     }
@@ -705,7 +774,7 @@ impl Plan {
             },
         );
         let (roots, found): (Vec<NodeSummary>, Vec<Vec<NodeSummary>>) = computed.into_iter().unzip();
-        Computed { key, local, roots, found: found.into_iter().flatten().collect() }
+        Computed { key, corrections, local, roots, found: found.into_iter().flatten().collect() }
     }
 }
 
@@ -718,7 +787,39 @@ impl Summaries {
     /// A cache of at most `capacity` nodes (at least 1).
     pub fn with_capacity(world: Arc<World>, capacity: usize) -> Summaries {
         let model = Arc::new(Model::new(&world));
-        Summaries { world, model, capacity: capacity.max(1), nodes: Lru::new() }
+        let edits = Arc::new(Corrections::new());
+        Summaries { world, model, capacity: capacity.max(1), nodes: Lru::new(), edits, corrections: 0 }
+    }
+
+    /// Correct the leaf of `cell` by `edits` (`None` or empty: the world function alone again) from now on: every
+    /// cached node holding the cell (its leaf and each ancestor) is dropped, and a node computed from a plan made
+    /// before is answered but not cached. Whether the cell's edits changed; `false` too for a new cell past
+    /// [`MAX_CORRECTED_CELLS`] (the edits come from the network: a bounded number is kept).
+    pub fn correct(&mut self, cell: CellKey, edits: Option<Arc<[LeafEdit]>>) -> bool {
+        let edits = edits.filter(|e| !e.is_empty());
+        let now = self.edits.get(&cell);
+        if now.map(|e| &**e) == edits.as_deref() {
+            return false;
+        }
+        if now.is_none() && self.edits.len() >= MAX_CORRECTED_CELLS {
+            return false;
+        }
+        let map = Arc::make_mut(&mut self.edits);
+        match edits {
+            Some(e) => map.insert(cell, e),
+            None => map.remove(&cell),
+        };
+        self.corrections += 1;
+        let c = cell_coord(cell);
+        for level in 0..=canopy_protocol::summary::MAX_LEVEL {
+            self.nodes.remove(&NodeKey::of_cell(c, level));
+        }
+        true
+    }
+
+    /// The cells whose leaves take edits.
+    pub fn corrected_cells(&self) -> usize {
+        self.edits.len()
     }
 
     /// The world.
@@ -788,13 +889,16 @@ impl Summaries {
             }
             missing.sort();
         }
-        let (world, model) = (Arc::clone(&self.world), Arc::clone(&self.model));
-        Err(Plan { key, world, model, local, missing, keep: self.capacity / 2 })
+        let (world, model, edits) = (Arc::clone(&self.world), Arc::clone(&self.model), Arc::clone(&self.edits));
+        let corrections = self.corrections;
+        Err(Plan { key, world, model, edits, corrections, local, missing, keep: self.capacity / 2 })
     }
 
     /// Cache what a plan computed and answer its node (aggregating the levels above the blocks).
     fn finish(&mut self, computed: Computed) -> Arc<NodeSummary> {
-        let Computed { key, mut local, roots, found } = computed;
+        let Computed { key, corrections, mut local, roots, found } = computed;
+        // Computed from edits since changed: answered, not cached (nor what is aggregated from it).
+        let current = corrections == self.corrections;
         let mut wanted = None;
         for n in found.into_iter().chain(roots) {
             let n = Arc::new(n);
@@ -804,7 +908,12 @@ impl Summaries {
             if n.key.level == LEAF_BLOCK_LEVEL {
                 local.insert(n.key, n.clone());
             }
-            self.insert(n);
+            if current {
+                self.insert(n);
+            }
+        }
+        if !current {
+            return wanted.unwrap_or_else(|| resolve_uncached(key, &mut local));
         }
         match wanted {
             Some(n) => {
@@ -837,5 +946,35 @@ impl Summaries {
         // Each node counts one: the bound is a count of nodes.
         self.nodes.insert(node.key, node, 1);
         self.nodes.evict_to(self.capacity, None);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plan made before a correction is answered from the edits it was made with, and not cached.
+    #[test]
+    fn a_node_computed_across_a_correction_is_answered_not_cached() {
+        let text = "seed 7\nbounds -512 -512 512 512\ncell 64\nspecies a conifer\nscatter a {\n  spacing 4\n}\n";
+        let src = crate::diag::SourceFile::new("t.world", text);
+        let mut memo = Summaries::new(Arc::new(World::parse(&src, None).expect("loads")));
+        let (cell, leaf, top) =
+            (CellKey { x: 1, z: 2 }, NodeKey { level: 0, x: 1, z: 2 }, NodeKey::of_cell(CellCoord::new(1, 2), 6));
+        let felled: Arc<[LeafEdit]> = Arc::new([LeafEdit { species: 0, x: 65.0, z: 129.0, height: None, sign: -1 }]);
+        for key in [leaf, top] {
+            let Err(plan) = memo.plan(key) else { panic!("nothing is cached yet") };
+            assert!(memo.correct(cell, Some(felled.clone())));
+            let held = memo.len();
+            let stale = memo.finish(plan.compute());
+            assert_eq!(*stale, memo.world.node_summary(key), "answered from the world function alone");
+            assert!(memo.len() == held && memo.peek(key).is_none(), "and not cached");
+            let count = |n: &NodeSummary| n.species.first().map_or(0, |s| s.count);
+            assert_eq!(count(&memo.get(key)), count(&stale) - 1, "a plan made now takes the edit");
+            assert!(memo.peek(key).is_some());
+            assert!(memo.correct(cell, None));
+            assert!(memo.peek(key).is_none() && memo.peek(leaf).is_none(), "nodes holding the cell are dropped");
+            assert_eq!(*memo.get(key), *stale, "the world function alone again");
+        }
     }
 }

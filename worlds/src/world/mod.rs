@@ -120,6 +120,7 @@
 mod cells;
 mod cover;
 pub mod far;
+mod far_edits;
 mod fractal;
 mod ground;
 mod manifest;
@@ -141,7 +142,9 @@ use crate::diag::{Diagnostic, Diagnostics, SourceFile};
 
 pub use cells::{MAX_CELL_INSTANCES, MAX_CELL_WORK, Populations, REGION_BLOCK, ROUNDS};
 pub use cover::{Cover, GroundCover, SNOW_ABOVE, SNOW_FULL, TREE_HEIGHT};
-pub use far::{DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, PACKING, Summaries, aggregate, summary_bytes};
+pub use far::{
+    DEFAULT_CACHE_NODES, LEAF_BLOCK_LEVEL, LeafEdit, MAX_CORRECTED_CELLS, PACKING, Summaries, aggregate, summary_bytes,
+};
 pub use fractal::{Fractal, FractalError, MAX_FRACTAL_DEPTH, Patch};
 pub use ground::Ground;
 pub use populate::{FRACTAL, ParamValue, Ramp, ScatterRule, SlopeRamp};

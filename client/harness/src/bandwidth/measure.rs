@@ -30,11 +30,14 @@ pub struct Bytes {
 
 impl Bytes {
     /// Split a client's counters: frame bytes received by class (welcome, species, cells, release, geometry, edit
-    /// results, deltas, summaries, grants, world function: edit results count as control, deltas and grants as
-    /// records, the world function as species), frame bytes it sent, and its connection's UDP totals.
+    /// results, deltas, summaries, grants, world function, far cells: edit results count as control, deltas and
+    /// grants as records, the world function as species, far cells as summaries), frame bytes it sent, and its
+    /// connection's UDP totals.
     pub fn split(frames_rx: ByKind<u64>, frames_tx: u64, udp_rx: u64, udp_tx: u64) -> Bytes {
-        let ByKind([welcome, species, cells, release, geometry, edit_results, deltas, summaries, grants, function]) =
-            frames_rx;
+        let ByKind(
+            [welcome, species, cells, release, geometry, edit_results, deltas, summaries, grants, function, far_cells],
+        ) = frames_rx;
+        let summaries = summaries + far_cells;
         let (records, welcome) = (cells + deltas + grants, welcome + edit_results);
         let species = species + function;
         let rx = frames_rx.total();
@@ -181,20 +184,20 @@ mod tests {
 
     #[test]
     fn byte_classes_add_up_to_the_wire() {
-        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7, 0, 0, 0, 0, 0]), 400, 14_000, 1_000);
+        let b = Bytes::split(ByKind([300, 2_000, 10_000, 50, 7, 0, 0, 0, 0, 0, 0]), 400, 14_000, 1_000);
         assert_eq!(b.class_sum(), b.total());
         assert_eq!(b.total(), 15_000);
         assert_eq!((b.species, b.records, b.geometry, b.control), (2_000, 10_000, 7, 300 + 50 + 400));
         assert_eq!(b.overhead, (14_000 - 12_357) + (1_000 - 400));
         // Counters read a moment apart can see frames before their datagrams: the totals never fall below them.
-        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0, 0, 0, 0, 0, 0]), 10, 400, 5);
+        let odd = Bytes::split(ByKind([0, 0, 500, 0, 0, 0, 0, 0, 0, 0, 0]), 10, 400, 5);
         assert_eq!(odd.class_sum(), odd.total());
         let mut sum = b;
         sum.add(&odd);
         assert_eq!(sum.class_sum(), sum.total());
         assert_eq!(sum.total(), b.total() + odd.total());
         // Far-view summaries are a class of their own.
-        let far = Bytes::split(ByKind([0, 0, 1_000, 0, 0, 0, 0, 3_000, 0, 0]), 10, 4_500, 50);
+        let far = Bytes::split(ByKind([0, 0, 1_000, 0, 0, 0, 0, 3_000, 0, 0, 0]), 10, 4_500, 50);
         assert_eq!((far.records, far.summaries, far.overhead), (1_000, 3_000, 500 + 40));
         assert_eq!(far.class_sum(), far.total());
     }

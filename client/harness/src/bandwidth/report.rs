@@ -710,10 +710,10 @@ mod tests {
         use super::super::measure::Bytes;
         use super::super::{MeshSample, Outcome};
         // Procedural: 1,000 species bytes, 5,000 record bytes for 1,000 instances; 8,000 bytes on the wire in all.
-        let p = Bytes::split(ByKind([500, 1_000, 5_000, 0, 0, 0, 0, 0, 0, 0]), 500, 7_000, 1_000);
-        let u = Bytes::split(ByKind([500, 0, 0, 0, 1_000_000, 0, 0, 0, 0, 0]), 500, 1_049_500, 1_000);
+        let p = Bytes::split(ByKind([500, 1_000, 5_000, 0, 0, 0, 0, 0, 0, 0, 0]), 500, 7_000, 1_000);
+        let u = Bytes::split(ByKind([500, 0, 0, 0, 1_000_000, 0, 0, 0, 0, 0, 0]), 500, 1_049_500, 1_000);
         // Instanced: two species meshes started, 100 instances with 20 bytes of transforms each.
-        let i = Bytes::split(ByKind([500, 0, 500, 0, 502_000, 0, 0, 0, 0, 0]), 500, 504_000, 1_000);
+        let i = Bytes::split(ByKind([500, 0, 500, 0, 502_000, 0, 0, 0, 0, 0, 0]), 500, 504_000, 1_000);
         let o = Outcome {
             world: "forest".into(),
             scenarios: vec![

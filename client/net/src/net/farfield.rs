@@ -5,13 +5,25 @@
 //! coarsest first, a root's subtree with it, and only while no cell waits, as a server's cache does); the nodes
 //! reach the state as the server's batches would ([`ClientState::on_summaries`]). A connection that takes records
 //! asks the server, as before.
+//!
+//! Edits reach the far view as **far cells**: the server tells this client of the edited cells within its far
+//! view's range beyond its area of interest, each with its edits from version 0 ([`FarCell`]). A blocking task
+//! expands the cell from the world function and lays the edits against it ([`World::leaf_edits`]); the memo's
+//! nodes holding the cell are corrected by them ([`Summaries::correct`]), and the walk lays those the state holds
+//! into it again ([`FarWalk::corrected`]). A cell's newest version wins.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use canopy_protocol::CellCoord;
+use canopy_protocol::messages::FarCell;
 use canopy_protocol::summary::{FarView, NodeKey, root_level};
 use canopy_protocol::sync::Locked;
+use canopy_worlds::world::far::{LeafEdit, cell_key};
+#[cfg(doc)]
+use canopy_worlds::world::{Summaries, World};
 use tokio::sync::mpsc;
 
 use crate::expand::{ExpandWorld, Expander, FarJob};
@@ -25,9 +37,25 @@ pub(super) struct FarField {
     /// The selection and what was asked for (the pure part, shared with the browser client).
     walk: FarWalk<Instant>,
     source: Option<Source>,
-    /// Wake-ups: a node computed (`Some`), or the selection has nodes to hand out (`None`).
-    tx: mpsc::UnboundedSender<Option<NodeKey>>,
-    rx: mpsc::UnboundedReceiver<Option<NodeKey>>,
+    tx: mpsc::UnboundedSender<Wake>,
+    rx: mpsc::UnboundedReceiver<Wake>,
+    /// Far cells by cell: the newest version told (at most [`MAX_FAR_CELLS`]).
+    far_cells: BTreeMap<CellCoord, u32>,
+    /// Far cells told before the world was built, to correct by once it is.
+    early: Vec<FarCell>,
+}
+
+/// Most far cells a connection keeps track of (the server tells of the nearest 256 at a time).
+const MAX_FAR_CELLS: usize = 4096;
+
+/// What wakes the far field.
+enum Wake {
+    /// The selection has nodes to hand out.
+    Walk,
+    /// A node asked for is computed.
+    Node(NodeKey),
+    /// A far cell's edits were laid against its expansion: its version and the leaf edits.
+    Corrected(CellCoord, u32, Arc<[LeafEdit]>),
 }
 
 /// Where the nodes come from: the world (and its memo) and the expander computing them.
@@ -48,21 +76,44 @@ impl Drop for Source {
 impl FarField {
     pub(super) fn new() -> FarField {
         let (tx, rx) = mpsc::unbounded_channel();
-        FarField { view: None, walk: FarWalk::default(), source: None, tx, rx }
+        let (far_cells, early) = (BTreeMap::new(), Vec::new());
+        FarField { view: None, walk: FarWalk::default(), source: None, tx, rx, far_cells, early }
+    }
+
+    /// An edited cell beyond the area of interest: correct the far view by its edits (on a blocking task: it
+    /// expands the cell), unless a newer version of it was told already.
+    pub(super) fn far_cell(&mut self, f: FarCell) {
+        let version = f.version();
+        let newest = self.far_cells.get(&f.cell).is_none_or(|&v| v < version);
+        if !newest || (self.far_cells.len() >= MAX_FAR_CELLS && !self.far_cells.contains_key(&f.cell)) {
+            return;
+        }
+        self.far_cells.insert(f.cell, version);
+        let Some(source) = &self.source else {
+            self.early.push(f);
+            return;
+        };
+        let (world, tx) = (Arc::clone(&source.world), self.tx.clone());
+        tokio::task::spawn_blocking(move || {
+            let key = cell_key(f.cell);
+            let base = world.world.expand_cell(key);
+            let edits: Arc<[LeafEdit]> = world.world.leaf_edits(key, &base, &f.delta).into();
+            let _ = tx.send(Wake::Corrected(f.cell, version, edits));
+        });
     }
 
     /// The far view changed.
     pub(super) fn set_view(&mut self, view: FarView) {
         self.view = Some(view);
         self.walk.touch();
-        let _ = self.tx.send(None);
+        let _ = self.tx.send(Wake::Walk);
     }
 
     /// The viewpoint moved.
     pub(super) fn moved(&mut self) {
         if self.view.is_some() {
             self.walk.touch();
-            let _ = self.tx.send(None);
+            let _ = self.tx.send(Wake::Walk);
         }
     }
 
@@ -82,7 +133,11 @@ impl FarField {
         });
         self.walk.forget_asked();
         self.walk.touch();
-        let _ = self.tx.send(None);
+        let _ = self.tx.send(Wake::Walk);
+        for f in std::mem::take(&mut self.early) {
+            self.far_cells.remove(&f.cell);
+            self.far_cell(f);
+        }
     }
 
     /// Wait until there may be something to do: a wake-up, or the moment a walk held back by
@@ -95,7 +150,7 @@ impl FarField {
                 let due = tokio::time::Instant::from_std(t);
                 tokio::select! {
                     r = self.rx.recv() => r,
-                    () = tokio::time::sleep_until(due) => Some(None),
+                    () = tokio::time::sleep_until(due) => Some(Wake::Walk),
                 }
             }
             None => self.rx.recv().await,
@@ -108,9 +163,19 @@ impl FarField {
         self.rx.try_recv().map(|w| self.woken(w)).is_ok()
     }
 
-    fn woken(&mut self, computed: Option<NodeKey>) {
-        if let (Some(k), Some(_)) = (computed, &self.source) {
-            self.walk.computed(k);
+    fn woken(&mut self, wake: Wake) {
+        let Some(source) = &self.source else { return };
+        match wake {
+            Wake::Walk => {}
+            Wake::Node(k) => self.walk.computed(k),
+            Wake::Corrected(cell, version, edits) => {
+                // An older version's task finishing late is not laid over a newer one.
+                if self.far_cells.get(&cell) == Some(&version)
+                    && source.world.summaries().locked().correct(cell_key(cell), Some(edits))
+                {
+                    self.walk.corrected(cell);
+                }
+            }
         }
     }
 
@@ -127,7 +192,7 @@ impl FarField {
                 node: k,
                 cancelled: Arc::clone(&source.cancelled),
                 done: Box::new(move || {
-                    let _ = tx.send(Some(k));
+                    let _ = tx.send(Wake::Node(k));
                 }),
             });
         };
@@ -135,7 +200,7 @@ impl FarField {
         let done = self.walk.advance(view, state, (&grid, source.root_level), now, &peek, &mut ask);
         if done.more {
             // More than one batch: come back.
-            let _ = self.tx.send(None);
+            let _ = self.tx.send(Wake::Walk);
         }
         done.event
     }

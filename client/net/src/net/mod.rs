@@ -551,8 +551,9 @@ impl Connection {
 
     /// Say how the client wants the far field (summary nodes beyond the records), if it differs enough from the
     /// far view last sent ([`ClientState::far_view_due`]); `true` when it was taken. A client that expands its
-    /// cells computes the nodes itself from the world function; one that takes records asks the server (it costs
-    /// the server a request like a viewpoint does).
+    /// cells computes the nodes itself from the world function, and the server tells it of the edited cells within
+    /// the view's range ([`Event::FarCell`]); one that takes records asks the server for the nodes. Either costs
+    /// the server a request like a viewpoint does.
     pub async fn set_far_view(&mut self, view: canopy_protocol::summary::FarView) -> Result<bool, ClientError> {
         if !self.state.far_view_due(&view) {
             return Ok(false);
@@ -560,9 +561,8 @@ impl Connection {
         let msg = self.state.set_far_view(view)?;
         if self.expanding.expands(&self.state) {
             self.far.set_view(view);
-        } else {
-            self.write(&msg).await?;
         }
+        self.write(&msg).await?;
         Ok(true)
     }
 
@@ -638,6 +638,9 @@ impl Connection {
                     && let Some((world, expander)) = self.expanding.built()
                 {
                     self.far.set_world(world, expander);
+                }
+                if let Ok(Event::FarCell(f)) = &ev {
+                    self.far.far_cell((**f).clone());
                 }
                 if let (Ok(Event::Species { id, hash }), Some(bytes), Some(cache)) = (&ev, species, &self.cache)
                     && let Some(g) = self.state.species(*id)

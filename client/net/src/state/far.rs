@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use canopy_protocol::ClientMsg;
-use canopy_protocol::messages::ClientStreaming;
+use canopy_protocol::messages::{CellMode, ClientStreaming, FarCell};
 use canopy_protocol::summary::{FarView, NodeKey, NodeSummary, SummaryBatch};
 
 use super::{ClientState, Event, MAX_HELD_SUMMARIES, StateError};
@@ -41,6 +41,17 @@ impl ClientState {
     /// Changes whenever the summary nodes held change.
     pub fn summaries_generation(&self) -> u64 {
         self.summaries_generation
+    }
+
+    /// An edited cell beyond the area of interest: handed to the driver where this client computes its far view
+    /// (it expands cells), dropped otherwise or when the cell is not the world's.
+    pub(crate) fn on_far_cell(&mut self, f: FarCell) -> Event {
+        let in_world = self.welcome().is_some_and(|w| w.world.grid.contains(f.cell));
+        if !in_world || !matches!(self.cell_mode(), CellMode::Expand { .. }) {
+            return Event::Dropped;
+        }
+        self.stats.far_cells += 1;
+        Event::FarCell(Box::new(f))
     }
 
     /// Releases first, then the nodes (a batch may release a node and send its replacement); a batch from the

@@ -46,12 +46,14 @@ impl Session {
             self.changed.0.insert(c);
             self.changed.1 = None;
         }
+        self.far_cell_changed(c);
     }
 
     /// Changes were missed (the announcements overflowed): look at every held cell.
     pub fn on_changes_missed(&mut self) {
         self.changed.0.extend(self.held.keys().copied());
         self.changed.1 = None;
+        self.far_changes_missed();
     }
 
     /// Send what changed in held cells whose batches are all out: a delta from the client's version, or the

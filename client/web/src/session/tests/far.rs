@@ -113,9 +113,14 @@ fn the_far_nodes_computed_in_the_page_are_the_selections_and_wait_for_the_cells(
     assert!(held == want, "the same nodes, bit for bit");
     assert!(held.len() <= MAX_SESSION_NODES);
     assert_eq!(PageState::of(&s, [16.0, 30.0, 16.0], 0.0).far_nodes, held.len());
-    // Nothing goes to the server: the page computes its far field itself.
-    for m in sent(&s.take_outbox()) {
-        assert!(matches!(m, ClientMsg::Streaming(ClientStreaming::Digest(_))), "{m:?}");
+    // The page computes its far field itself: the server is told the far view once (for the edited cells within
+    // it), and nothing else but digests.
+    let out = sent(&s.take_outbox());
+    let views = out.iter().filter(|m| matches!(m, ClientMsg::Streaming(ClientStreaming::FarView(_)))).count();
+    assert_eq!(views, 1);
+    for m in out {
+        let ok = matches!(m, ClientMsg::Streaming(ClientStreaming::Digest(_) | ClientStreaming::FarView(_)));
+        assert!(ok, "{m:?}");
     }
 
     let before: Vec<NodeKey> = held.keys().copied().collect();
