@@ -43,12 +43,32 @@ pub struct ExpandWorld {
     /// The welcome's cell grid.
     pub grid: Grid,
     summaries: OnceLock<Mutex<Summaries>>,
+    /// The version of each cell whose edits the memo's leaves take (far cells): a connection told of an older
+    /// version than another one of the process was does not take the memo back.
+    corrected: Mutex<std::collections::BTreeMap<CellCoord, u32>>,
 }
 
 impl ExpandWorld {
     /// The world `world` of the world function `hash`, quantised on `grid`.
     pub fn new(hash: SpeciesHash, world: Arc<World>, grid: Grid) -> ExpandWorld {
-        ExpandWorld { hash, world, grid, summaries: OnceLock::new() }
+        ExpandWorld { hash, world, grid, summaries: OnceLock::new(), corrected: Mutex::default() }
+    }
+
+    /// Correct the memo by the edits of `cell` at `version` ([`Summaries::correct`]) unless it holds a later
+    /// version of them; whether the memo now holds this version's (changed now, or by another connection before).
+    pub fn correct(&self, cell: CellCoord, version: u32, edits: Arc<[canopy_worlds::world::LeafEdit]>) -> bool {
+        let mut corrected = self.corrected.locked();
+        if corrected.get(&cell).is_some_and(|&v| v > version) {
+            return false;
+        }
+        let key = canopy_worlds::world::far::cell_key(cell);
+        let mut memo = self.summaries().locked();
+        let held = memo.edits_of(key).is_some_and(|e| **e == *edits);
+        if held || memo.correct(key, Some(edits)) {
+            corrected.insert(cell, version);
+            return true;
+        }
+        false
     }
 
     /// The memo of its far-view summary nodes (bounded: [`Summaries::new`]).

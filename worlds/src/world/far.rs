@@ -822,6 +822,11 @@ impl Summaries {
         self.edits.len()
     }
 
+    /// The edits the leaf of `cell` takes, if any.
+    pub fn edits_of(&self, cell: CellKey) -> Option<&Arc<[LeafEdit]>> {
+        self.edits.get(&cell)
+    }
+
     /// The world.
     pub fn world(&self) -> &Arc<World> {
         &self.world

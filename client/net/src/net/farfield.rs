@@ -169,10 +169,10 @@ impl FarField {
             Wake::Walk => {}
             Wake::Node(k) => self.walk.computed(k),
             Wake::Corrected(cell, version, edits) => {
-                // An older version's task finishing late is not laid over a newer one.
-                if self.far_cells.get(&cell) == Some(&version)
-                    && source.world.summaries().locked().correct(cell_key(cell), Some(edits))
-                {
+                // An older version's task finishing late is not laid over a newer one. The memo may hold this
+                // version already (another connection of the process was told of it): the nodes held here are
+                // laid again all the same.
+                if self.far_cells.get(&cell) == Some(&version) && source.world.correct(cell, version, edits) {
                     self.walk.corrected(cell);
                 }
             }
