@@ -171,7 +171,8 @@ async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
     }
 
     // The observer is told of the cell and its node over it loses exactly the three trees, nothing else.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let acked = tokio::time::Instant::now();
+    let deadline = acked + Duration::from_secs(60);
     let after = loop {
         if let Ok(r) = tokio::time::timeout(Duration::from_millis(300), observer.next_event()).await {
             r.unwrap();
@@ -182,6 +183,11 @@ async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
         }
         assert!(tokio::time::Instant::now() < deadline, "{key:?} {before:?}, now {now:?}");
     };
+    eprintln!(
+        "far cell {cell:?}: node {key:?} corrected {:.0?} after the last fell's answer; {} far-cell bytes received",
+        acked.elapsed(),
+        observer.frame_bytes_received()[ServerMsgKind::FarCell]
+    );
     let others = |c: &[(u16, u32)]| c.iter().filter(|s| s.0 != u16::from(species)).copied().collect::<Vec<_>>();
     assert_eq!(others(&after), others(&before));
     assert!(observer.frame_bytes_received()[ServerMsgKind::FarCell] > 0);
