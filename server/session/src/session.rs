@@ -568,6 +568,11 @@ impl Session {
             return Some(self.deadline);
         }
         let far_due = self.far.as_ref().and_then(|f| f.due_at(&*self.store));
+        let look_due = self.far_edits.as_ref().and_then(|f| f.look_due());
+        let far_due = match (far_due, look_due) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         let far_work = self.far_work();
         if self.queue.is_empty() && self.staged.is_empty() && !far_work {
             return far_due;
@@ -605,7 +610,7 @@ impl Session {
         self.send_changes();
         self.check_digests();
         self.update_far(now);
-        self.look_for_far_cells();
+        self.look_for_far_cells(now);
         if let Some(t) = self.urgent.pop_front() {
             return Some(self.account(now, t));
         }

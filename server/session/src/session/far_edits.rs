@@ -3,10 +3,12 @@
 //! [`FarCell`]s (the cell's edits as a delta from version 0), and again whenever their version changes, so that the
 //! summary nodes it computes from the world function show the edits. The store says which cells are edited
 //! ([`WorldStore::edited_cells`]); the session looks again when the client moves by an eighth of the range, when a
-//! cell within it changes, or when announcements were missed.
+//! cell within it changes, or when announcements were missed — at most every [`LOOK_INTERVAL`], each look in rings
+//! of growing radius until it has found enough (a look's work is bounded by [`MAX_LOOKED`] cells a ring).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use canopy_protocol::edit::CellDelta;
@@ -21,8 +23,10 @@ use crate::transmit::{StreamId, Transmit};
 
 /// Most edited cells a session keeps a client's far view told of (the nearest).
 pub const MAX_FAR_CELLS: usize = 256;
-/// Most edited cells a session looks at in one look (the store's answer is cut there).
+/// Most edited cells a session reads from the store in one ring of a look (the store's answer is cut there).
 const MAX_LOOKED: usize = 4 * MAX_FAR_CELLS;
+/// Least time between two looks of a session (edits near a client that come fast are looked at together).
+pub(super) const LOOK_INTERVAL: Duration = Duration::from_millis(250);
 
 /// A session's far cells (see the module docs).
 #[derive(Debug, Default)]
@@ -35,6 +39,8 @@ pub(super) struct FarEdits {
     queue: VecDeque<CellCoord>,
     /// Where the last look was made from (`None`: look again).
     looked_from: Option<[f32; 2]>,
+    /// When the last look was made.
+    looked_at: Option<Instant>,
 }
 
 impl FarEdits {
@@ -51,6 +57,12 @@ impl FarEdits {
     /// Whether a cell is to be told of.
     pub(super) fn has_work(&self) -> bool {
         !self.queue.is_empty()
+    }
+
+    /// When a look held back by [`LOOK_INTERVAL`] is due (`None`: none is held back; a move is seen at the next
+    /// poll).
+    pub(super) fn look_due(&self) -> Option<Instant> {
+        self.looked_from.is_none().then_some(self.looked_at.map(|t| t + LOOK_INTERVAL)).flatten()
     }
 
     /// Cells told of (for tests).
@@ -78,30 +90,40 @@ impl Session {
 
     /// Look for the edited cells within range if due: the nearest [`MAX_FAR_CELLS`] outside the area of interest
     /// (cells in it are granted with their edits), those whose version the client was not told queued.
-    pub(super) fn look_for_far_cells(&mut self) {
+    pub(super) fn look_for_far_cells(&mut self, now: Instant) {
         let (Some(far), Some(vp), Some(aoi)) = (&mut self.far_edits, self.viewpoint, self.aoi) else { return };
         let at = vp.position;
         let moved = far.looked_from.is_none_or(|p| (p[0] - at[0]).hypot(p[1] - at[1]) > far.range / 8.0);
-        if !moved {
+        if !moved || far.looked_at.is_some_and(|t| now < t + LOOK_INTERVAL) {
+            if moved {
+                far.looked_from = None;
+            }
             return;
         }
-        far.looked_from = Some(at);
+        (far.looked_from, far.looked_at) = (Some(at), Some(now));
         let store = Arc::clone(&self.store);
         let grid = store.grid();
-        let reach = (far.range / grid.cell_size).ceil() as i32 + 1;
         let centre = grid.cell_of(at[0], at[1]);
-        let lo = CellCoord::new(centre.x.saturating_sub(reach), centre.z.saturating_sub(reach));
-        let hi = CellCoord::new(centre.x.saturating_add(reach), centre.z.saturating_add(reach));
-        let range2 = far.range * far.range;
-        let mut found: Vec<(f32, CellCoord, u32)> = store
-            .edited_cells(lo, hi, MAX_LOOKED)
-            .into_iter()
-            .filter(|(c, _)| !aoi.is_kept(grid, *c))
-            .filter_map(|(c, version)| {
-                let d2 = grid.centre_distance2(c, at);
-                (d2 <= range2).then_some((d2, c, version))
-            })
-            .collect();
+        // Rings of growing radius, the nearest first, until enough are found or the range is covered.
+        let mut found: Vec<(f32, CellCoord, u32)> = Vec::new();
+        for radius in [far.range / 8.0, far.range / 4.0, far.range / 2.0, far.range] {
+            let reach = (radius / grid.cell_size).ceil() as i32 + 1;
+            let lo = CellCoord::new(centre.x.saturating_sub(reach), centre.z.saturating_sub(reach));
+            let hi = CellCoord::new(centre.x.saturating_add(reach), centre.z.saturating_add(reach));
+            let r2 = radius * radius;
+            found = store
+                .edited_cells(lo, hi, MAX_LOOKED)
+                .into_iter()
+                .filter(|(c, _)| !aoi.is_kept(grid, *c))
+                .filter_map(|(c, version)| {
+                    let d2 = grid.centre_distance2(c, at);
+                    (d2 <= r2).then_some((d2, c, version))
+                })
+                .collect();
+            if found.len() >= MAX_FAR_CELLS {
+                break;
+            }
+        }
         found.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         found.truncate(MAX_FAR_CELLS);
         let told: BTreeMap<CellCoord, u32> =
