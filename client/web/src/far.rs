@@ -161,7 +161,9 @@ impl Far {
         self.advance(state, now)?;
         let Some(source) = &mut self.source else { return Ok(0) };
         let (mut steps, mut done) = (0, 0);
-        // Far cells first: each a cell's expansion (a step of its own), its nodes laid again once computed anew.
+        // Far cells first: each a cell's expansion (a step of its own), its nodes laid again once computed anew
+        // (the walk asks for them).
+        let mut corrected = false;
         while !self.far_cells.is_empty() && (steps == 0 || more()) {
             let f = self.far_cells.pop_front().expect("a far cell");
             steps += 1;
@@ -170,8 +172,13 @@ impl Far {
             let edits = world.leaf_edits(key, &world.expand_cell(key), &f.delta);
             if source.memo.correct(key, Some(edits.into())) {
                 self.walk.corrected(f.cell);
+                corrected = true;
             }
         }
+        if corrected {
+            self.advance(state, now)?;
+        }
+        let Some(source) = &mut self.source else { return Ok(0) };
         while let Some((&slot, &k)) = self.queue.first_key_value() {
             if steps > 0 && !more() {
                 break;

@@ -135,3 +135,42 @@ fn the_far_nodes_computed_in_the_page_are_the_selections_and_wait_for_the_cells(
     assert_ne!(held, before, "another selection");
     assert!(held.len() <= MAX_SESSION_NODES);
 }
+
+#[test]
+fn a_far_cell_corrects_the_nodes_the_page_holds_over_it() {
+    use canopy_protocol::edit::CellDelta;
+    use canopy_protocol::messages::FarCell;
+    let (mut s, lane) = granted(true);
+    run(&mut s, 0);
+    // The finest node held over a cell the page does not hold.
+    let (key, cell) = s
+        .state()
+        .summaries()
+        .keys()
+        .flat_map(|k| {
+            let first = k.first_cell();
+            (0..k.side()).map(move |i| (*k, CellCoord::new(first.x + i, first.z)))
+        })
+        .filter(|(_, c)| grid().contains(*c) && !s.state().cells().contains_key(c))
+        .min_by_key(|(k, _)| k.level)
+        .expect("a node beyond the held cells");
+    let count = |s: &Session| s.state().summaries()[&key].species.iter().map(|n| n.count).sum::<u32>();
+    let before = count(&s);
+    let world = World::from_function("t", MANIFEST, &[SpeciesGraph::decode(&worm()).unwrap()], None).unwrap();
+    let total = world.expand_cell(canopy_worlds::world::far::cell_key(cell)).len() as u16;
+    assert!(total >= 3 && before >= 3, "{total} instances in the cell, {before} in {key:?}");
+    let delta = CellDelta {
+        cell,
+        grant: 0,
+        from_version: 0,
+        to_version: 3,
+        total,
+        adds: vec![],
+        removes: vec![0, 1, 2],
+        updates: vec![],
+    };
+    s.on_lane(lane, &streaming(ServerStreaming::FarCell(FarCell { cell, delta })));
+    assert!(s.far().busy(), "the far cell waits for a step");
+    run(&mut s, 10_000);
+    assert_eq!(count(&s), before - 3, "{key:?}");
+}
