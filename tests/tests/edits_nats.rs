@@ -48,8 +48,9 @@ impl Cluster {
     /// Cluster `slot` (0..3) of this process.
     fn up(slot: u16) -> Cluster {
         // Client ports PORT..PORT+2, routes +100, monitoring +200: a block of ten of this process's own, three
-        // ports of it a slot.
-        let port = 20_000 + (std::process::id() % 2_000) as u16 * 10 + slot * 3;
+        // ports of it a slot, all below Linux's ephemeral ports (32768 on): a port the kernel gave another socket
+        // for the moment made a node fail to bind ("address already in use", CI on 2026-11-29).
+        let port = 20_000 + (std::process::id() % 1_200) as u16 * 10 + slot * 3;
         let c = Cluster { dir: tempfile::tempdir().unwrap(), port };
         c.run(&["up", "0"]);
         c
