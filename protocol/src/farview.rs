@@ -90,6 +90,8 @@ pub struct Selection {
     releases: Vec<NodeKey>,
     /// Nodes the last walks found pending (wanted, not computed yet).
     waiting: Vec<NodeKey>,
+    /// Held nodes the source changed since they were handed out ([`Selection::stale`]): handed out again.
+    stale: BTreeSet<NodeKey>,
 }
 
 impl Selection {
@@ -118,6 +120,28 @@ impl Selection {
         !self.waiting.is_empty()
     }
 
+    /// The source changed the nodes holding `cell` (its edits corrected them): each one held is handed out again,
+    /// as the source has it by the next walk, whole or on ([`Selection::walk_on`] starts from them; a node the
+    /// source computes anew is waited for, like a new one).
+    pub fn stale(&mut self, cell: crate::CellCoord) {
+        for level in 0..=crate::summary::MAX_LEVEL {
+            let k = NodeKey::of_cell(cell, level);
+            if self.held.contains_key(&k) && self.stale.insert(k) && self.waiting.len() < MAX_SESSION_NODES {
+                self.waiting.push(k);
+            }
+        }
+    }
+
+    /// Every held node is handed out again by the next whole walk (the source cannot say which it changed).
+    pub fn all_stale(&mut self) {
+        self.stale.extend(self.held.keys().copied());
+    }
+
+    /// Held nodes waiting to be handed out again.
+    pub fn stale_count(&self) -> usize {
+        self.stale.len()
+    }
+
     /// Walk the whole tree again for where the viewer stands: release what the keep rule no longer selects
     /// (coarse first; a node whose parent goes goes too), then queue what is wanted and not held.
     pub fn rebuild(&mut self, refine: &Refine, eye: &Eye, state: impl FnMut(NodeKey) -> NodeState) {
@@ -132,6 +156,7 @@ impl Selection {
         }
         for k in &gone {
             self.held.remove(k);
+            self.stale.remove(k);
             self.releases.push(*k);
         }
         self.queue.clear();
@@ -160,10 +185,11 @@ impl Selection {
                 break;
             }
             let error = match self.held.get(&k) {
-                Some(&e) => e,
-                None => match state(k) {
+                Some(&e) if !self.stale.contains(&k) => e,
+                held => match state(k) {
+                    // A stale node is held already: queued again whatever the bound (stale nodes are held ones).
                     NodeState::Ready(error) => {
-                        if self.held.len() + self.queue.len() < MAX_SESSION_NODES {
+                        if held.is_some() || self.held.len() + self.queue.len() < MAX_SESSION_NODES {
                             self.queue.push((priority(refine, eye, k), k));
                         }
                         error
@@ -174,7 +200,11 @@ impl Selection {
                         }
                         continue;
                     }
-                    NodeState::Unavailable => continue,
+                    // A stale node the source no longer has stays as the viewer holds it.
+                    NodeState::Unavailable => match held {
+                        Some(&e) => e,
+                        None => continue,
+                    },
                 },
             };
             if refine.refines(k, error, false) {
@@ -190,10 +220,14 @@ impl Selection {
     /// are held from now on.
     pub fn next(&mut self, root_level: u8, mut take: impl FnMut(NodeKey) -> Take) {
         let mut deferred = Vec::new();
-        while self.held.len() < MAX_SESSION_NODES {
-            let Some((p, k)) = self.queue.pop() else { break };
-            if self.held.contains_key(&k) {
+        while let Some((p, k)) = self.queue.pop() {
+            let held = self.held.contains_key(&k);
+            if held && !self.stale.contains(&k) {
                 continue;
+            }
+            if !held && self.held.len() >= MAX_SESSION_NODES {
+                self.queue.push((p, k));
+                break;
             }
             let parent_held = k.level >= root_level || k.parent().is_some_and(|p| self.held.contains_key(&p));
             if !parent_held {
@@ -203,6 +237,7 @@ impl Selection {
             match take(k) {
                 Take::Node(error) => {
                     self.held.insert(k, error);
+                    self.stale.remove(&k);
                 }
                 Take::Skip => {}
                 Take::Stop => {
@@ -242,4 +277,67 @@ fn priority(refine: &Refine, eye: &Eye, k: NodeKey) -> f32 {
     let nominal = (x1 - x0) / COVER_SIDE as f32;
     let sse = refine.screen_error(k, nominal);
     if in_view { sse } else { sse * OUT_OF_VIEW_FACTOR }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::CellCoord;
+    use crate::aoi::{AoiParams, Viewpoint};
+
+    /// Hand out everything queued; the keys handed out.
+    fn hand_out(s: &mut Selection, root: u8) -> Vec<NodeKey> {
+        let mut out = Vec::new();
+        s.next(root, |k| {
+            out.push(k);
+            Take::Node(k.level as f32 * 40.0)
+        });
+        out
+    }
+
+    #[test]
+    fn stale_nodes_are_handed_out_again_once_the_source_has_them_anew() {
+        let grid =
+            Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-64, -64), max: CellCoord::new(63, 63) };
+        let aoi = Aoi::new(&Viewpoint::at(0, [0.0, 0.0], 100.0), &AoiParams::default());
+        let eye = Eye::new(&aoi, [0.0, 1.0], DEFAULT_FOV_DEG);
+        let view = FarView { error_px: 8.0, height_px: 720, fov_y: 1.0, range: 3000.0, altitude: 50.0 };
+        let root = 6;
+        let refine = eye.refine(view, &grid, root);
+        let ready = |k: NodeKey| NodeState::Ready(k.level as f32 * 40.0);
+        let mut s = Selection::default();
+        s.rebuild(&refine, &eye, ready);
+        let first = hand_out(&mut s, root);
+        assert!(first.len() > 10 && !s.has_work(), "{} nodes", first.len());
+
+        // A cell 1 km away: the held nodes over it go again, and only they.
+        let cell = grid.cell_of(1000.0, 300.0);
+        let over: Vec<NodeKey> = s.held().filter(|k| k.contains(cell)).collect();
+        assert!(!over.is_empty());
+        s.stale(cell);
+        assert_eq!(s.stale_count(), over.len());
+        assert!(s.is_waiting(), "a walk on starts from them");
+        // The source computes them anew: waited for, not handed out, while pending; then walked on from.
+        let anew = |k: NodeKey| if k.contains(cell) { NodeState::Pending } else { ready(k) };
+        s.rebuild(&refine, &eye, anew);
+        assert!(hand_out(&mut s, root).is_empty() && s.is_waiting());
+        s.walk_on(&refine, &eye, anew);
+        assert!(hand_out(&mut s, root).is_empty() && s.is_waiting());
+        s.walk_on(&refine, &eye, ready);
+        let mut again = hand_out(&mut s, root);
+        again.sort();
+        let mut want = over.clone();
+        want.sort();
+        // The coarsest stale node was waited for; its held descendants are handed out with it.
+        assert_eq!(again, want);
+        assert_eq!(s.stale_count(), 0);
+        assert_eq!(s.held().count(), first.len(), "nothing released, nothing new");
+        // Nothing stale: a walk hands nothing out.
+        s.rebuild(&refine, &eye, ready);
+        assert!(hand_out(&mut s, root).is_empty());
+        // All stale: everything again.
+        s.all_stale();
+        s.rebuild(&refine, &eye, ready);
+        assert_eq!(hand_out(&mut s, root).len(), first.len());
+    }
 }

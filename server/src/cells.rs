@@ -13,6 +13,11 @@
 //! estimate of the index's cost per cell) stay at or below the limit, except that a single cell larger than the
 //! whole limit is still kept, alone, so it can be sent.
 //! Cells pinned by sessions mid-send are bounded per session by its area of interest.
+//!
+//! The far view's summary nodes are computed on the same workers when no cell waits, and corrected by cells'
+//! edits ([`WorldStore::correct_summaries`], called by the live store): the memo first, then the cached nodes,
+//! and a node computed across a correction is computed again, so that what is cached is never older than a
+//! correction the sessions were told of ([`WorldStore::summary_corrections`]).
 
 use std::sync::atomic::AtomicU64;
 use std::sync::atomic::Ordering::{Acquire, Relaxed, Release};
@@ -22,6 +27,7 @@ use std::time::Instant;
 
 use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::edit::CellDelta;
 use canopy_protocol::lru::Lru;
 use canopy_protocol::summary::NodeKey;
 use canopy_protocol::sync::{Locked, Waited};
@@ -31,12 +37,17 @@ use tracing::{error, warn};
 
 use crate::metrics::CellMetrics;
 use canopy_session::{
-    CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryState, VersionState, WorldStore,
+    CellData, CellState, CellWaker, EncodedSummary, StoreError, StoreHead, SummaryCorrections, SummaryState,
+    VersionState, WorldStore,
 };
 use canopy_session::{SummaryLru, Waiters};
 
 /// Queued cells of one aligned block of `BLOCK` × `BLOCK` cells are expanded together.
 pub(crate) const BLOCK: i32 = 4;
+/// Times a summary node computed across a correction is computed again before its waiters are left to ask again.
+const SUMMARY_TRIES: usize = 3;
+/// Most cells whose edits the summaries take (as many as the live store indexes).
+const MAX_CORRECTED_CELLS: usize = 1 << 18;
 
 /// How a cell cache runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -104,6 +115,8 @@ struct Shared {
     metrics: Arc<CellMetrics>,
     /// Bumped (under the lock, after caching) each time a cell becomes ready: [`WorldStore::generation`].
     generation: AtomicU64,
+    /// The summaries' count of corrections, read without the lock by every session's poll.
+    corrected: AtomicU64,
 }
 
 /// The shared cell cache (see the module docs).
@@ -183,31 +196,44 @@ impl Shared {
     }
 
     /// Compute a summary node (through the memo, which keeps the nodes below it), encode it, cache it and wake its
-    /// waiters.
+    /// waiters. A node computed across a correction of the memo is computed again (it may hold the cell
+    /// corrected); one corrected every time is left to its waiters to ask for again.
     fn summarise(&self, key: NodeKey) {
-        let started = Instant::now();
-        // The leaves are computed outside the memo's lock, so both workers compute at once.
-        let node = Summaries::get_shared(&self.memo, key);
-        let encoded = Arc::new(EncodedSummary::new(node));
-        self.metrics.summary_time.record(started.elapsed());
-        self.metrics.summaries.fetch_add(1, Relaxed);
-        self.publish(key, encoded);
+        for _ in 0..SUMMARY_TRIES {
+            let started = Instant::now();
+            let seen = self.lock().summaries.corrections();
+            // The leaves are computed outside the memo's lock, so both workers compute at once.
+            let node = Summaries::get_shared(&self.memo, key);
+            let encoded = Arc::new(EncodedSummary::new(node));
+            self.metrics.summary_time.record(started.elapsed());
+            self.metrics.summaries.fetch_add(1, Relaxed);
+            if self.publish(key, encoded, seen) {
+                return;
+            }
+        }
+        let wakers = self.lock().summaries.abandon(key);
+        wakers.iter().for_each(|w| w.wake());
     }
 
     /// Node `key` if the memo holds it already (computed with an ancestor, or for another session), published so
     /// that no worker computes it: a session walking down a computed subtree gets it at once instead of queueing
-    /// every node behind the roots still being computed. `None` if not memoised or the memo is busy.
+    /// every node behind the roots still being computed. `None` if not memoised, the memo is busy, or it was
+    /// corrected meanwhile.
     fn memoised(&self, key: NodeKey) -> Option<Arc<EncodedSummary>> {
+        let seen = self.lock().summaries.corrections();
         let node = Arc::clone(self.memo.try_lock().ok()?.peek(key)?);
         let encoded = Arc::new(EncodedSummary::new(node));
-        self.publish(key, Arc::clone(&encoded));
-        Some(encoded)
+        self.publish(key, Arc::clone(&encoded), seen).then_some(encoded)
     }
 
-    /// Cache an encoded node and wake its waiters.
-    fn publish(&self, key: NodeKey, encoded: Arc<EncodedSummary>) {
+    /// Cache an encoded node computed when the summaries had seen `seen` corrections and wake its waiters; whether
+    /// it was (not if a correction came since: it may be stale).
+    fn publish(&self, key: NodeKey, encoded: Arc<EncodedSummary>, seen: u64) -> bool {
         let wakers = {
             let mut st = self.lock();
+            if st.summaries.corrections() != seen {
+                return false;
+            }
             let wakers = st.summaries.insert(key, encoded, self.cfg.summary_limit_bytes);
             self.metrics.summary_bytes.store(st.summaries.bytes() as u64, Relaxed);
             self.generation.fetch_add(1, Release);
@@ -216,6 +242,26 @@ impl Shared {
         for w in wakers {
             w.wake();
         }
+        true
+    }
+
+    /// Correct the memo's nodes holding cell `c` by its edits, then drop the cached ones and count the correction
+    /// (in that order: a node computed from the memo before it was corrected is not cached after).
+    fn correct(&self, c: CellCoord, delta: Option<&CellDelta>) -> bool {
+        let key = CellKey { x: c.x, z: c.z };
+        let edits = delta.map(|d| {
+            let placements = self.world.expand_cell(key);
+            Arc::from(self.world.leaf_edits(key, &placements, d))
+        });
+        if !self.memo.locked().correct(key, edits) {
+            return false;
+        }
+        let mut st = self.lock();
+        st.summaries.correct(c, self.root_level);
+        self.corrected.store(st.summaries.corrections(), Release);
+        self.metrics.summary_bytes.store(st.summaries.bytes() as u64, Relaxed);
+        self.generation.fetch_add(1, Release);
+        true
     }
 
     /// Cache an expanded cell, evicting the least recently used ones past the bound, and wake its waiters.
@@ -279,10 +325,12 @@ impl CellCache {
         let root_level = canopy_session::root_level(head.world().grid.cell_size);
         let metrics = Arc::new(CellMetrics::default());
         metrics.limit.store(cfg.limit_bytes as u64, Relaxed);
+        let mut memo = Summaries::new(Arc::clone(&world));
+        memo.set_max_corrected(MAX_CORRECTED_CELLS);
         let shared = Arc::new(Shared {
             grid: head.world().grid,
             species_count: head.species().len(),
-            memo: Mutex::new(Summaries::new(Arc::clone(&world))),
+            memo: Mutex::new(memo),
             root_level,
             world,
             cfg,
@@ -290,6 +338,7 @@ impl CellCache {
             work: Condvar::new(),
             metrics,
             generation: AtomicU64::new(0),
+            corrected: AtomicU64::new(0),
         });
         let workers = (0..cfg.workers)
             .map(|i| {
@@ -433,6 +482,18 @@ impl WorldStore for CellCache {
 
     fn summary_root_level(&self) -> u8 {
         self.shared.root_level
+    }
+
+    fn correct_summaries(&self, c: CellCoord, delta: Option<&CellDelta>) -> bool {
+        self.shared.grid.contains(c) && self.shared.correct(c, delta)
+    }
+
+    fn summary_corrections(&self, since: u64) -> SummaryCorrections {
+        let now = self.shared.corrected.load(Acquire);
+        if since >= now {
+            return SummaryCorrections { now, cells: Some(Vec::new()) };
+        }
+        self.shared.lock().summaries.corrected_since(since)
     }
 
     fn cache_metrics(&self) -> Option<Arc<CellMetrics>> {

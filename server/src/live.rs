@@ -13,8 +13,9 @@
 //! It also keeps an index of the edited cells and their versions (read from the edit store at start and every
 //! [`INDEX_REFRESH`], kept current by every announcement), for the far views of clients that expand cells
 //! ([`WorldStore::edited_cells`]): another edge's edit of a cell no session here holds reaches it within a refresh.
+//! The same cells correct the base store's far-view summaries for clients that take records ([`correct`]).
 
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Duration;
@@ -26,8 +27,11 @@ use canopy_protocol::{CellCoord, SpeciesGraph};
 use tracing::{error, warn};
 
 use canopy_session::{
-    CellData, CellState, CellWaker, Changes, StoreHead, SummaryState, VersionState, Waiters, WorldStore,
+    CellData, CellState, CellWaker, Changes, StoreHead, SummaryCorrections, SummaryState, VersionState, Waiters,
+    WorldStore,
 };
+
+mod correct;
 
 /// A cell changed: it is at `version` now.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -215,6 +219,10 @@ struct Shared {
     index: Mutex<std::collections::BTreeMap<CellCoord, u32>>,
     /// Notified when the store stops (the index thread waits on it between reads).
     stopping: Condvar,
+    /// Cells whose far-view summaries are to be corrected by their edits ([`correct`]).
+    corrector: correct::Corrector,
+    /// Whether a session asked for a summary node (corrections start then).
+    summaries_wanted: AtomicBool,
 }
 
 /// A cell's world-function records and its overlay.
@@ -230,6 +238,7 @@ pub struct LiveStore {
 impl Drop for LiveStore {
     fn drop(&mut self) {
         self.shared.loads.locked().stop = true;
+        self.shared.corrector.stop();
         self.shared.work.notify_all();
         self.shared.stopping.notify_all();
         for t in self.loaders.drain(..) {
@@ -335,6 +344,7 @@ impl Shared {
 
     fn announce(&self, cell: CellCoord, version: u32) {
         self.index_version(cell, version);
+        self.queue_correction(cell, version);
         self.hub.announce(CellChange { cell, version });
     }
 
@@ -364,6 +374,7 @@ impl Shared {
             match self.edits.cells() {
                 Ok(cells) => {
                     for (cell, version) in cells {
+                        self.queue_correction(cell, version);
                         if self.index_version(cell, version) && !first {
                             self.hub.announce(CellChange { cell, version });
                         }
@@ -481,6 +492,8 @@ impl LiveStore {
             failures: Mutex::new((String::new(), None, 0)),
             index: Mutex::default(),
             stopping: Condvar::new(),
+            corrector: correct::Corrector::default(),
+            summaries_wanted: AtomicBool::new(false),
         });
         let mut loaders: Vec<JoinHandle<()>> = (0..LOADERS)
             .map(|i| {
@@ -494,6 +507,10 @@ impl LiveStore {
         let indexer = Arc::clone(&shared);
         let index = std::thread::Builder::new().name("canopy-edit-index".into()).spawn(move || indexer.run_index());
         loaders.push(index.expect("spawning the edited cells' indexer"));
+        let (corrector, of) = (Arc::clone(&shared), Arc::clone(&base));
+        let correct =
+            std::thread::Builder::new().name("canopy-far-correct".into()).spawn(move || corrector.run_corrector(&of));
+        loaders.push(correct.expect("spawning the far view's corrector"));
         LiveStore { base, shared, loaders }
     }
 
@@ -722,10 +739,18 @@ impl WorldStore for LiveStore {
         self.base.cache_metrics()
     }
 
-    // Summaries are of the world function: edits are not in them (a planted or felled tree changes a far node's
-    // count by one; its records draw it near the viewer).
+    // The base store's summaries, corrected by the edits from the first ask on (`correct`).
     fn summary(&self, key: canopy_protocol::summary::NodeKey, waker: Option<&Arc<dyn CellWaker>>) -> SummaryState {
+        self.shared.want_summaries();
         self.base.summary(key, waker)
+    }
+
+    fn correct_summaries(&self, c: CellCoord, delta: Option<&canopy_protocol::edit::CellDelta>) -> bool {
+        self.base.correct_summaries(c, delta)
+    }
+
+    fn summary_corrections(&self, since: u64) -> SummaryCorrections {
+        self.base.summary_corrections(since)
     }
 
     fn summary_root_level(&self) -> u8 {

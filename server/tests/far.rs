@@ -1,20 +1,22 @@
 //! Far-view summaries from a session on virtual time (issue 15): over the default world's cell cache (workers run
 //! on the test's thread through `CellCache::run_queued`), a session sends exactly the nodes the refinement rule
 //! wants, parents before children and the most visible first, keeps them through small moves (hysteresis),
-//! releases them when the viewer goes away, and lets records go first near the viewer.
+//! releases them when the viewer goes away, lets records go first near the viewer, and sends a held node again
+//! when a cell's edits corrected it.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use canopy_protocol::aoi::Viewpoint;
+use canopy_protocol::edit::CellDelta;
 use canopy_protocol::messages::ServerMsgKind;
 use canopy_protocol::messages::{ClientStreaming, ServerStreaming};
-use canopy_protocol::summary::{FarView, NodeKey, Refine};
+use canopy_protocol::summary::{FarView, NodeKey, NodeSummary, Refine};
 use canopy_protocol::{ClientMsg, Phase, ServerMsg};
+use canopy_server::session::{CellState, SummaryState, WorldStore};
 use canopy_server::session::{NODE_REBUILD_INTERVAL, REBUILD_INTERVAL};
 use canopy_server::session::{Session, SessionConfig, Transmit};
-use canopy_server::session::{SummaryState, WorldStore};
 use canopy_server::{CellCache, CellCacheConfig};
 use canopy_test_support::forest as world;
 
@@ -50,6 +52,10 @@ struct Far {
     arrived: Vec<NodeKey>,
     released: Vec<NodeKey>,
     bytes: u64,
+    /// Held nodes that may come again (corrected), until they do.
+    again: BTreeSet<NodeKey>,
+    /// Each held node as it came last.
+    nodes: BTreeMap<NodeKey, NodeSummary>,
 }
 
 impl Far {
@@ -67,8 +73,9 @@ impl Far {
             self.released.push(k);
         }
         for n in b.nodes {
-            assert!(self.held.insert(n.key), "{:?} sent twice", n.key);
+            assert!(self.held.insert(n.key) || self.again.remove(&n.key), "{:?} sent twice", n.key);
             self.arrived.push(n.key);
+            self.nodes.insert(n.key, n);
         }
     }
 }
@@ -227,4 +234,72 @@ fn a_computed_subtree_goes_out_at_once_when_its_root_is_ready() {
     run(&mut s, &cache, &mut far, early);
     assert!(far.held.iter().any(|k| k.level == 0));
     assert_eq!(far.held, wanted(&cache, at));
+}
+
+#[test]
+fn a_held_node_goes_again_once_its_cells_edits_corrected_it() {
+    let cache = cache();
+    let t0 = Instant::now();
+    let at = [300.0, -200.0];
+    let mut s = session(&cache, at, t0);
+    let mut far = Far::default();
+    let (now, _) = run(&mut s, &cache, &mut far, t0);
+    // A cell under a held leaf 1 km from the viewer, beyond its records; three of its trees felled.
+    let leaf = *far
+        .held
+        .iter()
+        .filter(|k| k.level == 0)
+        .max_by_key(|k| {
+            let c = k.first_cell();
+            ((c.x * 64 - 300).abs() < 1100 && (c.z * 64 + 200).abs() < 1100, c.x.abs() + c.z.abs())
+        })
+        .expect("leaves held");
+    let cell = leaf.first_cell();
+    let records = loop {
+        match cache.cell(cell, None) {
+            CellState::Ready(d) => break d,
+            _ => assert!(cache.run_queued() > 0),
+        }
+    };
+    assert!(records.records.len() >= 3, "{} records", records.records.len());
+    let felled: Vec<u8> = records.records[..3].iter().map(|r| r.species).collect();
+    let delta = CellDelta {
+        cell,
+        grant: 0,
+        from_version: 0,
+        to_version: 3,
+        total: records.records.len() as u16,
+        adds: vec![],
+        removes: vec![0, 1, 2],
+        updates: vec![],
+    };
+    let over: BTreeSet<NodeKey> = far.held.iter().filter(|k| k.contains(cell)).copied().collect();
+    let before: BTreeMap<NodeKey, NodeSummary> = over.iter().map(|k| (*k, far.nodes[k].clone())).collect();
+    let seen = cache.summary_corrections(u64::MAX).now;
+    assert!(cache.correct_summaries(cell, Some(&delta)));
+    assert!(!cache.correct_summaries(cell, Some(&delta)), "the same edits again change nothing");
+    assert_eq!(cache.summary_corrections(seen).cells, Some(vec![cell]));
+    // Every held node over the cell comes again, computed anew, each short of exactly the felled trees; nothing
+    // else comes.
+    far.again = over.clone();
+    let arrived = far.arrived.len();
+    run(&mut s, &cache, &mut far, now + Duration::from_millis(250));
+    assert!(far.again.is_empty(), "not sent again: {:?}", far.again);
+    assert_eq!(far.arrived[arrived..].iter().copied().collect::<BTreeSet<_>>(), over);
+    let count = |n: &NodeSummary, species: u8| {
+        n.species.iter().filter(|c| c.species == u16::from(species)).map(|c| c.count).sum::<u32>()
+    };
+    for k in &over {
+        for species in felled.iter().copied().collect::<BTreeSet<u8>>() {
+            let gone = felled.iter().filter(|&&f| f == species).count() as u32;
+            assert_eq!(count(&far.nodes[k], species) + gone, count(&before[k], species), "{k:?}, species {species}");
+        }
+    }
+    // The edits taken back: the nodes are the world function's again, bit for bit.
+    far.again = over.clone();
+    assert!(cache.correct_summaries(cell, None));
+    run(&mut s, &cache, &mut far, now + Duration::from_secs(1));
+    for k in &over {
+        assert_eq!(far.nodes[k], before[k], "{k:?}");
+    }
 }

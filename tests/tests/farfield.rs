@@ -1,9 +1,10 @@
 //! The far field a client computes itself (issue 30, item 5), over real QUIC on loopback: a client that expands
 //! its cells computes the far view's summary nodes from the world function, and ends holding exactly the nodes,
 //! bit for bit, that the server sends a client that takes records from the same place, after moves too; the server
-//! sends it none, and a second client of the same process computes none again. Edits reach that far view: an
-//! editor's fells in a cell 1.4 km away lower the count of the node the expanding client holds
-//! over it by exactly what was felled.
+//! sends it none, and a second client of the same process computes none again. Edits reach both far views: an
+//! editor's fells in a cell 1.4 km away lower the count of the node each client holds over it by exactly what was
+//! felled (the expanding client is told of the cell; the server corrects its own nodes and sends the other client
+//! the node again), and the two hold the same nodes after.
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering::Relaxed;
@@ -113,15 +114,18 @@ async fn a_client_that_expands_computes_the_far_view_the_server_would_send() {
     server.shutdown(Duration::from_secs(1)).await;
 }
 
+/// Species ids and their counts in a node.
+type Counts = Vec<(u16, u32)>;
+
 /// The species counts of the finest node `c` holds over `cell`, and its key.
-fn counts_over(c: &Connection, cell: CellCoord) -> Option<(NodeKey, Vec<(u16, u32)>)> {
+fn counts_over(c: &Connection, cell: CellCoord) -> Option<(NodeKey, Counts)> {
     let held = c.state().summaries();
     let (k, n) = held.iter().filter(|(k, _)| k.contains(cell)).min_by_key(|(k, _)| k.level)?;
     Some((*k, n.species.iter().map(|s| (s.species, s.count)).collect()))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
+async fn an_editors_fells_reach_the_far_views_of_clients_that_expand_and_that_take_records() {
     let cfg = CellCacheConfig { limit_bytes: 64 << 20, workers: 2, ..CellCacheConfig::default() };
     let store = CellCache::new((**forest()).clone(), cfg).expect("the default world builds a store").shared();
     let editors = Editors::parse("editors", &editor_line("alice", &ALICE, None, Some(1000))).unwrap();
@@ -131,15 +135,22 @@ async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
     let opts = ServeOptions { server: server_cfg, edits: Edits::Store(edits), ..ServeOptions::default() };
     let server = serve_store(store, opts).await.expect("starts");
 
-    // The observer expands its cells and computes its far view, 1.4 km east of the editor, looking west at it.
+    // Two observers 1.4 km east of the editor, looking west at it: one expands its cells and computes its far
+    // view, the other takes records and summaries from the server.
     let mut cfg = pinned(&server);
     cfg.expander = Some(Expander::new(2, 8 << 20));
     let view = FarView { error_px: 8.0, height_px: 720, fov_y: 1.0, range: 2500.0, altitude: 120.0 };
     let ep = endpoint("127.0.0.1:0".parse().unwrap()).unwrap();
     let west = Viewpoint { yaw: -std::f32::consts::FRAC_PI_2, ..Viewpoint::at(0, [700.0, -200.0], 100.0) };
-    let mut observer = Connection::connect(&ep, &cfg, None, |_: &Welcome| west).await.unwrap();
-    assert!(observer.set_far_view(view).await.unwrap());
-    settle(&mut observer).await;
+    let mut observers = Vec::new();
+    for cfg in [cfg, pinned(&server)] {
+        let mut observer = Connection::connect(&ep, &cfg, None, |_: &Welcome| west).await.unwrap();
+        assert!(observer.set_far_view(view).await.unwrap());
+        settle(&mut observer).await;
+        observers.push(observer);
+    }
+    assert_eq!(observers[1].state().cell_mode(), CellMode::Records);
+    same_nodes(&observers[1], &observers[0]);
 
     // The editor fells three trees of one species in the fullest cell of its area of interest.
     let mut editor_cfg = pinned(&server);
@@ -154,9 +165,11 @@ async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
     }
     let ((cell, species), ids) = by_cell.into_iter().max_by_key(|(_, ids)| ids.len()).expect("trees near the editor");
     assert!(ids.len() >= 3, "{} trees", ids.len());
-    let (key, before) = counts_over(&observer, cell).expect("the observer's far view holds the cell");
+    let (key, before) = counts_over(&observers[0], cell).expect("the observer's far view holds the cell");
+    assert_eq!(counts_over(&observers[1], cell), Some((key, before.clone())));
     let count = |counts: &[(u16, u32)]| counts.iter().find(|s| s.0 == u16::from(species)).map_or(0, |s| s.1);
     assert!(count(&before) >= 3, "{key:?}: {before:?}");
+    let summary_bytes = observers[1].frame_bytes_received()[ServerMsgKind::Summaries];
     for id in &ids[..3] {
         let request = editor.edit(EditOp::Fell { id: *id }).await.unwrap();
         loop {
@@ -170,30 +183,48 @@ async fn an_editors_fells_reach_the_far_view_of_a_client_that_expands() {
         }
     }
 
-    // The observer is told of the cell and its node over it loses exactly the three trees, nothing else.
+    // Each observer's node over the cell loses exactly the three trees, nothing else: the expanding one told of
+    // the cell, the other sent the node again as the server corrected it. Both are read in turn, each time
+    // measured from the last fell's answer.
     let acked = tokio::time::Instant::now();
     let deadline = acked + Duration::from_secs(60);
-    let after = loop {
-        if let Ok(r) = tokio::time::timeout(Duration::from_millis(300), observer.next_event()).await {
-            r.unwrap();
+    let mut after: [Option<(Duration, Counts)>; 2] = [None, None];
+    while after.iter().any(Option::is_none) {
+        for (i, observer) in observers.iter_mut().enumerate() {
+            if let Ok(r) = tokio::time::timeout(Duration::from_millis(20), observer.next_event()).await {
+                r.unwrap();
+            }
+            let now = counts_over(observer, cell).expect("still held");
+            if after[i].is_none() && now.0 == key && count(&now.1) + 3 == count(&before) {
+                after[i] = Some((acked.elapsed(), now.1));
+            }
         }
-        let now = counts_over(&observer, cell).expect("still held");
-        if now.0 == key && count(&now.1) + 3 == count(&before) {
-            break now.1;
-        }
-        assert!(tokio::time::Instant::now() < deadline, "{key:?} {before:?}, now {now:?}");
-    };
-    eprintln!(
-        "far cell {cell:?}: node {key:?} corrected {:.0?} after the last fell's answer; {} far-cell bytes received",
-        acked.elapsed(),
-        observer.frame_bytes_received()[ServerMsgKind::FarCell]
-    );
+        assert!(tokio::time::Instant::now() < deadline, "{key:?} {before:?}, now {after:?}");
+    }
     let others = |c: &[(u16, u32)]| c.iter().filter(|s| s.0 != u16::from(species)).copied().collect::<Vec<_>>();
-    assert_eq!(others(&after), others(&before));
-    assert!(observer.frame_bytes_received()[ServerMsgKind::FarCell] > 0);
+    for ((elapsed, counts), (observer, kind)) in
+        after.into_iter().flatten().zip(observers.iter().zip(["expands", "takes records"]))
+    {
+        eprintln!(
+            "far cell {cell:?}: the node {key:?} of the client that {kind} corrected {elapsed:.0?} after the last \
+             fell's answer; {} far-cell bytes received",
+            observer.frame_bytes_received()[ServerMsgKind::FarCell]
+        );
+        assert_eq!(others(&counts), others(&before), "{kind}");
+    }
+    let [expands, records] = &mut observers[..] else { unreachable!() };
+    assert!(expands.frame_bytes_received()[ServerMsgKind::FarCell] > 0);
     // Told of the cell once a version at most (the edits may arrive together).
-    assert!((1..=3).contains(&observer.state().stats().far_cells), "{}", observer.state().stats().far_cells);
+    assert!((1..=3).contains(&expands.state().stats().far_cells), "{}", expands.state().stats().far_cells);
+    assert_eq!(records.frame_bytes_received()[ServerMsgKind::FarCell], 0);
+    assert!(records.frame_bytes_received()[ServerMsgKind::Summaries] > summary_bytes, "the node sent again");
+    // Both hold the same nodes again, bit for bit.
+    settle(expands).await;
+    settle(records).await;
+    same_nodes(records, expands);
     editor.close();
-    observer.close();
+    for o in observers {
+        o.close();
+    }
     server.shutdown(Duration::from_secs(1)).await;
 }

@@ -14,7 +14,7 @@ use canopy_protocol::CellCoord;
 use canopy_protocol::aoi::Grid;
 use canopy_protocol::farview::{DEFAULT_FOV_DEG, Eye, MAX_SESSION_NODES, NodeState, REBUILD_INTERVAL, Selection, Take};
 use canopy_protocol::summary::{
-    FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, MAX_LEVEL, NodeKey, NodeSummary, SummaryBatch, overlaps,
+    FarView, MAX_BATCH_NODES, MAX_BATCH_RELEASES, NodeKey, NodeSummary, SummaryBatch, overlaps,
 };
 
 use crate::state::{ClientState, Event, StateError};
@@ -28,18 +28,11 @@ pub struct FarWalk<T> {
     /// The viewpoint, the far view or the source changed since the last whole walk.
     dirty: bool,
     rebuilt: Option<T>,
-    /// Nodes the state may hold whose contents changed (a far cell's edits corrected them): laid into the state
-    /// again once computed anew (at most [`MAX_STALE`]).
-    stale: BTreeSet<NodeKey>,
 }
-
-/// Most nodes waiting to be laid into the state again after a correction (17 levels of 1,024 cells' ancestors).
-const MAX_STALE: usize = 17 * 1024;
 
 impl<T> Default for FarWalk<T> {
     fn default() -> FarWalk<T> {
-        let (selection, asked, stale) = (Selection::default(), BTreeSet::new(), BTreeSet::new());
-        FarWalk { selection, asked, dirty: false, rebuilt: None, stale }
+        FarWalk { selection: Selection::default(), asked: BTreeSet::new(), dirty: false, rebuilt: None }
     }
 }
 
@@ -75,13 +68,9 @@ impl<T: Copy + PartialOrd + Add<Duration, Output = T>> FarWalk<T> {
     }
 
     /// The memo's nodes holding `cell` changed (its edits corrected them): every one the state holds is laid into
-    /// it again, computed anew, at the next advances.
+    /// it again, computed anew, at the next advances ([`Selection::stale`]).
     pub fn corrected(&mut self, cell: CellCoord) {
-        for level in 0..=MAX_LEVEL {
-            if self.stale.len() < MAX_STALE {
-                self.stale.insert(NodeKey::of_cell(cell, level));
-            }
-        }
+        self.selection.stale(cell);
     }
 
     /// Nodes asked for and not computed yet.
@@ -125,29 +114,7 @@ impl<T: Copy + PartialOrd + Add<Duration, Output = T>> FarWalk<T> {
         } else if self.selection.is_waiting() {
             self.selection.walk_on(&refine, &eye, node_state);
         }
-        // Nodes corrected since they were laid: again, as the memo has them now (computed anew first).
         let mut nodes = Vec::new();
-        let held = state.summaries();
-        self.stale.retain(|&k| {
-            if !held.contains_key(&k) {
-                return false;
-            }
-            if nodes.len() >= MAX_BATCH_NODES {
-                return true;
-            }
-            match peek(k) {
-                Some(n) => {
-                    nodes.push(Arc::unwrap_or_clone(n));
-                    false
-                }
-                None => {
-                    if asked.len() < MAX_SESSION_NODES && asked.insert(k) {
-                        ask(k);
-                    }
-                    true
-                }
-            }
-        });
         self.selection.next(root_level, |k| {
             if nodes.len() >= MAX_BATCH_NODES {
                 return Take::Stop;
@@ -162,7 +129,7 @@ impl<T: Copy + PartialOrd + Add<Duration, Output = T>> FarWalk<T> {
             }
         });
         let released = self.selection.releases(MAX_BATCH_RELEASES);
-        let more = self.selection.has_work() || self.stale.iter().any(|k| peek(*k).is_some());
+        let more = self.selection.has_work();
         if nodes.is_empty() && released.is_empty() {
             return Advanced { event: None, more };
         }

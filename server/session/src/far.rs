@@ -8,6 +8,9 @@
 //! for and wakes the session when it is). Records keep priority: summaries take at most a quarter of the bytes
 //! while cells are queued ([`FarSession::turn`]), under the session's pacing.
 //!
+//! A held node over a cell whose edits corrected it ([`WorldStore::summary_corrections`]) is sent again, as the
+//! store computes it anew.
+//!
 //! Memory and work per session are bounded: at most [`canopy_protocol::farview::MAX_SESSION_NODES`] nodes held or
 //! queued, a walk visits at most [`canopy_protocol::farview::MAX_VISITS`] nodes, a rebuild happens at most every
 //! [`REBUILD_INTERVAL`] (between rebuilds, nodes it waited for walk on from themselves once ready, at most every
@@ -57,6 +60,8 @@ pub struct FarSession {
     bytes: u64,
     /// Registered with the nodes found pending: says one became ready.
     waker: Arc<NodeWaker>,
+    /// The store's count of summary corrections seen (`None`: none asked yet).
+    corrections: Option<u64>,
 }
 
 /// The far view's waker (see [`NODE_REBUILD_INTERVAL`]): remembers that a node the session asked for is ready and
@@ -95,6 +100,7 @@ impl FarSession {
             generation: 0,
             waker: Arc::default(),
             bytes: 0,
+            corrections: None,
         }
     }
 
@@ -168,6 +174,7 @@ impl FarSession {
     /// it waits for is ready and the last walk is [`NODE_REBUILD_INTERVAL`] old, walk on from the nodes it waits
     /// for only (the work is that of the new nodes, not of the whole tree). `waker` is woken when one is ready.
     pub fn update(&mut self, now: Instant, store: &dyn WorldStore, waker: Option<&Arc<dyn CellWaker>>, eye: &Eye) {
+        self.take_corrections(store);
         let generation = store.generation();
         let full =
             (self.dirty || generation != self.generation) && self.rebuilt.is_none_or(|t| now >= t + REBUILD_INTERVAL);
@@ -192,6 +199,33 @@ impl FarSession {
         self.rebuilt = Some(now);
         self.generation = generation;
         self.selection.rebuild(&refine, eye, state);
+    }
+
+    /// Nodes held over cells the store corrected since last asked go again, as the store has them after the next
+    /// walk on from them; all of them after the next whole walk if the store no longer remembers which.
+    fn take_corrections(&mut self, store: &dyn WorldStore) {
+        let since = *self.corrections.get_or_insert_with(|| store.summary_corrections(u64::MAX).now);
+        let corrected = store.summary_corrections(since);
+        if corrected.now == since {
+            return;
+        }
+        self.corrections = Some(corrected.now);
+        match corrected.cells {
+            // Walked on from at the next update (as if a node it waited for were ready).
+            Some(cells) => {
+                cells.into_iter().for_each(|c| self.selection.stale(c));
+                self.waker.ready.store(true, Ordering::Release);
+            }
+            None => {
+                self.selection.all_stale();
+                self.dirty = true;
+            }
+        }
+    }
+
+    /// Held nodes to send again (corrected by edits since they were sent).
+    pub fn stale(&self) -> usize {
+        self.selection.stale_count()
     }
 
     /// The next summaries message, on `lane`: releases, then the most visible queued nodes whose parents the client

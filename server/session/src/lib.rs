@@ -33,9 +33,9 @@ pub use session::{
 };
 pub use store::{
     CellData, CellState, CellWaker, Changes, EncodedSummary, GridStore, PlacedInstance, StoreBuilder, StoreError,
-    StoreHead, SummaryState, VersionState, WorldStore,
+    StoreHead, SummaryCorrections, SummaryState, VersionState, WorldStore,
 };
-pub use summaries::{SummaryLru, overlaps, root_level};
+pub use summaries::{MAX_RECENT_CORRECTIONS, SummaryLru, overlaps, root_level};
 pub use terrain::terrain_desc;
 pub use transmit::{StreamId, Transmit};
 pub use waiters::Waiters;

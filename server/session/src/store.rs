@@ -7,6 +7,7 @@ use std::sync::{Arc, OnceLock};
 
 use bytes::Bytes;
 use canopy_protocol::aoi::Grid;
+use canopy_protocol::edit::CellDelta;
 use canopy_protocol::messages::{
     MessageError, ServerStreaming, SpeciesData, SpeciesEntry, TerrainDesc, WelcomeHead, WorldFunction, WorldInfo,
 };
@@ -273,6 +274,20 @@ pub trait WorldStore: Send + Sync + 'static {
     fn summary_root_level(&self) -> u8 {
         0
     }
+    /// Correct the summary nodes holding cell `c` by its edits (`delta`: the cell's edits from version 0; `None`:
+    /// it has none), blocking while the cell's world-function placements are computed: a node holding the cell
+    /// answers as corrected from when this returns. Whether the nodes changed; a store without summaries has
+    /// nothing to correct.
+    fn correct_summaries(&self, c: CellCoord, delta: Option<&CellDelta>) -> bool {
+        let _ = (c, delta);
+        false
+    }
+    /// The cells whose summary nodes were corrected after the store had made `since` corrections (a session that
+    /// holds nodes over them sends them again), and its count now ([`SummaryCorrections`]).
+    fn summary_corrections(&self, since: u64) -> SummaryCorrections {
+        let _ = since;
+        SummaryCorrections { now: 0, cells: Some(Vec::new()) }
+    }
     /// The cell cache's counters, for a store that expands cells on demand.
     fn cache_metrics(&self) -> Option<Arc<crate::counters::CellMetrics>> {
         None
@@ -293,6 +308,16 @@ pub trait WorldStore: Send + Sync + 'static {
             CellState::Pending => Changes::Pending,
         }
     }
+}
+
+/// What [`WorldStore::summary_corrections`] answers.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SummaryCorrections {
+    /// The store's count of corrections now (what to ask from next).
+    pub now: u64,
+    /// The cells corrected since the count asked from, oldest first; `None` when that count is older than the
+    /// store remembers (any node may have changed).
+    pub cells: Option<Vec<CellCoord>>,
 }
 
 /// A cell's version as [`WorldStore::version`] finds it.

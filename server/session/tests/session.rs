@@ -821,14 +821,22 @@ fn a_client_that_expands_is_told_of_edited_cells_within_its_far_view_and_of_thei
     assert_eq!(s.far_cells(), vec![(far, 2)]);
     // Nothing more until something changes.
     assert!(far_cells(&drain(&mut s, t0)).is_empty());
-    // Another edit of the far cell: told again, once the last look is LOOK_INTERVAL (250 ms) old.
+    // Another edit of the far cell: told again at once (no look needed), and once a version (announced again,
+    // nothing goes).
     edited.edits.lock().unwrap().insert(far, felled_in(far, 3));
     s.on_cell_changed(far);
+    assert_eq!(far_cells(&drain(&mut s, t0)), vec![(far, 3)]);
+    s.on_cell_changed(far);
+    assert!(far_cells(&drain(&mut s, t0)).is_empty());
+    // A cell not told of yet changes: looked for once the last look is LOOK_INTERVAL (250 ms) old.
+    let other = CellCoord::new(-3, 1);
+    edited.edits.lock().unwrap().insert(other, felled_in(other, 1));
+    s.on_cell_changed(other);
     assert!(far_cells(&drain(&mut s, t0)).is_empty(), "a look at most every 250 ms");
     assert_eq!(s.poll_timeout(), Some(t0 + Duration::from_millis(250)));
     let t1 = t0 + Duration::from_millis(250);
-    assert_eq!(far_cells(&drain(&mut s, t1)), vec![(far, 3)]);
-    // A longer range reaches the other cell too; the first is not sent again.
+    assert_eq!(far_cells(&drain(&mut s, t1)), vec![(other, 1)]);
+    // A longer range reaches the cell beyond too; those told of are not sent again.
     s.handle(t1, ClientMsg::Streaming(ClientStreaming::FarView(view(300.0)))).unwrap();
     assert_eq!(far_cells(&drain(&mut s, t1 + Duration::from_millis(250))), vec![(beyond, 1)]);
     // A client that takes records asks for summaries as before and is told of no far cell.

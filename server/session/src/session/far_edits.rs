@@ -2,9 +2,10 @@
 //! (issue 30, item 5): the nearest [`MAX_FAR_CELLS`] edited cells within its far view's range go to it as
 //! [`FarCell`]s (the cell's edits as a delta from version 0), and again whenever their version changes, so that the
 //! summary nodes it computes from the world function show the edits. The store says which cells are edited
-//! ([`WorldStore::edited_cells`]); the session looks again when the client moves by an eighth of the range, when a
-//! cell within it changes, or when announcements were missed — at most every [`LOOK_INTERVAL`], each look in rings
-//! of growing radius until it has found enough (a look's work is bounded by [`MAX_LOOKED`] cells a ring).
+//! ([`WorldStore::edited_cells`]); a cell told of is told again as soon as it changes; the session looks again when
+//! the client moves by an eighth of the range, when another cell within it changes, or when announcements were
+//! missed — at most every [`LOOK_INTERVAL`], each look in rings of growing radius until it has found enough (a
+//! look's work is bounded by [`MAX_LOOKED`] cells a ring).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
@@ -72,9 +73,16 @@ impl FarEdits {
 }
 
 impl Session {
-    /// A cell changed: if it may be within the far view's range, look again.
+    /// A cell changed: one told of already is told again at once (if its version moved); else, if it may be
+    /// within the far view's range, look again.
     pub(super) fn far_cell_changed(&mut self, c: CellCoord) {
         let (Some(far), Some(vp)) = (&mut self.far_edits, self.viewpoint) else { return };
+        if far.told.contains_key(&c) {
+            if !far.queue.contains(&c) {
+                far.queue.push_front(c);
+            }
+            return;
+        }
         let grid = self.store.grid();
         if grid.centre_distance2(c, vp.position).sqrt() <= far.range + grid.cell_size {
             far.looked_from = None;
@@ -142,6 +150,10 @@ impl Session {
             let &c = far.queue.front()?;
             match store.changes(c, 0, self.waker.as_ref()) {
                 Changes::Pending => return None,
+                // Told of this version already (announced again).
+                Changes::Delta(d) if far.told.get(&c) == Some(&d.to_version) => {
+                    far.queue.pop_front();
+                }
                 Changes::Delta(d) => {
                     far.queue.pop_front();
                     far.told.insert(c, d.to_version);

@@ -30,6 +30,8 @@ pub struct Summaries {
     /// Cells' edits the leaves take ([`Summaries::correct`]), and how many times they changed.
     edits: Arc<Corrections>,
     corrections: u64,
+    /// Most cells whose edits are kept ([`MAX_CORRECTED_CELLS`] unless set).
+    max_corrected: usize,
 }
 
 impl std::fmt::Debug for Summaries {
@@ -111,20 +113,28 @@ impl Summaries {
     pub fn with_capacity(world: Arc<World>, capacity: usize) -> Summaries {
         let model = Arc::new(Model::new(&world));
         let edits = Arc::new(Corrections::new());
-        Summaries { world, model, capacity: capacity.max(1), nodes: Lru::new(), edits, corrections: 0 }
+        let max_corrected = MAX_CORRECTED_CELLS;
+        Summaries { world, model, capacity: capacity.max(1), nodes: Lru::new(), edits, corrections: 0, max_corrected }
+    }
+
+    /// Keep the edits of at most `cells` cells from now on, instead of [`MAX_CORRECTED_CELLS`] (a server, whose
+    /// edits come from its own store, keeps as many as it indexes). Cells kept already stay.
+    pub fn set_max_corrected(&mut self, cells: usize) {
+        self.max_corrected = cells;
     }
 
     /// Correct the leaf of `cell` by `edits` (`None` or empty: the world function alone again) from now on: every
     /// cached node holding the cell (its leaf and each ancestor) is dropped, and a node computed from a plan made
     /// before is answered but not cached. Whether the cell's edits changed; `false` too for a new cell past
-    /// [`MAX_CORRECTED_CELLS`] (the edits come from the network: a bounded number is kept).
+    /// [`MAX_CORRECTED_CELLS`] (the edits come from the network: a bounded number is kept; see
+    /// [`Summaries::set_max_corrected`]).
     pub fn correct(&mut self, cell: CellKey, edits: Option<Arc<[LeafEdit]>>) -> bool {
         let edits = edits.filter(|e| !e.is_empty());
         let now = self.edits.get(&cell);
         if now.map(|e| &**e) == edits.as_deref() {
             return false;
         }
-        if now.is_none() && self.edits.len() >= MAX_CORRECTED_CELLS {
+        if now.is_none() && self.edits.len() >= self.max_corrected {
             return false;
         }
         let map = Arc::make_mut(&mut self.edits);
