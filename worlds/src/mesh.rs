@@ -159,19 +159,20 @@ pub fn mesh(stream: &PrimitiveStream, opts: &MeshOptions) -> Mesh {
 /// Like [`mesh`], but appends to `out` (reuse its allocations; clear it first for a fresh mesh). Indices of the
 /// new triangles refer to the new vertices, wherever they land in `out`.
 pub fn mesh_into(stream: &PrimitiveStream, opts: &MeshOptions, out: &mut Mesh) {
-    mesh_into_where(stream, opts, |_| true, out);
+    mesh_into_where(stream, opts, |_, _| true, out);
 }
 
-/// Like [`mesh_into`], but only the primitives `keep` accepts: the same triangles as meshing a copy of the stream
-/// that holds just those primitives (and every leaf point), without making the copy.
+/// Like [`mesh_into`], but only the primitives `keep` accepts (given each one's index in the stream and itself):
+/// the same triangles as meshing a copy of the stream that holds just those primitives (and every leaf point),
+/// without making the copy.
 pub fn mesh_into_where(
     stream: &PrimitiveStream,
     opts: &MeshOptions,
-    keep: impl Fn(&Primitive) -> bool,
+    keep: impl Fn(usize, &Primitive) -> bool,
     out: &mut Mesh,
 ) {
     let tables = Tables::new(opts);
-    for p in stream.primitives.iter().filter(|p| keep(p)) {
+    for (_, p) in stream.primitives.iter().enumerate().filter(|(i, p)| keep(*i, p)) {
         let (nv, ni) = (out.positions.len(), out.indices.len());
         let ok = primitive(stream, p, &tables, opts.caps, out);
         if !ok {

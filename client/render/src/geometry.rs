@@ -171,24 +171,30 @@ pub(crate) fn geometry_of(stream: &PrimitiveStream, detail: u8, mode: NearMode) 
     // where the rest are instanced.
     // Flat leaves as cards (`leaf.rs`), the others as their polygons.
     let leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
-    let rest = |p: &Primitive| !leaf(p) && (mode == NearMode::Merged || matches!(p.shape, Shape::TrunkBase(_)));
+    let rest = |_, p: &Primitive| !leaf(p) && (mode == NearMode::Merged || matches!(p.shape, Shape::TrunkBase(_)));
     let mut tags = Vec::new();
-    for card in stream.primitives.iter().filter_map(|p| card_of(stream, p).map(|c| (c, p.color))) {
-        let ((c, color), first) = (card, mesh.positions.len() as u32);
+    // Each leaf's card made once; the leaves without one are meshed as polygons after.
+    let mut polygons = vec![false; stream.primitives.len()];
+    for (i, p) in stream.primitives.iter().enumerate().filter(|(_, p)| leaf(p)) {
+        let Some(c) = card_of(stream, p) else {
+            polygons[i] = true;
+            continue;
+        };
+        let first = mesh.positions.len() as u32;
         for (corner, tag) in c.corners.iter().zip(c.tags) {
             mesh.positions.push(corner.to_array());
             mesh.normals.push(c.normal.to_array());
-            mesh.colors.push(color);
+            mesh.colors.push(p.color);
             tags.push(tag);
         }
         mesh.indices.extend(Card::TRIANGLES.iter().map(|i| first + i));
     }
-    if stream.primitives.iter().any(|p| leaf(p) && card_of(stream, p).is_none()) {
-        mesh_into_where(stream, &opts, |p| leaf(p) && card_of(stream, p).is_none(), &mut mesh);
+    if polygons.contains(&true) {
+        mesh_into_where(stream, &opts, |i, _| polygons[i], &mut mesh);
     }
     let thin = mesh.positions.len();
     tags.resize(thin, NOT_A_CARD);
-    if stream.primitives.iter().any(rest) {
+    if stream.primitives.iter().any(|p| rest(0, p)) {
         mesh_into_where(stream, &opts, rest, &mut mesh);
     }
     if mode == NearMode::Instanced {
@@ -292,7 +298,7 @@ mod tests {
         let geo = geometry_of(&stream, 0, NearMode::Merged);
         let is_leaf = |p: &Primitive| matches!(p.shape, Shape::Leaf { .. });
         let mut rest = Mesh::new();
-        mesh_into_where(&stream, &MeshOptions::for_detail(0), |p| !is_leaf(p), &mut rest);
+        mesh_into_where(&stream, &MeshOptions::for_detail(0), |_, p| !is_leaf(p), &mut rest);
         assert!(geo.prims.is_empty());
         // Every leaf of the monopodial is flat: a card of 4 corners and 2 triangles, first, marked thin and placed.
         let leaves = stream.primitives.iter().filter(|p| is_leaf(p)).count();

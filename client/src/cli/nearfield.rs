@@ -195,7 +195,7 @@ pub(super) fn instance_meshes(plan: &Plan, stream: &PrimitiveStream, detail: u8)
             let junctions = matches!(plan.mode, Mode::Junctions);
             let branches = if junctions { junction_mesh(stream, &JunctionOptions::default()) } else { Mesh::default() };
             // Everything the junction mesher leaves (trunk bases, foliage) or everything, through the ordinary mesher.
-            let rest = |p: &Primitive| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. });
+            let rest = |_, p: &Primitive| !junctions || !matches!(p.shape, Shape::Cone { .. } | Shape::Cylinder { .. });
             let mut meshed = Mesh::default();
             mesh_into_where(stream, &MeshOptions::for_detail(detail), rest, &mut meshed);
             let mut all = branches;
