@@ -38,9 +38,15 @@ fn fs_mesh_shadow(in: GeoOut) {
 // The share of the sun's light a leaf passes to its far side.
 const TRANSLUCENCY: f32 = 0.5;
 
+// Set where the scene pass is multisampled: a leaf card's edge becomes its coverage (alpha-to-coverage), not a cut
+// a whole pixel at a time.
+override ALPHA_TO_COVERAGE: bool = false;
+
 @fragment
 fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
-    if !dither_keeps(in.mask, in.clip.xy) || !leaf_keeps(in.card) {
+    // Before any discard: its derivative needs the whole quad.
+    let coverage = leaf_coverage(in.card);
+    if !dither_keeps(in.mask, in.clip.xy) || coverage <= select(0.5, 0.0, ALPHA_TO_COVERAGE) {
         discard;
     }
     // Leaves are two-sided: light the side that faces the viewer.
@@ -55,5 +61,5 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     var lit = shade_occluded(color, n, sun, in.ao);
     // Light through a leaf with the sun behind it: a share of the sun's diffuse light, in the leaf's colour.
     lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * color;
-    return vec4<f32>(with_fog(lit, in.world), 1.0);
+    return vec4<f32>(with_fog(lit, in.world), select(1.0, coverage, ALPHA_TO_COVERAGE));
 }

@@ -72,13 +72,26 @@ fn leaf_half_width(u: f32, w: f32) -> f32 {
     return sin(3.14159265 * t) * teeth;
 }
 
-// Whether a fragment is on the leaf: everywhere off a card; on one, within the blade or on its stalk.
-fn leaf_keeps(card: vec4<f32>) -> bool {
+// How far inside the leaf a fragment is, in shares of the card's half-width (negative outside): within the blade
+// or on its stalk; far inside everywhere off a card.
+fn leaf_inside(card: vec4<f32>) -> f32 {
     if card.w < 0.5 {
-        return true;
+        return 1.0e6;
     }
     let v = abs(card.y);
-    return v <= leaf_half_width(card.x, card.z) || (card.x < 0.12 && v < 0.05);
+    return max(leaf_half_width(card.x, card.z) - v, min(0.05 - v, 0.12 - card.x));
+}
+
+// Whether a fragment is on the leaf (the silhouette one sample a pixel and the shadow maps cut).
+fn leaf_keeps(card: vec4<f32>) -> bool {
+    return leaf_inside(card) >= 0.0;
+}
+
+// The share of a pixel the leaf covers, from how far inside it the fragment is against how fast that changes across
+// the pixel: what alpha-to-coverage turns into samples under multisampling (1 off a card).
+fn leaf_coverage(card: vec4<f32>) -> f32 {
+    let d = leaf_inside(card);
+    return clamp(d / max(fwidth(d), 1.0e-6) + 0.5, 0.0, 1.0);
 }
 
 // A leaf's veins: a lighter midrib and darker side veins running out toward the tip (1 off a card).

@@ -401,7 +401,9 @@ impl Pipelines {
                         cull: Option<wgpu::Face>,
                         depth_stencil: Option<wgpu::DepthStencilState>,
                         targets: &[Option<wgpu::ColorTargetState>],
-                        samples: u32| {
+                        (samples, alpha_to_coverage): (u32, bool)| {
+            // The shader is told (its override `ALPHA_TO_COVERAGE`) whether its alpha becomes the samples covered.
+            let constants: &[(&str, f64)] = if alpha_to_coverage { &[("ALPHA_TO_COVERAGE", 1.0)] } else { &[] };
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
                 layout: Some(layout),
@@ -413,11 +415,15 @@ impl Pipelines {
                 },
                 primitive: wgpu::PrimitiveState { cull_mode: cull, ..Default::default() },
                 depth_stencil,
-                multisample: wgpu::MultisampleState { count: samples, ..Default::default() },
+                multisample: wgpu::MultisampleState {
+                    count: samples,
+                    alpha_to_coverage_enabled: alpha_to_coverage,
+                    ..Default::default()
+                },
                 fragment: Some(wgpu::FragmentState {
                     module,
                     entry_point: Some(entry.1),
-                    compilation_options: Default::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions { constants, ..Default::default() },
                     targets,
                 }),
                 multiview_mask: None,
@@ -472,7 +478,7 @@ impl Pipelines {
             None,
             depth(false, wgpu::CompareFunction::Always),
             &opaque,
-            samples,
+            (samples, false),
         );
 
         let terrain_mod = module(device, "terrain", &[COMMON, SHADOW, include_str!("../shaders/terrain.wgsl")]);
@@ -491,7 +497,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
-            samples,
+            (samples, false),
         );
         let shadow_terrain = caster(
             "terrain shadow",
@@ -518,7 +524,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
-            samples,
+            (samples, false),
         );
         let shadow_prims = caster(
             "primitive shadow",
@@ -529,6 +535,13 @@ impl Pipelines {
         );
 
         let mesh_mod = module(device, "meshes", &MESH_PARTS);
+        // Multisampled, a leaf card's edge is its coverage (alpha-to-coverage); the alpha written stays the scene's.
+        let alpha_to_coverage = samples > 1;
+        let mesh_targets = [Some(wgpu::ColorTargetState {
+            format,
+            blend: None,
+            write_mask: if alpha_to_coverage { wgpu::ColorWrites::COLOR } else { wgpu::ColorWrites::ALL },
+        })];
         let mesh = pipeline(
             "meshes",
             &layout("meshes", &[Some(&globals_layout), Some(&mesh_layout), Some(&draw_layout), Some(&shadow_layout)]),
@@ -537,8 +550,8 @@ impl Pipelines {
             &[],
             None,
             depth(true, greater),
-            &opaque,
-            samples,
+            &mesh_targets,
+            (samples, alpha_to_coverage),
         );
         let shadow_mesh = caster(
             "mesh shadow",
@@ -563,7 +576,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
-            1,
+            (1, false),
         );
 
         let tile_consts = tile_consts();
@@ -590,7 +603,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
-            1,
+            (1, false),
         );
 
         let bins_consts = format!(
@@ -670,7 +683,7 @@ impl Pipelines {
             None,
             None,
             &premultiplied,
-            1,
+            (1, false),
         );
 
         let frusta = FRUSTUM_SEGMENTS
