@@ -11,8 +11,10 @@
 //! take a cell back.
 //!
 //! It also keeps an index of the edited cells and their versions (read from the edit store at start and every
-//! [`INDEX_REFRESH`], kept current by every announcement), for the far views of clients that expand cells
-//! ([`WorldStore::edited_cells`]): another edge's edit of a cell no session here holds reaches it within a refresh.
+//! [`INDEX_REFRESH`], kept current by every announcement and, for a store other servers write, by the store's
+//! stream-wide watch, [`EditStore::watch_all`]), for the far views of clients that expand cells
+//! ([`WorldStore::edited_cells`]): another edge's edit of a cell no session here holds reaches it at once (within a
+//! refresh where the store cannot watch its whole stream).
 //! The same cells correct the base store's far-view summaries for clients that take records ([`correct`]).
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -504,6 +506,7 @@ impl LiveStore {
                     .expect("spawning an overlay loader")
             })
             .collect();
+        shared.edits.watch_all(Arc::new(IndexWatcher(Arc::downgrade(&shared))));
         let indexer = Arc::clone(&shared);
         let index = std::thread::Builder::new().name("canopy-edit-index".into()).spawn(move || indexer.run_index());
         loaders.push(index.expect("spawning the edited cells' indexer"));
@@ -657,6 +660,22 @@ impl canopy_edits::EditWatcher for Watcher {
     fn edited(&self, e: canopy_edits::StoredEdit) {
         if let Some(shared) = self.0.upgrade() {
             canopy_edits::EditWatcher::edited(&*shared, e);
+        }
+    }
+}
+
+/// The index's watcher of a shared store's whole stream ([`EditStore::watch_all`]): every edit any writer stored
+/// moves its cell's version in the index of edited cells (only the version: a lost race's edits come too), and a
+/// cell whose version moved is announced (the far views within range look again) and queued for correcting.
+struct IndexWatcher(std::sync::Weak<Shared>);
+
+impl canopy_edits::EditWatcher for IndexWatcher {
+    fn edited(&self, e: canopy_edits::StoredEdit) {
+        if let Some(shared) = self.0.upgrade()
+            && shared.index_version(e.cell, e.version)
+        {
+            shared.queue_correction(e.cell, e.version);
+            shared.hub.announce(CellChange { cell: e.cell, version: e.version });
         }
     }
 }

@@ -28,7 +28,9 @@
 //!   of the cell's subject from just after the last message its read of the log saw (so nothing between the read
 //!   and the watch is missed, and only what the stream stored is told: a publish the engine refused is not, a lost
 //!   race is skipped by the fold), kept when the cell is read again, dropped when the overlay is evicted; other
-//!   edges' edits reach the [`EditWatcher`].
+//!   edges' edits reach the [`EditWatcher`]. Beside them, one ordered consumer of the whole stream tells the edge's
+//!   index of edited cells of every run published ([`EditStore::watch_all`]), so another edge's edit of a cell no
+//!   session here holds reaches this edge's far views at once.
 //!
 //! The store's calls are synchronous (the [`EditStore`] trait); they run on a runtime of the store's own, on its
 //! own thread, so they may be called from any thread (the edit writer, overlay loaders).
@@ -144,6 +146,8 @@ struct Inner {
     last: Mutex<HashMap<CellCoord, Known>>,
     /// Watched cells and the tasks forwarding their subjects.
     watches: Mutex<HashMap<CellCoord, (tokio::task::JoinHandle<()>, WatcherSlot)>>,
+    /// The task forwarding the whole stream ([`EditStore::watch_all`]).
+    stream_watch: Mutex<Option<tokio::task::JoinHandle<()>>>,
     /// Cells' logs as last read, bounded by [`TAIL_CACHE_BYTES`]: a cell read again (after a conflict, another
     /// edge's edit) costs a round trip a new message, not one a message of its whole log.
     tails: Mutex<canopy_protocol::lru::Lru<CellCoord, Tail>>,
@@ -326,6 +330,7 @@ impl Inner {
             stream,
             last: Mutex::default(),
             watches: Mutex::default(),
+            stream_watch: Mutex::default(),
             tails: Mutex::new(canopy_protocol::lru::Lru::new()),
         })
     }
@@ -736,6 +741,59 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, mut taken: u
     }
 }
 
+/// Tell `watcher` of every run any writer publishes on the world's subjects from now on, as published (a lost
+/// race's too: the edge's index of edited cells takes only versions from it, as [`Inner::versions`] takes a subject's
+/// last message): one ordered consumer of the whole stream a store, created again from just after the last
+/// message seen whenever it cannot be created or its stream ends or fails.
+async fn watch_stream(inner: Arc<Inner>, watcher: Arc<dyn EditWatcher>) {
+    let mut pause = WATCH_RETRY;
+    let mut next: Option<u64> = None;
+    loop {
+        let deliver_policy = match next {
+            Some(start_sequence) => jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence },
+            None => jetstream::consumer::DeliverPolicy::New,
+        };
+        let config = jetstream::consumer::pull::OrderedConfig {
+            filter_subject: inner.cfg.wildcard(),
+            deliver_policy,
+            ..Default::default()
+        };
+        let created = match inner.stream.create_consumer(config).await {
+            Ok(consumer) => consumer.messages().await.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
+        let mut messages = match created {
+            Ok(m) => m,
+            Err(e) => {
+                warn!("watching the edit stream: {e}; trying again in {pause:?}");
+                tokio::time::sleep(pause).await;
+                pause = (pause * 2).min(WATCH_RETRY_MAX);
+                continue;
+            }
+        };
+        pause = WATCH_RETRY;
+        while let Some(m) = messages.next().await {
+            let m = match m {
+                Ok(m) => m,
+                Err(e) => {
+                    warn!("watching the edit stream: {e}; watching again");
+                    break;
+                }
+            };
+            if let Ok(info) = m.info() {
+                next = Some(info.stream_sequence + 1);
+            }
+            let cell = inner.cfg.cell_of(m.subject.as_str());
+            match decode_message(m.headers.as_ref(), &m.payload) {
+                Ok(run) if Some(run[0].cell) == cell => run.into_iter().for_each(|e| watcher.edited(e)),
+                // A cell's own watch and reads report what does not decode.
+                _ => {}
+            }
+        }
+        tokio::time::sleep(pause).await;
+    }
+}
+
 impl EditStore for NatsEditStore {
     fn append(&self, edits: &[StoredEdit]) -> Result<(), EditStoreError> {
         self.append_cells(edits).into_iter().map(|(_, r)| r).find(Result::is_err).unwrap_or(Ok(()))
@@ -813,6 +871,13 @@ impl EditStore for NatsEditStore {
             old.abort();
         }
         self.metrics.watched.store(watches.len() as u64, Relaxed);
+    }
+
+    fn watch_all(&self, watcher: Arc<dyn EditWatcher>) {
+        let task = self.handle.spawn(watch_stream(Arc::clone(&self.inner), watcher));
+        if let Some(old) = self.inner.stream_watch.locked().replace(task) {
+            old.abort();
+        }
     }
 
     fn unwatch(&self, c: CellCoord) {

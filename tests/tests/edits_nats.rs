@@ -173,6 +173,26 @@ fn edges_over_jetstream_share_the_edits_and_their_versions() {
     let ec = cluster.edge(&world);
     assert_eq!(expected(&ec), sorted(a.client.instances(&|_, _| 0.0).collect()));
     assert_eq!(ec.edits.count().unwrap(), 2 + versions.len() as u64);
+
+    // Another edge's edit of a cell nobody here holds reaches this edge's index of edited cells (its far views) at
+    // once, through the stream's watch, not at the next read of the whole index (30 s).
+    use canopy_server::session::WorldStore;
+    let far = CellCoord::new(-30, 25);
+    let indexed = |e: &World| e.live.edited_cells(far, far, 4);
+    assert!(indexed(&ec).is_empty());
+    let record = canopy_protocol::InstanceRecord::new(0, 100, 100);
+    let op = canopy_server::edits::CellEdit::Plant { index: 40, record, params: vec![] };
+    ea.edits.append(&[canopy_server::edits::StoredEdit { cell: far, version: 1, op }]).unwrap();
+    let told = std::time::Instant::now();
+    while indexed(&ec).is_empty() {
+        assert!(told.elapsed() < std::time::Duration::from_secs(10), "edge C's index never learned of the cell");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    eprintln!(
+        "another edge's edit of a cell nobody held was in this edge's index {:.0?} after it was stored",
+        told.elapsed()
+    );
+    assert_eq!(indexed(&ec), vec![(far, 1)]);
 }
 
 /// A real edge: canopy-server over the default world's cell cache and the cluster's edit log, on a runtime of its

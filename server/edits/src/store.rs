@@ -78,6 +78,11 @@ pub trait EditStore: Send + Sync + 'static {
     fn watch(&self, _cell: CellCoord, _watcher: std::sync::Arc<dyn EditWatcher>) {}
     /// Stop telling of `cell`'s edits.
     fn unwatch(&self, _cell: CellCoord) {}
+    /// Tell `watcher` of every edit any writer stores from now on, in every cell (a store several servers share: a
+    /// server learns at once which cells another one edited, those it does not watch included). What is told is
+    /// what was published, a lost race's edits too: only a cell's versions, not its log, may be taken from it. A
+    /// store only one server writes has nothing to tell.
+    fn watch_all(&self, _watcher: std::sync::Arc<dyn EditWatcher>) {}
     /// Where the edits are, for logs: a file's path, an engine's stream and servers.
     fn describe(&self) -> String;
 }
