@@ -8,8 +8,11 @@
 //! projected error (the most visible first; a node out of the view cone counts half), and hands a node out only
 //! after its parent. Held nodes are released under the looser keep rule (hysteresis), coarse before fine.
 //!
-//! Memory and work are bounded: at most [`MAX_SESSION_NODES`] nodes held, queued or waited for, and a walk visits
-//! at most [`MAX_VISITS`] nodes.
+//! A held node the source changed (a cell's edits corrected it) is marked stale ([`Selection::stale`]) and handed
+//! out again as the source has it, waited for like a new one while the source computes it anew.
+//!
+//! Memory and work are bounded: at most [`MAX_SESSION_NODES`] nodes held, queued or waited for (stale nodes queued
+//! again besides: they are held ones), and a walk visits at most [`MAX_VISITS`] nodes.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
