@@ -670,25 +670,8 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, mut taken: u
     // Once a message does not decode or leaves a gap, this watch no longer moves the kept tail on.
     let mut damaged = false;
     loop {
-        let config = jetstream::consumer::pull::OrderedConfig {
-            filter_subject: inner.cfg.subject(c),
-            deliver_policy: jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence: next },
-            ..Default::default()
-        };
-        let created = match inner.stream.create_consumer(config).await {
-            Ok(consumer) => consumer.messages().await.map_err(|e| e.to_string()),
-            Err(e) => Err(e.to_string()),
-        };
-        let mut messages = match created {
-            Ok(m) => m,
-            Err(e) => {
-                warn!(?c, "watching the cell: {e}; trying again in {pause:?}");
-                tokio::time::sleep(pause).await;
-                pause = (pause * 2).min(WATCH_RETRY_MAX);
-                continue;
-            }
-        };
-        pause = WATCH_RETRY;
+        let from = jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence: next };
+        let mut messages = ordered(&inner, inner.cfg.subject(c), from, &mut pause).await;
         while let Some(m) = messages.next().await {
             let m = match m {
                 Ok(m) => m,
@@ -741,6 +724,39 @@ async fn watch_cell(inner: Arc<Inner>, c: CellCoord, mut next: u64, mut taken: u
     }
 }
 
+/// The messages of an ordered consumer of `filter_subject` from `from`, created again until it can be, after a pause
+/// that doubles from [`WATCH_RETRY`] up to [`WATCH_RETRY_MAX`] (`pause`: the watch's, back to the first once
+/// created).
+async fn ordered(
+    inner: &Inner,
+    filter_subject: String,
+    from: jetstream::consumer::DeliverPolicy,
+    pause: &mut Duration,
+) -> jetstream::consumer::pull::Ordered {
+    loop {
+        let config = jetstream::consumer::pull::OrderedConfig {
+            filter_subject: filter_subject.clone(),
+            deliver_policy: from,
+            ..Default::default()
+        };
+        let created = match inner.stream.create_consumer(config).await {
+            Ok(consumer) => consumer.messages().await.map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
+        match created {
+            Ok(m) => {
+                *pause = WATCH_RETRY;
+                return m;
+            }
+            Err(e) => {
+                warn!(subject = filter_subject, "watching: {e}; trying again in {pause:?}");
+                tokio::time::sleep(*pause).await;
+                *pause = (*pause * 2).min(WATCH_RETRY_MAX);
+            }
+        }
+    }
+}
+
 /// Tell `watcher` of every run any writer publishes on the world's subjects from now on, as published (a lost
 /// race's too: the edge's index of edited cells takes only versions from it, as [`Inner::versions`] takes a subject's
 /// last message): one ordered consumer of the whole stream a store, created again from just after the last
@@ -749,29 +765,11 @@ async fn watch_stream(inner: Arc<Inner>, watcher: Arc<dyn EditWatcher>) {
     let mut pause = WATCH_RETRY;
     let mut next: Option<u64> = None;
     loop {
-        let deliver_policy = match next {
+        let from = match next {
             Some(start_sequence) => jetstream::consumer::DeliverPolicy::ByStartSequence { start_sequence },
             None => jetstream::consumer::DeliverPolicy::New,
         };
-        let config = jetstream::consumer::pull::OrderedConfig {
-            filter_subject: inner.cfg.wildcard(),
-            deliver_policy,
-            ..Default::default()
-        };
-        let created = match inner.stream.create_consumer(config).await {
-            Ok(consumer) => consumer.messages().await.map_err(|e| e.to_string()),
-            Err(e) => Err(e.to_string()),
-        };
-        let mut messages = match created {
-            Ok(m) => m,
-            Err(e) => {
-                warn!("watching the edit stream: {e}; trying again in {pause:?}");
-                tokio::time::sleep(pause).await;
-                pause = (pause * 2).min(WATCH_RETRY_MAX);
-                continue;
-            }
-        };
-        pause = WATCH_RETRY;
+        let mut messages = ordered(&inner, inner.cfg.wildcard(), from, &mut pause).await;
         while let Some(m) = messages.next().await {
             let m = match m {
                 Ok(m) => m,
