@@ -38,44 +38,56 @@ fn root() -> PathBuf {
 
 /// A minimal HTTP/1.1 exchange with chromedriver: `method path` with a JSON body; the JSON answer's `value`.
 fn webdriver(port: u16, method: &str, path: &str, body: Option<&Value>) -> Value {
+    let v = try_webdriver(port, method, path, body).unwrap_or_else(|e| panic!("{method} {path}: {e}"));
+    // WebDriver's errors: `{"error", "message", "stacktrace"}` (a page state has an `error` field of its own).
+    let failed = v["value"].get("error").is_some_and(Value::is_string) && v["value"].get("stacktrace").is_some();
+    assert!(!failed, "{method} {path}: {v}");
+    v["value"].clone()
+}
+
+/// One WebDriver request: chromedriver's whole answer, or why none came (the connection failed or closed early).
+fn try_webdriver(port: u16, method: &str, path: &str, body: Option<&Value>) -> Result<Value, String> {
     let body = body.map(|b| b.to_string()).unwrap_or_default();
-    let mut s = TcpStream::connect(("127.0.0.1", port)).expect("chromedriver answers");
+    let mut s = TcpStream::connect(("127.0.0.1", port)).map_err(|e| format!("chromedriver does not answer: {e}"))?;
     s.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\
          Connection: close\r\n\r\n",
         body.len()
     );
-    s.write_all(head.as_bytes()).and_then(|()| s.write_all(body.as_bytes())).expect("request written");
+    s.write_all(head.as_bytes()).and_then(|()| s.write_all(body.as_bytes())).map_err(|e| format!("request: {e}"))?;
     // Read the head, then the body by its length (chromedriver may keep the connection open).
     let mut raw = Vec::new();
     let mut buf = [0u8; 65536];
+    let mut read = |raw: &mut Vec<u8>| match s.read(&mut buf) {
+        Ok(0) => Err("chromedriver closed before answering".to_string()),
+        Ok(n) => {
+            raw.extend_from_slice(&buf[..n]);
+            Ok(())
+        }
+        Err(e) => Err(format!("answer read: {e}")),
+    };
     let at = loop {
         if let Some(i) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
             break i + 4;
         }
-        let n = s.read(&mut buf).expect("answer read");
-        assert!(n > 0, "chromedriver closed before answering {method} {path}");
-        raw.extend_from_slice(&buf[..n]);
+        read(&mut raw)?;
     };
     let head = String::from_utf8_lossy(&raw[..at]).to_ascii_lowercase();
     let length = head
         .lines()
         .find_map(|l| l.strip_prefix("content-length:"))
         .map(|v| v.trim().parse::<usize>().expect("a length"))
-        .unwrap_or_else(|| panic!("no content-length in chromedriver's answer: {head}"));
+        .ok_or_else(|| format!("no content-length in chromedriver's answer: {head}"))?;
     while raw.len() < at + length {
-        let n = s.read(&mut buf).expect("answer read");
-        assert!(n > 0, "chromedriver closed mid-answer");
-        raw.extend_from_slice(&buf[..n]);
+        read(&mut raw)?;
     }
-    let body = &raw[at..at + length];
-    let v: Value = serde_json::from_slice(body).expect("chromedriver answers JSON");
-    // WebDriver's errors: `{"error", "message", "stacktrace"}` (a page state has an `error` field of its own).
-    let failed = v["value"].get("error").is_some_and(Value::is_string) && v["value"].get("stacktrace").is_some();
-    assert!(!failed, "{method} {path}: {v}");
-    v["value"].clone()
+    serde_json::from_slice(&raw[at..at + length]).map_err(|e| format!("chromedriver's answer is not JSON: {e}"))
 }
+
+/// Times chromedriver and Chromium are started before a test gives up: on a loaded machine chromedriver has
+/// dropped the connection that asked for a session, before any page was opened (CI on 2026-11-29).
+const BROWSER_STARTS: usize = 3;
 
 /// chromedriver with one headless Chromium session; both end when this drops.
 struct Browser {
@@ -96,6 +108,18 @@ impl Browser {
             panic!("chromedriver not found: install Debian's chromium and chromium-driver (scripts/test does)")
         });
         let chromium = which("chromium").unwrap_or_else(|| panic!("chromium not found (scripts/test installs it)"));
+        let mut why = Vec::new();
+        for _ in 0..BROWSER_STARTS {
+            match Browser::try_start(&chromedriver, &chromium, flags) {
+                Ok(b) => return b,
+                Err(e) => why.push(e),
+            }
+        }
+        panic!("no browser session in {BROWSER_STARTS} starts: {why:?}");
+    }
+
+    /// Start chromedriver and ask it for a session; `Err` (chromedriver stopped) when the session was not made.
+    fn try_start(chromedriver: &Path, chromium: &Path, flags: &[&str]) -> Result<Browser, String> {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let driver = Command::new(chromedriver)
             .arg(format!("--port={port}"))
@@ -127,9 +151,11 @@ impl Browser {
         let caps = json!({"capabilities": {"alwaysMatch": {"browserName": "chrome",
             "goog:chromeOptions": {"binary": chromium, "args": args}}}});
         let mut b = Browser { driver, port, session: String::new() };
-        let s = webdriver(port, "POST", "/session", Some(&caps));
-        b.session = s["sessionId"].as_str().expect("a session id").to_owned();
-        b
+        // Asked once: a WebDriver error (chromedriver's own answer) fails the test; no answer at all starts again.
+        let s = try_webdriver(port, "POST", "/session", Some(&caps))?;
+        assert!(s["value"].get("stacktrace").is_none(), "POST /session: {s}");
+        b.session = s["value"]["sessionId"].as_str().expect("a session id").to_owned();
+        Ok(b)
     }
 
     fn call(&self, method: &str, path: &str, body: Option<&Value>) -> Value {
