@@ -346,26 +346,33 @@ impl Shared {
 
     fn announce(&self, cell: CellCoord, version: u32) {
         self.index_version(cell, version);
-        self.queue_correction(cell, version);
         self.hub.announce(CellChange { cell, version });
     }
 
-    /// Put a cell's version in the index of edited cells (a version only moves forward); whether it moved.
+    /// Put a cell's version in the index of edited cells (a version only moves forward); whether it moved. A cell
+    /// whose version moved is queued for correcting the summaries ([`correct`]): every way an edit is heard of
+    /// passes here.
     fn index_version(&self, cell: CellCoord, version: u32) -> bool {
-        let mut index = self.index.locked();
-        let full = index.len() >= MAX_INDEXED;
-        match index.get_mut(&cell) {
-            Some(v) if *v >= version => false,
-            Some(v) => {
-                *v = version;
-                true
+        let moved = {
+            let mut index = self.index.locked();
+            let full = index.len() >= MAX_INDEXED;
+            match index.get_mut(&cell) {
+                Some(v) if *v >= version => false,
+                Some(v) => {
+                    *v = version;
+                    true
+                }
+                None if version > 0 && !full => {
+                    index.insert(cell, version);
+                    true
+                }
+                None => false,
             }
-            None if version > 0 && !full => {
-                index.insert(cell, version);
-                true
-            }
-            None => false,
+        };
+        if moved {
+            self.queue_correction(cell, version);
         }
+        moved
     }
 
     /// The index thread: read every edited cell's version from the edit store at start and every
@@ -376,7 +383,6 @@ impl Shared {
             match self.edits.cells() {
                 Ok(cells) => {
                     for (cell, version) in cells {
-                        self.queue_correction(cell, version);
                         if self.index_version(cell, version) && !first {
                             self.hub.announce(CellChange { cell, version });
                         }
@@ -674,7 +680,6 @@ impl canopy_edits::EditWatcher for IndexWatcher {
         if let Some(shared) = self.0.upgrade()
             && shared.index_version(e.cell, e.version)
         {
-            shared.queue_correction(e.cell, e.version);
             shared.hub.announce(CellChange { cell: e.cell, version: e.version });
         }
     }
