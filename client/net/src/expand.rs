@@ -3,7 +3,8 @@
 //! a process (they share its cache: the same world function gives the same cells).
 //!
 //! Far-view summary nodes ([`FarJob`]) are computed by the same workers into their world's memo, coarsest first,
-//! and only while no cell waits: cells go first.
+//! and only while no cell waits: cells go first, and wait for one block of a node's leaves at most (a coarse node is
+//! computed a block at a time, its job queued again after each).
 //!
 //! A job is dropped unexpanded when its grant is no longer wanted ([`Job::cancel`]: the cell was released or left
 //! the area of interest). Worlds are built once per world function ([`Expander::world`]) from the manifest and the
@@ -338,12 +339,17 @@ impl Drop for Expander {
 }
 
 impl Inner {
-    fn run_far(&self, job: FarJob) {
+    /// A block of the far job's node: done when it was the last (the job's `done` called), else the job goes back
+    /// to its place in the queue, so that a cell granted meanwhile waits for one block at most.
+    fn run_far(&self, order: (Reverse<u8>, u64), job: FarJob) {
         if job.cancelled.load(Relaxed) {
             return;
         }
+        if Summaries::step_shared(job.world.summaries(), job.node).is_none() {
+            self.queue.locked().far.insert(order, job);
+            return;
+        }
         self.stats.far_jobs.fetch_add(1, Relaxed);
-        Summaries::get_shared(job.world.summaries(), job.node);
         (job.done)();
     }
 
@@ -358,9 +364,9 @@ impl Inner {
                     if let Some(Queued(job, _)) = q.jobs.pop() {
                         break job;
                     }
-                    if let Some((_, far)) = q.far.pop_first() {
+                    if let Some((order, far)) = q.far.pop_first() {
                         drop(q);
-                        self.run_far(far);
+                        self.run_far(order, far);
                         q = self.queue.locked();
                         continue;
                     }
@@ -421,6 +427,46 @@ mod tests {
         });
         let err = expander.world("two", &two, std::slice::from_ref(&worm), None, grid()).unwrap_err();
         assert!(err.contains("species table"), "{err}");
+    }
+
+    /// A cell granted while a coarse far-view node is being computed waits for one block of its leaves, not for
+    /// the node: with one worker, the cell is done before the node.
+    #[test]
+    fn a_cell_goes_between_the_blocks_of_a_far_node() {
+        let expander = Expander::new(1, 1 << 20);
+        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
+        let f = Arc::new(WorldFunction {
+            manifest: "seed 7\nbounds -2048 -2048 2048 2048\ncell 64\nspecies a worm\nscatter a {\n  spacing 4\n}\n"
+                .into(),
+        });
+        let grid =
+            Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-32, -32), max: CellCoord::new(31, 31) };
+        let world = expander.world("t", &f, &[worm], None, grid).unwrap();
+        // 4 × 4 blocks of 16 × 16 cells.
+        let node = NodeKey::of_cell(CellCoord::new(0, 0), canopy_worlds::world::far::LEAF_BLOCK_LEVEL + 2);
+        let (tx, rx) = std::sync::mpsc::channel();
+        let far_tx = tx.clone();
+        expander.submit_far(FarJob {
+            world: Arc::clone(&world),
+            node,
+            cancelled: Arc::default(),
+            done: Box::new(move || far_tx.send("node").unwrap()),
+        });
+        // The first block is in the memo: the node is under way.
+        while world.summaries().locked().is_empty() {
+            std::thread::yield_now();
+        }
+        let cell = CellCoord::new(3, 3);
+        expander.submit(Job {
+            world: Arc::clone(&world),
+            cell,
+            priority: 0.0,
+            cancelled: Arc::default(),
+            done: Box::new(move |_| tx.send("cell").unwrap()),
+        });
+        assert_eq!([rx.recv().unwrap(), rx.recv().unwrap()], ["cell", "node"]);
+        let memo = world.summaries().locked().peek(node).cloned().expect("the node is in the memo");
+        assert_eq!(*memo, world.world.node_summary(node));
     }
 
     #[test]

@@ -45,6 +45,11 @@ impl std::fmt::Debug for Summaries {
     }
 }
 
+/// The nodes of levels 1 ..= [`LEAF_BLOCK_LEVEL`] of one block (1 + 4 + 16 + 64), which a block hands back for
+/// caching, and its leaves (handed back too when a leaf is asked for).
+const BLOCK_NODES: usize = 85;
+const BLOCK_LEAVES: usize = 256;
+
 /// What computing one node needs beyond the cache ([`Summaries::plan`]): the blocks of leaves to compute.
 #[derive(Debug)]
 struct Plan {
@@ -81,8 +86,7 @@ impl Plan {
     fn compute(self) -> Computed {
         let Plan { key, world, model, edits, corrections, local, missing, keep } = self;
         let leaves = key.level == 0;
-        // Each block hands back its nodes of levels 1 ..= LEAF_BLOCK_LEVEL (85), or its 256 leaves as well.
-        let per_block = if leaves { 341 } else { 85 };
+        let per_block = if leaves { BLOCK_NODES + BLOCK_LEAVES } else { BLOCK_NODES };
         let kept_blocks = (keep / per_block).max(1);
         let computed = par::map(
             &missing,
@@ -204,6 +208,31 @@ impl Summaries {
         }
     }
 
+    /// [`Summaries::get_shared`] a block of leaves at a time, on the calling thread: `key` when its last missing
+    /// block is the one computed now (or none was missing), else `None` after computing and caching the first
+    /// missing block, so that a worker can take more urgent work between the blocks of a coarse node (each is
+    /// 256 cells: a few milliseconds) and then ask again. A node needing more blocks than the memo keeps at once
+    /// is computed whole, as [`Summaries::get_shared`] does, for its blocks would evict each other.
+    pub fn step_shared(memo: &Mutex<Summaries>, key: NodeKey) -> Option<Arc<NodeSummary>> {
+        let plan = memo.locked().plan(key);
+        match plan {
+            Ok(hit) => Some(hit),
+            Err(plan) if plan.missing.len() <= 1 || plan.missing.len() > plan.keep / BLOCK_NODES => {
+                let computed = plan.compute();
+                Some(memo.locked().finish(computed))
+            }
+            Err(mut plan) => {
+                let block = plan.missing[0];
+                plan.key = block;
+                plan.missing.truncate(1);
+                plan.local.clear();
+                let computed = plan.compute();
+                memo.locked().finish(computed);
+                None
+            }
+        }
+    }
+
     /// `key` if it is cached, else what computing it needs: the cached nodes below it and the missing blocks.
     fn plan(&mut self, key: NodeKey) -> Result<Arc<NodeSummary>, Plan> {
         if let Some(hit) = self.touch(key) {
@@ -301,6 +330,33 @@ fn resolve_uncached(key: NodeKey, local: &mut BTreeMap<NodeKey, Arc<NodeSummary>
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A node of 2 × 2 blocks stepped a block at a time is the node computed whole, answered with the last block;
+    /// a memo too small to keep its blocks at once computes it whole at the first step.
+    #[test]
+    fn a_coarse_node_stepped_a_block_at_a_time_is_the_node_computed_whole() {
+        let text = "seed 7\nbounds -1024 -1024 1024 1024\ncell 64\nspecies a conifer\nscatter a {\n  spacing 8\n}\n";
+        let src = crate::diag::SourceFile::new("t.world", text);
+        let world = Arc::new(World::parse(&src, None).expect("loads"));
+        let key = NodeKey::of_cell(canopy_protocol::CellCoord::new(0, 0), LEAF_BLOCK_LEVEL + 1);
+        let whole = world.node_summary(key);
+        let memo = Mutex::new(Summaries::new(Arc::clone(&world)));
+        let mut steps = 1;
+        let stepped = loop {
+            match Summaries::step_shared(&memo, key) {
+                Some(n) => break n,
+                None => {
+                    assert_eq!(memo.locked().len(), steps * BLOCK_NODES, "each step caches one block's nodes");
+                    steps += 1;
+                }
+            }
+        };
+        assert_eq!(steps, 4, "four blocks, the node with the last");
+        assert_eq!(*stepped, whole);
+        assert!(Arc::ptr_eq(&Summaries::step_shared(&memo, key).expect("cached"), &stepped));
+        let small = Mutex::new(Summaries::with_capacity(Arc::clone(&world), 2 * BLOCK_NODES));
+        assert_eq!(*Summaries::step_shared(&small, key).expect("computed whole"), whole);
+    }
 
     /// A plan made before a correction is answered from the edits it was made with, and not cached.
     #[test]
