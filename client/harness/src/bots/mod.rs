@@ -184,7 +184,8 @@ pub struct BotReport {
     pub viewpoints: u32,
     /// The check against the world (`None`: not checked).
     pub verify: Option<Result<VerifySummary, String>>,
-    /// The area of interest sampled while walking (every [`SAMPLE_EVERY`]).
+    /// The area of interest sampled while walking (every [`SAMPLE_EVERY`]), from its first complete area of
+    /// interest on (the samples before are only counted).
     pub moving: AoiSamples,
     /// What its edits came to (`None`: it did not edit).
     pub edits: Option<EditStats>,
@@ -196,7 +197,7 @@ pub struct BotReport {
     pub failovers: Vec<Duration>,
 }
 
-/// How often a bot samples its area of interest while walking.
+/// How often a bot samples its area of interest while walking, on average (the gaps vary: see [`drive`]).
 pub const SAMPLE_EVERY: Duration = Duration::from_millis(250);
 
 /// Samples of a moving bot's area of interest: how much of it was held in full.
@@ -210,6 +211,8 @@ pub struct AoiSamples {
     pub complete: u64,
     /// Samples with the cell under the walker held in full.
     pub below: u64,
+    /// Samples not taken: the bot was filling its first area of interest.
+    pub filling: u64,
 }
 
 impl AoiSamples {
@@ -231,6 +234,7 @@ impl AoiSamples {
         self.held_sum += o.held_sum;
         self.complete += o.complete;
         self.below += o.below;
+        self.filling += o.filling;
     }
 }
 
@@ -357,7 +361,7 @@ pub struct DrivePlan {
     pub walk_until: Instant,
     /// How long to wait at rest for a complete area of interest.
     pub settle: Duration,
-    /// How often to call [`DriveHooks::sample`] (`None`: never).
+    /// How often to call [`DriveHooks::sample`] on average (`None`: never); the gaps vary (see [`drive`]).
     pub sample: Option<Duration>,
     /// Set to `true` to stop walking early.
     pub stop: tokio::sync::watch::Receiver<bool>,
@@ -414,6 +418,39 @@ pub trait DriveHooks<W: ?Sized = Walker> {
     fn edit_sent(&mut self, _request: u32, _op: &EditOp, _at: Instant) {}
 }
 
+/// The moments [`drive`] samples at: gaps drawn uniformly from ½ to 1½ times `every`, so that the samples fall at
+/// every phase of the walk's tick. Samples on a fixed clock lock to the tick: at 250 ms against a 100-ms tick, every
+/// other sample was due with a tick, and half of those came just after the tick sent a viewpoint, before the server
+/// could have answered it.
+struct Sampler {
+    every: Duration,
+    next: tokio::time::Instant,
+    rng: Rng,
+}
+
+impl Sampler {
+    fn new(every: Duration, seed: u64) -> Sampler {
+        let mut s = Sampler { every, next: tokio::time::Instant::now(), rng: Rng(seed) };
+        let gap = s.gap();
+        s.next += gap;
+        s
+    }
+
+    fn gap(&mut self) -> Duration {
+        self.every.mul_f64(0.5 + self.rng.unit_f64())
+    }
+}
+
+async fn next_sample(sampler: &mut Option<Sampler>) {
+    match sampler {
+        Some(s) => {
+            tokio::time::sleep_until(s.next).await;
+            s.next = tokio::time::Instant::now() + s.gap();
+        }
+        None => std::future::pending().await,
+    }
+}
+
 async fn next_tick(interval: &mut Option<tokio::time::Interval>) {
     match interval {
         Some(i) => drop(i.tick().await),
@@ -435,11 +472,10 @@ pub async fn drive<W: Mover, H: DriveHooks<W>>(
     let grid = conn.welcome().world.grid;
     let mut tick = tokio::time::interval(plan.tick);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut sample = plan.sample.map(|d| {
-        let mut i = tokio::time::interval(d);
-        i.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        i
-    });
+    // Seeded by where the walk starts, so bots started together sample at different moments.
+    let [x, z] = walker.position();
+    let mut sample =
+        plan.sample.map(|every| Sampler::new(every, u64::from(x.to_bits()) << 32 | u64::from(z.to_bits())));
     // Edits are paced by their own clock, catching up after a late tick (the rate is what is asked for).
     let mut edit_tick = hooks.edit_every().map(|d| tokio::time::interval(d.max(Duration::from_micros(100))));
     let mut last = Instant::now();
@@ -496,7 +532,7 @@ pub async fn drive<W: Mover, H: DriveHooks<W>>(
                     hooks.changed(conn);
                 }
             }
-            _ = next_tick(&mut sample) => hooks.sample(conn, walker, false),
+            _ = next_sample(&mut sample) => hooks.sample(conn, walker, false),
         }
     }
     // Stop: a viewpoint at rest, then wait for the area of interest to fill.
@@ -511,7 +547,7 @@ pub async fn drive<W: Mover, H: DriveHooks<W>>(
                 hooks.applied(conn, &ev?);
                 hooks.changed(conn);
             }
-            _ = next_tick(&mut sample) => hooks.sample(conn, walker, true),
+            _ = next_sample(&mut sample) => hooks.sample(conn, walker, true),
             _ = tokio::time::sleep_until(deadline) => return Ok(false),
         }
     }
@@ -603,8 +639,11 @@ impl DriveHooks for BotHooks<'_> {
     }
 
     fn sample(&mut self, conn: &Connection, walker: &Walker, settling: bool) {
-        if !settling {
-            self.report.moving.take(conn, walker.position());
+        match (settling, self.report.first_complete) {
+            (true, _) => {}
+            // Filling the first area of interest: what `first_complete` measures, not the walk.
+            (false, None) => self.report.moving.filling += 1,
+            (false, Some(_)) => self.report.moving.take(conn, walker.position()),
         }
     }
 
@@ -787,4 +826,24 @@ pub async fn run(cfg: BotsConfig, progress: Arc<Progress>) -> Result<Vec<BotRepo
         e.wait_idle().await;
     }
     Ok(reports)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The gaps between samples stay within ½ to 1½ times the mean, and the samples fall at every phase of a
+    /// 100-ms tick (on a fixed 250-ms clock they would fall at two phases only).
+    #[test]
+    fn samples_fall_at_every_phase_of_the_tick() {
+        let mut s = Sampler::new(SAMPLE_EVERY, 7);
+        let (mut at, mut bins) = (Duration::ZERO, [0u32; 10]);
+        for _ in 0..2000 {
+            let gap = s.gap();
+            assert!(gap >= SAMPLE_EVERY / 2 && gap < SAMPLE_EVERY * 3 / 2, "{gap:?}");
+            at += gap;
+            bins[(at.as_micros() % 100_000 / 10_000) as usize] += 1;
+        }
+        assert!(bins.iter().all(|&n| n >= 150), "each tenth of the tick holds about a tenth of the samples: {bins:?}");
+    }
 }

@@ -392,9 +392,10 @@ impl std::fmt::Display for BotsSummary {
             let pc = |n: u64| 100.0 * n as f64 / m.samples as f64;
             writeln!(
                 f,
-                "while moving ({} samples): AOI cells held in full {:.1}% on average, whole AOI in {:.1}% of samples, \
-                 the cell below in {:.1}%",
+                "while moving ({} samples, from each bot's first complete AOI; {} before it): AOI cells held in full \
+                 {:.1}% on average, whole AOI in {:.1}% of samples, the cell below in {:.1}%",
                 m.samples,
+                m.filling,
                 100.0 * m.held_sum / m.samples as f64,
                 pc(m.complete),
                 pc(m.below)
@@ -523,7 +524,7 @@ mod tests {
                     species_received: 3 + (id % 2) as u32,
                     summaries: 2 * n,
                     species_duplicates: (id % 7 == 0) as u32,
-                    moving: AoiSamples { samples: 4, held_sum: 3.5, complete: 3, below: 4 },
+                    moving: AoiSamples { samples: 4, held_sum: 3.5, complete: 3, below: 4, filling: 1 },
                     reconnects: (id % 3 == 2) as u32,
                     failovers: if id % 3 == 2 { vec![ms(40 + 3 * n)] } else { Vec::new() },
                     ..BotReport::default()
