@@ -7,7 +7,8 @@
 //! rules (the welcome's), instead of `radius`.
 //!
 //! Each bot measures its "area of interest change → complete" latencies: from the first viewpoint that left its
-//! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full.
+//! area of interest incomplete to the moment every cell of the (then current) area of interest is held in full. The
+//! first area of interest, filled from nothing, is "connect → first complete" instead, not a change.
 //!
 //! With an [`EditPlan`] the first bots also edit the world while they walk ([`edits`]: plants near them, fells of
 //! their own plants), and every bot measures how soon the others' edits reach it; the check against the world then
@@ -160,7 +161,8 @@ pub struct BotReport {
     /// Connect → the last far-view summary node this bot received or computed: for a bot at rest, the time to
     /// its full horizon.
     pub far_settled: Option<Duration>,
-    /// Area-of-interest change → complete latencies while walking and at the end.
+    /// Area-of-interest change → complete latencies while walking and at the end (the first fill is
+    /// `first_complete`).
     pub latencies: Vec<Duration>,
     /// Whether it ended with a complete area of interest.
     pub complete: bool,
@@ -555,7 +557,8 @@ pub async fn drive<W: Mover, H: DriveHooks<W>>(
 }
 
 /// A bot's "area of interest change → complete" latencies: from the first change that left the area of interest
-/// incomplete to the moment it is complete again (the first from the start of the walk).
+/// incomplete to the moment it is complete again. The first fill, from the start of the walk, is the report's
+/// `first_complete` (from the start of connecting), not one of them.
 #[derive(Clone, Copy, Debug)]
 pub struct Completion {
     started: Instant,
@@ -582,8 +585,10 @@ impl Completion {
         self.complete = now_complete;
         match (now_complete, self.pending) {
             (true, Some(t0)) => {
-                report.latencies.push(t0.elapsed());
-                report.first_complete.get_or_insert(self.started.elapsed());
+                match report.first_complete {
+                    Some(_) => report.latencies.push(t0.elapsed()),
+                    None => report.first_complete = Some(self.started.elapsed()),
+                }
                 self.pending = None;
             }
             (false, None) => self.pending = Some(Instant::now()),
