@@ -430,7 +430,8 @@ mod tests {
     }
 
     /// A cell granted while a coarse far-view node is being computed waits for one block of its leaves, not for
-    /// the node: with one worker, the cell is done before the node.
+    /// the node: with one worker, the cell is done before the node. A node cancelled while it is computed stops
+    /// within a block: the next far job runs, and the cancelled node's blocks stay short of all of them.
     #[test]
     fn a_cell_goes_between_the_blocks_of_a_far_node() {
         let expander = Expander::new(1, 1 << 20);
@@ -443,30 +444,51 @@ mod tests {
             Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-32, -32), max: CellCoord::new(31, 31) };
         let world = expander.world("t", &f, &[worm], None, grid).unwrap();
         // 4 × 4 blocks of 16 × 16 cells.
-        let node = NodeKey::of_cell(CellCoord::new(0, 0), canopy_worlds::world::far::LEAF_BLOCK_LEVEL + 2);
+        let block = canopy_worlds::world::far::LEAF_BLOCK_LEVEL;
+        let node = NodeKey::of_cell(CellCoord::new(0, 0), block + 2);
         let (tx, rx) = std::sync::mpsc::channel();
-        let far_tx = tx.clone();
-        expander.submit_far(FarJob {
-            world: Arc::clone(&world),
-            node,
-            cancelled: Arc::default(),
-            done: Box::new(move || far_tx.send("node").unwrap()),
-        });
+        let far = |node: NodeKey, cancelled: &Arc<AtomicBool>, name: &'static str| {
+            let tx = tx.clone();
+            FarJob {
+                world: Arc::clone(&world),
+                node,
+                cancelled: Arc::clone(cancelled),
+                done: Box::new(move || tx.send(name).unwrap()),
+            }
+        };
+        expander.submit_far(far(node, &Arc::default(), "node"));
         // The first block is in the memo: the node is under way.
         while world.summaries().locked().is_empty() {
             std::thread::yield_now();
         }
-        let cell = CellCoord::new(3, 3);
+        let cell_tx = tx.clone();
         expander.submit(Job {
             world: Arc::clone(&world),
-            cell,
+            cell: CellCoord::new(3, 3),
             priority: 0.0,
             cancelled: Arc::default(),
-            done: Box::new(move |_| tx.send("cell").unwrap()),
+            done: Box::new(move |_| cell_tx.send("cell").unwrap()),
         });
         assert_eq!([rx.recv().unwrap(), rx.recv().unwrap()], ["cell", "node"]);
         let memo = world.summaries().locked().peek(node).cloned().expect("the node is in the memo");
         assert_eq!(*memo, world.world.node_summary(node));
+
+        // The other 16 blocks' node, cancelled once one of its blocks is in; then a node of one block.
+        let blocks_of = |key: NodeKey| {
+            let (memo, side) = (world.summaries().locked(), 1 << (key.level - block));
+            let at = |i: i32| NodeKey { level: block, x: key.x * side + i % side, z: key.z * side + i / side };
+            (0..side * side).filter(|&i| memo.peek(at(i)).is_some()).count()
+        };
+        let other = NodeKey::of_cell(CellCoord::new(-32, -32), block + 2);
+        let cancel = Arc::new(AtomicBool::new(false));
+        expander.submit_far(far(other, &cancel, "cancelled"));
+        while blocks_of(other) == 0 {
+            std::thread::yield_now();
+        }
+        Job::cancel(&cancel);
+        expander.submit_far(far(NodeKey::of_cell(CellCoord::new(16, -32), block), &Arc::default(), "small"));
+        assert_eq!(rx.recv().unwrap(), "small", "the cancelled node's done is never called");
+        assert!(blocks_of(other) < 16, "the cancelled node stopped within a block: {} of 16", blocks_of(other));
     }
 
     #[test]
