@@ -212,7 +212,7 @@ impl Summaries {
     /// block is the one computed now (or none was missing), else `None` after computing and caching the first
     /// missing block, so that a worker can take more urgent work between the blocks of a coarse node (each is
     /// 256 cells: a few milliseconds) and then ask again. A node needing more blocks than the memo keeps at once
-    /// is computed whole, as [`Summaries::get_shared`] does, for its blocks would evict each other.
+    /// is computed whole, as [`Summaries::get_shared`] does (on every core), for its blocks would evict each other.
     pub fn step_shared(memo: &Mutex<Summaries>, key: NodeKey) -> Option<Arc<NodeSummary>> {
         let plan = memo.locked().plan(key);
         match plan {
