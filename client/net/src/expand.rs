@@ -411,20 +411,25 @@ mod tests {
         Grid { origin: [0.0, 0.0], cell_size: 32.0, min: CellCoord::new(-4, -4), max: CellCoord::new(3, 3) }
     }
 
+    fn worm() -> SpeciesGraph {
+        canopy_worlds::library::find("worm").unwrap().load().unwrap()
+    }
+
+    /// A world function over ±`half` metres in cells of `cell` metres whose species `a` is the worm, `rest` after it.
+    fn worm_function(half: u32, cell: u32, rest: &str) -> Arc<WorldFunction> {
+        let manifest = format!("seed 7\nbounds -{half} -{half} {half} {half}\ncell {cell}\nspecies a worm\n{rest}");
+        Arc::new(WorldFunction { manifest })
+    }
+
     #[test]
     fn a_world_function_that_does_not_build_is_refused_with_its_line_and_column() {
         let expander = Expander::new(1, 1 << 20);
-        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
-        let bad = Arc::new(WorldFunction {
-            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nscatter a {\n  spacing -3\n}\n"
-                .into(),
-        });
+        let worm = worm();
+        let bad = worm_function(128, 32, "scatter a {\n  spacing -3\n}\n");
         let err = expander.world("bad", &bad, std::slice::from_ref(&worm), None, grid()).unwrap_err();
         assert!(err.contains("bad.world:6:"), "{err}");
         // A function naming more species than the table holds says so, and names no file it could not read.
-        let two = Arc::new(WorldFunction {
-            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nspecies b worm\n".into(),
-        });
+        let two = worm_function(128, 32, "species b worm\n");
         let err = expander.world("two", &two, std::slice::from_ref(&worm), None, grid()).unwrap_err();
         assert!(err.contains("species table"), "{err}");
     }
@@ -435,14 +440,10 @@ mod tests {
     #[test]
     fn a_cell_goes_between_the_blocks_of_a_far_node() {
         let expander = Expander::new(1, 1 << 20);
-        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
-        let f = Arc::new(WorldFunction {
-            manifest: "seed 7\nbounds -2048 -2048 2048 2048\ncell 64\nspecies a worm\nscatter a {\n  spacing 4\n}\n"
-                .into(),
-        });
+        let f = worm_function(2048, 64, "scatter a {\n  spacing 4\n}\n");
         let grid =
             Grid { origin: [0.0, 0.0], cell_size: 64.0, min: CellCoord::new(-32, -32), max: CellCoord::new(31, 31) };
-        let world = expander.world("t", &f, &[worm], None, grid).unwrap();
+        let world = expander.world("t", &f, &[worm()], None, grid).unwrap();
         // 4 × 4 blocks of 16 × 16 cells.
         let block = canopy_worlds::world::far::LEAF_BLOCK_LEVEL;
         let node = NodeKey::of_cell(CellCoord::new(0, 0), block + 2);
@@ -494,10 +495,8 @@ mod tests {
     #[test]
     fn cancelled_jobs_are_dropped_and_the_rest_expand_nearest_first_once_each() {
         let expander = Expander::new(1, 1 << 20);
-        let worm = canopy_worlds::library::find("worm").unwrap().load().unwrap();
-        let f = Arc::new(WorldFunction {
-            manifest: "seed 7\nbounds -128 -128 128 128\ncell 32\nspecies a worm\nscatter a {\n  spacing 4\n}\n".into(),
-        });
+        let worm = worm();
+        let f = worm_function(128, 32, "scatter a {\n  spacing 4\n}\n");
         let world = expander.world("t", &f, std::slice::from_ref(&worm), None, grid()).unwrap();
         assert!(Arc::ptr_eq(&world, &expander.world("t", &f, &[worm], None, grid()).unwrap()), "built once");
         assert_eq!(expander.function(&f.hash()).as_deref(), Some(&*f));
