@@ -13,10 +13,25 @@ struct Prim {
 // `segments` is binding 0 of group 1 and `draw` binding 0 of group 2 (segment.wgsl).
 @group(1) @binding(1) var<storage, read> prims: array<Prim>;
 
+// What the GPU cull (cull.wgsl) kept of a draw, in the draw's order: each primitive's segment and its place in the
+// arena, from `draw.visible_base` on.
+@group(1) @binding(2) var<storage, read> visible: array<vec2<u32>>;
+
 @vertex
 fn vs_prim(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(instance_index) ii: u32) -> GeoOut {
     let s = segments[find_segment(ii, draw.seg_first, draw.seg_count)];
-    let prim = prims[s.base + ii - s.first];
+    return shape_prim(p, un, s, prims[s.base + ii - s.first]);
+}
+
+// The same, for a draw the GPU culled: the instance is the kept primitive's place in the visible list.
+@vertex
+fn vs_prim_culled(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builtin(instance_index) ii: u32) -> GeoOut {
+    let e = visible[draw.visible_base + ii];
+    return shape_prim(p, un, segments[e.x], prims[e.y]);
+}
+
+// A vertex `p` (normal `un`) of the unit shape of `draw.kind`, shaped and placed as `prim` of the tree `s`.
+fn shape_prim(p: vec4<f32>, un: vec4<f32>, s: Segment, prim: Prim) -> GeoOut {
     var local: vec3<f32>;
     var n: vec3<f32>;
     switch draw.kind {

@@ -26,7 +26,8 @@ struct Draw {
     seg_first: u32,
     seg_count: u32,
     kind: u32,
-    pad: u32,
+    // The draw's first entry in the visible list, where the GPU culls (prims.wgsl `vs_prim_culled`).
+    visible_base: u32,
 };
 
 @group(1) @binding(0) var<storage, read> segments: array<Segment>;

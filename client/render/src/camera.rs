@@ -124,6 +124,11 @@ impl Frustum {
         Frustum { planes }
     }
 
+    /// The planes `(n, d)`, `n` a unit vector: the four sides, then the near plane.
+    pub(crate) fn planes(&self) -> [Vec4; 5] {
+        self.planes
+    }
+
     /// Whether a sphere is at least partly inside.
     #[inline]
     pub fn sphere_visible(&self, center: Vec3, radius: f32) -> bool {

@@ -54,7 +54,7 @@ pub use gpu::{Gpu, GpuError};
 pub use lod::{Band, LodConfig};
 #[cfg(not(target_arch = "wasm32"))]
 pub use offscreen::{OffscreenError, RenderedImage};
-pub use renderer::{FrameStats, Renderer, timing};
+pub use renderer::{CullCounts, FrameStats, Renderer, timing};
 pub use scene::{Scene, SceneFar, SceneInstance};
 
 use canopy_worlds::amplify::Budget;
@@ -220,6 +220,36 @@ impl FarPath {
 
 named_values!(FarPath, "far path");
 
+/// Where the camera's near and mid primitives are culled (also the values of `--cull`): one by one on the GPU
+/// (`renderer/cull.rs`: the view frustum, [`RenderConfig::prim_cull_px`] and the terrain's occlusion pyramid, the
+/// kept ones drawn indirectly), or only tree by tree, as the CPU's selection does either way.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum CullPath {
+    /// The GPU on a GPU, the CPU on a CPU adapter (lavapipe) and in a browser.
+    Auto,
+    /// Each primitive on the GPU (compute passes and indirect draws).
+    Gpu,
+    /// Whole trees on the CPU only.
+    Cpu,
+}
+
+impl CullPath {
+    /// The paths with their names (the values of `--cull`).
+    pub const NAMES: [(&'static str, CullPath); 3] =
+        [("auto", CullPath::Auto), ("gpu", CullPath::Gpu), ("cpu", CullPath::Cpu)];
+
+    /// Whether the GPU culls on an adapter of `device_type`.
+    pub fn on_gpu(self, device_type: wgpu::DeviceType) -> bool {
+        match self {
+            CullPath::Auto => device_type != wgpu::DeviceType::Cpu,
+            CullPath::Gpu => true,
+            CullPath::Cpu => false,
+        }
+    }
+}
+
+named_values!(CullPath, "cull path");
+
 /// Everything that configures a renderer. Every threshold is here, none in the shaders.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RenderConfig {
@@ -256,6 +286,11 @@ pub struct RenderConfig {
     pub forest_layer: f32,
     /// How the far field is drawn.
     pub far_path: FarPath,
+    /// Where the near and mid primitives are culled.
+    pub cull: CullPath,
+    /// Where the GPU culls: a primitive whose bounding sphere is narrower on screen than this many pixels is not
+    /// drawn (0 keeps every one in view).
+    pub prim_cull_px: f32,
     /// Sun shadows: cascaded shadow maps cast by the terrain and the near and mid trees.
     pub shadows: Shadows,
     /// Wind bending trees and fluttering leaves in the vertex stage.
@@ -325,6 +360,8 @@ impl Default for RenderConfig {
             ground_window: ground::WINDOW_SQUARES,
             forest_layer: 0.5,
             far_path: FarPath::Auto,
+            cull: CullPath::Auto,
+            prim_cull_px: 1.0,
             shadows: Shadows::default(),
             wind: Wind::default(),
             msaa: 0,
@@ -391,6 +428,7 @@ impl RenderConfig {
             ((8..=volume::MAX_SLOT).contains(&self.volume_resolution), "volume resolution"),
             (self.near_clip > 0.0 && self.near_clip.is_finite(), "near clip plane"),
             ((0.0..=1000.0).contains(&self.forest_layer), "forest layer"),
+            ((0.0..=64.0).contains(&self.prim_cull_px), "primitive cull size"),
             (self.shadows.resolution <= 8192, "shadow map resolution"),
             ((1.0..=100_000.0).contains(&self.shadows.distance), "shadow distance"),
             (fin(&self.wind.direction) && self.wind.direction.iter().any(|v| *v != 0.0), "wind direction"),

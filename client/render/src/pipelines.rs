@@ -207,6 +207,11 @@ pub(crate) struct Pipelines {
     pub shadow_terrain: wgpu::RenderPipeline,
     pub shadow_prims: wgpu::RenderPipeline,
     pub shadow_mesh: wgpu::RenderPipeline,
+    /// Where the GPU culls (`renderer/cull.rs`): the terrain drawn depth-only from the camera (the occlusion
+    /// pyramid's source), and the primitives drawn from the cull's visible list (group 1: segments, arena, list).
+    pub terrain_depth: Option<wgpu::RenderPipeline>,
+    pub prims_culled_layout: Option<wgpu::BindGroupLayout>,
+    pub prims_culled: Option<wgpu::RenderPipeline>,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -255,12 +260,14 @@ fn depth(write: bool, compare: wgpu::CompareFunction) -> Option<wgpu::DepthStenc
 
 impl Pipelines {
     /// Build every pipeline for targets of `format`, the scene pass's with `samples` samples a pixel;
-    /// `early_depth`: whether the device has [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`].
+    /// `early_depth`: whether the device has [`wgpu::Features::SHADER_EARLY_DEPTH_TEST`]; `culls`: whether the
+    /// GPU culls the primitives (its pipelines are built only then).
     pub(crate) fn new(
         device: &wgpu::Device,
         format: wgpu::TextureFormat,
         samples: u32,
         early_depth: bool,
+        culls: bool,
     ) -> Pipelines {
         let vs_fs = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let fs_cs = wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE;
@@ -526,6 +533,46 @@ impl Pipelines {
             &opaque,
             (samples, false),
         );
+        let prims_culled_layout = culls.then(|| {
+            device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("culled prims"),
+                entries: &[storage(0, v), storage(1, v), storage(2, v)],
+            })
+        });
+        let prims_culled = prims_culled_layout.as_ref().map(|culled| {
+            pipeline(
+                "culled prims",
+                &layout(
+                    "culled prims",
+                    &[Some(&globals_layout), Some(culled), Some(&draw_layout), Some(&shadow_layout)],
+                ),
+                &prims_mod,
+                ("vs_prim_culled", "fs_prim"),
+                &unit_buffers,
+                None,
+                depth(true, greater),
+                &opaque,
+                (samples, false),
+            )
+        });
+        let terrain_depth = culls.then(|| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some("terrain depth"),
+                layout: Some(&layout("terrain depth", &[Some(&globals_layout)])),
+                vertex: wgpu::VertexState {
+                    module: &terrain_mod,
+                    entry_point: Some("vs_terrain"),
+                    compilation_options: Default::default(),
+                    buffers: &terrain_buffers,
+                },
+                primitive: wgpu::PrimitiveState::default(),
+                depth_stencil: depth(true, greater),
+                multisample: wgpu::MultisampleState::default(),
+                fragment: None,
+                multiview_mask: None,
+                cache: None,
+            })
+        });
         let shadow_prims = caster(
             "primitive shadow",
             &layout("primitive shadow", &[Some(&globals_layout), Some(&prims_layout), Some(&draw_layout)]),
@@ -726,9 +773,23 @@ impl Pipelines {
             shadow_terrain,
             shadow_prims,
             shadow_mesh,
+            terrain_depth,
+            prims_culled_layout,
+            prims_culled,
             frusta,
             spheres,
             cube,
+        }
+    }
+}
+
+impl Pipelines {
+    /// The unit mesh of a unit shape (frustum, sphere, box) at a tessellation.
+    pub(crate) fn unit_mesh(&self, shape: usize, tess: usize) -> &UnitMesh {
+        match shape {
+            0 => &self.frusta[tess],
+            1 => &self.spheres[tess],
+            _ => &self.cube,
         }
     }
 }

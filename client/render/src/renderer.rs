@@ -31,6 +31,7 @@ use super::{RenderConfig, SHADOW_CASCADES};
 pub use super::stats::FrameStats;
 
 mod atlas;
+mod cull;
 mod far_march;
 mod forest_gpu;
 mod passes;
@@ -38,6 +39,8 @@ mod shadow;
 pub mod timing;
 mod uniforms;
 use atlas::Atlas;
+pub use cull::CullCounts;
+use cull::GpuCull;
 use far_march::FarMarch;
 use forest_gpu::ForestGpu;
 use passes::{GeometryDraws, Msaa, ScenePass};
@@ -85,6 +88,18 @@ impl Growable {
             }),
             usage,
             label,
+        }
+    }
+
+    /// Grow to hold `bytes` (to the next power of two; the contents are lost then).
+    fn reserve(&mut self, device: &wgpu::Device, bytes: u64) {
+        if bytes > self.buffer.size() {
+            self.buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(self.label),
+                size: bytes.next_power_of_two(),
+                usage: self.usage,
+                mapped_at_creation: false,
+            });
         }
     }
 
@@ -212,6 +227,8 @@ pub struct Renderer {
     forest: ForestGpu,
     /// The far field's tile lists (drawn by the compute pass when `Some`).
     march: Option<FarMarch>,
+    /// The GPU cull of the camera's primitives (`Some` where it culls, [`crate::CullPath`]).
+    cull: Option<GpuCull>,
     terrain: Option<TerrainGpu>,
     /// The window drawn of a fractal ground.
     window: Option<FractalWindow>,
@@ -276,12 +293,15 @@ impl Renderer {
         size: (u32, u32),
         cfg: RenderConfig,
     ) -> std::io::Result<Renderer> {
-        let samples = cfg.samples(device.adapter_info().device_type);
+        let device_type = device.adapter_info().device_type;
+        let samples = cfg.samples(device_type);
+        let culls = cfg.cull.on_gpu(device_type);
         let p = Pipelines::new(
             device,
             format,
             samples,
             device.features().contains(wgpu::Features::SHADER_EARLY_DEPTH_TEST),
+            culls,
         );
         let (globals, globals_bg) = uniforms::globals_binding(device, &p.globals_layout, "globals");
         let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
@@ -345,9 +365,11 @@ impl Renderer {
         let workers = Workers::inline();
         let march = cfg.far_path.computes(device.adapter_info().device_type).then(|| FarMarch::new(device));
         let shadow = ShadowPass::new(device, &p, &cfg.shadows);
+        let depth = depth_view(device, size);
+        let cull = culls.then(|| GpuCull::new(device, &p, &depth, size, cfg.prim_cull_px));
         Ok(Renderer {
             gpu: GpuCore {
-                depth: depth_view(device, size),
+                depth,
                 msaa: (samples > 1).then(|| Msaa::new(device, &p, format, size, samples)),
                 format,
                 accum: Accumulation::new(device, &p, size, march.is_none()),
@@ -363,6 +385,7 @@ impl Renderer {
             forest: ForestGpu::new(device),
             shadow,
             march,
+            cull,
             terrain: None,
             window: None,
             cache: GeometryCache::new(prim_units, vert_units, index_units),
@@ -393,6 +416,18 @@ impl Renderer {
         self.timer.as_mut()?.read(&self.gpu.device)
     }
 
+    /// Count what the GPU cull drops in every frame from now on; false where the GPU does not cull
+    /// ([`crate::CullPath`]).
+    pub fn count_culled(&mut self) -> bool {
+        self.cull.as_mut().map(|c| c.count = true).is_some()
+    }
+
+    /// What the GPU cull kept and dropped of the last frame's primitives, waiting for the GPU to finish it; `None`
+    /// unless [`Renderer::count_culled`] is on and a frame was culled since the last call.
+    pub fn culled(&mut self) -> Option<CullCounts> {
+        self.cull.as_mut()?.read_counts(&self.gpu.device)
+    }
+
     /// Set the scene's clock, seconds: what the wind blows by. A frame is a function of the scene, the camera and
     /// this time (the window sets it from the wall clock; stills keep 0 unless asked).
     pub fn set_time(&mut self, seconds: f32) {
@@ -408,6 +443,9 @@ impl Renderer {
     pub fn resize(&mut self, width: u32, height: u32) {
         self.gpu.size = (width.max(1), height.max(1));
         self.gpu.depth = depth_view(&self.gpu.device, self.gpu.size);
+        if let Some(c) = &mut self.cull {
+            c.resize(&self.gpu.device, &self.gpu.depth, self.gpu.size);
+        }
         let samples = self.cfg.samples(self.gpu.device.adapter_info().device_type);
         if samples > 1 {
             self.gpu.msaa = Some(Msaa::new(&self.gpu.device, &self.gpu.p, self.gpu.format, self.gpu.size, samples));
@@ -451,6 +489,11 @@ impl Renderer {
         self.plan_forest(scene, camera, dt, &mut stats);
         self.write_globals(camera, &cascades);
         let (w, h) = self.gpu.size;
+        if let Some(c) = &mut self.cull {
+            let vp = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
+            let px_per_rad = h as f32 / (2.0 * camera.tan_half_fov());
+            c.plan(&self.gpu, &self.plan.camera, &Frustum::from_matrix(vp), camera.position, px_per_rad);
+        }
         if self.march.is_some() {
             self.bin_far_field(&camera.view_projection(w as f32 / h as f32, self.cfg.near_clip));
         }
@@ -659,6 +702,9 @@ impl Renderer {
     pub fn update_view(&mut self, camera: &Camera) {
         self.plan.clear();
         self.forest.clear();
+        if let Some(c) = &mut self.cull {
+            c.skip();
+        }
         let cascades = self.cascades(camera);
         self.write_globals(camera, &cascades);
     }
@@ -715,13 +761,21 @@ impl Renderer {
         if let Some(t) = timer {
             t.start(&mut enc);
         }
-        let view_draws = |draws| GeometryDraws { draws, geometry: &self.geometry, terrain: self.terrain.as_ref() };
-        let cascades = self.plan.cascades.each_ref().map(view_draws);
+        let view_draws =
+            |draws, culled| GeometryDraws { draws, geometry: &self.geometry, terrain: self.terrain.as_ref(), culled };
+        let cascades = self.plan.cascades.each_ref().map(|d| view_draws(d, None));
         self.shadow.encode(&mut enc, &gpu.p, &cascades);
+        if let Some(t) = timer {
+            t.done_between(&mut enc, Part::Shadows);
+        }
+        let culled = self.cull.as_ref().and_then(|c| c.encode(gpu, &view_draws(&self.plan.camera, None), &mut enc));
+        if let Some(t) = timer {
+            t.done_between(&mut enc, Part::Cull);
+        }
         let scene = ScenePass {
             gpu,
             target: view,
-            draws: view_draws(&self.plan.camera),
+            draws: view_draws(&self.plan.camera, culled.as_ref()),
             shadows: self.shadow.receive(),
             sky: self.cfg.lighting.sky_horizon,
             keep_depth: far_field,
@@ -739,6 +793,10 @@ impl Renderer {
                 None => self.raster_far_field(&mut enc, far_count),
             }
             passes::composite(gpu, view, &mut enc, timer);
+        }
+        drop(culled);
+        if let Some(c) = &mut self.cull {
+            c.encoded();
         }
         if let Some(t) = &mut self.timer {
             t.resolve(&mut enc);

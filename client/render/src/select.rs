@@ -90,8 +90,9 @@ pub(crate) struct DrawUniform {
     pub seg_count: u32,
     /// Unit shape (0 for meshes).
     pub kind: u32,
-    /// Padding.
-    pub pad: u32,
+    /// The draw's first entry in the visible list the GPU cull writes (`renderer/cull.rs`): the primitives of the
+    /// view's draws before it.
+    pub visible_base: u32,
 }
 
 /// One far instance as the volume pipeline reads it (a vertex buffer entry).
@@ -118,6 +119,11 @@ pub(crate) struct PrimDraw {
     pub slot: u32,
     /// Instances (primitives).
     pub instances: u32,
+    /// Its segments in the frame's segment list: the first and how many.
+    pub seg_first: u32,
+    pub seg_count: u32,
+    /// Its first entry in the visible list (the view's primitives in the draws before it).
+    pub visible_base: u32,
 }
 
 /// One tree to draw from the geometry cache.
@@ -632,15 +638,17 @@ impl FramePlan {
             (first, list.len() as u32, total)
         };
         out.prims.clear();
+        let mut visible_base = 0;
         for (shape, per_tess) in self.lists.iter_mut().enumerate() {
             for (t, list) in per_tess.iter_mut().enumerate() {
                 if list.is_empty() {
                     continue;
                 }
-                let (first, count, total) = append(list, &mut self.segments);
-                let u = DrawUniform { seg_first: first, seg_count: count, kind: shape as u32, pad: 0 };
+                let (seg_first, seg_count, instances) = append(list, &mut self.segments);
+                let u = DrawUniform { seg_first, seg_count, kind: shape as u32, visible_base };
                 put(u, *slot, &mut self.uniforms);
-                out.prims.push(PrimDraw { shape, tess: t, slot: *slot, instances: total });
+                out.prims.push(PrimDraw { shape, tess: t, slot: *slot, instances, seg_first, seg_count, visible_base });
+                visible_base += instances;
                 *slot += 1;
             }
         }
@@ -648,7 +656,8 @@ impl FramePlan {
             None
         } else {
             let (first, count, total) = append(&mut self.meshes, &mut self.segments);
-            put(DrawUniform { seg_first: first, seg_count: count, kind: 0, pad: 0 }, *slot, &mut self.uniforms);
+            let u = DrawUniform { seg_first: first, seg_count: count, kind: 0, visible_base: 0 };
+            put(u, *slot, &mut self.uniforms);
             *slot += 1;
             Some((*slot - 1, total))
         };

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use canopy_render::camera::{Camera, CameraSpec};
 use canopy_render::offscreen::Offscreen;
-use canopy_render::{FarPath, LodConfig, NearMode, RenderConfig, timing};
+use canopy_render::{CullPath, FarPath, LodConfig, NearMode, RenderConfig, timing};
 use clap::Args;
 
 /// The default view of the default world: above the southern end of the valley, looking north along it.
@@ -57,6 +57,14 @@ pub(super) struct RendererArgs {
     /// lavapipe), or `auto` (by the adapter).
     #[arg(long, value_parser = super::named(&FarPath::NAMES), default_value_t = FarPath::Auto)]
     far_path: FarPath,
+    /// Where the near and mid trees' primitives are culled: one by one on the GPU (the view, their size on
+    /// screen, and the terrain hiding them; drawn indirectly), only tree by tree on the CPU, or `auto` (the GPU on a
+    /// GPU, the CPU on a CPU adapter such as lavapipe).
+    #[arg(long, value_parser = super::named(&CullPath::NAMES), default_value_t = CullPath::Auto)]
+    cull: CullPath,
+    /// Where the GPU culls: primitives narrower on screen than this many pixels are not drawn (0: keep them).
+    #[arg(long, default_value_t = RenderConfig::default().prim_cull_px)]
+    prim_cull_px: f32,
     /// Haze density per metre at height 0 (0: none; default 0.0007). It thins with height (`--haze-height`), so
     /// valleys are hazier than ridges and a view from altitude reaches the horizon.
     #[arg(long)]
@@ -105,6 +113,8 @@ impl RendererArgs {
         cfg.volume_resolution = self.volume_resolution;
         cfg.forest_layer = self.forest_layer;
         cfg.far_path = self.far_path;
+        cfg.cull = self.cull;
+        cfg.prim_cull_px = self.prim_cull_px;
         cfg.shadows.resolution = self.shadow_map;
         cfg.shadows.distance = self.shadow_distance;
         cfg.wind.strength = self.wind;
@@ -191,6 +201,7 @@ pub(super) fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
     let cfg = args.renderer.config()?;
     let mut off = Offscreen::new(cfg, args.width, args.height)?;
     off.renderer.set_time(args.time);
+    let culls = off.renderer.count_culled();
     println!("adapter: {}", off.gpu.describe());
     let far = args.far.view(args.height, camera.fov_y, altitude)?;
     if !(args.record_radius.is_finite() && args.record_radius >= 0.0) {
@@ -229,6 +240,19 @@ pub(super) fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
         stats.cache_capacity as f64 / 1048576.0,
     );
     let image = off.render()?;
+    match off.renderer.culled() {
+        Some(c) => println!(
+            "GPU cull: {} of {} primitives drawn; dropped {} out of view, {} under {} px, {} behind the terrain",
+            c.kept(),
+            c.tested,
+            c.outside,
+            c.small,
+            args.renderer.prim_cull_px,
+            c.occluded
+        ),
+        None if culls => println!("GPU cull: no primitives this frame"),
+        None => println!("GPU cull: off (trees culled whole on the CPU; --cull gpu culls each primitive)"),
+    }
     image.save_png(&args.out)?;
     println!("wrote {} ({}×{})", args.out.display(), image.width, image.height);
     if args.frames > 0 {

@@ -5,6 +5,7 @@
 //! the scene and shadow passes both draw.
 
 use super::GeometryGpu;
+use super::cull::Culled;
 use super::timing::{Part, PassTimer};
 use super::{
     DEPTH_FORMAT, DRAW_STRIDE, FarInstance, GpuCore, PROXY_BOX_VERTICES, Pipelines, Renderer, SKY_VERTICES, TerrainGpu,
@@ -17,6 +18,8 @@ pub(super) struct GeometryDraws<'a> {
     pub draws: &'a ViewDraws,
     pub geometry: &'a GeometryGpu,
     pub terrain: Option<&'a TerrainGpu>,
+    /// The primitives the GPU cull kept of `draws` (the camera's, where it culls), drawn indirectly.
+    pub culled: Option<&'a Culled<'a>>,
 }
 
 impl GeometryDraws<'_> {
@@ -31,21 +34,30 @@ impl GeometryDraws<'_> {
         }
     }
 
-    /// The instanced primitives: a draw per unit shape and tessellation.
+    /// The instanced primitives: a draw per unit shape and tessellation (through `pipeline`, or the culled
+    /// pipeline with the arguments the cull wrote).
     pub(super) fn prims(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline, p: &Pipelines) {
         let (false, Some(bg)) = (self.draws.prims.is_empty(), &self.geometry.prims_bg) else { return };
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(1, bg, &[]);
-        for d in &self.draws.prims {
-            let mesh = match d.shape {
-                0 => &p.frusta[d.tess],
-                1 => &p.spheres[d.tess],
-                _ => &p.cube,
-            };
+        let culled = self.culled.zip(p.prims_culled.as_ref());
+        match culled {
+            Some((c, culled_pipeline)) => {
+                pass.set_pipeline(culled_pipeline);
+                pass.set_bind_group(1, &c.bg, &[]);
+            }
+            None => {
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(1, bg, &[]);
+            }
+        }
+        for (k, d) in self.draws.prims.iter().enumerate() {
+            let mesh = p.unit_mesh(d.shape, d.tess);
             pass.set_bind_group(2, &self.geometry.draw_bg, &[(u64::from(d.slot) * DRAW_STRIDE) as u32]);
             pass.set_vertex_buffer(0, mesh.vertices.slice(..));
             pass.set_index_buffer(mesh.indices.slice(..), wgpu::IndexFormat::Uint16);
-            pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances);
+            match culled {
+                Some((c, _)) => pass.draw_indexed_indirect(c.args, k as u64 * super::cull::ARGS_BYTES),
+                None => pass.draw_indexed(0..mesh.index_count, 0, 0..d.instances),
+            }
         }
     }
 
@@ -153,7 +165,6 @@ impl ScenePass<'_> {
             occlusion_query_set: None,
             multiview_mask: None,
         });
-        done(&mut pass, Part::Shadows);
         pass.set_bind_group(0, &gpu.globals_bg, &[]);
         pass.set_bind_group(3, self.shadows, &[]);
         pass.set_pipeline(&gpu.p.sky);

@@ -57,6 +57,7 @@ pub(super) struct VolumeInfo {
 
 #[cfg(test)]
 mod tests {
+    use super::super::cull::{CullDraw, CullParams, HizLevel};
     use super::*;
     use crate::forest::ForestPatch;
     use crate::geometry::PrimInstance;
@@ -85,6 +86,7 @@ mod tests {
         let mesh = crate::pipelines::MESH_PARTS.concat();
         let info = include_str!("../../shaders/volume_info.wgsl");
         let forest = crate::pipelines::forest_source();
+        let cull = super::super::cull::cull_source();
         let cases = [
             (
                 wgsl_layout(COMMON, "Globals"),
@@ -120,13 +122,53 @@ mod tests {
             ),
             (
                 wgsl_layout(&mesh, "Draw"),
-                rust_layout!(DrawUniform { seg_first: seg_first, seg_count: seg_count, kind: kind, pad: pad }),
+                rust_layout!(DrawUniform {
+                    seg_first: seg_first,
+                    seg_count: seg_count,
+                    kind: kind,
+                    visible_base: visible_base,
+                }),
             ),
             (
                 wgsl_layout(info, "VolumeInfo"),
                 rust_layout!(VolumeInfo { atlas: atlas, dims: dims, voxel: voxel, lo: lo, hi: hi, origin: origin }),
             ),
             (wgsl_layout(&segment, "Prim"), rust_layout!(PrimInstance { r0: rows, shape: shape })),
+            (
+                wgsl_layout(&cull, "CullDraw"),
+                rust_layout!(CullDraw {
+                    seg_first: seg_first,
+                    seg_count: seg_count,
+                    instances: instances,
+                    block_first: block_first,
+                    visible_base: visible_base,
+                    index_count: index_count,
+                    kind: kind,
+                    pad: pad,
+                }),
+            ),
+            (
+                wgsl_layout(&cull, "CullParams"),
+                rust_layout!(CullParams {
+                    planes: planes,
+                    eye: eye,
+                    limits: limits,
+                    counts: counts,
+                    pyramid_size: pyramid_size,
+                }),
+            ),
+            (
+                wgsl_layout(include_str!("../../shaders/hiz.wgsl"), "Level"),
+                rust_layout!(HizLevel {
+                    src_offset: src_offset,
+                    src_w: src_w,
+                    src_h: src_h,
+                    dst_offset: dst_offset,
+                    dst_w: dst_w,
+                    dst_h: dst_h,
+                    pad0: pad,
+                }),
+            ),
         ];
         for ((wsize, wmembers), (rsize, rmembers)) in cases {
             assert_eq!(wsize, rsize, "sizes differ: WGSL {wmembers:?}, Rust {rmembers:?}");

@@ -298,15 +298,15 @@ fn draw_lists_group_segments_by_shape_and_tessellation() {
         ]
     );
     assert_eq!(f.plan.segments[4].vbase, e1.verts.start as u32);
-    // Each draw's uniform names its segments and shape.
+    // Each draw's uniform names its segments, its shape and its place in the visible list (the primitives before it).
     let uniform = |slot: u64| -> DrawUniform {
         let at = (slot * DRAW_STRIDE) as usize;
         bytemuck::pod_read_unaligned(&f.plan.uniforms[at..at + DRAW_UNIFORM_BYTES])
     };
     assert_eq!(f.plan.uniforms.len() as u64, DRAW_STRIDE * DRAW_SLOTS);
-    assert_eq!(uniform(1), DrawUniform { seg_first: 1, seg_count: 1, kind: 0, pad: 0 });
-    assert_eq!(uniform(3), DrawUniform { seg_first: 3, seg_count: 1, kind: 2, pad: 0 });
-    assert_eq!(uniform(4), DrawUniform { seg_first: 4, seg_count: 1, kind: 0, pad: 0 });
+    assert_eq!(uniform(1), DrawUniform { seg_first: 1, seg_count: 1, kind: 0, visible_base: 4 });
+    assert_eq!(uniform(3), DrawUniform { seg_first: 3, seg_count: 1, kind: 2, visible_base: 13 });
+    assert_eq!(uniform(4), DrawUniform { seg_first: 4, seg_count: 1, kind: 0, visible_base: 0 });
     assert_eq!((f.stats.primitives, f.stats.mesh_triangles), (15, 3));
     // The sky, four primitive draws, the meshes (no terrain, no far field).
     assert_eq!(f.stats.draw_calls, 6);

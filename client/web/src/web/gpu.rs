@@ -16,7 +16,7 @@ use std::sync::Arc;
 
 use canopy_protocol::CellCoord;
 use canopy_render::camera::Camera as RenderCamera;
-use canopy_render::{FarPath, FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneFar, SceneInstance};
+use canopy_render::{CullPath, FarPath, FrameStats, Gpu, RenderConfig, Renderer, Scene, SceneFar, SceneInstance};
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use web_sys::HtmlCanvasElement;
@@ -286,7 +286,7 @@ impl Drawing {
 
 /// The renderer's configuration in a page: the native walk's defaults, with one amplification "worker" (the page's
 /// thread) and, on a CPU adapter, what the renderer picks for one natively (one sample a pixel, the far field as
-/// boxes).
+/// boxes, trees culled whole on the CPU).
 fn config(cpu: bool) -> RenderConfig {
     // Jobs queued a frame: the page's timer runs them between frames (`View::run_jobs`), which a slow GPU makes
     // far apart, so a frame queues as many as a pool of worker threads would take.
@@ -294,6 +294,7 @@ fn config(cpu: bool) -> RenderConfig {
     if cpu {
         cfg.msaa = 1;
         cfg.far_path = FarPath::Raster;
+        cfg.cull = CullPath::Cpu;
         cfg.shadows.resolution = CPU_SHADOW_MAP;
     }
     cfg
