@@ -1,11 +1,12 @@
-// The GPU cull (renderer/cull.rs), appended to the primitives' shader: three passes over the camera's primitive
-// draws, 256 primitives a workgroup (a block; a draw's blocks are its own). `cs_cull` tests each primitive against
-// the view frustum, the smallest size drawn and the occlusion pyramid (hiz.wgsl) and keeps a bit per primitive;
-// `cs_scan`, one workgroup, numbers the kept primitives of each block within its draw and writes each draw's indirect
-// arguments; `cs_compact` lists the kept primitives, in the draw's order, for `vs_prim_culled`. The order the CPU
-// planned is kept, so a frame culled on the GPU is the frame drawn whole less what the tests dropped.
+// The GPU cull (renderer/cull.rs), appended to the primitives' shader: three passes over a view's primitive draws
+// (the camera's or a shadow cascade's), 256 primitives a workgroup (a block; a draw's blocks are its own).
+// `cs_cull` tests each primitive against the view's frustum, the smallest size drawn and, for the camera, the
+// occlusion pyramid (hiz.wgsl), and keeps a bit per primitive; `cs_scan`, one workgroup, numbers the kept primitives
+// of each block within its draw and writes each draw's indirect arguments; `cs_compact` lists the kept primitives, in
+// the draw's order, for `vs_prim_culled`. The order the CPU planned is kept, so a view culled on the GPU is the view
+// drawn whole less what the tests dropped.
 
-// One primitive draw of the camera's.
+// One primitive draw of the view's.
 struct CullDraw {
     seg_first: u32,
     seg_count: u32,
@@ -25,9 +26,10 @@ struct CullDraw {
 struct CullParams {
     // The view frustum's sides and near plane (camera.rs `Frustum`): n · p + d >= -r is inside.
     planes: array<vec4<f32>, 5>,
-    // xyz: the eye; w: pixels a radian spans at the screen's centre.
+    // xyz: the eye; w: pixels a radian spans at the screen's centre (0 for a shadow cascade's orthographic view).
     eye: vec4<f32>,
-    // x: the smallest projected size kept, pixels (a bounding sphere's diameter); y: 1 where the pyramid is tested.
+    // x: the smallest projected size kept, pixels or texels (a bounding sphere's diameter); y: 1 where the pyramid
+    // is tested; z: texels a metre of an orthographic view.
     limits: vec4<f32>,
     // x: draws; y: blocks; z: workgroups a row of the dispatch; w: the pyramid's levels.
     counts: vec4<u32>,
@@ -181,8 +183,14 @@ fn test_prim(d: CullDraw, i: u32) -> u32 {
             return OUTSIDE;
         }
     }
-    let dist = distance(sphere.xyz, cp.eye.xyz);
-    if dist > sphere.w && 2.0 * sphere.w * cp.eye.w / dist < cp.limits.x {
+    // Its size on screen: seen in perspective (eye.w pixels a radian) or, for a shadow cascade, orthographically
+    // (limits.z texels a metre).
+    if cp.eye.w > 0.0 {
+        let dist = distance(sphere.xyz, cp.eye.xyz);
+        if dist > sphere.w && 2.0 * sphere.w * cp.eye.w / dist < cp.limits.x {
+            return SMALL;
+        }
+    } else if 2.0 * sphere.w * cp.limits.z < cp.limits.x {
         return SMALL;
     }
     if occluded(sphere) {

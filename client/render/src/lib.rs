@@ -54,7 +54,7 @@ pub use gpu::{Gpu, GpuError};
 pub use lod::{Band, LodConfig};
 #[cfg(not(target_arch = "wasm32"))]
 pub use offscreen::{OffscreenError, RenderedImage};
-pub use renderer::{CullCounts, FrameStats, Renderer, timing};
+pub use renderer::{CullCounts, CulledFrame, FrameStats, Renderer, timing};
 pub use scene::{Scene, SceneFar, SceneInstance};
 
 use canopy_worlds::amplify::Budget;

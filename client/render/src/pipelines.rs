@@ -208,10 +208,12 @@ pub(crate) struct Pipelines {
     pub shadow_prims: wgpu::RenderPipeline,
     pub shadow_mesh: wgpu::RenderPipeline,
     /// Where the GPU culls (`renderer/cull.rs`): the terrain drawn depth-only from the camera (the occlusion
-    /// pyramid's source), and the primitives drawn from the cull's visible list (group 1: segments, arena, list).
+    /// pyramid's source), and the primitives drawn from the cull's visible list (group 1: segments, arena, list),
+    /// into the scene and into the shadow maps.
     pub terrain_depth: Option<wgpu::RenderPipeline>,
     pub prims_culled_layout: Option<wgpu::BindGroupLayout>,
     pub prims_culled: Option<wgpu::RenderPipeline>,
+    pub shadow_prims_culled: Option<wgpu::RenderPipeline>,
     /// Frusta by detail level.
     pub frusta: Vec<UnitMesh>,
     /// Spheres by detail level.
@@ -580,6 +582,15 @@ impl Pipelines {
             ("vs_prim", None),
             &unit_buffers,
         );
+        let shadow_prims_culled = prims_culled_layout.as_ref().map(|culled| {
+            caster(
+                "culled primitive shadow",
+                &layout("culled primitive shadow", &[Some(&globals_layout), Some(culled), Some(&draw_layout)]),
+                &prims_mod,
+                ("vs_prim_culled", None),
+                &unit_buffers,
+            )
+        });
 
         let mesh_mod = module(device, "meshes", &MESH_PARTS);
         // Multisampled, a leaf card's edge is its coverage (alpha-to-coverage); the alpha written stays the scene's.
@@ -776,6 +787,7 @@ impl Pipelines {
             terrain_depth,
             prims_culled_layout,
             prims_culled,
+            shadow_prims_culled,
             frusta,
             spheres,
             cube,

@@ -39,8 +39,8 @@ mod shadow;
 pub mod timing;
 mod uniforms;
 use atlas::Atlas;
-pub use cull::CullCounts;
-use cull::GpuCull;
+use cull::{CULL_VIEWS, CullView, GpuCull, Scale};
+pub use cull::{CullCounts, CulledFrame};
 use far_march::FarMarch;
 use forest_gpu::ForestGpu;
 use passes::{GeometryDraws, Msaa, ScenePass};
@@ -227,7 +227,7 @@ pub struct Renderer {
     forest: ForestGpu,
     /// The far field's tile lists (drawn by the compute pass when `Some`).
     march: Option<FarMarch>,
-    /// The GPU cull of the camera's primitives (`Some` where it culls, [`crate::CullPath`]).
+    /// The GPU cull of the camera's and the shadow cascades' primitives (`Some` where it culls, [`crate::CullPath`]).
     cull: Option<GpuCull>,
     terrain: Option<TerrainGpu>,
     /// The window drawn of a fractal ground.
@@ -422,9 +422,10 @@ impl Renderer {
         self.cull.as_mut().map(|c| c.count = true).is_some()
     }
 
-    /// What the GPU cull kept and dropped of the last frame's primitives, waiting for the GPU to finish it; `None`
-    /// unless [`Renderer::count_culled`] is on and a frame was culled since the last call.
-    pub fn culled(&mut self) -> Option<CullCounts> {
+    /// What the GPU cull kept and dropped of the last frame's primitives, the camera's and the shadow maps', waiting
+    /// for the GPU to finish it; `None` unless [`Renderer::count_culled`] is on and a frame was culled since the last
+    /// call.
+    pub fn culled(&mut self) -> Option<CulledFrame> {
         self.cull.as_mut()?.read_counts(&self.gpu.device)
     }
 
@@ -492,7 +493,21 @@ impl Renderer {
         if let Some(c) = &mut self.cull {
             let vp = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
             let px_per_rad = h as f32 / (2.0 * camera.tan_half_fov());
-            c.plan(&self.gpu, &self.plan.camera, &Frustum::from_matrix(vp), camera.position, px_per_rad);
+            let views: [CullView<'_>; CULL_VIEWS] = std::array::from_fn(|k| match k {
+                0 => CullView {
+                    draws: &self.plan.camera,
+                    frustum: Frustum::from_matrix(vp),
+                    scale: Scale::Perspective { eye: camera.position, px_per_rad },
+                    occlusion: true,
+                },
+                k => CullView {
+                    draws: &self.plan.cascades[k - 1],
+                    frustum: Frustum::from_matrix(cascades[k - 1].view_proj),
+                    scale: Scale::Orthographic { px_per_metre: 1.0 / cascades[k - 1].texel },
+                    occlusion: false,
+                },
+            });
+            c.plan(&self.gpu, views);
         }
         if self.march.is_some() {
             self.bin_far_field(&camera.view_projection(w as f32 / h as f32, self.cfg.near_clip));
@@ -763,19 +778,23 @@ impl Renderer {
         }
         let view_draws =
             |draws, culled| GeometryDraws { draws, geometry: &self.geometry, terrain: self.terrain.as_ref(), culled };
-        let cascades = self.plan.cascades.each_ref().map(|d| view_draws(d, None));
+        let culled = match &self.cull {
+            Some(c) => c.encode(gpu, &view_draws(&self.plan.camera, None), &mut enc),
+            None => std::array::from_fn(|_| None),
+        };
+        if let Some(t) = timer {
+            t.done_between(&mut enc, Part::Cull);
+        }
+        let cascades: [GeometryDraws<'_>; SHADOW_CASCADES] =
+            std::array::from_fn(|k| view_draws(&self.plan.cascades[k], culled[1 + k].as_ref()));
         self.shadow.encode(&mut enc, &gpu.p, &cascades);
         if let Some(t) = timer {
             t.done_between(&mut enc, Part::Shadows);
         }
-        let culled = self.cull.as_ref().and_then(|c| c.encode(gpu, &view_draws(&self.plan.camera, None), &mut enc));
-        if let Some(t) = timer {
-            t.done_between(&mut enc, Part::Cull);
-        }
         let scene = ScenePass {
             gpu,
             target: view,
-            draws: view_draws(&self.plan.camera, culled.as_ref()),
+            draws: view_draws(&self.plan.camera, culled[0].as_ref()),
             shadows: self.shadow.receive(),
             sky: self.cfg.lighting.sky_horizon,
             keep_depth: far_field,

@@ -1,12 +1,15 @@
 //! The GPU cull of primitives (`renderer/cull.rs`), run on whatever adapter is present (CI: lavapipe, where
 //! `CullPath::Auto` keeps the CPU path, so these tests ask for the GPU's): it draws what the CPU path draws, less
-//! what a hill hides, what is out of view and (where asked) what is under the smallest size.
+//! what a hill hides, what is out of view or out of a shadow cascade, and (where asked) what is under the smallest
+//! size.
 
 use std::time::Duration;
 
 use canopy_render::compare::compare;
 use canopy_render::offscreen::{Offscreen, RenderedImage};
-use canopy_render::{Camera, CullCounts, CullPath, FrameStats, LodConfig, RenderConfig, Scene, SceneInstance};
+use canopy_render::{
+    Camera, CullCounts, CullPath, CulledFrame, FrameStats, LodConfig, RenderConfig, Scene, SceneInstance,
+};
 use canopy_worlds::world::{InstanceId, Terrain};
 use glam::Vec3;
 
@@ -41,8 +44,15 @@ fn config(cull: CullPath, min_px: f32) -> RenderConfig {
     }
 }
 
-/// The settled frame, its statistics and what the GPU cull counted (`None` on the CPU path).
+/// The settled frame, its statistics and what the GPU cull counted of the camera's primitives (`None` on the CPU
+/// path).
 fn shoot(scene: &Scene, camera: &Camera, cfg: RenderConfig) -> (RenderedImage, FrameStats, Option<CullCounts>) {
+    let (image, stats, counts) = shoot_all(scene, camera, cfg);
+    (image, stats, counts.map(|c| c.camera))
+}
+
+/// The same, with what the cull counted of the shadow maps' primitives.
+fn shoot_all(scene: &Scene, camera: &Camera, cfg: RenderConfig) -> (RenderedImage, FrameStats, Option<CulledFrame>) {
     let mut off = Offscreen::new(cfg, W, H).unwrap_or_else(|e| panic!("{e}"));
     let counting = off.renderer.count_culled();
     let stats = off.settle(scene, camera, Duration::from_secs(300)).unwrap_or_else(|e| panic!("{e}"));
@@ -116,26 +126,38 @@ fn a_stand_whose_crowns_show_over_the_ridge_is_drawn_as_the_cpu_draws_it() {
 }
 
 #[test]
-fn primitives_out_of_view_and_under_the_smallest_size_are_dropped_without_changing_the_picture_much() {
+fn primitives_out_of_view_and_under_the_smallest_size_are_dropped_from_the_view_and_the_shadow_maps() {
     let scene = tree_behind_a_ridge("monopodial");
     // Close to the trunk, looking up past it: much of the crown is out of view.
     let near = Camera::looking_at(Vec3::new(3.0, 2.0, -4.0), Vec3::new(8.0, 9.0, 4.0), 60.0);
     let (cpu, stats, _) = shoot(&scene, &near, config(CullPath::Cpu, 0.0));
-    let (gpu, _, counts) = shoot(&scene, &near, config(CullPath::Gpu, 0.0));
-    let counts = counts.expect("the GPU culls");
+    let (gpu, _, frame) = shoot_all(&scene, &near, config(CullPath::Gpu, 0.0));
+    let CulledFrame { camera: counts, shadows } = frame.expect("the GPU culls");
     assert_eq!(counts.tested, stats.primitives);
+    assert_eq!(shadows.tested, stats.shadow_primitives, "{shadows:?}");
     assert!(counts.outside > counts.tested / 10 && counts.kept() > 0, "{counts:?}");
     assert_eq!(counts.small, 0, "{counts:?}");
     let diff = compare(&cpu, &gpu, 0).expect("same size");
     assert_eq!(diff.differing, 0, "dropping what is out of view changes nothing: {diff:?}");
 
-    // From 150 m the twigs are under a pixel: dropped, with the picture about the same.
+    // From 150 m the tree straddles two shadow cascades: each draws only the primitives in its box, and the
+    // shadows are the same.
     let far = Camera::looking_at(Vec3::new(0.0, 40.0, 150.0), Vec3::new(0.0, 8.0, 0.0), 60.0);
-    let (cpu, _, _) = shoot(&scene, &far, config(CullPath::Cpu, 0.0));
-    let (gpu, _, counts) = shoot(&scene, &far, config(CullPath::Gpu, RenderConfig::default().prim_cull_px));
-    let counts = counts.expect("the GPU culls");
+    let (cpu, stats, _) = shoot(&scene, &far, config(CullPath::Cpu, 0.0));
+    let (gpu, _, frame) = shoot_all(&scene, &far, config(CullPath::Gpu, 0.0));
+    let shadows = frame.expect("the GPU culls").shadows;
+    assert_eq!(shadows.tested, stats.shadow_primitives, "{shadows:?}");
+    assert!(shadows.outside > 0 && shadows.kept() > shadows.tested / 2 && shadows.small == 0, "{shadows:?}");
+    let diff = compare(&cpu, &gpu, 0).expect("same size");
+    assert_eq!(diff.differing, 0, "the same picture: {diff:?}");
+
+    // And there the twigs are under a pixel: dropped, with the picture about the same; into the shadow maps, those
+    // under a texel of their cascade.
+    let (gpu, _, frame) = shoot_all(&scene, &far, config(CullPath::Gpu, RenderConfig::default().prim_cull_px));
+    let CulledFrame { camera: counts, shadows } = frame.expect("the GPU culls");
     assert!(counts.small > counts.tested / 10, "{counts:?}");
+    assert!(shadows.small > 0, "{shadows:?}");
     let diff = compare(&cpu, &gpu, 24).expect("same size");
-    eprintln!("{counts:?}; {diff:?}");
+    eprintln!("{counts:?}, shadows {shadows:?}; {diff:?}");
     assert!(diff.mean < 0.5 && diff.fraction < 0.01, "{diff:?}");
 }

@@ -240,15 +240,19 @@ pub(super) fn run(args: RenderArgs) -> anyhow::Result<ExitCode> {
         stats.cache_capacity as f64 / 1048576.0,
     );
     let image = off.render()?;
+    let px = args.renderer.prim_cull_px;
     match off.renderer.culled() {
         Some(c) => println!(
-            "GPU cull: {} of {} primitives drawn; dropped {} out of view, {} under {} px, {} behind the terrain",
-            c.kept(),
-            c.tested,
-            c.outside,
-            c.small,
-            args.renderer.prim_cull_px,
-            c.occluded
+            "GPU cull: {} of {} primitives drawn; dropped {} out of view, {} under {px} px, {} behind the terrain; into the shadow maps {} of {} (dropped {} outside their cascades, {} under {px} texels)",
+            c.camera.kept(),
+            c.camera.tested,
+            c.camera.outside,
+            c.camera.small,
+            c.camera.occluded,
+            c.shadows.kept(),
+            c.shadows.tested,
+            c.shadows.outside,
+            c.shadows.small,
         ),
         None if culls => println!("GPU cull: no primitives this frame"),
         None => println!("GPU cull: off (trees culled whole on the CPU; --cull gpu culls each primitive)"),

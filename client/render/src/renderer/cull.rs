@@ -1,12 +1,15 @@
-//! The GPU cull of the camera's near and mid primitives (`shaders/cull.wgsl`, `shaders/hiz.wgsl`): the selection
-//! culls whole trees on the CPU; here each of their primitives is tested on its own, against the view frustum, the
-//! smallest size drawn ([`crate::RenderConfig::prim_cull_px`]) and an occlusion pyramid of the terrain's depth, and
-//! the kept ones are listed for indirect draws ([`CullPath`](crate::CullPath)).
+//! The GPU cull of near and mid primitives (`shaders/cull.wgsl`, `shaders/hiz.wgsl`), for the camera and each sun
+//! shadow cascade: the selection culls whole trees on the CPU; here each of their primitives is tested on its own,
+//! against the view's frustum (a cascade's: its box), the smallest size drawn
+//! ([`crate::RenderConfig::prim_cull_px`], pixels for the camera, shadow-map texels for a cascade) and, for the
+//! camera, an occlusion pyramid of the terrain's depth; the kept ones are listed for indirect draws
+//! ([`CullPath`](crate::CullPath)).
 //!
-//! Inputs: the camera's primitive draws and terrain chunks ([`ViewDraws`]), the segments and the primitive arena,
-//! the frame's globals. Passes: the terrain drawn depth-only from the camera into the depth buffer, the pyramid
-//! built from it, then `cs_cull`, `cs_scan`, `cs_compact`. Outputs: the visible list and the indirect arguments
-//! ([`Culled`]) the scene pass draws the primitives with (`prims.wgsl` `vs_prim_culled`).
+//! Inputs: each view's primitive draws ([`ViewDraws`]), the camera's terrain chunks, the segments and the primitive
+//! arena, the frame's globals. Passes: the terrain drawn depth-only from the camera into the depth buffer, the
+//! pyramid built from it, then for each view `cs_cull`, `cs_scan`, `cs_compact`. Outputs: each view's visible list
+//! and indirect arguments ([`Culled`]) the scene and shadow passes draw the primitives with (`prims.wgsl`
+//! `vs_prim_culled`).
 //!
 //! The pyramid is the terrain's depth of this frame, not the last frame's scene: nothing lags the camera, and a frame
 //! stays a function of the scene, the camera and the time. Trees do not occlude each other here (canopies are not
@@ -18,6 +21,7 @@ use wgpu::util::DeviceExt;
 
 use super::passes::GeometryDraws;
 use super::{GpuCore, Growable, INITIAL_LIST_BYTES, Pipelines, ViewDraws};
+use crate::SHADOW_CASCADES;
 use crate::camera::Frustum;
 use crate::pipelines::PRIMS_PARTS;
 use crate::select::{TESSELLATIONS, UNIT_SHAPES};
@@ -26,7 +30,9 @@ use crate::select::{TESSELLATIONS, UNIT_SHAPES};
 const BLOCK: u32 = 256;
 /// Bytes of one draw's drawIndexedIndirect arguments (five words).
 pub(super) const ARGS_BYTES: u64 = 20;
-/// Camera primitive draws at most: one per unit shape and tessellation.
+/// Views culled: the camera, then each shadow cascade.
+pub(super) const CULL_VIEWS: usize = 1 + SHADOW_CASCADES;
+/// A view's primitive draws at most: one per unit shape and tessellation.
 const MAX_DRAWS: usize = UNIT_SHAPES * TESSELLATIONS;
 /// Workgroups along a row of a dispatch (WebGPU's least limit per dimension).
 const DISPATCH_ROW: u32 = 65_535;
@@ -58,17 +64,43 @@ pub(super) struct CullParams {
     pub pyramid_size: [u32; 4],
 }
 
-/// What the cull counted over a frame's primitives (where asked for: [`super::Renderer::count_culled`]).
+/// What the cull counted over a view's primitives (where asked for: [`super::Renderer::count_culled`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct CullCounts {
-    /// Primitives tested: every primitive of the camera's draws.
+    /// Primitives tested: every primitive of the view's draws.
     pub tested: u64,
     /// Dropped outside the view frustum.
     pub outside: u64,
     /// Dropped below the smallest size drawn.
     pub small: u64,
-    /// Dropped behind the terrain.
+    /// Dropped behind the terrain (the camera only).
     pub occluded: u64,
+}
+
+/// What the cull counted over a frame: the camera's view, and the shadow cascades' together.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CulledFrame {
+    /// The camera's primitives.
+    pub camera: CullCounts,
+    /// The primitives drawn into the shadow maps, every cascade's summed.
+    pub shadows: CullCounts,
+}
+
+/// How a view's size test measures a primitive on screen.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum Scale {
+    /// A perspective view from `eye`, `px_per_rad` pixels a radian.
+    Perspective { eye: glam::Vec3, px_per_rad: f32 },
+    /// A shadow cascade's orthographic view, `px_per_metre` texels a metre.
+    Orthographic { px_per_metre: f32 },
+}
+
+/// One view to cull: its draws, its frustum, how sizes are measured, and whether the pyramid is tested.
+pub(super) struct CullView<'a> {
+    pub draws: &'a ViewDraws,
+    pub frustum: Frustum,
+    pub scale: Scale,
+    pub occlusion: bool,
 }
 
 impl CullCounts {
@@ -78,8 +110,8 @@ impl CullCounts {
     }
 }
 
-/// What the scene pass draws the culled primitives with: its group 1 (segments, arena, visible list) and the
-/// indirect arguments, five words a draw in the order of the camera's [`ViewDraws::prims`].
+/// What a pass draws a view's culled primitives with: its group 1 (segments, arena, visible list) and the indirect
+/// arguments, five words a draw in the order of the view's [`ViewDraws::prims`].
 pub(super) struct Culled<'a> {
     pub bg: wgpu::BindGroup,
     pub args: &'a wgpu::Buffer,
@@ -114,7 +146,92 @@ struct CullFrame {
     kept_bytes: u64,
 }
 
-/// The cull's pipelines, pyramid and buffers.
+/// One view's lists, arguments, parameters and counters, and its plan for this frame.
+struct ViewCull {
+    kept: Growable,
+    blocks: Growable,
+    draws: Growable,
+    args: wgpu::Buffer,
+    params: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    counters_read: wgpu::Buffer,
+    frame: Option<CullFrame>,
+}
+
+impl ViewCull {
+    fn new(device: &wgpu::Device) -> ViewCull {
+        let storage = wgpu::BufferUsages::STORAGE;
+        let buffer = |label, size, usage| {
+            device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false })
+        };
+        let counter_bytes = size_of::<[u32; 4]>() as u64;
+        ViewCull {
+            kept: Growable::new(device, "visible primitives", INITIAL_LIST_BYTES, storage),
+            blocks: Growable::new(device, "cull blocks", INITIAL_LIST_BYTES, storage),
+            draws: Growable::new(device, "cull draws", (MAX_DRAWS * size_of::<CullDraw>()) as u64, storage),
+            args: buffer(
+                "indirect primitive draws",
+                MAX_DRAWS as u64 * ARGS_BYTES,
+                wgpu::BufferUsages::INDIRECT | storage,
+            ),
+            params: buffer(
+                "cull parameters",
+                size_of::<CullParams>() as u64,
+                wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            ),
+            counters: buffer(
+                "cull counters",
+                counter_bytes,
+                storage | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            ),
+            counters_read: buffer(
+                "cull counters read",
+                counter_bytes,
+                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            ),
+            frame: None,
+        }
+    }
+
+    /// Plan the view's cull: its draws' table and parameters written (`params` less the counts), its lists grown to
+    /// fit. Nothing is culled (the draws are drawn whole) where there are no primitives, or more than a storage
+    /// binding holds.
+    fn plan(&mut self, gpu: &GpuCore, draws: &ViewDraws, mut params: CullParams) {
+        self.frame = None;
+        let mut table = Vec::with_capacity(draws.prims.len());
+        let mut blocks = 0u32;
+        for d in draws.prims.iter().take(MAX_DRAWS) {
+            table.push(CullDraw {
+                seg_first: d.seg_first,
+                seg_count: d.seg_count,
+                instances: d.instances,
+                block_first: blocks,
+                visible_base: d.visible_base,
+                index_count: gpu.p.unit_mesh(d.shape, d.tess).index_count,
+                kind: d.shape as u32,
+                pad: 0,
+            });
+            blocks += d.instances.div_ceil(BLOCK);
+        }
+        let total: u64 = draws.prims.iter().map(|d| u64::from(d.instances)).sum();
+        let kept_bytes = total * size_of::<[u32; 2]>() as u64;
+        let limit = gpu.device.limits().max_storage_buffer_binding_size;
+        if blocks == 0 || draws.prims.len() > MAX_DRAWS || kept_bytes > limit {
+            return;
+        }
+        let (device, queue) = (&gpu.device, &gpu.queue);
+        self.draws.write(device, queue, bytemuck::cast_slice(&table));
+        self.kept.reserve(device, kept_bytes);
+        // Eight mask words and an offset a block, and the total.
+        self.blocks.reserve(device, (u64::from(blocks) * 9 + 1) * 4);
+        params.counts[0] = table.len() as u32;
+        params.counts[1] = blocks;
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        self.frame = Some(CullFrame { blocks, kept_bytes });
+    }
+}
+
+/// The cull's pipelines, pyramid, and each view's buffers.
 pub(super) struct GpuCull {
     hiz_depth: wgpu::ComputePipeline,
     hiz_level: wgpu::ComputePipeline,
@@ -125,17 +242,11 @@ pub(super) struct GpuCull {
     arena_layout: wgpu::BindGroupLayout,
     cull_layout: wgpu::BindGroupLayout,
     pyramid: Pyramid,
-    kept: Growable,
-    blocks: Growable,
-    draws: Growable,
-    args: wgpu::Buffer,
-    params: wgpu::Buffer,
-    counters: wgpu::Buffer,
-    counters_read: wgpu::Buffer,
+    /// The camera's, then each cascade's.
+    views: [ViewCull; CULL_VIEWS],
     /// Copy the counters out each frame ([`GpuCull::read_counts`]).
     pub count: bool,
     counted: bool,
-    frame: Option<CullFrame>,
     min_px: f32,
 }
 
@@ -225,11 +336,6 @@ impl GpuCull {
             source: wgpu::ShaderSource::Wgsl(cull_source().into()),
         });
         let groups = [Some(&p.globals_layout), Some(&arena_layout), Some(&cull_layout)];
-        let storage = wgpu::BufferUsages::STORAGE;
-        let buffer = |label, size, usage| {
-            device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false })
-        };
-        let counter_bytes = size_of::<[u32; 4]>() as u64;
         GpuCull {
             hiz_depth: compute("pyramid from depth", &hiz_mod, "cs_hiz_depth", &[Some(&hiz_layout)]),
             hiz_level: compute("pyramid level", &hiz_mod, "cs_hiz_level", &[Some(&hiz_layout)]),
@@ -240,32 +346,9 @@ impl GpuCull {
             hiz_layout,
             arena_layout,
             cull_layout,
-            kept: Growable::new(device, "visible primitives", INITIAL_LIST_BYTES, storage),
-            blocks: Growable::new(device, "cull blocks", INITIAL_LIST_BYTES, storage),
-            draws: Growable::new(device, "cull draws", (MAX_DRAWS * size_of::<CullDraw>()) as u64, storage),
-            args: buffer(
-                "indirect primitive draws",
-                MAX_DRAWS as u64 * ARGS_BYTES,
-                wgpu::BufferUsages::INDIRECT | storage,
-            ),
-            params: buffer(
-                "cull parameters",
-                size_of::<CullParams>() as u64,
-                wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            ),
-            counters: buffer(
-                "cull counters",
-                counter_bytes,
-                storage | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
-            ),
-            counters_read: buffer(
-                "cull counters read",
-                counter_bytes,
-                wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            ),
+            views: std::array::from_fn(|_| ViewCull::new(device)),
             count: false,
             counted: false,
-            frame: None,
             min_px,
         }
     }
@@ -275,69 +358,42 @@ impl GpuCull {
         self.pyramid = Pyramid::new(device, &self.hiz_layout, depth, size);
     }
 
-    /// Plan this frame's cull of the camera's `draws` seen through `frustum` from `eye` (`px_per_rad`: pixels a
-    /// radian spans): the draws' table and parameters written, the lists grown to fit. Nothing is culled (the
-    /// draws are drawn whole) where there are no primitives, or more than a storage binding holds.
-    pub(super) fn plan(
-        &mut self,
-        gpu: &GpuCore,
-        draws: &ViewDraws,
-        frustum: &Frustum,
-        eye: glam::Vec3,
-        px_per_rad: f32,
-    ) {
-        self.frame = None;
-        let mut table = Vec::with_capacity(draws.prims.len());
-        let mut blocks = 0u32;
-        for d in draws.prims.iter().take(MAX_DRAWS) {
-            table.push(CullDraw {
-                seg_first: d.seg_first,
-                seg_count: d.seg_count,
-                instances: d.instances,
-                block_first: blocks,
-                visible_base: d.visible_base,
-                index_count: gpu.p.unit_mesh(d.shape, d.tess).index_count,
-                kind: d.shape as u32,
-                pad: 0,
-            });
-            blocks += d.instances.div_ceil(BLOCK);
+    /// Plan this frame's cull of each view (the camera, then each cascade).
+    pub(super) fn plan(&mut self, gpu: &GpuCore, views: [CullView<'_>; CULL_VIEWS]) {
+        for (v, view) in self.views.iter_mut().zip(views) {
+            let (eye, px_per_metre) = match view.scale {
+                Scale::Perspective { eye, px_per_rad } => (eye.extend(px_per_rad), 0.0),
+                Scale::Orthographic { px_per_metre } => (glam::Vec4::ZERO, px_per_metre),
+            };
+            let params = CullParams {
+                planes: view.frustum.planes().map(|p| p.to_array()),
+                eye: eye.to_array(),
+                limits: [self.min_px, if view.occlusion { 1.0 } else { 0.0 }, px_per_metre, 0.0],
+                counts: [0, 0, DISPATCH_ROW, self.pyramid.levels.len() as u32],
+                pyramid_size: [self.pyramid.base.0, self.pyramid.base.1, 0, 0],
+            };
+            v.plan(gpu, view.draws, params);
         }
-        let total: u64 = draws.prims.iter().map(|d| u64::from(d.instances)).sum();
-        let kept_bytes = total * size_of::<[u32; 2]>() as u64;
-        let limit = gpu.device.limits().max_storage_buffer_binding_size;
-        if blocks == 0 || draws.prims.len() > MAX_DRAWS || kept_bytes > limit {
-            return;
-        }
-        let (device, queue) = (&gpu.device, &gpu.queue);
-        self.draws.write(device, queue, bytemuck::cast_slice(&table));
-        self.kept.reserve(device, kept_bytes);
-        // Eight mask words and an offset a block, and the total.
-        self.blocks.reserve(device, (u64::from(blocks) * 9 + 1) * 4);
-        let params = CullParams {
-            planes: frustum.planes().map(|p| p.to_array()),
-            eye: eye.extend(px_per_rad).to_array(),
-            limits: [self.min_px, 1.0, 0.0, 0.0],
-            counts: [table.len() as u32, blocks, DISPATCH_ROW, self.pyramid.levels.len() as u32],
-            pyramid_size: [self.pyramid.base.0, self.pyramid.base.1, 0, 0],
-        };
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        self.frame = Some(CullFrame { blocks, kept_bytes });
     }
 
-    /// Encode the frame's cull: the terrain's depth, the pyramid, and the three passes; what the scene pass draws
-    /// with, or `None` where nothing was planned (draw the primitives whole).
+    /// Encode the frame's cull: the terrain's depth and the pyramid (where the camera culls), then each view's three
+    /// passes; what each view's pass draws with, or `None` for a view where nothing was planned (its primitives are
+    /// drawn whole).
     pub(super) fn encode<'a>(
         &'a self,
         gpu: &GpuCore,
         camera: &GeometryDraws<'_>,
         enc: &mut wgpu::CommandEncoder,
-    ) -> Option<Culled<'a>> {
-        let frame = self.frame.as_ref()?;
+    ) -> [Option<Culled<'a>>; CULL_VIEWS] {
+        let none = || std::array::from_fn(|_| None);
         let (Some(prepass), Some(culled_layout)) = (&gpu.p.terrain_depth, &gpu.p.prims_culled_layout) else {
-            return None;
+            return none();
         };
+        if self.views.iter().all(|v| v.frame.is_none()) {
+            return none();
+        }
         let device = &gpu.device;
-        {
+        if self.views[0].frame.is_some() {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("terrain depth for the cull"),
                 color_attachments: &[],
@@ -352,16 +408,18 @@ impl GpuCull {
             });
             pass.set_bind_group(0, &gpu.globals_bg, &[]);
             camera.terrain(&mut pass, prepass);
+            drop(pass);
+            // A pass a level: each reads the level beneath.
+            for (k, l) in self.pyramid.levels.iter().enumerate() {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("pyramid"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(if k == 0 { &self.hiz_depth } else { &self.hiz_level });
+                pass.set_bind_group(0, &self.pyramid.bg, &[(k as u64 * LEVEL_STRIDE) as u32]);
+                pass.dispatch_workgroups(l.dst_w.div_ceil(8), l.dst_h.div_ceil(8), 1);
+            }
         }
-        // A pass a level: each reads the level beneath.
-        for (k, l) in self.pyramid.levels.iter().enumerate() {
-            let mut pass =
-                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("pyramid"), timestamp_writes: None });
-            pass.set_pipeline(if k == 0 { &self.hiz_depth } else { &self.hiz_level });
-            pass.set_bind_group(0, &self.pyramid.bg, &[(k as u64 * LEVEL_STRIDE) as u32]);
-            pass.dispatch_workgroups(l.dst_w.div_ceil(8), l.dst_h.div_ceil(8), 1);
-        }
-        enc.clear_buffer(&self.counters, 0, None);
         let geometry = camera.geometry;
         let arena = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("cull arena"),
@@ -371,77 +429,97 @@ impl GpuCull {
                 wgpu::BindGroupEntry { binding: 1, resource: geometry.prims.as_entire_binding() },
             ],
         });
-        let kept =
-            wgpu::BufferBinding { buffer: &self.kept.buffer, offset: 0, size: wgpu::BufferSize::new(frame.kept_bytes) };
-        let lists = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("cull"),
-            layout: &self.cull_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::Buffer(kept.clone()) },
-                wgpu::BindGroupEntry { binding: 2, resource: self.draws.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: self.blocks.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: self.args.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 5, resource: self.params.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 6, resource: self.counters.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 7, resource: self.pyramid.buffer.as_entire_binding() },
-            ],
-        });
-        let mut pass =
-            enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("cull"), timestamp_writes: None });
-        pass.set_bind_group(0, &gpu.globals_bg, &[]);
-        pass.set_bind_group(1, &arena, &[]);
-        pass.set_bind_group(2, &lists, &[]);
-        let (x, y) = (frame.blocks.min(DISPATCH_ROW), frame.blocks.div_ceil(DISPATCH_ROW));
-        pass.set_pipeline(&self.cull);
-        pass.dispatch_workgroups(x, y, 1);
-        pass.set_pipeline(&self.scan);
-        pass.dispatch_workgroups(1, 1, 1);
-        pass.set_pipeline(&self.compact);
-        pass.dispatch_workgroups(x, y, 1);
-        drop(pass);
-        if self.count {
-            enc.copy_buffer_to_buffer(&self.counters, 0, &self.counters_read, 0, self.counters.size());
+        let mut out = none();
+        for (v, slot) in self.views.iter().zip(&mut out) {
+            let Some(frame) = &v.frame else { continue };
+            enc.clear_buffer(&v.counters, 0, None);
+            let kept = wgpu::BufferBinding {
+                buffer: &v.kept.buffer,
+                offset: 0,
+                size: wgpu::BufferSize::new(frame.kept_bytes),
+            };
+            let lists = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("cull"),
+                layout: &self.cull_layout,
+                entries: &[
+                    wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::Buffer(kept.clone()) },
+                    wgpu::BindGroupEntry { binding: 2, resource: v.draws.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 3, resource: v.blocks.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 4, resource: v.args.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 5, resource: v.params.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 6, resource: v.counters.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 7, resource: self.pyramid.buffer.as_entire_binding() },
+                ],
+            });
+            let mut pass =
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("cull"), timestamp_writes: None });
+            pass.set_bind_group(0, &gpu.globals_bg, &[]);
+            pass.set_bind_group(1, &arena, &[]);
+            pass.set_bind_group(2, &lists, &[]);
+            let (x, y) = (frame.blocks.min(DISPATCH_ROW), frame.blocks.div_ceil(DISPATCH_ROW));
+            pass.set_pipeline(&self.cull);
+            pass.dispatch_workgroups(x, y, 1);
+            pass.set_pipeline(&self.scan);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(&self.compact);
+            pass.dispatch_workgroups(x, y, 1);
+            drop(pass);
+            if self.count {
+                enc.copy_buffer_to_buffer(&v.counters, 0, &v.counters_read, 0, v.counters.size());
+            }
+            let bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("culled primitives"),
+                layout: culled_layout,
+                entries: &[
+                    wgpu::BindGroupEntry { binding: 0, resource: geometry.segments.buffer.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: geometry.prims.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Buffer(kept) },
+                ],
+            });
+            *slot = Some(Culled { bg, args: &v.args });
         }
-        let bg = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("culled primitives"),
-            layout: culled_layout,
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: geometry.segments.buffer.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: geometry.prims.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Buffer(kept) },
-            ],
-        });
-        Some(Culled { bg, args: &self.args })
+        out
     }
 
     /// Cull nothing this frame (it draws no trees).
     pub(super) fn skip(&mut self) {
-        self.frame = None;
+        self.views.iter_mut().for_each(|v| v.frame = None);
     }
 
     /// Note that the frame just encoded copied its counters out (where [`GpuCull::count`] is on and it culled).
     pub(super) fn encoded(&mut self) {
-        self.counted = self.count && self.frame.is_some();
+        self.counted = self.count && self.views.iter().any(|v| v.frame.is_some());
     }
 
     /// The counters of the last frame culled, once the GPU finished it (blocks until then); `None` if no frame was
     /// counted since the last read.
-    pub(super) fn read_counts(&mut self, device: &wgpu::Device) -> Option<CullCounts> {
+    pub(super) fn read_counts(&mut self, device: &wgpu::Device) -> Option<CulledFrame> {
         if !std::mem::take(&mut self.counted) {
             return None;
         }
-        let (tx, rx) = std::sync::mpsc::channel();
-        self.counters_read.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        device.poll(wgpu::PollType::Wait { submission_index: None, timeout: None }).ok()?;
-        rx.recv().ok()?.ok()?;
-        let words: Vec<u64> = {
-            let view = self.counters_read.get_mapped_range(..).ok()?;
-            view.chunks_exact(4).map(|b| u64::from(u32::from_le_bytes(b.try_into().expect("4 bytes")))).collect()
-        };
-        self.counters_read.unmap();
-        Some(CullCounts { tested: words[0], outside: words[1], small: words[2], occluded: words[3] })
+        let mut frame = CulledFrame::default();
+        for (k, v) in self.views.iter().enumerate() {
+            if v.frame.is_none() {
+                continue;
+            }
+            let (tx, rx) = std::sync::mpsc::channel();
+            v.counters_read.map_async(wgpu::MapMode::Read, .., move |r| {
+                let _ = tx.send(r);
+            });
+            device.poll(wgpu::PollType::Wait { submission_index: None, timeout: None }).ok()?;
+            rx.recv().ok()?.ok()?;
+            let words: Vec<u64> = {
+                let view = v.counters_read.get_mapped_range(..).ok()?;
+                view.chunks_exact(4).map(|b| u64::from(u32::from_le_bytes(b.try_into().expect("4 bytes")))).collect()
+            };
+            v.counters_read.unmap();
+            let into = if k == 0 { &mut frame.camera } else { &mut frame.shadows };
+            into.tested += words[0];
+            into.outside += words[1];
+            into.small += words[2];
+            into.occluded += words[3];
+        }
+        Some(frame)
     }
 }
 

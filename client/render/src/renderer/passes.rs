@@ -34,11 +34,17 @@ impl GeometryDraws<'_> {
         }
     }
 
-    /// The instanced primitives: a draw per unit shape and tessellation (through `pipeline`, or the culled
-    /// pipeline with the arguments the cull wrote).
-    pub(super) fn prims(&self, pass: &mut wgpu::RenderPass<'_>, pipeline: &wgpu::RenderPipeline, p: &Pipelines) {
+    /// The instanced primitives: a draw per unit shape and tessellation, through `whole`, or where the GPU culled
+    /// them, through `culled` with the arguments the cull wrote.
+    pub(super) fn prims(
+        &self,
+        pass: &mut wgpu::RenderPass<'_>,
+        (whole, culled): (&wgpu::RenderPipeline, Option<&wgpu::RenderPipeline>),
+        p: &Pipelines,
+    ) {
         let (false, Some(bg)) = (self.draws.prims.is_empty(), &self.geometry.prims_bg) else { return };
-        let culled = self.culled.zip(p.prims_culled.as_ref());
+        let pipeline = whole;
+        let culled = self.culled.zip(culled);
         match culled {
             Some((c, culled_pipeline)) => {
                 pass.set_pipeline(culled_pipeline);
@@ -171,7 +177,7 @@ impl ScenePass<'_> {
         pass.draw(0..SKY_VERTICES, 0..1);
         self.draws.terrain(&mut pass, &gpu.p.terrain);
         done(&mut pass, Part::Terrain);
-        self.draws.prims(&mut pass, &gpu.p.prims, &gpu.p);
+        self.draws.prims(&mut pass, (&gpu.p.prims, gpu.p.prims_culled.as_ref()), &gpu.p);
         done(&mut pass, Part::Primitives);
         self.draws.meshes(&mut pass, &gpu.p.mesh);
         done(&mut pass, Part::Meshes);

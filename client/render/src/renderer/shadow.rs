@@ -206,7 +206,7 @@ impl ShadowPass {
             });
             pass.set_bind_group(0, bg, &[]);
             draws.terrain(&mut pass, &p.shadow_terrain);
-            draws.prims(&mut pass, &p.shadow_prims, p);
+            draws.prims(&mut pass, (&p.shadow_prims, p.shadow_prims_culled.as_ref()), p);
             draws.meshes(&mut pass, &p.shadow_mesh);
         }
     }

@@ -1,4 +1,4 @@
-//! GPU time per part of a frame ([`Part`]: the sun's shadow maps, the cull, sky and terrain, primitives, meshes, the far
+//! GPU time per part of a frame ([`Part`]: the cull, the sun's shadow maps, sky and terrain, primitives, meshes, the far
 //! field, its composite) from timestamp queries written between and inside the frame's passes — where the adapter
 //! offers them (`canopy render --frames N` reports them). A tiling or software rasteriser (Mesa's lavapipe) runs a
 //! pass's fragments at its end, so there only the whole is meaningful.
@@ -7,11 +7,11 @@
 /// for the first) to the stamp [`PassTimer::done`] writes for it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Part {
-    /// The sun's shadow maps (every cascade).
-    Shadows,
     /// The GPU cull: the terrain's depth, the occlusion pyramid and the cull's passes (`cull.rs`; 0 where the CPU
     /// culls).
     Cull,
+    /// The sun's shadow maps (every cascade).
+    Shadows,
     /// The sky and the terrain.
     Terrain,
     /// The near and mid trees' instanced primitives.
@@ -25,7 +25,7 @@ pub enum Part {
 }
 
 /// The parts' names, in drawing order.
-pub const PARTS: [&str; 7] = ["shadows", "cull", "sky+terrain", "primitives", "meshes", "far field", "composite"];
+pub const PARTS: [&str; 7] = ["cull", "shadows", "sky+terrain", "primitives", "meshes", "far field", "composite"];
 
 /// Timestamps: one at the frame's start and one after each part.
 const STAMPS: u32 = PARTS.len() as u32 + 1;
