@@ -384,8 +384,12 @@ impl LodState {
 pub(crate) struct FramePlan {
     /// Trees to draw from the geometry cache, in instance order.
     pub geo_draws: Vec<GeoDraw>,
-    /// Far instances with their distance, in instance order.
-    far: Vec<(f32, FarInstance)>,
+    /// Far instances, in instance order.
+    far: Vec<FarInstance>,
+    /// Their sort keys: the distance's bits (non-negative floats order as their bits) above the index in `far`.
+    far_keys: Vec<u64>,
+    /// The radix sort's second buffer.
+    far_spare: Vec<u64>,
     /// Far instances front to back, as uploaded.
     pub far_sorted: Vec<FarInstance>,
     /// Geometry wanted and not pending, in instance order.
@@ -445,6 +449,7 @@ impl FramePlan {
         let FrameInputs { scene, residency: res, lod, view, .. } = input;
         self.geo_draws.clear();
         self.far.clear();
+        self.far_keys.clear();
         self.requests.clear();
         let LodState { inst, levels, .. } = state;
         for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
@@ -536,7 +541,8 @@ impl FramePlan {
                         let [x, y, z] = si.position;
                         // The instance's tint rides in the top byte (volume indices stay far below 2²⁴).
                         let volume = (volume & VOLUME_INDEX) | (fold_seed(si.seed) & !VOLUME_INDEX);
-                        self.far.push((dist, FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask }));
+                        self.far_keys.push(u64::from(dist.max(0.0).to_bits()) << 32 | self.far.len() as u64);
+                        self.far.push(FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask });
                     }
                     (Level::Far, None) => {}
                 }
@@ -664,10 +670,12 @@ impl FramePlan {
     }
 
     /// Far instances front to back (they blend under what is in front, and stop where it is opaque).
+    /// Nearest first and, at the same distance, in instance order: a radix sort of the keys' distance bits (sorting
+    /// the 32-byte pairs by their float took 8 ms for 95,000 far instances, the keys by comparison 5 ms).
     fn sort_far(&mut self) {
-        self.far.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        radix_sort_high(&mut self.far_keys, &mut self.far_spare);
         self.far_sorted.clear();
-        self.far_sorted.extend(self.far.iter().map(|&(_, f)| f));
+        self.far_sorted.extend(self.far_keys.iter().map(|&k| self.far[k as u32 as usize]));
     }
 
     /// Terrain chunks in view, each at the coarsest step whose squares stay within [`TERRAIN_SQUARE_PX`] of the
@@ -690,6 +698,32 @@ impl FramePlan {
                 }
             }
         }
+    }
+}
+
+/// Sort `keys` by their high 32 bits, keeping the order of equal ones (an LSD radix sort, 11 bits a pass; `spare`
+/// is scratch).
+fn radix_sort_high(keys: &mut Vec<u64>, spare: &mut Vec<u64>) {
+    const BITS: u32 = 11;
+    spare.clear();
+    spare.resize(keys.len(), 0);
+    for pass in 0..3 {
+        let shift = 32 + pass * BITS;
+        let digit = |k: u64| ((k >> shift) & ((1 << BITS) - 1)) as usize;
+        let mut counts = [0usize; 1 << BITS];
+        for &k in keys.iter() {
+            counts[digit(k)] += 1;
+        }
+        let mut at = 0;
+        for c in counts.iter_mut() {
+            (*c, at) = (at, at + *c);
+        }
+        for &k in keys.iter() {
+            let d = digit(k);
+            spare[counts[d]] = k;
+            counts[d] += 1;
+        }
+        std::mem::swap(keys, spare);
     }
 }
 

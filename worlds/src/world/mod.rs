@@ -124,7 +124,7 @@ mod far_edits;
 mod fractal;
 mod ground;
 mod manifest;
-mod par;
+pub mod par;
 mod populate;
 mod source;
 mod summary;

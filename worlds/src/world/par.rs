@@ -1,6 +1,7 @@
-//! A deterministic parallel map for loading worlds: independent pure jobs run on the available cores and their
-//! results come back in job order, so the outcome never depends on the thread count or the scheduling. Where no
-//! thread can be started (wasm32), the jobs run one after another on the calling thread.
+//! A deterministic parallel map, for loading worlds and for the renderer's per-frame planning: independent pure jobs
+//! run on the available cores and their results come back in job order, so the outcome never depends on the thread
+//! count or the scheduling. Where no thread can be started (wasm32), the jobs run one after another on the calling
+//! thread.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -9,7 +10,7 @@ const MAX_THREADS: usize = 16;
 
 /// `jobs.iter().map(f)`, run on up to [`MAX_THREADS`] threads (the calling one included), results in job order.
 /// `f` gets a per-thread scratch value made by `scratch`, so allocations can be reused across jobs.
-pub(crate) fn map<T: Sync, S, R: Send>(
+pub fn map<T: Sync, S, R: Send>(
     jobs: &[T],
     scratch: impl Fn() -> S + Sync,
     f: impl Fn(&mut S, &T) -> R + Sync,

@@ -51,6 +51,7 @@ impl Renderer {
         let size = self.gpu.size;
         let Some(m) = &mut self.march else { return };
         m.bins.begin(size);
+        let mut boxes = Vec::with_capacity(self.plan.far_sorted.len() + self.forest.patches().len());
         for (i, f) in self.plan.far_sorted.iter().enumerate() {
             let Some(info) = self.far.infos.get((f.volume & crate::select::VOLUME_INDEX) as usize) else { continue };
             let k = f.pos_scale[3] * info.lo[3];
@@ -58,13 +59,14 @@ impl Renderer {
             let corner = |c: [f32; 4]| {
                 pos + k * (Vec3::new(c[0], c[1], c[2]) - Vec3::new(info.origin[0], info.origin[1], info.origin[2]))
             };
-            m.bins.add(i as u32, corner(info.lo), corner(info.hi), view_proj, size);
+            boxes.push((i as u32, corner(info.lo), corner(info.hi)));
         }
         for (i, p) in self.forest.patches().iter().enumerate() {
             if let Some((lo, hi)) = patch_box(p) {
-                m.bins.add(PATCH_BIT | i as u32, lo, hi, view_proj, size);
+                boxes.push((PATCH_BIT | i as u32, lo, hi));
             }
         }
+        m.bins.add_all(&boxes, view_proj, size);
         m.bins.finish();
         m.offsets.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&m.bins.offsets));
         m.items.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&m.bins.items));

@@ -446,3 +446,21 @@ fn each_shadow_cascade_draws_the_trees_in_its_volume_and_those_out_of_view_that_
     assert_eq!(count(&f.plan.camera), 20, "the caster out of view is not drawn by the camera");
     assert!(count(&f.plan.cascades[0]) >= 20, "{}", count(&f.plan.cascades[0]));
 }
+
+#[test]
+fn the_radix_sort_orders_by_the_high_bits_and_keeps_ties_in_order() {
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut keys: Vec<u64> = (0..5000u64)
+        .map(|i| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            // Few distinct high words, so that many keys tie.
+            (rng % 97 * 0x0101_0101 % (1 << 32)) << 32 | i
+        })
+        .collect();
+    let mut expected = keys.clone();
+    expected.sort_by_key(|k| (k >> 32, k & 0xffff_ffff));
+    super::radix_sort_high(&mut keys, &mut Vec::new());
+    assert_eq!(keys, expected);
+}
