@@ -91,17 +91,11 @@ fn prim_sphere(prim: Prim, s: Segment, kind: u32) -> vec4<f32> {
             r = 0.5 * length(prim.shape.xyz);
         }
     }
-    let species = vec3<f32>(
-        dot(prim.r0.xyz, c) + prim.r0.w,
-        dot(prim.r1.xyz, c) + prim.r1.w,
-        dot(prim.r2.xyz, c) + prim.r2.w,
-    );
-    let a = vec3<f32>(prim.r0.x, prim.r1.x, prim.r2.x);
-    let b = vec3<f32>(prim.r0.y, prim.r1.y, prim.r2.y);
-    let z = vec3<f32>(prim.r0.z, prim.r1.z, prim.r2.z);
+    let species = prim_point(prim, c);
     // The Frobenius norm bounds how far the transform stretches any direction (a column's length would not, for a
     // scale after a rotation).
-    let radius = r * sqrt(dot(a, a) + dot(b, b) + dot(z, z));
+    let m = prim_axes(prim);
+    let radius = r * sqrt(dot(m[0], m[0]) + dot(m[1], m[1]) + dot(m[2], m[2]));
     let world = species + s.pos;
     // The wind moves the centre by its offset there; the rest of the primitive by up to the sway's change over its
     // height and the flutter's change over its reach (segment.wgsl `wind_offset`), which the radius grows by.

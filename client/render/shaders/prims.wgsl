@@ -30,6 +30,20 @@ fn vs_prim_culled(@location(0) p: vec4<f32>, @location(1) un: vec4<f32>, @builti
     return shape_prim(p, un, segments[e.x], prims[e.y]);
 }
 
+// A point of the primitive's own space in the species' space.
+fn prim_point(prim: Prim, local: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(
+        dot(prim.r0.xyz, local) + prim.r0.w,
+        dot(prim.r1.xyz, local) + prim.r1.w,
+        dot(prim.r2.xyz, local) + prim.r2.w,
+    );
+}
+
+// The primitive's transform without its translation: its axes as columns.
+fn prim_axes(prim: Prim) -> mat3x3<f32> {
+    return transpose(mat3x3<f32>(prim.r0.xyz, prim.r1.xyz, prim.r2.xyz));
+}
+
 // A vertex `p` (normal `un`) of the unit shape of `draw.kind`, shaped and placed as `prim` of the tree `s`.
 fn shape_prim(p: vec4<f32>, un: vec4<f32>, s: Segment, prim: Prim) -> GeoOut {
     var local: vec3<f32>;
@@ -54,15 +68,12 @@ fn shape_prim(p: vec4<f32>, un: vec4<f32>, s: Segment, prim: Prim) -> GeoOut {
             n = un.xyz;
         }
     }
-    let species = vec3<f32>(
-        dot(prim.r0.xyz, local) + prim.r0.w,
-        dot(prim.r1.xyz, local) + prim.r1.w,
-        dot(prim.r2.xyz, local) + prim.r2.w,
-    );
+    let species = prim_point(prim, local);
     // Normals by the cofactor matrix (the inverse transpose up to the determinant's sign).
-    let a = vec3<f32>(prim.r0.x, prim.r1.x, prim.r2.x);
-    let b = vec3<f32>(prim.r0.y, prim.r1.y, prim.r2.y);
-    let c = vec3<f32>(prim.r0.z, prim.r1.z, prim.r2.z);
+    let m = prim_axes(prim);
+    let a = m[0];
+    let b = m[1];
+    let c = m[2];
     let det = dot(a, cross(b, c));
     let wn = (cross(b, c) * n.x + cross(c, a) * n.y + cross(a, b) * n.z) * sign(det);
     var out: GeoOut;

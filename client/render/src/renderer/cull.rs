@@ -394,18 +394,7 @@ impl GpuCull {
         }
         let device = &gpu.device;
         if self.views[0].frame.is_some() {
-            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("terrain depth for the cull"),
-                color_attachments: &[],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &gpu.depth,
-                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: None,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = super::passes::depth_pass(enc, &gpu.depth, "terrain depth for the cull");
             pass.set_bind_group(0, &gpu.globals_bg, &[]);
             camera.terrain(&mut pass, prepass);
             drop(pass);
@@ -502,17 +491,10 @@ impl GpuCull {
             if v.frame.is_none() {
                 continue;
             }
-            let (tx, rx) = std::sync::mpsc::channel();
-            v.counters_read.map_async(wgpu::MapMode::Read, .., move |r| {
-                let _ = tx.send(r);
-            });
-            device.poll(wgpu::PollType::Wait { submission_index: None, timeout: None }).ok()?;
-            rx.recv().ok()?.ok()?;
-            let words: Vec<u64> = {
-                let view = v.counters_read.get_mapped_range(..).ok()?;
-                view.chunks_exact(4).map(|b| u64::from(u32::from_le_bytes(b.try_into().expect("4 bytes")))).collect()
-            };
-            v.counters_read.unmap();
+            let words: Vec<u64> = super::timing::read_mapped(device, &v.counters_read)?
+                .chunks_exact(4)
+                .map(|b| u64::from(u32::from_le_bytes(b.try_into().expect("4 bytes"))))
+                .collect();
             let into = if k == 0 { &mut frame.camera } else { &mut frame.shadows };
             into.tested += words[0];
             into.outside += words[1];

@@ -188,22 +188,31 @@ impl ScenePass<'_> {
     }
 }
 
-/// The depth resolve, where the scene pass is multisampled. Input: the multisampled depth. Output: the nearest
-/// sample of each pixel in [`GpuCore::depth`], which the far field reads.
-pub(super) fn resolve_depth(gpu: &GpuCore, enc: &mut wgpu::CommandEncoder) {
-    let (Some(m), Some(resolve)) = (&gpu.msaa, &gpu.p.depth_resolve) else { return };
-    let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
-        label: Some("depth resolve"),
+/// A pass that writes only `depth`, cleared first (to 0: reversed Z, the farthest).
+pub(super) fn depth_pass<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    depth: &wgpu::TextureView,
+    label: &str,
+) -> wgpu::RenderPass<'e> {
+    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some(label),
         color_attachments: &[],
         depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-            view: &gpu.depth,
+            view: depth,
             depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Store }),
             stencil_ops: None,
         }),
         timestamp_writes: None,
         occlusion_query_set: None,
         multiview_mask: None,
-    });
+    })
+}
+
+/// The depth resolve, where the scene pass is multisampled. Input: the multisampled depth. Output: the nearest
+/// sample of each pixel in [`GpuCore::depth`], which the far field reads.
+pub(super) fn resolve_depth(gpu: &GpuCore, enc: &mut wgpu::CommandEncoder) {
+    let (Some(m), Some(resolve)) = (&gpu.msaa, &gpu.p.depth_resolve) else { return };
+    let mut pass = depth_pass(enc, &gpu.depth, "depth resolve");
     pass.set_pipeline(resolve);
     pass.set_bind_group(0, &m.resolve_bg, &[]);
     pass.draw(0..SKY_VERTICES, 0..1);

@@ -99,21 +99,28 @@ impl PassTimer {
         if !std::mem::take(&mut self.pending) {
             return None;
         }
-        let (tx, rx) = std::sync::mpsc::channel();
-        self.read.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        device.poll(wgpu::PollType::Wait { submission_index: None, timeout: None }).ok()?;
-        rx.recv().ok()?.ok()?;
-        let ticks: Vec<u64> = {
-            let view = self.read.get_mapped_range(..).ok()?;
-            view.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes"))).collect()
-        };
-        self.read.unmap();
+        let ticks: Vec<u64> = read_mapped(device, &self.read)?
+            .chunks_exact(8)
+            .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+            .collect();
         let mut ms = [0.0; PARTS.len()];
         for (k, m) in ms.iter_mut().enumerate() {
             *m = ticks[k + 1].saturating_sub(ticks[k]) as f64 * self.period / 1e6;
         }
         Some(ms)
     }
+}
+
+/// The bytes of a mappable buffer once the GPU finished what was submitted (blocks until then); `None` where mapping
+/// fails.
+pub(super) fn read_mapped(device: &wgpu::Device, buffer: &wgpu::Buffer) -> Option<Vec<u8>> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    buffer.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    device.poll(wgpu::PollType::Wait { submission_index: None, timeout: None }).ok()?;
+    rx.recv().ok()?.ok()?;
+    let bytes = buffer.get_mapped_range(..).ok()?.to_vec();
+    buffer.unmap();
+    Some(bytes)
 }
