@@ -490,8 +490,8 @@ impl Renderer {
         self.plan_forest(scene, camera, dt, &mut stats);
         self.write_globals(camera, &cascades);
         let (w, h) = self.gpu.size;
+        let vp = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
         if let Some(c) = &mut self.cull {
-            let vp = camera.view_projection(w as f32 / h as f32, self.cfg.near_clip);
             let px_per_rad = h as f32 / (2.0 * camera.tan_half_fov());
             let views: [CullView<'_>; CULL_VIEWS] = std::array::from_fn(|k| match k {
                 0 => CullView {
@@ -510,7 +510,7 @@ impl Renderer {
             c.plan(&self.gpu, views);
         }
         if self.march.is_some() {
-            self.bin_far_field(&camera.view_projection(w as f32 / h as f32, self.cfg.near_clip));
+            self.bin_far_field(&vp);
         }
         stats.instances = scene.instances.len();
         stats.cache_entries = self.cache.len();

@@ -10,6 +10,8 @@ use crate::bins::{PATCH_BIT, TileBins};
 /// The tile lists and their buffers.
 pub(super) struct FarMarch {
     bins: TileBins,
+    /// The frame's far instances' and patches' boxes, in drawing order (kept for its allocation).
+    boxes: Vec<(u32, Vec3, Vec3)>,
     offsets: Growable,
     items: Growable,
 }
@@ -18,6 +20,7 @@ impl FarMarch {
     pub(super) fn new(device: &wgpu::Device) -> FarMarch {
         FarMarch {
             bins: TileBins::default(),
+            boxes: Vec::new(),
             offsets: Growable::new(device, "far-field tiles", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
             items: Growable::new(device, "far-field tile items", INITIAL_LIST_BYTES, wgpu::BufferUsages::STORAGE),
         }
@@ -51,7 +54,8 @@ impl Renderer {
         let size = self.gpu.size;
         let Some(m) = &mut self.march else { return };
         m.bins.begin(size);
-        let mut boxes = Vec::with_capacity(self.plan.far_sorted.len() + self.forest.patches().len());
+        let boxes = &mut m.boxes;
+        boxes.clear();
         for (i, f) in self.plan.far_sorted.iter().enumerate() {
             let Some(info) = self.far.infos.get((f.volume & crate::select::VOLUME_INDEX) as usize) else { continue };
             let k = f.pos_scale[3] * info.lo[3];
@@ -66,7 +70,7 @@ impl Renderer {
                 boxes.push((PATCH_BIT | i as u32, lo, hi));
             }
         }
-        m.bins.add_all(&boxes, view_proj, size);
+        m.bins.add_all(&m.boxes, view_proj, size);
         m.bins.finish();
         m.offsets.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&m.bins.offsets));
         m.items.write(&self.gpu.device, &self.gpu.queue, bytemuck::cast_slice(&m.bins.items));

@@ -43,7 +43,6 @@ impl GeometryDraws<'_> {
         p: &Pipelines,
     ) {
         let (false, Some(bg)) = (self.draws.prims.is_empty(), &self.geometry.prims_bg) else { return };
-        let pipeline = whole;
         let culled = self.culled.zip(culled);
         match culled {
             Some((c, culled_pipeline)) => {
@@ -51,7 +50,7 @@ impl GeometryDraws<'_> {
                 pass.set_bind_group(1, &c.bg, &[]);
             }
             None => {
-                pass.set_pipeline(pipeline);
+                pass.set_pipeline(whole);
                 pass.set_bind_group(1, bg, &[]);
             }
         }
