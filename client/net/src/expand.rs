@@ -436,7 +436,11 @@ mod tests {
 
     /// A cell granted while a coarse far-view node is being computed waits for one block of its leaves, not for
     /// the node: with one worker, the cell is done before the node. A node cancelled while it is computed stops
-    /// within a block: the next far job runs, and the cancelled node's blocks stay short of all of them.
+    /// within a block: the next far job runs, and the cancelled node has that one block.
+    ///
+    /// No race with the worker's speed: the test holds the memo's lock, which the worker's first block of a node
+    /// waits for, from before the node is queued until the worker has taken it and the cell is queued (or the node
+    /// cancelled).
     #[test]
     fn a_cell_goes_between_the_blocks_of_a_far_node() {
         let expander = Expander::new(1, 1 << 20);
@@ -457,11 +461,15 @@ mod tests {
                 done: Box::new(move || tx.send(name).unwrap()),
             }
         };
+        // The worker has taken the node from the queue: it is under way, in its first block.
+        let taken = || {
+            while !expander.inner.queue.locked().far.is_empty() {
+                std::thread::yield_now();
+            }
+        };
+        let gate = world.summaries().locked();
         expander.submit_far(far(node, &Arc::default(), "node"));
-        // The first block is in the memo: the node is under way.
-        while world.summaries().locked().is_empty() {
-            std::thread::yield_now();
-        }
+        taken();
         let cell_tx = tx.clone();
         expander.submit(Job {
             world: Arc::clone(&world),
@@ -470,11 +478,12 @@ mod tests {
             cancelled: Arc::default(),
             done: Box::new(move |_| cell_tx.send("cell").unwrap()),
         });
+        drop(gate);
         assert_eq!([rx.recv().unwrap(), rx.recv().unwrap()], ["cell", "node"]);
         let memo = world.summaries().locked().peek(node).cloned().expect("the node is in the memo");
         assert_eq!(*memo, world.world.node_summary(node));
 
-        // The other 16 blocks' node, cancelled once one of its blocks is in; then a node of one block.
+        // The other 16 blocks' node, cancelled while its first block is computed; then a node of one block.
         let blocks_of = |key: NodeKey| {
             let (memo, side) = (world.summaries().locked(), 1 << (key.level - block));
             let at = |i: i32| NodeKey { level: block, x: key.x * side + i % side, z: key.z * side + i / side };
@@ -482,14 +491,14 @@ mod tests {
         };
         let other = NodeKey::of_cell(CellCoord::new(-32, -32), block + 2);
         let cancel = Arc::new(AtomicBool::new(false));
+        let gate = world.summaries().locked();
         expander.submit_far(far(other, &cancel, "cancelled"));
-        while blocks_of(other) == 0 {
-            std::thread::yield_now();
-        }
+        taken();
         Job::cancel(&cancel);
+        drop(gate);
         expander.submit_far(far(NodeKey::of_cell(CellCoord::new(16, -32), block), &Arc::default(), "small"));
         assert_eq!(rx.recv().unwrap(), "small", "the cancelled node's done is never called");
-        assert!(blocks_of(other) < 16, "the cancelled node stopped within a block: {} of 16", blocks_of(other));
+        assert_eq!(blocks_of(other), 1, "the cancelled node stopped after the block it was computing");
     }
 
     #[test]
