@@ -37,12 +37,17 @@ fn bayer4(p: vec2<f32>) -> f32 {
     return (m[y * 4u + x] + 0.5) / 16.0;
 }
 
-fn dither_keeps(mask: f32, frag: vec2<f32>) -> bool {
-    let b = bayer4(frag);
+// Whether a dither mask keeps the threshold `t` (0..1): m >= 0 keeps those below m, m < 0 those at or above -m, so
+// the two levels of a cross-fade (m and -m) share nothing and leave nothing out.
+fn mask_keeps(mask: f32, t: f32) -> bool {
     if mask >= 0.0 {
-        return b < mask;
+        return t < mask;
     }
-    return b >= -mask;
+    return t >= -mask;
+}
+
+fn dither_keeps(mask: f32, frag: vec2<f32>) -> bool {
+    return mask_keeps(mask, bayer4(frag));
 }
 
 // Aerial perspective. The haze's density is `ρ · exp(−y / H)` (ρ = g.sky_zenith.w at height 0, H = g.haze.x):

@@ -43,10 +43,11 @@ const TRANSLUCENCY: f32 = 0.5;
 override ALPHA_TO_COVERAGE: bool = false;
 
 @fragment
-fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> SceneFragment {
     // Before any discard: its derivative needs the whole quad.
     let coverage = leaf_coverage(in.card);
-    if !dither_keeps(in.mask, in.clip.xy) || coverage <= select(0.5, 0.0, ALPHA_TO_COVERAGE) {
+    let samples = dither_samples(in.mask, in.clip.xy);
+    if samples == 0u || coverage <= select(0.5, 0.0, ALPHA_TO_COVERAGE) {
         discard;
     }
     // Leaves are two-sided: light the side that faces the viewer.
@@ -61,5 +62,5 @@ fn fs_mesh(in: GeoOut, @builtin(front_facing) front: bool) -> @location(0) vec4<
     var lit = shade_occluded(color, n, sun, in.ao);
     // Light through a leaf with the sun behind it: a share of the sun's diffuse light, in the leaf's colour.
     lit += in.thin * TRANSLUCENCY * sun * max(-toward, 0.0) * g.sun_color.w * g.sun_color.rgb * color;
-    return vec4<f32>(with_fog(lit, in.world), select(1.0, coverage, ALPHA_TO_COVERAGE));
+    return SceneFragment(vec4<f32>(with_fog(lit, in.world), select(1.0, coverage, ALPHA_TO_COVERAGE)), samples);
 }

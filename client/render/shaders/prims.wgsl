@@ -116,11 +116,12 @@ fn bark(base: vec3<f32>, b: vec4<f32>, world: vec3<f32>) -> vec3<f32> {
 }
 
 @fragment
-fn fs_prim(in: GeoOut) -> @location(0) vec4<f32> {
-    if !dither_keeps(in.mask, in.clip.xy) {
+fn fs_prim(in: GeoOut) -> SceneFragment {
+    let samples = dither_samples(in.mask, in.clip.xy);
+    if samples == 0u {
         discard;
     }
     let n = normalize(in.normal);
     let lit = shade_occluded(bark(in.color, in.bark, in.world), n, sun_visibility(in.world, n), in.ao);
-    return vec4<f32>(with_fog(lit, in.world), 1.0);
+    return SceneFragment(vec4<f32>(with_fog(lit, in.world), 1.0), samples);
 }

@@ -158,3 +158,27 @@ fn wind_offset(world: vec3<f32>, base: vec3<f32>, seed: u32) -> vec3<f32> {
     let flutter = s * 0.015 * r * sin(5.3 * t + phase + dot(rel, vec3<f32>(0.9, 0.6, 1.3)));
     return dir * (sway + 0.5 * flutter) + vec3<f32>(0.0, flutter, 0.0);
 }
+
+// Samples a pixel of the scene pass: set by the pipeline where the pass is multisampled.
+override SAMPLES: u32 = 1u;
+
+// The samples of a pixel a dithered cross-fade keeps, as a sample mask. Each sample of each pixel of a 4 × 4 block
+// has a threshold of its own, spread evenly over 0..1 (sample s of every pixel between s / SAMPLES and
+// (s + 1) / SAMPLES, in the pixels' Bayer order): half-way through a fade each pixel keeps half its samples of
+// either level and is resolved to their mean, where one sample a pixel leaves a checkerboard of whole pixels.
+fn dither_samples(mask: f32, frag: vec2<f32>) -> u32 {
+    let b = bayer4(frag);
+    var kept = 0u;
+    for (var s = 0u; s < SAMPLES; s++) {
+        if mask_keeps(mask, (f32(s) + b) / f32(SAMPLES)) {
+            kept |= 1u << s;
+        }
+    }
+    return kept;
+}
+
+// A scene-pass fragment of a near or mid tree: its colour and the samples its level's dither keeps.
+struct SceneFragment {
+    @location(0) color: vec4<f32>,
+    @builtin(sample_mask) samples: u32,
+}

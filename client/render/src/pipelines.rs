@@ -40,6 +40,22 @@ pub(crate) const PRIMS_PARTS: [&str; 4] = [COMMON, SHADOW, include_str!("../shad
 /// The parts of the meshes' shader, in order.
 pub(crate) const MESH_PARTS: [&str; 4] = [COMMON, SHADOW, include_str!("../shaders/mesh.wgsl"), SEGMENT];
 
+/// How a render pipeline uses its pass's samples.
+#[derive(Clone, Copy)]
+struct Sampling {
+    /// Samples a pixel.
+    samples: u32,
+    /// The fragment's alpha becomes the share of the samples covered (the leaf cards' margins).
+    alpha_to_coverage: bool,
+    /// The shader's dithered cross-fade keeps samples, not whole pixels (`segment.wgsl` `dither_samples`).
+    dithered: bool,
+}
+
+impl Sampling {
+    /// One sample a pixel (the far field's passes).
+    const SINGLE: Sampling = Sampling { samples: 1, alpha_to_coverage: false, dithered: false };
+}
+
 /// The forest shader's source: its parts with the canopy tile's layout as the shader reads it, from the constants
 /// that bake it.
 pub(crate) fn forest_source() -> String {
@@ -410,9 +426,16 @@ impl Pipelines {
                         cull: Option<wgpu::Face>,
                         depth_stencil: Option<wgpu::DepthStencilState>,
                         targets: &[Option<wgpu::ColorTargetState>],
-                        (samples, alpha_to_coverage): (u32, bool)| {
-            // The shader is told (its override `ALPHA_TO_COVERAGE`) whether its alpha becomes the samples covered.
-            let constants: &[(&str, f64)] = if alpha_to_coverage { &[("ALPHA_TO_COVERAGE", 1.0)] } else { &[] };
+                        Sampling { samples, alpha_to_coverage, dithered }: Sampling| {
+            // The shader is told (its overrides) whether its alpha becomes the samples covered, and how many samples
+            // a pixel its dithered cross-fade spreads over (`segment.wgsl` `dither_samples`).
+            let mut constants: Vec<(&str, f64)> = Vec::new();
+            if alpha_to_coverage {
+                constants.push(("ALPHA_TO_COVERAGE", 1.0));
+            }
+            if dithered && samples > 1 {
+                constants.push(("SAMPLES", f64::from(samples)));
+            }
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
                 layout: Some(layout),
@@ -432,7 +455,10 @@ impl Pipelines {
                 fragment: Some(wgpu::FragmentState {
                     module,
                     entry_point: Some(entry.1),
-                    compilation_options: wgpu::PipelineCompilationOptions { constants, ..Default::default() },
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: &constants,
+                        ..Default::default()
+                    },
                     targets,
                 }),
                 multiview_mask: None,
@@ -487,7 +513,7 @@ impl Pipelines {
             None,
             depth(false, wgpu::CompareFunction::Always),
             &opaque,
-            (samples, false),
+            Sampling { samples, alpha_to_coverage: false, dithered: false },
         );
 
         let terrain_mod = module(device, "terrain", &[COMMON, SHADOW, include_str!("../shaders/terrain.wgsl")]);
@@ -506,7 +532,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
-            (samples, false),
+            Sampling { samples, alpha_to_coverage: false, dithered: false },
         );
         let shadow_terrain = caster(
             "terrain shadow",
@@ -533,7 +559,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &opaque,
-            (samples, false),
+            Sampling { samples, alpha_to_coverage: false, dithered: true },
         );
         let prims_culled_layout = culls.then(|| {
             device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -554,7 +580,7 @@ impl Pipelines {
                 None,
                 depth(true, greater),
                 &opaque,
-                (samples, false),
+                Sampling { samples, alpha_to_coverage: false, dithered: true },
             )
         });
         let terrain_depth = culls.then(|| {
@@ -609,7 +635,7 @@ impl Pipelines {
             None,
             depth(true, greater),
             &mesh_targets,
-            (samples, alpha_to_coverage),
+            Sampling { samples, alpha_to_coverage, dithered: true },
         );
         let shadow_mesh = caster(
             "mesh shadow",
@@ -634,7 +660,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
-            (1, false),
+            Sampling::SINGLE,
         );
 
         let tile_consts = tile_consts();
@@ -661,7 +687,7 @@ impl Pipelines {
             Some(wgpu::Face::Back),
             depth(false, greater),
             &accumulated,
-            (1, false),
+            Sampling::SINGLE,
         );
 
         let bins_consts = format!(
@@ -741,7 +767,7 @@ impl Pipelines {
             None,
             None,
             &premultiplied,
-            (1, false),
+            Sampling::SINGLE,
         );
 
         let frusta = FRUSTUM_SEGMENTS

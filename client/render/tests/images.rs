@@ -3,6 +3,7 @@
 //! file here is compiled only when it is named below, which the house test checks.
 
 mod cull;
+mod fade;
 mod far;
 mod ground;
 mod leaves;
