@@ -1,4 +1,5 @@
-//! Per-frame selection, pure (no GPU, no clock, no threads): from the camera, the scene's instances, their
+//! Per-frame selection, pure (no GPU, no clock; the level choice runs on every core, its lists joined in instance
+//! order, so the plan is the same on any number of cores): from the camera, the scene's instances, their
 //! level-of-detail state and what is resident, a [`FramePlan`] — which instance is in view, in which band and at
 //! which level, which geometry the workers must make, the far instances front to back, the geometry draw lists
 //! packed as the shaders read them, and the terrain chunks with their steps. The renderer submits the jobs and
@@ -6,9 +7,11 @@
 
 use std::collections::HashSet;
 use std::ops::Range;
+use std::sync::Mutex;
 
 use bytemuck::{Pod, Zeroable};
-use canopy_worlds::world::InstanceId;
+use canopy_protocol::sync::Locked;
+use canopy_worlds::world::{InstanceId, par};
 use glam::Vec3;
 
 use super::cache::GeometryCache;
@@ -309,6 +312,126 @@ impl View {
     }
 }
 
+/// Instances one job of the level choice takes: a fixed run, so that the jobs, and the lists joined from them in
+/// instance order, are the same on any number of cores.
+const LEVEL_RUN: usize = 4096;
+
+/// What the level choice lists for one run of instances.
+#[derive(Default)]
+struct ChosenRun {
+    geo_draws: Vec<GeoDraw>,
+    far: Vec<FarInstance>,
+    /// Each far instance's distance from the eye as bits (non-negative floats order as their bits).
+    far_dist: Vec<u32>,
+    requests: Vec<JobRequest>,
+    /// The counts the choice keeps: casters, in view, waiting and the bands.
+    stats: FrameStats,
+}
+
+/// The level choice of the instances from `first` on whose states `run` holds (see [`FramePlan::plan`]).
+fn choose_run(input: &FrameInputs, levels: &[Level], first: usize, run: &mut [InstState]) -> ChosenRun {
+    let FrameInputs { scene, residency: res, lod, view, .. } = input;
+    let mut out = ChosenRun::default();
+    let instances = scene.instances.get(first..).unwrap_or_default();
+    for (idx, (si, st)) in (first..).zip(instances.iter().zip(run.iter_mut())) {
+        let Some(graph) = scene.graph(si.species) else { continue };
+        let vs = res.volume(si.species);
+        let params = st.params;
+        let scale = match (st.scale, vs) {
+            (Some(s), _) => s,
+            (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
+            (None, None) => 1.0,
+        };
+        let (c_off, radius) = match vs {
+            Some(v) => (v.center * scale, v.radius * scale),
+            None => (Vec3::new(0.0, FALLBACK_CENTER_HEIGHT, 0.0) * scale, FALLBACK_RADIUS * scale),
+        };
+        let center = Vec3::from(si.position) + c_off;
+        let dist = (center - view.eye).length();
+        let size = projected_size(radius, dist, view.tan_half, view.height_px);
+        let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
+        if !view.frustum.sphere_visible(center, radius) {
+            // Out of view, it may still cast a shadow into view: drawn for that at the level its size asks for
+            // where resident (without a fade: the shadow pass draws no masks), asked for behind what is seen.
+            if size >= lod.cull_px
+                && view.casts_into_view(center, radius, c_off.y)
+                && let Level::Detail(d) = lod.select(st.target, size)
+            {
+                let k = key(d);
+                if res.cache.get(&k).is_some() {
+                    let sphere = (center, radius);
+                    out.geo_draws.push(GeoDraw { key: k, position: si.position, mask: 1.0, sphere, seen: false });
+                    out.stats.shadow_casters += 1;
+                } else if !res.cache.is_pending(&k) && !res.cache.unavailable(&k) {
+                    out.requests.push(JobRequest { key: k, instance: idx, priority: 0.25 * size });
+                }
+            }
+            continue;
+        }
+        if size < lod.cull_px {
+            continue;
+        }
+        out.stats.in_view += 1;
+        let mut wanted = lod.select(st.target, size);
+        st.target = Some(wanted);
+        if let Level::Detail(d) = wanted
+            && res.cache.unavailable(&key(d))
+        {
+            wanted = Level::Far;
+        }
+        let ready = |l: Level| match l {
+            Level::Detail(d) => res.cache.get(&key(d)).is_some(),
+            Level::Far => vs.is_some(),
+        };
+        if !ready(wanted) {
+            match wanted {
+                Level::Detail(d) => {
+                    if !res.cache.is_pending(&key(d)) {
+                        out.requests.push(JobRequest { key: key(d), instance: idx, priority: size });
+                    }
+                    out.stats.waiting += 1;
+                }
+                Level::Far => {
+                    if res.volume_pending(si.species) {
+                        out.stats.waiting += 1;
+                    }
+                }
+            }
+        }
+        st.lod.step(wanted, view.progress, &ready, levels);
+        match st.lod.shown.map(Level::band) {
+            Some(Band::Near) => out.stats.near += 1,
+            Some(Band::Mid) => out.stats.mid += 1,
+            Some(Band::Far) => out.stats.far += 1,
+            None => out.stats.hidden += 1,
+        }
+        for d in st.lod.draws() {
+            match (d.level, vs) {
+                (Level::Detail(det), _) => out.geo_draws.push(GeoDraw {
+                    key: key(det),
+                    position: si.position,
+                    mask: d.mask,
+                    sphere: (center, radius),
+                    seen: true,
+                }),
+                (Level::Far, Some(v)) => {
+                    // About as many voxels as pixels: one halving of the resolution below `low_res_px` and one
+                    // more for each halving of the size, to the coarsest allowed.
+                    let halvings = (lod.low_res_px / size.max(1e-6)).log2().floor() + 1.0;
+                    let volume = v.levels[halvings.clamp(0.0, f32::from(lod.far_resolutions - 1)) as usize];
+                    let [x, y, z] = si.position;
+                    // The instance's tint rides in the top byte (volume indices stay far below 2²⁴).
+                    let volume = (volume & VOLUME_INDEX) | (fold_seed(si.seed) & !VOLUME_INDEX);
+                    out.far_dist.push(dist.max(0.0).to_bits());
+                    out.far.push(FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask });
+                }
+                (Level::Far, None) => {}
+            }
+        }
+    }
+    out
+}
+
 /// Everything a frame's plan reads.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct FrameInputs<'a> {
@@ -444,109 +567,32 @@ impl FramePlan {
     }
 
     /// Cull, choose each instance's level with hysteresis, ask for what is missing, step the cross-fades and list
-    /// the draws.
+    /// the draws: runs of [`LEVEL_RUN`] instances on every core, their lists joined in instance order.
     fn choose_levels(&mut self, input: &FrameInputs, state: &mut LodState, stats: &mut FrameStats) {
-        let FrameInputs { scene, residency: res, lod, view, .. } = input;
         self.geo_draws.clear();
         self.far.clear();
         self.far_keys.clear();
         self.requests.clear();
         let LodState { inst, levels, .. } = state;
-        for (idx, (si, st)) in scene.instances.iter().zip(inst.iter_mut()).enumerate() {
-            let Some(graph) = scene.graph(si.species) else { continue };
-            let vs = res.volume(si.species);
-            let params = st.params;
-            let scale = match (st.scale, vs) {
-                (Some(s), _) => s,
-                (None, Some(v)) => *st.scale.insert(instance_scale(graph, v.height, si.seed, &si.params)),
-                (None, None) => 1.0,
-            };
-            let (c_off, radius) = match vs {
-                Some(v) => (v.center * scale, v.radius * scale),
-                None => (Vec3::new(0.0, FALLBACK_CENTER_HEIGHT, 0.0) * scale, FALLBACK_RADIUS * scale),
-            };
-            let center = Vec3::from(si.position) + c_off;
-            let dist = (center - view.eye).length();
-            let size = projected_size(radius, dist, view.tan_half, view.height_px);
-            let key = |d: u8| TreeKey { species: si.species, seed: si.seed, detail: d, params };
-            if !view.frustum.sphere_visible(center, radius) {
-                // Out of view, it may still cast a shadow into view: drawn for that at the level its size asks for
-                // where resident (without a fade: the shadow pass draws no masks), asked for behind what is seen.
-                if size >= lod.cull_px
-                    && view.casts_into_view(center, radius, c_off.y)
-                    && let Level::Detail(d) = lod.select(st.target, size)
-                {
-                    let k = key(d);
-                    if res.cache.get(&k).is_some() {
-                        let sphere = (center, radius);
-                        self.geo_draws.push(GeoDraw { key: k, position: si.position, mask: 1.0, sphere, seen: false });
-                        stats.shadow_casters += 1;
-                    } else if !res.cache.is_pending(&k) && !res.cache.unavailable(&k) {
-                        self.requests.push(JobRequest { key: k, instance: idx, priority: 0.25 * size });
-                    }
-                }
-                continue;
-            }
-            if size < lod.cull_px {
-                continue;
-            }
-            stats.in_view += 1;
-            let mut wanted = lod.select(st.target, size);
-            st.target = Some(wanted);
-            if let Level::Detail(d) = wanted
-                && res.cache.unavailable(&key(d))
-            {
-                wanted = Level::Far;
-            }
-            let ready = |l: Level| match l {
-                Level::Detail(d) => res.cache.get(&key(d)).is_some(),
-                Level::Far => vs.is_some(),
-            };
-            if !ready(wanted) {
-                match wanted {
-                    Level::Detail(d) => {
-                        if !res.cache.is_pending(&key(d)) {
-                            self.requests.push(JobRequest { key: key(d), instance: idx, priority: size });
-                        }
-                        stats.waiting += 1;
-                    }
-                    Level::Far => {
-                        if res.volume_pending(si.species) {
-                            stats.waiting += 1;
-                        }
-                    }
-                }
-            }
-            st.lod.step(wanted, view.progress, &ready, levels);
-            match st.lod.shown.map(Level::band) {
-                Some(Band::Near) => stats.near += 1,
-                Some(Band::Mid) => stats.mid += 1,
-                Some(Band::Far) => stats.far += 1,
-                None => stats.hidden += 1,
-            }
-            for d in st.lod.draws() {
-                match (d.level, vs) {
-                    (Level::Detail(det), _) => self.geo_draws.push(GeoDraw {
-                        key: key(det),
-                        position: si.position,
-                        mask: d.mask,
-                        sphere: (center, radius),
-                        seen: true,
-                    }),
-                    (Level::Far, Some(v)) => {
-                        // About as many voxels as pixels: one halving of the resolution below `low_res_px` and one
-                        // more for each halving of the size, to the coarsest allowed.
-                        let halvings = (lod.low_res_px / size.max(1e-6)).log2().floor() + 1.0;
-                        let volume = v.levels[halvings.clamp(0.0, f32::from(lod.far_resolutions - 1)) as usize];
-                        let [x, y, z] = si.position;
-                        // The instance's tint rides in the top byte (volume indices stay far below 2²⁴).
-                        let volume = (volume & VOLUME_INDEX) | (fold_seed(si.seed) & !VOLUME_INDEX);
-                        self.far_keys.push(u64::from(dist.max(0.0).to_bits()) << 32 | self.far.len() as u64);
-                        self.far.push(FarInstance { pos_scale: [x, y, z, scale], volume, mask: d.mask });
-                    }
-                    (Level::Far, None) => {}
-                }
-            }
+        let levels: &[Level] = levels;
+        let runs: Vec<(usize, Mutex<&mut [InstState]>)> =
+            inst.chunks_mut(LEVEL_RUN).enumerate().map(|(k, run)| (k * LEVEL_RUN, Mutex::new(run))).collect();
+        let chosen = par::map(&runs, || (), |(), (first, run)| choose_run(input, levels, *first, &mut run.locked()));
+        for run in chosen {
+            let base = self.far.len();
+            let keys = run.far_dist.iter().enumerate().map(|(i, &d)| u64::from(d) << 32 | (base + i) as u64);
+            self.far_keys.extend(keys);
+            self.far.extend(run.far);
+            self.geo_draws.extend(run.geo_draws);
+            self.requests.extend(run.requests);
+            let c = run.stats;
+            stats.shadow_casters += c.shadow_casters;
+            stats.in_view += c.in_view;
+            stats.waiting += c.waiting;
+            stats.near += c.near;
+            stats.mid += c.mid;
+            stats.far += c.far;
+            stats.hidden += c.hidden;
         }
     }
 

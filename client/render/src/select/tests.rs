@@ -464,3 +464,46 @@ fn the_radix_sort_orders_by_the_high_bits_and_keeps_ties_in_order() {
     super::radix_sort_high(&mut keys, &mut Vec::new());
     assert_eq!(keys, expected);
 }
+
+#[test]
+fn instances_over_many_runs_are_chosen_as_one_run_would_choose_them() {
+    // Three runs and a part: bands, stand-ins, requests and culled instances in every run.
+    let sizes = [800.0, 300.0, 150.0, 80.0, 30.0, 10.0];
+    let n = 3 * LEVEL_RUN + 123;
+    let instances = (0..n)
+        .map(|i| {
+            let [x, y, z] = at_size(sizes[i % sizes.len()]);
+            let z = if i % 7 == 0 { -z } else { z };
+            instance(i as u32, (i % 50) as u64, [x + (i % 13) as f32, y, z])
+        })
+        .collect();
+    let s = scene(instances);
+    let cache = all_resident(0..=29);
+    let vols = ready_volume();
+    let mut runs = Frame::new();
+    runs.run(&s, &cache, &vols, &view(0.0, true), 64);
+
+    let mut one = Frame::new();
+    one.state.sync(s.generation, &s.instances);
+    let residency = Residency { cache: &cache, volumes: &vols };
+    let input = FrameInputs { scene: &s, residency, lod: &one.lod, view: view(0.0, true), terrain: None, job_room: 64 };
+    let whole = choose_run(&input, &one.state.levels.clone(), 0, &mut one.state.inst);
+
+    let same = |a: String, b: String, what: &str| assert!(a == b, "{what} differ");
+    same(format!("{:?}", runs.plan.geo_draws), format!("{:?}", whole.geo_draws), "geometry draws");
+    // The plan has ordered its requests by priority since (stably: instance order among equals).
+    let mut requests = whole.requests.clone();
+    requests.sort_by(|a, b| b.priority.total_cmp(&a.priority));
+    same(format!("{:?}", runs.plan.requests), format!("{requests:?}"), "requests");
+    let mut order: Vec<usize> = (0..whole.far.len()).collect();
+    order.sort_by_key(|&i| (whole.far_dist[i], i));
+    let far: Vec<FarInstance> = order.iter().map(|&i| whole.far[i]).collect();
+    same(format!("{:?}", runs.plan.far_sorted), format!("{far:?}"), "far instances");
+    let counts = |s: &FrameStats| (s.shadow_casters, s.in_view, s.waiting, s.near, s.mid, s.far, s.hidden);
+    assert_eq!(counts(&runs.stats), counts(&whole.stats));
+    same(format!("{:?}", runs.shown()), format!("{:?}", one.shown()), "levels shown");
+    // Every kind of outcome is there to be joined.
+    let c = counts(&runs.stats);
+    assert!(c.1 > 0 && c.2 > 0 && c.3 > 0 && c.4 > 0 && c.5 > 0 && c.1 < n, "{c:?}");
+    assert!(!whole.requests.is_empty() && whole.far.len() > LEVEL_RUN, "{} far", whole.far.len());
+}
