@@ -441,18 +441,22 @@ pub(crate) fn bake_tile(v: &FarVolume, resolution: u32) -> Result<CanopyTile, Ti
     let src = Source { v, step: v.voxel_size.iter().copied().fold(f32::INFINITY, f32::min) * v.units };
     let mut grid = Grid::new([rh, rv, rh], voxel);
     let wrap = |d: f32| d - period * (d / period).round();
+    // The trees whose crowns reach a column of voxels, with their offsets from it: the same all the way up.
+    let mut reaching: Vec<(f32, f32, &Tree)> = Vec::with_capacity(trees.len());
     for z in 0..rh {
-        for y in 0..rv {
-            for x in 0..rh {
-                let p = [(x as f32 + 0.5) * voxel[0], (y as f32 + 0.5) * voxel[1], (z as f32 + 0.5) * voxel[2]];
+        for x in 0..rh {
+            let (px, pz) = ((x as f32 + 0.5) * voxel[0], (z as f32 + 0.5) * voxel[2]);
+            reaching.clear();
+            reaching.extend(trees.iter().filter_map(|t| {
+                let (dx, dz) = (wrap(px - t.at[0]), wrap(pz - t.at[1]));
+                (dx.abs().max(dz.abs()) <= reach * t.scale + voxel[0]).then_some((dx, dz, t))
+            }));
+            for y in 0..rv {
+                let py = (y as f32 + 0.5) * voxel[1];
                 let (mut tau, mut rgb, mut best, mut class) = (0.0f32, [0.0f32; 3], 0.0f32, 0u8);
-                for t in &trees {
-                    let (dx, dz) = (wrap(p[0] - t.at[0]), wrap(p[2] - t.at[1]));
-                    if dx.abs().max(dz.abs()) > reach * t.scale + voxel[0] {
-                        continue;
-                    }
+                for &(dx, dz, t) in &reaching {
                     // Never turned or mirrored: the baked shading has the sun on one side.
-                    let Some((c, per_metre)) = src.sample([dx / t.scale, p[1] / t.scale, dz / t.scale]) else {
+                    let Some((c, per_metre)) = src.sample([dx / t.scale, py / t.scale, dz / t.scale]) else {
                         continue;
                     };
                     // Optical depth of one tile step through this tree, scaled by `scale`.
