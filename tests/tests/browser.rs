@@ -388,8 +388,9 @@ async fn with_webgpu_the_page_draws_the_forest_with_the_native_renderer() {
         assert!(s["renderer"].as_str().is_some_and(|r| r.starts_with("webgpu")), "no WebGPU renderer: {s}");
         // Frames drawn after the area of interest filled: the near trees amplified (a budget a frame).
         let drawn = s["frames"].as_u64().unwrap_or(0);
-        let s = browser
-            .until("frames drawn with the trees", |t| t["frames"].as_u64().unwrap_or(0) >= drawn + 2 && t["jobs"] == 0);
+        let s = browser.until("frames drawn with the trees", |t| {
+            t["frames"].as_u64().unwrap_or(0) >= drawn + 2 && t["settled"] == true
+        });
         // A still page for the screenshot: while SwiftShader draws (seconds a frame on a loaded machine) the renderer
         // does not answer chromedriver, which gives up after 10 s, again and again.
         browser.eval("window.canopyPause(true); return null;");

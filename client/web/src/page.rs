@@ -253,6 +253,9 @@ pub struct PageState {
     pub frames: u64,
     /// The renderer's jobs waiting (amplification, voxelisation, canopy tiles): 0 once what is in view is built.
     pub jobs: usize,
+    /// Whether the last frame drew everything in view at its wanted level (nothing queued, running or waiting for
+    /// its upload).
+    pub settled: bool,
     /// Whether the page said hello with an editor's token (`?token=HEX`).
     pub editor: bool,
     /// The edits asked for lately, oldest first.
@@ -311,6 +314,7 @@ impl PageState {
             renderer: "starting".into(),
             frames: 0,
             jobs: 0,
+            settled: false,
             editor: session.editor(),
             edits: session
                 .edits()

@@ -203,6 +203,7 @@ impl App {
         s.renderer = self.view.describe();
         s.frames = self.view.frames();
         s.jobs = self.view.jobs();
+        s.settled = self.view.settled();
         s
     }
 
