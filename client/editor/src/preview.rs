@@ -305,7 +305,7 @@ impl Preview {
             if self.changed_at.is_some_and(|(_, frames)| frames == 0) {
                 let until = Instant::now() + CHANGE_WAIT;
                 let camera = Preview::camera(ui);
-                while !(stats.settled() && stats.jobs == 0) {
+                while !stats.settled() {
                     let left = until.saturating_duration_since(Instant::now());
                     if left.is_zero() {
                         break;
@@ -319,7 +319,7 @@ impl Preview {
         }
         if let Some((t, frames)) = &mut self.changed_at {
             *frames += 1;
-            if stats.settled() && stats.jobs == 0 {
+            if stats.settled() {
                 self.latency = Some(Latency { millis: t.elapsed().as_secs_f64() * 1e3, frames: *frames });
                 self.changed_at = None;
             }
@@ -329,7 +329,7 @@ impl Preview {
 
     /// Whether the preview still waits for geometry (the window keeps repainting).
     pub fn waiting(&self) -> bool {
-        self.changed_at.is_some() || !self.stats.settled() || self.stats.jobs > 0
+        self.changed_at.is_some() || !self.stats.settled()
     }
 
     /// Block up to `timeout` for the renderer's workers (offscreen frames wait; the window waits only [`CHANGE_WAIT`]

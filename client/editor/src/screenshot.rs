@@ -89,7 +89,7 @@ impl Headless {
             ui.wait_for_volume(&self.ctx, Duration::from_millis(20));
             let mut out = self.run_ui(ui, 0.0);
             self.apply_textures(&mut out);
-            if (!species || (stats.settled() && stats.jobs == 0)) && !ui.busy() {
+            if (!species || stats.settled()) && !ui.busy() {
                 self.wait_for_gpu()?;
                 return Ok(frames);
             }
@@ -108,7 +108,7 @@ impl Headless {
         loop {
             let stats = self.preview.update(&self.gpu.device, &self.gpu.queue, &mut self.egui, ui, 0.0)?;
             updates += 1;
-            if ui.model.species().is_none() || (stats.settled() && stats.jobs == 0) {
+            if ui.model.species().is_none() || stats.settled() {
                 return Ok(updates);
             }
             if started.elapsed() > timeout {

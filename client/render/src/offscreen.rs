@@ -124,7 +124,7 @@ impl Offscreen {
         let started = Instant::now();
         loop {
             let stats = self.renderer.update(scene, camera, 1.0);
-            if stats.settled() && stats.jobs == 0 {
+            if stats.settled() {
                 return Ok(stats);
             }
             if started.elapsed() > timeout {

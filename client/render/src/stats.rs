@@ -68,8 +68,9 @@ pub struct FrameStats {
 }
 
 impl FrameStats {
-    /// Whether nothing in view waits for a worker or an upload, and the far field's ground and tiles are made.
+    /// Whether the frame drew everything in view at its wanted level: nothing in view waits for a worker or an
+    /// upload, no job is queued or running, and the far field's ground and tiles are made.
     pub fn settled(&self) -> bool {
-        self.waiting == 0 && self.uploads_waiting == 0 && self.forest_waiting == 0
+        self.waiting == 0 && self.uploads_waiting == 0 && self.forest_waiting == 0 && self.jobs == 0
     }
 }

@@ -152,7 +152,7 @@ impl View {
     /// Whether the last frame drew everything in view at its wanted level: no job queued or running, no geometry
     /// waiting for its upload, the far field's tiles made (what `Offscreen::settle` waits for natively).
     pub(super) fn settled(&self) -> bool {
-        self.frames > 0 && self.stats.jobs == 0 && self.stats.settled()
+        self.frames > 0 && self.stats.settled()
     }
 
     /// The HUD's line about the 3D view.
