@@ -316,8 +316,8 @@ impl View {
 /// instance order, are the same on any number of cores.
 const LEVEL_RUN: usize = 4096;
 
-/// What the level choice lists for one run of instances.
-#[derive(Default)]
+/// What the level choice lists for one run of instances (kept between frames, as the plan is).
+#[derive(Debug, Default)]
 struct ChosenRun {
     geo_draws: Vec<GeoDraw>,
     far: Vec<FarInstance>,
@@ -328,10 +328,15 @@ struct ChosenRun {
     stats: FrameStats,
 }
 
-/// The level choice of the instances from `first` on whose states `run` holds (see [`FramePlan::plan`]).
-fn choose_run(input: &FrameInputs, levels: &[Level], first: usize, run: &mut [InstState]) -> ChosenRun {
+/// The level choice of the instances from `first` on whose states `run` holds, listed into `out` (emptied first; see
+/// [`FramePlan::plan`]).
+fn choose_run(input: &FrameInputs, levels: &[Level], first: usize, run: &mut [InstState], out: &mut ChosenRun) {
     let FrameInputs { scene, residency: res, lod, view, .. } = input;
-    let mut out = ChosenRun::default();
+    out.geo_draws.clear();
+    out.far.clear();
+    out.far_dist.clear();
+    out.requests.clear();
+    out.stats = FrameStats::default();
     let instances = scene.instances.get(first..).unwrap_or_default();
     for (idx, (si, st)) in (first..).zip(instances.iter().zip(run.iter_mut())) {
         let Some(graph) = scene.graph(si.species) else { continue };
@@ -429,7 +434,6 @@ fn choose_run(input: &FrameInputs, levels: &[Level], first: usize, run: &mut [In
             }
         }
     }
-    out
 }
 
 /// Everything a frame's plan reads.
@@ -507,6 +511,8 @@ impl LodState {
 pub(crate) struct FramePlan {
     /// Trees to draw from the geometry cache, in instance order.
     pub geo_draws: Vec<GeoDraw>,
+    /// What each run of the level choice listed, joined into the lists here.
+    runs: Vec<ChosenRun>,
     /// Far instances, in instance order.
     far: Vec<FarInstance>,
     /// Their sort keys: the distance's bits (non-negative floats order as their bits) above the index in `far`.
@@ -575,17 +581,29 @@ impl FramePlan {
         self.requests.clear();
         let LodState { inst, levels, .. } = state;
         let levels: &[Level] = levels;
-        let runs: Vec<(usize, Mutex<&mut [InstState]>)> =
-            inst.chunks_mut(LEVEL_RUN).enumerate().map(|(k, run)| (k * LEVEL_RUN, Mutex::new(run))).collect();
-        let chosen = par::map(&runs, || (), |(), (first, run)| choose_run(input, levels, *first, &mut run.locked()));
-        for run in chosen {
+        self.runs.resize_with(inst.len().div_ceil(LEVEL_RUN), ChosenRun::default);
+        let runs: Vec<_> = (inst.chunks_mut(LEVEL_RUN))
+            .zip(self.runs.iter_mut())
+            .enumerate()
+            .map(|(k, run)| (k * LEVEL_RUN, Mutex::new(run)))
+            .collect();
+        par::map(
+            &runs,
+            || (),
+            |(), (first, run)| {
+                let (states, out) = &mut *run.locked();
+                choose_run(input, levels, *first, states, out);
+            },
+        );
+        drop(runs);
+        for run in &self.runs {
             let base = self.far.len();
             let keys = run.far_dist.iter().enumerate().map(|(i, &d)| u64::from(d) << 32 | (base + i) as u64);
             self.far_keys.extend(keys);
-            self.far.extend(run.far);
-            self.geo_draws.extend(run.geo_draws);
-            self.requests.extend(run.requests);
-            let c = run.stats;
+            self.far.extend_from_slice(&run.far);
+            self.geo_draws.extend_from_slice(&run.geo_draws);
+            self.requests.extend_from_slice(&run.requests);
+            let c = &run.stats;
             stats.shadow_casters += c.shadow_casters;
             stats.in_view += c.in_view;
             stats.waiting += c.waiting;

@@ -7,21 +7,13 @@
 use std::time::Duration;
 
 use canopy_render::offscreen::{Offscreen, RenderedImage};
-use canopy_render::volume::REPRESENTATIVE_SEED;
-use canopy_render::{Camera, LodConfig, RenderConfig, Scene, Shadows, Wind};
-use canopy_worlds::world::Terrain;
+use canopy_render::{Camera, LodConfig, RenderConfig, Shadows, Wind};
 use glam::Vec3;
 
-use super::sun::config;
+use super::sun::{config, tree};
 
 const SIZE: (u32, u32) = (256, 192);
 const SETTLE: Duration = Duration::from_secs(300);
-
-/// The representative monopodial tree on flat ground.
-fn scene() -> Scene {
-    let graph = canopy_worlds::library::find("monopodial").expect("library species").load().expect("parses");
-    Scene::lone(graph, REPRESENTATIVE_SEED, Terrain::flat([-200.0, -200.0], 400.0))
-}
 
 /// Looking at the tree from `distance` metres, always from the same side.
 fn camera(distance: f32) -> Camera {
@@ -45,7 +37,7 @@ fn pictures(msaa: u32) -> [RenderedImage; 3] {
     const FAR: f32 = 60.0;
     // Full detail from 200 px: the tree is well above it from 20 m and well below from 60 m.
     const NEAR_PX: f32 = 200.0;
-    let scene = scene();
+    let scene = tree();
     let settled = |near_px: f32, level: fn(&canopy_render::FrameStats) -> usize| {
         let mut off = renderer(near_px, msaa);
         let stats = off.settle(&scene, &camera(FAR), SETTLE).unwrap_or_else(|e| panic!("{e}"));

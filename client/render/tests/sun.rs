@@ -19,11 +19,16 @@ pub(super) fn reference(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/reference").join(name)
 }
 
-/// The representative monopodial tree at the origin of a flat ground, seen from above and to the side so that its
-/// shadow (the sun is the default: up and to −x, +z) falls in view.
-fn tree_and_camera() -> (Scene, Camera) {
+/// The representative monopodial tree at the origin of a flat ground.
+pub(super) fn tree() -> Scene {
     let graph = canopy_worlds::library::find("monopodial").expect("library species").load().expect("parses");
-    let scene = Scene::lone(graph, REPRESENTATIVE_SEED, Terrain::flat([-200.0, -200.0], 400.0));
+    Scene::lone(graph, REPRESENTATIVE_SEED, Terrain::flat([-200.0, -200.0], 400.0))
+}
+
+/// [`tree`], seen from above and to the side so that its shadow (the sun is the default: up and to −x, +z) falls in
+/// view.
+fn tree_and_camera() -> (Scene, Camera) {
+    let scene = tree();
     let camera = Camera::looking_at(Vec3::new(-14.0, 17.0, -19.0), Vec3::new(3.0, 3.0, -3.0), 55.0);
     (scene, camera)
 }

@@ -487,7 +487,8 @@ fn instances_over_many_runs_are_chosen_as_one_run_would_choose_them() {
     one.state.sync(s.generation, &s.instances);
     let residency = Residency { cache: &cache, volumes: &vols };
     let input = FrameInputs { scene: &s, residency, lod: &one.lod, view: view(0.0, true), terrain: None, job_room: 64 };
-    let whole = choose_run(&input, &one.state.levels.clone(), 0, &mut one.state.inst);
+    let mut whole = ChosenRun::default();
+    choose_run(&input, &one.state.levels.clone(), 0, &mut one.state.inst, &mut whole);
 
     let same = |a: String, b: String, what: &str| assert!(a == b, "{what} differ");
     same(format!("{:?}", runs.plan.geo_draws), format!("{:?}", whole.geo_draws), "geometry draws");
